@@ -1,0 +1,1 @@
+//! s3res-bootstrap library: the system description and the launcher.

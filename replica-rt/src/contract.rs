@@ -1,0 +1,142 @@
+//! The contract between a component process and whoever starts it (bootstrap for an unprotected
+//! component, the voter for a replica): environment variables, the port map, the restart
+//! handshake on the voter's socket, and the signals.
+//!
+//! This crate *receives* these, so it defines them (see DESIGN.md, "Dependencies").
+
+use std::os::fd::RawFd;
+
+use serde::{Deserialize, Serialize};
+
+/// JSON [`PortMap`]: which inherited fd is which named port.
+pub const ENV_PORTS: &str = "S3RES_PORTS";
+/// Path of the voter's Unix socket; present only when the process runs as a replica.
+pub const ENV_VOTER_SOCKET: &str = "S3RES_VOTER_SOCKET";
+/// Replica index (0-based) given at start; informational (a forked replica keeps its donor's).
+pub const ENV_REPLICA: &str = "S3RES_REPLICA";
+/// Name of the component in the system description.
+pub const ENV_COMPONENT: &str = "S3RES_COMPONENT";
+
+/// Largest number of ports one component may have (inputs plus outputs). The restart handler
+/// uses fixed-size arrays of this length, because it may not allocate.
+pub const MAX_PORTS: usize = 32;
+
+/// Direction of a port, seen from the component.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Direction {
+    In,
+    Out,
+}
+
+/// One named port and the fd it lives on.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PortSpec {
+    pub name: String,
+    pub dir: Direction,
+    pub fd: RawFd,
+    /// Largest payload accepted on this port.
+    pub max_frame: usize,
+}
+
+/// All ports of a component, in the order their fds were assigned.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PortMap {
+    pub ports: Vec<PortSpec>,
+}
+
+impl PortMap {
+    pub fn to_env(&self) -> String {
+        serde_json::to_string(self).expect("a port map always serializes")
+    }
+
+    pub fn from_env(s: &str) -> Result<Self, serde_json::Error> {
+        serde_json::from_str(s)
+    }
+
+    pub fn get(&self, name: &str, dir: Direction) -> Option<&PortSpec> {
+        self.ports.iter().find(|p| p.name == name && p.dir == dir)
+    }
+}
+
+/// First fd number given to ports; 0–2 stay stdin/stdout/stderr.
+pub const FIRST_PORT_FD: RawFd = 3;
+
+/// The restart handshake, on the voter's `SOCK_STREAM` Unix socket:
+///
+/// 1. the new replica (the donor's fork child) connects;
+/// 2. the voter checks `SO_PEERCRED`, then sends one message: [`FdTransfer`] as the payload and
+///    the new pipe fds as `SCM_RIGHTS`, in the same order as `targets`;
+/// 3. the replica `dup2`s each fd onto its target number, closes the received copy, and answers
+///    with [`Ready`];
+/// 4. both close the connection.
+pub mod handshake {
+    use super::MAX_PORTS;
+
+    /// Voter → replica payload: how many fds follow and which fd number each must end up on.
+    /// Fixed-size and plain-old-data so the signal handler can receive it without allocating.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct FdTransfer {
+        pub magic: u32,
+        pub count: u32,
+        pub targets: [i32; MAX_PORTS],
+    }
+
+    /// Replica → voter: the fds are in place.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct Ready {
+        pub magic: u32,
+        pub pid: i32,
+    }
+
+    pub const TRANSFER_MAGIC: u32 = u32::from_le_bytes(*b"S3fd");
+    pub const READY_MAGIC: u32 = u32::from_le_bytes(*b"S3ok");
+
+    impl FdTransfer {
+        pub fn as_bytes(&self) -> &[u8] {
+            // SAFETY: repr(C) struct of integers only, no padding (4-byte fields), so every
+            // byte is initialised and the slice covers exactly the struct.
+            unsafe {
+                std::slice::from_raw_parts(
+                    (self as *const Self).cast::<u8>(),
+                    std::mem::size_of::<Self>(),
+                )
+            }
+        }
+    }
+
+    impl Ready {
+        pub const SIZE: usize = std::mem::size_of::<Ready>();
+
+        pub fn to_bytes(self) -> [u8; Self::SIZE] {
+            let mut out = [0u8; Self::SIZE];
+            out[..4].copy_from_slice(&self.magic.to_ne_bytes());
+            out[4..].copy_from_slice(&self.pid.to_ne_bytes());
+            out
+        }
+
+        pub fn from_bytes(b: [u8; Self::SIZE]) -> Self {
+            Ready {
+                magic: u32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
+                pid: i32::from_ne_bytes([b[4], b[5], b[6], b[7]]),
+            }
+        }
+    }
+}
+
+/// Signals a replica understands. The voter and the injectors send them; replica-rt handles them.
+pub mod signals {
+    /// Fork yourself; the child reconnects to the voter (see [`super::handshake`]).
+    pub const RESTART: libc::c_int = libc::SIGUSR1;
+    /// Injection: corrupt the next outgoing frame. Sent with `sigqueue`, the value is the bit to
+    /// flip (bit 0 is the lowest bit of the first payload byte); sent with `kill` (or a negative
+    /// value), the bit is chosen at random and logged.
+    pub const INJECT_SDC: libc::c_int = libc::SIGUSR2;
+
+    /// Injection: enter an endless loop (a control-flow error that never answers).
+    pub fn inject_cfe() -> libc::c_int {
+        libc::SIGRTMIN() + 2
+    }
+}

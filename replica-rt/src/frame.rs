@@ -1,0 +1,212 @@
+//! Frames: the unit of everything that crosses a channel, and the unit of voting.
+//!
+//! A frame is a 4-byte little-endian length followed by that many bytes. Each channel has a
+//! maximum frame size; a length above it is a protocol error, never an allocation.
+
+use thiserror::Error;
+
+/// Size of the length prefix.
+pub const HEADER_LEN: usize = 4;
+
+/// Default maximum payload size of a channel (64 KiB).
+pub const DEFAULT_MAX_FRAME: usize = 64 * 1024;
+
+/// What can be wrong with the bytes on a channel.
+#[derive(Debug, Error, Clone, PartialEq, Eq)]
+pub enum FrameError {
+    /// The length prefix announces more than the channel allows.
+    #[error("frame length {len} exceeds the channel maximum of {max} bytes")]
+    Oversized { len: usize, max: usize },
+    /// The writer closed the channel in the middle of a frame.
+    #[error("channel closed after {have} of {want} bytes of a frame")]
+    Truncated { have: usize, want: usize },
+}
+
+/// The 4-byte header for a payload of `len` bytes.
+pub fn header(len: usize) -> [u8; HEADER_LEN] {
+    (len as u32).to_le_bytes()
+}
+
+/// Appends a whole frame (header and payload) to `out`.
+pub fn encode_into(payload: &[u8], out: &mut Vec<u8>) {
+    out.extend_from_slice(&header(payload.len()));
+    out.extend_from_slice(payload);
+}
+
+/// Incremental frame decoder: bytes go in as they arrive (in any split), whole frames come out.
+///
+/// The buffer is reused, so a decoder in steady state does not allocate.
+#[derive(Debug)]
+pub struct FrameDecoder {
+    max: usize,
+    buf: Vec<u8>,
+    /// Start of the undecoded bytes in `buf`.
+    start: usize,
+}
+
+impl FrameDecoder {
+    pub fn new(max: usize) -> Self {
+        FrameDecoder {
+            max,
+            buf: Vec::with_capacity(HEADER_LEN + max.min(DEFAULT_MAX_FRAME)),
+            start: 0,
+        }
+    }
+
+    pub fn max_frame(&self) -> usize {
+        self.max
+    }
+
+    /// Bytes received but not yet returned as frames.
+    pub fn pending(&self) -> usize {
+        self.buf.len() - self.start
+    }
+
+    /// Appends received bytes.
+    pub fn push(&mut self, bytes: &[u8]) {
+        self.compact();
+        self.buf.extend_from_slice(bytes);
+    }
+
+    /// Gives a spare region of at least `want` bytes to read into; call [`commit`](Self::commit)
+    /// with how many were filled. Saves the copy of [`push`](Self::push) on the hot path.
+    pub fn spare(&mut self, want: usize) -> &mut [u8] {
+        self.compact();
+        let len = self.buf.len();
+        self.buf.resize(len + want, 0);
+        &mut self.buf[len..]
+    }
+
+    /// Keeps `filled` bytes of the last [`spare`](Self::spare) region and drops the rest.
+    pub fn commit(&mut self, spare_len: usize, filled: usize) {
+        debug_assert!(filled <= spare_len);
+        let new_len = self.buf.len() - spare_len + filled;
+        self.buf.truncate(new_len);
+    }
+
+    /// The next whole frame's payload, if one has arrived.
+    pub fn next_frame(&mut self) -> Result<Option<&[u8]>, FrameError> {
+        let avail = &self.buf[self.start..];
+        if avail.len() < HEADER_LEN {
+            return Ok(None);
+        }
+        let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
+        if len > self.max {
+            return Err(FrameError::Oversized { len, max: self.max });
+        }
+        if avail.len() < HEADER_LEN + len {
+            return Ok(None);
+        }
+        let from = self.start + HEADER_LEN;
+        self.start = from + len;
+        Ok(Some(&self.buf[from..from + len]))
+    }
+
+    /// Called at end of stream: an error if a frame was cut off.
+    pub fn finish(&self) -> Result<(), FrameError> {
+        let avail = &self.buf[self.start..];
+        match avail.len() {
+            0 => Ok(()),
+            n if n < HEADER_LEN => Err(FrameError::Truncated { have: n, want: HEADER_LEN }),
+            n => {
+                let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
+                Err(FrameError::Truncated { have: n, want: HEADER_LEN + len })
+            }
+        }
+    }
+
+    /// Takes every byte not yet decoded (used when a stream changes hands).
+    pub fn take_pending(&mut self) -> Vec<u8> {
+        let rest = self.buf[self.start..].to_vec();
+        self.buf.clear();
+        self.start = 0;
+        rest
+    }
+
+    fn compact(&mut self) {
+        if self.start == 0 {
+            return;
+        }
+        if self.start == self.buf.len() {
+            self.buf.clear();
+        } else {
+            self.buf.drain(..self.start);
+        }
+        self.start = 0;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn encode_all(frames: &[Vec<u8>]) -> Vec<u8> {
+        let mut out = Vec::new();
+        for f in frames {
+            encode_into(f, &mut out);
+        }
+        out
+    }
+
+    proptest! {
+        /// Any split of a valid stream decodes to the same frames.
+        #[test]
+        fn any_split_decodes_the_same(
+            frames in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..300), 0..20),
+            cuts in proptest::collection::vec(1usize..97, 0..40),
+        ) {
+            let bytes = encode_all(&frames);
+            let mut dec = FrameDecoder::new(1024);
+            let mut got = Vec::new();
+            let mut pos = 0;
+            let mut cuts = cuts.into_iter();
+            while pos < bytes.len() {
+                let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
+                dec.push(&bytes[pos..pos + step]);
+                pos += step;
+                while let Some(f) = dec.next_frame().unwrap() {
+                    got.push(f.to_vec());
+                }
+            }
+            prop_assert_eq!(got, frames);
+            prop_assert!(dec.finish().is_ok());
+        }
+
+        /// A length above the maximum is an error however the header arrives, never a panic.
+        #[test]
+        fn oversized_is_rejected(len in 1025u32.., split in 0usize..4) {
+            let mut dec = FrameDecoder::new(1024);
+            let h = len.to_le_bytes();
+            dec.push(&h[..split]);
+            prop_assert_eq!(dec.next_frame(), Ok(None));
+            dec.push(&h[split..]);
+            prop_assert_eq!(dec.next_frame(), Err(FrameError::Oversized { len: len as usize, max: 1024 }));
+        }
+
+        /// A stream cut anywhere inside a frame reports truncation at the end.
+        #[test]
+        fn truncation_is_reported(payload in proptest::collection::vec(any::<u8>(), 1..200), cut_back in 1usize..200) {
+            let mut bytes = encode_all(&[payload]);
+            let cut = cut_back.min(bytes.len() - 1);
+            bytes.truncate(bytes.len() - cut);
+            let mut dec = FrameDecoder::new(1024);
+            dec.push(&bytes);
+            prop_assert_eq!(dec.next_frame(), Ok(None));
+            let truncated = matches!(dec.finish(), Err(FrameError::Truncated { .. }));
+            prop_assert!(truncated);
+        }
+    }
+
+    #[test]
+    fn spare_and_commit_roundtrip() {
+        let mut dec = FrameDecoder::new(16);
+        let bytes = encode_all(&[b"abc".to_vec()]);
+        let spare = dec.spare(64);
+        spare[..bytes.len()].copy_from_slice(&bytes);
+        dec.commit(64, bytes.len());
+        assert_eq!(dec.next_frame().unwrap(), Some(&b"abc"[..]));
+        assert_eq!(dec.next_frame().unwrap(), None);
+        assert_eq!(dec.pending(), 0);
+    }
+}

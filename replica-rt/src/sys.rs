@@ -1,0 +1,307 @@
+//! The syscall boundary of s3res. Every `unsafe` block of the project that talks to the kernel
+//! lives here or in the restart handler, each in a small function with its safety argument.
+//! The voter and bootstrap use these too (dependencies point bootstrap → voter → replica-rt).
+
+use std::ffi::CString;
+use std::io;
+use std::os::fd::{AsRawFd, BorrowedFd, FromRawFd, OwnedFd, RawFd};
+use std::os::unix::process::CommandExt;
+use std::process::Command;
+use std::time::Duration;
+
+fn cvt(ret: libc::c_int) -> io::Result<libc::c_int> {
+    if ret < 0 {
+        Err(io::Error::last_os_error())
+    } else {
+        Ok(ret)
+    }
+}
+
+/// A pipe whose both ends are close-on-exec: `(read, write)`.
+pub fn pipe() -> io::Result<(OwnedFd, OwnedFd)> {
+    let mut fds = [0 as libc::c_int; 2];
+    // SAFETY: `fds` is a valid, writable array of two c_ints as pipe2 requires.
+    cvt(unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC) })?;
+    // SAFETY: pipe2 succeeded, so both fds are open and owned by nobody else.
+    Ok(unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) })
+}
+
+/// Sets or clears `O_NONBLOCK`.
+pub fn set_nonblocking(fd: BorrowedFd<'_>, on: bool) -> io::Result<()> {
+    // SAFETY: F_GETFL/F_SETFL on a borrowed (hence open) fd touch no memory of ours.
+    let flags = cvt(unsafe { libc::fcntl(fd.as_raw_fd(), libc::F_GETFL) })?;
+    let flags = if on {
+        flags | libc::O_NONBLOCK
+    } else {
+        flags & !libc::O_NONBLOCK
+    };
+    // SAFETY: as above.
+    cvt(unsafe { libc::fcntl(fd.as_raw_fd(), libc::F_SETFL, flags) })?;
+    Ok(())
+}
+
+/// `read(2)` into `buf`; `Ok(0)` is end of stream. EINTR is retried.
+pub fn read(fd: BorrowedFd<'_>, buf: &mut [u8]) -> io::Result<usize> {
+    loop {
+        // SAFETY: `buf` is valid for writes of `buf.len()` bytes for the duration of the call.
+        let n = unsafe { libc::read(fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
+        if n >= 0 {
+            return Ok(n as usize);
+        }
+        let e = io::Error::last_os_error();
+        if e.kind() != io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+}
+
+/// `write(2)` from `buf`; may write less than all of it. EINTR is retried.
+pub fn write(fd: BorrowedFd<'_>, buf: &[u8]) -> io::Result<usize> {
+    loop {
+        // SAFETY: `buf` is valid for reads of `buf.len()` bytes for the duration of the call.
+        let n = unsafe { libc::write(fd.as_raw_fd(), buf.as_ptr().cast(), buf.len()) };
+        if n >= 0 {
+            return Ok(n as usize);
+        }
+        let e = io::Error::last_os_error();
+        if e.kind() != io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+}
+
+/// A pidfd for `pid`: readable once the process has exited, usable for signals without pid
+/// reuse races. Works for any process we may signal, not only our children.
+pub fn pidfd_open(pid: libc::pid_t) -> io::Result<OwnedFd> {
+    // SAFETY: pidfd_open takes two integers and returns a new fd or -1.
+    let fd = unsafe { libc::syscall(libc::SYS_pidfd_open, pid, 0) };
+    if fd < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    // SAFETY: the kernel just created this fd for us; it is open and unowned.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd as RawFd) })
+}
+
+/// Sends `sig` to the process behind `pidfd`.
+pub fn pidfd_send_signal(pidfd: BorrowedFd<'_>, sig: libc::c_int) -> io::Result<()> {
+    // SAFETY: a null siginfo is allowed (the kernel fills in SI_USER); no memory is shared.
+    let r = unsafe {
+        libc::syscall(
+            libc::SYS_pidfd_send_signal,
+            pidfd.as_raw_fd(),
+            sig,
+            std::ptr::null::<libc::siginfo_t>(),
+            0,
+        )
+    };
+    if r < 0 {
+        Err(io::Error::last_os_error())
+    } else {
+        Ok(())
+    }
+}
+
+/// Sends `sig` to `pid` with an integer value (readable by an SA_SIGINFO handler).
+pub fn sigqueue(pid: libc::pid_t, sig: libc::c_int, value: i32) -> io::Result<()> {
+    let val = libc::sigval {
+        sival_ptr: value as isize as *mut libc::c_void,
+    };
+    // SAFETY: sigqueue copies `val` by value; no pointer in it is dereferenced by anyone
+    // (the receiver reads it back as an integer).
+    cvt(unsafe { libc::sigqueue(pid, sig, val) })?;
+    Ok(())
+}
+
+/// `kill(2)`.
+pub fn kill(pid: libc::pid_t, sig: libc::c_int) -> io::Result<()> {
+    // SAFETY: plain integer arguments.
+    cvt(unsafe { libc::kill(pid, sig) })?;
+    Ok(())
+}
+
+/// Makes this process a child subreaper: orphaned descendants are re-parented to us, not to
+/// init, so we can reap them and nothing escapes our bookkeeping.
+pub fn set_child_subreaper() -> io::Result<()> {
+    // SAFETY: PR_SET_CHILD_SUBREAPER takes an integer flag only.
+    cvt(unsafe { libc::prctl(libc::PR_SET_CHILD_SUBREAPER, 1 as libc::c_ulong, 0, 0, 0) })?;
+    Ok(())
+}
+
+/// Exit status of a reaped child, as the shell would put it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExitStatus {
+    Code(i32),
+    Signal(i32),
+}
+
+impl ExitStatus {
+    pub fn success(self) -> bool {
+        self == ExitStatus::Code(0)
+    }
+}
+
+impl std::fmt::Display for ExitStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ExitStatus::Code(c) => write!(f, "exit status {c}"),
+            ExitStatus::Signal(s) => write!(f, "killed by signal {s}"),
+        }
+    }
+}
+
+/// Reaps one exited child without blocking: `Ok(None)` when no child has exited (or none is
+/// left: ECHILD).
+pub fn reap_any() -> io::Result<Option<(libc::pid_t, ExitStatus)>> {
+    reap(-1)
+}
+
+/// Reaps `pid` if it is our child and has exited.
+pub fn reap(pid: libc::pid_t) -> io::Result<Option<(libc::pid_t, ExitStatus)>> {
+    let mut status: libc::c_int = 0;
+    // SAFETY: `status` is a valid out-pointer for the duration of the call.
+    let r = unsafe { libc::waitpid(pid, &mut status, libc::WNOHANG) };
+    if r < 0 {
+        let e = io::Error::last_os_error();
+        return if e.raw_os_error() == Some(libc::ECHILD) {
+            Ok(None)
+        } else {
+            Err(e)
+        };
+    }
+    if r == 0 {
+        return Ok(None);
+    }
+    let st = if libc::WIFEXITED(status) {
+        ExitStatus::Code(libc::WEXITSTATUS(status))
+    } else {
+        ExitStatus::Signal(libc::WTERMSIG(status))
+    };
+    Ok(Some((r, st)))
+}
+
+/// Waits up to `timeout` for `fd` to become readable (or hung up). `Ok(true)` if it did.
+pub fn wait_readable(fd: BorrowedFd<'_>, timeout: Duration) -> io::Result<bool> {
+    let mut pfd = [libc::pollfd {
+        fd: fd.as_raw_fd(),
+        events: libc::POLLIN,
+        revents: 0,
+    }];
+    Ok(ppoll(&mut pfd, Some(timeout))? > 0)
+}
+
+/// `ppoll(2)` with nanosecond timeout (`None` waits forever). EINTR counts as zero ready fds.
+pub fn ppoll(fds: &mut [libc::pollfd], timeout: Option<Duration>) -> io::Result<usize> {
+    let ts = timeout.map(|t| libc::timespec {
+        tv_sec: t.as_secs() as libc::time_t,
+        tv_nsec: t.subsec_nanos() as libc::c_long,
+    });
+    let tsp = ts
+        .as_ref()
+        .map_or(std::ptr::null(), |t| t as *const libc::timespec);
+    // SAFETY: `fds` is a valid mutable slice of pollfd of the given length; `tsp` is null or
+    // points to a timespec that outlives the call; a null sigmask keeps the current mask.
+    let n = unsafe { libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, tsp, std::ptr::null()) };
+    if n < 0 {
+        let e = io::Error::last_os_error();
+        if e.kind() == io::ErrorKind::Interrupted {
+            return Ok(0);
+        }
+        return Err(e);
+    }
+    Ok(n as usize)
+}
+
+/// Process id of the peer of a connected Unix socket (`SO_PEERCRED`).
+pub fn peer_pid(sock: BorrowedFd<'_>) -> io::Result<libc::pid_t> {
+    let mut cred = libc::ucred { pid: 0, uid: 0, gid: 0 };
+    let mut len = std::mem::size_of::<libc::ucred>() as libc::socklen_t;
+    // SAFETY: `cred` and `len` are valid out-pointers sized for SO_PEERCRED's ucred.
+    cvt(unsafe {
+        libc::getsockopt(
+            sock.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_PEERCRED,
+            (&mut cred as *mut libc::ucred).cast(),
+            &mut len,
+        )
+    })?;
+    Ok(cred.pid)
+}
+
+/// Parent pid of `pid`, from `/proc/PID/stat` (`None` if the process is gone).
+pub fn parent_pid(pid: libc::pid_t) -> Option<libc::pid_t> {
+    proc_stat_field(pid, 4)
+}
+
+/// Process group of `pid`, from `/proc/PID/stat` (`None` if the process is gone).
+pub fn process_group(pid: libc::pid_t) -> Option<libc::pid_t> {
+    proc_stat_field(pid, 5)
+}
+
+/// Field `n` (1-based, as in proc(5)) of `/proc/PID/stat`, for the numeric fields after `comm`.
+fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(n - 3)?.parse().ok()
+}
+
+/// Sends a whole buffer plus `fds` as SCM_RIGHTS in one `sendmsg`.
+pub fn send_with_fds(sock: BorrowedFd<'_>, bytes: &[u8], fds: &[RawFd]) -> io::Result<()> {
+    use nix::sys::socket::{sendmsg, ControlMessage, MsgFlags};
+    let iov = [io::IoSlice::new(bytes)];
+    let cmsg = [ControlMessage::ScmRights(fds)];
+    let n = sendmsg::<()>(sock.as_raw_fd(), &iov, &cmsg, MsgFlags::MSG_NOSIGNAL, None)
+        .map_err(io::Error::from)?;
+    if n != bytes.len() {
+        return Err(io::Error::new(io::ErrorKind::WriteZero, "short sendmsg"));
+    }
+    Ok(())
+}
+
+/// Puts `fds[i].0` on fd number `fds[i].1` in the child of `cmd`, and nothing else beyond
+/// stdin/stdout/stderr (everything s3res opens is close-on-exec).
+pub fn map_fds_on_exec(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
+    let floor = fds.iter().map(|&(s, t)| s.max(t)).max().unwrap_or(2) + 1;
+    // SAFETY: the closure runs in the forked child before exec and only calls fcntl and dup2,
+    // which are async-signal-safe; it neither allocates nor takes locks (`fds` was built
+    // before the fork and is only read).
+    unsafe {
+        cmd.pre_exec(move || {
+            // Two passes so a source that sits on another mapping's target is not clobbered:
+            // first move every source above all numbers in play, then dup2 onto the targets.
+            let mut moved = [0 as RawFd; 2 * crate::contract::MAX_PORTS + 8];
+            if fds.len() > moved.len() {
+                return Err(io::Error::from_raw_os_error(libc::EMFILE));
+            }
+            for (i, &(src, _)) in fds.iter().enumerate() {
+                moved[i] = cvt(libc::fcntl(src, libc::F_DUPFD_CLOEXEC, floor))?;
+            }
+            for (i, &(_, target)) in fds.iter().enumerate() {
+                // dup2 clears FD_CLOEXEC on the target, so it survives exec.
+                cvt(libc::dup2(moved[i], target))?;
+            }
+            Ok(())
+        });
+    }
+}
+
+/// `mlockall(MCL_CURRENT | MCL_FUTURE)`.
+pub fn lock_all_memory() -> io::Result<()> {
+    // SAFETY: flags only; locking memory has no memory-safety effect.
+    cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) })?;
+    Ok(())
+}
+
+/// A path as a C string (for the few calls made without std).
+pub fn cstring(s: &str) -> io::Result<CString> {
+    CString::new(s).map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "NUL in path"))
+}
+
+/// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share).
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: `ts` is a valid out-pointer; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
