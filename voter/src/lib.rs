@@ -2,6 +2,17 @@
 //!
 //! Runs the replicas of one protected component, copies input frames to all of them, votes on
 //! their output frames, detects faulty replicas and replaces them.
+//!
+//! Read top-down: [`vote`] is the voting rule; [`round`] a reactive round; [`voter`] the event
+//! loop that detects faults; [`recovery`] the fork-and-hand-over sequence; [`replica`] the
+//! process handle; [`channel`] the non-blocking pipe ends; [`plan`] and [`event`] the contracts
+//! with bootstrap.
 
+pub mod channel;
 pub mod event;
 pub mod plan;
+pub mod recovery;
+pub mod replica;
+pub mod round;
+pub mod vote;
+pub mod voter;

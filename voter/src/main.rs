@@ -1,1 +1,58 @@
-fn main() {}
+//! `s3res-voter`: started by `s3res-bootstrap`, never by hand.
+
+use anyhow::Context;
+use clap::Parser;
+use s3res_voter::plan::VoterPlan;
+use s3res_voter::voter::{Voter, VoterError};
+
+/// The voter of one protected s3res component.
+///
+/// s3res-bootstrap starts one voter per protected component (redundancy smr, dmr or tmr) and
+/// hands it the component's pipes as inherited fds, described by the plan. The voter starts the
+/// replicas, copies every input frame to each, votes on their answers byte for byte, forwards
+/// the majority, and replaces crashed, hung, corrupted or misbehaving replicas by forking a
+/// healthy one. Events (faults, recoveries) go as JSON lines to the plan's events fd.
+///
+/// Exit status: 0 when the inputs closed and the replicas finished, or on SIGTERM/SIGINT;
+/// 1 on a start-up error; 3 when the component failed beyond recovery.
+#[derive(Parser, Debug)]
+#[command(version, verbatim_doc_comment)]
+struct Cli {
+    /// The voter plan as JSON (s3res_voter::plan::VoterPlan), written by s3res-bootstrap.
+    #[arg(long)]
+    plan: String,
+}
+
+fn main() -> std::process::ExitCode {
+    init_logging();
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            let unrecoverable = e
+                .downcast_ref::<VoterError>()
+                .is_some_and(|v| matches!(v, VoterError::Unrecoverable(_)));
+            eprintln!("s3res-voter: {e:#}");
+            std::process::ExitCode::from(if unrecoverable { 3 } else { 1 })
+        }
+    }
+}
+
+fn run() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    let plan = VoterPlan::from_json(&cli.plan).context("reading --plan")?;
+    let span = tracing::info_span!("voter", component = %plan.component);
+    let _enter = span.enter();
+    let voter = Voter::start(plan)?;
+    voter.run()?;
+    Ok(())
+}
+
+fn init_logging() {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+}

@@ -1,0 +1,181 @@
+//! Non-blocking ends of pipes, as the voter sees them. The voter never blocks on a replica or a
+//! neighbour: what cannot be written now is kept and written when the pipe has room again, and
+//! what is read is decoded incrementally.
+
+use std::io;
+use std::os::fd::{AsFd, BorrowedFd, OwnedFd};
+
+use replica_rt::frame::{self, FrameDecoder};
+use replica_rt::sys;
+
+/// Bytes read per `read(2)` call.
+const READ_CHUNK: usize = 64 * 1024;
+
+/// The writing end of a pipe, with the frames that did not fit yet.
+#[derive(Debug)]
+pub struct FrameWriter {
+    fd: OwnedFd,
+    pending: Vec<u8>,
+    /// Start of the unwritten part of `pending`.
+    start: usize,
+}
+
+impl FrameWriter {
+    pub fn new(fd: OwnedFd) -> io::Result<Self> {
+        sys::set_nonblocking(fd.as_fd(), true)?;
+        Ok(FrameWriter {
+            fd,
+            pending: Vec::new(),
+            start: 0,
+        })
+    }
+
+    /// Queues a whole frame and writes as much as the pipe takes now.
+    pub fn send(&mut self, payload: &[u8]) -> io::Result<()> {
+        self.compact();
+        frame::encode_into(payload, &mut self.pending);
+        self.flush()
+    }
+
+    /// Queues raw bytes (already framed) without writing them yet.
+    pub fn queue_raw(&mut self, bytes: &[u8]) {
+        self.compact();
+        self.pending.extend_from_slice(bytes);
+    }
+
+    /// Puts raw bytes in front of everything queued (input taken back from a pipe).
+    pub fn prepend_raw(&mut self, bytes: &[u8]) {
+        self.compact();
+        self.pending.splice(0..0, bytes.iter().copied());
+    }
+
+    /// Bytes queued and not yet written.
+    pub fn unwritten(&self) -> &[u8] {
+        &self.pending[self.start..]
+    }
+
+    pub fn has_pending(&self) -> bool {
+        self.start < self.pending.len()
+    }
+
+    /// Drops everything queued (the reader is gone).
+    pub fn discard(&mut self) {
+        self.pending.clear();
+        self.start = 0;
+    }
+
+    /// Writes queued bytes until done or the pipe is full.
+    pub fn flush(&mut self) -> io::Result<()> {
+        while self.has_pending() {
+            match sys::write(self.fd.as_fd(), &self.pending[self.start..]) {
+                Ok(n) => self.start += n,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) => return Err(e),
+            }
+        }
+        if !self.has_pending() {
+            self.pending.clear();
+            self.start = 0;
+        }
+        Ok(())
+    }
+
+    fn compact(&mut self) {
+        if self.start > 0 {
+            self.pending.drain(..self.start);
+            self.start = 0;
+        }
+    }
+}
+
+impl AsFd for FrameWriter {
+    fn as_fd(&self) -> BorrowedFd<'_> {
+        self.fd.as_fd()
+    }
+}
+
+/// What one [`FrameReader::fill`] saw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fill {
+    /// Read what there was; the pipe is still open.
+    Open,
+    /// The writer closed its end.
+    Closed,
+}
+
+/// The reading end of a pipe, decoding frames.
+#[derive(Debug)]
+pub struct FrameReader {
+    fd: OwnedFd,
+    pub decoder: FrameDecoder,
+    closed: bool,
+}
+
+impl FrameReader {
+    pub fn new(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
+        sys::set_nonblocking(fd.as_fd(), true)?;
+        Ok(FrameReader {
+            fd,
+            decoder: FrameDecoder::new(max_frame),
+            closed: false,
+        })
+    }
+
+    pub fn is_closed(&self) -> bool {
+        self.closed
+    }
+
+    /// Reads everything available now into the decoder.
+    pub fn fill(&mut self) -> io::Result<Fill> {
+        if self.closed {
+            return Ok(Fill::Closed);
+        }
+        loop {
+            let spare = self.decoder.spare(READ_CHUNK);
+            let res = sys::read(self.fd.as_fd(), spare);
+            match res {
+                Ok(0) => {
+                    self.decoder.commit(READ_CHUNK, 0);
+                    self.closed = true;
+                    return Ok(Fill::Closed);
+                }
+                Ok(n) => {
+                    self.decoder.commit(READ_CHUNK, n);
+                    if n < READ_CHUNK {
+                        return Ok(Fill::Open);
+                    }
+                }
+                Err(e) => {
+                    self.decoder.commit(READ_CHUNK, 0);
+                    return if e.kind() == io::ErrorKind::WouldBlock {
+                        Ok(Fill::Open)
+                    } else {
+                        Err(e)
+                    };
+                }
+            }
+        }
+    }
+}
+
+impl AsFd for FrameReader {
+    fn as_fd(&self) -> BorrowedFd<'_> {
+        self.fd.as_fd()
+    }
+}
+
+/// Reads whatever a pipe holds right now without blocking (used to take back input that a
+/// donor replica has not consumed, so that its fork child gets the same).
+pub fn drain(fd: BorrowedFd<'_>) -> io::Result<Vec<u8>> {
+    sys::set_nonblocking(fd, true)?;
+    let mut out = Vec::new();
+    let mut buf = [0u8; 16 * 1024];
+    loop {
+        match sys::read(fd, &mut buf) {
+            Ok(0) => return Ok(out),
+            Ok(n) => out.extend_from_slice(&buf[..n]),
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(out),
+            Err(e) => return Err(e),
+        }
+    }
+}

@@ -1,0 +1,142 @@
+//! One replica process as the voter holds it: its pid and pidfd, and the voter's ends of its
+//! pipes. Initial start (and recovery without a healthy donor) is by exec.
+
+use std::io;
+use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::process::{Command, Stdio};
+
+use replica_rt::contract::{
+    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET,
+    FIRST_PORT_FD,
+};
+use replica_rt::sys;
+
+use crate::channel::{FrameReader, FrameWriter};
+use crate::plan::VoterPlan;
+
+/// The voter's end of one replica input pipe. The voter keeps the read end too, so that it can
+/// take back input the replica has not consumed when the replica becomes a recovery donor.
+#[derive(Debug)]
+pub struct ReplicaInput {
+    pub writer: FrameWriter,
+    pub read_end: OwnedFd,
+}
+
+#[derive(Debug)]
+pub struct Replica {
+    pub pid: libc::pid_t,
+    pub pidfd: OwnedFd,
+    /// Indexed like `plan.inputs`.
+    pub inputs: Vec<ReplicaInput>,
+    /// Indexed like `plan.outputs`.
+    pub outputs: Vec<FrameReader>,
+    /// Started by this voter (so `waitpid` reaps it); a fork child belongs to its donor until
+    /// the donor dies and it is re-parented to us (the voter is a subreaper).
+    pub our_child: bool,
+}
+
+/// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs) and
+/// the voter's ends.
+pub struct ReplicaPipes {
+    pub replica_ends: Vec<OwnedFd>,
+    pub inputs: Vec<ReplicaInput>,
+    pub outputs: Vec<FrameReader>,
+}
+
+impl ReplicaPipes {
+    pub fn new(plan: &VoterPlan) -> io::Result<Self> {
+        let mut replica_ends = Vec::with_capacity(plan.inputs.len() + plan.outputs.len());
+        let mut inputs = Vec::with_capacity(plan.inputs.len());
+        for _ in &plan.inputs {
+            let (r, w) = sys::pipe()?;
+            // The voter keeps a read end for taking input back; the replica gets its own copy.
+            let replica_r = r.try_clone()?;
+            replica_ends.push(replica_r);
+            inputs.push(ReplicaInput {
+                writer: FrameWriter::new(w)?,
+                read_end: r,
+            });
+        }
+        let mut outputs = Vec::with_capacity(plan.outputs.len());
+        for port in &plan.outputs {
+            let (r, w) = sys::pipe()?;
+            replica_ends.push(w);
+            outputs.push(FrameReader::new(r, port.max_frame)?);
+        }
+        Ok(ReplicaPipes {
+            replica_ends,
+            inputs,
+            outputs,
+        })
+    }
+
+    /// Where each replica end must sit in the replica: fd 3, 4, ... in port order.
+    pub fn targets(&self) -> impl Iterator<Item = RawFd> + '_ {
+        (0..self.replica_ends.len()).map(|k| FIRST_PORT_FD + k as RawFd)
+    }
+}
+
+/// The port map every replica of this component gets.
+pub fn port_map(plan: &VoterPlan) -> PortMap {
+    let ins = plan.inputs.iter().map(|p| (p, Direction::In));
+    let outs = plan.outputs.iter().map(|p| (p, Direction::Out));
+    PortMap {
+        ports: ins
+            .chain(outs)
+            .enumerate()
+            .map(|(k, (p, dir))| PortSpec {
+                name: p.name.clone(),
+                dir,
+                fd: FIRST_PORT_FD + k as RawFd,
+                max_frame: p.max_frame,
+            })
+            .collect(),
+    }
+}
+
+impl Replica {
+    /// Starts replica `slot` afresh by exec.
+    pub fn spawn(plan: &VoterPlan, slot: usize) -> io::Result<Replica> {
+        let pipes = ReplicaPipes::new(plan)?;
+        let mut cmd = Command::new(&plan.exec);
+        cmd.args(&plan.args)
+            .env(ENV_PORTS, port_map(plan).to_env())
+            .env(ENV_VOTER_SOCKET, &plan.socket_path)
+            .env(ENV_REPLICA, slot.to_string())
+            .env(ENV_COMPONENT, &plan.component)
+            .stdin(Stdio::null());
+        let map = pipes
+            .replica_ends
+            .iter()
+            .zip(pipes.targets())
+            .map(|(fd, target)| (fd.as_raw_fd(), target))
+            .collect();
+        sys::map_fds_on_exec(&mut cmd, map);
+        let child = cmd.spawn()?;
+        let pid = child.id() as libc::pid_t;
+        // `child` is dropped without waiting: the voter reaps with waitpid itself.
+        drop(child);
+        let pidfd = sys::pidfd_open(pid)?;
+        Ok(Replica {
+            pid,
+            pidfd,
+            inputs: pipes.inputs,
+            outputs: pipes.outputs,
+            our_child: true,
+        })
+    }
+
+    /// SIGKILL, through the pidfd (no pid-reuse race).
+    pub fn kill(&self) {
+        if let Err(e) = sys::pidfd_send_signal(self.pidfd.as_fd(), libc::SIGKILL) {
+            if e.raw_os_error() != Some(libc::ESRCH) {
+                tracing::warn!(pid = self.pid, error = %e, "could not kill replica");
+            }
+        }
+    }
+
+    /// Whether the process has exited (its pidfd is readable), waiting up to `timeout`.
+    pub fn exited_within(&self, timeout: std::time::Duration) -> bool {
+        sys::wait_readable(self.pidfd.as_fd(), timeout).unwrap_or(true)
+    }
+}

@@ -1,0 +1,59 @@
+//! A reactive round (S³RES's timed pair): one input frame, one expected answer per output from
+//! every replica, one deadline.
+
+use std::time::Instant;
+
+use crate::vote::ReplicaSet;
+
+/// Set of output indices (bitmask; a component has at most `MAX_PORTS` ports).
+pub type OutputSet = u32;
+
+#[derive(Debug)]
+pub struct Round {
+    pub number: u64,
+    /// Outputs every replica must answer on.
+    pub expected: OutputSet,
+    pub deadline: Instant,
+    /// Replicas the input was delivered to.
+    pub members: ReplicaSet,
+    /// Per replica: outputs it has answered.
+    pub answered: Vec<OutputSet>,
+    /// Outputs whose winner has been forwarded.
+    pub forwarded: OutputSet,
+}
+
+impl Round {
+    pub fn new(
+        number: u64,
+        expected: OutputSet,
+        deadline: Instant,
+        members: ReplicaSet,
+        n: usize,
+    ) -> Self {
+        Round {
+            number,
+            expected,
+            deadline,
+            members,
+            answered: vec![0; n],
+            forwarded: 0,
+        }
+    }
+
+    pub fn expects(&self, output: usize) -> bool {
+        self.expected & (1 << output) != 0
+    }
+
+    pub fn has_answered(&self, replica: usize, output: usize) -> bool {
+        self.answered[replica] & (1 << output) != 0
+    }
+
+    /// Whether `replica` has answered every expected output.
+    pub fn is_done_by(&self, replica: usize) -> bool {
+        self.answered[replica] & self.expected == self.expected
+    }
+
+    pub fn outputs(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..32).filter(|&o| self.expects(o))
+    }
+}

@@ -1,0 +1,245 @@
+//! The voting rule. Everything the voter decides about *which output is right* is here.
+//!
+//! One vote covers one output of one round. Each replica that is still trusted ("alive") has
+//! answered with a frame or not yet. Frames are compared byte for byte.
+//!
+//! * A frame **wins** once more than half of the alive replicas sent exactly that frame:
+//!   `needed = alive / 2 + 1`. The winner is forwarded at once, without waiting for the rest.
+//! * Replicas that answered something else are **dissenters**: each is an `sdc` fault.
+//! * The vote is **pending** while the answers still missing could yet make some frame win.
+//! * Otherwise there is **no majority**: nobody is blamed (with two replicas a mismatch can be
+//!   seen but not attributed; with three, all three may differ) and nothing is forwarded.
+//!
+//! "Alive" shrinks when a replica crashes, hangs or breaks the protocol during the round, so a
+//! DMR pair that loses one replica forwards the survivor's frame (1 of 1), and a TMR trio that
+//! loses one needs its two survivors to agree.
+
+use std::fmt;
+
+/// Largest replica count a voter supports (sets are bitmasks).
+pub const MAX_REPLICAS: usize = 32;
+
+/// A set of replica indices.
+#[derive(Clone, Copy, Default, PartialEq, Eq, Hash)]
+pub struct ReplicaSet(u32);
+
+impl ReplicaSet {
+    pub const EMPTY: ReplicaSet = ReplicaSet(0);
+
+    pub fn with(self, i: usize) -> Self {
+        ReplicaSet(self.0 | (1 << i))
+    }
+    pub fn without(self, i: usize) -> Self {
+        ReplicaSet(self.0 & !(1 << i))
+    }
+    pub fn contains(self, i: usize) -> bool {
+        self.0 & (1 << i) != 0
+    }
+    pub fn len(self) -> usize {
+        self.0.count_ones() as usize
+    }
+    pub fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+    pub fn minus(self, other: ReplicaSet) -> Self {
+        ReplicaSet(self.0 & !other.0)
+    }
+    pub fn iter(self) -> impl Iterator<Item = usize> {
+        (0..MAX_REPLICAS).filter(move |&i| self.contains(i))
+    }
+}
+
+impl fmt::Debug for ReplicaSet {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_set().entries(self.iter()).finish()
+    }
+}
+
+/// What one vote concluded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum VoteOutcome {
+    /// `winner`'s frame has a majority; `agree` sent the same frame, `dissent` sent another.
+    Majority {
+        winner: usize,
+        agree: ReplicaSet,
+        dissent: ReplicaSet,
+    },
+    /// The missing answers could still decide it.
+    Pending,
+    /// No frame can reach a majority any more.
+    NoMajority,
+}
+
+/// Votes one output. `answers[i]` is replica `i`'s frame, if it answered; only replicas in
+/// `alive` count. Does not allocate.
+pub fn vote<A: AsRef<[u8]>>(answers: &[Option<A>], alive: ReplicaSet) -> VoteOutcome {
+    let needed = alive.len() / 2 + 1;
+    let answered = alive
+        .iter()
+        .filter(|&i| answers.get(i).is_some_and(|a| a.is_some()))
+        .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+    let missing = alive.minus(answered).len();
+
+    let mut largest = 0;
+    for i in answered.iter() {
+        let frame = answers[i].as_ref().map(AsRef::as_ref);
+        // Count each group once, from its lowest member.
+        if (0..i).any(|j| answered.contains(j) && answers[j].as_ref().map(AsRef::as_ref) == frame) {
+            continue;
+        }
+        let agree = answered
+            .iter()
+            .filter(|&j| answers[j].as_ref().map(AsRef::as_ref) == frame)
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+        if agree.len() >= needed {
+            return VoteOutcome::Majority {
+                winner: i,
+                agree,
+                dissent: answered.minus(agree),
+            };
+        }
+        largest = largest.max(agree.len());
+    }
+    if largest + missing >= needed {
+        VoteOutcome::Pending
+    } else {
+        VoteOutcome::NoMajority
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn set(ids: &[usize]) -> ReplicaSet {
+        ids.iter().fold(ReplicaSet::EMPTY, |s, &i| s.with(i))
+    }
+
+    fn a(s: &str) -> Option<Vec<u8>> {
+        Some(s.as_bytes().to_vec())
+    }
+
+    #[test]
+    fn tmr_two_agree_before_the_third_answers() {
+        let answers = [a("x"), a("x"), None];
+        assert_eq!(
+            vote(&answers, set(&[0, 1, 2])),
+            VoteOutcome::Majority {
+                winner: 0,
+                agree: set(&[0, 1]),
+                dissent: set(&[])
+            }
+        );
+    }
+
+    #[test]
+    fn tmr_minority_is_a_dissenter() {
+        let answers = [a("x"), a("y"), a("x")];
+        assert_eq!(
+            vote(&answers, set(&[0, 1, 2])),
+            VoteOutcome::Majority {
+                winner: 0,
+                agree: set(&[0, 2]),
+                dissent: set(&[1])
+            }
+        );
+    }
+
+    #[test]
+    fn tmr_split_waits_for_the_third() {
+        assert_eq!(
+            vote(&[a("x"), a("y"), None], set(&[0, 1, 2])),
+            VoteOutcome::Pending
+        );
+    }
+
+    #[test]
+    fn tmr_all_different_has_no_majority() {
+        assert_eq!(
+            vote(&[a("x"), a("y"), a("z")], set(&[0, 1, 2])),
+            VoteOutcome::NoMajority
+        );
+    }
+
+    #[test]
+    fn dmr_mismatch_cannot_be_attributed() {
+        assert_eq!(
+            vote(&[a("x"), a("y")], set(&[0, 1])),
+            VoteOutcome::NoMajority
+        );
+    }
+
+    #[test]
+    fn dmr_survivor_wins_alone() {
+        assert_eq!(
+            vote(&[None, a("x")], set(&[1])),
+            VoteOutcome::Majority {
+                winner: 1,
+                agree: set(&[1]),
+                dissent: set(&[])
+            }
+        );
+    }
+
+    #[test]
+    fn answers_of_replicas_no_longer_alive_do_not_count() {
+        // Replica 2 answered "y" and then crashed: it no longer votes.
+        let answers = [a("x"), None, a("y")];
+        assert_eq!(vote(&answers, set(&[0, 1])), VoteOutcome::Pending);
+    }
+
+    #[test]
+    fn five_replicas_survive_two_bad_ones() {
+        let answers = [a("y"), a("x"), a("z"), a("x"), a("x")];
+        assert_eq!(
+            vote(&answers, set(&[0, 1, 2, 3, 4])),
+            VoteOutcome::Majority {
+                winner: 1,
+                agree: set(&[1, 3, 4]),
+                dissent: set(&[0, 2])
+            }
+        );
+    }
+
+    proptest! {
+        /// A majority winner is unique, its group really is a majority, and every alive
+        /// replica that answered is either agreeing or dissenting.
+        #[test]
+        fn majority_is_sound(
+            values in proptest::collection::vec(proptest::option::of(0u8..3), 1..8),
+            dead in proptest::collection::vec(any::<bool>(), 8),
+        ) {
+            let n = values.len();
+            let answers: Vec<Option<Vec<u8>>> = values.iter().map(|v| v.map(|b| vec![b])).collect();
+            let alive = (0..n).filter(|&i| !dead[i]).fold(ReplicaSet::EMPTY, ReplicaSet::with);
+            match vote(&answers, alive) {
+                VoteOutcome::Majority { winner, agree, dissent } => {
+                    prop_assert!(agree.len() > alive.len() / 2);
+                    prop_assert!(agree.contains(winner));
+                    for i in alive.iter() {
+                        let answered = answers[i].is_some();
+                        prop_assert_eq!(answered, agree.contains(i) || dissent.contains(i));
+                        if agree.contains(i) { prop_assert_eq!(&answers[i], &answers[winner]); }
+                        if dissent.contains(i) { prop_assert_ne!(&answers[i], &answers[winner]); }
+                    }
+                }
+                VoteOutcome::Pending => {
+                    // Some way of filling in the missing answers must give a majority.
+                    let missing = alive.iter().filter(|&i| answers[i].is_none()).count();
+                    prop_assert!(missing > 0);
+                }
+                VoteOutcome::NoMajority => {
+                    // Even if every missing replica agreed with the largest group, no majority.
+                    let mut best = 0;
+                    for v in 0u8..3 {
+                        let c = alive.iter().filter(|&i| answers[i] == Some(vec![v])).count();
+                        best = best.max(c);
+                    }
+                    let missing = alive.iter().filter(|&i| answers[i].is_none()).count();
+                    prop_assert!(best + missing <= alive.len() / 2);
+                }
+            }
+        }
+    }
+}
