@@ -1,1 +1,13 @@
-//! s3res-bootstrap library: the system description and the launcher.
+//! # s3res-bootstrap
+//!
+//! Reads a system description, checks it, starts every component (unprotected ones directly,
+//! protected ones under one `s3res-voter` each), supervises them, gathers the voters' events,
+//! and on exit — however it exits — makes sure nothing it started is left running.
+
+pub mod description;
+pub mod events;
+pub mod exec;
+pub mod plan;
+pub mod posindex;
+pub mod run;
+pub mod sweep;

@@ -770,21 +770,12 @@ impl Voter {
     }
 
     fn emit(&self, ev: Event) {
-        match ev.kind {
-            EventKind::Start => {
-                tracing::debug!(replica = ev.replica, pid = ev.pid, "replica started")
-            }
-            EventKind::Recovery => tracing::info!(
-                replica = ev.replica, pid = ev.pid, new_pid = ev.new_pid, method = ?ev.method,
-                recovery_us = ev.recovery_us, "replica recovered"
-            ),
-            kind => tracing::warn!(
-                ?kind,
-                replica = ev.replica,
-                pid = ev.pid,
-                detail = ev.detail.as_deref().unwrap_or(""),
-                "fault"
-            ),
+        // Bootstrap logs every event it gathers; here they are only traced, so that a run
+        // shows each event once. Without an events fd, the voter's own log is all there is.
+        if self.events.is_some() {
+            tracing::debug!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
+        } else {
+            tracing::warn!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
         }
         let Some(fd) = &self.events else { return };
         let line = ev.to_line();

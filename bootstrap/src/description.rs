@@ -1,0 +1,865 @@
+//! The system description (JSON) and its validation into a [`SystemPlan`].
+//!
+//! Everything is checked before anything starts. Every error names the file, the line, and the
+//! component, channel or field at fault: `echo.json:12: unknown component `ecko` in endpoint
+//! `ecko.in` (channels[1].to)`. The format is documented in docs/system-description.md.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use thiserror::Error;
+
+use replica_rt::contract::MAX_PORTS;
+use replica_rt::frame::DEFAULT_MAX_FRAME;
+use s3res_voter::plan::{default_restart_timeout_ms, RoundTrigger};
+
+use crate::exec::{self, SearchPath};
+use crate::plan::{ChannelPlan, ComponentPlan, Endpoint, PortPlan, Redundancy, SystemPlan};
+use crate::posindex::{element_path, member_path, IndexError, PositionIndex};
+
+/// Largest `max_frame` a channel may ask for.
+pub const MAX_FRAME_LIMIT: usize = 16 * 1024 * 1024;
+/// Largest replica count (`replicas`).
+pub const MAX_REPLICAS: u64 = 9;
+
+/// Why a description was refused.
+#[derive(Debug, Error)]
+pub enum DescriptionError {
+    #[error("{file}: cannot read the description: {source}")]
+    Read {
+        file: String,
+        source: std::io::Error,
+    },
+    #[error("{file}:{line}: {what} ({subject})")]
+    Invalid {
+        file: String,
+        line: usize,
+        /// What is wrong.
+        what: String,
+        /// The component, channel or field at fault, as a path (`channels[1].to`).
+        subject: String,
+    },
+}
+
+impl DescriptionError {
+    /// Line of the fault (0 when the file could not be read).
+    pub fn line(&self) -> usize {
+        match self {
+            DescriptionError::Read { .. } => 0,
+            DescriptionError::Invalid { line, .. } => *line,
+        }
+    }
+}
+
+/// What validation needs to know about the machine and the file's location.
+#[derive(Debug, Clone)]
+pub struct HostContext {
+    /// Folder of the description: relative `exec` paths start here.
+    pub base_dir: PathBuf,
+    /// Where bare `exec` names are looked for.
+    pub search: SearchPath,
+    /// CPUs this process may run on (its `sched_getaffinity` mask).
+    pub cpus: Vec<usize>,
+}
+
+impl HostContext {
+    /// The context for a description file on this machine.
+    pub fn for_file(path: &Path) -> Self {
+        let abs = exec::absolute(path);
+        HostContext {
+            base_dir: abs
+                .parent()
+                .map_or_else(|| PathBuf::from("/"), Path::to_path_buf),
+            search: SearchPath::from_environment(),
+            cpus: usable_cpus(),
+        }
+    }
+}
+
+/// The CPUs in this process's affinity mask (what `cpus` may name).
+pub fn usable_cpus() -> Vec<usize> {
+    use nix::sched::{sched_getaffinity, CpuSet};
+    use nix::unistd::Pid;
+    match sched_getaffinity(Pid::from_raw(0)) {
+        Ok(set) => (0..CpuSet::count())
+            .filter(|&i| set.is_set(i).unwrap_or(false))
+            .collect(),
+        // Without a mask, fall back to what the kernel says is online.
+        Err(_) => std::fs::read_to_string("/sys/devices/system/cpu/online")
+            .map(|s| parse_cpu_list(&s))
+            .unwrap_or_default(),
+    }
+}
+
+/// Parses the kernel's CPU list format (`0-3,6,8-9`).
+pub fn parse_cpu_list(s: &str) -> Vec<usize> {
+    let mut out = Vec::new();
+    for part in s.trim().split(',').filter(|p| !p.is_empty()) {
+        match part.split_once('-') {
+            Some((a, b)) => {
+                if let (Ok(a), Ok(b)) = (a.parse::<usize>(), b.parse::<usize>()) {
+                    out.extend(a..=b);
+                }
+            }
+            None => out.extend(part.parse::<usize>().ok()),
+        }
+    }
+    out
+}
+
+/// Reads and validates the description at `path`. `label` is how the file is named in errors
+/// (usually the path as the user typed it).
+pub fn load(path: &Path, ctx: &HostContext) -> Result<SystemPlan, DescriptionError> {
+    let label = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|source| DescriptionError::Read {
+        file: label.clone(),
+        source,
+    })?;
+    parse(&label, &text, ctx)
+}
+
+/// Validates description `text`; `file` names it in errors.
+pub fn parse(file: &str, text: &str, ctx: &HostContext) -> Result<SystemPlan, DescriptionError> {
+    // 1. Syntax, as serde_json sees it (its messages and positions are good).
+    if let Err(e) = serde_json::from_str::<serde_json::Value>(text) {
+        return Err(DescriptionError::Invalid {
+            file: file.to_owned(),
+            line: e.line().max(1),
+            what: format!(
+                "malformed JSON: {} at column {}",
+                strip_position(&e),
+                e.column()
+            ),
+            subject: "JSON syntax".to_owned(),
+        });
+    }
+    // 2. Positions, and the duplicate keys serde_json would silently merge.
+    let index = PositionIndex::build(text).map_err(|e| {
+        let (what, subject) = match &e {
+            IndexError::DuplicateKey { key, path, .. } => (
+                if path.starts_with("components.") && path.matches('.').count() == 1 {
+                    format!("duplicate component name `{key}`")
+                } else {
+                    format!("duplicate key `{key}`")
+                },
+                path.clone(),
+            ),
+            IndexError::Syntax { what, .. } => {
+                (format!("malformed JSON: {what}"), "JSON syntax".to_owned())
+            }
+        };
+        DescriptionError::Invalid {
+            file: file.to_owned(),
+            line: e.line(),
+            what,
+            subject,
+        }
+    })?;
+    // 3. Shape: fields, types, enum values, unknown fields.
+    let mut de = serde_json::Deserializer::from_str(text);
+    let desc: SystemDesc = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        let subject = if path == "." {
+            "top level".to_owned()
+        } else {
+            path.clone()
+        };
+        // serde_json's line is where it stopped reading; for a missing field that is the
+        // object's closing brace, so prefer where the path itself starts when it is known.
+        let line = index.line(&path).unwrap_or_else(|| inner.line().max(1));
+        DescriptionError::Invalid {
+            file: file.to_owned(),
+            line,
+            what: strip_position(&inner),
+            subject,
+        }
+    })?;
+    // 4. Meaning.
+    Checker {
+        file,
+        index: &index,
+        ctx,
+    }
+    .check(desc)
+}
+
+/// serde_json's message without its " at line L column C" tail (we print our own position).
+fn strip_position(e: &serde_json::Error) -> String {
+    let s = e.to_string();
+    match s.rfind(" at line ") {
+        Some(cut) => s[..cut].to_owned(),
+        None => s,
+    }
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SystemDesc {
+    name: String,
+    components: BTreeMap<String, ComponentDesc>,
+    #[serde(default)]
+    channels: Vec<ChannelDesc>,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Mode {
+    #[default]
+    Reactive,
+    Stream,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ComponentDesc {
+    exec: String,
+    #[serde(default)]
+    args: Vec<String>,
+    #[serde(default)]
+    redundancy: Redundancy,
+    replicas: Option<u64>,
+    #[serde(default)]
+    mode: Mode,
+    timeout_us: Option<u64>,
+    // Signed, so that `-1` gets our range message rather than a type error.
+    priority: Option<i64>,
+    cpus: Option<Vec<u64>>,
+    rounds: Option<Vec<RoundDesc>>,
+    restart_timeout_ms: Option<u64>,
+    inputs: Option<Vec<String>>,
+    outputs: Option<Vec<String>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RoundDesc {
+    input: String,
+    /// Absent: every output of the component.
+    outputs: Option<Vec<String>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ChannelDesc {
+    from: String,
+    to: String,
+    max_frame: Option<u64>,
+}
+
+/// Per-component facts gathered before the ports are known.
+struct Draft {
+    name: String,
+    desc: ComponentDesc,
+    exec: PathBuf,
+    replicas: usize,
+    timeout_us: u64,
+    priority: Option<u8>,
+    cpus: Vec<usize>,
+}
+
+/// A port as the channels use it: which channel, and where that was written.
+#[derive(Debug, Clone)]
+struct PortUse {
+    channel: usize,
+    /// Path of the endpoint field (`channels[2].to`).
+    path: String,
+}
+
+struct Checker<'a> {
+    file: &'a str,
+    index: &'a PositionIndex,
+    ctx: &'a HostContext,
+}
+
+impl Checker<'_> {
+    fn err(&self, path: &str, what: impl Into<String>) -> DescriptionError {
+        DescriptionError::Invalid {
+            file: self.file.to_owned(),
+            line: self.index.line_or_parent(path),
+            what: what.into(),
+            subject: path.to_owned(),
+        }
+    }
+
+    fn check(&self, desc: SystemDesc) -> Result<SystemPlan, DescriptionError> {
+        let mut warnings = Vec::new();
+        if desc.name.trim().is_empty() {
+            return Err(self.err("name", "the system name is empty"));
+        }
+        if desc.components.is_empty() {
+            return Err(self.err("components", "a system needs at least one component"));
+        }
+
+        // Components in document order (the map is sorted; the index remembers the order).
+        let mut by_name = desc.components;
+        let mut order: Vec<String> = self
+            .index
+            .keys("components")
+            .iter()
+            .filter(|k| by_name.contains_key(*k))
+            .cloned()
+            .collect();
+        for k in by_name.keys() {
+            if !order.contains(k) {
+                order.push(k.clone());
+            }
+        }
+        let mut drafts = Vec::with_capacity(order.len());
+        for name in order {
+            if let Some(desc) = by_name.remove(&name) {
+                drafts.push(self.check_component(name, desc, &mut warnings)?);
+            }
+        }
+
+        let (channels, inputs_used, outputs_used) = self.check_channels(&desc.channels, &drafts)?;
+
+        let mut components = Vec::with_capacity(drafts.len());
+        for d in drafts {
+            components.push(self.check_ports(d, &channels, &inputs_used, &outputs_used)?);
+        }
+        Ok(SystemPlan {
+            name: desc.name,
+            components,
+            channels,
+            warnings,
+        })
+    }
+
+    fn check_component(
+        &self,
+        name: String,
+        desc: ComponentDesc,
+        warnings: &mut Vec<String>,
+    ) -> Result<Draft, DescriptionError> {
+        let at = member_path("components", &name);
+        let field = |f: &str| member_path(&at, f);
+        if name.is_empty() {
+            return Err(self.err(&at, "a component name is empty"));
+        }
+        if name.contains('.') || name.chars().any(char::is_whitespace) {
+            return Err(self.err(
+                &at,
+                format!("component name `{name}` may not contain `.` or spaces (endpoints are written `component.port`)"),
+            ));
+        }
+        if name == "stdin" || name == "stdout" {
+            return Err(self.err(
+                &at,
+                format!(
+                    "`{name}` is reserved for bootstrap's own {name} and cannot name a component"
+                ),
+            ));
+        }
+        if desc.mode == Mode::Stream {
+            return Err(self.err(
+                &field("mode"),
+                "stream mode is not built yet (next release); use `reactive`",
+            ));
+        }
+
+        let protected = desc.redundancy != Redundancy::None;
+        let replicas =
+            match desc.replicas {
+                Some(_) if !protected => return Err(self.err(
+                    &field("replicas"),
+                    "`replicas` needs a redundancy of smr, dmr or tmr (this component has none)",
+                )),
+                Some(n) if !(1..=MAX_REPLICAS).contains(&n) => {
+                    return Err(self.err(
+                        &field("replicas"),
+                        format!("replicas {n} is outside 1..={MAX_REPLICAS}"),
+                    ))
+                }
+                Some(n) => n as usize,
+                None => desc.redundancy.default_replicas(),
+            };
+
+        let timeout_us = if protected {
+            match desc.timeout_us {
+                None => {
+                    return Err(self.err(
+                        &at,
+                        format!(
+                            "`timeout_us` is required for a protected component (redundancy {})",
+                            desc.redundancy
+                        ),
+                    ))
+                }
+                Some(0) => {
+                    return Err(self.err(&field("timeout_us"), "timeout_us must be more than 0"))
+                }
+                Some(t) => t,
+            }
+        } else {
+            for (present, what) in [
+                (desc.timeout_us.is_some(), "timeout_us"),
+                (desc.rounds.is_some(), "rounds"),
+                (desc.restart_timeout_ms.is_some(), "restart_timeout_ms"),
+            ] {
+                if present {
+                    warnings.push(format!(
+                        "component {name}: `{what}` is ignored without redundancy"
+                    ));
+                }
+            }
+            0
+        };
+        if desc.restart_timeout_ms == Some(0) {
+            return Err(self.err(
+                &field("restart_timeout_ms"),
+                "restart_timeout_ms must be more than 0",
+            ));
+        }
+
+        let priority = match desc.priority {
+            None => None,
+            Some(p) if (1..=99).contains(&p) => Some(p as u8),
+            Some(p) => {
+                return Err(self.err(
+                    &field("priority"),
+                    format!("priority {p} is outside 1..=99"),
+                ))
+            }
+        };
+
+        let mut cpus = Vec::new();
+        for (i, &cpu) in desc.cpus.iter().flatten().enumerate() {
+            let path = element_path(&field("cpus"), i);
+            let usable = usize::try_from(cpu)
+                .ok()
+                .filter(|c| self.ctx.cpus.contains(c));
+            let Some(cpu) = usable else {
+                return Err(self.err(
+                    &path,
+                    format!(
+                        "CPU {cpu} does not exist on this machine (usable CPUs: {})",
+                        cpu_list(&self.ctx.cpus)
+                    ),
+                ));
+            };
+            if cpus.contains(&cpu) {
+                return Err(self.err(&path, format!("CPU {cpu} is listed twice")));
+            }
+            cpus.push(cpu);
+        }
+
+        let exec = exec::resolve(&desc.exec, &self.ctx.base_dir, &self.ctx.search)
+            .map_err(|what| self.err(&field("exec"), what))?;
+
+        Ok(Draft {
+            name,
+            desc,
+            exec,
+            replicas,
+            timeout_us,
+            priority,
+            cpus,
+        })
+    }
+
+    /// Checks every channel; returns them with, per `(component, port)`, the channel that
+    /// feeds it (inputs) or that it feeds (outputs).
+    #[allow(clippy::type_complexity)]
+    fn check_channels(
+        &self,
+        descs: &[ChannelDesc],
+        drafts: &[Draft],
+    ) -> Result<
+        (
+            Vec<ChannelPlan>,
+            HashMap<(String, String), PortUse>,
+            HashMap<(String, String), PortUse>,
+        ),
+        DescriptionError,
+    > {
+        let known: HashSet<&str> = drafts.iter().map(|d| d.name.as_str()).collect();
+        let mut inputs: HashMap<(String, String), PortUse> = HashMap::new();
+        let mut outputs: HashMap<(String, String), PortUse> = HashMap::new();
+        let mut stdin_use: Option<usize> = None;
+        let mut stdout_use: Option<usize> = None;
+        let mut channels = Vec::with_capacity(descs.len());
+
+        for (i, ch) in descs.iter().enumerate() {
+            let at = element_path("channels", i);
+            let from_path = member_path(&at, "from");
+            let to_path = member_path(&at, "to");
+            let from = self.endpoint(&ch.from, &from_path, &known, true)?;
+            let to = self.endpoint(&ch.to, &to_path, &known, false)?;
+            if from == Endpoint::Stdin && to == Endpoint::Stdout {
+                return Err(self.err(
+                    &at,
+                    "a channel from stdin straight to stdout connects no component",
+                ));
+            }
+            let max_frame = match ch.max_frame {
+                None => DEFAULT_MAX_FRAME,
+                Some(m) if m >= 1 && m <= MAX_FRAME_LIMIT as u64 => m as usize,
+                Some(m) => {
+                    return Err(self.err(
+                        &member_path(&at, "max_frame"),
+                        format!("max_frame {m} is outside 1..={MAX_FRAME_LIMIT} bytes (16 MiB)"),
+                    ))
+                }
+            };
+
+            match &from {
+                Endpoint::Stdin => {
+                    if let Some(j) = stdin_use.replace(i) {
+                        return Err(self.err(
+                            &from_path,
+                            format!("stdin is already read by channels[{j}]; a channel has one reader and one writer"),
+                        ));
+                    }
+                }
+                Endpoint::Port { component, port } => {
+                    let key = (component.clone(), port.clone());
+                    if let Some(prev) = outputs.get(&key) {
+                        return Err(self.err(
+                            &from_path,
+                            format!("output port `{component}.{port}` is already connected by channels[{}]; a pipe has one writer", prev.channel),
+                        ));
+                    }
+                    if let Some(prev) = inputs.get(&key) {
+                        return Err(self.err(
+                            &from_path,
+                            format!("port `{component}.{port}` is used both as an input ({}) and as an output", prev.path),
+                        ));
+                    }
+                    outputs.insert(
+                        key,
+                        PortUse {
+                            channel: i,
+                            path: from_path.clone(),
+                        },
+                    );
+                }
+                Endpoint::Stdout => {}
+            }
+            match &to {
+                Endpoint::Stdout => {
+                    if let Some(j) = stdout_use.replace(i) {
+                        return Err(self.err(
+                            &to_path,
+                            format!("stdout is already written by channels[{j}]; frames of two writers would mix"),
+                        ));
+                    }
+                }
+                Endpoint::Port { component, port } => {
+                    let key = (component.clone(), port.clone());
+                    if let Some(prev) = inputs.get(&key) {
+                        return Err(self.err(
+                            &to_path,
+                            format!("input port `{component}.{port}` is already connected by channels[{}]; a pipe has one reader", prev.channel),
+                        ));
+                    }
+                    if let Some(prev) = outputs.get(&key) {
+                        return Err(self.err(
+                            &to_path,
+                            format!("port `{component}.{port}` is used both as an output ({}) and as an input", prev.path),
+                        ));
+                    }
+                    inputs.insert(
+                        key,
+                        PortUse {
+                            channel: i,
+                            path: to_path.clone(),
+                        },
+                    );
+                }
+                Endpoint::Stdin => {}
+            }
+            channels.push(ChannelPlan {
+                from,
+                to,
+                max_frame,
+            });
+        }
+        Ok((channels, inputs, outputs))
+    }
+
+    fn endpoint(
+        &self,
+        text: &str,
+        path: &str,
+        known: &HashSet<&str>,
+        is_from: bool,
+    ) -> Result<Endpoint, DescriptionError> {
+        match (text, is_from) {
+            ("stdin", true) => return Ok(Endpoint::Stdin),
+            ("stdout", false) => return Ok(Endpoint::Stdout),
+            ("stdin", false) => {
+                return Err(self.err(
+                    path,
+                    "`stdin` can only be a channel's `from` (it is bootstrap's input)",
+                ))
+            }
+            ("stdout", true) => {
+                return Err(self.err(
+                    path,
+                    "`stdout` can only be a channel's `to` (it is bootstrap's output)",
+                ))
+            }
+            _ => {}
+        }
+        let Some((component, port)) = text.split_once('.') else {
+            return Err(self.err(
+                path,
+                format!("endpoint `{text}` must be `component.port`, `stdin` or `stdout`"),
+            ));
+        };
+        if !known.contains(component) {
+            return Err(self.err(
+                path,
+                format!("unknown component `{component}` in endpoint `{text}`"),
+            ));
+        }
+        if port.is_empty() || port.chars().any(char::is_whitespace) {
+            return Err(self.err(
+                path,
+                format!("endpoint `{text}` has an empty or blank port name"),
+            ));
+        }
+        Ok(Endpoint::Port {
+            component: component.to_owned(),
+            port: port.to_owned(),
+        })
+    }
+
+    fn check_ports(
+        &self,
+        d: Draft,
+        channels: &[ChannelPlan],
+        inputs_used: &HashMap<(String, String), PortUse>,
+        outputs_used: &HashMap<(String, String), PortUse>,
+    ) -> Result<ComponentPlan, DescriptionError> {
+        let at = member_path("components", &d.name);
+        let used_in = ports_of(&d.name, inputs_used);
+        let used_out = ports_of(&d.name, outputs_used);
+
+        let inputs = self.port_list(
+            &d,
+            "inputs",
+            d.desc.inputs.as_deref(),
+            &used_in,
+            channels,
+            true,
+        )?;
+        let outputs = self.port_list(
+            &d,
+            "outputs",
+            d.desc.outputs.as_deref(),
+            &used_out,
+            channels,
+            false,
+        )?;
+        if let Some(declared) = &d.desc.outputs {
+            for (k, name) in declared.iter().enumerate() {
+                if inputs.iter().any(|p| &p.name == name) {
+                    return Err(self.err(
+                        &element_path(&member_path(&at, "outputs"), k),
+                        format!(
+                            "port `{name}` of component `{}` is both an input and an output",
+                            d.name
+                        ),
+                    ));
+                }
+            }
+        }
+        let total = inputs.len() + outputs.len();
+        if total > MAX_PORTS {
+            return Err(self.err(
+                &at,
+                format!(
+                    "component `{}` has {total} ports, more than the limit of {MAX_PORTS}",
+                    d.name
+                ),
+            ));
+        }
+
+        let rounds = if d.replicas > 0 {
+            self.rounds(&d, &inputs, &outputs)?
+        } else {
+            Vec::new()
+        };
+
+        Ok(ComponentPlan {
+            name: d.name,
+            exec: d.exec,
+            args: d.desc.args,
+            redundancy: d.desc.redundancy,
+            replicas: d.replicas,
+            timeout_us: d.timeout_us,
+            restart_timeout_ms: d
+                .desc
+                .restart_timeout_ms
+                .unwrap_or_else(default_restart_timeout_ms),
+            priority: d.priority,
+            cpus: d.cpus,
+            inputs,
+            outputs,
+            rounds,
+        })
+    }
+
+    /// The inputs (or outputs) of a component: the declared list checked against the channels,
+    /// or, when none is declared, the ports the channels use, in channel order.
+    fn port_list(
+        &self,
+        d: &Draft,
+        field: &str,
+        declared: Option<&[String]>,
+        used: &[(String, PortUse)],
+        channels: &[ChannelPlan],
+        is_input: bool,
+    ) -> Result<Vec<PortPlan>, DescriptionError> {
+        let at = member_path(&member_path("components", &d.name), field);
+        let plan_of = |name: &str, u: Option<&PortUse>| PortPlan {
+            name: name.to_owned(),
+            channel: u.map(|u| u.channel),
+            max_frame: u
+                .and_then(|u| channels.get(u.channel))
+                .map_or(DEFAULT_MAX_FRAME, |c| c.max_frame),
+        };
+        let Some(declared) = declared else {
+            return Ok(used.iter().map(|(n, u)| plan_of(n, Some(u))).collect());
+        };
+        for (k, name) in declared.iter().enumerate() {
+            let path = element_path(&at, k);
+            if name.is_empty() || name.contains('.') || name.chars().any(char::is_whitespace) {
+                return Err(self.err(
+                    &path,
+                    format!("port name `{name}` must be non-empty, without `.` or spaces"),
+                ));
+            }
+            if declared[..k].contains(name) {
+                return Err(self.err(&path, format!("port `{name}` is declared twice")));
+            }
+        }
+        for (name, u) in used {
+            if !declared.contains(name) {
+                return Err(self.err(
+                    &u.path,
+                    format!(
+                        "unknown port `{name}`: component `{}` declares {field} [{}]",
+                        d.name,
+                        declared.join(", ")
+                    ),
+                ));
+            }
+        }
+        let mut out = Vec::with_capacity(declared.len());
+        for (k, name) in declared.iter().enumerate() {
+            let u = used.iter().find(|(n, _)| n == name).map(|(_, u)| u);
+            if is_input && u.is_none() {
+                return Err(self.err(
+                    &element_path(&at, k),
+                    format!(
+                        "input port `{}.{name}` is connected nowhere (no channel has `to`: \"{}.{name}\")",
+                        d.name, d.name
+                    ),
+                ));
+            }
+            out.push(plan_of(name, u));
+        }
+        Ok(out)
+    }
+
+    fn rounds(
+        &self,
+        d: &Draft,
+        inputs: &[PortPlan],
+        outputs: &[PortPlan],
+    ) -> Result<Vec<RoundTrigger>, DescriptionError> {
+        let all_outputs: Vec<String> = outputs.iter().map(|p| p.name.clone()).collect();
+        let Some(rounds) = &d.desc.rounds else {
+            return Ok(inputs
+                .iter()
+                .map(|p| RoundTrigger {
+                    input: p.name.clone(),
+                    outputs: all_outputs.clone(),
+                })
+                .collect());
+        };
+        let at = member_path(&member_path("components", &d.name), "rounds");
+        let mut out: Vec<RoundTrigger> = Vec::with_capacity(rounds.len());
+        for (k, r) in rounds.iter().enumerate() {
+            let here = element_path(&at, k);
+            let input_path = member_path(&here, "input");
+            if !inputs.iter().any(|p| p.name == r.input) {
+                let what = if d.desc.inputs.is_some() {
+                    format!(
+                        "unknown input port `{}` in a round of component `{}`",
+                        r.input, d.name
+                    )
+                } else {
+                    format!(
+                        "round input `{}.{}` is connected nowhere (no channel has `to`: \"{}.{}\")",
+                        d.name, r.input, d.name, r.input
+                    )
+                };
+                return Err(self.err(&input_path, what));
+            }
+            if out.iter().any(|t| t.input == r.input) {
+                return Err(self.err(
+                    &input_path,
+                    format!("two rounds start on input `{}`", r.input),
+                ));
+            }
+            let outs = match &r.outputs {
+                None => all_outputs.clone(),
+                Some(list) => {
+                    for (j, o) in list.iter().enumerate() {
+                        let opath = element_path(&member_path(&here, "outputs"), j);
+                        if !all_outputs.contains(o) {
+                            return Err(self.err(
+                                &opath,
+                                format!(
+                                    "unknown output port `{o}` in a round of component `{}` (no channel starts at `{}.{o}`)",
+                                    d.name, d.name
+                                ),
+                            ));
+                        }
+                        if list[..j].contains(o) {
+                            return Err(self.err(
+                                &opath,
+                                format!("output `{o}` is listed twice in this round"),
+                            ));
+                        }
+                    }
+                    list.clone()
+                }
+            };
+            out.push(RoundTrigger {
+                input: r.input.clone(),
+                outputs: outs,
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// The ports of `component` in `used`, ordered by channel.
+fn ports_of(component: &str, used: &HashMap<(String, String), PortUse>) -> Vec<(String, PortUse)> {
+    let mut v: Vec<(String, PortUse)> = used
+        .iter()
+        .filter(|((c, _), _)| c == component)
+        .map(|((_, p), u)| (p.clone(), u.clone()))
+        .collect();
+    v.sort_by_key(|(_, u)| u.channel);
+    v
+}
+
+fn cpu_list(cpus: &[usize]) -> String {
+    if cpus.is_empty() {
+        return "none known".to_owned();
+    }
+    cpus.iter()
+        .map(usize::to_string)
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+#[cfg(test)]
+mod tests;

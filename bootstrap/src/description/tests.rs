@@ -1,0 +1,581 @@
+//! One test per validation rule: each checks that the message says what is wrong, names the
+//! component/channel/field, and points at the right line.
+
+use std::fs;
+use std::os::unix::fs::PermissionsExt;
+
+use super::*;
+
+/// A folder with an executable `run.sh` and a non-executable `notes.txt`; CPUs 0 and 1.
+struct Fixture {
+    dir: tempfile::TempDir,
+    ctx: HostContext,
+}
+
+fn fixture() -> Fixture {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run.sh");
+    fs::write(&run, "#!/bin/sh\n").unwrap();
+    fs::set_permissions(&run, fs::Permissions::from_mode(0o755)).unwrap();
+    let notes = dir.path().join("notes.txt");
+    fs::write(&notes, "x").unwrap();
+    fs::set_permissions(&notes, fs::Permissions::from_mode(0o644)).unwrap();
+    let ctx = HostContext {
+        base_dir: dir.path().to_path_buf(),
+        search: SearchPath {
+            self_dir: Some(dir.path().to_path_buf()),
+            path_dirs: Vec::new(),
+        },
+        cpus: vec![0, 1],
+    };
+    Fixture { dir, ctx }
+}
+
+impl Fixture {
+    fn ok(&self, text: &str) -> SystemPlan {
+        match parse("sys.json", text, &self.ctx) {
+            Ok(p) => p,
+            Err(e) => panic!("expected a valid description, got: {e}"),
+        }
+    }
+
+    /// Asserts the error is on `line`, names `subject`, and its message contains `needle`.
+    fn fails(&self, text: &str, line: usize, subject: &str, needle: &str) -> String {
+        let e = match parse("sys.json", text, &self.ctx) {
+            Ok(_) => panic!("expected an error containing {needle:?}"),
+            Err(e) => e,
+        };
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with(&format!("sys.json:{line}: ")),
+            "wrong line: {msg}"
+        );
+        assert!(
+            msg.ends_with(&format!("({subject})")),
+            "wrong subject: {msg}"
+        );
+        assert!(msg.contains(needle), "{needle:?} not in: {msg}");
+        assert!(!msg.contains('\n'), "not one line: {msg}");
+        msg
+    }
+}
+
+const ECHO: &str = r#"{
+  "name": "echo-demo",
+  "components": {
+    "source": { "exec": "run.sh", "args": ["--count", "2000"], "priority": 40 },
+    "echo":   { "exec": "./run.sh", "args": ["--stateful"], "redundancy": "tmr",
+                "timeout_us": 20000, "priority": 30, "cpus": [0, 1] },
+    "sink":   { "exec": "run.sh", "priority": 20 }
+  },
+  "channels": [
+    { "from": "source.out", "to": "echo.in" },
+    { "from": "echo.out",   "to": "sink.in" }
+  ]
+}"#;
+
+#[test]
+fn echo_demo_plan() {
+    let f = fixture();
+    let plan = f.ok(ECHO);
+    assert_eq!(plan.name, "echo-demo");
+    let names: Vec<&str> = plan.components.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["source", "echo", "sink"], "document order is kept");
+    let echo = &plan.components[1];
+    assert_eq!(echo.replicas, 3);
+    assert_eq!(echo.timeout_us, 20000);
+    assert_eq!(echo.exec, f.dir.path().join("run.sh"));
+    assert_eq!(echo.cpus, [0, 1]);
+    assert_eq!(echo.priority, Some(30));
+    assert_eq!(echo.restart_timeout_ms, default_restart_timeout_ms());
+    assert_eq!(echo.inputs[0].name, "in");
+    assert_eq!(echo.inputs[0].channel, Some(0));
+    assert_eq!(echo.outputs[0].channel, Some(1));
+    assert_eq!(echo.inputs[0].max_frame, DEFAULT_MAX_FRAME);
+    assert_eq!(
+        echo.rounds,
+        [RoundTrigger {
+            input: "in".into(),
+            outputs: vec!["out".into()]
+        }]
+    );
+    let source = &plan.components[0];
+    assert_eq!(source.replicas, 0);
+    assert!(source.rounds.is_empty());
+    assert!(source.inputs.is_empty());
+    assert!(!plan.uses_stdout());
+    assert!(plan.warnings.is_empty());
+    let text = plan.describe(None);
+    assert!(text.contains("component echo: runs under s3res-voter with 3 replica(s) (tmr)"));
+    assert!(text.contains("out out      -> echo.in (channel 0"));
+}
+
+#[test]
+fn replicas_override_and_explicit_rounds() {
+    let f = fixture();
+    let plan = f.ok(r#"{
+  "name": "n",
+  "components": {
+    "a": { "exec": "run.sh", "redundancy": "dmr", "replicas": 5, "timeout_us": 10,
+           "restart_timeout_ms": 50,
+           "inputs": ["cmd", "tick"], "outputs": ["out", "log"],
+           "rounds": [ { "input": "tick", "outputs": ["out"] }, { "input": "cmd" } ] }
+  },
+  "channels": [
+    { "from": "stdin", "to": "a.tick", "max_frame": 16 },
+    { "from": "a.out", "to": "stdout" },
+    { "from": "a.log", "to": "b.in" },
+    { "from": "b.out", "to": "a.cmd" }
+  ]
+}"#
+    .replace("\"a\": {", "\"b\": { \"exec\": \"run.sh\" },\n    \"a\": {")
+    .as_str());
+    let a = &plan.components[1];
+    assert_eq!(a.replicas, 5);
+    assert_eq!(a.restart_timeout_ms, 50);
+    let ins: Vec<_> = a
+        .inputs
+        .iter()
+        .map(|p| (p.name.as_str(), p.channel))
+        .collect();
+    assert_eq!(ins, [("cmd", Some(3)), ("tick", Some(0))], "declared order");
+    assert_eq!(a.inputs[1].max_frame, 16);
+    assert_eq!(a.rounds[0].outputs, ["out"]);
+    assert_eq!(
+        a.rounds[1].outputs,
+        ["out", "log"],
+        "absent outputs: all of them"
+    );
+    assert!(plan.uses_stdout());
+}
+
+#[test]
+fn declared_but_unread_output_goes_nowhere() {
+    let f = fixture();
+    let plan =
+        f.ok(r#"{"name": "n", "components": {"a": {"exec": "run.sh", "outputs": ["debug"]}}}"#);
+    assert_eq!(plan.components[0].outputs[0].channel, None);
+}
+
+#[test]
+fn ignored_fields_warn() {
+    let f = fixture();
+    let plan = f.ok(r#"{"name": "n", "components": {"a": {"exec": "run.sh", "timeout_us": 5}}}"#);
+    assert_eq!(plan.warnings.len(), 1);
+    assert!(plan.warnings[0].contains("timeout_us"));
+}
+
+#[test]
+fn malformed_json() {
+    let f = fixture();
+    f.fails(
+        "{\n  \"name\": \"x\",\n  \"components\": {\n    \"a\": { \"exec\": \"run.sh\" }\n    \"b\": {}\n  }\n}",
+        5,
+        "JSON syntax",
+        "malformed JSON: expected `,` or `}`",
+    );
+    f.fails("", 1, "JSON syntax", "malformed JSON");
+}
+
+#[test]
+fn unknown_field() {
+    let f = fixture();
+    f.fails(
+        "{\n \"name\": \"x\",\n \"components\": {\n  \"a\": {\n   \"exec\": \"run.sh\",\n   \"prio\": 3\n  }\n }\n}",
+        6,
+        "components.a.prio",
+        "unknown field `prio`",
+    );
+    f.fails(
+        "{\n \"name\": \"x\",\n \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"chanels\": []\n}",
+        4,
+        "chanels",
+        "unknown field `chanels`",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"stdin\", \"to\": \"a.in\",\n \"size\": 3}]}",
+        4,
+        "channels[0].size",
+        "unknown field `size`",
+    );
+}
+
+#[test]
+fn missing_required_fields() {
+    let f = fixture();
+    f.fails(
+        "{\"components\": {}}",
+        1,
+        "top level",
+        "missing field `name`",
+    );
+    f.fails(
+        "{\"name\": \"x\",\n \"components\": {\n  \"a\": {\n  \"args\": []\n }}}",
+        3,
+        "components.a",
+        "missing field `exec`",
+    );
+    f.fails(
+        "{\"name\": \"x\",\n \"components\": {}}",
+        2,
+        "components",
+        "at least one component",
+    );
+}
+
+#[test]
+fn duplicate_component_names() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\",\n \"components\": {\n  \"a\": {\"exec\": \"run.sh\"},\n  \"a\": {\"exec\": \"run.sh\"}\n }\n}",
+        4,
+        "components.a",
+        "duplicate component name `a`",
+    );
+    f.fails(
+        "{\"name\": \"x\",\n \"components\": {\n  \"a\": {\"exec\": \"run.sh\",\n  \"exec\": \"run.sh\"}\n }\n}",
+        4,
+        "components.a.exec",
+        "duplicate key `exec`",
+    );
+}
+
+#[test]
+fn unknown_redundancy_and_mode() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"redundancy\": \"qmr\", \"timeout_us\": 5}}}",
+        3,
+        "components.a.redundancy",
+        "unknown variant `qmr`",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"mode\": \"batch\"}}}",
+        3,
+        "components.a.mode",
+        "unknown variant `batch`",
+    );
+}
+
+#[test]
+fn stream_mode_is_not_built_yet() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 5,\n \"mode\": \"stream\"}}}",
+        3,
+        "components.a.mode",
+        "stream mode is not built yet (next release)",
+    );
+}
+
+#[test]
+fn timeout_missing_or_zero_on_protected() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"dmr\"}}}",
+        2,
+        "components.a",
+        "`timeout_us` is required for a protected component (redundancy dmr)",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"smr\",\n \"timeout_us\": 0}}}",
+        3,
+        "components.a.timeout_us",
+        "timeout_us must be more than 0",
+    );
+}
+
+#[test]
+fn replicas_rules() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"replicas\": 3}}}",
+        3,
+        "components.a.replicas",
+        "needs a redundancy",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 9,\n \"replicas\": 10}}}",
+        3,
+        "components.a.replicas",
+        "replicas 10 is outside 1..=9",
+    );
+}
+
+#[test]
+fn priority_out_of_range() {
+    let f = fixture();
+    for p in ["0", "100", "-1"] {
+        f.fails(
+            &format!("{{\"name\": \"x\", \"components\": {{\n \"a\": {{\"exec\": \"run.sh\",\n \"priority\": {p}}}}}}}"),
+            3,
+            "components.a.priority",
+            &format!("priority {p} is outside 1..=99"),
+        );
+    }
+}
+
+#[test]
+fn cpu_that_does_not_exist() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"cpus\": [\n 0,\n 7]}}}",
+        4,
+        "components.a.cpus[1]",
+        "CPU 7 does not exist on this machine (usable CPUs: 0, 1)",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"cpus\": [1, 1]}}}",
+        2,
+        "components.a.cpus[1]",
+        "CPU 1 is listed twice",
+    );
+}
+
+#[test]
+fn executable_missing_or_not_executable() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\n \"exec\": \"./nope.sh\"}}}",
+        3,
+        "components.a.exec",
+        "executable `./nope.sh` does not exist",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\n \"exec\": \"notes.txt\"}}}",
+        3,
+        "components.a.exec",
+        "not an executable file",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\n \"exec\": \"./notes.txt\"}}}",
+        3,
+        "components.a.exec",
+        "is not executable",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\n \"exec\": \"no-such-program\"}}}",
+        3,
+        "components.a.exec",
+        "not found beside s3res-bootstrap nor on PATH",
+    );
+}
+
+#[test]
+fn unknown_component_in_endpoint() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"stdin\",\n \"to\": \"ecko.in\"}]}",
+        4,
+        "channels[0].to",
+        "unknown component `ecko` in endpoint `ecko.in`",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"a\", \"to\": \"stdout\"}]}",
+        3,
+        "channels[0].from",
+        "endpoint `a` must be `component.port`, `stdin` or `stdout`",
+    );
+}
+
+#[test]
+fn unknown_port_against_declared_ports() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"inputs\": [\"in\"]}},\n \"channels\": [\n {\"from\": \"stdin\", \"to\": \"a.in\"},\n {\"from\": \"stdin\", \"to\": \"a.inn\"}]}",
+        4,
+        "channels[1].from",
+        "stdin is already read by channels[0]",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"outputs\": [\"out\"]}},\n \"channels\": [\n {\"from\": \"a.ouT\",\n \"to\": \"stdout\"}]}",
+        3,
+        "channels[0].from",
+        "unknown port `ouT`: component `a` declares outputs [out]",
+    );
+}
+
+#[test]
+fn round_naming_an_unused_port() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 9,\n \"rounds\": [{\"input\": \"in\",\n \"outputs\": [\"status\"]}]}},\n \"channels\": [{\"from\": \"stdin\", \"to\": \"a.in\"}, {\"from\": \"a.out\", \"to\": \"stdout\"}]}",
+        3,
+        "components.a.rounds[0].outputs[0]",
+        "unknown output port `status` in a round of component `a` (no channel starts at `a.status`)",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 9, \"inputs\": [\"in\"],\n \"rounds\": [{\"input\": \"tick\"}]}},\n \"channels\": [{\"from\": \"stdin\", \"to\": \"a.in\"}]}",
+        2,
+        "components.a.rounds[0].input",
+        "unknown input port `tick` in a round of component `a`",
+    );
+}
+
+#[test]
+fn input_connected_nowhere() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\",\n \"inputs\": [\"in\",\n \"cmd\"]}},\n \"channels\": [{\"from\": \"stdin\", \"to\": \"a.in\"}]}",
+        3,
+        "components.a.inputs[1]",
+        "input port `a.cmd` is connected nowhere",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 9,\n \"rounds\": [\n {\"input\": \"tick\"}]}},\n \"channels\": [{\"from\": \"stdin\", \"to\": \"a.in\"}]}",
+        3,
+        "components.a.rounds[0].input",
+        "round input `a.tick` is connected nowhere",
+    );
+}
+
+#[test]
+fn port_connected_twice() {
+    let f = fixture();
+    let base = |chans: &str| {
+        format!("{{\"name\": \"x\", \"components\": {{\"a\": {{\"exec\": \"run.sh\"}}, \"b\": {{\"exec\": \"run.sh\"}}}},\n \"channels\": [\n{chans}]}}")
+    };
+    f.fails(
+        &base("{\"from\": \"a.out\", \"to\": \"b.in\"},\n{\"from\": \"a.out2\", \"to\": \"b.in\"}"),
+        4,
+        "channels[1].to",
+        "input port `b.in` is already connected by channels[0]; a pipe has one reader",
+    );
+    f.fails(
+        &base("{\"from\": \"a.out\", \"to\": \"b.in\"},\n{\"from\": \"a.out\", \"to\": \"b.in2\"}"),
+        4,
+        "channels[1].from",
+        "output port `a.out` is already connected by channels[0]; a pipe has one writer",
+    );
+    f.fails(
+        &base(
+            "{\"from\": \"a.out\", \"to\": \"stdout\"},\n{\"from\": \"b.out\", \"to\": \"stdout\"}",
+        ),
+        4,
+        "channels[1].to",
+        "stdout is already written by channels[0]",
+    );
+}
+
+#[test]
+fn port_used_both_ways() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}, \"b\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"a.io\", \"to\": \"b.in\"},\n {\"from\": \"b.out\", \"to\": \"a.io\"}]}",
+        4,
+        "channels[1].to",
+        "port `a.io` is used both as an output (channels[0].from) and as an input",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"inputs\": [\"io\"],\n \"outputs\": [\"io\"]}},\n \"channels\": [{\"from\": \"stdin\", \"to\": \"a.io\"}]}",
+        2,
+        "components.a.outputs[0]",
+        "port `io` of component `a` is both an input and an output",
+    );
+}
+
+#[test]
+fn reserved_endpoints_in_the_wrong_place() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"a.out\", \"to\": \"stdin\"}]}",
+        3,
+        "channels[0].to",
+        "`stdin` can only be a channel's `from`",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"stdout\", \"to\": \"a.in\"}]}",
+        3,
+        "channels[0].from",
+        "`stdout` can only be a channel's `to`",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [\n {\"from\": \"stdin\", \"to\": \"stdout\"}]}",
+        3,
+        "channels[0]",
+        "connects no component",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"stdin\": {\"exec\": \"run.sh\"}}}",
+        2,
+        "components.stdin",
+        "reserved",
+    );
+}
+
+#[test]
+fn max_frame_range() {
+    let f = fixture();
+    for m in ["0", "16777217"] {
+        f.fails(
+            &format!("{{\"name\": \"x\", \"components\": {{\"a\": {{\"exec\": \"run.sh\"}}}},\n \"channels\": [\n {{\"from\": \"stdin\", \"to\": \"a.in\",\n \"max_frame\": {m}}}]}}"),
+            4,
+            "channels[0].max_frame",
+            &format!("max_frame {m} is outside 1..=16777216"),
+        );
+    }
+}
+
+#[test]
+fn too_many_ports() {
+    let f = fixture();
+    let chans: Vec<String> = (0..=MAX_PORTS)
+        .map(|i| format!("{{\"from\": \"a.o{i}\", \"to\": \"b.i{i}\"}}"))
+        .collect();
+    let text = format!(
+        "{{\"name\": \"x\",\n \"components\": {{\n \"a\": {{\"exec\": \"run.sh\"}},\n \"b\": {{\"exec\": \"run.sh\"}}}},\n \"channels\": [{}]}}",
+        chans.join(",\n")
+    );
+    f.fails(
+        &text,
+        3,
+        "components.a",
+        &format!(
+            "component `a` has {} ports, more than the limit of {MAX_PORTS}",
+            MAX_PORTS + 1
+        ),
+    );
+}
+
+#[test]
+fn component_names_must_fit_endpoints() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a.b\": {\"exec\": \"run.sh\"}}}",
+        2,
+        "components.a.b",
+        "may not contain `.`",
+    );
+    f.fails(
+        "{\"name\": \"\",\n \"components\": {\"a\": {\"exec\": \"run.sh\"}}}",
+        1,
+        "name",
+        "the system name is empty",
+    );
+}
+
+#[test]
+fn wrong_types_name_the_field() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"args\": \"--fast\"}}}",
+        3,
+        "components.a.args",
+        "invalid type",
+    );
+}
+
+#[test]
+fn cpu_list_format() {
+    assert_eq!(parse_cpu_list("0-3,6,8-9\n"), [0, 1, 2, 3, 6, 8, 9]);
+    assert_eq!(parse_cpu_list("0"), [0]);
+    assert!(parse_cpu_list("").is_empty());
+}
+
+#[test]
+fn unreadable_file() {
+    let f = fixture();
+    let e = load(&f.dir.path().join("absent.json"), &f.ctx).unwrap_err();
+    assert!(e.to_string().contains("cannot read the description"), "{e}");
+    assert_eq!(e.line(), 0);
+}

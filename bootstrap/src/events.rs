@@ -1,0 +1,227 @@
+//! Gathering the voters' events: one reader thread on the shared events pipe.
+//!
+//! Voters write one JSON object per `write` (< PIPE_BUF, so lines never interleave). The reader
+//! copies each line to the `--events` file, logs it, and counts faults and recoveries per
+//! component for the summary. A line it cannot parse is logged and kept in the file, never fatal.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufRead, BufReader, Write};
+use std::os::fd::OwnedFd;
+use std::sync::mpsc;
+use std::time::Duration;
+
+use s3res_voter::event::{Event, EventKind};
+
+/// Counts for one component.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Counts {
+    pub starts: u64,
+    /// sdc, crash, hang and protocol events.
+    pub faults: u64,
+    pub recoveries: u64,
+    pub failed_recoveries: u64,
+}
+
+/// Counts per component, and how many lines could not be read.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct EventSummary {
+    pub per_component: BTreeMap<String, Counts>,
+    pub unparsable: u64,
+}
+
+impl EventSummary {
+    /// Takes one line into account (and logs it).
+    pub fn record_line(&mut self, line: &str) {
+        let line = line.trim_end();
+        if line.is_empty() {
+            return;
+        }
+        let event: Event = match serde_json::from_str(line) {
+            Ok(e) => e,
+            Err(e) => {
+                self.unparsable += 1;
+                tracing::warn!("unreadable event line ({e}): {line}");
+                return;
+            }
+        };
+        let counts = self
+            .per_component
+            .entry(event.component.clone())
+            .or_default();
+        match event.kind {
+            EventKind::Start => {
+                counts.starts += 1;
+                tracing::debug!(component = %event.component, replica = ?event.replica, pid = ?event.pid, "replica started");
+            }
+            EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
+                counts.faults += 1;
+                tracing::warn!(
+                    component = %event.component,
+                    replica = ?event.replica,
+                    pid = ?event.pid,
+                    round = ?event.round,
+                    detail = event.detail.as_deref().unwrap_or(""),
+                    "fault: {}",
+                    kind_name(event.kind)
+                );
+            }
+            EventKind::Recovery => {
+                counts.recoveries += 1;
+                tracing::info!(
+                    component = %event.component,
+                    replica = ?event.replica,
+                    new_pid = ?event.new_pid,
+                    method = ?event.method,
+                    recovery_us = ?event.recovery_us,
+                    "recovered"
+                );
+            }
+            EventKind::RecoveryFailed => {
+                counts.failed_recoveries += 1;
+                tracing::error!(
+                    component = %event.component,
+                    replica = ?event.replica,
+                    detail = event.detail.as_deref().unwrap_or(""),
+                    "recovery failed; the component runs with fewer replicas"
+                );
+            }
+        }
+    }
+
+    /// The one-line summary printed at exit, e.g.
+    /// `events: echo 2 faults, 2 recoveries, 0 failed recoveries`.
+    pub fn line(&self) -> String {
+        let mut parts: Vec<String> = self
+            .per_component
+            .iter()
+            .map(|(name, c)| {
+                format!(
+                    "{name} {} fault(s), {} recovery(ies), {} failed recovery(ies)",
+                    c.faults, c.recoveries, c.failed_recoveries
+                )
+            })
+            .collect();
+        if parts.is_empty() {
+            parts.push("none".to_owned());
+        }
+        let mut s = format!("events: {}", parts.join("; "));
+        if self.unparsable > 0 {
+            s.push_str(&format!(" ({} unreadable line(s))", self.unparsable));
+        }
+        s
+    }
+}
+
+fn kind_name(kind: EventKind) -> &'static str {
+    match kind {
+        EventKind::Start => "start",
+        EventKind::Sdc => "sdc",
+        EventKind::Crash => "crash",
+        EventKind::Hang => "hang",
+        EventKind::Protocol => "protocol",
+        EventKind::Recovery => "recovery",
+        EventKind::RecoveryFailed => "recovery_failed",
+    }
+}
+
+/// The running reader thread.
+#[derive(Debug)]
+pub struct EventReader {
+    done: mpsc::Receiver<EventSummary>,
+}
+
+impl EventReader {
+    /// Starts reading `pipe` (the read end of the events pipe) until every writer has closed
+    /// it; each line is also appended to `log` if given.
+    pub fn spawn(pipe: OwnedFd, log: Option<File>) -> std::io::Result<Self> {
+        let (tx, rx) = mpsc::channel();
+        std::thread::Builder::new()
+            .name("events".to_owned())
+            .spawn(move || {
+                let summary = read_all(BufReader::new(File::from(pipe)), log);
+                // The receiver may have given up waiting; nothing more to do then.
+                let _ = tx.send(summary);
+            })?;
+        Ok(EventReader { done: rx })
+    }
+
+    /// Waits up to `limit` for the end of the stream. `None` if a writer still holds the pipe
+    /// open (the thread is then left behind; the process is about to exit anyway).
+    pub fn finish(self, limit: Duration) -> Option<EventSummary> {
+        self.done.recv_timeout(limit).ok()
+    }
+}
+
+/// Reads lines to the end, copying each to `log`.
+pub fn read_all(mut input: impl BufRead, mut log: Option<File>) -> EventSummary {
+    let mut summary = EventSummary::default();
+    let mut buf = Vec::with_capacity(4096);
+    loop {
+        buf.clear();
+        match input.read_until(b'\n', &mut buf) {
+            Ok(0) => break,
+            Ok(_) => {}
+            Err(e) => {
+                tracing::warn!("reading events failed: {e}");
+                break;
+            }
+        }
+        if let Some(f) = log.as_mut() {
+            let mut res = f.write_all(&buf);
+            if res.is_ok() && !buf.ends_with(b"\n") {
+                res = f.write_all(b"\n");
+            }
+            if let Err(e) = res.and_then(|()| f.flush()) {
+                tracing::warn!("cannot write the events file ({e}); events are no longer saved");
+                log = None;
+            }
+        }
+        summary.record_line(&String::from_utf8_lossy(&buf));
+    }
+    summary
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::{Read, Seek};
+
+    #[test]
+    fn counts_copies_and_tolerates_garbage() {
+        let mut e1 = Event::new("sys", "echo", EventKind::Crash);
+        e1.replica = Some(1);
+        let e2 = Event::new("sys", "echo", EventKind::Recovery);
+        let e3 = Event::new("sys", "nav", EventKind::Start);
+        let input = format!(
+            "{}not json\n{}{}{}",
+            e1.to_line(),
+            e2.to_line(),
+            e3.to_line(),
+            "{\"half\":"
+        );
+        let mut log = tempfile::tempfile().unwrap();
+        let summary = read_all(input.as_bytes(), Some(log.try_clone().unwrap()));
+        assert_eq!(summary.unparsable, 2);
+        let echo = summary.per_component["echo"];
+        assert_eq!((echo.faults, echo.recoveries), (1, 1));
+        assert_eq!(summary.per_component["nav"].starts, 1);
+        let mut saved = String::new();
+        log.rewind().unwrap();
+        log.read_to_string(&mut saved).unwrap();
+        assert_eq!(saved.lines().count(), 5);
+        assert!(saved.starts_with(&e1.to_line()));
+        assert!(summary.line().contains("echo 1 fault(s), 1 recovery(ies)"));
+    }
+
+    #[test]
+    fn reader_thread_ends_at_eof() {
+        let (r, w) = replica_rt::sys::pipe().unwrap();
+        let reader = EventReader::spawn(r, None).unwrap();
+        let line = Event::new("s", "c", EventKind::Hang).to_line();
+        replica_rt::sys::write(std::os::fd::AsFd::as_fd(&w), line.as_bytes()).unwrap();
+        drop(w);
+        let summary = reader.finish(Duration::from_secs(5)).unwrap();
+        assert_eq!(summary.per_component["c"].faults, 1);
+    }
+}

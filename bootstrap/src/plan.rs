@@ -1,0 +1,227 @@
+//! The validated system: what runs, how, and which channel each port is on. Built by
+//! [`crate::description`], consumed by [`crate::run`] and printed by `--check`.
+
+use std::fmt::{self, Write as _};
+use std::path::PathBuf;
+
+use s3res_voter::plan::RoundTrigger;
+use serde::Deserialize;
+
+/// Replication level of a component, as written in the description.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Redundancy {
+    /// No voter: the component runs directly.
+    #[default]
+    None,
+    Smr,
+    Dmr,
+    Tmr,
+}
+
+impl Redundancy {
+    /// Replica count the level implies (0: unprotected).
+    pub fn default_replicas(self) -> usize {
+        match self {
+            Redundancy::None => 0,
+            Redundancy::Smr => 1,
+            Redundancy::Dmr => 2,
+            Redundancy::Tmr => 3,
+        }
+    }
+}
+
+impl fmt::Display for Redundancy {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Redundancy::None => "none",
+            Redundancy::Smr => "smr",
+            Redundancy::Dmr => "dmr",
+            Redundancy::Tmr => "tmr",
+        })
+    }
+}
+
+/// One end of a channel.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Endpoint {
+    /// bootstrap's own standard input (only as a `from`).
+    Stdin,
+    /// bootstrap's own standard output (only as a `to`).
+    Stdout,
+    Port {
+        component: String,
+        port: String,
+    },
+}
+
+impl fmt::Display for Endpoint {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Endpoint::Stdin => f.write_str("stdin"),
+            Endpoint::Stdout => f.write_str("stdout"),
+            Endpoint::Port { component, port } => write!(f, "{component}.{port}"),
+        }
+    }
+}
+
+/// A channel: one pipe (or bootstrap's stdin/stdout), one writer, one reader.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelPlan {
+    pub from: Endpoint,
+    pub to: Endpoint,
+    pub max_frame: usize,
+}
+
+/// A port of a component and the channel it is on.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PortPlan {
+    pub name: String,
+    /// Index into [`SystemPlan::channels`]; `None` only for a declared output that no channel
+    /// reads, whose frames go to /dev/null.
+    pub channel: Option<usize>,
+    pub max_frame: usize,
+}
+
+/// How one component runs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ComponentPlan {
+    pub name: String,
+    /// Absolute path of the component executable.
+    pub exec: PathBuf,
+    pub args: Vec<String>,
+    pub redundancy: Redundancy,
+    /// Number of replicas under a voter; 0 for an unprotected component.
+    pub replicas: usize,
+    /// Round deadline in microseconds; 0 for an unprotected component.
+    pub timeout_us: u64,
+    pub restart_timeout_ms: u64,
+    pub priority: Option<u8>,
+    pub cpus: Vec<usize>,
+    pub inputs: Vec<PortPlan>,
+    pub outputs: Vec<PortPlan>,
+    /// Explicit round triggers (empty for an unprotected component).
+    pub rounds: Vec<RoundTrigger>,
+}
+
+impl ComponentPlan {
+    pub fn is_protected(&self) -> bool {
+        self.replicas > 0
+    }
+}
+
+/// The whole validated system.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SystemPlan {
+    pub name: String,
+    /// In the order of the description.
+    pub components: Vec<ComponentPlan>,
+    pub channels: Vec<ChannelPlan>,
+    /// Things accepted but ignored (e.g. `timeout_us` on an unprotected component).
+    pub warnings: Vec<String>,
+}
+
+impl SystemPlan {
+    /// True if some channel ends at bootstrap's stdout: then fd 1 carries frames, and every
+    /// component's own stdout is sent to stderr instead so text never mixes with frames.
+    pub fn uses_stdout(&self) -> bool {
+        self.channels.iter().any(|c| c.to == Endpoint::Stdout)
+    }
+
+    pub fn has_protected(&self) -> bool {
+        self.components.iter().any(ComponentPlan::is_protected)
+    }
+
+    /// Readable form for `--check`. `voter` is the voter binary that would be used, if found.
+    pub fn describe(&self, voter: Option<&std::path::Path>) -> String {
+        let mut out = String::new();
+        let _ = writeln!(
+            out,
+            "system {}: {} component(s), {} channel(s)",
+            self.name,
+            self.components.len(),
+            self.channels.len()
+        );
+        for c in &self.components {
+            out.push('\n');
+            self.describe_component(c, voter, &mut out);
+        }
+        out
+    }
+
+    fn describe_component(
+        &self,
+        c: &ComponentPlan,
+        voter: Option<&std::path::Path>,
+        out: &mut String,
+    ) {
+        if c.is_protected() {
+            let _ = writeln!(
+                out,
+                "component {}: runs under s3res-voter with {} replica(s) ({})",
+                c.name, c.replicas, c.redundancy
+            );
+            match voter {
+                Some(v) => {
+                    let _ = writeln!(out, "  voter     {}", v.display());
+                }
+                None => {
+                    let _ = writeln!(out, "  voter     s3res-voter NOT FOUND");
+                }
+            }
+        } else {
+            let _ = writeln!(out, "component {}: runs directly (unprotected)", c.name);
+        }
+        let _ = write!(out, "  exec      {}", c.exec.display());
+        for a in &c.args {
+            let _ = write!(out, " {a}");
+        }
+        out.push('\n');
+        for p in &c.inputs {
+            let _ = writeln!(out, "  in  {:<8} <- {}", p.name, self.port_peer(p, true));
+        }
+        for p in &c.outputs {
+            let _ = writeln!(out, "  out {:<8} -> {}", p.name, self.port_peer(p, false));
+        }
+        if c.is_protected() {
+            for r in &c.rounds {
+                let _ = writeln!(
+                    out,
+                    "  round     a frame on {} expects one frame on each of [{}]",
+                    r.input,
+                    r.outputs.join(", ")
+                );
+            }
+            let _ = writeln!(
+                out,
+                "  timeout   {} us per round, {} ms per restart",
+                c.timeout_us, c.restart_timeout_ms
+            );
+        }
+        match c.priority {
+            Some(p) => {
+                let _ = writeln!(out, "  priority  {p}");
+            }
+            None => {
+                let _ = writeln!(out, "  priority  default");
+            }
+        }
+        if c.cpus.is_empty() {
+            let _ = writeln!(out, "  cpus      any");
+        } else {
+            let list: Vec<String> = c.cpus.iter().map(usize::to_string).collect();
+            let _ = writeln!(out, "  cpus      {}", list.join(", "));
+        }
+    }
+
+    /// What is on the other side of a port, e.g. `source.out (channel 0, max frame 65536 B)`.
+    fn port_peer(&self, p: &PortPlan, input: bool) -> String {
+        match p.channel.and_then(|i| self.channels.get(i).map(|c| (i, c))) {
+            Some((i, ch)) => {
+                let peer = if input { &ch.from } else { &ch.to };
+                format!("{peer} (channel {i}, max frame {} B)", p.max_frame)
+            }
+            None => format!("/dev/null (no channel, max frame {} B)", p.max_frame),
+        }
+    }
+}

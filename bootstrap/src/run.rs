@@ -1,0 +1,621 @@
+//! Starting a validated system, supervising it, and stopping it.
+//!
+//! Order matters here: signals are blocked before any thread exists (so every thread inherits
+//! the mask and only the signalfd sees them); the pipes are made before any child, and bootstrap
+//! closes its copies right after the children have theirs, or end of stream never arrives.
+
+use std::fs::File;
+use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::os::unix::fs::DirBuilderExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use nix::sys::signal::{SigSet, Signal};
+use nix::sys::signalfd::{SfdFlags, SignalFd};
+use thiserror::Error;
+
+use replica_rt::contract::{
+    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET,
+    FIRST_PORT_FD,
+};
+use replica_rt::sys::{self, ExitStatus};
+use s3res_voter::plan::{ExternalPort, VoterPlan};
+
+use crate::events::{EventReader, EventSummary};
+use crate::plan::{ComponentPlan, Endpoint, SystemPlan};
+use crate::sweep::SweepGuard;
+
+/// Name of the voter binary.
+pub const VOTER_BIN: &str = "s3res-voter";
+/// Longest Unix socket path (sun_path is 108 bytes including the NUL).
+const SUN_PATH_MAX: usize = 107;
+/// How long to wait for the events reader after everything has exited.
+const EVENTS_DRAIN: Duration = Duration::from_secs(2);
+
+/// How to run.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// The voter binary (required if the system has a protected component).
+    pub voter: Option<PathBuf>,
+    /// Where to copy the event lines (created or truncated at start).
+    pub events_file: Option<PathBuf>,
+    /// After SIGTERM to the children, how long before SIGKILL.
+    pub stop_timeout: Duration,
+}
+
+/// Why a system could not be run.
+#[derive(Debug, Error)]
+pub enum RunError {
+    #[error(
+        "system has protected components but the voter binary `{VOTER_BIN}` was not found: {0}"
+    )]
+    VoterMissing(String),
+    #[error("cannot make bootstrap a child subreaper: {0}")]
+    Subreaper(std::io::Error),
+    #[error("cannot set up signal handling: {0}")]
+    Signals(nix::Error),
+    #[error("cannot create the events file {path}: {source}")]
+    EventsFile {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot create the socket folder in {dir}: {source}")]
+    SocketDir {
+        dir: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("socket path {0} is longer than {SUN_PATH_MAX} bytes; set TMPDIR to a shorter folder")]
+    SocketPathTooLong(PathBuf),
+    #[error("cannot set up channel {index} ({from} -> {to}): {source}")]
+    Channel {
+        index: usize,
+        from: Endpoint,
+        to: Endpoint,
+        source: std::io::Error,
+    },
+    #[error("cannot set up the events pipe: {0}")]
+    EventsPipe(std::io::Error),
+    #[error("cannot start component {component} ({exec}): {source}")]
+    Spawn {
+        component: String,
+        exec: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("internal error: {0}")]
+    Internal(String),
+    #[error("supervision failed: {0}")]
+    Supervise(std::io::Error),
+}
+
+/// A component (or its voter) that did not exit cleanly.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Failure {
+    pub component: String,
+    pub status: ExitStatus,
+}
+
+/// How the run ended.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Ending {
+    /// Every component exited on its own.
+    Finished,
+    /// bootstrap was asked to stop by this signal.
+    Stopped(i32),
+}
+
+/// What happened.
+#[derive(Debug, Clone)]
+pub struct RunReport {
+    pub ending: Ending,
+    /// Components that failed (for a stopped run, only those that failed before the stop).
+    pub failures: Vec<Failure>,
+    /// Counts from the voters' events (`None` if there were no voters or the stream did not end).
+    pub events: Option<EventSummary>,
+}
+
+impl RunReport {
+    /// bootstrap's exit status: 0 clean, 1 a component failed, 128+signal when stopped.
+    pub fn exit_code(&self) -> u8 {
+        match self.ending {
+            Ending::Stopped(sig) => (128 + sig).clamp(0, 255) as u8,
+            Ending::Finished if self.failures.is_empty() => 0,
+            Ending::Finished => 1,
+        }
+    }
+}
+
+/// A direct child: an unprotected component or a voter.
+#[derive(Debug)]
+struct Child {
+    component: String,
+    pid: libc::pid_t,
+    status: Option<ExitStatus>,
+    /// Exited after the stop began (its status is then our doing, not a failure).
+    after_stop: bool,
+}
+
+/// Both ends of a channel until they are handed to the components.
+#[derive(Debug, Default)]
+struct ChannelEnds {
+    read: Option<OwnedFd>,
+    write: Option<OwnedFd>,
+}
+
+/// Runs `plan` to the end. Every child is gone when this returns, whatever it returns.
+pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> {
+    // Before any thread: every thread inherits this mask, so the signals reach only the
+    // signalfd. (std::process::Command clears the mask in children.)
+    let mut mask = SigSet::empty();
+    for s in [Signal::SIGINT, Signal::SIGTERM, Signal::SIGCHLD] {
+        mask.add(s);
+    }
+    mask.thread_block().map_err(RunError::Signals)?;
+    let signals = SignalFd::with_flags(&mask, SfdFlags::SFD_CLOEXEC | SfdFlags::SFD_NONBLOCK)
+        .map_err(RunError::Signals)?;
+
+    let voter = if plan.has_protected() {
+        match &opts.voter {
+            Some(v) => Some(v.clone()),
+            None => {
+                return Err(RunError::VoterMissing(
+                    "no voter binary was given".to_owned(),
+                ))
+            }
+        }
+    } else {
+        None
+    };
+
+    sys::set_child_subreaper().map_err(RunError::Subreaper)?;
+    // From here on, whatever happens, the guard sweeps.
+    let mut guard = SweepGuard::new();
+
+    let events_log = match &opts.events_file {
+        Some(path) => Some(File::create(path).map_err(|source| RunError::EventsFile {
+            path: path.clone(),
+            source,
+        })?),
+        None => None,
+    };
+
+    let socket_dir = if voter.is_some() {
+        let dir = make_socket_dir()?;
+        guard.own_socket_dir(dir.clone());
+        Some(dir)
+    } else {
+        None
+    };
+
+    let mut channels = open_channels(plan)?;
+
+    let (events_reader, events_write) = if voter.is_some() {
+        let (r, w) = sys::pipe().map_err(RunError::EventsPipe)?;
+        let reader = EventReader::spawn(r, events_log).map_err(RunError::EventsPipe)?;
+        (Some(reader), Some(w))
+    } else {
+        (None, None)
+    };
+
+    // Each component's stdout: inherited, unless fd 1 carries frames.
+    let stdout_to_stderr = plan.uses_stdout();
+
+    let mut children: Vec<Child> = Vec::with_capacity(plan.components.len());
+    for (index, c) in plan.components.iter().enumerate() {
+        let pid = match (&voter, &socket_dir, &events_write) {
+            (Some(voter), Some(dir), Some(ev)) if c.is_protected() => spawn_voter(
+                plan,
+                c,
+                index,
+                voter,
+                dir,
+                ev.as_raw_fd(),
+                &mut channels,
+                stdout_to_stderr,
+            )?,
+            _ if c.is_protected() => {
+                return Err(RunError::Internal(format!(
+                    "protected component {} without a voter",
+                    c.name
+                )))
+            }
+            _ => spawn_direct(c, &mut channels, stdout_to_stderr)?,
+        };
+        tracing::info!(
+            component = %c.name,
+            pid,
+            "started {}",
+            if c.is_protected() {
+                format!("under {VOTER_BIN} with {} replica(s)", c.replicas)
+            } else {
+                "directly".to_owned()
+            }
+        );
+        children.push(Child {
+            component: c.name.clone(),
+            pid,
+            status: None,
+            after_stop: false,
+        });
+    }
+    // Our copies of every pipe end must go, or readers never see end of stream.
+    drop(channels);
+    drop(events_write);
+
+    let ending = supervise(&signals, &mut children, opts.stop_timeout)?;
+
+    guard.finish();
+    let events = events_reader.and_then(|r| {
+        let s = r.finish(EVENTS_DRAIN);
+        if s.is_none() {
+            tracing::warn!("the events pipe is still open; the summary is incomplete");
+        }
+        s
+    });
+
+    let failures = children
+        .iter()
+        .filter(|c| !c.after_stop)
+        .filter_map(|c| match c.status {
+            Some(s) if !s.success() => Some(Failure {
+                component: c.component.clone(),
+                status: s,
+            }),
+            _ => None,
+        })
+        .collect();
+    Ok(RunReport {
+        ending,
+        failures,
+        events,
+    })
+}
+
+/// `<tmp>/s3res-<pid>-<n>`, mode 0700.
+fn make_socket_dir() -> Result<PathBuf, RunError> {
+    let tmp = std::env::temp_dir();
+    let pid = std::process::id();
+    for n in 0..1000 {
+        let dir = tmp.join(format!("s3res-{pid}-{n}"));
+        match std::fs::DirBuilder::new().mode(0o700).create(&dir) {
+            Ok(()) => return Ok(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(source) => return Err(RunError::SocketDir { dir: tmp, source }),
+        }
+    }
+    Err(RunError::SocketDir {
+        dir: tmp,
+        source: std::io::Error::new(
+            std::io::ErrorKind::AlreadyExists,
+            "1000 candidate names are taken",
+        ),
+    })
+}
+
+/// One pipe per channel; `stdin`/`stdout` endpoints get a duplicate of bootstrap's fd 0/1.
+fn open_channels(plan: &SystemPlan) -> Result<Vec<ChannelEnds>, RunError> {
+    let mut out = Vec::with_capacity(plan.channels.len());
+    for (index, ch) in plan.channels.iter().enumerate() {
+        let fail = |source| RunError::Channel {
+            index,
+            from: ch.from.clone(),
+            to: ch.to.clone(),
+            source,
+        };
+        let ends = match (&ch.from, &ch.to) {
+            (Endpoint::Stdin, _) => ChannelEnds {
+                read: Some(
+                    std::io::stdin()
+                        .as_fd()
+                        .try_clone_to_owned()
+                        .map_err(fail)?,
+                ),
+                write: None,
+            },
+            (_, Endpoint::Stdout) => ChannelEnds {
+                read: None,
+                write: Some(
+                    std::io::stdout()
+                        .as_fd()
+                        .try_clone_to_owned()
+                        .map_err(fail)?,
+                ),
+            },
+            _ => {
+                let (r, w) = sys::pipe().map_err(fail)?;
+                ChannelEnds {
+                    read: Some(r),
+                    write: Some(w),
+                }
+            }
+        };
+        out.push(ends);
+    }
+    Ok(out)
+}
+
+/// The fds a component's ports need, in port order (inputs then outputs), taken out of
+/// `channels` so that bootstrap's copies close as soon as the child has its own.
+fn take_port_fds(
+    c: &ComponentPlan,
+    channels: &mut [ChannelEnds],
+) -> Result<Vec<OwnedFd>, RunError> {
+    let mut fds = Vec::with_capacity(c.inputs.len() + c.outputs.len());
+    for (p, is_input) in c
+        .inputs
+        .iter()
+        .map(|p| (p, true))
+        .chain(c.outputs.iter().map(|p| (p, false)))
+    {
+        let fd = match p.channel {
+            Some(i) => {
+                let ends = channels.get_mut(i).ok_or_else(|| {
+                    RunError::Internal(format!("port {}.{} names channel {i}", c.name, p.name))
+                })?;
+                let end = if is_input {
+                    ends.read.take()
+                } else {
+                    ends.write.take()
+                };
+                end.ok_or_else(|| {
+                    RunError::Internal(format!(
+                        "channel {i} end for {}.{} was already handed out",
+                        c.name, p.name
+                    ))
+                })?
+            }
+            // A declared output nobody reads: its frames are discarded.
+            None => File::options()
+                .write(true)
+                .open("/dev/null")
+                .map_err(|source| RunError::Spawn {
+                    component: c.name.clone(),
+                    exec: c.exec.clone(),
+                    source,
+                })?
+                .into(),
+        };
+        fds.push(fd);
+    }
+    Ok(fds)
+}
+
+/// Target fd numbers 3, 4, ... for `fds`.
+fn fd_mapping(fds: &[OwnedFd]) -> Vec<(RawFd, RawFd)> {
+    fds.iter()
+        .enumerate()
+        .map(|(i, fd)| (fd.as_raw_fd(), FIRST_PORT_FD + i as RawFd))
+        .collect()
+}
+
+fn base_command(
+    exec: &Path,
+    component: &str,
+    stdout_to_stderr: bool,
+) -> Result<Command, std::io::Error> {
+    let mut cmd = Command::new(exec);
+    cmd.stdin(Stdio::null());
+    if stdout_to_stderr {
+        cmd.stdout(Stdio::from(std::io::stderr().as_fd().try_clone_to_owned()?));
+    }
+    // Whatever bootstrap inherited must not make a component believe it is a replica.
+    cmd.env_remove(ENV_VOTER_SOCKET)
+        .env_remove(ENV_REPLICA)
+        .env(ENV_COMPONENT, component);
+    Ok(cmd)
+}
+
+fn spawn_direct(
+    c: &ComponentPlan,
+    channels: &mut [ChannelEnds],
+    stdout_to_stderr: bool,
+) -> Result<libc::pid_t, RunError> {
+    let spawn_err = |source| RunError::Spawn {
+        component: c.name.clone(),
+        exec: c.exec.clone(),
+        source,
+    };
+    let fds = take_port_fds(c, channels)?;
+    let mapping = fd_mapping(&fds);
+    let ports = PortMap {
+        ports: c
+            .inputs
+            .iter()
+            .map(|p| (p, Direction::In))
+            .chain(c.outputs.iter().map(|p| (p, Direction::Out)))
+            .zip(&mapping)
+            .map(|((p, dir), &(_, fd))| PortSpec {
+                name: p.name.clone(),
+                dir,
+                fd,
+                max_frame: p.max_frame,
+            })
+            .collect(),
+    };
+    let mut cmd = base_command(&c.exec, &c.name, stdout_to_stderr).map_err(spawn_err)?;
+    cmd.args(&c.args).env(ENV_PORTS, ports.to_env());
+    sys::map_fds_on_exec(&mut cmd, mapping);
+    let child = cmd.spawn().map_err(spawn_err)?;
+    // `fds` drops here: the child has its copies.
+    drop(fds);
+    Ok(child.id() as libc::pid_t)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn spawn_voter(
+    plan: &SystemPlan,
+    c: &ComponentPlan,
+    index: usize,
+    voter: &Path,
+    socket_dir: &Path,
+    events_fd: RawFd,
+    channels: &mut [ChannelEnds],
+    stdout_to_stderr: bool,
+) -> Result<libc::pid_t, RunError> {
+    let spawn_err = |source| RunError::Spawn {
+        component: c.name.clone(),
+        exec: voter.to_path_buf(),
+        source,
+    };
+    let socket_path = socket_dir.join(format!("v{index}.sock"));
+    if socket_path.as_os_str().len() > SUN_PATH_MAX {
+        return Err(RunError::SocketPathTooLong(socket_path));
+    }
+    let fds = take_port_fds(c, channels)?;
+    let mut mapping = fd_mapping(&fds);
+    let events_target = FIRST_PORT_FD + mapping.len() as RawFd;
+    mapping.push((events_fd, events_target));
+    let external = |ports: &[crate::plan::PortPlan], first: usize| -> Vec<ExternalPort> {
+        ports
+            .iter()
+            .enumerate()
+            .map(|(i, p)| ExternalPort {
+                name: p.name.clone(),
+                fd: FIRST_PORT_FD + (first + i) as RawFd,
+                max_frame: p.max_frame,
+            })
+            .collect()
+    };
+    let voter_plan = VoterPlan {
+        system: plan.name.clone(),
+        component: c.name.clone(),
+        exec: c.exec.clone(),
+        args: c.args.clone(),
+        replicas: c.replicas,
+        timeout_us: c.timeout_us,
+        inputs: external(&c.inputs, 0),
+        outputs: external(&c.outputs, c.inputs.len()),
+        rounds: c.rounds.clone(),
+        events_fd: Some(events_target),
+        socket_path,
+        restart_timeout_ms: c.restart_timeout_ms,
+        priority: c.priority,
+        cpus: c.cpus.clone(),
+    };
+    let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
+    cmd.arg("--plan").arg(voter_plan.to_json());
+    sys::map_fds_on_exec(&mut cmd, mapping);
+    let child = cmd.spawn().map_err(spawn_err)?;
+    drop(fds);
+    Ok(child.id() as libc::pid_t)
+}
+
+/// Waits for every child, reaping as SIGCHLD arrives; on SIGINT/SIGTERM stops them: SIGTERM,
+/// then SIGKILL after `stop_timeout`. A second stop signal kills at once.
+fn supervise(
+    signals: &SignalFd,
+    children: &mut [Child],
+    stop_timeout: Duration,
+) -> Result<Ending, RunError> {
+    let mut stop: Option<(i32, Instant)> = None;
+    let mut killed = false;
+    loop {
+        reap_all(children, stop.is_some());
+        if children.iter().all(|c| c.status.is_some()) {
+            break;
+        }
+        let now = Instant::now();
+        if let Some((_, deadline)) = stop {
+            if now >= deadline && !killed {
+                tracing::warn!(
+                    "components still running {} ms after SIGTERM; killing them",
+                    stop_timeout.as_millis()
+                );
+                signal_live(children, libc::SIGKILL);
+                killed = true;
+            }
+        }
+        let timeout = match stop {
+            // After SIGKILL the children die promptly; poll so a lost wake-up cannot hang us,
+            // and leave the rest to the sweep if one is stuck in the kernel.
+            Some(_) if killed => Some(Duration::from_millis(50)),
+            Some((_, deadline)) => Some(deadline.saturating_duration_since(now)),
+            None => None,
+        };
+        let mut pfd = [libc::pollfd {
+            fd: signals.as_fd().as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        }];
+        sys::ppoll(&mut pfd, timeout).map_err(RunError::Supervise)?;
+        loop {
+            match signals.read_signal() {
+                Ok(Some(info)) => {
+                    let sig = info.ssi_signo as i32;
+                    if sig == libc::SIGINT || sig == libc::SIGTERM {
+                        match stop {
+                            None => {
+                                tracing::info!(
+                                    "stopping (signal {}): SIGTERM to every component",
+                                    signal_name(sig)
+                                );
+                                stop = Some((sig, Instant::now() + stop_timeout));
+                                signal_live(children, libc::SIGTERM);
+                            }
+                            Some(_) if !killed => {
+                                tracing::warn!("second stop signal: killing every component now");
+                                signal_live(children, libc::SIGKILL);
+                                killed = true;
+                            }
+                            Some(_) => {}
+                        }
+                    }
+                }
+                Ok(None) => break,
+                Err(e) => return Err(RunError::Supervise(std::io::Error::from(e))),
+            }
+        }
+        if killed && stop.is_some_and(|(_, d)| Instant::now() >= d + Duration::from_secs(1)) {
+            // Whatever is still there resists SIGKILL; the sweep will report it.
+            break;
+        }
+    }
+    Ok(match stop {
+        Some((sig, _)) => Ending::Stopped(sig),
+        None => Ending::Finished,
+    })
+}
+
+fn reap_all(children: &mut [Child], stopping: bool) {
+    loop {
+        match sys::reap_any() {
+            Ok(Some((pid, status))) => match children.iter_mut().find(|c| c.pid == pid) {
+                Some(c) => {
+                    c.status = Some(status);
+                    c.after_stop = stopping;
+                    if status.success() {
+                        tracing::info!(component = %c.component, pid, "exited cleanly");
+                    } else if stopping {
+                        tracing::debug!(component = %c.component, pid, "stopped: {status}");
+                    } else {
+                        tracing::warn!(component = %c.component, pid, "failed: {status}");
+                    }
+                }
+                // A descendant re-parented to us because its parent died.
+                None => tracing::debug!(pid, "reaped orphaned descendant: {status}"),
+            },
+            Ok(None) => return,
+            Err(e) => {
+                tracing::warn!("waitpid failed: {e}");
+                return;
+            }
+        }
+    }
+}
+
+fn signal_live(children: &[Child], sig: i32) {
+    for c in children.iter().filter(|c| c.status.is_none()) {
+        // Not reaped yet, so the pid is still this child's (at worst a zombie).
+        if let Err(e) = sys::kill(c.pid, sig) {
+            tracing::debug!(component = %c.component, pid = c.pid, "kill({sig}) failed: {e}");
+        }
+    }
+}
+
+fn signal_name(sig: i32) -> &'static str {
+    match sig {
+        libc::SIGINT => "SIGINT",
+        libc::SIGTERM => "SIGTERM",
+        _ => "signal",
+    }
+}

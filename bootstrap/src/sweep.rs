@@ -1,0 +1,145 @@
+//! The final sweep: nothing bootstrap caused to exist may outlive it.
+//!
+//! bootstrap is a child subreaper, so every descendant whose parent dies is re-parented to it.
+//! Killing every child and reaping, again and again until no child is left, therefore reaches
+//! the whole tree, including processes that were forked after the first pass.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use replica_rt::sys;
+
+/// Upper bound of one sweep; a process that survives SIGKILL this long is stuck in the kernel
+/// and waiting longer would not help.
+pub const SWEEP_LIMIT: Duration = Duration::from_secs(5);
+
+/// Pids of this process's children (including zombies not yet reaped), from /proc.
+pub fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<libc::pid_t>().ok())
+        .filter(|&pid| sys::parent_pid(pid) == Some(parent))
+        .collect()
+}
+
+/// What a sweep did.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct SweepReport {
+    /// Processes that got SIGKILL (each counted once).
+    pub killed: usize,
+    /// Children still present when the time limit ran out.
+    pub resisted: Vec<libc::pid_t>,
+}
+
+/// SIGKILLs every child and reaps, until no child is left or `limit` has passed.
+pub fn sweep(limit: Duration) -> SweepReport {
+    let me = std::process::id() as libc::pid_t;
+    let deadline = Instant::now() + limit;
+    let mut report = SweepReport::default();
+    let mut signalled: Vec<libc::pid_t> = Vec::new();
+    loop {
+        while let Ok(Some(_)) = sys::reap_any() {}
+        let children = children_of(me);
+        if children.is_empty() {
+            return report;
+        }
+        for &pid in &children {
+            // The pid cannot be reused under us: it is our child until we reap it.
+            if sys::kill(pid, libc::SIGKILL).is_ok() && !signalled.contains(&pid) {
+                signalled.push(pid);
+                report.killed += 1;
+            }
+        }
+        while let Ok(Some(_)) = sys::reap_any() {}
+        if Instant::now() >= deadline {
+            report.resisted = children_of(me);
+            return report;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+/// Sweeps when dropped, so that every way out of [`crate::run`] — including an early `?` —
+/// leaves nothing behind; also removes the socket folder.
+#[derive(Debug, Default)]
+pub struct SweepGuard {
+    socket_dir: Option<PathBuf>,
+    done: bool,
+}
+
+impl SweepGuard {
+    pub fn new() -> Self {
+        SweepGuard::default()
+    }
+
+    /// The folder to remove after the sweep.
+    pub fn own_socket_dir(&mut self, dir: PathBuf) {
+        self.socket_dir = Some(dir);
+    }
+
+    /// Sweeps now (once); later calls and the drop do nothing.
+    pub fn finish(&mut self) -> SweepReport {
+        if self.done {
+            return SweepReport::default();
+        }
+        self.done = true;
+        let report = sweep(SWEEP_LIMIT);
+        if report.killed > 0 {
+            tracing::debug!(
+                killed = report.killed,
+                "final sweep killed leftover processes"
+            );
+        }
+        if !report.resisted.is_empty() {
+            tracing::error!(
+                pids = ?report.resisted,
+                "processes survived SIGKILL for {} s; they are stuck in the kernel",
+                SWEEP_LIMIT.as_secs()
+            );
+        }
+        if let Some(dir) = self.socket_dir.take() {
+            if let Err(e) = std::fs::remove_dir_all(&dir) {
+                if e.kind() != std::io::ErrorKind::NotFound {
+                    tracing::warn!("cannot remove socket folder {}: {e}", dir.display());
+                }
+            }
+        }
+        report
+    }
+}
+
+impl Drop for SweepGuard {
+    fn drop(&mut self) {
+        self.finish();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::process::Command;
+
+    // Only this test in the crate's unit tests starts processes, so sweeping every child of
+    // the test process is safe here.
+    #[test]
+    fn sweep_kills_children_and_grandchildren() {
+        let _ = sys::set_child_subreaper();
+        let mut child = Command::new("/bin/sh")
+            .args(["-c", "sleep 100 & sleep 100 & exec sleep 100"])
+            .spawn()
+            .unwrap();
+        let me = std::process::id() as libc::pid_t;
+        assert!(children_of(me).contains(&(child.id() as libc::pid_t)));
+        let dir = tempfile::tempdir().unwrap().keep();
+        let mut guard = SweepGuard::new();
+        guard.own_socket_dir(dir.clone());
+        let report = guard.finish();
+        assert!(report.killed >= 1, "{report:?}");
+        assert!(report.resisted.is_empty());
+        assert!(children_of(me).is_empty());
+        assert!(!dir.exists());
+        // Already reaped by the sweep.
+        assert!(child.try_wait().is_err() || child.try_wait().unwrap().is_some());
+    }
+}
