@@ -107,10 +107,16 @@ impl FrameDecoder {
         let avail = &self.buf[self.start..];
         match avail.len() {
             0 => Ok(()),
-            n if n < HEADER_LEN => Err(FrameError::Truncated { have: n, want: HEADER_LEN }),
+            n if n < HEADER_LEN => Err(FrameError::Truncated {
+                have: n,
+                want: HEADER_LEN,
+            }),
             n => {
                 let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
-                Err(FrameError::Truncated { have: n, want: HEADER_LEN + len })
+                Err(FrameError::Truncated {
+                    have: n,
+                    want: HEADER_LEN + len,
+                })
             }
         }
     }

@@ -200,7 +200,14 @@ pub fn ppoll(fds: &mut [libc::pollfd], timeout: Option<Duration>) -> io::Result<
         .map_or(std::ptr::null(), |t| t as *const libc::timespec);
     // SAFETY: `fds` is a valid mutable slice of pollfd of the given length; `tsp` is null or
     // points to a timespec that outlives the call; a null sigmask keeps the current mask.
-    let n = unsafe { libc::ppoll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, tsp, std::ptr::null()) };
+    let n = unsafe {
+        libc::ppoll(
+            fds.as_mut_ptr(),
+            fds.len() as libc::nfds_t,
+            tsp,
+            std::ptr::null(),
+        )
+    };
     if n < 0 {
         let e = io::Error::last_os_error();
         if e.kind() == io::ErrorKind::Interrupted {
@@ -213,7 +220,11 @@ pub fn ppoll(fds: &mut [libc::pollfd], timeout: Option<Duration>) -> io::Result<
 
 /// Process id of the peer of a connected Unix socket (`SO_PEERCRED`).
 pub fn peer_pid(sock: BorrowedFd<'_>) -> io::Result<libc::pid_t> {
-    let mut cred = libc::ucred { pid: 0, uid: 0, gid: 0 };
+    let mut cred = libc::ucred {
+        pid: 0,
+        uid: 0,
+        gid: 0,
+    };
     let mut len = std::mem::size_of::<libc::ucred>() as libc::socklen_t;
     // SAFETY: `cred` and `len` are valid out-pointers sized for SO_PEERCRED's ucred.
     cvt(unsafe {
@@ -300,8 +311,128 @@ pub fn cstring(s: &str) -> io::Result<CString> {
 
 /// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share).
 pub fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
     // SAFETY: `ts` is a valid out-pointer; CLOCK_MONOTONIC always exists on Linux.
     unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// Takes ownership of an fd this process inherited from its parent (a port or the events pipe)
+/// and marks it close-on-exec, so it does not leak into processes we start.
+pub fn adopt_inherited_fd(fd: RawFd) -> OwnedFd {
+    // SAFETY: the plan we were started with says `fd` was opened for us by our parent and
+    // nothing else in this process owns it; F_SETFD touches no memory.
+    unsafe {
+        libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC);
+        OwnedFd::from_raw_fd(fd)
+    }
+}
+
+/// Pids of the living children of `parent` (scans `/proc`; zombies included).
+pub fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<libc::pid_t>().ok())
+        .filter(|&pid| parent_pid(pid) == Some(parent))
+        .collect()
+}
+
+/// Takes ownership of an fd this process inherited at exec (a port), after checking it is open.
+///
+/// Crate-private: only [`crate::init`] calls it, once per port, guarded by the init-once flag, so
+/// no other owner of these fd numbers exists in the process.
+pub(crate) fn take_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
+    // SAFETY: F_GETFD on any integer only reads the fd table; EBADF if it is not open.
+    cvt(unsafe { libc::fcntl(fd, libc::F_GETFD) })?;
+    // SAFETY: the fd is open (checked just above) and, per this function's contract, nothing
+    // else in the process owns it.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
+}
+
+/// The access mode of an open fd: `O_RDONLY`, `O_WRONLY` or `O_RDWR`.
+pub fn access_mode(fd: BorrowedFd<'_>) -> io::Result<libc::c_int> {
+    // SAFETY: F_GETFL on a borrowed (hence open) fd touches no memory of ours.
+    let flags = cvt(unsafe { libc::fcntl(fd.as_raw_fd(), libc::F_GETFL) })?;
+    Ok(flags & libc::O_ACCMODE)
+}
+
+/// Signature of an `SA_SIGINFO` handler.
+pub type SigInfoHandler = extern "C" fn(libc::c_int, *mut libc::siginfo_t, *mut libc::c_void);
+
+/// Installs `handler` for `sig` with `SA_SIGINFO | extra_flags` and an empty extra mask (the
+/// signal itself is blocked while its handler runs, as usual).
+pub fn install_siginfo_handler(
+    sig: libc::c_int,
+    handler: SigInfoHandler,
+    extra_flags: libc::c_int,
+) -> io::Result<()> {
+    // SAFETY: sigaction is plain old data; all-zero is a valid value (empty mask, no flags).
+    let mut sa: libc::sigaction = unsafe { std::mem::zeroed() };
+    sa.sa_sigaction = handler as usize;
+    sa.sa_flags = libc::SA_SIGINFO | extra_flags;
+    // SAFETY: `sa.sa_mask` is a valid sigset_t to initialise.
+    unsafe { libc::sigemptyset(&mut sa.sa_mask) };
+    // SAFETY: `sa` is fully initialised and outlives the call; a null old-action is allowed.
+    // Whether `handler` is async-signal-safe is the caller's business, not memory safety here.
+    cvt(unsafe { libc::sigaction(sig, &sa, std::ptr::null_mut()) })?;
+    Ok(())
+}
+
+/// Sets `sig` to `SIG_IGN`.
+pub fn ignore_signal(sig: libc::c_int) -> io::Result<()> {
+    // SAFETY: SIG_IGN is a valid disposition for every catchable signal; no memory is shared.
+    if unsafe { libc::signal(sig, libc::SIG_IGN) } == libc::SIG_ERR {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(())
+}
+
+/// Blocks one signal for the calling thread until the guard is dropped (then the previous mask
+/// comes back, and a signal that arrived meanwhile is delivered at that moment).
+pub struct BlockedSignal {
+    old: libc::sigset_t,
+}
+
+/// Blocks `sig` for the calling thread; see [`BlockedSignal`].
+pub fn block_signal(sig: libc::c_int) -> io::Result<BlockedSignal> {
+    // SAFETY: sigset_t is plain old data and sigemptyset/sigaddset initialise it fully.
+    let mut set: libc::sigset_t = unsafe { std::mem::zeroed() };
+    // SAFETY: as above.
+    let mut old: libc::sigset_t = unsafe { std::mem::zeroed() };
+    // SAFETY: `set` is a valid sigset_t; sigemptyset/sigaddset only write into it.
+    unsafe {
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, sig);
+    }
+    // SAFETY: both pointers are valid for the call; pthread_sigmask returns an error number.
+    let r = unsafe { libc::pthread_sigmask(libc::SIG_BLOCK, &set, &mut old) };
+    if r != 0 {
+        return Err(io::Error::from_raw_os_error(r));
+    }
+    Ok(BlockedSignal { old })
+}
+
+impl Drop for BlockedSignal {
+    fn drop(&mut self) {
+        // SAFETY: `self.old` is the mask pthread_sigmask gave us; setting it cannot fail with a
+        // valid `how` and valid pointers.
+        unsafe { libc::pthread_sigmask(libc::SIG_SETMASK, &self.old, std::ptr::null_mut()) };
+    }
+}
+
+/// `_exit(2)`: ends the process at once, without running atexit handlers or flushing stdio
+/// (async-signal-safe; the only way out of a forked child that must not touch shared state).
+pub fn exit_now(code: libc::c_int) -> ! {
+    // SAFETY: _exit never returns and touches no memory of ours.
+    unsafe { libc::_exit(code) }
+}
+
+/// Pid of the calling process.
+pub fn getpid() -> libc::pid_t {
+    // SAFETY: getpid has no arguments and cannot fail.
+    unsafe { libc::getpid() }
 }

@@ -1,0 +1,40 @@
+//! `s3res-echo`: answers every frame with itself. See `--help`.
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use s3res_components::Echo;
+
+/// Answers every frame on input `in` with the same bytes on output `out`; exits at the end of
+/// the input.
+///
+/// With --stateful each answer starts with a little-endian u64: how many frames were answered
+/// before this one (0 for the first). That counter is state a replica must not lose: a replica
+/// restarted by fork from a healthy one carries on counting, one restarted afresh starts at 0
+/// again, and `s3res-sink --stateful` reports it as a state break.
+///
+/// Started by hand (not by s3res-bootstrap), `in` is stdin and `out` is stdout:
+///
+///     s3res-source --count 5 --hz 0 | s3res-echo --stateful | s3res-sink --stateful --expect 5
+#[derive(Parser)]
+#[command(version, verbatim_doc_comment)]
+struct Cli {
+    /// Prefix each answer with the number of frames answered before it.
+    #[arg(long)]
+    stateful: bool,
+}
+
+fn main() -> Result<()> {
+    replica_rt::init_logging("echo");
+    let cli = Cli::parse();
+    let mut rt = replica_rt::init().context("starting the s3res runtime")?;
+    let mut input = rt.input("in").context("opening the input port")?;
+    let mut output = rt.output("out").context("opening the output port")?;
+    let mut echo = Echo::new(cli.stateful);
+    let mut frames: u64 = 0;
+    while let Some(frame) = input.recv().context("receiving")? {
+        output.send(echo.answer(frame)).context("answering")?;
+        frames += 1;
+    }
+    tracing::info!(frames, "end of input");
+    Ok(())
+}

@@ -1,0 +1,115 @@
+//! `s3res-misbehave`: an echo that breaks the frame protocol once, on purpose. See `--help`.
+
+use anyhow::{Context, Result};
+use clap::{Parser, ValueEnum};
+use replica_rt::frame::header;
+use replica_rt::OutPort;
+use s3res_components::Echo;
+
+/// TEST AID: behaves exactly like `s3res-echo`, except that the replica with index R, when
+/// answering frame K (0-based), breaks the frame protocol in the chosen way, so tests can check
+/// that the voter detects it and recovers. Never use it as a real component.
+///
+/// Modes:
+///   oversize  instead of the answer: a header announcing 0x7fff_fff0 bytes and 4 bytes; then
+///             normal answers again from frame K+1
+///   truncate  instead of the answer: a header announcing 100 bytes and only 10 bytes; then it
+///             closes its output and reads its input to the end without answering
+///   extra     the correct answer, then a second, unasked-for frame
+///   garbage   instead of the answer: 7 bytes, a header announcing 200 bytes and 3 bytes of
+///             junk; then normal answers again from frame K+1
+///
+/// The replica index is S3RES_REPLICA, read once at start. A replacement forked from a healthy
+/// donor inherits the donor's memory, including the donor's index, so it does not misbehave
+/// again. Without S3RES_REPLICA (started by hand) it never misbehaves.
+#[derive(Parser)]
+#[command(version, verbatim_doc_comment)]
+struct Cli {
+    /// How to break the protocol.
+    #[arg(long, value_enum)]
+    mode: Mode,
+    /// Index of the replica that misbehaves (S3RES_REPLICA).
+    #[arg(long, value_name = "R")]
+    replica: usize,
+    /// 0-based number of the frame whose answer is broken.
+    #[arg(long, value_name = "K")]
+    at: u64,
+    /// Prefix answers with a counter, as `s3res-echo --stateful`.
+    #[arg(long)]
+    stateful: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Mode {
+    Oversize,
+    Truncate,
+    Extra,
+    Garbage,
+}
+
+fn main() -> Result<()> {
+    replica_rt::init_logging("misbehave");
+    let cli = Cli::parse();
+    let mut rt = replica_rt::init().context("starting the s3res runtime")?;
+    // Read once, here: a forked replacement keeps this value (see --help).
+    let me = rt.replica_index();
+    let armed = me == Some(cli.replica);
+    if armed {
+        tracing::info!(mode = ?cli.mode, at = cli.at, "this replica will misbehave");
+    }
+    let mut input = rt.input("in").context("opening the input port")?;
+    let mut output = Some(rt.output("out").context("opening the output port")?);
+    let mut echo = Echo::new(cli.stateful);
+    let mut k: u64 = 0;
+    while let Some(frame) = input.recv().context("receiving")? {
+        let answer = echo.answer(frame);
+        if let Some(out) = output.as_mut() {
+            if armed && k == cli.at {
+                tracing::warn!(mode = ?cli.mode, frame = k, "misbehaving now, on purpose");
+                if misbehave(cli.mode, out, answer)? == After::Close {
+                    // Dropping the port closes the fd: the voter sees the pipe closed.
+                    output = None;
+                }
+            } else {
+                out.send(answer).context("answering")?;
+            }
+        }
+        k += 1;
+    }
+    Ok(())
+}
+
+#[derive(PartialEq, Eq)]
+enum After {
+    CarryOn,
+    Close,
+}
+
+fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
+    let mut bytes = Vec::new();
+    let after = match mode {
+        Mode::Oversize => {
+            bytes.extend_from_slice(&header(0x7fff_fff0));
+            bytes.extend_from_slice(&[1, 2, 3, 4]);
+            After::CarryOn
+        }
+        Mode::Truncate => {
+            bytes.extend_from_slice(&header(100));
+            bytes.extend_from_slice(&[0xab; 10]);
+            After::Close
+        }
+        Mode::Extra => {
+            out.send(answer).context("answering")?;
+            out.send(b"extra frame from s3res-misbehave")
+                .context("sending the extra frame")?;
+            return Ok(After::CarryOn);
+        }
+        Mode::Garbage => {
+            bytes.extend_from_slice(&header(200));
+            bytes.extend_from_slice(&[0xde, 0xad, 0xbe]);
+            After::CarryOn
+        }
+    };
+    out.write_raw(&bytes).context("writing the broken frame")?;
+    Ok(after)
+}

@@ -1,0 +1,409 @@
+//! Breaking copy-on-write sharing after a fork.
+//!
+//! After `fork` the parent and the child share every private page until one of them writes to
+//! it. A bit flip in such a shared physical page would corrupt both replicas at once, and the
+//! vote could not see it. [`break_cow_sharing`] writes once to every resident page of every
+//! private writable mapping, so the kernel gives the caller its own copy of each.
+//!
+//! It runs inside the restart signal handler, so it allocates nothing, takes no lock and calls
+//! only async-signal-safe syscalls (`open`, `read`, `close`, `mincore`); `/proc/self/maps` is
+//! parsed in place from a fixed stack buffer.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Bytes of `/proc/self/maps` read per `read` call.
+const READ_BUF: usize = 4096;
+/// Bytes of one maps line kept. Longer lines only have a long path cut off, and the fields we
+/// need (range, permissions, and the short `[name]` of special mappings) fit well within.
+const LINE_MAX: usize = 256;
+/// Pages asked about per `mincore` call (its result vector lives on the stack).
+const MINCORE_PAGES: usize = 1024;
+
+/// Why a walk could not be done (an errno value, so the error needs no allocation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("reading /proc/self/maps failed: errno {errno}")]
+pub struct WalkError {
+    pub errno: i32,
+}
+
+/// What a walk did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct WalkStats {
+    /// Private writable mappings visited.
+    pub mappings: usize,
+    /// Resident pages written to.
+    pub pages_touched: usize,
+}
+
+static PAGE_SIZE: AtomicUsize = AtomicUsize::new(0);
+
+/// The page size, cached on first use. `init` calls this before installing the restart handler,
+/// so the handler only ever takes the cached value (an atomic load).
+pub fn page_size() -> usize {
+    let cached = PAGE_SIZE.load(Ordering::Relaxed);
+    if cached != 0 {
+        return cached;
+    }
+    // SAFETY: sysconf takes an integer and returns one.
+    let size = match unsafe { libc::sysconf(libc::_SC_PAGESIZE) } {
+        n if n > 0 => n as usize,
+        // Linux always answers; 4 KiB is the smallest page any Linux platform uses, so walking
+        // with it visits every page (some twice) rather than missing any.
+        _ => 4096,
+    };
+    PAGE_SIZE.store(size, Ordering::Relaxed);
+    size
+}
+
+/// Writes to every resident page of every private writable mapping (`rw-p` in
+/// `/proc/self/maps`, except the kernel's `[vsyscall]`, `[vvar]` and `[vdso]`), so that this
+/// process shares no physical page with its fork parent or children. Non-resident pages are
+/// skipped: nothing is shared there, and touching them would only cost memory (or a SIGBUS for
+/// a file mapping past the end of its file).
+///
+/// Async-signal-safe: no allocation, no lock.
+///
+/// # Safety
+///
+/// No other thread may run while this walks: each page is read and written back, and a write by
+/// another thread in between would be lost. In the restart handler this holds because the forked
+/// child has only the one thread; elsewhere, call it only in a single-threaded process.
+pub unsafe fn break_cow_sharing() -> Result<WalkStats, WalkError> {
+    let fd = open_maps()?;
+    let result = walk_maps(fd);
+    close(fd);
+    result
+}
+
+fn walk_maps(fd: libc::c_int) -> Result<WalkStats, WalkError> {
+    let mut stats = WalkStats::default();
+    for_each_line(|buf| read(fd, buf), |line| visit_line(line, &mut stats))?;
+    Ok(stats)
+}
+
+/// Calls `visit` with each line (without its newline) of what `read` yields until it returns 0.
+/// Lines may be split across reads: their bytes collect in a stack buffer until the newline.
+/// Bytes of a line beyond [`LINE_MAX`] are dropped.
+fn for_each_line(
+    mut read: impl FnMut(&mut [u8]) -> Result<usize, WalkError>,
+    mut visit: impl FnMut(&[u8]),
+) -> Result<(), WalkError> {
+    let mut buf = [0u8; READ_BUF];
+    let mut line = [0u8; LINE_MAX];
+    let mut line_len = 0;
+    loop {
+        let n = read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        for &b in &buf[..n] {
+            if b == b'\n' {
+                visit(&line[..line_len]);
+                line_len = 0;
+            } else if line_len < LINE_MAX {
+                line[line_len] = b;
+                line_len += 1;
+            }
+        }
+    }
+    if line_len > 0 {
+        visit(&line[..line_len]);
+    }
+    Ok(())
+}
+
+/// One maps line: `start-end perms offset dev inode [path]`.
+fn visit_line(line: &[u8], stats: &mut WalkStats) {
+    let Some(m) = parse_line(line) else { return };
+    if m.perms != *b"rw-p" || m.special {
+        return;
+    }
+    stats.mappings += 1;
+    stats.pages_touched += touch_resident(m.start, m.end);
+}
+
+#[derive(Debug, PartialEq, Eq)]
+struct MapLine {
+    start: usize,
+    end: usize,
+    perms: [u8; 4],
+    /// `[vsyscall]`, `[vvar]` (and `[vvar_vclock]`) or `[vdso]`: kernel pages, never touched.
+    special: bool,
+}
+
+fn parse_line(line: &[u8]) -> Option<MapLine> {
+    let dash = line.iter().position(|&b| b == b'-')?;
+    let start = parse_hex(&line[..dash])?;
+    let rest = &line[dash + 1..];
+    let space = rest.iter().position(|&b| b == b' ')?;
+    let end = parse_hex(&rest[..space])?;
+    let perms: [u8; 4] = rest.get(space + 1..space + 5)?.try_into().ok()?;
+    let special =
+        line.ends_with(b"[vsyscall]") || line.ends_with(b"[vdso]") || contains(line, b"[vvar");
+    Some(MapLine {
+        start,
+        end,
+        perms,
+        special,
+    })
+}
+
+fn parse_hex(s: &[u8]) -> Option<usize> {
+    if s.is_empty() || s.len() > 2 * std::mem::size_of::<usize>() {
+        return None;
+    }
+    let mut v = 0usize;
+    for &b in s {
+        let d = (b as char).to_digit(16)?;
+        v = (v << 4) | d as usize;
+    }
+    Some(v)
+}
+
+fn contains(hay: &[u8], needle: &[u8]) -> bool {
+    hay.windows(needle.len()).any(|w| w == needle)
+}
+
+/// Touches the resident pages of `[start, end)`; returns how many.
+fn touch_resident(start: usize, end: usize) -> usize {
+    let page = page_size();
+    let mut residency = [0u8; MINCORE_PAGES];
+    let mut touched = 0;
+    let mut chunk = start;
+    while chunk < end {
+        let len = (end - chunk).min(MINCORE_PAGES * page);
+        // An error (the mapping changed under us, which a single-threaded caller cannot cause)
+        // just skips the chunk: nothing of it can be touched safely.
+        if mincore(chunk, len, &mut residency).is_ok() {
+            let pages = len.div_ceil(page);
+            for (i, &r) in residency[..pages].iter().enumerate() {
+                if r & 1 != 0 {
+                    touch(chunk + i * page);
+                    touched += 1;
+                }
+            }
+        }
+        chunk += len;
+    }
+    touched
+}
+
+fn open_maps() -> Result<libc::c_int, WalkError> {
+    // SAFETY: the path is a NUL-terminated literal; open touches no other memory of ours.
+    let fd = unsafe {
+        libc::open(
+            c"/proc/self/maps".as_ptr(),
+            libc::O_RDONLY | libc::O_CLOEXEC,
+        )
+    };
+    if fd < 0 {
+        return Err(WalkError { errno: errno() });
+    }
+    Ok(fd)
+}
+
+fn read(fd: libc::c_int, buf: &mut [u8]) -> Result<usize, WalkError> {
+    loop {
+        // SAFETY: `buf` is valid for writes of `buf.len()` bytes during the call.
+        let n = unsafe { libc::read(fd, buf.as_mut_ptr().cast(), buf.len()) };
+        if n >= 0 {
+            return Ok(n as usize);
+        }
+        let e = errno();
+        if e != libc::EINTR {
+            return Err(WalkError { errno: e });
+        }
+    }
+}
+
+fn close(fd: libc::c_int) {
+    // SAFETY: `fd` was opened by `open_maps` and is closed exactly once, here.
+    unsafe { libc::close(fd) };
+}
+
+fn mincore(addr: usize, len: usize, vec: &mut [u8; MINCORE_PAGES]) -> Result<(), i32> {
+    // SAFETY: `addr` is page-aligned (a mapping start plus whole pages); `len` covers at most
+    // MINCORE_PAGES pages, so the kernel writes at most `vec.len()` bytes into `vec`.
+    let r = unsafe { libc::mincore(addr as *mut libc::c_void, len, vec.as_mut_ptr()) };
+    if r < 0 {
+        Err(errno())
+    } else {
+        Ok(())
+    }
+}
+
+fn touch(addr: usize) {
+    let p = addr as *mut u8;
+    // SAFETY: `p` is in a private mapping that /proc/self/maps lists as readable and writable,
+    // and mincore just reported its page resident (so no SIGBUS past a file's end). Writing back
+    // the byte just read leaves memory unchanged; no other thread runs (the caller's contract),
+    // so no concurrent write can be lost. Volatile keeps the compiler from eliding the write,
+    // which is the whole point: the write fault makes the kernel copy the page.
+    unsafe {
+        let v = std::ptr::read_volatile(p);
+        std::ptr::write_volatile(p, v);
+    }
+}
+
+fn errno() -> i32 {
+    // SAFETY: __errno_location returns this thread's errno slot, always valid.
+    unsafe { *libc::__errno_location() }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_maps_lines() {
+        let l = b"7ffd1c000000-7ffd1c021000 rw-p 00000000 00:00 0                          [stack]";
+        assert_eq!(
+            parse_line(l),
+            Some(MapLine {
+                start: 0x7ffd1c000000,
+                end: 0x7ffd1c021000,
+                perms: *b"rw-p",
+                special: false
+            })
+        );
+        let v = b"7ffd1c1f0000-7ffd1c1f4000 r--p 00000000 00:00 0                          [vvar]";
+        assert!(parse_line(v).unwrap().special);
+        let d = b"ffffffffff600000-ffffffffff601000 --xp 00000000 00:00 0  [vsyscall]";
+        assert!(parse_line(d).unwrap().special);
+        assert_eq!(parse_line(b"garbage"), None);
+        assert_eq!(parse_line(b"12-34"), None);
+        assert_eq!(parse_line(b"zz-34 rw-p"), None);
+    }
+
+    #[test]
+    fn lines_split_across_reads_are_joined() {
+        let text = format!("short\n{}\nlast-without-newline", "x".repeat(LINE_MAX + 50));
+        for chunk in [1, 3, 7, 4096] {
+            let mut rest = text.as_bytes();
+            let mut lines = Vec::new();
+            for_each_line(
+                |buf| {
+                    let n = chunk.min(rest.len()).min(buf.len());
+                    buf[..n].copy_from_slice(&rest[..n]);
+                    rest = &rest[n..];
+                    Ok(n)
+                },
+                |l| lines.push(l.to_vec()),
+            )
+            .unwrap();
+            assert_eq!(lines.len(), 3, "chunk {chunk}");
+            assert_eq!(lines[0], b"short");
+            assert_eq!(lines[1], vec![b'x'; LINE_MAX]);
+            assert_eq!(lines[2], b"last-without-newline");
+        }
+    }
+
+    #[test]
+    fn walk_in_this_process_touches_something() {
+        // Concurrent test threads may write the pages we touch; a lost write would only matter
+        // to the bytes read-then-written in that instant, and all of them belong to this
+        // process's own test data. Run it anyway in a forked child to keep the contract.
+        let pid = fork_for_test();
+        if pid == 0 {
+            // SAFETY: the fork child has a single thread.
+            let r = unsafe { break_cow_sharing() };
+            let code = match r {
+                Ok(s) if s.mappings > 0 && s.pages_touched > 0 => 0,
+                Ok(_) => 2,
+                Err(_) => 3,
+            };
+            crate::sys::exit_now(code);
+        }
+        assert_eq!(
+            wait_exit(pid),
+            0,
+            "child walk failed (2: nothing touched, 3: maps error)"
+        );
+    }
+
+    /// The real check: after the walk, a heap page of the child is backed by another physical
+    /// frame than the parent's.
+    #[test]
+    fn walk_gives_child_its_own_pages() {
+        let page = page_size();
+        let mut heap = vec![0x5au8; page * 4];
+        std::hint::black_box(&mut heap);
+        // A page wholly inside the vector, so no other allocation shares it.
+        let addr = (heap.as_ptr() as usize).div_ceil(page) * page + page;
+        let parent_pfn = pfn(addr);
+        if parent_pfn == 0 {
+            eprintln!("skipped: /proc/self/pagemap shows no PFNs (needs CAP_SYS_ADMIN)");
+            return;
+        }
+        let pid = fork_for_test();
+        if pid == 0 {
+            // Only async-signal-safe work in the child: the parent has other threads, whose
+            // locks may be held forever here.
+            let before = pfn(addr);
+            // SAFETY: the fork child has a single thread.
+            let walked = unsafe { break_cow_sharing() };
+            let after = pfn(addr);
+            let code = if walked.is_err() {
+                3
+            } else if before != parent_pfn {
+                4
+            } else if after == before || after == 0 {
+                5
+            } else {
+                0
+            };
+            crate::sys::exit_now(code);
+        }
+        let code = wait_exit(pid);
+        assert_eq!(
+            code, 0,
+            "3: walk failed, 4: page not shared right after fork, 5: still shared after walk"
+        );
+        drop(heap);
+    }
+
+    fn fork_for_test() -> libc::pid_t {
+        // SAFETY: the child only does async-signal-safe work and leaves by `_exit`.
+        let pid = unsafe { crate::restart::raw_fork() };
+        assert!(pid >= 0, "fork failed");
+        pid
+    }
+
+    /// Waits (bounded) for `pid` to exit and returns its exit code.
+    fn wait_exit(pid: libc::pid_t) -> i32 {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+        loop {
+            match crate::sys::reap(pid).expect("waitpid") {
+                Some((_, crate::sys::ExitStatus::Code(c))) => return c,
+                Some((_, crate::sys::ExitStatus::Signal(s))) => panic!("child killed by {s}"),
+                None if std::time::Instant::now() > deadline => {
+                    let _ = crate::sys::kill(pid, libc::SIGKILL);
+                    panic!("child did not finish in time");
+                }
+                None => std::thread::sleep(std::time::Duration::from_millis(5)),
+            }
+        }
+    }
+
+    /// Physical frame number of the page holding `addr`, 0 if unknown. Allocation-free.
+    fn pfn(addr: usize) -> u64 {
+        // SAFETY: literal NUL-terminated path.
+        let fd = unsafe { libc::open(c"/proc/self/pagemap".as_ptr(), libc::O_RDONLY) };
+        if fd < 0 {
+            return 0;
+        }
+        let mut entry = [0u8; 8];
+        let off = (addr / page_size() * 8) as libc::off_t;
+        // SAFETY: `entry` is valid for 8 bytes of writes.
+        let n = unsafe { libc::pread(fd, entry.as_mut_ptr().cast(), 8, off) };
+        close(fd);
+        if n != 8 {
+            return 0;
+        }
+        let e = u64::from_ne_bytes(entry);
+        if e >> 63 == 0 {
+            return 0;
+        }
+        e & ((1 << 55) - 1)
+    }
+}

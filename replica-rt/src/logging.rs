@@ -1,0 +1,64 @@
+//! Logging for components: `tracing` to stderr, each line prefixed with who wrote it.
+
+use std::fmt;
+use std::io::IsTerminal;
+
+use tracing::{Event, Subscriber};
+use tracing_subscriber::fmt::format::{Format, Full, Writer};
+use tracing_subscriber::fmt::{FmtContext, FormatEvent, FormatFields};
+use tracing_subscriber::prelude::*;
+use tracing_subscriber::registry::LookupSpan;
+use tracing_subscriber::EnvFilter;
+
+use crate::contract::{ENV_COMPONENT, ENV_REPLICA};
+
+/// Installs a `tracing` subscriber that writes to stderr, filtered by `RUST_LOG` (default
+/// `info`), each line prefixed with `[component#replica pid N]`.
+///
+/// The component name is `S3RES_COMPONENT`, or `component_default` when the process was not
+/// started by s3res (by hand, in a shell pipeline). The replica index is `S3RES_REPLICA`, read
+/// once here: a replica forked from a donor keeps the donor's prefix, and the pid tells them
+/// apart. Calling it again is harmless (the first subscriber stays).
+pub fn init_logging(component_default: &str) {
+    let component = std::env::var(ENV_COMPONENT).unwrap_or_else(|_| component_default.to_owned());
+    let prefix = match std::env::var(ENV_REPLICA) {
+        Ok(r) => format!("{component}#{r}"),
+        Err(_) => component,
+    };
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let layer = tracing_subscriber::fmt::layer()
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .event_format(Prefixed {
+            prefix,
+            inner: Format::default(),
+        });
+    // Err only if a subscriber is already set, which is what "harmless" above means.
+    let _ = tracing_subscriber::registry()
+        .with(filter)
+        .with(layer)
+        .try_init();
+}
+
+/// The default full format, after a `[name pid N]` prefix.
+struct Prefixed {
+    prefix: String,
+    inner: Format<Full>,
+}
+
+impl<S, N> FormatEvent<S, N> for Prefixed
+where
+    S: Subscriber + for<'a> LookupSpan<'a>,
+    N: for<'a> FormatFields<'a> + 'static,
+{
+    fn format_event(
+        &self,
+        ctx: &FmtContext<'_, S, N>,
+        mut writer: Writer<'_>,
+        event: &Event<'_>,
+    ) -> fmt::Result {
+        // The pid is read per line, not cached: after a restart by fork it is the child's.
+        write!(writer, "[{} pid {}] ", self.prefix, std::process::id())?;
+        self.inner.format_event(ctx, writer, event)
+    }
+}

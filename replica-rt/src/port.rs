@@ -1,0 +1,351 @@
+//! Named ports: whole frames in, whole frames out.
+
+use std::io;
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
+
+use thiserror::Error;
+
+use crate::contract::signals;
+use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
+use crate::{inject, restart, sys};
+
+/// Bytes asked for per `read`: large, so a burst of small frames costs one syscall.
+const READ_CHUNK: usize = 64 * 1024;
+
+/// Receiving a frame failed.
+#[derive(Debug, Error)]
+pub enum RecvError {
+    /// The bytes on the channel are not a valid frame stream.
+    #[error("input port {port:?}: bad frame stream")]
+    Frame {
+        port: String,
+        #[source]
+        source: FrameError,
+    },
+    #[error("input port {port:?}: read failed")]
+    Io {
+        port: String,
+        #[source]
+        source: io::Error,
+    },
+}
+
+/// Sending a frame failed.
+#[derive(Debug, Error)]
+pub enum SendError {
+    #[error("output port {port:?}: payload of {len} bytes exceeds the port maximum of {max}")]
+    TooLarge {
+        port: String,
+        len: usize,
+        max: usize,
+    },
+    #[error("output port {port:?}: write failed")]
+    Io {
+        port: String,
+        #[source]
+        source: io::Error,
+    },
+}
+
+/// An input port. Blocking; see [`InPort::recv`].
+///
+/// Implements [`AsFd`], so a component with several inputs can `poll` them and call `recv` on
+/// the readable one. Note that `recv` reads ahead: after it returns, more whole frames may already
+/// be buffered inside the port although the fd polls as not readable; drain with
+/// [`InPort::buffered`] in mind.
+#[derive(Debug)]
+pub struct InPort {
+    name: String,
+    fd: OwnedFd,
+    dec: FrameDecoder,
+    /// The payload last returned by `recv`, copied out of the decoder.
+    frame: Vec<u8>,
+    eof: bool,
+}
+
+impl InPort {
+    pub(crate) fn new(name: String, fd: OwnedFd, max_frame: usize) -> Self {
+        InPort {
+            name,
+            fd,
+            dec: FrameDecoder::new(max_frame),
+            frame: Vec::new(),
+            eof: false,
+        }
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn max_frame(&self) -> usize {
+        self.dec.max_frame()
+    }
+
+    /// Bytes read from the channel but not yet returned as frames.
+    pub fn buffered(&self) -> usize {
+        self.dec.pending()
+    }
+
+    /// The next frame's payload, blocking until it has arrived whole. `Ok(None)` at end of
+    /// stream; an error for a frame above the port maximum or a stream cut inside a frame.
+    ///
+    /// The payload is copied once out of the read buffer into a buffer the port reuses, so
+    /// steady state allocates nothing. (The copy is what lets the borrow returned here outlive
+    /// the decoder's own borrow, which the read loop needs to mutate.)
+    pub fn recv(&mut self) -> Result<Option<&[u8]>, RecvError> {
+        note_fork();
+        loop {
+            match self.dec.next_frame() {
+                Ok(Some(payload)) => {
+                    self.frame.clear();
+                    self.frame.extend_from_slice(payload);
+                    return Ok(Some(&self.frame));
+                }
+                Ok(None) => {}
+                Err(e) => return Err(self.frame_error(e)),
+            }
+            if self.eof || !self.fill()? {
+                self.eof = true;
+                return match self.dec.finish() {
+                    Ok(()) => Ok(None),
+                    Err(e) => Err(self.frame_error(e)),
+                };
+            }
+        }
+    }
+
+    /// One `read` into the decoder; `false` at end of stream.
+    fn fill(&mut self) -> Result<bool, RecvError> {
+        loop {
+            let spare = self.dec.spare(READ_CHUNK);
+            let got = sys::read(self.fd.as_fd(), spare);
+            let filled = *got.as_ref().unwrap_or(&0);
+            self.dec.commit(READ_CHUNK, filled);
+            match got {
+                Ok(n) => return Ok(n > 0),
+                // Whoever made the pipe may have left it non-blocking; recv blocks regardless.
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    wait_for(self.fd.as_fd(), libc::POLLIN).map_err(|e| self.io_error(e))?
+                }
+                Err(e) => return Err(self.io_error(e)),
+            }
+        }
+    }
+
+    fn io_error(&self, source: io::Error) -> RecvError {
+        RecvError::Io {
+            port: self.name.clone(),
+            source,
+        }
+    }
+
+    fn frame_error(&self, source: FrameError) -> RecvError {
+        RecvError::Frame {
+            port: self.name.clone(),
+            source,
+        }
+    }
+}
+
+impl AsFd for InPort {
+    fn as_fd(&self) -> BorrowedFd<'_> {
+        self.fd.as_fd()
+    }
+}
+
+impl AsRawFd for InPort {
+    fn as_raw_fd(&self) -> RawFd {
+        self.fd.as_raw_fd()
+    }
+}
+
+/// An output port. Dropping it closes the channel, which ends the stream downstream.
+#[derive(Debug)]
+pub struct OutPort {
+    name: String,
+    fd: OwnedFd,
+    max: usize,
+    /// Header and payload of the frame being sent, reused from frame to frame.
+    buf: Vec<u8>,
+    /// In replica mode a RESTART must not fork in the middle of a frame (see `restart`).
+    replica: bool,
+}
+
+impl OutPort {
+    pub(crate) fn new(name: String, fd: OwnedFd, max: usize, replica: bool) -> Self {
+        OutPort {
+            name,
+            fd,
+            max,
+            buf: Vec::with_capacity(HEADER_LEN + max.min(frame::DEFAULT_MAX_FRAME)),
+            replica,
+        }
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn max_frame(&self) -> usize {
+        self.max
+    }
+
+    /// Sends `payload` as one whole frame (header and payload), blocking until all of it is
+    /// written. A pending SDC injection flips one bit of the copy that is sent.
+    pub fn send(&mut self, payload: &[u8]) -> Result<(), SendError> {
+        note_fork();
+        if payload.len() > self.max {
+            return Err(SendError::TooLarge {
+                port: self.name.clone(),
+                len: payload.len(),
+                max: self.max,
+            });
+        }
+        self.buf.clear();
+        frame::encode_into(payload, &mut self.buf);
+        inject::apply_pending(&self.name, &mut self.buf[HEADER_LEN..]);
+        let _no_restart = if self.replica {
+            Some(sys::block_signal(signals::RESTART).map_err(|e| self.io_error(e))?)
+        } else {
+            None
+        };
+        write_all(self.fd.as_fd(), &self.buf).map_err(|e| self.io_error(e))
+    }
+
+    /// Writes `bytes` as they are, not as a frame. Only for test aids that must produce broken
+    /// channels on purpose (a bad header, a cut frame); components use [`OutPort::send`].
+    pub fn write_raw(&mut self, bytes: &[u8]) -> Result<(), SendError> {
+        write_all(self.fd.as_fd(), bytes).map_err(|e| self.io_error(e))
+    }
+
+    fn io_error(&self, source: io::Error) -> SendError {
+        SendError::Io {
+            port: self.name.clone(),
+            source,
+        }
+    }
+}
+
+impl AsFd for OutPort {
+    fn as_fd(&self) -> BorrowedFd<'_> {
+        self.fd.as_fd()
+    }
+}
+
+impl AsRawFd for OutPort {
+    fn as_raw_fd(&self) -> RawFd {
+        self.fd.as_raw_fd()
+    }
+}
+
+/// Writes all of `bytes`, looping on partial writes (EINTR is retried inside `sys::write`).
+fn write_all(fd: BorrowedFd<'_>, mut bytes: &[u8]) -> io::Result<()> {
+    while !bytes.is_empty() {
+        match sys::write(fd, bytes) {
+            Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
+            Ok(n) => bytes = &bytes[n..],
+            // A non-blocking pipe (not ours to change): wait for room, as a blocking one would.
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => wait_for(fd, libc::POLLOUT)?,
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+/// Blocks until `fd` is ready for `events` (or hung up / in error, which the next read or
+/// write then reports).
+fn wait_for(fd: BorrowedFd<'_>, events: libc::c_short) -> io::Result<()> {
+    let mut pfd = [libc::pollfd {
+        fd: fd.as_raw_fd(),
+        events,
+        revents: 0,
+    }];
+    while sys::ppoll(&mut pfd, None)? == 0 {}
+    Ok(())
+}
+
+/// Logs, once, that this process is a replica forked by the restart handler (which may not
+/// log itself).
+fn note_fork() {
+    if let Some(donor) = restart::take_forked_from() {
+        tracing::info!(
+            donor,
+            pid = std::process::id(),
+            "restarted: forked from donor, rejoined the voter"
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn ports(max: usize) -> (InPort, OutPort) {
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        sys::set_nonblocking(w.as_fd(), true).unwrap();
+        (
+            InPort::new("in".into(), r, max),
+            OutPort::new("out".into(), w, max, false),
+        )
+    }
+
+    /// Non-blocking pipes behave like blocking ones: recv waits, send writes whole frames
+    /// larger than a pipe holds.
+    #[test]
+    fn nonblocking_pipes_still_move_whole_frames() {
+        let (mut input, mut output) = ports(300_000);
+        let big: Vec<u8> = (0..200_000u32).map(|i| i as u8).collect();
+        let expected = big.clone();
+        let writer = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(50));
+            output.send(b"first").unwrap();
+            output.send(&big).unwrap();
+            output.send(b"").unwrap();
+        });
+        assert_eq!(input.recv().unwrap(), Some(&b"first"[..]));
+        assert_eq!(input.recv().unwrap(), Some(&expected[..]));
+        assert_eq!(input.recv().unwrap(), Some(&b""[..]));
+        writer.join().unwrap();
+        assert_eq!(input.recv().unwrap(), None);
+        assert_eq!(input.recv().unwrap(), None);
+    }
+
+    #[test]
+    fn send_refuses_oversized_payloads_and_recv_reports_bad_streams() {
+        let (mut input, mut output) = ports(8);
+        let err = output.send(&[0; 9]).unwrap_err();
+        assert!(
+            matches!(err, SendError::TooLarge { len: 9, max: 8, .. }),
+            "{err}"
+        );
+        output.write_raw(&frame::header(100)).unwrap();
+        let err = input.recv().unwrap_err();
+        assert!(
+            matches!(
+                err,
+                RecvError::Frame {
+                    source: FrameError::Oversized { len: 100, max: 8 },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        let (mut input, mut output) = ports(8);
+        output.write_raw(&[3, 0, 0, 0, 1]).unwrap();
+        drop(output);
+        let err = input.recv().unwrap_err();
+        assert!(
+            matches!(
+                err,
+                RecvError::Frame {
+                    source: FrameError::Truncated { .. },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+    }
+}

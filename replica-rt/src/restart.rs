@@ -1,0 +1,444 @@
+//! Restart by fork: how a healthy replica makes the replacement of a faulty one.
+//!
+//! # Signals
+//!
+//! - [`signals::RESTART`] (SIGUSR1), sent by the voter: fork; the child joins the voter in the
+//!   faulty replica's place (handshake in [`crate::contract::handshake`]).
+//! - SIGCHLD is set to `SIG_IGN` in replica mode, so the children a donor forks are reaped by the
+//!   kernel when they die (the donor's code never waits for them). Components must therefore not
+//!   rely on SIGCHLD or on waiting for children of their own.
+//!
+//! # Components must be single-threaded
+//!
+//! `fork` copies only the thread that takes the signal. Another thread's work, and any lock it
+//! held, would be lost or stuck forever in the child. The page walk also relies on it.
+//!
+//! # What the handler does
+//!
+//! In the donor: `_Fork`, then return. The donor carries on as if nothing happened.
+//!
+//! In the child:
+//! 1. connect to the voter's socket (address prepared at init, so nothing is allocated here);
+//! 2. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its
+//!    target number and close the received copy: the component's ports keep their numbers, now on
+//!    the new pipes;
+//! 3. answer [`Ready`] with its pid and close the socket;
+//! 4. write to every resident private writable page ([`crate::cow`]) so no physical page is
+//!    shared with the donor, and `mlockall` again (locks are not inherited over fork). (Where
+//!    `mlockall` succeeds, populating writable private mappings also breaks COW; the walk is what
+//!    still does it where `mlockall` is refused.)
+//! 5. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
+//!    was interrupted is restarted (`SA_RESTART`), on the new fd with the same number.
+//!
+//! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
+//!
+//! Every call made is async-signal-safe: `_Fork`, `socket`, `connect`, `recvmsg`, `dup2`,
+//! `fcntl`, `close`, `send`, `getpid`, `open`, `read`, `mincore`, `mlockall`, `_exit`, plain
+//! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
+//! and restored, so the interrupted code never sees it change.
+//!
+//! # Output frames stay whole
+//!
+//! [`crate::OutPort::send`] blocks RESTART while it writes a frame. Otherwise a fork in the
+//! middle of a large frame (more than a pipe holds, written in several `write`s) would let the
+//! child finish the frame on its *new* output pipe, which would then start with the tail of a
+//! frame. The cost for the voter: a donor blocked writing a frame forks only once the voter has
+//! drained enough of its output for the write to finish.
+
+use std::mem::{size_of, MaybeUninit};
+use std::sync::atomic::{AtomicI32, Ordering};
+use std::sync::OnceLock;
+
+use crate::contract::handshake::{FdTransfer, Ready, READY_MAGIC, TRANSFER_MAGIC};
+use crate::contract::{signals, MAX_PORTS};
+use crate::sys;
+
+/// Exit status of a forked child that could not join the voter.
+pub const CHILD_FAILED: libc::c_int = 121;
+
+extern "C" {
+    /// glibc ≥ 2.34: fork without running `pthread_atfork` handlers or taking malloc's locks,
+    /// the one fork that POSIX lists as async-signal-safe.
+    fn _Fork() -> libc::pid_t;
+}
+
+/// The voter's address, prepared at init: the handler may not allocate or format.
+struct VoterAddr {
+    addr: libc::sockaddr_un,
+    len: libc::socklen_t,
+}
+
+static VOTER_ADDR: OnceLock<VoterAddr> = OnceLock::new();
+
+/// Pid of the donor, set in a freshly forked child; the runtime logs it once on the next send or
+/// receive (the handler itself cannot log).
+static FORKED_FROM: AtomicI32 = AtomicI32::new(0);
+
+/// The socket path does not fit in a `sockaddr_un` (or is empty).
+#[derive(Debug, thiserror::Error)]
+#[error("voter socket path {path:?} ({len} bytes) does not fit a Unix socket address (1 to {max} bytes)")]
+pub struct PathTooLong {
+    pub path: String,
+    pub len: usize,
+    pub max: usize,
+}
+
+/// Stores the voter's socket path for the handler. Called once, from `init`.
+pub(crate) fn prepare(path: &str) -> Result<(), PathTooLong> {
+    // SAFETY: sockaddr_un is plain old data; all-zero is valid (and NUL-terminates the path).
+    let mut addr: libc::sockaddr_un = unsafe { std::mem::zeroed() };
+    let bytes = path.as_bytes();
+    // Keep one byte for the terminating NUL.
+    let max = addr.sun_path.len() - 1;
+    if bytes.len() > max || bytes.is_empty() {
+        return Err(PathTooLong {
+            path: path.to_owned(),
+            len: bytes.len(),
+            max,
+        });
+    }
+    addr.sun_family = libc::AF_UNIX as libc::sa_family_t;
+    for (dst, &b) in addr.sun_path.iter_mut().zip(bytes) {
+        *dst = b as libc::c_char;
+    }
+    let len =
+        (std::mem::offset_of!(libc::sockaddr_un, sun_path) + bytes.len() + 1) as libc::socklen_t;
+    // A second init is refused before it gets here, so the cell is always empty.
+    let _ = VOTER_ADDR.set(VoterAddr { addr, len });
+    Ok(())
+}
+
+/// Installs the RESTART handler. `prepare` must have run.
+pub(crate) fn install() -> std::io::Result<()> {
+    sys::install_siginfo_handler(signals::RESTART, on_restart, libc::SA_RESTART)
+}
+
+/// The donor pid if this process was forked by the restart handler and nobody asked yet.
+pub(crate) fn take_forked_from() -> Option<libc::pid_t> {
+    match FORKED_FROM.swap(0, Ordering::Relaxed) {
+        0 => None,
+        pid => Some(pid),
+    }
+}
+
+/// Forks with `_Fork`.
+///
+/// # Safety
+///
+/// If the calling process has other threads, the child may only do async-signal-safe work
+/// (their locks are copied held) and must leave by `_exit`.
+pub(crate) unsafe fn raw_fork() -> libc::pid_t {
+    // SAFETY: plain fork() is not allowed in a signal handler: it runs pthread_atfork handlers
+    // and takes malloc's locks, which the interrupted code may hold. _Fork does neither; it is
+    // the bare system call plus glibc's own consistent bookkeeping of the new pid. The caller
+    // upholds the contract above for whatever runs in the child.
+    unsafe { _Fork() }
+}
+
+extern "C" fn on_restart(_sig: libc::c_int, _info: *mut libc::siginfo_t, _ctx: *mut libc::c_void) {
+    let saved = errno();
+    // SAFETY: components are single-threaded (module doc), and the child runs only
+    // async-signal-safe code (`become_replacement`) before returning to the component.
+    let pid = unsafe { raw_fork() };
+    if pid == 0 {
+        become_replacement();
+    }
+    // In the donor: nothing else. A failed fork (-1) is seen by the voter as a connect timeout.
+    set_errno(saved);
+}
+
+/// The child's part. Returns only when it has taken the faulty replica's place.
+fn become_replacement() {
+    let donor = getppid();
+    crate::inject::clear_pending();
+    if join_voter().is_err() {
+        sys::exit_now(CHILD_FAILED);
+    }
+    // SAFETY: the fork child has a single thread.
+    let _ = unsafe { crate::cow::break_cow_sharing() };
+    // Locks are not inherited over fork. A failure cannot be logged here; the donor already
+    // logged it at init if it was refused.
+    let _ = sys::lock_all_memory();
+    FORKED_FROM.store(donor, Ordering::Relaxed);
+}
+
+/// Steps 1–3 of the handshake. `Err(())` carries no detail: there is nobody to tell but the
+/// voter, which sees the exit.
+fn join_voter() -> Result<(), ()> {
+    let addr = VOTER_ADDR.get().ok_or(())?;
+    let sock = Fd(socket()?);
+    connect(sock.0, addr)?;
+    let mut transfer = FdTransfer {
+        magic: 0,
+        count: 0,
+        targets: [-1; MAX_PORTS],
+    };
+    let mut received = [-1 as libc::c_int; MAX_PORTS];
+    let n = recv_transfer(sock.0, &mut transfer, &mut received)?;
+    let fds = &received[..n];
+    let valid = transfer.magic == TRANSFER_MAGIC && transfer.count as usize == n;
+    if !valid {
+        close_all(fds);
+        return Err(());
+    }
+    place_fds(fds, &transfer.targets[..n])?;
+    send_all(
+        sock.0,
+        &Ready {
+            magic: READY_MAGIC,
+            pid: sys::getpid(),
+        }
+        .to_bytes(),
+    )
+}
+
+/// Puts `fds[i]` on fd number `targets[i]` and closes `fds[i]`.
+fn place_fds(fds: &[libc::c_int], targets: &[libc::c_int]) -> Result<(), ()> {
+    // A received fd may sit on a target number (a port the component had closed), where a later
+    // dup2 would clobber it, or on its own target, where dup2 is a no-op that keeps CLOEXEC and
+    // the close below would lose it. So first move such fds above every target.
+    // Saturating: the targets come from outside, and nothing here may panic.
+    let floor = targets.iter().copied().max().unwrap_or(0).saturating_add(1);
+    let mut moved = [-1 as libc::c_int; MAX_PORTS];
+    for (i, &fd) in fds.iter().enumerate() {
+        moved[i] = if targets.contains(&fd) {
+            let m = dup_above(fd, floor)?;
+            close(fd);
+            m
+        } else {
+            fd
+        };
+    }
+    for (&fd, &target) in moved[..fds.len()].iter().zip(targets) {
+        // dup2 clears CLOEXEC on the target: these are the component's ports, as before.
+        dup2(fd, target)?;
+        close(fd);
+    }
+    Ok(())
+}
+
+/// Receives the whole [`FdTransfer`] and the fds that came with it; returns how many fds.
+fn recv_transfer(
+    sock: libc::c_int,
+    transfer: &mut FdTransfer,
+    fds: &mut [libc::c_int; MAX_PORTS],
+) -> Result<usize, ()> {
+    let want = size_of::<FdTransfer>();
+    let dst = (transfer as *mut FdTransfer).cast::<u8>();
+    let (got, nfds) = recvmsg_with_fds(sock, dst, want, fds)?;
+    // SOCK_STREAM may split the payload; the fds arrive with its first byte, the rest is data.
+    let mut have = got;
+    while have < want {
+        // SAFETY: `dst + have .. dst + want` lies inside `*transfer`, which is plain integers.
+        let n = recv(sock, unsafe { dst.add(have) }, want - have);
+        if n <= 0 {
+            close_all(&fds[..nfds]);
+            return Err(());
+        }
+        have += n as usize;
+    }
+    Ok(nfds)
+}
+
+/// Room for MAX_PORTS fds in one SCM_RIGHTS message, aligned as `cmsghdr` requires.
+#[repr(C, align(8))]
+struct CmsgBuf([u8; CMSG_SPACE]);
+
+// SAFETY: CMSG_SPACE is a pure size computation.
+const CMSG_SPACE: usize =
+    unsafe { libc::CMSG_SPACE((MAX_PORTS * size_of::<libc::c_int>()) as u32) } as usize;
+
+/// One `recvmsg` into `dst[..len]`; returns (bytes, fds received into `fds`).
+fn recvmsg_with_fds(
+    sock: libc::c_int,
+    dst: *mut u8,
+    len: usize,
+    fds: &mut [libc::c_int; MAX_PORTS],
+) -> Result<(usize, usize), ()> {
+    let mut cbuf = CmsgBuf([0; CMSG_SPACE]);
+    let mut iov = libc::iovec {
+        iov_base: dst.cast(),
+        iov_len: len,
+    };
+    // SAFETY: msghdr is plain old data; all-zero is valid (no name, no flags).
+    let mut msg: libc::msghdr = unsafe { MaybeUninit::zeroed().assume_init() };
+    msg.msg_iov = &mut iov;
+    msg.msg_iovlen = 1;
+    msg.msg_control = cbuf.0.as_mut_ptr().cast();
+    msg.msg_controllen = CMSG_SPACE as _;
+    let n = loop {
+        // SAFETY: `msg` points at `iov` (valid for `len` bytes at `dst`, which the caller owns)
+        // and at `cbuf` (CMSG_SPACE bytes, cmsghdr-aligned), all alive for the call.
+        let n = unsafe { libc::recvmsg(sock, &mut msg, libc::MSG_CMSG_CLOEXEC) };
+        if n >= 0 || errno() != libc::EINTR {
+            break n;
+        }
+    };
+    let nfds = collect_fds(&msg, fds);
+    // Cut control data means fds were lost in transit (and closed by the kernel).
+    if n <= 0 || msg.msg_flags & libc::MSG_CTRUNC != 0 {
+        close_all(&fds[..nfds]);
+        return Err(());
+    }
+    Ok((n as usize, nfds))
+}
+
+/// Copies the SCM_RIGHTS fds of `msg` into `fds`; returns how many.
+fn collect_fds(msg: &libc::msghdr, fds: &mut [libc::c_int; MAX_PORTS]) -> usize {
+    let mut count = 0;
+    // SAFETY: `msg` was filled in by recvmsg; the CMSG_* macros stay within msg_controllen.
+    let mut cmsg = unsafe { libc::CMSG_FIRSTHDR(msg) };
+    while !cmsg.is_null() {
+        // SAFETY: CMSG_FIRSTHDR/CMSG_NXTHDR return either null or a header inside the buffer.
+        let hdr = unsafe { &*cmsg };
+        if hdr.cmsg_level == libc::SOL_SOCKET && hdr.cmsg_type == libc::SCM_RIGHTS {
+            // SAFETY: CMSG_LEN(0) is a pure size computation.
+            let data_len =
+                (hdr.cmsg_len as usize).saturating_sub(unsafe { libc::CMSG_LEN(0) } as usize);
+            // SAFETY: the header is valid, so its data follows within the buffer.
+            let data = unsafe { libc::CMSG_DATA(cmsg) }.cast::<libc::c_int>();
+            for i in 0..data_len / size_of::<libc::c_int>() {
+                // SAFETY: `i` is within the data of this header; read_unaligned because cmsg
+                // data carries no alignment promise for its contents.
+                let fd = unsafe { data.add(i).read_unaligned() };
+                // The buffer holds at most MAX_PORTS fds, so this never overflows; the check
+                // keeps it so even for a kernel that packed differently.
+                if count < MAX_PORTS {
+                    fds[count] = fd;
+                    count += 1;
+                } else {
+                    close(fd);
+                }
+            }
+        }
+        // SAFETY: `cmsg` is a valid header of `msg`.
+        cmsg = unsafe { libc::CMSG_NXTHDR(msg, cmsg) };
+    }
+    count
+}
+
+/// Closes the fd when dropped (also on the error paths of `join_voter`).
+struct Fd(libc::c_int);
+
+impl Drop for Fd {
+    fn drop(&mut self) {
+        close(self.0);
+    }
+}
+
+fn socket() -> Result<libc::c_int, ()> {
+    // SAFETY: integer arguments only.
+    let fd = unsafe { libc::socket(libc::AF_UNIX, libc::SOCK_STREAM | libc::SOCK_CLOEXEC, 0) };
+    if fd < 0 {
+        Err(())
+    } else {
+        Ok(fd)
+    }
+}
+
+fn connect(sock: libc::c_int, addr: &VoterAddr) -> Result<(), ()> {
+    loop {
+        // SAFETY: `addr.addr` is an initialised sockaddr_un of which `addr.len` bytes are used.
+        let r = unsafe {
+            libc::connect(
+                sock,
+                (&addr.addr as *const libc::sockaddr_un).cast(),
+                addr.len,
+            )
+        };
+        if r == 0 {
+            return Ok(());
+        }
+        // After EINTR the connection attempt continues in the kernel; retrying reports
+        // EISCONN once it has completed, or EALREADY while it is still in progress.
+        match errno() {
+            libc::EINTR | libc::EALREADY => continue,
+            libc::EISCONN => return Ok(()),
+            _ => return Err(()),
+        }
+    }
+}
+
+fn recv(sock: libc::c_int, dst: *mut u8, len: usize) -> isize {
+    loop {
+        // SAFETY: the caller passes `dst` valid for `len` bytes of writes.
+        let n = unsafe { libc::recv(sock, dst.cast(), len, 0) };
+        if n >= 0 || errno() != libc::EINTR {
+            return n;
+        }
+    }
+}
+
+fn send_all(sock: libc::c_int, bytes: &[u8]) -> Result<(), ()> {
+    let mut sent = 0;
+    while sent < bytes.len() {
+        // SAFETY: the range is inside `bytes`. MSG_NOSIGNAL: a voter that gave up must not
+        // kill us with SIGPIPE; we exit with our own status instead.
+        let n = unsafe {
+            libc::send(
+                sock,
+                bytes[sent..].as_ptr().cast(),
+                bytes.len() - sent,
+                libc::MSG_NOSIGNAL,
+            )
+        };
+        if n > 0 {
+            sent += n as usize;
+        } else if n < 0 && errno() == libc::EINTR {
+            continue;
+        } else {
+            return Err(());
+        }
+    }
+    Ok(())
+}
+
+fn dup2(fd: libc::c_int, target: libc::c_int) -> Result<(), ()> {
+    loop {
+        // SAFETY: integer arguments only. Replacing `target` is the point: it is the component's
+        // port number, whose old pipe is to be dropped.
+        let r = unsafe { libc::dup2(fd, target) };
+        if r >= 0 {
+            return Ok(());
+        }
+        if errno() != libc::EINTR {
+            return Err(());
+        }
+    }
+}
+
+fn dup_above(fd: libc::c_int, floor: libc::c_int) -> Result<libc::c_int, ()> {
+    // SAFETY: integer arguments only.
+    let r = unsafe { libc::fcntl(fd, libc::F_DUPFD_CLOEXEC, floor) };
+    if r < 0 {
+        Err(())
+    } else {
+        Ok(r)
+    }
+}
+
+fn close(fd: libc::c_int) {
+    // SAFETY: closes an fd this module received or opened, once.
+    unsafe { libc::close(fd) };
+}
+
+fn close_all(fds: &[libc::c_int]) {
+    for &fd in fds {
+        close(fd);
+    }
+}
+
+fn getppid() -> libc::pid_t {
+    // SAFETY: no arguments, cannot fail.
+    unsafe { libc::getppid() }
+}
+
+fn errno() -> libc::c_int {
+    // SAFETY: __errno_location returns this thread's errno slot, always valid.
+    unsafe { *libc::__errno_location() }
+}
+
+fn set_errno(v: libc::c_int) {
+    // SAFETY: as in `errno`.
+    unsafe { *libc::__errno_location() = v };
+}

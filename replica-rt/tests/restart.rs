@@ -1,0 +1,371 @@
+//! The restart handler, end to end, without the voter: this test plays the voter's part of the
+//! handshake against a real replica process.
+//!
+//! `harness = false` (see Cargo.toml): the helper replica must be single-threaded, and libtest
+//! would run it on a worker thread while its main thread waits, so the fork could land in the
+//! wrong thread. The same binary is the test (no env var) and the helper replica (env var set).
+
+use std::io::Read;
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, ensure, Context, Result};
+use replica_rt::contract::handshake::{FdTransfer, Ready, READY_MAGIC, TRANSFER_MAGIC};
+use replica_rt::contract::{self, signals, Direction, PortMap, PortSpec, MAX_PORTS};
+use replica_rt::{frame, sys};
+
+const HELPER_ENV: &str = "S3RES_RT_TEST_HELPER";
+const IN_FD: i32 = 3;
+const OUT_FD: i32 = 4;
+const MAX_FRAME: usize = 300_000;
+const STEP: Duration = Duration::from_secs(5);
+
+fn main() {
+    if std::env::var_os(HELPER_ENV).is_some() {
+        if let Err(e) = helper() {
+            eprintln!("helper: {e:#}");
+            std::process::exit(1);
+        }
+        return;
+    }
+    if std::env::args().any(|a| a == "--list") {
+        println!("restart_by_fork: test");
+        return;
+    }
+    match restart_by_fork() {
+        Ok(()) => println!("test restart_by_fork ... ok"),
+        Err(e) => {
+            eprintln!("test restart_by_fork ... FAILED: {e:#}");
+            std::process::exit(1);
+        }
+    }
+}
+
+/// The replica: a stateful echo (each answer is prefixed with the number of answers before it,
+/// so a replacement that lost its donor's state shows).
+fn helper() -> Result<()> {
+    replica_rt::init_logging("rt-helper");
+    let mut rt = replica_rt::init()?;
+    let mut input = rt.input("in")?;
+    let mut output = rt.output("out")?;
+    let mut answered: u64 = 0;
+    let mut buf = Vec::new();
+    while let Some(frame) = input.recv()? {
+        buf.clear();
+        buf.extend_from_slice(&answered.to_le_bytes());
+        buf.extend_from_slice(frame);
+        output.send(&buf)?;
+        answered += 1;
+    }
+    Ok(())
+}
+
+/// Kills (and reaps, where we may) every process the test caused, also when it fails.
+struct Guard {
+    donor: Child,
+    /// Forked replicas: children of the donor, not ours, so reached through pidfds.
+    forked: Vec<OwnedFd>,
+}
+
+impl Drop for Guard {
+    fn drop(&mut self) {
+        for pidfd in &self.forked {
+            let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+        }
+        let _ = self.donor.kill();
+        let _ = self.donor.wait();
+        // Forks of the donor that were never accepted (a failure mid-test) are orphans now, and
+        // ours, since the test is a child subreaper: kill and reap them too, within a bound.
+        let me = std::process::id() as libc::pid_t;
+        let deadline = Instant::now() + STEP;
+        while Instant::now() < deadline {
+            let orphans = children_of(me);
+            if orphans.is_empty() {
+                break;
+            }
+            for pid in orphans {
+                let _ = sys::kill(pid, libc::SIGKILL);
+            }
+            while let Ok(Some(_)) = sys::reap_any() {}
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
+/// Pids whose parent is `parent`, from /proc.
+fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse().ok())
+        .filter(|&pid| sys::parent_pid(pid) == Some(parent))
+        .collect()
+}
+
+struct Pipes {
+    /// Test side: write frames here.
+    to_replica: OwnedFd,
+    /// Test side: read answers here.
+    from_replica: OwnedFd,
+    /// Replica side, to be handed over.
+    replica_in: OwnedFd,
+    replica_out: OwnedFd,
+}
+
+fn pipes() -> Result<Pipes> {
+    let (replica_in, to_replica) = sys::pipe()?;
+    let (from_replica, replica_out) = sys::pipe()?;
+    Ok(Pipes {
+        to_replica,
+        from_replica,
+        replica_in,
+        replica_out,
+    })
+}
+
+fn restart_by_fork() -> Result<()> {
+    // Orphans of a failed test (the donor's children) then come to us, for the guard to reap.
+    sys::set_child_subreaper()?;
+    let dir = tempfile::tempdir()?;
+    let sock_path = dir.path().join("voter.sock");
+    let listener = UnixListener::bind(&sock_path)?;
+    listener.set_nonblocking(true)?;
+
+    let first = pipes()?;
+    let port = |name: &str, dir, fd| PortSpec {
+        name: name.into(),
+        dir,
+        fd,
+        max_frame: MAX_FRAME,
+    };
+    let map = PortMap {
+        ports: vec![
+            port("in", Direction::In, IN_FD),
+            port("out", Direction::Out, OUT_FD),
+        ],
+    };
+    let mut cmd = Command::new(std::env::current_exe()?);
+    cmd.env(HELPER_ENV, "1")
+        .env(contract::ENV_PORTS, map.to_env())
+        .env(contract::ENV_VOTER_SOCKET, &sock_path)
+        .env(contract::ENV_REPLICA, "0")
+        .env(contract::ENV_COMPONENT, "helper")
+        .stdin(Stdio::null());
+    sys::map_fds_on_exec(
+        &mut cmd,
+        vec![
+            (first.replica_in.as_raw_fd(), IN_FD),
+            (first.replica_out.as_raw_fd(), OUT_FD),
+        ],
+    );
+    let donor = cmd.spawn().context("starting the helper replica")?;
+    let donor_pid = donor.id() as libc::pid_t;
+    let mut guard = Guard {
+        donor,
+        forked: Vec::new(),
+    };
+    drop((first.replica_in, first.replica_out));
+
+    // The first answer also proves init ran, so the handlers are in place before any signal.
+    let a = roundtrip(&first.to_replica, &first.from_replica, b"hello")?;
+    ensure!(a == answer(0, b"hello"), "first answer {a:?}");
+
+    // SDC injection with a chosen bit: bit 8 is the lowest bit of the answer's second byte.
+    sys::sigqueue(donor_pid, signals::INJECT_SDC, 8)?;
+    let a = roundtrip(&first.to_replica, &first.from_replica, b"flip")?;
+    let mut want = answer(1, b"flip");
+    want[1] ^= 1;
+    ensure!(a == want, "SDC-injected answer {a:?}, expected {want:?}");
+
+    // A handshake with a bad magic: the child must give up (exit), the donor carry on.
+    sys::kill(donor_pid, signals::RESTART)?;
+    let (stream, child) = accept_child(&listener, donor_pid)?;
+    guard.forked.push(sys::pidfd_open(child)?);
+    let bad = pipes()?;
+    let bad_transfer = transfer(0xdead_beef);
+    sys::send_with_fds(
+        stream.as_fd(),
+        bad_transfer.as_bytes(),
+        &[bad.replica_in.as_raw_fd(), bad.replica_out.as_raw_fd()],
+    )?;
+    let pidfd = guard.forked.last().context("pidfd")?;
+    ensure!(
+        sys::wait_readable(pidfd.as_fd(), STEP)?,
+        "a child given a bad handshake did not exit"
+    );
+    drop(stream);
+
+    // The real restart.
+    let started = Instant::now();
+    sys::kill(donor_pid, signals::RESTART)?;
+    let (second, child) = join_child(&listener, donor_pid, &mut guard)?;
+    println!("restart: signal to Ready in {:?}", started.elapsed());
+    let _ = child;
+
+    // Both carry on from the same state: two answers were given before the fork.
+    let a = roundtrip(&second.to_replica, &second.from_replica, b"child")?;
+    ensure!(a == answer(2, b"child"), "forked child answered {a:?}");
+    let a = roundtrip(&first.to_replica, &first.from_replica, b"donor")?;
+    ensure!(a == answer(2, b"donor"), "donor answered {a:?}");
+
+    // End of input ends the child (the donor reaps it: SIGCHLD is ignored there).
+    drop(second.to_replica);
+    let pidfd = guard.forked.last().context("pidfd")?;
+    ensure!(
+        sys::wait_readable(pidfd.as_fd(), STEP)?,
+        "forked child did not exit at EOF"
+    );
+
+    // A RESTART while the donor is blocked in the middle of writing a frame larger than a pipe
+    // holds is deferred until the frame is out, so the child's new output starts on a frame
+    // boundary.
+    let big = vec![0x42u8; 200_000];
+    write_frame(&first.to_replica, &big)?;
+    std::thread::sleep(Duration::from_millis(50));
+    sys::kill(donor_pid, signals::RESTART)?;
+    ensure!(
+        !sys::wait_readable(listener.as_fd(), Duration::from_millis(200))?,
+        "the donor forked in the middle of writing a frame"
+    );
+    let a = read_frame(first.from_replica.as_fd())?;
+    ensure!(
+        a == answer(3, &big),
+        "big answer differs ({} bytes)",
+        a.len()
+    );
+    let (third, _) = join_child(&listener, donor_pid, &mut guard)?;
+    let a = roundtrip(&third.to_replica, &third.from_replica, b"third")?;
+    ensure!(
+        a == answer(4, b"third"),
+        "second forked child answered {a:?}"
+    );
+
+    // Control-flow-error injection: the donor spins and answers nothing.
+    sys::kill(donor_pid, signals::inject_cfe())?;
+    write_frame(&first.to_replica, b"anyone?")?;
+    ensure!(
+        !sys::wait_readable(first.from_replica.as_fd(), Duration::from_millis(300))?,
+        "the donor answered after a CFE injection"
+    );
+    drop(guard);
+    Ok(())
+}
+
+/// Test side of a replacement's pipes.
+struct TestEnds {
+    to_replica: OwnedFd,
+    from_replica: OwnedFd,
+}
+
+/// Plays the voter's part of the handshake with the donor's child, after RESTART was sent.
+fn join_child(
+    listener: &UnixListener,
+    donor: libc::pid_t,
+    guard: &mut Guard,
+) -> Result<(TestEnds, libc::pid_t)> {
+    let (mut stream, child) = accept_child(listener, donor)?;
+    guard.forked.push(sys::pidfd_open(child)?);
+    let p = pipes()?;
+    sys::send_with_fds(
+        stream.as_fd(),
+        transfer(TRANSFER_MAGIC).as_bytes(),
+        &[p.replica_in.as_raw_fd(), p.replica_out.as_raw_fd()],
+    )?;
+    drop((p.replica_in, p.replica_out));
+    stream.set_read_timeout(Some(STEP))?;
+    let mut ready = [0u8; Ready::SIZE];
+    stream.read_exact(&mut ready).context("reading Ready")?;
+    let ready = Ready::from_bytes(ready);
+    ensure!(ready.magic == READY_MAGIC, "Ready magic {:#x}", ready.magic);
+    ensure!(
+        ready.pid == child,
+        "Ready pid {} but the peer is {child}",
+        ready.pid
+    );
+    Ok((
+        TestEnds {
+            to_replica: p.to_replica,
+            from_replica: p.from_replica,
+        },
+        child,
+    ))
+}
+
+fn transfer(magic: u32) -> FdTransfer {
+    let mut targets = [-1; MAX_PORTS];
+    targets[0] = IN_FD;
+    targets[1] = OUT_FD;
+    FdTransfer {
+        magic,
+        count: 2,
+        targets,
+    }
+}
+
+/// Accepts the donor's child (bounded), checking through SO_PEERCRED that it is one.
+fn accept_child(listener: &UnixListener, donor: libc::pid_t) -> Result<(UnixStream, libc::pid_t)> {
+    let deadline = Instant::now() + STEP;
+    loop {
+        match listener.accept() {
+            Ok((stream, _)) => {
+                stream.set_nonblocking(false)?;
+                let pid = sys::peer_pid(stream.as_fd())?;
+                let parent = sys::parent_pid(pid);
+                ensure!(
+                    parent == Some(donor),
+                    "peer {pid} has parent {parent:?}, not the donor {donor}"
+                );
+                return Ok((stream, pid));
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                let left = deadline.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    bail!("no connection from a forked child within {STEP:?}");
+                }
+                sys::wait_readable(listener.as_fd(), left)?;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
+fn answer(count: u64, payload: &[u8]) -> Vec<u8> {
+    let mut v = count.to_le_bytes().to_vec();
+    v.extend_from_slice(payload);
+    v
+}
+
+fn write_frame(fd: &OwnedFd, payload: &[u8]) -> Result<()> {
+    let mut bytes = Vec::new();
+    frame::encode_into(payload, &mut bytes);
+    let n = sys::write(fd.as_fd(), &bytes)?;
+    ensure!(n == bytes.len(), "short write to the replica");
+    Ok(())
+}
+
+fn roundtrip(to: &OwnedFd, from: &OwnedFd, payload: &[u8]) -> Result<Vec<u8>> {
+    write_frame(to, payload)?;
+    read_frame(from.as_fd())
+}
+
+/// Reads exactly one frame, bounded by STEP.
+fn read_frame(fd: BorrowedFd<'_>) -> Result<Vec<u8>> {
+    let deadline = Instant::now() + STEP;
+    let mut dec = frame::FrameDecoder::new(MAX_FRAME);
+    loop {
+        if let Some(f) = dec.next_frame()? {
+            return Ok(f.to_vec());
+        }
+        let left = deadline.saturating_duration_since(Instant::now());
+        ensure!(
+            !left.is_zero() && sys::wait_readable(fd, left)?,
+            "no answer within {STEP:?}"
+        );
+        let mut buf = [0u8; 64 * 1024];
+        let n = sys::read(fd, &mut buf)?;
+        ensure!(n > 0, "replica closed its output");
+        dec.push(&buf[..n]);
+    }
+}
