@@ -1,1 +1,71 @@
-//! Test harness: boots the real s3res-bootstrap in a temp dir and tears it down on drop.
+//! Test harness: boots the real `s3res-bootstrap` on a real system description in a fresh temp
+//! dir, watches its event log, and tears the whole system down on drop (also when the test
+//! panics). A test that leaves a process behind fails.
+//!
+//! How a leftover is found: bootstrap leads its own process group, and carries an environment
+//! mark (`S3RES_TEST_SYSTEM`) that every descendant inherits, so a process that left the group
+//! is found too. The test process is a child subreaper, so orphans are reaped here rather than
+//! lingering as zombies under an init that may not reap.
+//!
+//! Binaries: [`bin_path`] builds the workspace's executables once per test process (see
+//! [`bins`]). Random choices: [`Rng::from_env`] prints its seed; `S3RES_TEST_SEED` replays it.
+//!
+//! ```no_run
+//! use std::time::Duration;
+//! use s3res_tests::System;
+//!
+//! let sys = System::new();
+//! let summary = sys.path("summary.json"); // a file in the system's temp dir
+//! let mut run = sys.start(r#"{ "name": "t", "components": {}, "channels": [] }"#);
+//! let first = run.wait_for_event(|e| e.component == "echo", Duration::from_secs(60));
+//! let out = run.wait(Duration::from_secs(60));
+//! assert!(out.status.success(), "{}", out.stderr);
+//! run.assert_nothing_left(); // bootstrap cleaned up by itself
+//! # let _ = (summary, first);
+//! ```
+
+pub mod bins;
+pub mod events;
+pub mod procs;
+pub mod rng;
+pub mod system;
+
+pub use bins::{bin_dir, bin_path};
+pub use events::{parse_events, replica_pids};
+pub use rng::Rng;
+pub use system::{Outcome, RunningSystem, System};
+
+use std::path::Path;
+
+pub use s3res_voter::event::{Event, EventKind, RecoveryMethod};
+
+/// Sends `sig` to `pid` (`kill(2)`).
+pub fn kill_pid(pid: i32, sig: i32) -> std::io::Result<()> {
+    replica_rt::sys::kill(pid, sig)
+}
+
+/// Sends `sig` to `pid` with an integer value (`sigqueue(3)`); for `SIGUSR2` the value is the
+/// bit to flip in the next outgoing frame.
+pub fn sigqueue(pid: i32, sig: i32, value: i32) -> std::io::Result<()> {
+    replica_rt::sys::sigqueue(pid, sig, value)
+}
+
+/// The injection signals a replica understands (re-exported from replica-rt's contract).
+pub use replica_rt::contract::signals;
+
+/// Reads and parses the JSON summary a sink writes; panics with the path and the text if it is
+/// missing or not JSON.
+pub fn sink_summary(path: impl AsRef<Path>) -> serde_json::Value {
+    let path = path.as_ref();
+    let text = std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("reading sink summary {}: {e}", path.display()));
+    serde_json::from_str(&text)
+        .unwrap_or_else(|e| panic!("sink summary {} is not JSON ({e}): {text}", path.display()))
+}
+
+/// The last `max_lines` lines of `text` (for failure messages).
+pub fn tail(text: &str, max_lines: usize) -> String {
+    let lines: Vec<&str> = text.lines().collect();
+    let start = lines.len().saturating_sub(max_lines);
+    lines[start..].join("\n")
+}

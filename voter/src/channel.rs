@@ -164,10 +164,9 @@ impl AsFd for FrameReader {
     }
 }
 
-/// Reads whatever a pipe holds right now without blocking (used to take back input that a
-/// donor replica has not consumed, so that its fork child gets the same).
+/// Reads whatever a pipe holds right now (used to take back input that a donor replica has not
+/// consumed, so that its fork child gets the same). `fd` must be non-blocking.
 pub fn drain(fd: BorrowedFd<'_>) -> io::Result<Vec<u8>> {
-    sys::set_nonblocking(fd, true)?;
     let mut out = Vec::new();
     let mut buf = [0u8; 16 * 1024];
     loop {

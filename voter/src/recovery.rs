@@ -54,7 +54,8 @@ pub fn fork_from(
     listener: &UnixListener,
     donor: &mut Replica,
 ) -> Result<Replica, RecoveryError> {
-    let deadline = Instant::now() + Duration::from_millis(plan.restart_timeout_ms);
+    let timeout = Duration::from_millis(plan.restart_timeout_ms);
+    let deadline = Instant::now() + timeout;
 
     // 1. Output the donor already wrote belongs to both; input it has not read goes to both.
     for out in &mut donor.outputs {
@@ -69,11 +70,18 @@ pub fn fork_from(
     let signalled = sys::pidfd_send_signal(donor.pidfd.as_fd(), signals::RESTART);
     let result = signalled
         .map_err(io_err("signalling the donor"))
-        .and_then(|()| accept_child(listener, donor, deadline))
-        .and_then(|(conn, child_pid)| {
-            hand_over_pipes(plan, conn, child_pid, deadline).inspect_err(|_| {
+        .and_then(|()| accept_child(listener, donor, deadline, timeout))
+        .and_then(|(conn, child_pid, child_pidfd)| {
+            hand_over_pipes(
+                plan,
+                conn,
+                child_pid,
+                child_pidfd.try_clone().map_err(io_err("dup"))?,
+                deadline,
+            )
+            .inspect_err(|_| {
                 // The child exists but will never be used: do not leave it behind.
-                let _ = sys::kill(child_pid, libc::SIGKILL);
+                let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
             })
         });
 
@@ -103,13 +111,12 @@ fn accept_child(
     listener: &UnixListener,
     donor: &Replica,
     deadline: Instant,
-) -> Result<(UnixStream, libc::pid_t), RecoveryError> {
+    timeout: Duration,
+) -> Result<(UnixStream, libc::pid_t, OwnedFd), RecoveryError> {
     loop {
         let now = Instant::now();
         if now >= deadline {
-            return Err(RecoveryError::ConnectTimeout(
-                deadline.saturating_duration_since(now),
-            ));
+            return Err(RecoveryError::ConnectTimeout(timeout));
         }
         let mut fds = [
             libc::pollfd {
@@ -136,8 +143,10 @@ fn accept_child(
             Err(e) => return Err(io_err("accepting the child")(e)),
         };
         let pid = sys::peer_pid(conn.as_fd()).map_err(io_err("reading SO_PEERCRED"))?;
+        // Open the pidfd before checking the parent: from then on the pid cannot be reused.
+        let pidfd = sys::pidfd_open(pid).map_err(io_err("opening the child's pidfd"))?;
         if sys::parent_pid(pid) == Some(donor.pid) {
-            return Ok((conn, pid));
+            return Ok((conn, pid, pidfd));
         }
         tracing::warn!(
             pid,
@@ -152,6 +161,7 @@ fn hand_over_pipes(
     plan: &VoterPlan,
     mut conn: UnixStream,
     child_pid: libc::pid_t,
+    pidfd: OwnedFd,
     deadline: Instant,
 ) -> Result<Replica, RecoveryError> {
     let pipes = ReplicaPipes::new(plan).map_err(io_err("creating pipes"))?;
@@ -188,12 +198,13 @@ fn hand_over_pipes(
             ready.magic, ready.pid
         )));
     }
-    let pidfd = sys::pidfd_open(child_pid).map_err(io_err("opening the child's pidfd"))?;
     Ok(Replica {
         pid: child_pid,
         pidfd,
         inputs,
         outputs,
         our_child: false,
+        // A fork of a replica that has answered: its handler is in place.
+        proven: true,
     })
 }

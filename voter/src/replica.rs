@@ -33,6 +33,9 @@ pub struct Replica {
     /// Started by this voter (so `waitpid` reaps it); a fork child belongs to its donor until
     /// the donor dies and it is re-parented to us (the voter is a subreaper).
     pub our_child: bool,
+    /// Has answered at least once, so replica-rt is initialised and the restart handler is in
+    /// place: only such a replica may be a donor (before `init`, SIGUSR1 would kill it).
+    pub proven: bool,
 }
 
 /// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs) and
@@ -49,12 +52,14 @@ impl ReplicaPipes {
         let mut inputs = Vec::with_capacity(plan.inputs.len());
         for _ in &plan.inputs {
             let (r, w) = sys::pipe()?;
-            // The voter keeps a read end for taking input back; the replica gets its own copy.
-            let replica_r = r.try_clone()?;
-            replica_ends.push(replica_r);
+            // The voter keeps a read end for taking input back. It must be a separate open file
+            // description: O_NONBLOCK belongs to the description, and a dup shared with the
+            // replica would make the replica's own reads fail with EAGAIN.
+            let voter_r = reopen_nonblocking(&r)?;
+            replica_ends.push(r);
             inputs.push(ReplicaInput {
                 writer: FrameWriter::new(w)?,
-                read_end: r,
+                read_end: voter_r,
             });
         }
         let mut outputs = Vec::with_capacity(plan.outputs.len());
@@ -74,6 +79,17 @@ impl ReplicaPipes {
     pub fn targets(&self) -> impl Iterator<Item = RawFd> + '_ {
         (0..self.replica_ends.len()).map(|k| FIRST_PORT_FD + k as RawFd)
     }
+}
+
+/// A new, non-blocking, close-on-exec open file description of the same pipe end (Linux:
+/// opening `/proc/self/fd/N` of a pipe opens the pipe again rather than duplicating `N`).
+fn reopen_nonblocking(fd: &OwnedFd) -> io::Result<OwnedFd> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_CLOEXEC)
+        .open(format!("/proc/self/fd/{}", fd.as_raw_fd()))?;
+    Ok(OwnedFd::from(file))
 }
 
 /// The port map every replica of this component gets.
@@ -123,6 +139,7 @@ impl Replica {
             inputs: pipes.inputs,
             outputs: pipes.outputs,
             our_child: true,
+            proven: false,
         })
     }
 

@@ -481,6 +481,7 @@ impl Voter {
                 }
                 Some(round) => {
                     round.answered[r] |= 1 << o;
+                    rep.proven = true;
                     let buf = &mut self.answers[r][o];
                     buf.clear();
                     buf.extend_from_slice(frame);
@@ -710,7 +711,8 @@ impl Voter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = (0..self.slots.len()).find(|&d| self.slots[d].is_some());
+        let donor =
+            (0..self.slots.len()).find(|&d| self.slots[d].as_ref().is_some_and(|r| r.proven));
         if let Some(d) = donor {
             let donor_rep = self.slots[d].as_mut().unwrap();
             match recovery::fork_from(&self.plan, &self.listener, donor_rep) {

@@ -1,0 +1,209 @@
+//! Where the workspace's binaries are, and making sure they are built and current.
+//!
+//! `cargo test --workspace` builds the normal executables of a package's bin targets only when
+//! that package has integration tests of its own; the voter and the components have none, so
+//! their executables would be missing, or stale from an earlier build. So the first call here in
+//! each test process runs `cargo build --workspace --bins` with the same cargo, target dir and
+//! profile as the test executable. Cargo releases its build-directory lock before it runs test
+//! executables, so the nested build does not deadlock; when everything is current it is a no-op
+//! that takes a fraction of a second.
+//!
+//! `S3RES_BIN_DIR=/path` skips the build and uses the executables found there (for example
+//! `target/release`, to run the end-to-end tests against a release build).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+/// Bound on the build (a cold debug build of the workspace takes about a minute on 2 cores).
+const BUILD_LIMIT: Duration = Duration::from_secs(30 * 60);
+
+/// Environment variable naming a directory of already-built executables (no build is run).
+pub const BIN_DIR_ENV: &str = "S3RES_BIN_DIR";
+
+/// Path of the workspace executable `name` (for example `s3res-bootstrap`), built and current.
+pub fn bin_path(name: &str) -> PathBuf {
+    let path = bin_dir().join(name);
+    assert!(
+        path.is_file(),
+        "{} does not exist after building the workspace's binaries",
+        path.display()
+    );
+    path
+}
+
+/// The directory holding the workspace's executables (built on first use, see module docs).
+pub fn bin_dir() -> &'static Path {
+    static DIR: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    match DIR.get_or_init(find_or_build) {
+        Ok(p) => p,
+        Err(e) => panic!("{e}"),
+    }
+}
+
+fn find_or_build() -> Result<PathBuf, String> {
+    if let Some(dir) = std::env::var_os(BIN_DIR_ENV) {
+        return Ok(PathBuf::from(dir));
+    }
+    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
+    let layout = Layout::from_test_exe(&exe)?;
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .ok_or("tests crate has no parent directory")?
+        .join("Cargo.toml");
+    let mut cmd = Command::new(env!("CARGO"));
+    cmd.arg("build")
+        .arg("--workspace")
+        .arg("--bins")
+        .arg("--manifest-path")
+        .arg(&workspace)
+        .arg("--target-dir")
+        .arg(&layout.target_dir)
+        .args(layout.cargo_args())
+        .stdin(Stdio::null());
+    eprintln!("s3res-tests: building the workspace's binaries: {cmd:?}");
+    // Output to a file, not a pipe, so a chatty build can never block on a full pipe.
+    let log = tempfile::tempfile().map_err(|e| format!("temp file for cargo's output: {e}"))?;
+    let log_err = log.try_clone().map_err(|e| format!("dup: {e}"))?;
+    cmd.stdout(Stdio::null()).stderr(log_err);
+    let mut child = cmd.spawn().map_err(|e| format!("running {cmd:?}: {e}"))?;
+    let started = Instant::now();
+    let status = loop {
+        if let Some(st) = child
+            .try_wait()
+            .map_err(|e| format!("waiting for cargo: {e}"))?
+        {
+            break st;
+        }
+        if started.elapsed() > BUILD_LIMIT {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(format!(
+                "{cmd:?} did not finish within {BUILD_LIMIT:?} (is the build directory locked?)\n{}",
+                read_all(log)
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    if !status.success() {
+        return Err(format!("{cmd:?} failed ({status}):\n{}", read_all(log)));
+    }
+    Ok(layout.profile_dir)
+}
+
+fn read_all(mut f: std::fs::File) -> String {
+    use std::io::{Read, Seek};
+    let mut s = String::new();
+    let _ = f.rewind();
+    let _ = f.read_to_string(&mut s);
+    s
+}
+
+/// Where a test executable sits: `<target>/[<triple>/]<profile>/deps/<test>-<hash>`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Layout {
+    pub target_dir: PathBuf,
+    pub triple: Option<String>,
+    /// Directory name of the profile (`debug` for the dev and test profiles, `release`, ...).
+    pub profile: String,
+    /// Where the executables are: `<target>/[<triple>/]<profile>`.
+    pub profile_dir: PathBuf,
+}
+
+impl Layout {
+    pub fn from_test_exe(exe: &Path) -> Result<Self, String> {
+        let bad = || format!("{} is not in <target>/<profile>/deps/", exe.display());
+        let deps = exe.parent().ok_or_else(bad)?;
+        if deps.file_name().and_then(|n| n.to_str()) != Some("deps") {
+            return Err(bad());
+        }
+        let profile_dir = deps.parent().ok_or_else(bad)?.to_path_buf();
+        let profile = profile_dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .ok_or_else(bad)?
+            .to_owned();
+        let above = profile_dir.parent().ok_or_else(bad)?;
+        // The target dir's root holds CACHEDIR.TAG; with --target there is a <triple> level.
+        let (target_dir, triple) = if above.join("CACHEDIR.TAG").exists() {
+            (above.to_path_buf(), None)
+        } else {
+            match (above.parent(), above.file_name().and_then(|n| n.to_str())) {
+                (Some(t), Some(triple)) if t.join("CACHEDIR.TAG").exists() => {
+                    (t.to_path_buf(), Some(triple.to_owned()))
+                }
+                _ => (above.to_path_buf(), None),
+            }
+        };
+        Ok(Layout {
+            target_dir,
+            triple,
+            profile,
+            profile_dir,
+        })
+    }
+
+    /// The `cargo build` arguments that select this profile and target.
+    pub fn cargo_args(&self) -> Vec<String> {
+        let mut args = match self.profile.as_str() {
+            "debug" => vec![],
+            "release" => vec!["--release".to_owned()],
+            other => vec!["--profile".to_owned(), other.to_owned()],
+        };
+        if let Some(t) = &self.triple {
+            args.push("--target".to_owned());
+            args.push(t.clone());
+        }
+        args
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn layout_of_a_plain_debug_build() {
+        let t = tempfile::tempdir().unwrap();
+        std::fs::write(t.path().join("CACHEDIR.TAG"), "").unwrap();
+        let exe = t.path().join("debug/deps/e2e-0123abcd");
+        let l = Layout::from_test_exe(&exe).unwrap();
+        assert_eq!(l.target_dir, t.path());
+        assert_eq!(l.profile_dir, t.path().join("debug"));
+        assert_eq!(l.triple, None);
+        assert!(l.cargo_args().is_empty());
+    }
+
+    #[test]
+    fn layout_with_triple_and_release() {
+        let t = tempfile::tempdir().unwrap();
+        std::fs::write(t.path().join("CACHEDIR.TAG"), "").unwrap();
+        let exe = t
+            .path()
+            .join("x86_64-unknown-linux-gnu/release/deps/e2e-0123abcd");
+        let l = Layout::from_test_exe(&exe).unwrap();
+        assert_eq!(l.target_dir, t.path());
+        assert_eq!(l.triple.as_deref(), Some("x86_64-unknown-linux-gnu"));
+        assert_eq!(
+            l.cargo_args(),
+            ["--release", "--target", "x86_64-unknown-linux-gnu"]
+        );
+    }
+
+    #[test]
+    fn layout_rejects_other_places() {
+        assert!(Layout::from_test_exe(Path::new("/usr/bin/true")).is_err());
+    }
+
+    #[test]
+    fn custom_profile() {
+        let l = Layout {
+            target_dir: "/t".into(),
+            triple: None,
+            profile: "ci".into(),
+            profile_dir: "/t/ci".into(),
+        };
+        assert_eq!(l.cargo_args(), ["--profile", "ci"]);
+    }
+}

@@ -1,0 +1,154 @@
+//! What `/proc` says about processes: enough to find every process of a process group.
+
+use std::fmt;
+
+/// The fields of `/proc/PID/stat` the harness needs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ProcStat {
+    pub pid: i32,
+    pub comm: String,
+    /// `R`, `S`, `D`, `Z`, `T`, ...
+    pub state: char,
+    pub ppid: i32,
+    pub pgrp: i32,
+}
+
+impl ProcStat {
+    pub fn is_zombie(&self) -> bool {
+        self.state == 'Z' || self.state == 'X'
+    }
+}
+
+impl fmt::Display for ProcStat {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "pid {} ({}) state {} ppid {} pgrp {}",
+            self.pid, self.comm, self.state, self.ppid, self.pgrp
+        )
+    }
+}
+
+/// Parses one `/proc/PID/stat` line. `comm` (field 2) may hold spaces and parentheses, so the
+/// numeric fields are read after the *last* `)`: field 3 state, 4 ppid, 5 pgrp.
+pub fn parse_stat(line: &str) -> Option<ProcStat> {
+    let open = line.find('(')?;
+    let close = line.rfind(')')?;
+    if close < open {
+        return None;
+    }
+    let pid = line[..open].trim().parse().ok()?;
+    let comm = line[open + 1..close].to_owned();
+    let mut rest = line[close + 1..].split_whitespace();
+    let state = rest.next()?.chars().next()?;
+    let ppid = rest.next()?.parse().ok()?;
+    let pgrp = rest.next()?.parse().ok()?;
+    Some(ProcStat {
+        pid,
+        comm,
+        state,
+        ppid,
+        pgrp,
+    })
+}
+
+/// Every process visible in `/proc` right now (processes that vanish mid-scan are skipped).
+pub fn all() -> Vec<ProcStat> {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    dir.filter_map(|e| {
+        let e = e.ok()?;
+        let name = e.file_name();
+        let pid: i32 = name.to_str()?.parse().ok()?;
+        let text = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+        parse_stat(&text)
+    })
+    .collect()
+}
+
+/// The processes whose process group is `pgid`.
+pub fn in_group(pgid: i32) -> Vec<ProcStat> {
+    all().into_iter().filter(|p| p.pgrp == pgid).collect()
+}
+
+/// The processes whose environment holds `key=value` (as started: `/proc/PID/environ`). Finds
+/// a process however it left its group or session, since descendants inherit the environment.
+/// Zombies have no readable environment and are not found here.
+pub fn with_env(key: &str, value: &str) -> Vec<ProcStat> {
+    let needle = format!("{key}={value}");
+    all()
+        .into_iter()
+        .filter(|p| {
+            std::fs::read(format!("/proc/{}/environ", p.pid))
+                .is_ok_and(|env| env.split(|&b| b == 0).any(|v| v == needle.as_bytes()))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_plain_stat() {
+        let s = "1234 (s3res-voter) S 1200 1200 1100 34816 1200 4194560 123 0 0 0 1 2 0 0 20 0 1 0";
+        let p = parse_stat(s).unwrap();
+        assert_eq!(
+            p,
+            ProcStat {
+                pid: 1234,
+                comm: "s3res-voter".into(),
+                state: 'S',
+                ppid: 1200,
+                pgrp: 1200
+            }
+        );
+        assert!(!p.is_zombie());
+    }
+
+    #[test]
+    fn parses_comm_with_spaces_and_parens() {
+        let s = "77 (a) b (c) Z 1 70 70 0 -1 4194560\n";
+        let p = parse_stat(s).unwrap();
+        assert_eq!(p.pid, 77);
+        assert_eq!(p.comm, "a) b (c");
+        assert_eq!(p.state, 'Z');
+        assert_eq!(p.ppid, 1);
+        assert_eq!(p.pgrp, 70);
+        assert!(p.is_zombie());
+    }
+
+    #[test]
+    fn rejects_garbage() {
+        assert_eq!(parse_stat(""), None);
+        assert_eq!(parse_stat("12 (x"), None);
+        assert_eq!(parse_stat("12 (x) S"), None);
+        assert_eq!(parse_stat("x (y) S 1 2"), None);
+    }
+
+    #[test]
+    fn finds_a_child_by_its_environment() {
+        let value = format!("env-test-{}", std::process::id());
+        let mut child = std::process::Command::new("sleep")
+            .arg("30")
+            .env("S3RES_PROCS_TEST", &value)
+            .spawn()
+            .unwrap();
+        let found = with_env("S3RES_PROCS_TEST", &value);
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert_eq!(found[0].pid, child.id() as i32);
+    }
+
+    #[test]
+    fn finds_own_process() {
+        let me = std::process::id() as i32;
+        let mine = all()
+            .into_iter()
+            .find(|p| p.pid == me)
+            .expect("own /proc entry");
+        assert_eq!(Some(mine.pgrp), replica_rt::sys::process_group(me));
+    }
+}

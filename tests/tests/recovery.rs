@@ -1,0 +1,325 @@
+//! End to end: a protected echo keeps the sink's stream whole while its replicas are killed,
+//! stopped, corrupted and made to break the protocol. Every test runs the real
+//! `s3res-bootstrap`, which runs the real `s3res-voter`, which runs real replicas.
+
+use std::time::Duration;
+
+use s3res_tests::{signals, sink_summary, Event, EventKind, RecoveryMethod, Rng, System};
+
+/// Generous, so that a loaded CI machine running tests in parallel does not see false hangs;
+/// the tests check behaviour, not speed.
+const TIMEOUT_US: u64 = 300_000;
+const LIMIT: Duration = Duration::from_secs(90);
+
+/// source → echo (protected) → sink, with the sink's summary in `summary.json`.
+fn echo_system(
+    sys: &System,
+    redundancy: &str,
+    exec: &str,
+    echo_args: &[&str],
+    count: u32,
+    hz: u32,
+) -> String {
+    let summary = sys.path("summary.json");
+    let echo_args = serde_json::to_string(echo_args).unwrap();
+    format!(
+        r#"{{
+  "name": "recovery-test",
+  "components": {{
+    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "{hz}"] }},
+    "echo": {{ "exec": "{exec}", "args": {echo_args}, "redundancy": "{redundancy}", "timeout_us": {TIMEOUT_US} }},
+    "sink": {{ "exec": "s3res-sink", "args": ["--stateful", "--expect", "{count}", "--summary", "{}"] }}
+  }},
+  "channels": [
+    {{ "from": "source.out", "to": "echo.in" }},
+    {{ "from": "echo.out", "to": "sink.in" }}
+  ]
+}}"#,
+        summary.display()
+    )
+}
+
+fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
+    events
+        .iter()
+        .filter(|e| e.kind == kind && e.component == "echo")
+        .collect()
+}
+
+fn is_recovery_of(e: &Event, slot: usize, old_pid: i32) -> bool {
+    e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(old_pid)
+}
+
+/// Waits until the echo's replicas have all started and a few frames went through.
+fn wait_until_running(run: &mut s3res_tests::RunningSystem, replicas: usize) {
+    run.wait_for_event(|_| true, Duration::from_secs(20));
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while run.replica_pids("echo").len() < replicas {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "replicas did not start"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(200));
+}
+
+fn assert_sink_whole(summary: &serde_json::Value, count: u32) {
+    assert_eq!(summary["frames"], count, "sink summary: {summary}");
+    for field in [
+        "missing",
+        "duplicated",
+        "reordered",
+        "corrupt",
+        "state_breaks",
+    ] {
+        assert_eq!(summary[field], 0, "{field} in sink summary: {summary}");
+    }
+    assert_eq!(summary["ok"], true, "sink summary: {summary}");
+}
+
+/// Kills a random replica `kills` times while frames flow; every kill must be seen as a crash
+/// and repaired by fork, and the sink must see every frame once, in order, with state intact.
+fn survive_repeated_kills(redundancy: &str, replicas: usize, kills: usize) {
+    let mut rng = Rng::from_env();
+    let count = 8000;
+    let sys = System::new();
+    let desc = echo_system(&sys, redundancy, "s3res-echo", &["--stateful"], count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    wait_until_running(&mut run, replicas);
+
+    let mut killed = Vec::new();
+    for _ in 0..kills {
+        let pids = run.replica_pids("echo");
+        let slot = rng.below(replicas as u64) as usize;
+        let pid = pids[&slot];
+        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+        let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+        assert_ne!(rec.new_pid, Some(pid));
+        killed.push((slot, pid));
+        std::thread::sleep(Duration::from_millis(rng.range(5, 30)));
+    }
+    assert!(
+        run.try_status().is_none(),
+        "the system finished before all {kills} kills were done; make the source longer"
+    );
+
+    let out = run.wait(LIMIT);
+    assert!(
+        out.status.success(),
+        "bootstrap failed: {}",
+        s3res_tests::tail(&out.stderr, 30)
+    );
+    run.assert_nothing_left();
+
+    let crashes = of_kind(&out.events, EventKind::Crash);
+    for (slot, pid) in &killed {
+        assert!(
+            crashes
+                .iter()
+                .any(|e| e.replica == Some(*slot) && e.pid == Some(*pid)),
+            "kill of replica {slot} (pid {pid}) was not recorded as a crash"
+        );
+    }
+    assert_sink_whole(&sink_summary(&summary), count);
+}
+
+#[test]
+fn tmr_survives_fifty_kills_with_state() {
+    survive_repeated_kills("tmr", 3, 50);
+}
+
+#[test]
+fn dmr_survives_fifty_kills_with_state() {
+    survive_repeated_kills("dmr", 2, 50);
+}
+
+/// Injects one fault into one TMR replica and checks it is recorded as `kind` and repaired.
+fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
+    let count = 1500;
+    let sys = System::new();
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    wait_until_running(&mut run, 3);
+
+    let slot = 1;
+    let pid = run.replica_pids("echo")[&slot];
+    inject(pid);
+    let fault = run.wait_for_event(|e| e.kind == kind, Duration::from_secs(20));
+    assert_eq!(fault.replica, Some(slot), "{fault:?}");
+    assert_eq!(fault.pid, Some(pid), "{fault:?}");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+
+    let out = run.wait(LIMIT);
+    assert!(
+        out.status.success(),
+        "bootstrap failed: {}",
+        s3res_tests::tail(&out.stderr, 30)
+    );
+    run.assert_nothing_left();
+    assert_sink_whole(&sink_summary(&summary), count);
+}
+
+#[test]
+fn tmr_outvotes_a_corrupted_frame() {
+    tmr_single_fault(
+        |pid| s3res_tests::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue"),
+        EventKind::Sdc,
+    );
+}
+
+#[test]
+fn tmr_detects_a_control_flow_error_as_a_hang() {
+    tmr_single_fault(
+        |pid| s3res_tests::kill_pid(pid, signals::inject_cfe()).expect("kill"),
+        EventKind::Hang,
+    );
+}
+
+#[test]
+fn tmr_detects_a_stopped_replica_as_a_hang() {
+    tmr_single_fault(
+        |pid| s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("kill"),
+        EventKind::Hang,
+    );
+}
+
+/// DMR sees a corrupted frame but cannot tell which replica is wrong: the documented policy is
+/// to record an unattributed `sdc`, withhold that one output, and keep both replicas.
+#[test]
+fn dmr_detects_but_does_not_guess_a_corruption() {
+    let count = 1500;
+    let sys = System::new();
+    let desc = echo_system(&sys, "dmr", "s3res-echo", &["--stateful"], count, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    wait_until_running(&mut run, 2);
+
+    let pids = run.replica_pids("echo");
+    s3res_tests::sigqueue(pids[&0], signals::INJECT_SDC, 5).expect("sigqueue");
+    let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
+    assert_eq!(sdc.replica, None, "DMR must not attribute: {sdc:?}");
+    assert!(
+        sdc.detail.as_deref().unwrap_or("").contains("withheld"),
+        "{sdc:?}"
+    );
+
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    // The sink misses exactly the withheld frame, so it (and bootstrap) report failure.
+    assert!(!out.status.success());
+    let s = sink_summary(&summary);
+    assert_eq!(s["missing"], 1, "{s}");
+    assert_eq!(s["frames"], count - 1, "{s}");
+    for field in ["duplicated", "reordered", "corrupt", "state_breaks"] {
+        assert_eq!(s[field], 0, "{field}: {s}");
+    }
+    assert!(
+        of_kind(&out.events, EventKind::Recovery).is_empty(),
+        "nobody is blamed, nobody replaced"
+    );
+    assert_eq!(run.replica_pids("echo"), pids);
+}
+
+/// SMR has no healthy donor: the crashed replica is started afresh, its state is lost, and the
+/// event says so. The system carries on.
+#[test]
+fn smr_restarts_by_exec_and_says_state_was_lost() {
+    let count = 1500;
+    let sys = System::new();
+    let desc = echo_system(&sys, "smr", "s3res-echo", &["--stateful"], count, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    wait_until_running(&mut run, 1);
+
+    let pid = run.replica_pids("echo")[&0];
+    s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
+    run.wait_for_event(
+        |e| e.kind == EventKind::Crash && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 0, pid), Duration::from_secs(20));
+    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
+    assert_eq!(rec.state_lost, Some(true), "{rec:?}");
+
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    let s = sink_summary(&summary);
+    // The fresh replica counts from zero again: exactly one break in the stateful count, and at
+    // most the one frame that was in flight when the replica died is lost.
+    assert_eq!(s["state_breaks"], 1, "{s}");
+    let missing = s["missing"].as_u64().unwrap();
+    assert!(missing <= 1, "{s}");
+    assert_eq!(s["frames"].as_u64().unwrap(), count as u64 - missing, "{s}");
+    assert_eq!(s["corrupt"], 0, "{s}");
+    let _ = out;
+}
+
+/// A replica that breaks the framing is a `protocol` fault, replaced like any other, and the
+/// voter goes on serving.
+fn protocol_fault(mode: &str) {
+    let count = 600;
+    let sys = System::new();
+    let args = [
+        "--stateful",
+        "--mode",
+        mode,
+        "--replica",
+        "2",
+        "--at",
+        "100",
+    ];
+    let desc = echo_system(&sys, "tmr", "s3res-misbehave", &args, count, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+
+    let fault = run.wait_for_event(|e| e.kind == EventKind::Protocol, Duration::from_secs(30));
+    assert_eq!(fault.replica, Some(2), "{fault:?}");
+    let pid = fault.pid.unwrap();
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pid), Duration::from_secs(20));
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+
+    let out = run.wait(LIMIT);
+    assert!(
+        out.status.success(),
+        "bootstrap failed: {}",
+        s3res_tests::tail(&out.stderr, 30)
+    );
+    run.assert_nothing_left();
+    let faults: Vec<_> = out
+        .events
+        .iter()
+        .filter(|e| !matches!(e.kind, EventKind::Start | EventKind::Recovery))
+        .collect();
+    assert_eq!(
+        faults.len(),
+        1,
+        "exactly the one injected fault: {faults:?}"
+    );
+    assert_sink_whole(&sink_summary(&summary), count);
+}
+
+#[test]
+fn oversized_frame_is_a_protocol_fault() {
+    protocol_fault("oversize");
+}
+
+#[test]
+fn truncated_frame_is_a_protocol_fault() {
+    protocol_fault("truncate");
+}
+
+#[test]
+fn extra_frame_is_a_protocol_fault() {
+    protocol_fault("extra");
+}
+
+#[test]
+fn garbage_is_a_protocol_fault() {
+    protocol_fault("garbage");
+}
