@@ -679,7 +679,19 @@ impl Checker<'_> {
         }
 
         let rounds = if d.replicas > 0 {
-            self.rounds(&d, &inputs, &outputs)?
+            let rounds = self.rounds(&d, &inputs, &outputs)?;
+            if rounds.is_empty() {
+                // The voter paces a reactive component by its input: without a round-starting
+                // input it would never vote anything.
+                return Err(self.err(
+                    &member_path(&member_path("components", &d.name), "redundancy"),
+                    format!(
+                        "protected component `{}` has no input that starts a round; reactive mode needs one (a protected component without inputs needs stream mode, not built yet)",
+                        d.name
+                    ),
+                ));
+            }
+            rounds
         } else {
             Vec::new()
         };

@@ -408,7 +408,8 @@ fn missing_voter_is_an_error_before_anything_starts() {
     let (_dir, path) = write_system(&format!(
         r#"{{ "name": "v", "components": {{
   "m": {{ "exec": "{}", "args": ["{}"] }},
-  "a": {{ "exec": "{}", "redundancy": "smr", "timeout_us": 1000 }} }} }}"#,
+  "a": {{ "exec": "{}", "redundancy": "smr", "timeout_us": 1000 }} }},
+  "channels": [ {{ "from": "stdin", "to": "a.in" }} ] }}"#,
         fixture("marker.sh"),
         marker.display(),
         fixture("cat-through.sh")

@@ -579,3 +579,14 @@ fn unreadable_file() {
     assert!(e.to_string().contains("cannot read the description"), "{e}");
     assert_eq!(e.line(), 0);
 }
+
+#[test]
+fn protected_component_needs_an_input_that_starts_rounds() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"redundancy\": \"tmr\", \"timeout_us\": 9},\n \"b\": {\"exec\": \"run.sh\"}},\n \"channels\": [{\"from\": \"a.out\", \"to\": \"b.in\"}]}",
+        3,
+        "components.a.redundancy",
+        "no input that starts a round",
+    );
+}
