@@ -6,9 +6,9 @@ use replica_rt::frame::header;
 use replica_rt::OutPort;
 use s3res_components::Echo;
 
-/// TEST AID: behaves exactly like `s3res-echo`, except that the replica with index R, when
-/// answering frame K (0-based), breaks the frame protocol in the chosen way, so tests can check
-/// that the voter detects it and recovers. Never use it as a real component.
+/// TEST AID: behaves exactly like `s3res-echo`, except that the replica(s) with index R, when
+/// answering frame K (0-based), break the frame protocol (or the answer) in the chosen way, so
+/// tests can check that the voter detects it and recovers. Never use it as a real component.
 ///
 /// Modes:
 ///   oversize  instead of the answer: a header announcing 0x7fff_fff0 bytes and 4 bytes; then
@@ -18,6 +18,8 @@ use s3res_components::Echo;
 ///   extra     the correct answer, then a second, unasked-for frame
 ///   garbage   instead of the answer: 7 bytes, a header announcing 200 bytes and 3 bytes of
 ///             junk; then normal answers again from frame K+1
+///   corrupt   a well-formed answer with the last byte inverted (a silent data corruption);
+///             then normal answers again from frame K+1
 ///
 /// The replica index is S3RES_REPLICA, read once at start. A replacement forked from a healthy
 /// donor inherits the donor's memory, including the donor's index, so it does not misbehave
@@ -28,9 +30,9 @@ struct Cli {
     /// How to break the protocol.
     #[arg(long, value_enum)]
     mode: Mode,
-    /// Index of the replica that misbehaves (S3RES_REPLICA).
-    #[arg(long, value_name = "R")]
-    replica: usize,
+    /// Index of the replica that misbehaves (S3RES_REPLICA); several as `1,3`.
+    #[arg(long, value_name = "R", value_delimiter = ',', required = true)]
+    replica: Vec<usize>,
     /// 0-based number of the frame whose answer is broken.
     #[arg(long, value_name = "K")]
     at: u64,
@@ -45,6 +47,7 @@ enum Mode {
     Truncate,
     Extra,
     Garbage,
+    Corrupt,
 }
 
 fn main() -> Result<()> {
@@ -53,7 +56,7 @@ fn main() -> Result<()> {
     let mut rt = replica_rt::init().context("starting the s3res runtime")?;
     // Read once, here: a forked replacement keeps this value (see --help).
     let me = rt.replica_index();
-    let armed = me == Some(cli.replica);
+    let armed = me.is_some_and(|r| cli.replica.contains(&r));
     if armed {
         tracing::info!(mode = ?cli.mode, at = cli.at, "this replica will misbehave");
     }
@@ -108,6 +111,14 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
             bytes.extend_from_slice(&header(200));
             bytes.extend_from_slice(&[0xde, 0xad, 0xbe]);
             After::CarryOn
+        }
+        Mode::Corrupt => {
+            let mut wrong = answer.to_vec();
+            if let Some(last) = wrong.last_mut() {
+                *last = !*last;
+            }
+            out.send(&wrong).context("sending the corrupted answer")?;
+            return Ok(After::CarryOn);
         }
     };
     out.write_raw(&bytes).context("writing the broken frame")?;
