@@ -64,12 +64,23 @@ pub const FIRST_PORT_FD: RawFd = 3;
 
 /// The restart handshake, on the voter's `SOCK_STREAM` Unix socket:
 ///
-/// 1. the new replica (the donor's fork child) connects;
-/// 2. the voter checks `SO_PEERCRED`, then sends one message: [`FdTransfer`] as the payload and
-///    the new pipe fds as `SCM_RIGHTS`, in the same order as `targets`;
+/// 0. the voter sends the donor [`signals::RESTART`] with `sigqueue`, whose value is a nonce
+///    that names this recovery attempt;
+/// 1. the donor's handler forks; the child connects and sends [`Hello`] with that nonce (a child
+///    forked for an earlier, abandoned attempt carries an old nonce and is refused and killed);
+/// 2. the voter checks `SO_PEERCRED` (the peer's parent must be the donor) and the nonce, then
+///    sends one message: [`FdTransfer`] as the payload and the new pipe fds as `SCM_RIGHTS`, in
+///    the same order as `targets`;
 /// 3. the replica `dup2`s each fd onto its target number, closes the received copy, and answers
 ///    with [`Ready`];
 /// 4. both close the connection.
+///
+/// The child's socket has send and receive timeouts, so a child the voter gave up on exits
+/// instead of waiting forever.
+///
+/// [`Hello`]: handshake::Hello
+/// [`FdTransfer`]: handshake::FdTransfer
+/// [`Ready`]: handshake::Ready
 pub mod handshake {
     use super::MAX_PORTS;
 
@@ -83,6 +94,15 @@ pub mod handshake {
         pub targets: [i32; MAX_PORTS],
     }
 
+    /// Replica → voter, first: which recovery attempt this child belongs to.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct Hello {
+        pub magic: u32,
+        /// The value the RESTART signal carried (0 if it came without one, e.g. from `kill`).
+        pub nonce: u32,
+    }
+
     /// Replica → voter: the fds are in place.
     #[repr(C)]
     #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -93,6 +113,28 @@ pub mod handshake {
 
     pub const TRANSFER_MAGIC: u32 = u32::from_le_bytes(*b"S3fd");
     pub const READY_MAGIC: u32 = u32::from_le_bytes(*b"S3ok");
+    pub const HELLO_MAGIC: u32 = u32::from_le_bytes(*b"S3hi");
+
+    /// How long a fork child waits on the voter during the handshake before giving up.
+    pub const CHILD_SOCKET_TIMEOUT_MS: u64 = 2000;
+
+    impl Hello {
+        pub const SIZE: usize = std::mem::size_of::<Hello>();
+
+        pub fn to_bytes(self) -> [u8; Self::SIZE] {
+            let mut out = [0u8; Self::SIZE];
+            out[..4].copy_from_slice(&self.magic.to_ne_bytes());
+            out[4..].copy_from_slice(&self.nonce.to_ne_bytes());
+            out
+        }
+
+        pub fn from_bytes(b: [u8; Self::SIZE]) -> Self {
+            Hello {
+                magic: u32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
+                nonce: u32::from_ne_bytes([b[4], b[5], b[6], b[7]]),
+            }
+        }
+    }
 
     impl FdTransfer {
         pub fn as_bytes(&self) -> &[u8] {
@@ -128,7 +170,8 @@ pub mod handshake {
 
 /// Signals a replica understands. The voter and the injectors send them; replica-rt handles them.
 pub mod signals {
-    /// Fork yourself; the child reconnects to the voter (see [`super::handshake`]).
+    /// Fork yourself; the child reconnects to the voter (see [`super::handshake`]). Sent with
+    /// `sigqueue`; the value is the attempt's nonce, which the child echoes in its `Hello`.
     pub const RESTART: libc::c_int = libc::SIGUSR1;
     /// Injection: corrupt the next outgoing frame. Sent with `sigqueue`, the value is the bit to
     /// flip (bit 0 is the lowest bit of the first payload byte); sent with `kill` (or a negative

@@ -38,22 +38,11 @@ extern "C" fn on_inject_sdc(
 
 /// The bit a `sigqueue` asked for, or [`RANDOM`] for a plain `kill` or a negative value.
 fn requested_bit(info: *const libc::siginfo_t) -> i64 {
-    if info.is_null() {
-        return RANDOM;
-    }
-    // SAFETY: the kernel passes a valid siginfo to an SA_SIGINFO handler; si_code is always set.
-    let info = unsafe { &*info };
-    if info.si_code != libc::SI_QUEUE {
-        return RANDOM;
-    }
-    // SAFETY: for SI_QUEUE the kernel filled in si_value (the sigqueue payload). sigqueue's
-    // value travels in a pointer-sized union; the int member is its low half on little-endian
-    // targets, and s3res's `sys::sigqueue` stores it sign-extended in the pointer.
-    let value = unsafe { info.si_value() }.sival_ptr as isize as i32;
-    if value < 0 {
-        RANDOM
-    } else {
-        i64::from(value)
+    // SAFETY: the kernel passes a valid (or no) siginfo to an SA_SIGINFO handler.
+    let info = unsafe { info.as_ref() };
+    match info.and_then(crate::sys::queued_value) {
+        Some(bit) if bit >= 0 => i64::from(bit),
+        _ => RANDOM,
     }
 }
 

@@ -49,7 +49,9 @@ use std::mem::{size_of, MaybeUninit};
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::sync::OnceLock;
 
-use crate::contract::handshake::{FdTransfer, Ready, READY_MAGIC, TRANSFER_MAGIC};
+use crate::contract::handshake::{
+    FdTransfer, Hello, Ready, CHILD_SOCKET_TIMEOUT_MS, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
+};
 use crate::contract::{signals, MAX_PORTS};
 use crate::sys;
 
@@ -135,23 +137,27 @@ pub(crate) unsafe fn raw_fork() -> libc::pid_t {
     unsafe { _Fork() }
 }
 
-extern "C" fn on_restart(_sig: libc::c_int, _info: *mut libc::siginfo_t, _ctx: *mut libc::c_void) {
+extern "C" fn on_restart(_sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *mut libc::c_void) {
     let saved = errno();
+    // The attempt's nonce, read before the fork so the child has it on its stack.
+    // SAFETY: the kernel passes a valid (or no) siginfo to an SA_SIGINFO handler.
+    let info = unsafe { info.as_ref() };
+    let nonce = info.and_then(sys::queued_value).unwrap_or(0) as u32;
     // SAFETY: components are single-threaded (module doc), and the child runs only
     // async-signal-safe code (`become_replacement`) before returning to the component.
     let pid = unsafe { raw_fork() };
     if pid == 0 {
-        become_replacement();
+        become_replacement(nonce);
     }
     // In the donor: nothing else. A failed fork (-1) is seen by the voter as a connect timeout.
     set_errno(saved);
 }
 
 /// The child's part. Returns only when it has taken the faulty replica's place.
-fn become_replacement() {
+fn become_replacement(nonce: u32) {
     let donor = getppid();
     crate::inject::clear_pending();
-    if join_voter().is_err() {
+    if join_voter(nonce).is_err() {
         sys::exit_now(CHILD_FAILED);
     }
     // SAFETY: the fork child has a single thread.
@@ -164,10 +170,22 @@ fn become_replacement() {
 
 /// Steps 1–3 of the handshake. `Err(())` carries no detail: there is nobody to tell but the
 /// voter, which sees the exit.
-fn join_voter() -> Result<(), ()> {
+fn join_voter(nonce: u32) -> Result<(), ()> {
     let addr = VOTER_ADDR.get().ok_or(())?;
     let sock = Fd(socket()?);
+    // A voter that gave up on this attempt never answers: time out and exit, rather than
+    // keep a whole copy of the donor's memory waiting forever.
+    let timeout = std::time::Duration::from_millis(CHILD_SOCKET_TIMEOUT_MS);
+    sys::set_socket_timeouts(sock.0, timeout).map_err(|_| ())?;
     connect(sock.0, addr)?;
+    send_all(
+        sock.0,
+        &Hello {
+            magic: HELLO_MAGIC,
+            nonce,
+        }
+        .to_bytes(),
+    )?;
     let mut transfer = FdTransfer {
         magic: 0,
         count: 0,

@@ -436,3 +436,36 @@ pub fn getpid() -> libc::pid_t {
     // SAFETY: getpid has no arguments and cannot fail.
     unsafe { libc::getpid() }
 }
+
+/// The value a `sigqueue` sender attached to a signal, read in an `SA_SIGINFO` handler; `None`
+/// when the signal came without one (`kill`). Only reads memory: async-signal-safe.
+pub fn queued_value(info: &libc::siginfo_t) -> Option<i32> {
+    if info.si_code != libc::SI_QUEUE {
+        return None;
+    }
+    // SAFETY: for SI_QUEUE the kernel filled in si_value (the sigqueue payload). The value
+    // travels in a pointer-sized union; `sigqueue` above stores the int sign-extended in the
+    // pointer, so truncating it back gives the int.
+    Some(unsafe { info.si_value() }.sival_ptr as isize as i32)
+}
+
+/// Sets a socket's send and receive timeouts. Async-signal-safe (one system call each).
+pub fn set_socket_timeouts(sock: RawFd, timeout: Duration) -> io::Result<()> {
+    let tv = libc::timeval {
+        tv_sec: timeout.as_secs() as libc::time_t,
+        tv_usec: timeout.subsec_micros() as libc::suseconds_t,
+    };
+    for opt in [libc::SO_RCVTIMEO, libc::SO_SNDTIMEO] {
+        // SAFETY: `tv` is a valid timeval for the duration of the call and its size is passed.
+        cvt(unsafe {
+            libc::setsockopt(
+                sock,
+                libc::SOL_SOCKET,
+                opt,
+                (&tv as *const libc::timeval).cast(),
+                std::mem::size_of::<libc::timeval>() as libc::socklen_t,
+            )
+        })?;
+    }
+    Ok(())
+}

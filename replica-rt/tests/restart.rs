@@ -12,7 +12,12 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, ensure, Context, Result};
-use replica_rt::contract::handshake::{FdTransfer, Ready, READY_MAGIC, TRANSFER_MAGIC};
+use replica_rt::contract::handshake::{
+    FdTransfer, Hello, Ready, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
+};
+
+/// The nonce this test's "voter" sends with RESTART; the child must echo it.
+const NONCE: u32 = 0x5eed;
 use replica_rt::contract::{self, signals, Direction, PortMap, PortSpec, MAX_PORTS};
 use replica_rt::{frame, sys};
 
@@ -180,7 +185,7 @@ fn restart_by_fork() -> Result<()> {
     ensure!(a == want, "SDC-injected answer {a:?}, expected {want:?}");
 
     // A handshake with a bad magic: the child must give up (exit), the donor carry on.
-    sys::kill(donor_pid, signals::RESTART)?;
+    sys::sigqueue(donor_pid, signals::RESTART, NONCE as i32)?;
     let (stream, child) = accept_child(&listener, donor_pid)?;
     guard.forked.push(sys::pidfd_open(child)?);
     let bad = pipes()?;
@@ -199,7 +204,7 @@ fn restart_by_fork() -> Result<()> {
 
     // The real restart.
     let started = Instant::now();
-    sys::kill(donor_pid, signals::RESTART)?;
+    sys::sigqueue(donor_pid, signals::RESTART, NONCE as i32)?;
     let (second, child) = join_child(&listener, donor_pid, &mut guard)?;
     println!("restart: signal to Ready in {:?}", started.elapsed());
     let _ = child;
@@ -224,7 +229,7 @@ fn restart_by_fork() -> Result<()> {
     let big = vec![0x42u8; 200_000];
     write_frame(&first.to_replica, &big)?;
     std::thread::sleep(Duration::from_millis(50));
-    sys::kill(donor_pid, signals::RESTART)?;
+    sys::sigqueue(donor_pid, signals::RESTART, NONCE as i32)?;
     ensure!(
         !sys::wait_readable(listener.as_fd(), Duration::from_millis(200))?,
         "the donor forked in the middle of writing a frame"
@@ -316,6 +321,16 @@ fn accept_child(listener: &UnixListener, donor: libc::pid_t) -> Result<(UnixStre
                 ensure!(
                     parent == Some(donor),
                     "peer {pid} has parent {parent:?}, not the donor {donor}"
+                );
+                stream.set_read_timeout(Some(STEP))?;
+                let mut hello = [0u8; Hello::SIZE];
+                (&stream).read_exact(&mut hello).context("reading Hello")?;
+                let hello = Hello::from_bytes(hello);
+                ensure!(hello.magic == HELLO_MAGIC, "Hello magic {:#x}", hello.magic);
+                ensure!(
+                    hello.nonce == NONCE,
+                    "Hello nonce {:#x}, sent {NONCE:#x}",
+                    hello.nonce
                 );
                 return Ok((stream, pid));
             }

@@ -135,7 +135,13 @@ mod tests {
             .env("S3RES_PROCS_TEST", &value)
             .spawn()
             .unwrap();
-        let found = with_env("S3RES_PROCS_TEST", &value);
+        // Until the child has exec'd, its environ is still ours: look again for a while.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        let mut found = with_env("S3RES_PROCS_TEST", &value);
+        while found.is_empty() && std::time::Instant::now() < deadline {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            found = with_env("S3RES_PROCS_TEST", &value);
+        }
         child.kill().unwrap();
         child.wait().unwrap();
         assert_eq!(found.len(), 1, "{found:?}");

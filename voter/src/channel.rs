@@ -130,31 +130,27 @@ impl FrameReader {
         if self.closed {
             return Ok(Fill::Closed);
         }
-        loop {
-            let spare = self.decoder.spare(READ_CHUNK);
-            let res = sys::read(self.fd.as_fd(), spare);
-            match res {
-                Ok(0) => {
-                    self.decoder.commit(READ_CHUNK, 0);
-                    self.closed = true;
-                    return Ok(Fill::Closed);
-                }
-                Ok(n) => {
-                    self.decoder.commit(READ_CHUNK, n);
-                    if n < READ_CHUNK {
-                        return Ok(Fill::Open);
-                    }
-                }
-                Err(e) => {
-                    self.decoder.commit(READ_CHUNK, 0);
-                    return if e.kind() == io::ErrorKind::WouldBlock {
-                        Ok(Fill::Open)
-                    } else {
-                        Err(e)
-                    };
-                }
+        // One read per call: a replica that floods its pipe gets decoded (and stopped at its
+        // first bad or extra frame) before we read more, so memory stays bounded.
+        let spare = self.decoder.spare(READ_CHUNK);
+        let res = sys::read(self.fd.as_fd(), spare);
+        let filled = *res.as_ref().unwrap_or(&0);
+        self.decoder.commit(READ_CHUNK, filled);
+        match res {
+            Ok(0) => {
+                self.closed = true;
+                Ok(Fill::Closed)
             }
+            Ok(_) => Ok(Fill::Open),
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(Fill::Open),
+            Err(e) => Err(e),
         }
+    }
+
+    /// Stops reading: the stream is broken beyond repair (bad framing or a read error).
+    pub fn close(&mut self) {
+        self.closed = true;
+        let _ = self.decoder.take_pending();
     }
 }
 

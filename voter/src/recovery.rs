@@ -2,21 +2,25 @@
 //! its child takes the faulty replica's place with state intact.
 //!
 //! The sequence, each step bounded so that a dead or stuck donor cannot hang the voter:
-//! 1. read back what the donor has written but we have not decoded yet, and take back the
-//!    input still buffered in its pipes (the child would not see it otherwise);
-//! 2. send the donor [`signals::RESTART`]; its handler forks;
-//! 3. accept the child on our Unix socket, only if `SO_PEERCRED` says its parent is the donor;
-//! 4. send it fresh pipes by `SCM_RIGHTS`, which it puts on the donor's fd numbers;
-//! 5. wait for its `Ready`;
-//! 6. give the taken-back input to both, and give the child a copy of the donor's undecoded
-//!    output bytes, so that both streams continue from the same point.
+//! 1. check that the donor has no half-read answer in our decoder (its fork restarts on a
+//!    frame boundary: replica-rt never forks in the middle of a `send`), and take back the input
+//!    still buffered in its pipes (the child would not see it otherwise);
+//! 2. refuse and kill whatever is waiting on our socket from an abandoned earlier attempt;
+//! 3. send the donor [`signals::RESTART`] with a fresh nonce; its handler forks;
+//! 4. accept the child: `SO_PEERCRED` must name a child of the donor, and its `Hello` must carry
+//!    this attempt's nonce (a late child of an earlier attempt has an older state);
+//! 5. send it fresh pipes by `SCM_RIGHTS`, which it puts on the donor's fd numbers, and wait
+//!    for its `Ready`;
+//! 6. give the taken-back input, followed by whatever is still queued for the donor, to both.
 
 use std::io::{self, Read};
 use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::time::{Duration, Instant};
 
-use replica_rt::contract::handshake::{FdTransfer, Ready, READY_MAGIC, TRANSFER_MAGIC};
+use replica_rt::contract::handshake::{
+    FdTransfer, Hello, Ready, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
+};
 use replica_rt::contract::{signals, MAX_PORTS};
 use replica_rt::sys;
 use thiserror::Error;
@@ -27,6 +31,8 @@ use crate::replica::{Replica, ReplicaPipes};
 
 #[derive(Debug, Error)]
 pub enum RecoveryError {
+    #[error("donor (pid {0}) has a partial frame in its output; it is not at a quiet point")]
+    DonorMidFrame(libc::pid_t),
     #[error("donor (pid {0}) died during the recovery")]
     DonorDied(libc::pid_t),
     #[error("donor's child did not connect within {0:?}")]
@@ -47,72 +53,112 @@ fn io_err(what: &'static str) -> impl FnOnce(io::Error) -> RecoveryError {
     move |source| RecoveryError::Io { what, source }
 }
 
-/// Makes a copy of `donor` by fork. On success the donor's pipes have their taken-back input
-/// restored and the returned replica is ready to be put in the faulty replica's slot.
+/// A connection from the donor's child, checked.
+struct Joined {
+    conn: UnixStream,
+    pid: libc::pid_t,
+    pidfd: OwnedFd,
+}
+
+/// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
 pub fn fork_from(
     plan: &VoterPlan,
     listener: &UnixListener,
     donor: &mut Replica,
+    nonce: u32,
+    family: &[libc::pid_t],
 ) -> Result<Replica, RecoveryError> {
     let timeout = Duration::from_millis(plan.restart_timeout_ms);
     let deadline = Instant::now() + timeout;
 
-    // 1. Output the donor already wrote belongs to both; input it has not read goes to both.
+    // 1. The donor must not be in the middle of an answer we have partly read.
     for out in &mut donor.outputs {
         out.fill().map_err(io_err("reading the donor's output"))?;
+        if out.decoder.pending() > 0 {
+            return Err(RecoveryError::DonorMidFrame(donor.pid));
+        }
     }
     let mut taken_back = Vec::with_capacity(donor.inputs.len());
     for input in &donor.inputs {
-        taken_back.push(drain(input.read_end.as_fd()).map_err(io_err("taking back input"))?);
+        match drain(input.read_end.as_fd()) {
+            Ok(bytes) => taken_back.push(bytes),
+            Err(e) => {
+                give_back(donor, &taken_back);
+                return Err(io_err("taking back input")(e));
+            }
+        }
     }
+    // What the child must read from its new pipes: exactly what the donor has yet to read.
+    let child_streams: Vec<Vec<u8>> = donor
+        .inputs
+        .iter()
+        .zip(&taken_back)
+        .map(|(input, bytes)| [bytes.as_slice(), input.writer.unwritten()].concat())
+        .collect();
+    give_back(donor, &taken_back);
 
-    // 2. Ask the donor to fork.
-    let signalled = sys::pidfd_send_signal(donor.pidfd.as_fd(), signals::RESTART);
-    let result = signalled
+    // 2.–5.
+    refuse_backlog(listener, family);
+    let joined = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
         .map_err(io_err("signalling the donor"))
-        .and_then(|()| accept_child(listener, donor, deadline, timeout))
-        .and_then(|(conn, child_pid, child_pidfd)| {
-            hand_over_pipes(
-                plan,
-                conn,
-                child_pid,
-                child_pidfd.try_clone().map_err(io_err("dup"))?,
-                deadline,
-            )
-            .inspect_err(|_| {
-                // The child exists but will never be used: do not leave it behind.
-                let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
-            })
-        });
+        .and_then(|()| accept_child(listener, donor, nonce, family, deadline, timeout))?;
+    let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
+    let mut child = hand_over_pipes(plan, joined, deadline).inspect_err(|_| {
+        // The child exists but will never be used: do not leave it behind.
+        let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
+    })?;
 
-    // 6. Whatever happened, the donor gets its input back.
-    for (input, bytes) in donor.inputs.iter_mut().zip(&taken_back) {
-        input.writer.prepend_raw(bytes);
+    // 6.
+    for (input, stream) in child.inputs.iter_mut().zip(&child_streams) {
+        input.writer.queue_raw(stream);
         let _ = input.writer.flush();
-    }
-    let mut child = result?;
-    for ((child_in, donor_in), bytes) in child.inputs.iter_mut().zip(&donor.inputs).zip(&taken_back)
-    {
-        // The donor's queue now starts with `bytes`; the child needs exactly the same stream.
-        debug_assert!(donor_in.writer.unwritten().starts_with(bytes));
-        child_in.writer.queue_raw(donor_in.writer.unwritten());
-        let _ = child_in.writer.flush();
-    }
-    for (child_out, donor_out) in child.outputs.iter_mut().zip(&mut donor.outputs) {
-        let partial = donor_out.decoder.take_pending();
-        donor_out.decoder.push(&partial);
-        child_out.decoder.push(&partial);
     }
     Ok(child)
 }
 
-/// 3. Waits for the donor's child to connect; refuses anyone else.
+/// Puts the taken-back input in front of whatever is still queued for the donor.
+fn give_back(donor: &mut Replica, taken_back: &[Vec<u8>]) {
+    for (input, bytes) in donor.inputs.iter_mut().zip(taken_back) {
+        input.writer.prepend_raw(bytes);
+        let _ = input.writer.flush();
+    }
+}
+
+/// Refuses every process waiting on the socket: children of abandoned attempts (a donor that
+/// was stopped when we gave up forks once it is continued), or strangers.
+fn refuse_backlog(listener: &UnixListener, family: &[libc::pid_t]) {
+    while let Ok((conn, _)) = listener.accept() {
+        refuse(conn, family, "left over from an earlier attempt");
+    }
+}
+
+/// Disconnects a peer; kills it too if it is one of ours (a fork child of one of our replicas,
+/// or an orphan re-parented to the voter), through a pidfd so a reused pid is never hit.
+fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str) {
+    let Ok(pid) = sys::peer_pid(conn.as_fd()) else {
+        tracing::warn!(why, "refused a connection on the voter socket");
+        return;
+    };
+    let Ok(pidfd) = sys::pidfd_open(pid) else {
+        return;
+    };
+    let me = std::process::id() as libc::pid_t;
+    let ours = sys::parent_pid(pid).is_some_and(|parent| parent == me || family.contains(&parent));
+    tracing::warn!(pid, ours, why, "refused a connection on the voter socket");
+    if ours {
+        let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+    }
+}
+
+/// Waits for the donor's child; refuses anyone else.
 fn accept_child(
     listener: &UnixListener,
     donor: &Replica,
+    nonce: u32,
+    family: &[libc::pid_t],
     deadline: Instant,
     timeout: Duration,
-) -> Result<(UnixStream, libc::pid_t, OwnedFd), RecoveryError> {
+) -> Result<Joined, RecoveryError> {
     loop {
         let now = Instant::now();
         if now >= deadline {
@@ -131,10 +177,10 @@ fn accept_child(
             },
         ];
         sys::ppoll(&mut fds, Some(deadline - now)).map_err(io_err("waiting for the child"))?;
-        if fds[1].revents != 0 {
-            return Err(RecoveryError::DonorDied(donor.pid));
-        }
         if fds[0].revents == 0 {
+            if fds[1].revents != 0 {
+                return Err(RecoveryError::DonorDied(donor.pid));
+            }
             continue;
         }
         let conn = match listener.accept() {
@@ -142,28 +188,68 @@ fn accept_child(
             Err(e) if e.kind() == io::ErrorKind::WouldBlock => continue,
             Err(e) => return Err(io_err("accepting the child")(e)),
         };
-        let pid = sys::peer_pid(conn.as_fd()).map_err(io_err("reading SO_PEERCRED"))?;
-        // Open the pidfd before checking the parent: from then on the pid cannot be reused.
-        let pidfd = sys::pidfd_open(pid).map_err(io_err("opening the child's pidfd"))?;
-        if sys::parent_pid(pid) == Some(donor.pid) {
-            return Ok((conn, pid, pidfd));
+        match check_child(conn, donor, nonce, deadline) {
+            Ok(joined) => return Ok(joined),
+            Err((conn, why)) => refuse(conn, family, &why),
         }
-        tracing::warn!(
-            pid,
-            donor = donor.pid,
-            "refused a connection on the voter socket: not a child of the donor"
-        );
     }
 }
 
-/// 4.–5. Sends fresh pipes to the child and waits for its confirmation.
+/// `SO_PEERCRED` names a child of the donor, and its `Hello` carries our nonce.
+fn check_child(
+    conn: UnixStream,
+    donor: &Replica,
+    nonce: u32,
+    deadline: Instant,
+) -> Result<Joined, (UnixStream, String)> {
+    let pid = match sys::peer_pid(conn.as_fd()) {
+        Ok(pid) => pid,
+        Err(e) => return Err((conn, format!("no peer credentials: {e}"))),
+    };
+    // Open the pidfd before checking the parent: from then on the pid cannot be reused.
+    let pidfd = match sys::pidfd_open(pid) {
+        Ok(fd) => fd,
+        Err(e) => return Err((conn, format!("peer {pid} is gone: {e}"))),
+    };
+    if sys::parent_pid(pid) != Some(donor.pid) {
+        return Err((
+            conn,
+            format!("peer {pid} is not a child of the donor {}", donor.pid),
+        ));
+    }
+    let hello = match read_exact_by(&conn, deadline) {
+        Ok(bytes) => Hello::from_bytes(bytes),
+        Err(e) => return Err((conn, format!("no Hello from {pid}: {e}"))),
+    };
+    if hello.magic != HELLO_MAGIC || hello.nonce != nonce {
+        return Err((
+            conn,
+            format!(
+                "child {pid} belongs to another attempt (nonce {:#x}, expected {nonce:#x})",
+                hello.nonce
+            ),
+        ));
+    }
+    Ok(Joined { conn, pid, pidfd })
+}
+
+/// Reads exactly `N` bytes, giving up at `deadline`.
+fn read_exact_by<const N: usize>(conn: &UnixStream, deadline: Instant) -> io::Result<[u8; N]> {
+    let left = deadline.saturating_duration_since(Instant::now());
+    conn.set_nonblocking(false)?;
+    conn.set_read_timeout(Some(left.max(Duration::from_millis(1))))?;
+    let mut buf = [0u8; N];
+    (&*conn).read_exact(&mut buf)?;
+    Ok(buf)
+}
+
+/// Sends fresh pipes to the child and waits for its confirmation.
 fn hand_over_pipes(
     plan: &VoterPlan,
-    mut conn: UnixStream,
-    child_pid: libc::pid_t,
-    pidfd: OwnedFd,
+    joined: Joined,
     deadline: Instant,
 ) -> Result<Replica, RecoveryError> {
+    let Joined { conn, pid, pidfd } = joined;
     let pipes = ReplicaPipes::new(plan).map_err(io_err("creating pipes"))?;
     let mut transfer = FdTransfer {
         magic: TRANSFER_MAGIC,
@@ -183,28 +269,32 @@ fn hand_over_pipes(
     } = pipes;
     drop::<Vec<OwnedFd>>(replica_ends);
 
-    let remaining = deadline.saturating_duration_since(Instant::now());
-    if !sys::wait_readable(conn.as_fd(), remaining).map_err(io_err("waiting for Ready"))? {
-        return Err(RecoveryError::ReadyTimeout(child_pid));
-    }
-    conn.set_read_timeout(Some(remaining.max(Duration::from_millis(1))))
-        .map_err(io_err("setting a read timeout"))?;
-    let mut buf = [0u8; Ready::SIZE];
-    conn.read_exact(&mut buf).map_err(io_err("reading Ready"))?;
-    let ready = Ready::from_bytes(buf);
-    if ready.magic != READY_MAGIC || ready.pid != child_pid {
+    let ready = match read_exact_by::<{ Ready::SIZE }>(&conn, deadline) {
+        Ok(bytes) => Ready::from_bytes(bytes),
+        Err(e)
+            if matches!(
+                e.kind(),
+                io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+            ) =>
+        {
+            return Err(RecoveryError::ReadyTimeout(pid))
+        }
+        Err(e) => return Err(io_err("reading Ready")(e)),
+    };
+    if ready.magic != READY_MAGIC || ready.pid != pid {
         return Err(RecoveryError::BadReady(format!(
-            "magic {:#x}, pid {} (expected pid {child_pid})",
+            "magic {:#x}, pid {} (expected pid {pid})",
             ready.magic, ready.pid
         )));
     }
     Ok(Replica {
-        pid: child_pid,
+        pid,
         pidfd,
         inputs,
         outputs,
         our_child: false,
         // A fork of a replica that has answered: its handler is in place.
         proven: true,
+        output_closed_at: None,
     })
 }

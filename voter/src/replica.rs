@@ -36,6 +36,9 @@ pub struct Replica {
     /// Has answered at least once, so replica-rt is initialised and the restart handler is in
     /// place: only such a replica may be a donor (before `init`, SIGUSR1 would kill it).
     pub proven: bool,
+    /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
+    /// exits within a short grace, else a `protocol` fault.
+    pub output_closed_at: Option<std::time::Instant>,
 }
 
 /// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs) and
@@ -140,6 +143,7 @@ impl Replica {
             outputs: pipes.outputs,
             our_child: true,
             proven: false,
+            output_closed_at: None,
         })
     }
 

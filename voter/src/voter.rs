@@ -34,6 +34,8 @@ use crate::vote::{vote, ReplicaSet, VoteOutcome, MAX_REPLICAS};
 const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
 /// How long replicas get to exit by themselves after their input is closed at the end.
 const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
+/// How long downstream gets to take the last voted frames at the end.
+const OUTPUT_DRAIN_LIMIT: Duration = Duration::from_secs(10);
 /// How long to wait for a killed replica to be gone before recovering its slot anyway.
 const DEATH_WAIT: Duration = Duration::from_secs(1);
 
@@ -109,6 +111,8 @@ pub struct Voter {
     faults: Vec<Fault>,
     round: Option<Round>,
     rounds_started: u64,
+    /// Names the current fork attempt; a child of an older attempt is refused.
+    restart_nonce: u32,
     listener: UnixListener,
     signals: SignalFd,
     events: Option<OwnedFd>,
@@ -173,6 +177,7 @@ impl Voter {
             faults: Vec::new(),
             round: None,
             rounds_started: 0,
+            restart_nonce: 0,
             listener,
             signals,
             events,
@@ -218,17 +223,17 @@ impl Voter {
             if self.stop == Some(Stop::Requested) {
                 return Ok(());
             }
+            self.fault_closed_outputs();
             self.advance_round();
         }
     }
 
-    /// One `ppoll` on everything that can make progress, bounded by the round's deadline.
+    /// One `ppoll` on everything that can make progress, bounded by the next deadline.
     fn wait_and_dispatch(&mut self) -> Result<(), VoterError> {
         self.build_poll_set();
         let timeout = self
-            .round
-            .as_ref()
-            .map(|r| r.deadline.saturating_duration_since(Instant::now()));
+            .next_wakeup()
+            .map(|t| t.saturating_duration_since(Instant::now()));
         let ready = sys::ppoll(&mut self.poll_fds, timeout).map_err(io_err("ppoll"))?;
         if ready == 0 {
             return Ok(());
@@ -366,7 +371,7 @@ impl Voter {
             }
             Err(e) => {
                 tracing::error!(input = %input.name, error = %e, "reading input failed; treating it as closed");
-                let _ = input.reader.decoder.take_pending();
+                input.reader.close();
             }
         }
         self.start_rounds_from_buffered_input();
@@ -386,7 +391,7 @@ impl Voter {
                     Err(e) => {
                         // An upstream neighbour broke the framing; we cannot resynchronise.
                         tracing::error!(input = %input.name, error = %e, "bad frame from upstream; dropping the rest of this input");
-                        let _ = input.reader.decoder.take_pending();
+                        input.reader.close();
                         break;
                     }
                 };
@@ -496,7 +501,7 @@ impl Voter {
         }
         match fill {
             Ok(Fill::Open) => {}
-            Ok(Fill::Closed) => self.on_output_closed(r, o),
+            Ok(Fill::Closed) => self.on_output_closed(r),
             Err(e) => {
                 let detail = format!("reading output `{}`: {e}", self.plan.outputs[o].name);
                 self.fault(r, EventKind::Protocol, detail);
@@ -504,25 +509,64 @@ impl Voter {
         }
     }
 
-    /// A replica closed an output: a crash if the process is dying, else a protocol fault.
-    fn on_output_closed(&mut self, r: usize, o: usize) {
-        let Some(rep) = self.slots[r].as_ref() else {
+    /// A replica closed an output. The kernel closes a dying process's fds just before it
+    /// reports the exit, so this is a crash if the pidfd follows within [`EXIT_AFTER_EOF`] (the
+    /// event loop watches it, without blocking), else a protocol fault.
+    fn on_output_closed(&mut self, r: usize) {
+        let Some(rep) = self.slots[r].as_mut() else {
             return;
         };
-        if self.stop.is_some() {
-            return;
-        }
-        let truncated = rep.outputs[o].decoder.finish().err();
-        if rep.exited_within(EXIT_AFTER_EOF) {
+        if rep.exited_within(Duration::ZERO) {
             self.fault(r, EventKind::Crash, "the replica process died".into());
-        } else {
-            let name = &self.plan.outputs[o].name;
-            let detail = match truncated {
-                Some(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
+        } else if rep.output_closed_at.is_none() {
+            rep.output_closed_at = Some(Instant::now());
+        }
+    }
+
+    /// Replicas whose output closed more than [`EXIT_AFTER_EOF`] ago and which still live.
+    fn fault_closed_outputs(&mut self) {
+        for r in 0..self.slots.len() {
+            let Some(rep) = self.slots[r].as_ref() else {
+                continue;
+            };
+            let Some(since) = rep.output_closed_at else {
+                continue;
+            };
+            if since.elapsed() < EXIT_AFTER_EOF {
+                continue;
+            }
+            if rep.exited_within(Duration::ZERO) {
+                self.fault(r, EventKind::Crash, "the replica process died".into());
+                continue;
+            }
+            let closed = rep
+                .outputs
+                .iter()
+                .position(|out| out.is_closed())
+                .unwrap_or(0);
+            let name = &self.plan.outputs[closed].name;
+            let detail = match rep.outputs[closed].decoder.finish() {
+                Err(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
                 _ => format!("closed its output `{name}`"),
             };
             self.fault(r, EventKind::Protocol, detail);
         }
+    }
+
+    /// When the event loop must wake up at the latest: the round's deadline, or the end of the
+    /// grace of a replica whose output closed.
+    fn next_wakeup(&self) -> Option<Instant> {
+        let graces = self
+            .slots
+            .iter()
+            .flatten()
+            .filter_map(|rep| rep.output_closed_at.map(|t| t + EXIT_AFTER_EOF));
+        self.round
+            .as_ref()
+            .map(|r| r.deadline)
+            .into_iter()
+            .chain(graces)
+            .min()
     }
 
     // ----- voting and rounds ----------------------------------------------------------
@@ -572,6 +616,18 @@ impl Voter {
         if Instant::now() < round.deadline {
             return;
         }
+        // Before blaming anyone, take one last look: an answer may have arrived while the voter
+        // itself was busy, and the voter's lateness is not the replica's fault.
+        let late: Vec<usize> = alive.iter().filter(|&r| !round.is_done_by(r)).collect();
+        for &r in &late {
+            for o in 0..self.plan.outputs.len() {
+                self.on_replica_output(r, o);
+            }
+        }
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let alive = self.alive(round);
         let late: Vec<usize> = alive.iter().filter(|&r| !round.is_done_by(r)).collect();
         let number = round.number;
         for r in late {
@@ -714,8 +770,16 @@ impl Voter {
         let donor =
             (0..self.slots.len()).find(|&d| self.slots[d].as_ref().is_some_and(|r| r.proven));
         if let Some(d) = donor {
-            let donor_rep = self.slots[d].as_mut().unwrap();
-            match recovery::fork_from(&self.plan, &self.listener, donor_rep) {
+            let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
+            self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
+            let donor_rep = self.slots[d].as_mut().expect("donor slot is filled");
+            match recovery::fork_from(
+                &self.plan,
+                &self.listener,
+                donor_rep,
+                self.restart_nonce,
+                &family,
+            ) {
                 Ok(child) => {
                     let mut ev = self.recovery_event(slot, old_pid, child.pid, detected_ns);
                     ev.donor = Some(d);
@@ -798,8 +862,12 @@ impl Voter {
 
     /// Inputs closed: close the replicas' inputs, let them finish, flush what was voted.
     fn finish(&mut self) -> Result<(), VoterError> {
-        tracing::debug!("inputs closed; letting the replicas finish");
-        let deadline = Instant::now() + SHUTDOWN_GRACE;
+        tracing::debug!("inputs closed; flushing output and letting the replicas finish");
+        // Voted output first: it is what the rest of the system is waiting for.
+        let drain_deadline = Instant::now() + OUTPUT_DRAIN_LIMIT;
+        for o in 0..self.outputs.len() {
+            self.drain_output(o, drain_deadline);
+        }
         for rep in self.slots.iter_mut().flatten() {
             for input in &mut rep.inputs {
                 let _ = input.writer.flush();
@@ -807,6 +875,7 @@ impl Voter {
             // Closing our write ends (and the read ends we kept) gives the replica EOF.
             rep.inputs.clear();
         }
+        let deadline = Instant::now() + SHUTDOWN_GRACE;
         for rep in self.slots.iter().flatten() {
             let left = deadline.saturating_duration_since(Instant::now());
             if !rep.exited_within(left) {
@@ -815,9 +884,6 @@ impl Voter {
                     "replica did not finish after its input closed; killing it"
                 );
             }
-        }
-        for o in 0..self.outputs.len() {
-            self.drain_output(o, deadline);
         }
         Ok(())
     }
@@ -841,6 +907,12 @@ impl Voter {
 
     /// Kills every replica and everything re-parented to us; removes the socket.
     fn shut_down(&mut self) {
+        // On a requested stop, whatever downstream can take right now still goes out.
+        for o in 0..self.outputs.len() {
+            if self.outputs[o].writer.has_pending() && !self.outputs[o].broken {
+                self.flush_output(o);
+            }
+        }
         for rep in self.slots.iter().flatten() {
             rep.kill();
         }
@@ -852,6 +924,19 @@ impl Voter {
         }
         kill_all_children(Duration::from_secs(3));
         let _ = std::fs::remove_file(&self.plan.socket_path);
+    }
+}
+
+/// Also on a panic: no replica outlives its voter (bootstrap's sweep would catch them, but the
+/// voter should not depend on it).
+impl Drop for Voter {
+    fn drop(&mut self) {
+        for rep in self.slots.iter().flatten() {
+            rep.kill();
+        }
+        for fault in &self.faults {
+            fault.replica.kill();
+        }
     }
 }
 
