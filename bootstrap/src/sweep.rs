@@ -13,15 +13,7 @@ use replica_rt::sys;
 /// and waiting longer would not help.
 pub const SWEEP_LIMIT: Duration = Duration::from_secs(5);
 
-/// Pids of this process's children (including zombies not yet reaped), from /proc.
-pub fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
-    let Ok(dir) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<libc::pid_t>().ok())
-        .filter(|&pid| sys::parent_pid(pid) == Some(parent))
-        .collect()
-}
+pub use replica_rt::sys::children_of;
 
 /// What a sweep did.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]

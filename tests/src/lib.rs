@@ -28,11 +28,13 @@ pub mod bins;
 pub mod events;
 pub mod procs;
 pub mod rng;
+pub mod scenario;
 pub mod system;
 
 pub use bins::{bin_dir, bin_path};
 pub use events::{parse_events, replica_pids};
 pub use rng::Rng;
+pub use scenario::{assert_sink_whole, echo_pipeline};
 pub use system::{Outcome, RunningSystem, System};
 
 use std::path::Path;

@@ -3,40 +3,9 @@
 
 use std::time::{Duration, Instant};
 
-use s3res_tests::{sink_summary, EventKind, RecoveryMethod, System};
+use s3res_tests::{assert_sink_whole, echo_pipeline, EventKind, RecoveryMethod, System};
 
 const LIMIT: Duration = Duration::from_secs(90);
-
-fn assert_sink_whole(summary: &serde_json::Value, count: u32) {
-    assert_eq!(summary["frames"], count, "sink summary: {summary}");
-    for field in [
-        "missing",
-        "duplicated",
-        "reordered",
-        "corrupt",
-        "state_breaks",
-    ] {
-        assert_eq!(summary[field], 0, "{field} in sink summary: {summary}");
-    }
-}
-
-fn describe(sys: &System, echo: &str, count: u32, hz: u32) -> String {
-    format!(
-        r#"{{
-  "name": "nmr-test",
-  "components": {{
-    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "{hz}"] }},
-    "echo": {echo},
-    "sink": {{ "exec": "s3res-sink", "args": ["--stateful", "--expect", "{count}", "--summary", "{}"] }}
-  }},
-  "channels": [
-    {{ "from": "source.out", "to": "echo.in" }},
-    {{ "from": "echo.out", "to": "sink.in" }}
-  ]
-}}"#,
-        sys.path("summary.json").display()
-    )
-}
 
 /// Five replicas, two of which answer wrongly in the same round: the three good ones outvote
 /// them, both are blamed and both are rebuilt by fork.
@@ -46,15 +15,9 @@ fn five_replicas_outvote_two_corrupt_ones_in_one_round() {
     let sys = System::new();
     let echo = r#"{ "exec": "s3res-misbehave", "args": ["--stateful", "--mode", "corrupt", "--replica", "1,3", "--at", "100"],
                "redundancy": "tmr", "replicas": 5, "timeout_us": 300000 }"#;
-    let desc = describe(&sys, echo, count, 500);
+    let desc = echo_pipeline(&sys.path("summary.json"), echo, count, 500);
     let mut run = sys.start(&desc);
-    let out = run.wait(LIMIT);
-    assert!(
-        out.status.success(),
-        "{}",
-        s3res_tests::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
+    let out = run.wait_success(LIMIT);
 
     let sdc: Vec<_> = out
         .events
@@ -81,11 +44,7 @@ fn five_replicas_outvote_two_corrupt_ones_in_one_round() {
         .filter(|e| e.kind == EventKind::Start)
         .count();
     assert_eq!(starts, 5);
-    assert_sink_whole(&sink_summary(sys_summary(&run)), count);
-}
-
-fn sys_summary(run: &s3res_tests::RunningSystem) -> std::path::PathBuf {
-    run.path("summary.json")
+    assert_sink_whole(&run.path("summary.json"), count);
 }
 
 fn parent_of(pid: i32) -> Option<i32> {
@@ -100,14 +59,9 @@ fn orphaned_fork_child_stays_under_control() {
     let count = 2500;
     let sys = System::new();
     let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 300000 }"#;
-    let desc = describe(&sys, echo, count, 500);
+    let desc = echo_pipeline(&sys.path("summary.json"), echo, count, 500);
     let mut run = sys.start(&desc);
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while run.replica_pids("echo").len() < 3 {
-        assert!(Instant::now() < deadline, "replicas did not start");
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    std::thread::sleep(Duration::from_millis(200));
+    run.wait_for_replicas("echo", 3);
     let first = run.replica_pids("echo");
     let voter = parent_of(first[&0]).expect("replica 0 has a parent");
 
@@ -160,12 +114,6 @@ fn orphaned_fork_child_stays_under_control() {
         std::thread::sleep(Duration::from_millis(5));
     }
 
-    let out = run.wait(LIMIT);
-    assert!(
-        out.status.success(),
-        "{}",
-        s3res_tests::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
-    assert_sink_whole(&sink_summary(sys_summary(&run)), count);
+    run.wait_success(LIMIT);
+    assert_sink_whole(&run.path("summary.json"), count);
 }

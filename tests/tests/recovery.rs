@@ -4,7 +4,10 @@
 
 use std::time::Duration;
 
-use s3res_tests::{signals, sink_summary, Event, EventKind, RecoveryMethod, Rng, System};
+use s3res_tests::{
+    assert_sink_whole, echo_pipeline, signals, sink_summary, Event, EventKind, RecoveryMethod, Rng,
+    System,
+};
 
 /// Generous, so that a loaded CI machine running tests in parallel does not see false hangs;
 /// the tests check behaviour, not speed.
@@ -20,23 +23,11 @@ fn echo_system(
     count: u32,
     hz: u32,
 ) -> String {
-    let summary = sys.path("summary.json");
-    let echo_args = serde_json::to_string(echo_args).unwrap();
-    format!(
-        r#"{{
-  "name": "recovery-test",
-  "components": {{
-    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "{hz}"] }},
-    "echo": {{ "exec": "{exec}", "args": {echo_args}, "redundancy": "{redundancy}", "timeout_us": {TIMEOUT_US} }},
-    "sink": {{ "exec": "s3res-sink", "args": ["--stateful", "--expect", "{count}", "--summary", "{}"] }}
-  }},
-  "channels": [
-    {{ "from": "source.out", "to": "echo.in" }},
-    {{ "from": "echo.out", "to": "sink.in" }}
-  ]
-}}"#,
-        summary.display()
-    )
+    let echo = format!(
+        r#"{{ "exec": "{exec}", "args": {}, "redundancy": "{redundancy}", "timeout_us": {TIMEOUT_US} }}"#,
+        serde_json::to_string(echo_args).unwrap()
+    );
+    echo_pipeline(&sys.path("summary.json"), &echo, count, hz)
 }
 
 fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
@@ -50,33 +41,6 @@ fn is_recovery_of(e: &Event, slot: usize, old_pid: i32) -> bool {
     e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(old_pid)
 }
 
-/// Waits until the echo's replicas have all started and a few frames went through.
-fn wait_until_running(run: &mut s3res_tests::RunningSystem, replicas: usize) {
-    let deadline = std::time::Instant::now() + Duration::from_secs(20);
-    while run.replica_pids("echo").len() < replicas {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "replicas did not start"
-        );
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    std::thread::sleep(Duration::from_millis(200));
-}
-
-fn assert_sink_whole(summary: &serde_json::Value, count: u32) {
-    assert_eq!(summary["frames"], count, "sink summary: {summary}");
-    for field in [
-        "missing",
-        "duplicated",
-        "reordered",
-        "corrupt",
-        "state_breaks",
-    ] {
-        assert_eq!(summary[field], 0, "{field} in sink summary: {summary}");
-    }
-    assert_eq!(summary["ok"], true, "sink summary: {summary}");
-}
-
 /// Kills a random replica `kills` times while frames flow; every kill must be seen as a crash
 /// and repaired by fork, and the sink must see every frame once, in order, with state intact.
 fn survive_repeated_kills(redundancy: &str, replicas: usize, kills: usize) {
@@ -86,7 +50,7 @@ fn survive_repeated_kills(redundancy: &str, replicas: usize, kills: usize) {
     let desc = echo_system(&sys, redundancy, "s3res-echo", &["--stateful"], count, 1000);
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
-    wait_until_running(&mut run, replicas);
+    run.wait_for_replicas("echo", replicas);
 
     let mut killed = Vec::new();
     for _ in 0..kills {
@@ -106,13 +70,7 @@ fn survive_repeated_kills(redundancy: &str, replicas: usize, kills: usize) {
         "the system finished before all {kills} kills were done; make the source longer"
     );
 
-    let out = run.wait(LIMIT);
-    assert!(
-        out.status.success(),
-        "bootstrap failed: {}",
-        s3res_tests::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
+    let out = run.wait_success(LIMIT);
 
     let crashes = of_kind(&out.events, EventKind::Crash);
     for (slot, pid) in &killed {
@@ -123,7 +81,7 @@ fn survive_repeated_kills(redundancy: &str, replicas: usize, kills: usize) {
             "kill of replica {slot} (pid {pid}) was not recorded as a crash"
         );
     }
-    assert_sink_whole(&sink_summary(&summary), count);
+    assert_sink_whole(&summary, count);
 }
 
 #[test]
@@ -143,7 +101,7 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
     let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 500);
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
-    wait_until_running(&mut run, 3);
+    run.wait_for_replicas("echo", 3);
 
     let slot = 1;
     let pid = run.replica_pids("echo")[&slot];
@@ -154,14 +112,8 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
     let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
 
-    let out = run.wait(LIMIT);
-    assert!(
-        out.status.success(),
-        "bootstrap failed: {}",
-        s3res_tests::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
-    assert_sink_whole(&sink_summary(&summary), count);
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
 }
 
 #[test]
@@ -197,7 +149,7 @@ fn dmr_detects_but_does_not_guess_a_corruption() {
     let desc = echo_system(&sys, "dmr", "s3res-echo", &["--stateful"], count, 500);
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
-    wait_until_running(&mut run, 2);
+    run.wait_for_replicas("echo", 2);
 
     let pids = run.replica_pids("echo");
     s3res_tests::sigqueue(pids[&0], signals::INJECT_SDC, 5).expect("sigqueue");
@@ -234,7 +186,7 @@ fn smr_restarts_by_exec_and_says_state_was_lost() {
     let desc = echo_system(&sys, "smr", "s3res-echo", &["--stateful"], count, 500);
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
-    wait_until_running(&mut run, 1);
+    run.wait_for_replicas("echo", 1);
 
     let pid = run.replica_pids("echo")[&0];
     s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
@@ -283,13 +235,7 @@ fn protocol_fault(mode: &str) {
     let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pid), Duration::from_secs(20));
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
 
-    let out = run.wait(LIMIT);
-    assert!(
-        out.status.success(),
-        "bootstrap failed: {}",
-        s3res_tests::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
+    let out = run.wait_success(LIMIT);
     let faults: Vec<_> = out
         .events
         .iter()
@@ -300,7 +246,7 @@ fn protocol_fault(mode: &str) {
         1,
         "exactly the one injected fault: {faults:?}"
     );
-    assert_sink_whole(&sink_summary(&summary), count);
+    assert_sink_whole(&summary, count);
 }
 
 #[test]
@@ -331,24 +277,11 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     let count = 600;
     let sys = System::new();
     let summary = sys.path("summary.json");
-    let desc = format!(
-        r#"{{
-  "name": "late-child",
-  "components": {{
-    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "100"] }},
-    "echo": {{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
-               "timeout_us": 800000, "restart_timeout_ms": 300 }},
-    "sink": {{ "exec": "s3res-sink", "args": ["--stateful", "--expect", "{count}", "--summary", "{}"] }}
-  }},
-  "channels": [
-    {{ "from": "source.out", "to": "echo.in" }},
-    {{ "from": "echo.out", "to": "sink.in" }}
-  ]
-}}"#,
-        summary.display()
-    );
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+                    "timeout_us": 800000, "restart_timeout_ms": 300 }"#;
+    let desc = echo_pipeline(&summary, echo, count, 100);
     let mut run = sys.start(&desc);
-    wait_until_running(&mut run, 3);
+    run.wait_for_replicas("echo", 3);
     let pids = run.replica_pids("echo");
     s3res_tests::kill_pid(pids[&0], libc::SIGSTOP).unwrap();
     s3res_tests::kill_pid(pids[&2], libc::SIGKILL).unwrap();
@@ -356,16 +289,10 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     s3res_tests::kill_pid(pids[&0], libc::SIGCONT).unwrap();
     run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
 
-    let out = run.wait(LIMIT);
-    assert!(
-        out.status.success(),
-        "bootstrap failed: {}",
-        s3res_tests::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
+    let out = run.wait_success(LIMIT);
     // At most one SDC: the exec'd replacement starts with a fresh count and is then rebuilt by
     // fork. A late child accepted as a replacement would disagree in every round.
     let sdc = of_kind(&out.events, EventKind::Sdc);
     assert!(sdc.len() <= 1, "{sdc:?}");
-    assert_sink_whole(&sink_summary(&summary), count);
+    assert_sink_whole(&summary, count);
 }
