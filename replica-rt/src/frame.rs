@@ -39,17 +39,20 @@ pub fn encode_into(payload: &[u8], out: &mut Vec<u8>) {
 #[derive(Debug)]
 pub struct FrameDecoder {
     max: usize,
+    /// Storage. Its length only grows (zero-filled once); `start..end` are the bytes received
+    /// and not yet decoded, so a read into the spare room costs no memset in steady state.
     buf: Vec<u8>,
-    /// Start of the undecoded bytes in `buf`.
     start: usize,
+    end: usize,
 }
 
 impl FrameDecoder {
     pub fn new(max: usize) -> Self {
         FrameDecoder {
             max,
-            buf: Vec::with_capacity(HEADER_LEN + max.min(DEFAULT_MAX_FRAME)),
+            buf: Vec::new(),
             start: 0,
+            end: 0,
         }
     }
 
@@ -59,34 +62,36 @@ impl FrameDecoder {
 
     /// Bytes received but not yet returned as frames.
     pub fn pending(&self) -> usize {
-        self.buf.len() - self.start
+        self.end - self.start
     }
 
     /// Appends received bytes.
     pub fn push(&mut self, bytes: &[u8]) {
-        self.compact();
-        self.buf.extend_from_slice(bytes);
+        let spare = self.spare(bytes.len());
+        spare.copy_from_slice(bytes);
+        self.end += bytes.len();
     }
 
-    /// Gives a spare region of at least `want` bytes to read into; call [`commit`](Self::commit)
-    /// with how many were filled. Saves the copy of [`push`](Self::push) on the hot path.
+    /// Gives a spare region of exactly `want` bytes to read into; call
+    /// [`commit`](Self::commit) with how many were filled. Saves the copy of
+    /// [`push`](Self::push) on the hot path.
     pub fn spare(&mut self, want: usize) -> &mut [u8] {
         self.compact();
-        let len = self.buf.len();
-        self.buf.resize(len + want, 0);
-        &mut self.buf[len..]
+        if self.buf.len() < self.end + want {
+            self.buf.resize(self.end + want, 0);
+        }
+        &mut self.buf[self.end..self.end + want]
     }
 
-    /// Keeps `filled` bytes of the last [`spare`](Self::spare) region and drops the rest.
+    /// Keeps `filled` bytes of the last [`spare`](Self::spare) region.
     pub fn commit(&mut self, spare_len: usize, filled: usize) {
         debug_assert!(filled <= spare_len);
-        let new_len = self.buf.len() - spare_len + filled;
-        self.buf.truncate(new_len);
+        self.end += filled.min(spare_len);
     }
 
     /// The next whole frame's payload, if one has arrived.
     pub fn next_frame(&mut self) -> Result<Option<&[u8]>, FrameError> {
-        let avail = &self.buf[self.start..];
+        let avail = &self.buf[self.start..self.end];
         if avail.len() < HEADER_LEN {
             return Ok(None);
         }
@@ -104,7 +109,7 @@ impl FrameDecoder {
 
     /// Called at end of stream: an error if a frame was cut off.
     pub fn finish(&self) -> Result<(), FrameError> {
-        let avail = &self.buf[self.start..];
+        let avail = &self.buf[self.start..self.end];
         match avail.len() {
             0 => Ok(()),
             n if n < HEADER_LEN => Err(FrameError::Truncated {
@@ -123,21 +128,19 @@ impl FrameDecoder {
 
     /// Takes every byte not yet decoded (used when a stream changes hands).
     pub fn take_pending(&mut self) -> Vec<u8> {
-        let rest = self.buf[self.start..].to_vec();
-        self.buf.clear();
+        let rest = self.buf[self.start..self.end].to_vec();
         self.start = 0;
+        self.end = 0;
         rest
     }
 
+    /// Moves the undecoded bytes to the front, so the storage does not grow with the stream.
     fn compact(&mut self) {
         if self.start == 0 {
             return;
         }
-        if self.start == self.buf.len() {
-            self.buf.clear();
-        } else {
-            self.buf.drain(..self.start);
-        }
+        self.buf.copy_within(self.start..self.end, 0);
+        self.end -= self.start;
         self.start = 0;
     }
 }

@@ -3,7 +3,7 @@
 
 use std::time::Instant;
 
-use crate::vote::ReplicaSet;
+use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
 /// Set of output indices (bitmask; a component has at most `MAX_PORTS` ports).
 pub type OutputSet = u32;
@@ -16,26 +16,20 @@ pub struct Round {
     pub deadline: Instant,
     /// Replicas the input was delivered to.
     pub members: ReplicaSet,
-    /// Per replica: outputs it has answered.
-    pub answered: Vec<OutputSet>,
+    /// Per replica: outputs it has answered (a fixed array: no allocation per round).
+    pub answered: [OutputSet; MAX_REPLICAS],
     /// Outputs whose winner has been forwarded.
     pub forwarded: OutputSet,
 }
 
 impl Round {
-    pub fn new(
-        number: u64,
-        expected: OutputSet,
-        deadline: Instant,
-        members: ReplicaSet,
-        n: usize,
-    ) -> Self {
+    pub fn new(number: u64, expected: OutputSet, deadline: Instant, members: ReplicaSet) -> Self {
         Round {
             number,
             expected,
             deadline,
             members,
-            answered: vec![0; n],
+            answered: [0; MAX_REPLICAS],
             forwarded: 0,
         }
     }

@@ -408,13 +408,7 @@ impl Voter {
                 if let Some(expected) = round {
                     self.rounds_started += 1;
                     let deadline = Instant::now() + Duration::from_micros(self.plan.timeout_us);
-                    self.round = Some(Round::new(
-                        self.rounds_started,
-                        expected,
-                        deadline,
-                        members,
-                        self.slots.len(),
-                    ));
+                    self.round = Some(Round::new(self.rounds_started, expected, deadline, members));
                 }
                 for (r, e) in broken {
                     let detail = format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
