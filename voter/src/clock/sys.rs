@@ -91,3 +91,15 @@ pub fn probe() -> Result<Counter, String> {
 pub fn read(_counter: Counter) -> u64 {
     unreachable!("probe() never offers a counter on this architecture")
 }
+
+/// Sets this thread's timer slack (`PR_SET_TIMERSLACK`): how much later than asked the kernel
+/// may end a `ppoll` timeout to batch wake-ups. The default is 50 µs for normal threads; real-
+/// time threads get none whatever this says.
+pub fn set_timer_slack(ns: u64) -> std::io::Result<()> {
+    // SAFETY: prctl with PR_SET_TIMERSLACK takes an integer and touches no memory of ours.
+    let r = unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, ns as libc::c_ulong, 0, 0, 0) };
+    if r < 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(())
+}
