@@ -541,7 +541,9 @@ impl Voter {
             let Some(since) = rep.output_closed_at else {
                 continue;
             };
-            if since.elapsed() < EXIT_AFTER_EOF {
+            // On the counter, exactly as `next_wakeup` set the timer (a duration read off the
+            // counter is rounded down, and could keep the loop spinning a few µs past it).
+            if Instant::now() < since + EXIT_AFTER_EOF {
                 continue;
             }
             if rep.exited_within(Duration::ZERO) {
