@@ -399,7 +399,8 @@ impl Instant {
         (self >= earlier).then(|| self.saturating_duration_since(earlier))
     }
 
-    /// Time since `self`, rounded down.
+    /// Time since `self`, rounded down. To ask whether a deadline has passed, compare instants
+    /// (`Instant::now() >= start + limit`): that is exact on the counter.
     pub fn elapsed(self) -> Duration {
         Instant::now().saturating_duration_since(self)
     }
