@@ -35,7 +35,13 @@ fn main() -> Result<()> {
     let mut output = rt.output("out").context("opening the output port")?;
     let mut echo = Echo::new(cli.stateful);
     // Filled with a non-zero byte, so every page is a private page of its own (not the zero page).
-    let ballast = vec![0xa5u8; cli.heap_mib << 20];
+    let heap_bytes = cli.heap_mib.checked_mul(1 << 20).with_context(|| {
+        format!(
+            "--heap-mib {} is more than this machine can address",
+            cli.heap_mib
+        )
+    })?;
+    let ballast = vec![0xa5u8; heap_bytes];
     let mut frames: u64 = 0;
     while let Some(frame) = input.recv().context("receiving")? {
         output.send(echo.answer(frame)).context("answering")?;
