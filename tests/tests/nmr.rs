@@ -1,9 +1,13 @@
 //! End to end: the voter does not care whether n is 3 or 5, and a fork child whose donor dies
 //! stays under the voter's control (it is a subreaper).
 
+use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use s3res_tests::{assert_sink_whole, echo_pipeline, EventKind, RecoveryMethod, System};
+use s3res_tests::procs::{self, ProcStat};
+use s3res_tests::{
+    assert_sink_whole, echo_pipeline, signals, EventKind, RecoveryMethod, RunningSystem, System,
+};
 
 const LIMIT: Duration = Duration::from_secs(90);
 
@@ -51,9 +55,52 @@ fn parent_of(pid: i32) -> Option<i32> {
     replica_rt::sys::parent_pid(pid)
 }
 
+/// Waits (up to 5 s) until the living and zombie `s3res-echo` processes of the system are
+/// exactly the replicas the event log names: a killed replica that was not reaped (zombie) or a
+/// fork child nobody controls (stray) fails the test.
+fn assert_only_current_replicas(run: &RunningSystem) {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    loop {
+        let expected: BTreeSet<i32> = run.replica_pids("echo").into_values().collect();
+        let found: Vec<ProcStat> = procs::all()
+            .into_iter()
+            .filter(|p| p.comm == "s3res-echo" && belongs_to(p.pid, run.pid()))
+            .collect();
+        let pids: BTreeSet<i32> = found.iter().map(|p| p.pid).collect();
+        if pids == expected && found.iter().all(|p| !p.is_zombie()) {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "echo processes are not exactly the current replicas {expected:?}:\n{}",
+            found
+                .iter()
+                .map(|p| format!("  {p}"))
+                .collect::<Vec<_>>()
+                .join("\n")
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+/// Whether `ancestor` is `pid` or one of its ancestors.
+fn belongs_to(mut pid: i32, ancestor: i32) -> bool {
+    while pid > 1 {
+        if pid == ancestor {
+            return true;
+        }
+        match parent_of(pid) {
+            Some(p) => pid = p,
+            None => return false,
+        }
+    }
+    false
+}
+
 /// A replica forked from a donor is the donor's child. Kill the donor right after the
-/// recovery: the child is re-parented to the voter, which must still detect its faults, replace
-/// it, and reap it — no zombie, no stray process.
+/// recovery: the child is re-parented to the voter, which must still vote on it, detect its
+/// faults (a hang, which only the voter's deadline can see), kill, replace and reap it. After
+/// every step the system holds exactly the current replicas — no zombie, no stray process.
 #[test]
 fn orphaned_fork_child_stays_under_control() {
     let count = 2500;
@@ -94,11 +141,23 @@ fn orphaned_fork_child_stays_under_control() {
         );
         std::thread::sleep(Duration::from_millis(5));
     }
+    assert_only_current_replicas(&run);
 
-    // 3. The orphan is still controlled: its death is a crash, it is replaced and reaped.
-    s3res_tests::kill_pid(child, libc::SIGKILL).unwrap();
+    // 3. The orphan still takes part in the vote: rounds go on and it is never blamed.
+    let seen = run.events().len();
+    std::thread::sleep(Duration::from_millis(500));
+    let blamed: Vec<_> = run.events()[seen..]
+        .iter()
+        .filter(|e| e.pid == Some(child))
+        .cloned()
+        .collect();
+    assert!(blamed.is_empty(), "the orphan was blamed: {blamed:?}");
+
+    // 4. The orphan is still controlled: made to spin, it misses a deadline (a hang, seen by
+    //    the voter alone), and the voter kills, replaces and reaps it.
+    s3res_tests::kill_pid(child, signals::inject_cfe()).unwrap();
     run.wait_for_event(
-        |e| e.kind == EventKind::Crash && e.pid == Some(child),
+        |e| e.kind == EventKind::Hang && e.pid == Some(child),
         Duration::from_secs(20),
     );
     run.wait_for_event(
@@ -113,6 +172,7 @@ fn orphaned_fork_child_stays_under_control() {
         );
         std::thread::sleep(Duration::from_millis(5));
     }
+    assert_only_current_replicas(&run);
 
     run.wait_success(LIMIT);
     assert_sink_whole(&run.path("summary.json"), count);

@@ -4,11 +4,12 @@
 //! their output frames, detects faulty replicas and replaces them.
 //!
 //! Read top-down: [`vote`] is the voting rule; [`round`] a reactive round; [`voter`] the event
-//! loop that detects faults; [`recovery`] the fork-and-hand-over sequence; [`replica`] the
+//! loop that detects faults; [`clock`] its deadlines on the CPU's counter; [`recovery`] the fork-and-hand-over sequence; [`replica`] the
 //! process handle; [`channel`] the non-blocking pipe ends; [`plan`] and [`event`] the contracts
 //! with bootstrap.
 
 pub mod channel;
+pub mod clock;
 pub mod event;
 pub mod plan;
 pub mod recovery;

@@ -38,7 +38,7 @@ pub struct Replica {
     pub proven: bool,
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.
-    pub output_closed_at: Option<std::time::Instant>,
+    pub output_closed_at: Option<crate::clock::Instant>,
 }
 
 /// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs) and

@@ -1,7 +1,7 @@
 //! A reactive round (S³RES's timed pair): one input frame, one expected answer per output from
 //! every replica, one deadline.
 
-use std::time::Instant;
+use crate::clock::Instant;
 
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
@@ -11,6 +11,8 @@ pub type OutputSet = u32;
 #[derive(Debug)]
 pub struct Round {
     pub number: u64,
+    /// The timed pair that opened it (the index of its input).
+    pub pair: usize,
     /// Outputs every replica must answer on.
     pub expected: OutputSet,
     pub deadline: Instant,
@@ -23,9 +25,16 @@ pub struct Round {
 }
 
 impl Round {
-    pub fn new(number: u64, expected: OutputSet, deadline: Instant, members: ReplicaSet) -> Self {
+    pub fn new(
+        number: u64,
+        pair: usize,
+        expected: OutputSet,
+        deadline: Instant,
+        members: ReplicaSet,
+    ) -> Self {
         Round {
             number,
+            pair,
             expected,
             deadline,
             members,

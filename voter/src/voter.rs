@@ -12,7 +12,7 @@ use std::io;
 use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::net::UnixListener;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use nix::sys::signal::{SigSet, Signal};
 use nix::sys::signalfd::{SfdFlags, SignalFd};
@@ -21,6 +21,7 @@ use replica_rt::sys;
 use thiserror::Error;
 
 use crate::channel::{Fill, FrameReader, FrameWriter};
+use crate::clock::{self, ClockError, Deadlines, Instant, Timer};
 use crate::event::{Event, EventKind, RecoveryMethod};
 use crate::plan::VoterPlan;
 use crate::recovery;
@@ -51,6 +52,8 @@ pub enum VoterError {
     },
     #[error("component failed beyond recovery: {0}")]
     Unrecoverable(String),
+    #[error(transparent)]
+    Clock(#[from] ClockError),
 }
 
 fn io_err(what: impl Into<String>) -> impl FnOnce(io::Error) -> VoterError {
@@ -119,12 +122,16 @@ pub struct Voter {
     stop: Option<Stop>,
     poll_fds: Vec<libc::pollfd>,
     poll_tokens: Vec<Token>,
+    /// Every deadline the loop waits for (refilled from the state before each wait).
+    timers: Deadlines,
 }
 
 impl Voter {
     /// Takes over the fds named in `plan`, binds the socket, and starts the replicas.
     pub fn start(plan: VoterPlan) -> Result<Voter, VoterError> {
         validate(&plan)?;
+        // Calibrated before the first round, so that it never eats into a deadline.
+        clock::init()?;
         // Orphans (children of a donor that died) come to us, so they are reaped and killed.
         sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
         let signals = block_signals()?;
@@ -168,6 +175,7 @@ impl Voter {
         listener.set_nonblocking(true).map_err(io_err("socket"))?;
 
         let n = plan.replicas;
+        let n_inputs = plan.inputs.len();
         let mut voter = Voter {
             answers: vec![vec![Vec::new(); plan.outputs.len()]; n],
             slots: (0..n).map(|_| None).collect(),
@@ -184,6 +192,7 @@ impl Voter {
             stop: None,
             poll_fds: Vec::new(),
             poll_tokens: Vec::new(),
+            timers: Deadlines::new(n_inputs, n),
         };
         for slot in 0..n {
             let replica = Replica::spawn(&voter.plan, slot).map_err(io_err(format!(
@@ -408,7 +417,13 @@ impl Voter {
                 if let Some(expected) = round {
                     self.rounds_started += 1;
                     let deadline = Instant::now() + Duration::from_micros(self.plan.timeout_us);
-                    self.round = Some(Round::new(self.rounds_started, expected, deadline, members));
+                    self.round = Some(Round::new(
+                        self.rounds_started,
+                        i,
+                        expected,
+                        deadline,
+                        members,
+                    ));
                 }
                 for (r, e) in broken {
                     let detail = format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
@@ -526,7 +541,9 @@ impl Voter {
             let Some(since) = rep.output_closed_at else {
                 continue;
             };
-            if since.elapsed() < EXIT_AFTER_EOF {
+            // On the counter, exactly as `next_wakeup` set the timer (a duration read off the
+            // counter is rounded down, and could keep the loop spinning a few µs past it).
+            if Instant::now() < since + EXIT_AFTER_EOF {
                 continue;
             }
             if rep.exited_within(Duration::ZERO) {
@@ -547,20 +564,20 @@ impl Voter {
         }
     }
 
-    /// When the event loop must wake up at the latest: the round's deadline, or the end of the
-    /// grace of a replica whose output closed.
-    fn next_wakeup(&self) -> Option<Instant> {
-        let graces = self
-            .slots
-            .iter()
-            .flatten()
-            .filter_map(|rep| rep.output_closed_at.map(|t| t + EXIT_AFTER_EOF));
-        self.round
-            .as_ref()
-            .map(|r| r.deadline)
-            .into_iter()
-            .chain(graces)
-            .min()
+    /// When the event loop must wake up at the latest: the nearest of the open round's
+    /// deadline and the graces of replicas whose output closed. The timers are refilled from
+    /// that state before every wait, so none can be left behind stale.
+    fn next_wakeup(&mut self) -> Option<Instant> {
+        self.timers.cancel_all();
+        if let Some(round) = &self.round {
+            self.timers.set(Timer::Round(round.pair), round.deadline);
+        }
+        for (r, rep) in self.slots.iter().enumerate() {
+            if let Some(since) = rep.as_ref().and_then(|rep| rep.output_closed_at) {
+                self.timers.set(Timer::Grace(r), since + EXIT_AFTER_EOF);
+            }
+        }
+        self.timers.nearest().map(|(_, at)| at)
     }
 
     // ----- voting and rounds ----------------------------------------------------------

@@ -21,6 +21,10 @@ struct Cli {
     /// Prefix each answer with the number of frames answered before it.
     #[arg(long)]
     stateful: bool,
+    /// Hold this many MiB of private heap, every page written (for tests that look at the
+    /// replicas' memory, such as the copy-on-write break after a fork).
+    #[arg(long, value_name = "MIB", default_value_t = 0)]
+    heap_mib: usize,
 }
 
 fn main() -> Result<()> {
@@ -30,11 +34,23 @@ fn main() -> Result<()> {
     let mut input = rt.input("in").context("opening the input port")?;
     let mut output = rt.output("out").context("opening the output port")?;
     let mut echo = Echo::new(cli.stateful);
+    // Filled with a non-zero byte, so every page is a private page of its own (not the zero page).
+    let heap_bytes = cli.heap_mib.checked_mul(1 << 20).with_context(|| {
+        format!(
+            "--heap-mib {} is more than this machine can address",
+            cli.heap_mib
+        )
+    })?;
+    let ballast = vec![0xa5u8; heap_bytes];
     let mut frames: u64 = 0;
     while let Some(frame) = input.recv().context("receiving")? {
         output.send(echo.answer(frame)).context("answering")?;
         frames += 1;
     }
-    tracing::info!(frames, "end of input");
+    tracing::info!(
+        frames,
+        heap_bytes = std::hint::black_box(&ballast).len(),
+        "end of input"
+    );
     Ok(())
 }
