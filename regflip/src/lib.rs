@@ -1,0 +1,804 @@
+//! MAVFI-style register bit-flip injection into a running Linux thread, by ptrace.
+//!
+//! [`inject`] stops one thread of a process (PTRACE_SEIZE, PTRACE_INTERRUPT, `waitpid`), reads
+//! its registers, decodes the instruction at the instruction pointer with iced-x86 (up to the 15
+//! bytes an x86 instruction may have, fewer at the end of a mapping), and lists the registers
+//! that instruction reads (source) and writes (destination). It picks one of them with the
+//! caller's random generator, flips `bits` distinct bits anywhere in that operand's width (or
+//! only in one field of an IEEE-754 binary64 value), writes the register back and detaches.
+//! A destination is flipped after single-stepping the instruction, so its write has happened;
+//! a source is flipped before the instruction runs. Everything about the injection is returned
+//! as a [`RegFlipRecord`]. The caller chooses the instant (it calls `inject` then) and owns the
+//! seed of the generator.
+//!
+//! The target is never sent SIGSTOP: its parent (the voter) sees nothing but a delay. Signals
+//! that arrive while it is stopped are delivered after the injection, with their `siginfo`
+//! (so a `sigqueue` payload survives). See `docs/register-injection.md`.
+
+mod regs;
+mod sys;
+
+use iced_x86::{
+    Code, Decoder, DecoderOptions, FlowControl, Formatter, Instruction, InstructionInfoFactory,
+    IntelFormatter, OpAccess,
+};
+use rand::seq::SliceRandom;
+use rand::Rng;
+use regs::Operand;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::io;
+use std::str::FromStr;
+use sys::{Stop, Tid};
+
+/// The longest x86 instruction.
+const MAX_INSTRUCTION_LEN: u64 = 15;
+/// Signal stops tolerated while waiting for one ptrace stop, before giving up.
+const MAX_SIGNAL_STOPS: u32 = 64;
+
+/// Which operands of the instruction may be hit.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OperandRole {
+    /// A register the instruction reads; flipped before the instruction runs.
+    Source,
+    /// A register the instruction writes; flipped after single-stepping it.
+    Destination,
+    /// Either (one candidate list with both roles, one chosen uniformly).
+    #[default]
+    Any,
+}
+
+/// Which bits of the chosen register may be flipped.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FloatField {
+    /// Any bit of the operand (the full width of the register the instruction names:
+    /// 64 for RAX, 8 for AH, 128 for XMM3).
+    #[default]
+    Whole,
+    /// Bit 63 of the f64 lane.
+    Sign,
+    /// Bits 52–62 of the f64 lane.
+    Exponent,
+    /// Bits 0–51 of the f64 lane.
+    Mantissa,
+}
+
+impl fmt::Display for OperandRole {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            OperandRole::Source => "source",
+            OperandRole::Destination => "destination",
+            OperandRole::Any => "any",
+        })
+    }
+}
+
+impl FromStr for OperandRole {
+    type Err = RegFlipError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "source" | "src" => Ok(OperandRole::Source),
+            "destination" | "dest" | "dst" => Ok(OperandRole::Destination),
+            "any" => Ok(OperandRole::Any),
+            _ => Err(RegFlipError::InvalidSpec(format!(
+                "role `{s}`: expected source, destination or any"
+            ))),
+        }
+    }
+}
+
+impl fmt::Display for FloatField {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            FloatField::Whole => "whole",
+            FloatField::Sign => "sign",
+            FloatField::Exponent => "exponent",
+            FloatField::Mantissa => "mantissa",
+        })
+    }
+}
+
+impl FromStr for FloatField {
+    type Err = RegFlipError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.to_ascii_lowercase().as_str() {
+            "whole" | "any" => Ok(FloatField::Whole),
+            "sign" => Ok(FloatField::Sign),
+            "exponent" => Ok(FloatField::Exponent),
+            "mantissa" => Ok(FloatField::Mantissa),
+            _ => Err(RegFlipError::InvalidSpec(format!(
+                "field `{s}`: expected whole, sign, exponent or mantissa"
+            ))),
+        }
+    }
+}
+
+/// What to inject. Build it with `RegFlipSpec { role, bits, ..Default::default() }`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RegFlipSpec {
+    pub role: OperandRole,
+    /// How many distinct bits to flip (1 = single-bit upset).
+    pub bits: u32,
+    pub field: FloatField,
+    /// Restrict candidates to these registers: a full register (`rax`, `r12`, `xmm3`) admits
+    /// every sub-register of it, a sub-register (`eax`, `ah`, `r8b`) only itself. `rflags` and
+    /// `rip` are candidates only when named here. `None`: every general-purpose register
+    /// (RSP and RBP included) and XMM0–15, with their sub-registers.
+    pub registers: Option<Vec<String>>,
+    /// The thread to inject into; `None` = the main thread (tid = pid).
+    pub tid: Option<i32>,
+    /// For a float field of an XMM register: which f64 lane (0 = bits 0–63, 1 = bits 64–127).
+    pub lane: u8,
+    /// How many instructions to single-step past when the one at the stop has no candidate.
+    pub max_steps: u32,
+}
+
+impl Default for RegFlipSpec {
+    fn default() -> Self {
+        RegFlipSpec {
+            role: OperandRole::Any,
+            bits: 1,
+            field: FloatField::Whole,
+            registers: None,
+            tid: None,
+            lane: 0,
+            max_steps: 16,
+        }
+    }
+}
+
+/// Everything about one injection (the seed is the caller's to log).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RegFlipRecord {
+    pub pid: i32,
+    pub tid: i32,
+    /// CLOCK_MONOTONIC (ns) when the flipped value was written into the thread.
+    pub time_ns: u64,
+    /// Address of the instruction whose operand was hit.
+    pub ip: u64,
+    /// That instruction, Intel syntax.
+    pub instruction: String,
+    /// Its bytes, hex.
+    pub instruction_bytes: String,
+    /// How many code bytes at `ip` were readable (15 unless the mapping ends sooner).
+    pub bytes_read: usize,
+    /// Instructions single-stepped past before one had a candidate (0 = the one at the stop).
+    pub steps: u32,
+    /// Where the thread resumes (after the single-step for a destination).
+    pub resume_ip: u64,
+    /// The full register hit (`rax`, `xmm3`, `rflags`, `rip`).
+    pub register: String,
+    /// The operand as the instruction names it (`ah`, `eax`, `xmm3`).
+    pub operand: String,
+    pub role: OperandRole,
+    pub field: FloatField,
+    /// The f64 lane of a float field in an XMM register.
+    pub lane: Option<u8>,
+    /// The flipped bit positions in the full register, ascending (AH's bits are 8–15).
+    pub bits: Vec<u32>,
+    /// The full register before and after, hex (16 digits, 32 for XMM).
+    pub before: String,
+    pub after: String,
+    /// Every candidate of the instruction, `operand:role`, that the choice was made from.
+    pub candidates: Vec<String>,
+    /// Time the thread was held: from PTRACE_INTERRUPT to PTRACE_DETACH returning, ns.
+    pub pause_ns: u64,
+    /// Signals that arrived during single-steps and were delivered after the injection.
+    pub signals_deferred: Vec<i32>,
+}
+
+impl RegFlipRecord {
+    /// The XOR mask of the flipped bits, as a full-register value.
+    pub fn mask(&self) -> u128 {
+        self.bits.iter().fold(0u128, |m, &b| m | 1u128 << b)
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RegFlipError {
+    #[error("invalid register-injection spec: {0}")]
+    InvalidSpec(String),
+    #[error("thread {tid} is not a thread of process {pid}")]
+    NotAThreadOf { pid: i32, tid: i32 },
+    #[error(
+        "not allowed to trace thread {tid} ({source}): run as root, give the injector \
+         CAP_SYS_PTRACE, or set kernel.yama.ptrace_scope=0"
+    )]
+    Permission { tid: i32, source: io::Error },
+    #[error("thread {tid} does not exist or exited during the injection")]
+    Gone { tid: i32 },
+    #[error("thread {tid} is stopped by job control (signal {sig}); not injecting")]
+    JobControlStopped { tid: i32, sig: i32 },
+    #[error(
+        "thread {tid} was blocked in system call {syscall} (resumes at {ip:#x}): its registers \
+         were in kernel memory, not in the CPU, so no fault is injected at this instant"
+    )]
+    InSyscall { tid: i32, ip: u64, syscall: u64 },
+    #[error(
+        "no {role} register matching the spec in {steps} single-steps (stopped at {ip:#x}: \
+         {instruction})"
+    )]
+    NoCandidate {
+        tid: i32,
+        role: OperandRole,
+        steps: u32,
+        ip: u64,
+        instruction: String,
+    },
+    #[error("cannot read the instruction at {ip:#x} of thread {tid}: {source}")]
+    ReadCode { tid: i32, ip: u64, source: io::Error },
+    #[error("undecodable instruction at {ip:#x} (bytes {bytes})")]
+    Undecodable { ip: u64, bytes: String },
+    #[error(
+        "the instruction at {ip:#x} raised signal {sig} while being single-stepped; \
+         it is delivered as it would have been without injection"
+    )]
+    InstructionFaulted { ip: u64, sig: i32 },
+    #[error("the kernel did not keep the flipped {register}: wrote {wanted}, reads back {got}")]
+    WriteRejected {
+        register: String,
+        wanted: String,
+        got: String,
+    },
+    #[error("ptrace {op} on thread {tid}: {source}")]
+    Ptrace {
+        op: &'static str,
+        tid: i32,
+        source: io::Error,
+    },
+}
+
+/// Maps an error of a ptrace request to the error the caller should see (ESRCH = gone).
+fn ptrace_err(op: &'static str, tid: Tid) -> impl FnOnce(io::Error) -> RegFlipError {
+    move |source| match source.raw_os_error() {
+        Some(libc::ESRCH) | Some(libc::ECHILD) => RegFlipError::Gone { tid },
+        _ => RegFlipError::Ptrace { op, tid, source },
+    }
+}
+
+/// Injects one register bit-flip into thread `spec.tid` (default: `pid`) of process `pid`, now.
+pub fn inject(
+    pid: i32,
+    spec: &RegFlipSpec,
+    rng: &mut impl Rng,
+) -> Result<RegFlipRecord, RegFlipError> {
+    let filter = validate(spec)?;
+    let tid = spec.tid.unwrap_or(pid);
+    if tid != pid && !std::path::Path::new(&format!("/proc/{pid}/task/{tid}")).exists() {
+        return Err(RegFlipError::NotAThreadOf { pid, tid });
+    }
+    sys::seize(tid).map_err(|source| match source.raw_os_error() {
+        Some(libc::EPERM) => RegFlipError::Permission { tid, source },
+        _ => ptrace_err("SEIZE", tid)(source),
+    })?;
+    let mut traced = Traced {
+        pid,
+        tid,
+        attached: true,
+        deferred: Vec::new(),
+        detach_sig: 0,
+    };
+    let start = sys::monotonic_ns();
+    let outcome = traced
+        .interrupt()
+        .and_then(|()| traced.flip(spec, &filter, rng));
+    let deferred: Vec<i32> = traced.deferred.iter().map(|i| i.si_signo).collect();
+    let detached = traced.release();
+    let pause_ns = sys::monotonic_ns().saturating_sub(start);
+    let mut record = outcome?;
+    detached?;
+    record.pid = pid;
+    record.pause_ns = pause_ns;
+    record.signals_deferred = deferred;
+    tracing::debug!(?record, "register flip injected");
+    Ok(record)
+}
+
+/// The spec's register names, checked and normalised.
+fn validate(spec: &RegFlipSpec) -> Result<Option<Vec<String>>, RegFlipError> {
+    if spec.bits == 0 || spec.bits > 128 {
+        return Err(RegFlipError::InvalidSpec(format!(
+            "bits = {}: must be 1 to 128 (at most the width of the chosen register)",
+            spec.bits
+        )));
+    }
+    if spec.lane > 1 {
+        return Err(RegFlipError::InvalidSpec(format!(
+            "lane = {}: an XMM register has f64 lanes 0 and 1",
+            spec.lane
+        )));
+    }
+    let Some(names) = &spec.registers else {
+        return Ok(None);
+    };
+    if names.is_empty() {
+        return Err(RegFlipError::InvalidSpec(
+            "registers: the list is empty (leave it out to allow every register)".into(),
+        ));
+    }
+    names
+        .iter()
+        .map(|n| {
+            regs::normalize_name(n).ok_or_else(|| {
+                RegFlipError::InvalidSpec(format!(
+                    "registers: unknown register `{n}` (general-purpose registers and their \
+                     sub-registers, xmm0-xmm15, rflags, rip)"
+                ))
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map(Some)
+}
+
+/// One register operand the chosen instruction offers, with the bits a flip may hit.
+#[derive(Clone, Debug)]
+struct Candidate {
+    operand: Operand,
+    role: OperandRole,
+    positions: Vec<u32>,
+}
+
+impl Candidate {
+    fn label(&self) -> String {
+        format!("{}:{}", self.operand.name, self.role)
+    }
+}
+
+/// The thread we trace; detaches when dropped, so every error path leaves the thread running.
+struct Traced {
+    pid: Tid,
+    tid: Tid,
+    attached: bool,
+    /// Signals met in signal-delivery-stops during single-steps, delivered at the end.
+    deferred: Vec<sys::siginfo_t>,
+    /// A signal to deliver with PTRACE_DETACH (the thread is in its signal-delivery-stop).
+    detach_sig: libc::c_int,
+}
+
+impl Traced {
+    /// Stops the thread: PTRACE_INTERRUPT, then wait for its event-stop. A signal that
+    /// reaches the thread first is passed on at once (as if it came just before the instant).
+    fn interrupt(&mut self) -> Result<(), RegFlipError> {
+        let tid = self.tid;
+        sys::interrupt(tid).map_err(ptrace_err("INTERRUPT", tid))?;
+        for _ in 0..MAX_SIGNAL_STOPS {
+            match sys::wait_stop(tid).map_err(ptrace_err("waitpid", tid))? {
+                Stop::Event { sig } if sig == libc::SIGTRAP => return Ok(()),
+                Stop::Event { sig } => return Err(RegFlipError::JobControlStopped { tid, sig }),
+                Stop::Signal { sig } => self.pass_on(sig)?,
+                Stop::Trap => self.pass_on(libc::SIGTRAP)?,
+                Stop::OtherEvent { .. } => self.pass_on(0)?,
+                Stop::Exited { .. } | Stop::Killed { .. } => {
+                    self.attached = false;
+                    return Err(RegFlipError::Gone { tid });
+                }
+            }
+        }
+        Err(RegFlipError::Ptrace {
+            op: "INTERRUPT",
+            tid,
+            source: io::Error::other("the thread kept receiving signals instead of stopping"),
+        })
+    }
+
+    fn pass_on(&mut self, sig: libc::c_int) -> Result<(), RegFlipError> {
+        let tid = self.tid;
+        sys::cont(tid, sig).map_err(ptrace_err("CONT", tid))?;
+        sys::interrupt(tid).map_err(ptrace_err("INTERRUPT", tid))
+    }
+
+    /// Executes exactly one instruction of the stopped thread.
+    fn step(&mut self, ip: u64) -> Result<(), RegFlipError> {
+        let tid = self.tid;
+        sys::single_step(tid).map_err(ptrace_err("SINGLESTEP", tid))?;
+        for _ in 0..MAX_SIGNAL_STOPS {
+            match sys::wait_stop(tid).map_err(ptrace_err("waitpid", tid))? {
+                Stop::Trap => {
+                    let info = sys::get_siginfo(tid).map_err(ptrace_err("GETSIGINFO", tid))?;
+                    if info.si_code > 0 {
+                        return Ok(()); // the kernel's single-step trap
+                    }
+                    self.deferred.push(info); // a SIGTRAP someone sent
+                }
+                Stop::Signal { sig } => {
+                    let info = sys::get_siginfo(tid).map_err(ptrace_err("GETSIGINFO", tid))?;
+                    let synchronous = matches!(
+                        sig,
+                        libc::SIGSEGV | libc::SIGBUS | libc::SIGILL | libc::SIGFPE
+                    ) && info.si_code > 0;
+                    if synchronous {
+                        self.detach_sig = sig;
+                        return Err(RegFlipError::InstructionFaulted { ip, sig });
+                    }
+                    self.deferred.push(info);
+                }
+                // A second PTRACE_INTERRUPT left pending by `interrupt`; the step has not run.
+                Stop::Event { .. } | Stop::OtherEvent { .. } => {}
+                Stop::Exited { .. } | Stop::Killed { .. } => {
+                    self.attached = false;
+                    return Err(RegFlipError::Gone { tid });
+                }
+            }
+            sys::single_step(tid).map_err(ptrace_err("SINGLESTEP", tid))?;
+        }
+        Err(RegFlipError::Ptrace {
+            op: "SINGLESTEP",
+            tid,
+            source: io::Error::other("the thread kept receiving signals instead of stepping"),
+        })
+    }
+
+    /// Finds the instruction, chooses register and bits, flips them. The thread is stopped.
+    fn flip(
+        &mut self,
+        spec: &RegFlipSpec,
+        filter: &Option<Vec<String>>,
+        rng: &mut impl Rng,
+    ) -> Result<RegFlipRecord, RegFlipError> {
+        let tid = self.tid;
+        let mut factory = InstructionInfoFactory::new();
+        let mut steps = 0;
+        let (instr, code, candidates) = loop {
+            let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+            if steps == 0 && restartable_syscall(&regs) {
+                return Err(RegFlipError::InSyscall {
+                    tid,
+                    ip: regs.rip,
+                    syscall: regs.orig_rax,
+                });
+            }
+            let code = read_code(tid, regs.rip)?;
+            let instr = decode(&code, regs.rip)?;
+            let candidates = candidates(&instr, &mut factory, spec, filter);
+            if !candidates.is_empty() {
+                break (instr, code, candidates);
+            }
+            if steps >= spec.max_steps || enters_kernel(&instr) {
+                return Err(RegFlipError::NoCandidate {
+                    tid,
+                    role: spec.role,
+                    steps,
+                    ip: regs.rip,
+                    instruction: format_instruction(&instr),
+                });
+            }
+            self.step(regs.rip)?;
+            steps += 1;
+        };
+        let chosen = candidates
+            .choose(rng)
+            .expect("candidates is not empty")
+            .clone();
+        if chosen.role == OperandRole::Destination {
+            self.step(instr.ip())?;
+        }
+
+        let mut regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+        let mut fp = sys::get_fpregs(tid).map_err(ptrace_err("GETFPREGS", tid))?;
+        let slot = chosen.operand.slot;
+        let before = slot.read(&regs, &fp);
+        let mut bits: Vec<u32> = chosen
+            .positions
+            .choose_multiple(rng, spec.bits as usize)
+            .copied()
+            .collect();
+        bits.sort_unstable();
+        let mask = bits.iter().fold(0u128, |m, &b| m | 1u128 << b);
+        let wanted = before ^ mask;
+        slot.write(&mut regs, &mut fp, wanted);
+        if slot.is_fp() {
+            sys::set_fpregs(tid, &fp).map_err(ptrace_err("SETFPREGS", tid))?;
+        } else {
+            sys::set_regs(tid, &regs).map_err(ptrace_err("SETREGS", tid))?;
+        }
+        let time_ns = sys::monotonic_ns();
+        // Read back what the thread will really run with.
+        let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+        let fp = sys::get_fpregs(tid).map_err(ptrace_err("GETFPREGS", tid))?;
+        let after = slot.read(&regs, &fp);
+        if after != wanted {
+            return Err(RegFlipError::WriteRejected {
+                register: slot.name().into(),
+                wanted: slot.hex(wanted),
+                got: slot.hex(after),
+            });
+        }
+        let len = instr.len();
+        Ok(RegFlipRecord {
+            pid: self.pid,
+            tid,
+            time_ns,
+            ip: instr.ip(),
+            instruction: format_instruction(&instr),
+            instruction_bytes: hex(&code[..len]),
+            bytes_read: code.len(),
+            steps,
+            resume_ip: regs.rip,
+            register: slot.name().into(),
+            operand: chosen.operand.name.clone(),
+            role: chosen.role,
+            field: spec.field,
+            lane: (slot.is_fp() && spec.field != FloatField::Whole).then_some(spec.lane),
+            bits,
+            before: slot.hex(before),
+            after: slot.hex(after),
+            candidates: candidates.iter().map(Candidate::label).collect(),
+            pause_ns: 0,
+            signals_deferred: Vec::new(),
+        })
+    }
+
+    /// Delivers deferred signals and detaches. Idempotent; `Drop` calls it too.
+    fn release(&mut self) -> Result<(), RegFlipError> {
+        if !self.attached {
+            return Ok(());
+        }
+        self.attached = false;
+        let tid = self.tid;
+        for info in self.deferred.drain(..) {
+            // Re-queue with the original siginfo; the kernel refuses si_code >= 0 (kill,
+            // tgkill) from another process, and for those the signal number is all there is.
+            if sys::tgsigqueueinfo(self.pid, tid, &info).is_err() {
+                if let Err(e) = sys::tgkill(self.pid, tid, info.si_signo) {
+                    tracing::warn!(tid, sig = info.si_signo, "could not re-send a signal: {e}");
+                }
+            }
+        }
+        match sys::detach(tid, self.detach_sig) {
+            Ok(()) => Ok(()),
+            Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {
+                // ESRCH: gone, or not in a ptrace-stop. In the second case stop it and retry,
+                // so it is never left traced.
+                if sys::interrupt(tid).is_ok() && sys::wait_stop(tid).is_ok() {
+                    sys::detach(tid, 0).map_err(ptrace_err("DETACH", tid))
+                } else {
+                    Err(RegFlipError::Gone { tid })
+                }
+            }
+            Err(e) => Err(ptrace_err("DETACH", tid)(e)),
+        }
+    }
+}
+
+impl Drop for Traced {
+    fn drop(&mut self) {
+        if let Err(e) = self.release() {
+            tracing::warn!(tid = self.tid, "detaching after an injection error: {e}");
+        }
+    }
+}
+
+/// The thread was inside a blocking system call that will be restarted when it resumes
+/// (`orig_rax` is the call, `rax` one of the kernel's internal -ERESTART* codes).
+fn restartable_syscall(regs: &sys::Regs) -> bool {
+    (regs.orig_rax as i64) >= 0 && (-516..=-512).contains(&(regs.rax as i64))
+}
+
+/// Reads up to 15 code bytes at `ip`, word by aligned word; an aligned word never crosses a
+/// page, so the read stops exactly where the mapping ends.
+fn read_code(tid: Tid, ip: u64) -> Result<Vec<u8>, RegFlipError> {
+    let end = ip.saturating_add(MAX_INSTRUCTION_LEN);
+    let mut code = Vec::with_capacity(MAX_INSTRUCTION_LEN as usize + 8);
+    let mut word_addr = ip & !7;
+    while word_addr < end {
+        match sys::peek_word(tid, word_addr) {
+            Ok(word) => code.extend_from_slice(&word.to_le_bytes()),
+            Err(source) if code.is_empty() => {
+                return Err(RegFlipError::ReadCode { tid, ip, source })
+            }
+            Err(_) => break,
+        }
+        word_addr += 8;
+    }
+    let skip = (ip - (ip & !7)) as usize;
+    let readable = code.len().saturating_sub(skip);
+    let take = readable.min(MAX_INSTRUCTION_LEN as usize);
+    Ok(code[skip..skip + take].to_vec())
+}
+
+fn decode(code: &[u8], ip: u64) -> Result<Instruction, RegFlipError> {
+    let mut decoder = Decoder::with_ip(64, code, ip, DecoderOptions::NONE);
+    let instr = decoder.decode();
+    if instr.is_invalid() {
+        return Err(RegFlipError::Undecodable {
+            ip,
+            bytes: hex(code),
+        });
+    }
+    Ok(instr)
+}
+
+fn format_instruction(instr: &Instruction) -> String {
+    let mut text = String::new();
+    IntelFormatter::new().format(instr, &mut text);
+    text
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Instructions that enter the kernel: never single-stepped (a `syscall` may block for good).
+fn enters_kernel(instr: &Instruction) -> bool {
+    matches!(instr.code(), Code::Syscall | Code::Sysenter)
+        || instr.flow_control() == FlowControl::Interrupt
+}
+
+/// The register operands of `instr` the spec allows, each with the bits a flip may hit.
+fn candidates(
+    instr: &Instruction,
+    factory: &mut InstructionInfoFactory,
+    spec: &RegFlipSpec,
+    filter: &Option<Vec<String>>,
+) -> Vec<Candidate> {
+    let mut offered: Vec<(Operand, OperandRole)> = Vec::new();
+    for used in factory.info(instr).used_registers() {
+        let Some(operand) = regs::locate(used.register()) else {
+            continue;
+        };
+        let (reads, writes) = match used.access() {
+            OpAccess::Read | OpAccess::CondRead => (true, false),
+            OpAccess::Write | OpAccess::CondWrite => (false, true),
+            OpAccess::ReadWrite | OpAccess::ReadCondWrite => (true, true),
+            OpAccess::None | OpAccess::NoMemAccess => (false, false),
+        };
+        if reads {
+            offered.push((operand.clone(), OperandRole::Source));
+        }
+        if writes {
+            offered.push((operand, OperandRole::Destination));
+        }
+    }
+    let named = |name: &str| filter.as_ref().is_some_and(|f| f.iter().any(|n| n == name));
+    if named("rflags") {
+        if let Some(op) = regs::rflags_operand(instr.rflags_read()) {
+            offered.push((op, OperandRole::Source));
+        }
+        if let Some(op) = regs::rflags_operand(instr.rflags_modified()) {
+            offered.push((op, OperandRole::Destination));
+        }
+    }
+    if named("rip") {
+        offered.push((regs::rip_operand(), OperandRole::Source));
+        offered.push((regs::rip_operand(), OperandRole::Destination));
+    }
+    let no_step = enters_kernel(instr);
+    let mut out: Vec<Candidate> = Vec::new();
+    for (operand, role) in offered {
+        let admitted = match filter {
+            None => true,
+            Some(_) => named(&operand.name) || named(operand.slot.name()),
+        };
+        if !admitted || !regs::role_matches(spec.role, role) {
+            continue;
+        }
+        if no_step && role == OperandRole::Destination {
+            continue;
+        }
+        if out
+            .iter()
+            .any(|c| c.operand.name == operand.name && c.role == role)
+        {
+            continue;
+        }
+        let positions = regs::field_positions(&operand, spec.field, spec.lane);
+        if positions.len() < spec.bits as usize {
+            continue;
+        }
+        out.push(Candidate {
+            operand,
+            role,
+            positions,
+        });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn decode_bytes(bytes: &[u8]) -> Instruction {
+        decode(bytes, 0x1000).unwrap()
+    }
+
+    fn labels(bytes: &[u8], spec: &RegFlipSpec) -> Vec<String> {
+        let filter = validate(spec).unwrap();
+        let mut factory = InstructionInfoFactory::new();
+        candidates(&decode_bytes(bytes), &mut factory, spec, &filter)
+            .iter()
+            .map(Candidate::label)
+            .collect()
+    }
+
+    #[test]
+    fn sources_and_destinations_come_from_the_decoder() {
+        // add rax, rbx
+        let any = RegFlipSpec::default();
+        assert_eq!(
+            labels(&[0x48, 0x01, 0xd8], &any),
+            ["rax:source", "rax:destination", "rbx:source"]
+        );
+        let src = RegFlipSpec {
+            role: OperandRole::Source,
+            ..Default::default()
+        };
+        assert_eq!(labels(&[0x48, 0x01, 0xd8], &src), ["rax:source", "rbx:source"]);
+        // cmp ah, dl: both read, flags written (RFLAGS not a candidate unless named)
+        assert_eq!(labels(&[0x38, 0xd4], &any), ["ah:source", "dl:source"]);
+        let flags = RegFlipSpec {
+            registers: Some(vec!["rflags".into()]),
+            ..Default::default()
+        };
+        assert_eq!(labels(&[0x38, 0xd4], &flags), ["rflags:destination"]);
+        // movdqa xmm3, xmm4
+        assert_eq!(
+            labels(&[0x66, 0x0f, 0x6f, 0xdc], &any),
+            ["xmm3:destination", "xmm4:source"]
+        );
+    }
+
+    #[test]
+    fn memory_operand_registers_are_sources_and_syscall_destinations_are_not_offered() {
+        let any = RegFlipSpec::default();
+        // mov rax, [rbx+8]
+        assert_eq!(
+            labels(&[0x48, 0x8b, 0x43, 0x08], &any),
+            ["rax:destination", "rbx:source"]
+        );
+        let dst = RegFlipSpec {
+            role: OperandRole::Destination,
+            ..Default::default()
+        };
+        assert!(labels(&[0x0f, 0x05], &dst).is_empty());
+        assert!(enters_kernel(&decode_bytes(&[0x0f, 0x05])));
+    }
+
+    #[test]
+    fn a_float_field_excludes_operands_narrower_than_an_f64() {
+        let sign = RegFlipSpec {
+            field: FloatField::Sign,
+            ..Default::default()
+        };
+        // add eax, ebx: the 32-bit sources have no binary64 sign bit; the write zero-extends
+        // into all of RAX, so the decoder names RAX as the destination.
+        assert_eq!(
+            labels(&[0x01, 0xd8], &RegFlipSpec::default()),
+            ["eax:source", "rax:destination", "ebx:source"]
+        );
+        assert_eq!(labels(&[0x01, 0xd8], &sign), ["rax:destination"]);
+        assert_eq!(labels(&[0x48, 0x01, 0xd8], &sign).len(), 3);
+    }
+
+    #[test]
+    fn the_filter_admits_sub_registers_of_a_named_full_register() {
+        let rax = RegFlipSpec {
+            registers: Some(vec!["RAX".into()]),
+            ..Default::default()
+        };
+        assert_eq!(labels(&[0x38, 0xd4], &rax), ["ah:source"]);
+        let eax = RegFlipSpec {
+            registers: Some(vec!["eax".into()]),
+            ..Default::default()
+        };
+        assert!(labels(&[0x38, 0xd4], &eax).is_empty());
+        let bad = RegFlipSpec {
+            registers: Some(vec!["xmm16".into()]),
+            ..Default::default()
+        };
+        assert!(matches!(validate(&bad), Err(RegFlipError::InvalidSpec(m)) if m.contains("xmm16")));
+    }
+
+    #[test]
+    fn a_truncated_read_still_decodes_what_is_there() {
+        // inc r12 followed by nothing (the page ends): 3 bytes are enough
+        let instr = decode(&[0x49, 0xff, 0xc4], 0x1ffd).unwrap();
+        assert_eq!(format_instruction(&instr), "inc r12");
+        assert!(matches!(
+            decode(&[0x49, 0xff], 0x1ffe),
+            Err(RegFlipError::Undecodable { .. })
+        ));
+    }
+}
