@@ -612,7 +612,9 @@ fn decode(code: &[u8], ip: u64) -> Result<Instruction, RegFlipError> {
 
 fn format_instruction(instr: &Instruction) -> String {
     let mut text = String::new();
-    IntelFormatter::new().format(instr, &mut text);
+    let mut formatter = IntelFormatter::new();
+    formatter.options_mut().set_space_after_operand_separator(true);
+    formatter.format(instr, &mut text);
     text
 }
 

@@ -191,7 +191,8 @@ fn decode_status(status: libc::c_int) -> Stop {
     }
 }
 
-/// An all-zero register state (for tests and for building values to compare against).
+/// An all-zero register state, for unit tests.
+#[cfg(test)]
 pub fn zeroed_state() -> (Regs, FpRegs) {
     // SAFETY: both structs are plain integers and integer arrays; all-zero is a valid value.
     unsafe { (std::mem::zeroed(), std::mem::zeroed()) }

@@ -1,0 +1,328 @@
+//! Register flips against `regflip-target`, a program whose register contents are known: every
+//! flip must change exactly the logged bits of the logged register, as the program itself
+//! observes and reports them. Each test kills and reaps its target on every path.
+
+use anyhow::{bail, Context, Result};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use s3res_regflip::{inject, FloatField, OperandRole, RegFlipError, RegFlipRecord, RegFlipSpec};
+use std::io::Read;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+const GPR_PATTERN: u64 = 0xa5c3_0f1e_7b2d_9468;
+const XMM_LO: u64 = 0x3ff8_0000_0000_0000; // 1.5
+const XMM_HI: u64 = 0xc00c_cccc_cccc_cccd; // -3.6
+const REPORT_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// The running fixture; killed and reaped on drop.
+struct Target {
+    child: Child,
+    bytes: mpsc::Receiver<Vec<u8>>,
+    pending: Vec<u8>,
+}
+
+impl Target {
+    fn start(args: &[&str]) -> Result<Target> {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_regflip-target"))
+            .args(args)
+            .stdout(Stdio::piped())
+            .spawn()
+            .context("starting regflip-target")?;
+        let mut stdout = child.stdout.take().expect("piped");
+        let (tx, bytes) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 256];
+            while let Ok(n @ 1..) = stdout.read(&mut buf) {
+                if tx.send(buf[..n].to_vec()).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut target = Target {
+            child,
+            bytes,
+            pending: Vec::new(),
+        };
+        let ready = target.read(1)?;
+        if ready != b"R" {
+            bail!("regflip-target said {ready:?} instead of R");
+        }
+        Ok(target)
+    }
+
+    fn pid(&self) -> i32 {
+        self.child.id() as i32
+    }
+
+    /// Exactly `n` bytes of the target's output, or an error after [`REPORT_TIMEOUT`].
+    fn read(&mut self, n: usize) -> Result<Vec<u8>> {
+        let deadline = Instant::now() + REPORT_TIMEOUT;
+        while self.pending.len() < n {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.bytes.recv_timeout(left) {
+                Ok(chunk) => self.pending.extend_from_slice(&chunk),
+                Err(e) => bail!("no report from regflip-target within {REPORT_TIMEOUT:?}: {e}"),
+            }
+        }
+        Ok(self.pending.drain(..n).collect())
+    }
+
+    fn read_u64(&mut self) -> Result<u64> {
+        Ok(u64::from_le_bytes(self.read(8)?.try_into().unwrap()))
+    }
+
+    fn read_u128(&mut self) -> Result<u128> {
+        Ok(u128::from_le_bytes(self.read(16)?.try_into().unwrap()))
+    }
+}
+
+impl Drop for Target {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn rng(test: &str, default_seed: u64) -> ChaCha8Rng {
+    let seed = std::env::var("REGFLIP_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(default_seed);
+    eprintln!("{test}: seed {seed} (set REGFLIP_SEED to change)");
+    ChaCha8Rng::seed_from_u64(seed)
+}
+
+fn hex_value(s: &str) -> u128 {
+    u128::from_str_radix(s.trim_start_matches("0x"), 16).expect("record holds hex")
+}
+
+fn spec(role: OperandRole, bits: u32, registers: &[&str]) -> RegFlipSpec {
+    RegFlipSpec {
+        role,
+        bits,
+        registers: Some(registers.iter().map(|s| s.to_string()).collect()),
+        ..Default::default()
+    }
+}
+
+/// Checks the record against itself: the logged before/after differ in exactly the logged bits.
+fn check_record(rec: &RegFlipRecord, bits: u32) {
+    assert_eq!(rec.bits.len(), bits as usize, "{rec:?}");
+    assert!(rec.bits.windows(2).all(|w| w[0] < w[1]), "distinct: {rec:?}");
+    assert_eq!(hex_value(&rec.before) ^ hex_value(&rec.after), rec.mask(), "{rec:?}");
+}
+
+#[test]
+fn a_source_flip_of_r12_changes_exactly_the_logged_bits() -> Result<()> {
+    let mut rng = rng("source r12", 1);
+    let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    for round in 0..60 {
+        let bits = 1 + round % 4;
+        let rec = inject(target.pid(), &spec(OperandRole::Source, bits, &["r12"]), &mut rng)?;
+        check_record(&rec, bits);
+        assert_eq!((rec.register.as_str(), rec.operand.as_str()), ("r12", "r12"));
+        assert_eq!(rec.role, OperandRole::Source);
+        assert_eq!(rec.instruction, "cmp r12, r15");
+        assert_eq!(rec.resume_ip, rec.ip, "a source flip happens before the instruction");
+        assert_eq!(hex_value(&rec.before) as u64, GPR_PATTERN);
+        let seen = target.read_u64()?;
+        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+        assert_eq!(rec.tid, target.pid());
+    }
+    Ok(())
+}
+
+#[test]
+fn a_destination_flip_of_r12_lands_after_the_write() -> Result<()> {
+    let mut rng = rng("destination r12", 2);
+    let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    for _ in 0..40 {
+        let rec = inject(target.pid(), &spec(OperandRole::Destination, 2, &["r12"]), &mut rng)?;
+        check_record(&rec, 2);
+        assert_eq!(rec.role, OperandRole::Destination);
+        assert_eq!(rec.instruction, "mov r12, r14");
+        assert_eq!(rec.resume_ip, rec.ip + 3, "stepped past the 3-byte mov");
+        let seen = target.read_u64()?;
+        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+    }
+    Ok(())
+}
+
+#[test]
+fn a_flip_of_ah_hits_bits_8_to_15_of_rax() -> Result<()> {
+    let mut rng = rng("ah", 3);
+    let mut target = Target::start(&["ah", &format!("{GPR_PATTERN:x}")])?;
+    let mut hit = [false; 64];
+    for _ in 0..100 {
+        let rec = inject(target.pid(), &spec(OperandRole::Source, 1, &["ah"]), &mut rng)?;
+        check_record(&rec, 1);
+        assert_eq!((rec.register.as_str(), rec.operand.as_str()), ("rax", "ah"));
+        assert_eq!(rec.instruction, "cmp ah, dl");
+        assert!(rec.bits.iter().all(|b| (8..16).contains(b)), "{rec:?}");
+        rec.bits.iter().for_each(|&b| hit[b as usize] = true);
+        let seen = target.read_u64()?;
+        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+    }
+    assert!(hit[8..16].iter().all(|&h| h), "all 8 bits of AH: {hit:?}");
+    Ok(())
+}
+
+#[test]
+fn xmm3_flips_change_exactly_the_logged_bits_in_all_128() -> Result<()> {
+    let mut rng = rng("xmm3", 4);
+    let pattern = (XMM_HI as u128) << 64 | XMM_LO as u128;
+    let mut target = Target::start(&["xmm", &format!("{XMM_LO:x}"), &format!("{XMM_HI:x}")])?;
+    let mut high_lane_hit = false;
+    for round in 0..80 {
+        let bits = 1 + round % 3;
+        let rec = inject(target.pid(), &spec(OperandRole::Any, bits, &["xmm3"]), &mut rng)?;
+        check_record(&rec, bits);
+        assert_eq!(rec.register, "xmm3");
+        let expected_instruction = match rec.role {
+            OperandRole::Source => "movdqa xmm5, xmm3",
+            _ => "movdqa xmm3, xmm4",
+        };
+        assert_eq!(rec.instruction, expected_instruction, "{rec:?}");
+        assert_eq!(hex_value(&rec.before), pattern);
+        high_lane_hit |= rec.bits.iter().any(|&b| b >= 64);
+        let seen = target.read_u128()?;
+        assert_eq!(seen, pattern ^ rec.mask(), "{rec:?}");
+    }
+    assert!(high_lane_hit, "flips reach the upper 64 bits of xmm3");
+    Ok(())
+}
+
+#[test]
+fn float_field_flips_stay_in_their_field_and_lane() -> Result<()> {
+    let mut rng = rng("float fields", 5);
+    let pattern = (XMM_HI as u128) << 64 | XMM_LO as u128;
+    let mut target = Target::start(&["xmm", &format!("{XMM_LO:x}"), &format!("{XMM_HI:x}")])?;
+    let cases = [
+        (FloatField::Sign, 0u8, 63..64u32),
+        (FloatField::Sign, 1, 127..128),
+        (FloatField::Exponent, 0, 52..63),
+        (FloatField::Exponent, 1, 116..127),
+        (FloatField::Mantissa, 0, 0..52),
+        (FloatField::Mantissa, 1, 64..116),
+    ];
+    for (field, lane, range) in cases {
+        for _ in 0..8 {
+            let spec = RegFlipSpec {
+                field,
+                lane,
+                ..spec(OperandRole::Source, 1, &["xmm3"])
+            };
+            let rec = inject(target.pid(), &spec, &mut rng)?;
+            check_record(&rec, 1);
+            assert_eq!((rec.field, rec.lane), (field, Some(lane)));
+            assert!(rec.bits.iter().all(|b| range.contains(b)), "{field} lane {lane}: {rec:?}");
+            let seen = target.read_u128()?;
+            assert_eq!(seen, pattern ^ rec.mask(), "{rec:?}");
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn flipped_positions_cover_the_whole_64_bit_width() -> Result<()> {
+    let mut rng = rng("coverage", 6);
+    let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    let mut count = [0u32; 64];
+    let flips = 1000;
+    for _ in 0..flips {
+        let rec = inject(target.pid(), &spec(OperandRole::Any, 1, &["r12"]), &mut rng)?;
+        check_record(&rec, 1);
+        count[rec.bits[0] as usize] += 1;
+        let seen = target.read_u64()?;
+        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+    }
+    let (min, max) = (count.iter().min().unwrap(), count.iter().max().unwrap());
+    eprintln!("{flips} single-bit flips of r12: every bit hit between {min} and {max} times");
+    assert!(count.iter().all(|&c| c > 0), "positions never hit: {count:?}");
+    assert!(count[8..].iter().sum::<u32>() > flips / 2, "not just the low byte");
+    Ok(())
+}
+
+#[test]
+fn code_at_the_end_of_a_mapping_is_read_up_to_the_page_end() -> Result<()> {
+    let mut rng = rng("page end", 7);
+    let mut target = Target::start(&["page-end"])?;
+    let page_end = target.read_u64()?;
+    for _ in 0..10 {
+        let rec = inject(target.pid(), &spec(OperandRole::Source, 1, &["r12"]), &mut rng)?;
+        check_record(&rec, 1);
+        assert_eq!(rec.instruction, "inc r12");
+        assert_eq!(rec.instruction_bytes, "49ffc4");
+        assert_eq!(rec.ip, page_end - 5);
+        assert_eq!(rec.bytes_read, 5, "only the 5 mapped bytes are read");
+    }
+    Ok(())
+}
+
+#[test]
+fn a_thread_blocked_in_a_system_call_is_left_untouched() -> Result<()> {
+    let mut rng = rng("blocked", 8);
+    let mut child = Command::new("sleep").arg("30").spawn()?;
+    let pid = child.id() as i32;
+    // Wait (bounded) until sleep is blocked in its nanosleep.
+    let deadline = Instant::now() + REPORT_TIMEOUT;
+    let state = || {
+        std::fs::read_to_string(format!("/proc/{pid}/stat"))
+            .ok()
+            .and_then(|s| s.rsplit(')').next().map(|r| r.trim().chars().next()))
+            .flatten()
+    };
+    let wchan = || std::fs::read_to_string(format!("/proc/{pid}/syscall")).unwrap_or_default();
+    while !(state() == Some('S') && wchan().starts_with("230 ")) && Instant::now() < deadline {
+        std::thread::yield_now();
+    }
+    let result = inject(pid, &RegFlipSpec::default(), &mut rng);
+    // Detached, it resumes its sleep through restart_syscall (219): it must get back to
+    // sleeping, not stay stopped (`t`). Right after the detach it may briefly be running.
+    let deadline = Instant::now() + REPORT_TIMEOUT;
+    let mut after = state();
+    while !(after == Some('S') && wchan().starts_with("219 ")) && Instant::now() < deadline {
+        std::thread::yield_now();
+        after = state();
+    }
+    let resumed_sleep = wchan().starts_with("219 ");
+    let _ = child.kill();
+    let _ = child.wait();
+    match result {
+        Err(RegFlipError::InSyscall { syscall, .. }) => assert_eq!(syscall, 230),
+        other => panic!("expected InSyscall, got {other:?}"),
+    }
+    assert_eq!(after, Some('S'), "detached and back asleep, not stopped");
+    assert!(resumed_sleep, "back in its (restarted) sleep");
+    Ok(())
+}
+
+#[test]
+fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
+    let mut rng = rng("errors", 9);
+    let mut child = Command::new("true").spawn()?;
+    let pid = child.id() as i32;
+    child.wait()?;
+    assert!(matches!(
+        inject(pid, &RegFlipSpec::default(), &mut rng),
+        Err(RegFlipError::Gone { tid }) if tid == pid
+    ));
+    let zero_bits = RegFlipSpec {
+        bits: 0,
+        ..Default::default()
+    };
+    assert!(matches!(inject(1, &zero_bits, &mut rng), Err(RegFlipError::InvalidSpec(_))));
+    let unknown = spec(OperandRole::Any, 1, &["r16"]);
+    assert!(matches!(inject(1, &unknown, &mut rng), Err(RegFlipError::InvalidSpec(m)) if m.contains("r16")));
+    let other = RegFlipSpec {
+        tid: Some(pid),
+        ..Default::default()
+    };
+    assert!(matches!(
+        inject(std::process::id() as i32, &other, &mut rng),
+        Err(RegFlipError::NotAThreadOf { .. })
+    ));
+    Ok(())
+}
