@@ -185,7 +185,11 @@ pub struct RegFlipRecord {
     pub candidates: Vec<String>,
     /// Time the thread was held: from PTRACE_INTERRUPT to PTRACE_DETACH returning, ns.
     pub pause_ns: u64,
-    /// Signals that arrived during single-steps and were delivered after the injection.
+    /// The part of `pause_ns` until the thread reported its stop (it must be scheduled to
+    /// take the interrupt, so this grows with CPU contention), ns.
+    pub stop_ns: u64,
+    /// Signals that reached the thread during single-steps despite the blocked mask (sent as
+    /// SEGV/BUS/ILL/FPE/TRAP by another process) and were re-sent after the injection.
     pub signals_deferred: Vec<i32>,
 }
 
@@ -228,7 +232,11 @@ pub enum RegFlipError {
         instruction: String,
     },
     #[error("cannot read the instruction at {ip:#x} of thread {tid}: {source}")]
-    ReadCode { tid: i32, ip: u64, source: io::Error },
+    ReadCode {
+        tid: i32,
+        ip: u64,
+        source: io::Error,
+    },
     #[error("undecodable instruction at {ip:#x} (bytes {bytes})")]
     Undecodable { ip: u64, bytes: String },
     #[error(
@@ -259,6 +267,11 @@ fn ptrace_err(op: &'static str, tid: Tid) -> impl FnOnce(io::Error) -> RegFlipEr
 }
 
 /// Injects one register bit-flip into thread `spec.tid` (default: `pid`) of process `pid`, now.
+///
+/// Blocks only for the injection itself (the pause is reported in the record). If the thread
+/// dies meanwhile, its exit is consumed by `waitpid` as ptrace requires (so that the real
+/// parent is told); a caller that is itself the target's parent must then treat the child as
+/// reaped ([`RegFlipError::Gone`]) and not kill or wait for it again.
 pub fn inject(
     pid: i32,
     spec: &RegFlipSpec,
@@ -279,11 +292,14 @@ pub fn inject(
         attached: true,
         deferred: Vec::new(),
         detach_sig: 0,
+        saved_sigmask: None,
     };
     let start = sys::monotonic_ns();
-    let outcome = traced
-        .interrupt()
-        .and_then(|()| traced.flip(spec, &filter, rng));
+    let mut stop_ns = 0;
+    let outcome = traced.interrupt().and_then(|()| {
+        stop_ns = sys::monotonic_ns().saturating_sub(start);
+        traced.flip(spec, &filter, rng)
+    });
     let deferred: Vec<i32> = traced.deferred.iter().map(|i| i.si_signo).collect();
     let detached = traced.release();
     let pause_ns = sys::monotonic_ns().saturating_sub(start);
@@ -291,6 +307,7 @@ pub fn inject(
     detached?;
     record.pid = pid;
     record.pause_ns = pause_ns;
+    record.stop_ns = stop_ns;
     record.signals_deferred = deferred;
     tracing::debug!(?record, "register flip injected");
     Ok(record)
@@ -355,6 +372,8 @@ struct Traced {
     deferred: Vec<sys::siginfo_t>,
     /// A signal to deliver with PTRACE_DETACH (the thread is in its signal-delivery-stop).
     detach_sig: libc::c_int,
+    /// The thread's own signal mask, while we hold asynchronous signals back during steps.
+    saved_sigmask: Option<sys::SigMask>,
 }
 
 impl Traced {
@@ -390,8 +409,28 @@ impl Traced {
     }
 
     /// Executes exactly one instruction of the stopped thread.
+    ///
+    /// Before the first step, asynchronous signals are blocked in the thread (PTRACE_SETSIGMASK)
+    /// so that they stay queued in the kernel, with their siginfo and order, until `release`
+    /// restores the mask; otherwise every resume would dequeue one into a signal-delivery-stop.
+    /// Signals an instruction raises itself (SEGV, BUS, ILL, FPE, TRAP) are left unblocked: a
+    /// blocked fault would kill the thread instead of reaching its handler.
     fn step(&mut self, ip: u64) -> Result<(), RegFlipError> {
         let tid = self.tid;
+        if self.saved_sigmask.is_none() {
+            let own = sys::get_sigmask(tid).map_err(ptrace_err("GETSIGMASK", tid))?;
+            let synchronous = [
+                libc::SIGSEGV,
+                libc::SIGBUS,
+                libc::SIGILL,
+                libc::SIGFPE,
+                libc::SIGTRAP,
+            ]
+            .iter()
+            .fold(0u64, |m, &sig| m | 1 << (sig - 1));
+            sys::set_sigmask(tid, own | !synchronous).map_err(ptrace_err("SETSIGMASK", tid))?;
+            self.saved_sigmask = Some(own);
+        }
         sys::single_step(tid).map_err(ptrace_err("SINGLESTEP", tid))?;
         for _ in 0..MAX_SIGNAL_STOPS {
             match sys::wait_stop(tid).map_err(ptrace_err("waitpid", tid))? {
@@ -526,6 +565,7 @@ impl Traced {
             after: slot.hex(after),
             candidates: candidates.iter().map(Candidate::label).collect(),
             pause_ns: 0,
+            stop_ns: 0,
             signals_deferred: Vec::new(),
         })
     }
@@ -537,6 +577,11 @@ impl Traced {
         }
         self.attached = false;
         let tid = self.tid;
+        if let Some(own) = self.saved_sigmask.take() {
+            if let Err(e) = sys::set_sigmask(tid, own) {
+                tracing::warn!(tid, "could not restore the signal mask: {e}");
+            }
+        }
         for info in self.deferred.drain(..) {
             // Re-queue with the original siginfo; the kernel refuses si_code >= 0 (kill,
             // tgkill) from another process, and for those the signal number is all there is.
@@ -549,12 +594,15 @@ impl Traced {
         match sys::detach(tid, self.detach_sig) {
             Ok(()) => Ok(()),
             Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {
-                // ESRCH: gone, or not in a ptrace-stop. In the second case stop it and retry,
-                // so it is never left traced.
-                if sys::interrupt(tid).is_ok() && sys::wait_stop(tid).is_ok() {
-                    sys::detach(tid, 0).map_err(ptrace_err("DETACH", tid))
-                } else {
-                    Err(RegFlipError::Gone { tid })
+                // ESRCH: dead, or not in a ptrace-stop. Stop it (if alive) and wait: a live
+                // thread is then detached, so it is never left traced; a dead one's exit is
+                // consumed, which is what lets its real parent (the voter) see the death.
+                let _ = sys::interrupt(tid);
+                match sys::wait_stop(tid) {
+                    Ok(Stop::Exited { .. } | Stop::Killed { .. }) | Err(_) => {
+                        Err(RegFlipError::Gone { tid })
+                    }
+                    Ok(_) => sys::detach(tid, 0).map_err(ptrace_err("DETACH", tid)),
                 }
             }
             Err(e) => Err(ptrace_err("DETACH", tid)(e)),
@@ -613,7 +661,9 @@ fn decode(code: &[u8], ip: u64) -> Result<Instruction, RegFlipError> {
 fn format_instruction(instr: &Instruction) -> String {
     let mut text = String::new();
     let mut formatter = IntelFormatter::new();
-    formatter.options_mut().set_space_after_operand_separator(true);
+    formatter
+        .options_mut()
+        .set_space_after_operand_separator(true);
     formatter.format(instr, &mut text);
     text
 }
@@ -727,7 +777,10 @@ mod tests {
             role: OperandRole::Source,
             ..Default::default()
         };
-        assert_eq!(labels(&[0x48, 0x01, 0xd8], &src), ["rax:source", "rbx:source"]);
+        assert_eq!(
+            labels(&[0x48, 0x01, 0xd8], &src),
+            ["rax:source", "rbx:source"]
+        );
         // cmp ah, dl: both read, flags written (RFLAGS not a candidate unless named)
         assert_eq!(labels(&[0x38, 0xd4], &any), ["ah:source", "dl:source"]);
         let flags = RegFlipSpec {

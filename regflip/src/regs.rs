@@ -144,7 +144,11 @@ pub(crate) fn locate(reg: Register) -> Option<Operand> {
             Register::AH | Register::CH | Register::DH | Register::BH => 8,
             _ => 0,
         };
-        (Slot::Gpr(reg.full_register().number()), offset, reg.size() as u32 * 8)
+        (
+            Slot::Gpr(reg.full_register().number()),
+            offset,
+            reg.size() as u32 * 8,
+        )
     } else if (reg.is_xmm() || reg.is_ymm() || reg.is_zmm()) && reg.number() < 16 {
         (Slot::Xmm(reg.number()), 0, 128)
     } else {

@@ -97,6 +97,38 @@ pub fn get_siginfo(tid: Tid) -> io::Result<siginfo_t> {
     Ok(unsafe { info.assume_init() })
 }
 
+/// The kernel's signal mask of a thread: bit `n - 1` is signal `n`.
+pub type SigMask = u64;
+
+/// `PTRACE_GETSIGMASK` (request 0x420a, Linux 3.11+).
+pub fn get_sigmask(tid: Tid) -> io::Result<SigMask> {
+    let mut mask: SigMask = 0;
+    // SAFETY: the kernel writes `addr` = 8 bytes (its sigset_t) to `data`, a valid u64.
+    cvt(unsafe {
+        libc::ptrace(
+            0x420a,
+            tid,
+            std::mem::size_of::<SigMask>(),
+            &mut mask as *mut SigMask,
+        )
+    })?;
+    Ok(mask)
+}
+
+/// `PTRACE_SETSIGMASK` (request 0x420b). The kernel never blocks SIGKILL or SIGSTOP.
+pub fn set_sigmask(tid: Tid, mask: SigMask) -> io::Result<()> {
+    // SAFETY: the kernel reads `addr` = 8 bytes from `data`, a valid u64.
+    cvt(unsafe {
+        libc::ptrace(
+            0x420b,
+            tid,
+            std::mem::size_of::<SigMask>(),
+            &mask as *const SigMask,
+        )
+    })?;
+    Ok(())
+}
+
 /// `PTRACE_PEEKDATA`: one aligned word of the tracee's memory.
 pub fn peek_word(tid: Tid, addr: u64) -> io::Result<u64> {
     // PEEKDATA returns the word itself, so -1 is ambiguous: clear errno first and look at it.
@@ -217,7 +249,10 @@ mod tests {
     fn status_decoding_tells_stops_apart() {
         // Layouts as the kernel builds them (wait(2)): exit code << 8, signal, stop = 0x7f.
         assert_eq!(decode_status(3 << 8), Stop::Exited { code: 3 });
-        assert_eq!(decode_status(libc::SIGKILL), Stop::Killed { sig: libc::SIGKILL });
+        assert_eq!(
+            decode_status(libc::SIGKILL),
+            Stop::Killed { sig: libc::SIGKILL }
+        );
         assert_eq!(decode_status((libc::SIGTRAP << 8) | 0x7f), Stop::Trap);
         assert_eq!(
             decode_status((libc::SIGUSR1 << 8) | 0x7f),

@@ -6,9 +6,11 @@ use anyhow::{bail, Context, Result};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use s3res_regflip::{inject, FloatField, OperandRole, RegFlipError, RegFlipRecord, RegFlipSpec};
+use std::collections::BTreeMap;
 use std::io::Read;
 use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 const GPR_PATTERN: u64 = 0xa5c3_0f1e_7b2d_9468;
@@ -21,6 +23,22 @@ struct Target {
     child: Child,
     bytes: mpsc::Receiver<Vec<u8>>,
     pending: Vec<u8>,
+    /// Everything the target wrote to stderr.
+    stderr: mpsc::Receiver<Vec<u8>>,
+}
+
+/// Forwards everything read from `from` to a channel, from a thread that ends at EOF.
+fn forward(mut from: impl Read + Send + 'static) -> mpsc::Receiver<Vec<u8>> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let mut buf = [0u8; 4096];
+        while let Ok(n @ 1..) = from.read(&mut buf) {
+            if tx.send(buf[..n].to_vec()).is_err() {
+                break;
+            }
+        }
+    });
+    rx
 }
 
 impl Target {
@@ -28,22 +46,16 @@ impl Target {
         let mut child = Command::new(env!("CARGO_BIN_EXE_regflip-target"))
             .args(args)
             .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
             .spawn()
             .context("starting regflip-target")?;
-        let mut stdout = child.stdout.take().expect("piped");
-        let (tx, bytes) = mpsc::channel();
-        std::thread::spawn(move || {
-            let mut buf = [0u8; 256];
-            while let Ok(n @ 1..) = stdout.read(&mut buf) {
-                if tx.send(buf[..n].to_vec()).is_err() {
-                    break;
-                }
-            }
-        });
+        let bytes = forward(child.stdout.take().expect("piped"));
+        let stderr = forward(child.stderr.take().expect("piped"));
         let mut target = Target {
             child,
             bytes,
             pending: Vec::new(),
+            stderr,
         };
         let ready = target.read(1)?;
         if ready != b"R" {
@@ -110,8 +122,15 @@ fn spec(role: OperandRole, bits: u32, registers: &[&str]) -> RegFlipSpec {
 /// Checks the record against itself: the logged before/after differ in exactly the logged bits.
 fn check_record(rec: &RegFlipRecord, bits: u32) {
     assert_eq!(rec.bits.len(), bits as usize, "{rec:?}");
-    assert!(rec.bits.windows(2).all(|w| w[0] < w[1]), "distinct: {rec:?}");
-    assert_eq!(hex_value(&rec.before) ^ hex_value(&rec.after), rec.mask(), "{rec:?}");
+    assert!(
+        rec.bits.windows(2).all(|w| w[0] < w[1]),
+        "distinct: {rec:?}"
+    );
+    assert_eq!(
+        hex_value(&rec.before) ^ hex_value(&rec.after),
+        rec.mask(),
+        "{rec:?}"
+    );
 }
 
 #[test]
@@ -120,12 +139,22 @@ fn a_source_flip_of_r12_changes_exactly_the_logged_bits() -> Result<()> {
     let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
     for round in 0..60 {
         let bits = 1 + round % 4;
-        let rec = inject(target.pid(), &spec(OperandRole::Source, bits, &["r12"]), &mut rng)?;
+        let rec = inject(
+            target.pid(),
+            &spec(OperandRole::Source, bits, &["r12"]),
+            &mut rng,
+        )?;
         check_record(&rec, bits);
-        assert_eq!((rec.register.as_str(), rec.operand.as_str()), ("r12", "r12"));
+        assert_eq!(
+            (rec.register.as_str(), rec.operand.as_str()),
+            ("r12", "r12")
+        );
         assert_eq!(rec.role, OperandRole::Source);
         assert_eq!(rec.instruction, "cmp r12, r15");
-        assert_eq!(rec.resume_ip, rec.ip, "a source flip happens before the instruction");
+        assert_eq!(
+            rec.resume_ip, rec.ip,
+            "a source flip happens before the instruction"
+        );
         assert_eq!(hex_value(&rec.before) as u64, GPR_PATTERN);
         let seen = target.read_u64()?;
         assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
@@ -139,7 +168,11 @@ fn a_destination_flip_of_r12_lands_after_the_write() -> Result<()> {
     let mut rng = rng("destination r12", 2);
     let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
     for _ in 0..40 {
-        let rec = inject(target.pid(), &spec(OperandRole::Destination, 2, &["r12"]), &mut rng)?;
+        let rec = inject(
+            target.pid(),
+            &spec(OperandRole::Destination, 2, &["r12"]),
+            &mut rng,
+        )?;
         check_record(&rec, 2);
         assert_eq!(rec.role, OperandRole::Destination);
         assert_eq!(rec.instruction, "mov r12, r14");
@@ -156,7 +189,11 @@ fn a_flip_of_ah_hits_bits_8_to_15_of_rax() -> Result<()> {
     let mut target = Target::start(&["ah", &format!("{GPR_PATTERN:x}")])?;
     let mut hit = [false; 64];
     for _ in 0..100 {
-        let rec = inject(target.pid(), &spec(OperandRole::Source, 1, &["ah"]), &mut rng)?;
+        let rec = inject(
+            target.pid(),
+            &spec(OperandRole::Source, 1, &["ah"]),
+            &mut rng,
+        )?;
         check_record(&rec, 1);
         assert_eq!((rec.register.as_str(), rec.operand.as_str()), ("rax", "ah"));
         assert_eq!(rec.instruction, "cmp ah, dl");
@@ -177,7 +214,11 @@ fn xmm3_flips_change_exactly_the_logged_bits_in_all_128() -> Result<()> {
     let mut high_lane_hit = false;
     for round in 0..80 {
         let bits = 1 + round % 3;
-        let rec = inject(target.pid(), &spec(OperandRole::Any, bits, &["xmm3"]), &mut rng)?;
+        let rec = inject(
+            target.pid(),
+            &spec(OperandRole::Any, bits, &["xmm3"]),
+            &mut rng,
+        )?;
         check_record(&rec, bits);
         assert_eq!(rec.register, "xmm3");
         let expected_instruction = match rec.role {
@@ -217,7 +258,10 @@ fn float_field_flips_stay_in_their_field_and_lane() -> Result<()> {
             let rec = inject(target.pid(), &spec, &mut rng)?;
             check_record(&rec, 1);
             assert_eq!((rec.field, rec.lane), (field, Some(lane)));
-            assert!(rec.bits.iter().all(|b| range.contains(b)), "{field} lane {lane}: {rec:?}");
+            assert!(
+                rec.bits.iter().all(|b| range.contains(b)),
+                "{field} lane {lane}: {rec:?}"
+            );
             let seen = target.read_u128()?;
             assert_eq!(seen, pattern ^ rec.mask(), "{rec:?}");
         }
@@ -240,8 +284,14 @@ fn flipped_positions_cover_the_whole_64_bit_width() -> Result<()> {
     }
     let (min, max) = (count.iter().min().unwrap(), count.iter().max().unwrap());
     eprintln!("{flips} single-bit flips of r12: every bit hit between {min} and {max} times");
-    assert!(count.iter().all(|&c| c > 0), "positions never hit: {count:?}");
-    assert!(count[8..].iter().sum::<u32>() > flips / 2, "not just the low byte");
+    assert!(
+        count.iter().all(|&c| c > 0),
+        "positions never hit: {count:?}"
+    );
+    assert!(
+        count[8..].iter().sum::<u32>() > flips / 2,
+        "not just the low byte"
+    );
     Ok(())
 }
 
@@ -251,7 +301,11 @@ fn code_at_the_end_of_a_mapping_is_read_up_to_the_page_end() -> Result<()> {
     let mut target = Target::start(&["page-end"])?;
     let page_end = target.read_u64()?;
     for _ in 0..10 {
-        let rec = inject(target.pid(), &spec(OperandRole::Source, 1, &["r12"]), &mut rng)?;
+        let rec = inject(
+            target.pid(),
+            &spec(OperandRole::Source, 1, &["r12"]),
+            &mut rng,
+        )?;
         check_record(&rec, 1);
         assert_eq!(rec.instruction, "inc r12");
         assert_eq!(rec.instruction_bytes, "49ffc4");
@@ -313,9 +367,14 @@ fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
         bits: 0,
         ..Default::default()
     };
-    assert!(matches!(inject(1, &zero_bits, &mut rng), Err(RegFlipError::InvalidSpec(_))));
+    assert!(matches!(
+        inject(1, &zero_bits, &mut rng),
+        Err(RegFlipError::InvalidSpec(_))
+    ));
     let unknown = spec(OperandRole::Any, 1, &["r16"]);
-    assert!(matches!(inject(1, &unknown, &mut rng), Err(RegFlipError::InvalidSpec(m)) if m.contains("r16")));
+    assert!(
+        matches!(inject(1, &unknown, &mut rng), Err(RegFlipError::InvalidSpec(m)) if m.contains("r16"))
+    );
     let other = RegFlipSpec {
         tid: Some(pid),
         ..Default::default()
@@ -324,5 +383,79 @@ fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
         inject(std::process::id() as i32, &other, &mut rng),
         Err(RegFlipError::NotAThreadOf { .. })
     ));
+    Ok(())
+}
+
+#[test]
+fn signals_arriving_during_injections_are_delivered_once_with_their_value() -> Result<()> {
+    let mut rng = rng("signals", 10);
+    let mut target = Target::start(&["gpr-signals", &format!("{GPR_PATTERN:x}")])?;
+    let pid = target.pid();
+    let signals = 3000;
+    let done = Arc::new(AtomicBool::new(false));
+    let sender = {
+        let done = done.clone();
+        std::thread::spawn(move || {
+            for value in 0..signals {
+                let sent = replica_rt::sys::sigqueue(pid, libc::SIGRTMIN(), value);
+                if value % 16 == 0 {
+                    std::thread::sleep(Duration::from_micros(100));
+                }
+                if sent.is_err() {
+                    break;
+                }
+            }
+            done.store(true, Ordering::SeqCst);
+        })
+    };
+    // Destination flips single-step the thread, so signals meet the injector mid-step.
+    let (mut injections, mut deferred, mut stepped, mut misses) = (0, 0, 0, 0);
+    while !done.load(Ordering::SeqCst) {
+        let rec = match inject(pid, &spec(OperandRole::Destination, 1, &["r12"]), &mut rng) {
+            Ok(rec) => rec,
+            // Stopped inside the handler, which reaches its write(2) without writing r12.
+            Err(RegFlipError::NoCandidate { .. } | RegFlipError::InSyscall { .. }) => {
+                misses += 1;
+                continue;
+            }
+            Err(e) => return Err(e.into()),
+        };
+        injections += 1;
+        deferred += rec.signals_deferred.len();
+        stepped += usize::from(rec.role == OperandRole::Destination);
+        // A flip inside the signal handler is undone by sigreturn: only a flip in the loop
+        // is reported.
+        if rec.instruction == "mov r12, r14" {
+            let seen = target.read_u64()?;
+            assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+        }
+    }
+    sender.join().expect("sender thread");
+    let mut received: BTreeMap<i32, u32> = BTreeMap::new();
+    let mut bytes = Vec::new();
+    let deadline = Instant::now() + REPORT_TIMEOUT;
+    while bytes.len() < 4 * signals as usize && Instant::now() < deadline {
+        if let Ok(chunk) = target.stderr.recv_timeout(Duration::from_millis(100)) {
+            bytes.extend_from_slice(&chunk);
+        }
+    }
+    for value in bytes.chunks_exact(4) {
+        *received
+            .entry(i32::from_le_bytes(value.try_into().unwrap()))
+            .or_default() += 1;
+    }
+    eprintln!(
+        "{injections} injections ({misses} attempts found no r12 destination), \
+         {deferred} signals re-sent by the injector"
+    );
+    assert!(stepped > 0, "no injection single-stepped");
+    assert!(
+        received.values().all(|&n| n == 1),
+        "duplicates: {received:?}"
+    );
+    assert_eq!(
+        received.keys().copied().collect::<Vec<_>>(),
+        (0..signals).collect::<Vec<_>>()
+    );
     Ok(())
 }

@@ -4,6 +4,9 @@
 //! regflip-target gpr PATTERN      r12 = PATTERN each round; reports r12 (8 bytes) when it differs
 //! regflip-target ah PATTERN       rax = PATTERN; compares AH with byte 1; reports rax (8 bytes)
 //! regflip-target xmm LO HI        xmm3 = HI:LO each round; reports xmm3 (16 bytes) when it differs
+//! regflip-target gpr-signals PATTERN
+//!                                 as `gpr`, and writes the sigqueue value (4 bytes) of every
+//!                                 SIGRTMIN it receives to stderr
 //! regflip-target page-end         loops on `inc r12; jmp` in the last 5 bytes of a page whose
 //!                                 next page is unmapped; reports that page's end address
 //! ```
@@ -28,12 +31,21 @@ fn parse_u64(s: &str) -> Result<u64, String> {
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let result: Result<Infallible, String> = match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
+    let result: Result<Infallible, String> = match args
+        .iter()
+        .map(String::as_str)
+        .collect::<Vec<_>>()[..]
+    {
         ["gpr", p] => parse_u64(p).map(|p| gpr(p)),
         ["ah", p] => parse_u64(p).map(|p| ah(p)),
         ["xmm", lo, hi] => parse_u64(lo).and_then(|lo| parse_u64(hi).map(|hi| xmm(lo, hi))),
+        ["gpr-signals", p] => parse_u64(p).and_then(|p| report_rt_signals().map(|()| gpr(p))),
         ["page-end"] => page_end(),
-        _ => Err("usage: regflip-target gpr PATTERN | ah PATTERN | xmm LO HI | page-end".into()),
+        _ => Err(
+            "usage: regflip-target gpr PATTERN | gpr-signals PATTERN | ah PATTERN | xmm LO HI | \
+              page-end"
+                .into(),
+        ),
     };
     match result {
         Ok(never) => match never {},
@@ -68,6 +80,33 @@ fn gpr(pattern: u64) -> ! {
             options(noreturn, nostack),
         )
     }
+}
+
+/// Writes the value of each SIGRTMIN to fd 2 (-1 if it came without one).
+extern "C" fn on_rt_signal(_: libc::c_int, info: *mut libc::siginfo_t, _: *mut libc::c_void) {
+    // SAFETY: for an SA_SIGINFO handler the kernel passes a valid siginfo; si_value is only
+    // read when si_code says a sigqueue filled it in.
+    let value = unsafe {
+        match (*info).si_code {
+            libc::SI_QUEUE => (*info).si_value().sival_ptr as isize as i32,
+            _ => -1,
+        }
+    };
+    let bytes = value.to_le_bytes();
+    // SAFETY: write(2) is async-signal-safe; `bytes` is a live local of 4 bytes.
+    unsafe { libc::write(2, bytes.as_ptr().cast(), bytes.len()) };
+}
+
+fn report_rt_signals() -> Result<(), String> {
+    // SAFETY: sigaction is plain old data; all-zero is a valid value (empty mask, no flags).
+    let mut sa: libc::sigaction = unsafe { std::mem::zeroed() };
+    sa.sa_sigaction = on_rt_signal as *const () as usize;
+    sa.sa_flags = libc::SA_SIGINFO | libc::SA_RESTART;
+    // SAFETY: `sa` is initialised and outlives the call; the handler only calls write(2).
+    if unsafe { libc::sigaction(libc::SIGRTMIN(), &sa, std::ptr::null_mut()) } != 0 {
+        return Err(format!("sigaction: {}", std::io::Error::last_os_error()));
+    }
+    Ok(())
 }
 
 /// AH (bits 8–15 of RAX) is read by `cmp ah, dl` with DL = byte 1 of the pattern.
