@@ -207,8 +207,9 @@ pub enum RegFlipError {
     #[error("thread {tid} is not a thread of process {pid}")]
     NotAThreadOf { pid: i32, tid: i32 },
     #[error(
-        "not allowed to trace thread {tid} ({source}): run as root, give the injector \
-         CAP_SYS_PTRACE, or set kernel.yama.ptrace_scope=0"
+        "not allowed to trace thread {tid} ({source}): it is traced already (a debugger, \
+         another injection), or this user may not trace it (run as root, give the injector \
+         CAP_SYS_PTRACE, or set kernel.yama.ptrace_scope=0)"
     )]
     Permission { tid: i32, source: io::Error },
     #[error("thread {tid} does not exist or exited during the injection")]
@@ -454,7 +455,10 @@ impl Traced {
                     self.deferred.push(info);
                 }
                 // A second PTRACE_INTERRUPT left pending by `interrupt`; the step has not run.
-                Stop::Event { .. } | Stop::OtherEvent { .. } => {}
+                Stop::Event { sig } if sig == libc::SIGTRAP => {}
+                Stop::OtherEvent { .. } => {}
+                // Stopped by job control meanwhile (nothing has been flipped yet).
+                Stop::Event { sig } => return Err(RegFlipError::JobControlStopped { tid, sig }),
                 Stop::Exited { .. } | Stop::Killed { .. } => {
                     self.attached = false;
                     return Err(RegFlipError::Gone { tid });

@@ -459,3 +459,65 @@ fn signals_arriving_during_injections_are_delivered_once_with_their_value() -> R
     );
     Ok(())
 }
+
+#[test]
+fn the_asked_thread_is_injected_and_the_main_thread_by_default() -> Result<()> {
+    let mut rng = rng("threads", 11);
+    let mut target = Target::start(&["gpr-thread", &format!("{GPR_PATTERN:x}")])?;
+    let pid = target.pid();
+    let worker: i32 = std::fs::read_dir(format!("/proc/{pid}/task"))?
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse().ok())
+        .find(|&tid| tid != pid)
+        .context("the worker thread")?;
+    for _ in 0..20 {
+        let on_worker = RegFlipSpec {
+            tid: Some(worker),
+            ..spec(OperandRole::Source, 1, &["r12"])
+        };
+        let rec = inject(pid, &on_worker, &mut rng)?;
+        assert_eq!((rec.pid, rec.tid), (pid, worker));
+        let seen = target.read_u64()?;
+        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+    }
+    // The main thread is blocked joining the worker: no register fault there.
+    assert!(matches!(
+        inject(pid, &spec(OperandRole::Source, 1, &["r12"]), &mut rng),
+        Err(RegFlipError::InSyscall { tid, .. }) if tid == pid
+    ));
+    Ok(())
+}
+
+#[test]
+fn a_job_control_stopped_process_is_not_injected_and_stays_stopped() -> Result<()> {
+    let mut rng = rng("stopped", 12);
+    let target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    let pid = target.pid();
+    replica_rt::sys::kill(pid, libc::SIGSTOP)?;
+    let state = || {
+        std::fs::read_to_string(format!("/proc/{pid}/stat"))
+            .ok()
+            .and_then(|s| s.rsplit(')').next()?.trim().chars().next())
+    };
+    let deadline = Instant::now() + REPORT_TIMEOUT;
+    while state() != Some('T') && Instant::now() < deadline {
+        std::thread::yield_now();
+    }
+    let result = inject(pid, &RegFlipSpec::default(), &mut rng);
+    assert!(
+        matches!(result, Err(RegFlipError::JobControlStopped { sig, .. }) if sig == libc::SIGSTOP),
+        "{result:?}"
+    );
+    // Detached, it wakes up briefly and re-enters its group-stop.
+    let deadline = Instant::now() + REPORT_TIMEOUT;
+    while state() != Some('T') && Instant::now() < deadline {
+        std::thread::yield_now();
+    }
+    assert_eq!(
+        state(),
+        Some('T'),
+        "still stopped by job control, and no longer traced"
+    );
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
+    assert!(status.contains("TracerPid:\t0"), "{status}");
+    Ok(())
+}

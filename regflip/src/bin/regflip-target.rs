@@ -7,6 +7,8 @@
 //! regflip-target gpr-signals PATTERN
 //!                                 as `gpr`, and writes the sigqueue value (4 bytes) of every
 //!                                 SIGRTMIN it receives to stderr
+//! regflip-target gpr-thread PATTERN
+//!                                 as `gpr`, in a second thread; the main thread waits in join
 //! regflip-target page-end         loops on `inc r12; jmp` in the last 5 bytes of a page whose
 //!                                 next page is unmapped; reports that page's end address
 //! ```
@@ -31,22 +33,26 @@ fn parse_u64(s: &str) -> Result<u64, String> {
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let result: Result<Infallible, String> = match args
-        .iter()
-        .map(String::as_str)
-        .collect::<Vec<_>>()[..]
-    {
-        ["gpr", p] => parse_u64(p).map(|p| gpr(p)),
-        ["ah", p] => parse_u64(p).map(|p| ah(p)),
-        ["xmm", lo, hi] => parse_u64(lo).and_then(|lo| parse_u64(hi).map(|hi| xmm(lo, hi))),
-        ["gpr-signals", p] => parse_u64(p).and_then(|p| report_rt_signals().map(|()| gpr(p))),
-        ["page-end"] => page_end(),
-        _ => Err(
-            "usage: regflip-target gpr PATTERN | gpr-signals PATTERN | ah PATTERN | xmm LO HI | \
-              page-end"
-                .into(),
-        ),
-    };
+    let result: Result<Infallible, String> =
+        match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
+            ["gpr", p] => parse_u64(p).map(|p| gpr(p)),
+            ["ah", p] => parse_u64(p).map(|p| ah(p)),
+            ["xmm", lo, hi] => parse_u64(lo).and_then(|lo| parse_u64(hi).map(|hi| xmm(lo, hi))),
+            ["gpr-signals", p] => parse_u64(p).and_then(|p| report_rt_signals().map(|()| gpr(p))),
+            ["gpr-thread", p] => parse_u64(p).and_then(|p| {
+                let worker = std::thread::spawn(move || -> Infallible { gpr(p) });
+                match worker.join() {
+                    Ok(never) => match never {},
+                    Err(_) => Err("the worker thread panicked".to_string()),
+                }
+            }),
+            ["page-end"] => page_end(),
+            _ => Err(
+                "usage: regflip-target gpr PATTERN | gpr-signals PATTERN | gpr-thread PATTERN | \
+              ah PATTERN | xmm LO HI | page-end"
+                    .into(),
+            ),
+        };
     match result {
         Ok(never) => match never {},
         Err(e) => {
