@@ -1,6 +1,7 @@
 //! Register flips against `regflip-target`, a program whose register contents are known: every
 //! flip must change exactly the logged bits of the logged register, as the program itself
 //! observes and reports them. Each test kills and reaps its target on every path.
+#![cfg(all(target_os = "linux", target_arch = "x86_64"))]
 
 use anyhow::{bail, Context, Result};
 use rand::SeedableRng;

@@ -22,15 +22,26 @@
 //! This is a test fixture: its `unsafe` is the inline assembly itself (and, in `page-end`, the
 //! mmap that places code at a page end), which is what the fixture exists for.
 
-use std::arch::asm;
+#[cfg(target_arch = "x86_64")]
 use std::convert::Infallible;
 use std::process::ExitCode;
 
+#[cfg(target_arch = "x86_64")]
+use x86::{ah, gpr, page_end, report_rt_signals, xmm};
+
+#[cfg(target_arch = "x86_64")]
 fn parse_u64(s: &str) -> Result<u64, String> {
     let t = s.trim_start_matches("0x");
     u64::from_str_radix(t, 16).map_err(|e| format!("`{s}` is not a hex u64: {e}"))
 }
 
+#[cfg(not(target_arch = "x86_64"))]
+fn main() -> ExitCode {
+    eprintln!("regflip-target: x86-64 only");
+    ExitCode::from(2)
+}
+
+#[cfg(target_arch = "x86_64")]
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result: Result<Infallible, String> =
@@ -62,160 +73,167 @@ fn main() -> ExitCode {
     }
 }
 
-/// r12 is written by `mov r12, r14` (destination) and read by `cmp r12, r15` (source).
-fn gpr(pattern: u64) -> ! {
-    let ready = b'R';
-    let mut report = [0u8; 8];
-    // SAFETY: the block only writes the 8 bytes of `report` (through r9) and reads `ready`
-    // (through r8), both live for ever since the block never returns; it issues write(2) on
-    // fd 1 only; it does not touch the stack.
-    unsafe {
-        asm!(
-            "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
-            "2:",
-            "mov r12, r14",
-            "cmp r12, r15",
-            "je 2b",
-            "mov [r9], r12",
-            "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 8", "syscall",
-            "jmp 2b",
-            in("r8") &ready as *const u8,
-            in("r9") report.as_mut_ptr(),
-            in("r14") pattern,
-            in("r15") pattern,
-            options(noreturn, nostack),
-        )
-    }
-}
+/// The fixture's loops, x86-64 inline assembly.
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::asm;
+    use std::convert::Infallible;
 
-/// Writes the value of each SIGRTMIN to fd 2 (-1 if it came without one).
-extern "C" fn on_rt_signal(_: libc::c_int, info: *mut libc::siginfo_t, _: *mut libc::c_void) {
-    // SAFETY: for an SA_SIGINFO handler the kernel passes a valid siginfo; si_value is only
-    // read when si_code says a sigqueue filled it in.
-    let value = unsafe {
-        match (*info).si_code {
-            libc::SI_QUEUE => (*info).si_value().sival_ptr as isize as i32,
-            _ => -1,
+    /// r12 is written by `mov r12, r14` (destination) and read by `cmp r12, r15` (source).
+    pub fn gpr(pattern: u64) -> ! {
+        let ready = b'R';
+        let mut report = [0u8; 8];
+        // SAFETY: the block only writes the 8 bytes of `report` (through r9) and reads `ready`
+        // (through r8), both live for ever since the block never returns; it issues write(2) on
+        // fd 1 only; it does not touch the stack.
+        unsafe {
+            asm!(
+                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
+                "2:",
+                "mov r12, r14",
+                "cmp r12, r15",
+                "je 2b",
+                "mov [r9], r12",
+                "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 8", "syscall",
+                "jmp 2b",
+                in("r8") &ready as *const u8,
+                in("r9") report.as_mut_ptr(),
+                in("r14") pattern,
+                in("r15") pattern,
+                options(noreturn, nostack),
+            )
         }
-    };
-    let bytes = value.to_le_bytes();
-    // SAFETY: write(2) is async-signal-safe; `bytes` is a live local of 4 bytes.
-    unsafe { libc::write(2, bytes.as_ptr().cast(), bytes.len()) };
-}
+    }
 
-fn report_rt_signals() -> Result<(), String> {
-    // SAFETY: sigaction is plain old data; all-zero is a valid value (empty mask, no flags).
-    let mut sa: libc::sigaction = unsafe { std::mem::zeroed() };
-    sa.sa_sigaction = on_rt_signal as *const () as usize;
-    sa.sa_flags = libc::SA_SIGINFO | libc::SA_RESTART;
-    // SAFETY: `sa` is initialised and outlives the call; the handler only calls write(2).
-    if unsafe { libc::sigaction(libc::SIGRTMIN(), &sa, std::ptr::null_mut()) } != 0 {
-        return Err(format!("sigaction: {}", std::io::Error::last_os_error()));
+    /// Writes the value of each SIGRTMIN to fd 2 (-1 if it came without one).
+    extern "C" fn on_rt_signal(_: libc::c_int, info: *mut libc::siginfo_t, _: *mut libc::c_void) {
+        // SAFETY: for an SA_SIGINFO handler the kernel passes a valid siginfo; si_value is only
+        // read when si_code says a sigqueue filled it in.
+        let value = unsafe {
+            match (*info).si_code {
+                libc::SI_QUEUE => (*info).si_value().sival_ptr as isize as i32,
+                _ => -1,
+            }
+        };
+        let bytes = value.to_le_bytes();
+        // SAFETY: write(2) is async-signal-safe; `bytes` is a live local of 4 bytes.
+        unsafe { libc::write(2, bytes.as_ptr().cast(), bytes.len()) };
     }
-    Ok(())
-}
 
-/// AH (bits 8–15 of RAX) is read by `cmp ah, dl` with DL = byte 1 of the pattern.
-fn ah(pattern: u64) -> ! {
-    let ready = b'R';
-    let mut report = [0u8; 8];
-    // SAFETY: as in `gpr`.
-    unsafe {
-        asm!(
-            "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
-            "3:",
-            "mov rdx, r14",
-            "shr rdx, 8",
-            "2:",
-            "mov rax, r14",
-            "cmp ah, dl",
-            "je 2b",
-            "mov [r9], rax",
-            "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 8", "syscall",
-            "jmp 3b",
-            in("r8") &ready as *const u8,
-            in("r9") report.as_mut_ptr(),
-            in("r14") pattern,
-            options(noreturn, nostack),
-        )
+    pub fn report_rt_signals() -> Result<(), String> {
+        // SAFETY: sigaction is plain old data; all-zero is a valid value (empty mask, no flags).
+        let mut sa: libc::sigaction = unsafe { std::mem::zeroed() };
+        sa.sa_sigaction = on_rt_signal as *const () as usize;
+        sa.sa_flags = libc::SA_SIGINFO | libc::SA_RESTART;
+        // SAFETY: `sa` is initialised and outlives the call; the handler only calls write(2).
+        if unsafe { libc::sigaction(libc::SIGRTMIN(), &sa, std::ptr::null_mut()) } != 0 {
+            return Err(format!("sigaction: {}", std::io::Error::last_os_error()));
+        }
+        Ok(())
     }
-}
 
-/// xmm3 is written by `movdqa xmm3, xmm4` and read by `movdqa xmm5, xmm3`; all 128 bits are
-/// compared.
-fn xmm(lo: u64, hi: u64) -> ! {
-    let ready = b'R';
-    let pattern: [u64; 2] = [lo, hi];
-    let mut report = [0u8; 16];
-    // SAFETY: as in `gpr`; it also reads the 16 bytes of `pattern` through r10.
-    unsafe {
-        asm!(
-            "movdqu xmm4, [r10]",
-            "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
-            "2:",
-            "movdqa xmm3, xmm4",
-            "movdqa xmm5, xmm3",
-            "pcmpeqb xmm5, xmm4",
-            "pmovmskb eax, xmm5",
-            "cmp eax, 0xffff",
-            "je 2b",
-            "movdqu [r9], xmm3",
-            "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 16", "syscall",
-            "jmp 2b",
-            in("r8") &ready as *const u8,
-            in("r9") report.as_mut_ptr(),
-            in("r10") pattern.as_ptr(),
-            options(noreturn, nostack),
-        )
+    /// AH (bits 8–15 of RAX) is read by `cmp ah, dl` with DL = byte 1 of the pattern.
+    pub fn ah(pattern: u64) -> ! {
+        let ready = b'R';
+        let mut report = [0u8; 8];
+        // SAFETY: as in `gpr`.
+        unsafe {
+            asm!(
+                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
+                "3:",
+                "mov rdx, r14",
+                "shr rdx, 8",
+                "2:",
+                "mov rax, r14",
+                "cmp ah, dl",
+                "je 2b",
+                "mov [r9], rax",
+                "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 8", "syscall",
+                "jmp 3b",
+                in("r8") &ready as *const u8,
+                in("r9") report.as_mut_ptr(),
+                in("r14") pattern,
+                options(noreturn, nostack),
+            )
+        }
     }
-}
 
-/// `inc r12; jmp -5` in the last 5 bytes of an executable page whose successor is unmapped:
-/// an injector that insists on reading 15 bytes at the instruction pointer fails here.
-fn page_end() -> Result<Infallible, String> {
-    const LOOP: [u8; 5] = [0x49, 0xff, 0xc4, 0xeb, 0xfb]; // inc r12; jmp -5
-    let page = 4096usize;
-    // SAFETY: an anonymous private mapping of two fresh pages; nothing else refers to them.
-    let base = unsafe {
-        libc::mmap(
-            std::ptr::null_mut(),
-            2 * page,
-            libc::PROT_READ | libc::PROT_WRITE,
-            libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
-            -1,
-            0,
-        )
-    };
-    if base == libc::MAP_FAILED {
-        return Err(format!("mmap: {}", std::io::Error::last_os_error()));
+    /// xmm3 is written by `movdqa xmm3, xmm4` and read by `movdqa xmm5, xmm3`; all 128 bits are
+    /// compared.
+    pub fn xmm(lo: u64, hi: u64) -> ! {
+        let ready = b'R';
+        let pattern: [u64; 2] = [lo, hi];
+        let mut report = [0u8; 16];
+        // SAFETY: as in `gpr`; it also reads the 16 bytes of `pattern` through r10.
+        unsafe {
+            asm!(
+                "movdqu xmm4, [r10]",
+                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
+                "2:",
+                "movdqa xmm3, xmm4",
+                "movdqa xmm5, xmm3",
+                "pcmpeqb xmm5, xmm4",
+                "pmovmskb eax, xmm5",
+                "cmp eax, 0xffff",
+                "je 2b",
+                "movdqu [r9], xmm3",
+                "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 16", "syscall",
+                "jmp 2b",
+                in("r8") &ready as *const u8,
+                in("r9") report.as_mut_ptr(),
+                in("r10") pattern.as_ptr(),
+                options(noreturn, nostack),
+            )
+        }
     }
-    let base = base.cast::<u8>();
-    // SAFETY: the second page is ours (mapped above) and unused.
-    if unsafe { libc::munmap(base.add(page).cast(), page) } != 0 {
-        return Err(format!("munmap: {}", std::io::Error::last_os_error()));
-    }
-    // SAFETY: the first page is mapped writable; the 5 bytes end exactly at its end.
-    let entry = unsafe {
-        let entry = base.add(page - LOOP.len());
-        std::ptr::copy_nonoverlapping(LOOP.as_ptr(), entry, LOOP.len());
-        entry
-    };
-    // SAFETY: changes the protection of our own first page only.
-    if unsafe { libc::mprotect(base.cast(), page, libc::PROT_READ | libc::PROT_EXEC) } != 0 {
-        return Err(format!("mprotect: {}", std::io::Error::last_os_error()));
-    }
-    let mut ready = [0u8; 9];
-    ready[0] = b'R';
-    ready[1..].copy_from_slice(&(base as u64 + page as u64).to_le_bytes());
-    // SAFETY: writes the 9 bytes of `ready` to fd 1, then jumps into the page prepared above,
-    // whose loop touches only r12 and never returns.
-    unsafe {
-        asm!(
-            "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 9", "syscall",
-            "jmp r9",
-            in("r8") ready.as_ptr(),
-            in("r9") entry,
-            options(noreturn, nostack),
-        )
+
+    /// `inc r12; jmp -5` in the last 5 bytes of an executable page whose successor is unmapped:
+    /// an injector that insists on reading 15 bytes at the instruction pointer fails here.
+    pub fn page_end() -> Result<Infallible, String> {
+        const LOOP: [u8; 5] = [0x49, 0xff, 0xc4, 0xeb, 0xfb]; // inc r12; jmp -5
+        let page = 4096usize;
+        // SAFETY: an anonymous private mapping of two fresh pages; nothing else refers to them.
+        let base = unsafe {
+            libc::mmap(
+                std::ptr::null_mut(),
+                2 * page,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+                -1,
+                0,
+            )
+        };
+        if base == libc::MAP_FAILED {
+            return Err(format!("mmap: {}", std::io::Error::last_os_error()));
+        }
+        let base = base.cast::<u8>();
+        // SAFETY: the second page is ours (mapped above) and unused.
+        if unsafe { libc::munmap(base.add(page).cast(), page) } != 0 {
+            return Err(format!("munmap: {}", std::io::Error::last_os_error()));
+        }
+        // SAFETY: the first page is mapped writable; the 5 bytes end exactly at its end.
+        let entry = unsafe {
+            let entry = base.add(page - LOOP.len());
+            std::ptr::copy_nonoverlapping(LOOP.as_ptr(), entry, LOOP.len());
+            entry
+        };
+        // SAFETY: changes the protection of our own first page only.
+        if unsafe { libc::mprotect(base.cast(), page, libc::PROT_READ | libc::PROT_EXEC) } != 0 {
+            return Err(format!("mprotect: {}", std::io::Error::last_os_error()));
+        }
+        let mut ready = [0u8; 9];
+        ready[0] = b'R';
+        ready[1..].copy_from_slice(&(base as u64 + page as u64).to_le_bytes());
+        // SAFETY: writes the 9 bytes of `ready` to fd 1, then jumps into the page prepared above,
+        // whose loop touches only r12 and never returns.
+        unsafe {
+            asm!(
+                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 9", "syscall",
+                "jmp r9",
+                in("r8") ready.as_ptr(),
+                in("r9") entry,
+                options(noreturn, nostack),
+            )
+        }
     }
 }
