@@ -302,6 +302,7 @@ impl Traced {
         }
         let len = instr.len();
         Ok(RegFlipRecord {
+            seed: None,
             pid: self.pid,
             tid,
             time_ns,

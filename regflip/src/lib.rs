@@ -144,6 +144,10 @@ impl Default for RegFlipSpec {
 /// Everything about one injection (the seed is the caller's to log).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RegFlipRecord {
+    /// The seed of the caller's generator, if the caller fills it in (`inject` cannot know
+    /// it); with it, one record line says everything about the injection.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
     pub pid: i32,
     pub tid: i32,
     /// CLOCK_MONOTONIC (ns) when the flipped value was written into the thread.

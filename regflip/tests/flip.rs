@@ -160,6 +160,9 @@ fn a_source_flip_of_r12_changes_exactly_the_logged_bits() -> Result<()> {
         let seen = target.read_u64()?;
         assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
         assert_eq!(rec.tid, target.pid());
+        let line = serde_json::to_string(&rec)?;
+        let back: RegFlipRecord = serde_json::from_str(&line)?;
+        assert_eq!(back, rec, "the record survives a JSON round trip");
     }
     Ok(())
 }
