@@ -47,15 +47,15 @@ pub(crate) fn inject(
         detach_sig: 0,
         saved_sigmask: None,
     };
-    let start = sys::monotonic_ns();
+    let start = replica_rt::sys::monotonic_ns();
     let mut stop_ns = 0;
     let outcome = traced.interrupt().and_then(|()| {
-        stop_ns = sys::monotonic_ns().saturating_sub(start);
+        stop_ns = replica_rt::sys::monotonic_ns().saturating_sub(start);
         traced.flip(spec, &filter, rng)
     });
     let deferred: Vec<i32> = traced.deferred.iter().map(|i| i.si_signo).collect();
     let detached = traced.release();
-    let pause_ns = sys::monotonic_ns().saturating_sub(start);
+    let pause_ns = replica_rt::sys::monotonic_ns().saturating_sub(start);
     let mut record = outcome?;
     detached?;
     record.pid = pid;
@@ -288,7 +288,7 @@ impl Traced {
         } else {
             sys::set_regs(tid, &regs).map_err(ptrace_err("SETREGS", tid))?;
         }
-        let time_ns = sys::monotonic_ns();
+        let time_ns = replica_rt::sys::monotonic_ns();
         // Read back what the thread will really run with.
         let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
         let fp = sys::get_fpregs(tid).map_err(ptrace_err("GETFPREGS", tid))?;

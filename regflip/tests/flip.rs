@@ -22,6 +22,10 @@ const REPORT_TIMEOUT: Duration = Duration::from_secs(10);
 /// The running fixture; killed and reaped on drop.
 struct Target {
     child: Child,
+    /// The full-register value the target holds in the register under test.
+    pattern: u128,
+    /// Bytes per report: 8 for a GPR, 16 for xmm3.
+    report_len: usize,
     bytes: mpsc::Receiver<Vec<u8>>,
     pending: Vec<u8>,
     /// Everything the target wrote to stderr.
@@ -43,7 +47,18 @@ fn forward(mut from: impl Read + Send + 'static) -> mpsc::Receiver<Vec<u8>> {
 }
 
 impl Target {
-    fn start(args: &[&str]) -> Result<Target> {
+    /// `regflip-target MODE GPR_PATTERN` (gpr, ah, gpr-signals, gpr-thread).
+    fn gpr(mode: &str) -> Result<Target> {
+        Target::start(&[mode, &format!("{GPR_PATTERN:x}")], GPR_PATTERN as u128, 8)
+    }
+
+    fn xmm() -> Result<Target> {
+        let (lo, hi) = (format!("{XMM_LO:x}"), format!("{XMM_HI:x}"));
+        let pattern = (XMM_HI as u128) << 64 | XMM_LO as u128;
+        Target::start(&["xmm", &lo, &hi], pattern, 16)
+    }
+
+    fn start(args: &[&str], pattern: u128, report_len: usize) -> Result<Target> {
         let mut child = Command::new(env!("CARGO_BIN_EXE_regflip-target"))
             .args(args)
             .stdout(Stdio::piped())
@@ -54,6 +69,8 @@ impl Target {
         let stderr = forward(child.stderr.take().expect("piped"));
         let mut target = Target {
             child,
+            pattern,
+            report_len,
             bytes,
             pending: Vec::new(),
             stderr,
@@ -82,12 +99,27 @@ impl Target {
         Ok(self.pending.drain(..n).collect())
     }
 
-    fn read_u64(&mut self) -> Result<u64> {
-        Ok(u64::from_le_bytes(self.read(8)?.try_into().unwrap()))
+    /// Injects, checks the record against itself, and checks that the target saw exactly
+    /// `pattern XOR logged bits` in the register under test.
+    fn flip(&mut self, spec: &RegFlipSpec, rng: &mut ChaCha8Rng) -> Result<RegFlipRecord> {
+        let rec = inject(self.pid(), spec, rng)?;
+        check_record(&rec, spec.bits);
+        assert_eq!(hex_value(&rec.before), self.pattern, "{rec:?}");
+        self.check_report(&rec)?;
+        Ok(rec)
     }
 
-    fn read_u128(&mut self) -> Result<u128> {
-        Ok(u128::from_le_bytes(self.read(16)?.try_into().unwrap()))
+    /// Reads the target's next report and compares it with what the record says.
+    fn check_report(&mut self, rec: &RegFlipRecord) -> Result<()> {
+        let mut bytes = [0u8; 16];
+        bytes[..self.report_len].copy_from_slice(&self.read(self.report_len)?);
+        let seen = u128::from_le_bytes(bytes);
+        assert_eq!(
+            seen,
+            self.pattern ^ rec.mask(),
+            "the target saw {seen:#x}: {rec:?}"
+        );
+        Ok(())
     }
 }
 
@@ -137,15 +169,10 @@ fn check_record(rec: &RegFlipRecord, bits: u32) {
 #[test]
 fn a_source_flip_of_r12_changes_exactly_the_logged_bits() -> Result<()> {
     let mut rng = rng("source r12", 1);
-    let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    let mut target = Target::gpr("gpr")?;
     for round in 0..60 {
         let bits = 1 + round % 4;
-        let rec = inject(
-            target.pid(),
-            &spec(OperandRole::Source, bits, &["r12"]),
-            &mut rng,
-        )?;
-        check_record(&rec, bits);
+        let rec = target.flip(&spec(OperandRole::Source, bits, &["r12"]), &mut rng)?;
         assert_eq!(
             (rec.register.as_str(), rec.operand.as_str()),
             ("r12", "r12")
@@ -156,9 +183,6 @@ fn a_source_flip_of_r12_changes_exactly_the_logged_bits() -> Result<()> {
             rec.resume_ip, rec.ip,
             "a source flip happens before the instruction"
         );
-        assert_eq!(hex_value(&rec.before) as u64, GPR_PATTERN);
-        let seen = target.read_u64()?;
-        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
         assert_eq!(rec.tid, target.pid());
         let line = serde_json::to_string(&rec)?;
         let back: RegFlipRecord = serde_json::from_str(&line)?;
@@ -170,19 +194,12 @@ fn a_source_flip_of_r12_changes_exactly_the_logged_bits() -> Result<()> {
 #[test]
 fn a_destination_flip_of_r12_lands_after_the_write() -> Result<()> {
     let mut rng = rng("destination r12", 2);
-    let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    let mut target = Target::gpr("gpr")?;
     for _ in 0..40 {
-        let rec = inject(
-            target.pid(),
-            &spec(OperandRole::Destination, 2, &["r12"]),
-            &mut rng,
-        )?;
-        check_record(&rec, 2);
+        let rec = target.flip(&spec(OperandRole::Destination, 2, &["r12"]), &mut rng)?;
         assert_eq!(rec.role, OperandRole::Destination);
         assert_eq!(rec.instruction, "mov r12, r14");
         assert_eq!(rec.resume_ip, rec.ip + 3, "stepped past the 3-byte mov");
-        let seen = target.read_u64()?;
-        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
     }
     Ok(())
 }
@@ -190,21 +207,14 @@ fn a_destination_flip_of_r12_lands_after_the_write() -> Result<()> {
 #[test]
 fn a_flip_of_ah_hits_bits_8_to_15_of_rax() -> Result<()> {
     let mut rng = rng("ah", 3);
-    let mut target = Target::start(&["ah", &format!("{GPR_PATTERN:x}")])?;
+    let mut target = Target::gpr("ah")?;
     let mut hit = [false; 64];
     for _ in 0..100 {
-        let rec = inject(
-            target.pid(),
-            &spec(OperandRole::Source, 1, &["ah"]),
-            &mut rng,
-        )?;
-        check_record(&rec, 1);
+        let rec = target.flip(&spec(OperandRole::Source, 1, &["ah"]), &mut rng)?;
         assert_eq!((rec.register.as_str(), rec.operand.as_str()), ("rax", "ah"));
         assert_eq!(rec.instruction, "cmp ah, dl");
         assert!(rec.bits.iter().all(|b| (8..16).contains(b)), "{rec:?}");
         rec.bits.iter().for_each(|&b| hit[b as usize] = true);
-        let seen = target.read_u64()?;
-        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
     }
     assert!(hit[8..16].iter().all(|&h| h), "all 8 bits of AH: {hit:?}");
     Ok(())
@@ -213,27 +223,18 @@ fn a_flip_of_ah_hits_bits_8_to_15_of_rax() -> Result<()> {
 #[test]
 fn xmm3_flips_change_exactly_the_logged_bits_in_all_128() -> Result<()> {
     let mut rng = rng("xmm3", 4);
-    let pattern = (XMM_HI as u128) << 64 | XMM_LO as u128;
-    let mut target = Target::start(&["xmm", &format!("{XMM_LO:x}"), &format!("{XMM_HI:x}")])?;
+    let mut target = Target::xmm()?;
     let mut high_lane_hit = false;
     for round in 0..80 {
         let bits = 1 + round % 3;
-        let rec = inject(
-            target.pid(),
-            &spec(OperandRole::Any, bits, &["xmm3"]),
-            &mut rng,
-        )?;
-        check_record(&rec, bits);
+        let rec = target.flip(&spec(OperandRole::Any, bits, &["xmm3"]), &mut rng)?;
         assert_eq!(rec.register, "xmm3");
         let expected_instruction = match rec.role {
             OperandRole::Source => "movdqa xmm5, xmm3",
             _ => "movdqa xmm3, xmm4",
         };
         assert_eq!(rec.instruction, expected_instruction, "{rec:?}");
-        assert_eq!(hex_value(&rec.before), pattern);
         high_lane_hit |= rec.bits.iter().any(|&b| b >= 64);
-        let seen = target.read_u128()?;
-        assert_eq!(seen, pattern ^ rec.mask(), "{rec:?}");
     }
     assert!(high_lane_hit, "flips reach the upper 64 bits of xmm3");
     Ok(())
@@ -242,8 +243,7 @@ fn xmm3_flips_change_exactly_the_logged_bits_in_all_128() -> Result<()> {
 #[test]
 fn float_field_flips_stay_in_their_field_and_lane() -> Result<()> {
     let mut rng = rng("float fields", 5);
-    let pattern = (XMM_HI as u128) << 64 | XMM_LO as u128;
-    let mut target = Target::start(&["xmm", &format!("{XMM_LO:x}"), &format!("{XMM_HI:x}")])?;
+    let mut target = Target::xmm()?;
     let cases = [
         (FloatField::Sign, 0u8, 63..64u32),
         (FloatField::Sign, 1, 127..128),
@@ -259,15 +259,12 @@ fn float_field_flips_stay_in_their_field_and_lane() -> Result<()> {
                 lane,
                 ..spec(OperandRole::Source, 1, &["xmm3"])
             };
-            let rec = inject(target.pid(), &spec, &mut rng)?;
-            check_record(&rec, 1);
+            let rec = target.flip(&spec, &mut rng)?;
             assert_eq!((rec.field, rec.lane), (field, Some(lane)));
             assert!(
                 rec.bits.iter().all(|b| range.contains(b)),
                 "{field} lane {lane}: {rec:?}"
             );
-            let seen = target.read_u128()?;
-            assert_eq!(seen, pattern ^ rec.mask(), "{rec:?}");
         }
     }
     Ok(())
@@ -276,15 +273,12 @@ fn float_field_flips_stay_in_their_field_and_lane() -> Result<()> {
 #[test]
 fn flipped_positions_cover_the_whole_64_bit_width() -> Result<()> {
     let mut rng = rng("coverage", 6);
-    let mut target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    let mut target = Target::gpr("gpr")?;
     let mut count = [0u32; 64];
     let flips = 1000;
     for _ in 0..flips {
-        let rec = inject(target.pid(), &spec(OperandRole::Any, 1, &["r12"]), &mut rng)?;
-        check_record(&rec, 1);
+        let rec = target.flip(&spec(OperandRole::Any, 1, &["r12"]), &mut rng)?;
         count[rec.bits[0] as usize] += 1;
-        let seen = target.read_u64()?;
-        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
     }
     let (min, max) = (count.iter().min().unwrap(), count.iter().max().unwrap());
     eprintln!("{flips} single-bit flips of r12: every bit hit between {min} and {max} times");
@@ -302,8 +296,8 @@ fn flipped_positions_cover_the_whole_64_bit_width() -> Result<()> {
 #[test]
 fn code_at_the_end_of_a_mapping_is_read_up_to_the_page_end() -> Result<()> {
     let mut rng = rng("page end", 7);
-    let mut target = Target::start(&["page-end"])?;
-    let page_end = target.read_u64()?;
+    let mut target = Target::start(&["page-end"], 0, 8)?;
+    let page_end = u64::from_le_bytes(target.read(8)?.try_into().unwrap());
     for _ in 0..10 {
         let rec = inject(
             target.pid(),
@@ -393,7 +387,7 @@ fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
 #[test]
 fn signals_arriving_during_injections_are_delivered_once_with_their_value() -> Result<()> {
     let mut rng = rng("signals", 10);
-    let mut target = Target::start(&["gpr-signals", &format!("{GPR_PATTERN:x}")])?;
+    let mut target = Target::gpr("gpr-signals")?;
     let pid = target.pid();
     let signals = 3000;
     let done = Arc::new(AtomicBool::new(false));
@@ -430,8 +424,7 @@ fn signals_arriving_during_injections_are_delivered_once_with_their_value() -> R
         // A flip inside the signal handler is undone by sigreturn: only a flip in the loop
         // is reported.
         if rec.instruction == "mov r12, r14" {
-            let seen = target.read_u64()?;
-            assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
+            target.check_report(&rec)?;
         }
     }
     sender.join().expect("sender thread");
@@ -467,7 +460,7 @@ fn signals_arriving_during_injections_are_delivered_once_with_their_value() -> R
 #[test]
 fn the_asked_thread_is_injected_and_the_main_thread_by_default() -> Result<()> {
     let mut rng = rng("threads", 11);
-    let mut target = Target::start(&["gpr-thread", &format!("{GPR_PATTERN:x}")])?;
+    let mut target = Target::gpr("gpr-thread")?;
     let pid = target.pid();
     let worker: i32 = std::fs::read_dir(format!("/proc/{pid}/task"))?
         .filter_map(|e| e.ok()?.file_name().to_str()?.parse().ok())
@@ -478,10 +471,8 @@ fn the_asked_thread_is_injected_and_the_main_thread_by_default() -> Result<()> {
             tid: Some(worker),
             ..spec(OperandRole::Source, 1, &["r12"])
         };
-        let rec = inject(pid, &on_worker, &mut rng)?;
+        let rec = target.flip(&on_worker, &mut rng)?;
         assert_eq!((rec.pid, rec.tid), (pid, worker));
-        let seen = target.read_u64()?;
-        assert_eq!(seen as u128, GPR_PATTERN as u128 ^ rec.mask(), "{rec:?}");
     }
     // The main thread is blocked joining the worker: no register fault there.
     assert!(matches!(
@@ -494,7 +485,7 @@ fn the_asked_thread_is_injected_and_the_main_thread_by_default() -> Result<()> {
 #[test]
 fn a_job_control_stopped_process_is_not_injected_and_stays_stopped() -> Result<()> {
     let mut rng = rng("stopped", 12);
-    let target = Target::start(&["gpr", &format!("{GPR_PATTERN:x}")])?;
+    let target = Target::gpr("gpr")?;
     let pid = target.pid();
     replica_rt::sys::kill(pid, libc::SIGSTOP)?;
     let state = || {
