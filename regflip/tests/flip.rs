@@ -130,6 +130,39 @@ impl Drop for Target {
     }
 }
 
+/// Kills and reaps a helper process (not a `Target`) on every path.
+struct KillOnDrop(Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// The state letter of /proc/PID/stat (`R`, `S`, `T`, `t`…).
+fn proc_state(pid: i32) -> Option<char> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    stat.rsplit(')').next()?.trim().chars().next()
+}
+
+/// /proc/PID/syscall: the number of the system call the process is blocked in, first.
+fn proc_syscall(pid: i32) -> String {
+    std::fs::read_to_string(format!("/proc/{pid}/syscall")).unwrap_or_default()
+}
+
+/// Polls `cond` until it holds (true) or [`REPORT_TIMEOUT`] passes (false).
+fn wait_for(mut cond: impl FnMut() -> bool) -> bool {
+    let deadline = Instant::now() + REPORT_TIMEOUT;
+    while !cond() {
+        if Instant::now() > deadline {
+            return false;
+        }
+        std::thread::yield_now();
+    }
+    true
+}
+
 fn rng(test: &str, default_seed: u64) -> ChaCha8Rng {
     let seed = std::env::var("REGFLIP_SEED")
         .ok()
@@ -316,38 +349,24 @@ fn code_at_the_end_of_a_mapping_is_read_up_to_the_page_end() -> Result<()> {
 #[test]
 fn a_thread_blocked_in_a_system_call_is_left_untouched() -> Result<()> {
     let mut rng = rng("blocked", 8);
-    let mut child = Command::new("sleep").arg("30").spawn()?;
-    let pid = child.id() as i32;
-    // Wait (bounded) until sleep is blocked in its nanosleep.
-    let deadline = Instant::now() + REPORT_TIMEOUT;
-    let state = || {
-        std::fs::read_to_string(format!("/proc/{pid}/stat"))
-            .ok()
-            .and_then(|s| s.rsplit(')').next().map(|r| r.trim().chars().next()))
-            .flatten()
-    };
-    let wchan = || std::fs::read_to_string(format!("/proc/{pid}/syscall")).unwrap_or_default();
-    while !(state() == Some('S') && wchan().starts_with("230 ")) && Instant::now() < deadline {
-        std::thread::yield_now();
-    }
+    let sleeper = KillOnDrop(Command::new("sleep").arg("30").spawn()?);
+    let pid = sleeper.0.id() as i32;
+    let asleep_in =
+        |call: &str| proc_state(pid) == Some('S') && proc_syscall(pid).starts_with(call);
+    // 230 = clock_nanosleep.
+    assert!(wait_for(|| asleep_in("230 ")), "sleep never blocked");
     let result = inject(pid, &RegFlipSpec::default(), &mut rng);
     // Detached, it resumes its sleep through restart_syscall (219): it must get back to
     // sleeping, not stay stopped (`t`). Right after the detach it may briefly be running.
-    let deadline = Instant::now() + REPORT_TIMEOUT;
-    let mut after = state();
-    while !(after == Some('S') && wchan().starts_with("219 ")) && Instant::now() < deadline {
-        std::thread::yield_now();
-        after = state();
-    }
-    let resumed_sleep = wchan().starts_with("219 ");
-    let _ = child.kill();
-    let _ = child.wait();
+    assert!(
+        wait_for(|| asleep_in("219 ")),
+        "not back asleep: {:?}",
+        proc_state(pid)
+    );
     match result {
         Err(RegFlipError::InSyscall { syscall, .. }) => assert_eq!(syscall, 230),
         other => panic!("expected InSyscall, got {other:?}"),
     }
-    assert_eq!(after, Some('S'), "detached and back asleep, not stopped");
-    assert!(resumed_sleep, "back in its (restarted) sleep");
     Ok(())
 }
 
@@ -488,29 +507,20 @@ fn a_job_control_stopped_process_is_not_injected_and_stays_stopped() -> Result<(
     let target = Target::gpr("gpr")?;
     let pid = target.pid();
     replica_rt::sys::kill(pid, libc::SIGSTOP)?;
-    let state = || {
-        std::fs::read_to_string(format!("/proc/{pid}/stat"))
-            .ok()
-            .and_then(|s| s.rsplit(')').next()?.trim().chars().next())
-    };
-    let deadline = Instant::now() + REPORT_TIMEOUT;
-    while state() != Some('T') && Instant::now() < deadline {
-        std::thread::yield_now();
-    }
+    assert!(
+        wait_for(|| proc_state(pid) == Some('T')),
+        "SIGSTOP did not stop it"
+    );
     let result = inject(pid, &RegFlipSpec::default(), &mut rng);
     assert!(
         matches!(result, Err(RegFlipError::JobControlStopped { sig, .. }) if sig == libc::SIGSTOP),
         "{result:?}"
     );
     // Detached, it wakes up briefly and re-enters its group-stop.
-    let deadline = Instant::now() + REPORT_TIMEOUT;
-    while state() != Some('T') && Instant::now() < deadline {
-        std::thread::yield_now();
-    }
-    assert_eq!(
-        state(),
-        Some('T'),
-        "still stopped by job control, and no longer traced"
+    assert!(
+        wait_for(|| proc_state(pid) == Some('T')),
+        "not stopped again: {:?}",
+        proc_state(pid)
     );
     let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
     assert!(status.contains("TracerPid:\t0"), "{status}");

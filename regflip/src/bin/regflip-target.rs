@@ -79,6 +79,23 @@ mod x86 {
     use std::arch::asm;
     use std::convert::Infallible;
 
+    /// Assembly for `write(1, REG, LEN)`; clobbers rax, rdi, rsi, rdx, rcx, r11.
+    macro_rules! write_stdout {
+        ($reg:literal, $len:literal) => {
+            concat!(
+                "mov eax, 1\n",
+                "mov edi, 1\n",
+                "mov rsi, ",
+                $reg,
+                "\n",
+                "mov edx, ",
+                $len,
+                "\n",
+                "syscall"
+            )
+        };
+    }
+
     /// r12 is written by `mov r12, r14` (destination) and read by `cmp r12, r15` (source).
     pub fn gpr(pattern: u64) -> ! {
         let ready = b'R';
@@ -88,13 +105,13 @@ mod x86 {
         // fd 1 only; it does not touch the stack.
         unsafe {
             asm!(
-                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
+                write_stdout!("r8", "1"),
                 "2:",
                 "mov r12, r14",
                 "cmp r12, r15",
                 "je 2b",
                 "mov [r9], r12",
-                "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 8", "syscall",
+                write_stdout!("r9", "8"),
                 "jmp 2b",
                 in("r8") &ready as *const u8,
                 in("r9") report.as_mut_ptr(),
@@ -139,7 +156,7 @@ mod x86 {
         // SAFETY: as in `gpr`.
         unsafe {
             asm!(
-                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
+                write_stdout!("r8", "1"),
                 "3:",
                 "mov rdx, r14",
                 "shr rdx, 8",
@@ -148,7 +165,7 @@ mod x86 {
                 "cmp ah, dl",
                 "je 2b",
                 "mov [r9], rax",
-                "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 8", "syscall",
+                write_stdout!("r9", "8"),
                 "jmp 3b",
                 in("r8") &ready as *const u8,
                 in("r9") report.as_mut_ptr(),
@@ -168,7 +185,7 @@ mod x86 {
         unsafe {
             asm!(
                 "movdqu xmm4, [r10]",
-                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 1", "syscall",
+                write_stdout!("r8", "1"),
                 "2:",
                 "movdqa xmm3, xmm4",
                 "movdqa xmm5, xmm3",
@@ -177,7 +194,7 @@ mod x86 {
                 "cmp eax, 0xffff",
                 "je 2b",
                 "movdqu [r9], xmm3",
-                "mov eax, 1", "mov edi, 1", "mov rsi, r9", "mov edx, 16", "syscall",
+                write_stdout!("r9", "16"),
                 "jmp 2b",
                 in("r8") &ready as *const u8,
                 in("r9") report.as_mut_ptr(),
@@ -228,7 +245,7 @@ mod x86 {
         // whose loop touches only r12 and never returns.
         unsafe {
             asm!(
-                "mov eax, 1", "mov edi, 1", "mov rsi, r8", "mov edx, 9", "syscall",
+                write_stdout!("r8", "9"),
                 "jmp r9",
                 in("r8") ready.as_ptr(),
                 in("r9") entry,
