@@ -12,6 +12,7 @@ use tracing_subscriber::EnvFilter;
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
 use s3res_bootstrap::run::{self, Ending, RunOptions, VOTER_BIN};
+use s3res_bootstrap::sched::SystemSched;
 
 /// Overrides where the voter binary is taken from (tests, unusual installs).
 const VOTER_ENV: &str = "S3RES_VOTER";
@@ -154,7 +155,8 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
     };
 
     if cli.check {
-        print!("{}", plan.describe(voter.as_deref()));
+        let sched = SystemSched::for_system(&plan);
+        print!("{}", plan.describe(voter.as_deref(), Some(&sched)));
         return Ok(0);
     }
 

@@ -105,7 +105,7 @@ fn echo_demo_plan() {
     assert!(source.inputs.is_empty());
     assert!(!plan.uses_stdout());
     assert!(plan.warnings.is_empty());
-    let text = plan.describe(None);
+    let text = plan.describe(None, None);
     assert!(text.contains("component echo: runs under s3res-voter with 3 replica(s) (tmr)"));
     assert!(text.contains("out out      -> echo.in (channel 0"));
 }
