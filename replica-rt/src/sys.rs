@@ -571,3 +571,8 @@ pub fn cpu_affinity(pid: libc::pid_t) -> io::Result<Vec<usize>> {
         .filter(|&c| set.is_set(c).unwrap_or(false))
         .collect())
 }
+
+/// This process's effective user id.
+pub fn effective_uid() -> u32 {
+    nix::unistd::geteuid().as_raw()
+}
