@@ -220,14 +220,24 @@ impl System {
 
 impl System {
     /// The unprivileged user must be able to create files (events, summaries) in the temp
-    /// dir; the files the harness wrote there stay readable to it.
+    /// dir and use what the test put there (a FIFO, inputs): the dir and its entries are
+    /// handed to it. (The harness, as root, still reads and removes everything.)
     fn hand_dir_to_unprivileged_user(&self) {
         use std::os::unix::fs::PermissionsExt;
         let dir = self.dir.path();
-        std::os::unix::fs::chown(dir, Some(UNPRIVILEGED_ID), Some(UNPRIVILEGED_ID))
-            .unwrap_or_else(|e| panic!("handing {} to uid {UNPRIVILEGED_ID}: {e}", dir.display()));
+        let give = |p: &Path| {
+            std::os::unix::fs::chown(p, Some(UNPRIVILEGED_ID), Some(UNPRIVILEGED_ID))
+                .unwrap_or_else(|e| panic!("handing {} to uid {UNPRIVILEGED_ID}: {e}", p.display()))
+        };
+        give(dir);
         std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o755))
             .unwrap_or_else(|e| panic!("chmod {}: {e}", dir.display()));
+        for entry in std::fs::read_dir(dir)
+            .expect("listing the temp dir")
+            .flatten()
+        {
+            give(&entry.path());
+        }
     }
 }
 

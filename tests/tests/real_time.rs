@@ -268,7 +268,13 @@ fn check_prints_schedule_priority_and_cpu_of_every_process() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stdout}\n{stderr}");
-    let rr = sys.round_robin_allowed();
+    // --check runs as this test does (never as `nobody`), so probe SCHED_RR here.
+    let rr = Command::new("chrt")
+        .args(["-r", "1", "true"])
+        .stderr(std::process::Stdio::null())
+        .status()
+        .expect("running chrt (util-linux)")
+        .success();
     let c = cpus[0];
     let expected: Vec<String> = if rr {
         vec![

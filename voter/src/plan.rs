@@ -102,3 +102,24 @@ impl VoterPlan {
         serde_json::from_str(s)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plan written before the real-time fields existed still parses, with the defaults:
+    /// parallel rounds, SCHED_RR where a priority is given, no nice fallback, no voter CPU.
+    #[test]
+    fn an_older_plan_without_the_real_time_fields_parses() {
+        let old = r#"{"system":"s","component":"c","exec":"/bin/true","args":[],"replicas":3,
+            "timeout_us":1000,"inputs":[],"outputs":[],"rounds":[],"events_fd":null,
+            "socket_path":"/tmp/x.sock","priority":30,"cpus":[0]}"#;
+        let plan = VoterPlan::from_json(old).unwrap();
+        assert_eq!(plan.schedule, Schedule::Parallel);
+        assert!(plan.realtime);
+        assert_eq!(plan.nice, None);
+        assert_eq!(plan.voter_cpu, None);
+        assert_eq!(plan.priority, Some(30));
+        assert_eq!(VoterPlan::from_json(&plan.to_json()).unwrap(), plan);
+    }
+}
