@@ -45,6 +45,11 @@ A bare `exec` name is looked for beside s3res-bootstrap, then on PATH; a name wi
 relative to the description's folder. Every field, default and rule is in
 docs/system-description.md.
 
+`priority` (SCHED_RR 1-99), `cpus`, `voter_cpu` and `schedule` (auto, parallel, sequential)
+place each process; --check prints the priority and CPU every process will get. Without the
+privilege for SCHED_RR (root or CAP_SYS_NICE), bootstrap says so once and keeps the order with
+nice values. See docs/real-time.md.
+
 Everything is checked before anything starts. On SIGINT/SIGTERM every component gets SIGTERM,
 then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started outlives it.";
 
