@@ -266,6 +266,21 @@ pub struct Outcome {
     pub events: Vec<Event>,
 }
 
+impl Outcome {
+    /// The fault events (everything but `start` and `recovery`).
+    pub fn faults(&self) -> Vec<&Event> {
+        self.events
+            .iter()
+            .filter(|e| {
+                !matches!(
+                    e.kind,
+                    s3res_voter::event::EventKind::Start | s3res_voter::event::EventKind::Recovery
+                )
+            })
+            .collect()
+    }
+}
+
 /// A started system. Dropping it stops bootstrap (SIGTERM, then SIGKILL to the whole process
 /// group), reaps it, and fails the test if any process of the group is left.
 pub struct RunningSystem {

@@ -11,8 +11,8 @@ use std::time::Duration;
 
 use s3res_tests::procs::{self, Scheduling};
 use s3res_tests::{
-    assert_sink_whole, bin_path, echo_pipeline, signals, Event, EventKind, RecoveryMethod,
-    RunningSystem, System,
+    assert_sink_whole, bin_path, echo_pipeline, signals, EventKind, RecoveryMethod, RunningSystem,
+    System,
 };
 
 const LIMIT: Duration = Duration::from_secs(90);
@@ -159,26 +159,40 @@ fn unprivileged_priorities_fall_back_to_nice_values_in_the_same_order() {
     priorities_and_cpus(true);
 }
 
-/// TMR with every replica on one CPU: `auto` picks the sequential strategy, in which each
-/// replica has its own turn and deadline, so the replica that does not answer is identified
-/// exactly, and no sibling that was only waiting for the CPU is blamed.
-fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i32)) {
+/// source → echo (TMR at priority 30, every replica on the first usable CPU, the voter on the
+/// last) → sink, started (as an unprivileged user if asked). `auto` makes its rounds
+/// sequential. Returns the system and the sink's summary path.
+fn start_tmr_on_one_cpu(
+    unprivileged: bool,
+    exec: &str,
+    args: &[&str],
+    count: u32,
+    hz: u32,
+) -> (RunningSystem, std::path::PathBuf) {
     let cpus = usable_cpus();
-    let shared = cpus[0];
-    let voter_cpu = *cpus.last().unwrap();
-    let count = 1500;
+    let (shared, voter_cpu) = (cpus[0], cpus[cpus.len() - 1]);
     let mut sys = System::new();
     if unprivileged {
         sys = sys.unprivileged();
     }
     let summary = sys.path("summary.json");
     let echo = format!(
-        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+        r#"{{ "exec": "{exec}", "args": {}, "redundancy": "tmr",
              "timeout_us": {TIMEOUT_US}, "priority": 30, "cpus": [{shared}],
-             "voter_cpu": {voter_cpu} }}"#
+             "voter_cpu": {voter_cpu} }}"#,
+        serde_json::to_string(args).unwrap()
     );
-    let desc = echo_pipeline(&summary, &echo, count, 500);
-    let mut run = sys.start(&desc);
+    let run = sys.start(&echo_pipeline(&summary, &echo, count, hz));
+    (run, summary)
+}
+
+/// TMR with every replica on one CPU: `auto` picks the sequential strategy, in which each
+/// replica has its own turn and deadline, so the replica that does not answer is identified
+/// exactly, and no sibling that was only waiting for the CPU is blamed.
+fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i32)) {
+    let count = 1500;
+    let (mut run, summary) =
+        start_tmr_on_one_cpu(unprivileged, "s3res-echo", &["--stateful"], count, 500);
     run.wait_for_replicas("echo", 3);
     let pid = run.replica_pids("echo")[&slot];
     inject(pid);
@@ -197,11 +211,7 @@ fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i3
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
 
     let out = run.wait_success(LIMIT);
-    let faults: Vec<&Event> = out
-        .events
-        .iter()
-        .filter(|e| !matches!(e.kind, EventKind::Start | EventKind::Recovery))
-        .collect();
+    let faults = out.faults();
     assert_eq!(
         faults.len(),
         1,
@@ -210,27 +220,39 @@ fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i3
     assert_sink_whole(&summary, count);
 }
 
+fn stop(pid: i32) {
+    replica_rt::sys::kill(pid, libc::SIGSTOP).expect("SIGSTOP");
+}
+
+/// A control-flow error: the replica spins forever at its priority.
+fn spin(pid: i32) {
+    replica_rt::sys::kill(pid, signals::inject_cfe()).expect("inject a control-flow error");
+}
+
 #[test]
 fn sequential_rounds_blame_exactly_a_stopped_replica() {
-    sequential_identifies(false, 1, |pid| {
-        replica_rt::sys::kill(pid, libc::SIGSTOP).expect("SIGSTOP")
-    });
+    sequential_identifies(false, 1, stop);
 }
 
 /// A spinning replica on the CPU its siblings share: under SCHED_RR it would starve a sibling
 /// of lower priority, but the replica whose turn it is runs above it.
 #[test]
 fn sequential_rounds_blame_exactly_a_spinning_replica_on_a_shared_cpu() {
-    sequential_identifies(false, 0, |pid| {
-        replica_rt::sys::kill(pid, signals::inject_cfe()).expect("inject a control-flow error")
-    });
+    sequential_identifies(false, 0, spin);
 }
 
 #[test]
 fn unprivileged_sequential_rounds_blame_exactly_a_stopped_replica() {
-    sequential_identifies(true, 1, |pid| {
-        replica_rt::sys::kill(pid, libc::SIGSTOP).expect("SIGSTOP")
-    });
+    sequential_identifies(true, 1, stop);
+}
+
+/// `s3res-bootstrap --check DESCRIPTION`: it starts nothing, it validates, prints and exits.
+fn check(desc: &std::path::Path) -> std::process::Output {
+    Command::new(bin_path("s3res-bootstrap"))
+        .arg("--check")
+        .arg(desc)
+        .output()
+        .expect("running s3res-bootstrap --check")
 }
 
 /// `--check` prints the chosen schedule and the priority (or nice value) and CPU of every
@@ -259,12 +281,7 @@ fn check_prints_schedule_priority_and_cpu_of_every_process() {
         ),
     )
     .unwrap();
-    // --check starts nothing: it validates, prints and exits.
-    let out = Command::new(bin_path("s3res-bootstrap"))
-        .arg("--check")
-        .arg(&desc)
-        .output()
-        .expect("running s3res-bootstrap --check");
+    let out = check(&desc);
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stdout}\n{stderr}");
@@ -320,11 +337,7 @@ fn a_priority_too_low_for_the_replicas_is_refused_before_anything_starts() {
 }"#,
     )
     .unwrap();
-    let out = Command::new(bin_path("s3res-bootstrap"))
-        .arg("--check")
-        .arg(&desc)
-        .output()
-        .expect("running s3res-bootstrap --check");
+    let out = check(&desc);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(
@@ -341,29 +354,20 @@ fn a_priority_too_low_for_the_replicas_is_refused_before_anything_starts() {
 /// and blamed for replica 0's fault (docs/real-time.md has the measured contrast). With it,
 /// round 101 closes clean and replica 0 alone is blamed, at its own turn in the next round.
 fn spin_after_answering(unprivileged: bool) {
-    let cpus = usable_cpus();
-    let shared = cpus[0];
-    let voter_cpu = *cpus.last().unwrap();
     let count = 600;
-    let mut sys = System::new();
-    if unprivileged {
-        sys = sys.unprivileged();
-    }
-    let summary = sys.path("summary.json");
-    let echo = format!(
-        r#"{{ "exec": "s3res-misbehave",
-             "args": ["--stateful", "--mode", "spin", "--replica", "0", "--at", "100"],
-             "redundancy": "tmr", "timeout_us": {TIMEOUT_US}, "priority": 30,
-             "cpus": [{shared}], "voter_cpu": {voter_cpu} }}"#
-    );
-    let desc = echo_pipeline(&summary, &echo, count, 200);
-    let mut run = sys.start(&desc);
+    let args = [
+        "--stateful",
+        "--mode",
+        "spin",
+        "--replica",
+        "0",
+        "--at",
+        "100",
+    ];
+    let (mut run, summary) =
+        start_tmr_on_one_cpu(unprivileged, "s3res-misbehave", &args, count, 200);
     let out = run.wait_success(LIMIT);
-    let faults: Vec<&Event> = out
-        .events
-        .iter()
-        .filter(|e| !matches!(e.kind, EventKind::Start | EventKind::Recovery))
-        .collect();
+    let faults = out.faults();
     assert_eq!(faults.len(), 1, "exactly the one fault: {faults:#?}");
     let hang = faults[0];
     assert_eq!(hang.kind, EventKind::Hang, "{hang:?}");

@@ -4,11 +4,12 @@
 //! with every fault still detected and repaired. (The whole suite can be run this way with
 //! `S3RES_TEST_UNPRIVILEGED=1`.)
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use s3res_tests::{
-    assert_sink_whole, echo_pipeline, signals, EventKind, RecoveryMethod, Rng, System,
+    assert_sink_whole, echo_pipeline, signals, EventKind, RecoveryMethod, Rng, RunningSystem,
+    System,
 };
 
 const LIMIT: Duration = Duration::from_secs(120);
@@ -37,20 +38,27 @@ fn unprivileged_echo_demo_runs_clean_and_says_once_that_sched_rr_is_refused() {
         .filter(|e| e.component == "echo" && e.kind == EventKind::Start)
         .count();
     assert_eq!(starts, 3, "{:#?}", out.events);
-    assert_eq!(
-        out.stderr.matches(REFUSED).count(),
-        refusals,
-        "{}",
-        out.stderr
-    );
+    assert_said(&out.stderr, refusals);
 }
 
-fn prioritized_echo(sys: &System, count: u32, hz: u32) -> String {
+/// source → echo (TMR, priority 30) → sink, started as an unprivileged user, with its three
+/// replicas running. Returns the system, the sink's summary path, and how often the refusal
+/// of SCHED_RR must be said.
+fn start_prioritized_echo(count: u32, hz: u32) -> (RunningSystem, PathBuf, usize) {
+    let sys = System::new().unprivileged();
+    let refusals = expected_refusals(&sys);
     let echo = format!(
         r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
              "timeout_us": {TIMEOUT_US}, "priority": 30 }}"#
     );
-    echo_pipeline(&sys.path("summary.json"), &echo, count, hz)
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&echo_pipeline(&summary, &echo, count, hz));
+    run.wait_for_replicas("echo", 3);
+    (run, summary, refusals)
+}
+
+fn assert_said(stderr: &str, refusals: usize) {
+    assert_eq!(stderr.matches(REFUSED).count(), refusals, "{stderr}");
 }
 
 /// Random replicas are killed while frames flow; each is a crash, repaired by fork with state.
@@ -59,12 +67,7 @@ fn unprivileged_tmr_survives_kills_with_state() {
     let mut rng = Rng::from_env();
     let count = 4000;
     let kills = 20;
-    let sys = System::new().unprivileged();
-    let refusals = expected_refusals(&sys);
-    let desc = prioritized_echo(&sys, count, 1000);
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
-    run.wait_for_replicas("echo", 3);
+    let (mut run, summary, refusals) = start_prioritized_echo(count, 1000);
     for _ in 0..kills {
         let slot = rng.below(3) as usize;
         let pid = run.replica_pids("echo")[&slot];
@@ -89,24 +92,14 @@ fn unprivileged_tmr_survives_kills_with_state() {
         .count();
     assert_eq!(crashes, kills, "{:#?}", out.events);
     assert_sink_whole(&summary, count);
-    assert_eq!(
-        out.stderr.matches(REFUSED).count(),
-        refusals,
-        "{}",
-        out.stderr
-    );
+    assert_said(&out.stderr, refusals);
 }
 
 /// One corrupted frame is outvoted and its replica replaced.
 #[test]
 fn unprivileged_tmr_outvotes_a_corrupted_frame() {
     let count = 1500;
-    let sys = System::new().unprivileged();
-    let refusals = expected_refusals(&sys);
-    let desc = prioritized_echo(&sys, count, 500);
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
-    run.wait_for_replicas("echo", 3);
+    let (mut run, summary, refusals) = start_prioritized_echo(count, 500);
     let pid = run.replica_pids("echo")[&2];
     s3res_tests::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue");
     let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
@@ -119,10 +112,5 @@ fn unprivileged_tmr_outvotes_a_corrupted_frame() {
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
     let out = run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
-    assert_eq!(
-        out.stderr.matches(REFUSED).count(),
-        refusals,
-        "{}",
-        out.stderr
-    );
+    assert_said(&out.stderr, refusals);
 }
