@@ -7,6 +7,7 @@
 //! the system must say so once and carry on.
 
 use std::process::Command;
+use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
 use s3res_tests::procs::{self, Scheduling};
@@ -20,6 +21,18 @@ const LIMIT: Duration = Duration::from_secs(90);
 const TIMEOUT_US: u64 = 300_000;
 /// What bootstrap says, once, when SCHED_RR is refused.
 const REFUSED: &str = "SCHED_RR refused";
+
+/// The tests of this file that run a system take turns: a replica spinning at SCHED_RR on a
+/// pinned CPU (as some of them make one do, for up to a deadline) starves every process of a
+/// lower real-time priority on that CPU, including another test's replicas, which would then
+/// miss their own deadlines for a reason that is not theirs.
+static ONE_SYSTEM_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn one_system_at_a_time() -> MutexGuard<'static, ()> {
+    ONE_SYSTEM_AT_A_TIME
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 
 /// The CPUs this test may use (the system's descriptions may only name these).
 fn usable_cpus() -> Vec<usize> {
@@ -59,6 +72,7 @@ fn assert_placed(s: &Scheduling, rr: bool, priority: i32, cpus: &[usize], who: &
 /// privilege, at nice values in the same order) and on its CPUs; a replica forked from a donor
 /// on another CPU at another priority takes its slot's, not the donor's.
 fn priorities_and_cpus(unprivileged: bool) {
+    let _turn = one_system_at_a_time();
     let cpus = usable_cpus();
     if cpus.len() < 2 {
         eprintln!(
@@ -190,6 +204,7 @@ fn start_tmr_on_one_cpu(
 /// replica has its own turn and deadline, so the replica that does not answer is identified
 /// exactly, and no sibling that was only waiting for the CPU is blamed.
 fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i32)) {
+    let _turn = one_system_at_a_time();
     let count = 1500;
     let (mut run, summary) =
         start_tmr_on_one_cpu(unprivileged, "s3res-echo", &["--stateful"], count, 500);
@@ -354,6 +369,7 @@ fn a_priority_too_low_for_the_replicas_is_refused_before_anything_starts() {
 /// and blamed for replica 0's fault (docs/real-time.md has the measured contrast). With it,
 /// round 101 closes clean and replica 0 alone is blamed, at its own turn in the next round.
 fn spin_after_answering(unprivileged: bool) {
+    let _turn = one_system_at_a_time();
     let count = 600;
     let args = [
         "--stateful",
