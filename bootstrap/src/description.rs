@@ -13,6 +13,7 @@ use thiserror::Error;
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
 use s3res_voter::plan::{default_restart_timeout_ms, RoundTrigger};
+use s3res_voter::sched::{self, Schedule};
 
 use crate::exec::{self, SearchPath};
 use crate::plan::{ChannelPlan, ComponentPlan, Endpoint, PortPlan, Redundancy, SystemPlan};
@@ -22,6 +23,9 @@ use crate::posindex::{element_path, member_path, IndexError, PositionIndex};
 pub const MAX_FRAME_LIMIT: usize = 16 * 1024 * 1024;
 /// Largest replica count (`replicas`).
 pub const MAX_REPLICAS: u64 = 9;
+/// SCHED_RR priorities from here up compete with the kernel's interrupt threads, which run at
+/// 50 by default (PREEMPT_RT).
+pub const INTERRUPT_THREAD_PRIORITY: u8 = 50;
 
 /// Why a description was refused.
 #[derive(Debug, Error)]
@@ -226,10 +230,21 @@ struct ComponentDesc {
     // Signed, so that `-1` gets our range message rather than a type error.
     priority: Option<i64>,
     cpus: Option<Vec<u64>>,
+    voter_cpu: Option<u64>,
+    schedule: Option<ScheduleChoice>,
     rounds: Option<Vec<RoundDesc>>,
     restart_timeout_ms: Option<u64>,
     inputs: Option<Vec<String>>,
     outputs: Option<Vec<String>>,
+}
+
+/// `schedule` as written: `auto` resolves from the placement ([`sched::choose`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum ScheduleChoice {
+    Auto,
+    Parallel,
+    Sequential,
 }
 
 #[derive(Debug, Deserialize)]
@@ -257,6 +272,9 @@ struct Draft {
     timeout_us: u64,
     priority: Option<u8>,
     cpus: Vec<usize>,
+    voter_cpu: Option<usize>,
+    schedule: Schedule,
+    schedule_auto: bool,
 }
 
 /// A port as the channels use it: which channel, and where that was written.
@@ -423,26 +441,69 @@ impl Checker<'_> {
                 ))
             }
         };
+        if let Some(p) = priority {
+            let least = sched::min_priority(replicas);
+            if protected && p < least {
+                return Err(self.err(
+                    &field("priority"),
+                    format!(
+                        "priority {p} is too low for {replicas} replica(s): the voter runs at the \
+                         priority, the replica whose turn it is one below, and each replica below \
+                         that at its own level, so it must be at least {least}"
+                    ),
+                ));
+            }
+            if p >= INTERRUPT_THREAD_PRIORITY {
+                warnings.push(format!(
+                    "component {name}: priority {p} is at or above {INTERRUPT_THREAD_PRIORITY}, \
+                     where the kernel's interrupt threads run by default: a busy component there \
+                     can delay interrupt handling; keep components below {INTERRUPT_THREAD_PRIORITY} \
+                     unless that is what you want"
+                ));
+            }
+        }
 
         let mut cpus = Vec::new();
         for (i, &cpu) in desc.cpus.iter().flatten().enumerate() {
             let path = element_path(&field("cpus"), i);
-            let usable = usize::try_from(cpu)
-                .ok()
-                .filter(|c| self.ctx.cpus.contains(c));
-            let Some(cpu) = usable else {
-                return Err(self.err(
-                    &path,
-                    format!(
-                        "CPU {cpu} does not exist on this machine (usable CPUs: {})",
-                        cpu_list(&self.ctx.cpus)
-                    ),
-                ));
-            };
+            let cpu = self.usable_cpu(&path, cpu)?;
             if cpus.contains(&cpu) {
                 return Err(self.err(&path, format!("CPU {cpu} is listed twice")));
             }
             cpus.push(cpu);
+        }
+        let voter_cpu = match desc.voter_cpu {
+            Some(cpu) => Some(self.usable_cpu(&field("voter_cpu"), cpu)?),
+            None => None,
+        };
+
+        let choice = desc.schedule.unwrap_or(ScheduleChoice::Auto);
+        let schedule = match choice {
+            ScheduleChoice::Auto => sched::choose(replicas, &cpus),
+            ScheduleChoice::Parallel => Schedule::Parallel,
+            ScheduleChoice::Sequential => Schedule::Sequential,
+        };
+        if protected {
+            if choice == ScheduleChoice::Parallel && sched::replicas_share_a_cpu(replicas, &cpus) {
+                warnings.push(format!(
+                    "component {name}: `schedule: parallel` with {replicas} replicas on {} CPU(s): \
+                     replicas sharing a CPU share one deadline, so a hang may be blamed on a \
+                     replica that was only waiting for the CPU; `sequential` (or `auto`) times \
+                     each replica on its own",
+                    cpus.len()
+                ));
+            }
+        } else {
+            for (present, what) in [
+                (desc.schedule.is_some(), "schedule"),
+                (desc.voter_cpu.is_some(), "voter_cpu"),
+            ] {
+                if present {
+                    warnings.push(format!(
+                        "component {name}: `{what}` is ignored without redundancy"
+                    ));
+                }
+            }
         }
 
         let exec = exec::resolve(&desc.exec, &self.ctx.base_dir, &self.ctx.search)
@@ -456,7 +517,26 @@ impl Checker<'_> {
             timeout_us,
             priority,
             cpus,
+            voter_cpu,
+            schedule,
+            schedule_auto: choice == ScheduleChoice::Auto,
         })
+    }
+
+    /// `cpu` as a CPU of this machine that bootstrap may use, or an error at `path`.
+    fn usable_cpu(&self, path: &str, cpu: u64) -> Result<usize, DescriptionError> {
+        usize::try_from(cpu)
+            .ok()
+            .filter(|c| self.ctx.cpus.contains(c))
+            .ok_or_else(|| {
+                self.err(
+                    path,
+                    format!(
+                        "CPU {cpu} does not exist on this machine (usable CPUs: {})",
+                        cpu_list(&self.ctx.cpus)
+                    ),
+                )
+            })
     }
 
     /// Checks every channel; returns them with, per `(component, port)`, the channel that
@@ -709,6 +789,9 @@ impl Checker<'_> {
                 .unwrap_or_else(default_restart_timeout_ms),
             priority: d.priority,
             cpus: d.cpus,
+            voter_cpu: d.voter_cpu,
+            schedule: d.schedule,
+            schedule_auto: d.schedule_auto,
             inputs,
             outputs,
             rounds,

@@ -10,4 +10,5 @@ pub mod exec;
 pub mod plan;
 pub mod posindex;
 pub mod run;
+pub mod sched;
 pub mod sweep;

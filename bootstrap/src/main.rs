@@ -12,6 +12,7 @@ use tracing_subscriber::EnvFilter;
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
 use s3res_bootstrap::run::{self, Ending, RunOptions, VOTER_BIN};
+use s3res_bootstrap::sched::SystemSched;
 
 /// Overrides where the voter binary is taken from (tests, unusual installs).
 const VOTER_ENV: &str = "S3RES_VOTER";
@@ -43,6 +44,11 @@ bootstrap's own stdin/stdout carry the frames, and components' text output goes 
 A bare `exec` name is looked for beside s3res-bootstrap, then on PATH; a name with a `/` is
 relative to the description's folder. Every field, default and rule is in
 docs/system-description.md.
+
+`priority` (SCHED_RR 1-99), `cpus`, `voter_cpu` and `schedule` (auto, parallel, sequential)
+place each process; --check prints the priority and CPU every process will get. Without the
+privilege for SCHED_RR (root or CAP_SYS_NICE), bootstrap says so once and keeps the order with
+nice values. See docs/real-time.md.
 
 Everything is checked before anything starts. On SIGINT/SIGTERM every component gets SIGTERM,
 then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started outlives it.";
@@ -154,7 +160,8 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
     };
 
     if cli.check {
-        print!("{}", plan.describe(voter.as_deref()));
+        let sched = SystemSched::for_system(&plan);
+        print!("{}", plan.describe(voter.as_deref(), Some(&sched)));
         return Ok(0);
     }
 

@@ -5,6 +5,7 @@ use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
 use s3res_voter::plan::RoundTrigger;
+use s3res_voter::sched::Schedule;
 use serde::Deserialize;
 
 /// Replication level of a component, as written in the description.
@@ -96,8 +97,16 @@ pub struct ComponentPlan {
     /// Round deadline in microseconds; 0 for an unprotected component.
     pub timeout_us: u64,
     pub restart_timeout_ms: u64,
+    /// SCHED_RR priority: of the component, or of the voter (replicas run below it).
     pub priority: Option<u8>,
+    /// CPUs: the component's mask, or the CPUs the replicas are spread over.
     pub cpus: Vec<usize>,
+    /// The voter's own CPU (protected components only).
+    pub voter_cpu: Option<usize>,
+    /// How a round is scheduled (resolved from `auto` where it was not given).
+    pub schedule: Schedule,
+    /// `schedule` was chosen by `auto` from the placement.
+    pub schedule_auto: bool,
     pub inputs: Vec<PortPlan>,
     pub outputs: Vec<PortPlan>,
     /// Explicit round triggers (empty for an unprotected component).
@@ -132,8 +141,13 @@ impl SystemPlan {
         self.components.iter().any(ComponentPlan::is_protected)
     }
 
-    /// Readable form for `--check`. `voter` is the voter binary that would be used, if found.
-    pub fn describe(&self, voter: Option<&std::path::Path>) -> String {
+    /// Readable form for `--check`. `voter` is the voter binary that would be used, if found;
+    /// `sched` adds the priority and CPUs of every process.
+    pub fn describe(
+        &self,
+        voter: Option<&std::path::Path>,
+        sched: Option<&crate::sched::SystemSched>,
+    ) -> String {
         let mut out = String::new();
         let _ = writeln!(
             out,
@@ -142,9 +156,15 @@ impl SystemPlan {
             self.components.len(),
             self.channels.len()
         );
-        for c in &self.components {
+        if let Some(line) = sched.and_then(|s| s.headline()) {
+            let _ = writeln!(out, "{line}");
+        }
+        for (index, c) in self.components.iter().enumerate() {
             out.push('\n');
             self.describe_component(c, voter, &mut out);
+            if let Some(s) = sched {
+                s.describe(index, c, &mut out);
+            }
         }
         out
     }

@@ -24,6 +24,7 @@ use s3res_voter::plan::{ExternalPort, VoterPlan};
 
 use crate::events::{EventReader, EventSummary};
 use crate::plan::{ComponentPlan, Endpoint, SystemPlan};
+use crate::sched::SystemSched;
 use crate::sweep::SweepGuard;
 
 /// Name of the voter binary.
@@ -189,6 +190,10 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
 
     let mut channels = open_channels(plan)?;
 
+    // Whether SCHED_RR can be had is found out once, here, and said once; the voters are told.
+    let sched = SystemSched::for_system(plan);
+    sched.warn_once();
+
     let (events_reader, events_write) = if voter.is_some() {
         let (r, w) = sys::pipe().map_err(RunError::EventsPipe)?;
         let reader = EventReader::spawn(r, events_log).map_err(RunError::EventsPipe)?;
@@ -207,6 +212,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 plan,
                 c,
                 index,
+                &sched,
                 voter,
                 dir,
                 ev.as_raw_fd(),
@@ -219,7 +225,11 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                     c.name
                 )))
             }
-            _ => spawn_direct(c, &mut channels, stdout_to_stderr)?,
+            _ => {
+                let pid = spawn_direct(c, &mut channels, stdout_to_stderr)?;
+                sched.apply_direct(index, c, pid);
+                pid
+            }
         };
         tracing::info!(
             component = %c.name,
@@ -446,6 +456,7 @@ fn spawn_voter(
     plan: &SystemPlan,
     c: &ComponentPlan,
     index: usize,
+    sched: &SystemSched,
     voter: &Path,
     socket_dir: &Path,
     events_fd: RawFd,
@@ -491,6 +502,10 @@ fn spawn_voter(
         restart_timeout_ms: c.restart_timeout_ms,
         priority: c.priority,
         cpus: c.cpus.clone(),
+        voter_cpu: c.voter_cpu,
+        schedule: c.schedule,
+        realtime: sched.realtime(),
+        nice: sched.fallback(index),
     };
     let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
     cmd.arg("--plan").arg(voter_plan.to_json());

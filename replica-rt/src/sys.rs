@@ -469,3 +469,110 @@ pub fn set_socket_timeouts(sock: RawFd, timeout: Duration) -> io::Result<()> {
     }
     Ok(())
 }
+
+// ----- scheduling: policy, priority, nice value, CPU affinity -----------------------------
+//
+// These act on any process we may act on (`pid` 0 is the caller). They are used by the voter
+// on itself and its replicas, and by bootstrap on unprotected components; a refusal (EPERM
+// without CAP_SYS_NICE, EINVAL for a CPU outside the cpuset) is returned, never hidden.
+
+/// A process's scheduling policy and its real-time priority (0 for the normal policies).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SchedPolicy {
+    /// `libc::SCHED_OTHER`, `SCHED_RR`, `SCHED_FIFO`, ...
+    pub policy: libc::c_int,
+    pub priority: libc::c_int,
+}
+
+impl SchedPolicy {
+    pub fn is_round_robin(self) -> bool {
+        self.policy == libc::SCHED_RR
+    }
+}
+
+/// `sched_setscheduler(pid, SCHED_RR, priority)`.
+pub fn set_round_robin(pid: libc::pid_t, priority: libc::c_int) -> io::Result<()> {
+    let param = libc::sched_param {
+        sched_priority: priority,
+    };
+    // SAFETY: `param` is a valid sched_param read by the kernel during the call only.
+    cvt(unsafe { libc::sched_setscheduler(pid, libc::SCHED_RR, &param) })?;
+    Ok(())
+}
+
+/// `sched_setscheduler(pid, SCHED_OTHER, 0)`: back to the normal time-sharing policy.
+pub fn set_normal_policy(pid: libc::pid_t) -> io::Result<()> {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: as in `set_round_robin`.
+    cvt(unsafe { libc::sched_setscheduler(pid, libc::SCHED_OTHER, &param) })?;
+    Ok(())
+}
+
+/// `sched_setparam(pid, priority)`: a new real-time priority within the current policy (the
+/// cheap call the voter makes at every turn of a sequential round).
+pub fn set_rt_priority(pid: libc::pid_t, priority: libc::c_int) -> io::Result<()> {
+    let param = libc::sched_param {
+        sched_priority: priority,
+    };
+    // SAFETY: `param` is a valid sched_param read by the kernel during the call only.
+    cvt(unsafe { libc::sched_setparam(pid, &param) })?;
+    Ok(())
+}
+
+/// `sched_getscheduler` and `sched_getparam` of `pid`.
+pub fn sched_policy(pid: libc::pid_t) -> io::Result<SchedPolicy> {
+    // SAFETY: integer argument only.
+    let policy = cvt(unsafe { libc::sched_getscheduler(pid) })?;
+    let mut param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: `param` is a valid out-pointer for the duration of the call.
+    cvt(unsafe { libc::sched_getparam(pid, &mut param) })?;
+    Ok(SchedPolicy {
+        policy,
+        priority: param.sched_priority,
+    })
+}
+
+/// `setpriority(PRIO_PROCESS, pid, nice)`. Without CAP_SYS_NICE a nice value can only go up
+/// (weaker), never back down below the process's current one (or RLIMIT_NICE).
+pub fn set_nice(pid: libc::pid_t, nice: libc::c_int) -> io::Result<()> {
+    // SAFETY: integer arguments only.
+    cvt(unsafe { libc::setpriority(libc::PRIO_PROCESS, pid as libc::id_t, nice) })?;
+    Ok(())
+}
+
+/// `getpriority(PRIO_PROCESS, pid)`: the nice value (-20..=19).
+pub fn nice_of(pid: libc::pid_t) -> io::Result<libc::c_int> {
+    // getpriority may legitimately return -1, so success is told by errno, cleared first.
+    // SAFETY: __errno_location returns this thread's errno slot, always valid to write.
+    unsafe { *libc::__errno_location() = 0 };
+    // SAFETY: integer arguments only.
+    let nice = unsafe { libc::getpriority(libc::PRIO_PROCESS, pid as libc::id_t) };
+    let e = io::Error::last_os_error();
+    if nice == -1 && e.raw_os_error() != Some(0) {
+        return Err(e);
+    }
+    Ok(nice)
+}
+
+/// `sched_setaffinity(pid, cpus)`: the process may run only on `cpus`.
+pub fn set_cpu_affinity(pid: libc::pid_t, cpus: &[usize]) -> io::Result<()> {
+    let mut set = nix::sched::CpuSet::new();
+    for &cpu in cpus {
+        set.set(cpu).map_err(io::Error::from)?;
+    }
+    nix::sched::sched_setaffinity(nix::unistd::Pid::from_raw(pid), &set).map_err(io::Error::from)
+}
+
+/// `sched_getaffinity(pid)`: the CPUs `pid` may run on, ascending.
+pub fn cpu_affinity(pid: libc::pid_t) -> io::Result<Vec<usize>> {
+    let set =
+        nix::sched::sched_getaffinity(nix::unistd::Pid::from_raw(pid)).map_err(io::Error::from)?;
+    Ok((0..nix::sched::CpuSet::count())
+        .filter(|&c| set.is_set(c).unwrap_or(false))
+        .collect())
+}
+
+/// This process's effective user id.
+pub fn effective_uid() -> u32 {
+    nix::unistd::geteuid().as_raw()
+}

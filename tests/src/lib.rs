@@ -35,7 +35,7 @@ pub use bins::{bin_dir, bin_path};
 pub use events::{parse_events, replica_pids};
 pub use rng::Rng;
 pub use scenario::{assert_sink_whole, echo_pipeline};
-pub use system::{Outcome, RunningSystem, System};
+pub use system::{is_root, Outcome, RunningSystem, System};
 
 use std::path::Path;
 

@@ -86,6 +86,47 @@ pub fn with_env(key: &str, value: &str) -> Vec<ProcStat> {
         .collect()
 }
 
+/// How a process is scheduled right now: policy, real-time priority, nice value, CPUs.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Scheduling {
+    pub pid: i32,
+    pub round_robin: bool,
+    /// SCHED_RR/FIFO priority (0 for the normal policy).
+    pub priority: i32,
+    pub nice: i32,
+    pub cpus: Vec<usize>,
+}
+
+impl fmt::Display for Scheduling {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let policy = if self.round_robin {
+            "SCHED_RR"
+        } else {
+            "other"
+        };
+        write!(
+            f,
+            "pid {}: {policy} {} nice {} cpus {:?}",
+            self.pid, self.priority, self.nice, self.cpus
+        )
+    }
+}
+
+/// `pid`'s scheduling (through sched_getscheduler, sched_getparam, getpriority and
+/// sched_getaffinity); panics naming the pid if it is gone.
+pub fn scheduling(pid: i32) -> Scheduling {
+    use replica_rt::sys;
+    let policy =
+        sys::sched_policy(pid).unwrap_or_else(|e| panic!("sched_getscheduler({pid}): {e}"));
+    Scheduling {
+        pid,
+        round_robin: policy.is_round_robin(),
+        priority: policy.priority,
+        nice: sys::nice_of(pid).unwrap_or_else(|e| panic!("getpriority({pid}): {e}")),
+        cpus: sys::cpu_affinity(pid).unwrap_or_else(|e| panic!("sched_getaffinity({pid}): {e}")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -28,6 +28,13 @@ pub const KEEP_TMP_ENV: &str = "S3RES_KEEP_TMP";
 /// system causes to exist inherits it, so one that left the process group is still found.
 pub const MARK_ENV: &str = "S3RES_TEST_SYSTEM";
 
+/// `S3RES_TEST_UNPRIVILEGED=1` starts every test system as an unprivileged user (as
+/// [`System::unprivileged`] does), so the whole suite can be run that way.
+pub const UNPRIVILEGED_ENV: &str = "S3RES_TEST_UNPRIVILEGED";
+
+/// The user and group an unprivileged system runs as when the tests run as root: `nobody`.
+pub const UNPRIVILEGED_ID: u32 = 65534;
+
 /// How long drop waits for bootstrap to stop by itself after SIGTERM.
 const TERM_GRACE: Duration = Duration::from_secs(3);
 /// How long a dead process may linger (as a zombie being reaped) before it counts as left.
@@ -39,6 +46,7 @@ pub struct System {
     dir: TempDir,
     stdin: Option<Vec<u8>>,
     events: bool,
+    unprivileged: bool,
 }
 
 impl Default for System {
@@ -58,7 +66,47 @@ impl System {
             dir,
             stdin: None,
             events: true,
+            unprivileged: std::env::var_os(UNPRIVILEGED_ENV).is_some_and(|v| v != "0"),
         }
+    }
+
+    /// Runs the system as an unprivileged user: when the tests run as root, bootstrap is
+    /// started through `setpriv` as `nobody` (uid and gid 65534, no supplementary groups, so
+    /// no capabilities), and the temp dir is handed to that user; when they do not run as
+    /// root, the system already is unprivileged and starts as usual. bootstrap is still the
+    /// leader of its own process group (`setpriv` execs it in place), so teardown is unchanged.
+    pub fn unprivileged(mut self) -> Self {
+        self.unprivileged = true;
+        self
+    }
+
+    /// Whether the system's processes will be allowed SCHED_RR: tried on a throwaway process
+    /// started the way bootstrap will be (`chrt -r 1 true`, through `setpriv` when the system
+    /// is to drop to `nobody`).
+    pub fn round_robin_allowed(&self) -> bool {
+        let mut cmd = if self.unprivileged && is_root() {
+            let mut cmd = Command::new(setpriv());
+            cmd.arg(format!("--reuid={UNPRIVILEGED_ID}"))
+                .arg(format!("--regid={UNPRIVILEGED_ID}"))
+                .arg("--clear-groups")
+                .arg("--")
+                .arg("chrt");
+            cmd
+        } else {
+            Command::new("chrt")
+        };
+        cmd.args(["-r", "1", "true"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null());
+        cmd.status()
+            .unwrap_or_else(|e| panic!("running chrt (util-linux): {e}"))
+            .success()
+    }
+
+    /// Whether this system's processes will lack root's privileges (see
+    /// [`System::unprivileged`]).
+    pub fn runs_unprivileged(&self) -> bool {
+        self.unprivileged || !is_root()
     }
 
     /// The temp dir (bootstrap's working directory).
@@ -116,7 +164,18 @@ impl System {
             std::process::id(),
             COUNTER.fetch_add(1, Ordering::Relaxed)
         );
-        let mut cmd = Command::new(bootstrap);
+        let mut cmd = if self.unprivileged && is_root() {
+            self.hand_dir_to_unprivileged_user();
+            let mut cmd = Command::new(setpriv());
+            cmd.arg(format!("--reuid={UNPRIVILEGED_ID}"))
+                .arg(format!("--regid={UNPRIVILEGED_ID}"))
+                .arg("--clear-groups")
+                .arg("--")
+                .arg(bootstrap);
+            cmd
+        } else {
+            Command::new(bootstrap)
+        };
         cmd.env(MARK_ENV, &mark);
         if let Some(ev) = &events {
             cmd.arg("--events").arg(ev);
@@ -159,6 +218,45 @@ impl System {
     }
 }
 
+impl System {
+    /// The unprivileged user must be able to create files (events, summaries) in the temp
+    /// dir and use what the test put there (a FIFO, inputs): the dir and its entries are
+    /// handed to it. (The harness, as root, still reads and removes everything.)
+    fn hand_dir_to_unprivileged_user(&self) {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = self.dir.path();
+        let give = |p: &Path| {
+            std::os::unix::fs::chown(p, Some(UNPRIVILEGED_ID), Some(UNPRIVILEGED_ID))
+                .unwrap_or_else(|e| panic!("handing {} to uid {UNPRIVILEGED_ID}: {e}", p.display()))
+        };
+        give(dir);
+        std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o755))
+            .unwrap_or_else(|e| panic!("chmod {}: {e}", dir.display()));
+        for entry in std::fs::read_dir(dir)
+            .expect("listing the temp dir")
+            .flatten()
+        {
+            give(&entry.path());
+        }
+    }
+}
+
+/// Whether the tests run as root (then an unprivileged system must drop to another user).
+pub fn is_root() -> bool {
+    replica_rt::sys::effective_uid() == 0
+}
+
+/// `setpriv` (util-linux): on Debian/Ubuntu in `/usr/bin`. Panics naming the package if absent.
+fn setpriv() -> PathBuf {
+    for dir in ["/usr/bin", "/bin", "/usr/sbin", "/sbin"] {
+        let p = Path::new(dir).join("setpriv");
+        if p.exists() {
+            return p;
+        }
+    }
+    panic!("an unprivileged test run needs `setpriv` (package util-linux), which is not installed");
+}
+
 /// What a finished system left: exit status, bootstrap's output, and the event log.
 #[derive(Debug, Clone)]
 pub struct Outcome {
@@ -166,6 +264,21 @@ pub struct Outcome {
     pub stdout: String,
     pub stderr: String,
     pub events: Vec<Event>,
+}
+
+impl Outcome {
+    /// The fault events (everything but `start` and `recovery`).
+    pub fn faults(&self) -> Vec<&Event> {
+        self.events
+            .iter()
+            .filter(|e| {
+                !matches!(
+                    e.kind,
+                    s3res_voter::event::EventKind::Start | s3res_voter::event::EventKind::Recovery
+                )
+            })
+            .collect()
+    }
 }
 
 /// A started system. Dropping it stops bootstrap (SIGTERM, then SIGKILL to the whole process

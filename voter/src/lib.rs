@@ -15,5 +15,7 @@ pub mod plan;
 pub mod recovery;
 pub mod replica;
 pub mod round;
+pub mod rt;
+pub mod sched;
 pub mod vote;
 pub mod voter;

@@ -6,6 +6,8 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
+use crate::sched::Schedule;
+
 /// One external port of the protected component: the fd the voter inherited for it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ExternalPort {
@@ -53,9 +55,38 @@ pub struct VoterPlan {
     /// SCHED_RR priority of the voter (replicas run below it); `None` leaves the default.
     #[serde(default)]
     pub priority: Option<u8>,
-    /// CPUs the replicas may run on (empty: any).
+    /// CPUs the replicas are spread over, replica `i` on `cpus[i % len]` (empty: not pinned).
     #[serde(default)]
     pub cpus: Vec<usize>,
+    /// The CPU the voter itself runs on; `None`: the whole of `cpus` (or anywhere).
+    #[serde(default)]
+    pub voter_cpu: Option<usize>,
+    /// How a round gives its replicas the CPU and times them (bootstrap resolves `auto`).
+    #[serde(default)]
+    pub schedule: Schedule,
+    /// Whether to ask for SCHED_RR. Bootstrap sets it to false when its own probe found
+    /// SCHED_RR refused (it has said so once); the voter then goes straight to `nice`.
+    #[serde(default = "yes")]
+    pub realtime: bool,
+    /// Nice values standing in for the priorities where SCHED_RR is refused; `None` leaves
+    /// the nice values alone.
+    #[serde(default)]
+    pub nice: Option<NiceFallback>,
+}
+
+/// Nice values used instead of SCHED_RR priorities, chosen by bootstrap so that the order of
+/// every process of the system is kept (see `docs/real-time.md`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct NiceFallback {
+    pub voter: i32,
+    /// Every replica of the component: one value, because without privilege a nice value
+    /// cannot be lowered again, so a turn could not be raised nor a forked replica be given
+    /// a stronger value than its donor's.
+    pub replicas: i32,
+}
+
+fn yes() -> bool {
+    true
 }
 
 pub fn default_restart_timeout_ms() -> u64 {
@@ -69,5 +100,26 @@ impl VoterPlan {
 
     pub fn from_json(s: &str) -> Result<Self, serde_json::Error> {
         serde_json::from_str(s)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plan written before the real-time fields existed still parses, with the defaults:
+    /// parallel rounds, SCHED_RR where a priority is given, no nice fallback, no voter CPU.
+    #[test]
+    fn an_older_plan_without_the_real_time_fields_parses() {
+        let old = r#"{"system":"s","component":"c","exec":"/bin/true","args":[],"replicas":3,
+            "timeout_us":1000,"inputs":[],"outputs":[],"rounds":[],"events_fd":null,
+            "socket_path":"/tmp/x.sock","priority":30,"cpus":[0]}"#;
+        let plan = VoterPlan::from_json(old).unwrap();
+        assert_eq!(plan.schedule, Schedule::Parallel);
+        assert!(plan.realtime);
+        assert_eq!(plan.nice, None);
+        assert_eq!(plan.voter_cpu, None);
+        assert_eq!(plan.priority, Some(30));
+        assert_eq!(VoterPlan::from_json(&plan.to_json()).unwrap(), plan);
     }
 }

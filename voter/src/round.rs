@@ -1,5 +1,5 @@
 //! A reactive round (S³RES's timed pair): one input frame, one expected answer per output from
-//! every replica, one deadline.
+//! every replica, one deadline (parallel), or one deadline per replica's turn (sequential).
 
 use crate::clock::Instant;
 
@@ -15,7 +15,11 @@ pub struct Round {
     pub pair: usize,
     /// Outputs every replica must answer on.
     pub expected: OutputSet,
+    /// When the round (parallel) or the current turn (sequential) must be complete.
     pub deadline: Instant,
+    /// Sequential schedule: the replica whose turn it is (the one a missed deadline blames).
+    /// `None` in a parallel round, and before the first turn.
+    pub turn: Option<usize>,
     /// Replicas the input was delivered to.
     pub members: ReplicaSet,
     /// Per replica: outputs it has answered (a fixed array: no allocation per round).
@@ -37,6 +41,7 @@ impl Round {
             pair,
             expected,
             deadline,
+            turn: None,
             members,
             answered: [0; MAX_REPLICAS],
             forwarded: 0,

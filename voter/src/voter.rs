@@ -27,6 +27,8 @@ use crate::plan::VoterPlan;
 use crate::recovery;
 use crate::replica::Replica;
 use crate::round::{OutputSet, Round};
+use crate::rt::RealTime;
+use crate::sched::Schedule;
 use crate::vote::{vote, ReplicaSet, VoteOutcome, MAX_REPLICAS};
 
 /// How long a replica whose output pipe closed may take to show up as dead before we call it a
@@ -124,6 +126,8 @@ pub struct Voter {
     poll_tokens: Vec<Token>,
     /// Every deadline the loop waits for (refilled from the state before each wait).
     timers: Deadlines,
+    /// Priorities, pinning and the raising of turns.
+    rt: RealTime,
 }
 
 impl Voter {
@@ -174,9 +178,14 @@ impl Voter {
         let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
         listener.set_nonblocking(true).map_err(io_err("socket"))?;
 
+        // Before the first replica: replicas start from the voter's settings.
+        let mut rt = RealTime::new(&plan);
+        rt.apply_to_voter();
+
         let n = plan.replicas;
         let n_inputs = plan.inputs.len();
         let mut voter = Voter {
+            rt,
             answers: vec![vec![Vec::new(); plan.outputs.len()]; n],
             slots: (0..n).map(|_| None).collect(),
             plan,
@@ -199,6 +208,7 @@ impl Voter {
                 "starting replica {slot} ({})",
                 voter.plan.exec.display()
             )))?;
+            voter.rt.apply_to_replica(replica.pid, slot);
             let mut ev = voter.event(EventKind::Start);
             ev.replica = Some(slot);
             ev.pid = Some(replica.pid);
@@ -424,6 +434,9 @@ impl Voter {
                         deadline,
                         members,
                     ));
+                    if self.plan.schedule == Schedule::Sequential {
+                        self.next_turn();
+                    }
                 }
                 for (r, e) in broken {
                     let detail = format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
@@ -616,6 +629,7 @@ impl Voter {
     }
 
     /// Closes the round when everyone trusted has answered, or when its deadline has passed.
+    /// In a sequential round, moves the turn on instead (see [`Voter::advance_turn`]).
     fn advance_round(&mut self) {
         let Some(round) = self.round.as_ref() else {
             return;
@@ -624,53 +638,128 @@ impl Voter {
         if alive.iter().all(|r| round.is_done_by(r)) {
             return self.close_round();
         }
+        if self.plan.schedule == Schedule::Sequential {
+            return self.advance_turn();
+        }
         if Instant::now() < round.deadline {
             return;
         }
-        // Before blaming anyone, take one last look: an answer may have arrived while the voter
-        // itself was busy, and the voter's lateness is not the replica's fault.
         let late: Vec<usize> = alive.iter().filter(|&r| !round.is_done_by(r)).collect();
-        for &r in &late {
-            for o in 0..self.plan.outputs.len() {
-                self.on_replica_output(r, o);
+        let number = round.number;
+        for r in late {
+            self.blame_if_late(r, number);
+        }
+        self.close_round();
+    }
+
+    /// Sequential schedule: the replica whose turn it is keeps it until it has answered every
+    /// expected output, leaves the quorum (faulty), or misses its own deadline, which makes
+    /// it, and only it, the hung one. Then the next replica that has not answered yet gets
+    /// the turn with a fresh deadline; when none is left, the round closes.
+    fn advance_turn(&mut self) {
+        loop {
+            let Some(round) = self.round.as_ref() else {
+                return;
+            };
+            let number = round.number;
+            if let Some(t) = round.turn {
+                if self.slots[t].is_some() && !round.is_done_by(t) {
+                    if Instant::now() < round.deadline {
+                        return;
+                    }
+                    self.blame_if_late(t, number);
+                    continue;
+                }
             }
+            if !self.next_turn() {
+                return self.close_round();
+            }
+            return;
+        }
+    }
+
+    /// Gives the turn to the lowest-numbered member that is still trusted and has not
+    /// answered yet: raises it above its siblings (puts the previous one back to rest) and
+    /// starts its deadline. Returns `false` when no such replica is left.
+    fn next_turn(&mut self) -> bool {
+        let Some(round) = self.round.as_ref() else {
+            return false;
+        };
+        let previous = round.turn;
+        let next = self
+            .alive(round)
+            .iter()
+            .find(|&r| !round.is_done_by(r) && Some(r) != previous);
+        if let Some(prev) = previous {
+            if let Some(rep) = self.slots[prev].as_ref() {
+                let pid = rep.pid;
+                self.rt.rest(pid, prev);
+            }
+        }
+        let Some(next) = next else {
+            return false;
+        };
+        let pid = self.slots[next].as_ref().map(|r| r.pid);
+        if let Some(pid) = pid {
+            self.rt.raise(pid);
+        }
+        let round = self.round.as_mut().expect("checked above");
+        round.turn = Some(next);
+        round.deadline = Instant::now() + Duration::from_micros(self.plan.timeout_us);
+        true
+    }
+
+    /// At a deadline: takes one last look at replica `r`'s pipes (an answer may have arrived
+    /// while the voter itself was busy, and the voter's lateness is not the replica's fault);
+    /// if it still has not answered everything, it is faulty: `protocol` with a partial frame
+    /// in its pipe, else `hang`.
+    fn blame_if_late(&mut self, r: usize, number: u64) {
+        for o in 0..self.plan.outputs.len() {
+            self.on_replica_output(r, o);
         }
         let Some(round) = self.round.as_ref() else {
             return;
         };
-        let alive = self.alive(round);
-        let late: Vec<usize> = alive.iter().filter(|&r| !round.is_done_by(r)).collect();
-        let number = round.number;
-        for r in late {
-            let Some(rep) = self.slots[r].as_ref() else {
-                continue;
-            };
-            let partial = rep.outputs.iter().position(|out| out.decoder.pending() > 0);
-            let (kind, detail) = match partial {
-                Some(o) => (
-                    EventKind::Protocol,
-                    format!(
-                        "partial frame on `{}` at the deadline of round {number}",
-                        self.plan.outputs[o].name
-                    ),
-                ),
-                None => (
-                    EventKind::Hang,
-                    format!(
-                        "no answer within {} µs in round {number}",
-                        self.plan.timeout_us
-                    ),
-                ),
-            };
-            self.fault(r, kind, detail);
+        if round.is_done_by(r) {
+            return;
         }
-        self.close_round();
+        let Some(rep) = self.slots[r].as_ref() else {
+            return;
+        };
+        let partial = rep.outputs.iter().position(|out| out.decoder.pending() > 0);
+        let turn = if round.turn == Some(r) {
+            " of its turn"
+        } else {
+            ""
+        };
+        let (kind, detail) = match partial {
+            Some(o) => (
+                EventKind::Protocol,
+                format!(
+                    "partial frame on `{}` at the deadline{turn} in round {number}",
+                    self.plan.outputs[o].name
+                ),
+            ),
+            None => (
+                EventKind::Hang,
+                format!(
+                    "no answer within {} µs{turn} in round {number}",
+                    self.plan.timeout_us
+                ),
+            ),
+        };
+        self.fault(r, kind, detail);
     }
 
     fn close_round(&mut self) {
         let Some(round) = self.round.take() else {
             return;
         };
+        if let Some(t) = round.turn {
+            if let Some(pid) = self.slots[t].as_ref().map(|r| r.pid) {
+                self.rt.rest(pid, t);
+            }
+        }
         let mut dissenters = ReplicaSet::EMPTY;
         let mut withheld = Vec::new();
         for o in round.outputs() {
@@ -784,14 +873,21 @@ impl Voter {
             let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
             self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
             let donor_rep = self.slots[d].as_mut().expect("donor slot is filled");
-            match recovery::fork_from(
+            let donor_pid = donor_rep.pid;
+            // S³RES §4.4: the donor runs above its siblings while it forks.
+            self.rt.raise(donor_pid);
+            let forked = recovery::fork_from(
                 &self.plan,
                 &self.listener,
                 donor_rep,
                 self.restart_nonce,
                 &family,
-            ) {
+            );
+            self.rt.rest(donor_pid, d);
+            match forked {
                 Ok(child) => {
+                    // The child inherited the donor's priority and CPU; it takes the slot's.
+                    self.rt.apply_to_replica(child.pid, slot);
                     let mut ev = self.recovery_event(slot, old_pid, child.pid, detected_ns);
                     ev.donor = Some(d);
                     ev.method = Some(RecoveryMethod::Fork);
@@ -807,6 +903,7 @@ impl Voter {
         }
         match Replica::spawn(&self.plan, slot) {
             Ok(fresh) => {
+                self.rt.apply_to_replica(fresh.pid, slot);
                 let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
                 ev.method = Some(RecoveryMethod::Exec);
                 ev.state_lost = Some(true);

@@ -5,6 +5,7 @@ use std::fs;
 use std::os::unix::fs::PermissionsExt;
 
 use super::*;
+use s3res_voter::sched::Schedule;
 
 /// A folder with an executable `run.sh` and a non-executable `notes.txt`; CPUs 0 and 1.
 struct Fixture {
@@ -105,7 +106,7 @@ fn echo_demo_plan() {
     assert!(source.inputs.is_empty());
     assert!(!plan.uses_stdout());
     assert!(plan.warnings.is_empty());
-    let text = plan.describe(None);
+    let text = plan.describe(None, None);
     assert!(text.contains("component echo: runs under s3res-voter with 3 replica(s) (tmr)"));
     assert!(text.contains("out out      -> echo.in (channel 0"));
 }
@@ -588,5 +589,86 @@ fn protected_component_needs_an_input_that_starts_rounds() {
         3,
         "components.a.redundancy",
         "no input that starts a round",
+    );
+}
+
+#[test]
+fn placement_fields_resolve_the_schedule() {
+    let f = fixture();
+    let plan = f.ok(ECHO);
+    let echo = &plan.components[1];
+    assert_eq!(echo.schedule, Schedule::Sequential, "3 replicas on 2 CPUs");
+    assert!(echo.schedule_auto);
+    assert_eq!(echo.voter_cpu, None);
+    let plan = f.ok(r#"{ "name": "n", "components": {
+  "s": { "exec": "run.sh" },
+  "e": { "exec": "run.sh", "redundancy": "dmr", "timeout_us": 10, "cpus": [1, 0],
+         "voter_cpu": 1, "schedule": "sequential" } },
+  "channels": [ { "from": "s.out", "to": "e.in" } ] }"#);
+    let e = &plan.components[1];
+    assert_eq!(
+        (e.schedule, e.schedule_auto, e.voter_cpu),
+        (Schedule::Sequential, false, Some(1))
+    );
+    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
+}
+
+#[test]
+fn placement_warnings() {
+    let f = fixture();
+    let plan = f.ok(r#"{ "name": "n", "components": {
+  "s": { "exec": "run.sh", "priority": 70, "schedule": "parallel", "voter_cpu": 0 },
+  "e": { "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10, "cpus": [0],
+         "schedule": "parallel" } },
+  "channels": [ { "from": "s.out", "to": "e.in" } ] }"#);
+    let w = plan.warnings.join("\n");
+    assert!(
+        w.contains("component s: priority 70 is at or above 50"),
+        "{w}"
+    );
+    assert!(
+        w.contains("component s: `schedule` is ignored without redundancy"),
+        "{w}"
+    );
+    assert!(
+        w.contains("component s: `voter_cpu` is ignored without redundancy"),
+        "{w}"
+    );
+    assert!(
+        w.contains("component e: `schedule: parallel` with 3 replicas on 1 CPU(s)"),
+        "{w}"
+    );
+    assert_eq!(plan.warnings.len(), 4, "{w}");
+}
+
+#[test]
+fn placement_errors() {
+    let f = fixture();
+    let sys = |echo: &str| {
+        format!(
+            r#"{{ "name": "n", "components": {{
+  "s": {{ "exec": "run.sh" }},
+  "e": {{ "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10,
+         {echo} }} }},
+  "channels": [ {{ "from": "s.out", "to": "e.in" }} ] }}"#
+        )
+    };
+    f.fails(
+        &sys(r#""voter_cpu": 7"#),
+        4,
+        "components.e.voter_cpu",
+        "CPU 7 does not exist on this machine",
+    );
+    f.fails(
+        &sys(r#""priority": 4"#),
+        4,
+        "components.e.priority",
+        "priority 4 is too low for 3 replica(s)",
+    );
+    f.fails(
+        &sys(r#""schedule": "round-robin""#),
+        4,
+        "components.e.schedule",
+        "unknown variant `round-robin`",
     );
 }

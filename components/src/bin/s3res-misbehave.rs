@@ -20,6 +20,8 @@ use s3res_components::Echo;
 ///             junk; then normal answers again from frame K+1
 ///   corrupt   a well-formed answer with the last byte inverted (a silent data corruption);
 ///             then normal answers again from frame K+1
+///   spin      the correct answer, then spin forever (a control-flow error that strikes just
+///             after the replica answered, while its siblings are still working on the round)
 ///
 /// The replica index is S3RES_REPLICA, read once at start. A replacement forked from a healthy
 /// donor inherits the donor's memory, including the donor's index, so it does not misbehave
@@ -48,6 +50,7 @@ enum Mode {
     Extra,
     Garbage,
     Corrupt,
+    Spin,
 }
 
 fn main() -> Result<()> {
@@ -119,6 +122,12 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
             }
             out.send(&wrong).context("sending the corrupted answer")?;
             return Ok(After::CarryOn);
+        }
+        Mode::Spin => {
+            out.send(answer).context("answering")?;
+            loop {
+                std::hint::spin_loop();
+            }
         }
     };
     out.write_raw(&bytes).context("writing the broken frame")?;

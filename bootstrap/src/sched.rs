@@ -1,0 +1,311 @@
+//! The system's priorities and placement as a whole: whether SCHED_RR can be had (found by
+//! trying), the nice values that stand in for it when not, what every process will run at
+//! (for `--check`), and applying it to the unprotected components. The voters apply the same
+//! scheme ([`s3res_voter::sched`]) to themselves and their replicas.
+
+use std::fmt::Write as _;
+
+use replica_rt::sys;
+use s3res_voter::plan::NiceFallback;
+use s3res_voter::sched::{self, Schedule};
+
+use crate::plan::{ComponentPlan, SystemPlan};
+
+/// What the system will run with.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SystemSched {
+    /// Some component has a priority.
+    pub prioritized: bool,
+    /// Why SCHED_RR cannot be used (`None`: it can, or no component asks for it).
+    pub refused: Option<String>,
+    /// Per component, in plan order: the nice values used where SCHED_RR is refused.
+    pub nice: Vec<Option<NiceFallback>>,
+    /// More distinct priorities than nice values above bootstrap's own: the weakest share 19.
+    pub merged: bool,
+}
+
+impl SystemSched {
+    /// Probes SCHED_RR (only if some component has a priority) and works out the fallback.
+    pub fn for_system(plan: &SystemPlan) -> SystemSched {
+        let prioritized = plan.components.iter().any(|c| c.priority.is_some());
+        let refused = if prioritized {
+            probe_round_robin().err()
+        } else {
+            None
+        };
+        let base = sys::nice_of(0).unwrap_or(0);
+        Self::with(plan, prioritized, refused, base)
+    }
+
+    fn with(
+        plan: &SystemPlan,
+        prioritized: bool,
+        refused: Option<String>,
+        base: i32,
+    ) -> SystemSched {
+        if !prioritized {
+            return SystemSched {
+                prioritized,
+                refused,
+                nice: vec![None; plan.components.len()],
+                merged: false,
+            };
+        }
+        // Levels, two per protected component (its voter, and its replicas represented by the
+        // lowest of them), one per unprotected one. Components without a priority come below
+        // every prioritized one, as SCHED_OTHER is below SCHED_RR: level 0.
+        let mut levels = Vec::new();
+        for c in &plan.components {
+            let p = c.priority.unwrap_or(0);
+            levels.push(p);
+            let replicas = match c.priority {
+                Some(p) if c.is_protected() => sched::replica_priority(p, c.replicas - 1),
+                _ => p,
+            };
+            levels.push(replicas);
+        }
+        let (values, merged) = sched::nice_levels(&levels, base);
+        let nice = values
+            .chunks(2)
+            .map(|v| {
+                Some(NiceFallback {
+                    voter: v[0],
+                    replicas: v[1],
+                })
+            })
+            .collect();
+        SystemSched {
+            prioritized,
+            refused,
+            nice,
+            merged,
+        }
+    }
+
+    /// SCHED_RR is to be used.
+    pub fn realtime(&self) -> bool {
+        self.refused.is_none()
+    }
+
+    /// The nice values of component `index`, if they are to be applied: only where SCHED_RR
+    /// is refused and some component has a priority.
+    pub fn fallback(&self, index: usize) -> Option<NiceFallback> {
+        if self.realtime() {
+            None
+        } else {
+            self.nice.get(index).copied().flatten()
+        }
+    }
+
+    /// Says once what is degraded and how to get it back.
+    pub fn warn_once(&self) {
+        if let Some(why) = &self.refused {
+            tracing::warn!(
+                "SCHED_RR refused ({why}): running with nice values that keep the priority order \
+                 instead. That is no real-time guarantee (other processes can delay a component), \
+                 and sequential rounds cannot raise the replica whose turn it is (each turn still \
+                 has its own deadline). Run as root or grant CAP_SYS_NICE (or raise RLIMIT_RTPRIO \
+                 to the highest priority used) to get SCHED_RR"
+            );
+            if self.merged {
+                tracing::warn!(
+                    "more distinct priorities than nice values above bootstrap's own: the lowest \
+                     share nice 19, so their order is lost"
+                );
+            }
+        }
+    }
+
+    /// Applies component `index`'s priority and CPUs to its process `pid` (an unprotected
+    /// component; voters apply their own). A refusal is logged and the component runs on.
+    pub fn apply_direct(&self, index: usize, c: &ComponentPlan, pid: libc::pid_t) {
+        let result = match (c.priority, self.fallback(index)) {
+            (Some(p), None) => sys::set_round_robin(pid, p.into()),
+            (_, Some(n)) => sys::set_nice(pid, n.voter),
+            (None, None) => Ok(()),
+        };
+        if let Err(e) = result {
+            tracing::warn!(component = %c.name, pid, error = %e, "could not set the component's priority; it runs at the default");
+        }
+        if !c.cpus.is_empty() {
+            if let Err(e) = sys::set_cpu_affinity(pid, &c.cpus) {
+                tracing::warn!(component = %c.name, pid, cpus = ?c.cpus, error = %e, "could not pin the component to its CPUs; it runs where the kernel puts it");
+            }
+        }
+    }
+
+    /// `--check`'s lines for component `index`: the schedule, and each process's priority
+    /// (or nice value) and CPUs.
+    pub fn describe(&self, index: usize, c: &ComponentPlan, out: &mut String) {
+        let nice = self.nice.get(index).copied().flatten();
+        if !c.is_protected() {
+            let prio = self.describe_priority(c.priority, nice.map(|n| n.voter), None);
+            let _ = writeln!(out, "  process   component  {prio}, {}", cpu_text(&c.cpus));
+            return;
+        }
+        let why = if c.schedule_auto {
+            match c.schedule {
+                Schedule::Sequential => format!(
+                    " (auto: {} replicas share {})",
+                    c.replicas,
+                    cpu_text(&c.cpus)
+                ),
+                Schedule::Parallel if c.cpus.is_empty() => {
+                    " (auto: replicas not pinned)".to_owned()
+                }
+                Schedule::Parallel => " (auto: one CPU per replica)".to_owned(),
+            }
+        } else {
+            " (set in the description)".to_owned()
+        };
+        let _ = writeln!(out, "  schedule  {}{why}", c.schedule);
+        let voter = self.describe_priority(c.priority, nice.map(|n| n.voter), None);
+        let voter_cpus = sched::voter_cpus(&c.cpus, c.voter_cpu);
+        let _ = writeln!(
+            out,
+            "  process   voter      {voter}, {}",
+            cpu_text(&voter_cpus)
+        );
+        for slot in 0..c.replicas {
+            let turn = (c.schedule == Schedule::Sequential).then_some(slot);
+            let prio = self.describe_priority(
+                c.priority.map(|p| sched::replica_priority(p, slot)),
+                nice.map(|n| n.replicas),
+                turn.and(c.priority.map(sched::turn_priority)),
+            );
+            let cpu = match sched::replica_cpu(&c.cpus, slot) {
+                Some(cpu) => format!("CPU {cpu}"),
+                None => "any CPU".to_owned(),
+            };
+            let _ = writeln!(out, "  process   replica {slot:<2} {prio}, {cpu}");
+        }
+    }
+
+    fn describe_priority(&self, rt: Option<u8>, nice: Option<i32>, turn: Option<u8>) -> String {
+        match (rt, self.realtime(), nice) {
+            (Some(p), true, _) => match turn {
+                Some(t) => format!("SCHED_RR {p} ({t} on its turn)"),
+                None => format!("SCHED_RR {p}"),
+            },
+            (Some(p), false, Some(n)) => format!("nice {n} (instead of SCHED_RR {p}: refused)"),
+            (None, false, Some(n)) => {
+                format!("nice {n} (no priority: below every prioritized process)")
+            }
+            _ => "default priority (SCHED_OTHER)".to_owned(),
+        }
+    }
+
+    /// One line for `--check` about SCHED_RR itself.
+    pub fn headline(&self) -> Option<String> {
+        if !self.prioritized {
+            return None;
+        }
+        Some(match &self.refused {
+            None => "real-time SCHED_RR available".to_owned(),
+            Some(why) => format!(
+                "real-time SCHED_RR refused ({why}); nice values keep the order instead \
+                 (run as root or grant CAP_SYS_NICE)"
+            ),
+        })
+    }
+}
+
+fn cpu_text(cpus: &[usize]) -> String {
+    match cpus {
+        [] => "any CPU".to_owned(),
+        [c] => format!("CPU {c}"),
+        _ => {
+            let list: Vec<String> = cpus.iter().map(usize::to_string).collect();
+            format!("CPUs {}", list.join(", "))
+        }
+    }
+}
+
+/// Whether this process may use SCHED_RR, found by switching itself to it for a moment (this
+/// covers CAP_SYS_NICE, RLIMIT_RTPRIO and a cgroup without real-time runtime alike). Its own
+/// policy is put back at once.
+fn probe_round_robin() -> Result<(), String> {
+    let before = sys::sched_policy(0).map_err(|e| e.to_string())?;
+    if before.is_round_robin() || before.policy == libc::SCHED_FIFO {
+        return Ok(());
+    }
+    match sys::set_round_robin(0, 1) {
+        Ok(()) => {
+            if let Err(e) = sys::set_normal_policy(0) {
+                tracing::warn!(error = %e, "could not put bootstrap back to SCHED_OTHER after probing SCHED_RR");
+            }
+            Ok(())
+        }
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::description::{self, HostContext};
+
+    fn plan(text: &str) -> SystemPlan {
+        let dir = tempfile::tempdir().unwrap();
+        let exe = dir.path().join("run.sh");
+        std::fs::write(&exe, "#!/bin/sh\n").unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let mut ctx = HostContext::for_file(&dir.path().join("s.json"));
+        ctx.cpus = vec![0, 1];
+        description::parse("s.json", text, &ctx).unwrap()
+    }
+
+    const SYSTEM: &str = r#"{ "name": "n", "components": {
+        "a": { "exec": "./run.sh", "priority": 40 },
+        "b": { "exec": "./run.sh", "redundancy": "tmr", "timeout_us": 100, "priority": 30,
+               "cpus": [0, 1], "voter_cpu": 1 },
+        "c": { "exec": "./run.sh" } },
+      "channels": [ { "from": "a.out", "to": "b.in" }, { "from": "b.out", "to": "c.in" } ] }"#;
+
+    #[test]
+    fn fallback_nice_values_keep_the_order_of_every_process() {
+        let p = plan(SYSTEM);
+        let s = SystemSched::with(&p, true, Some("EPERM".into()), 0);
+        let n: Vec<NiceFallback> = s.nice.iter().map(|n| n.unwrap()).collect();
+        // a 40 > b's voter 30 > b's replicas (26..28) > c (no priority).
+        assert_eq!(
+            (n[0].voter, n[1].voter, n[1].replicas, n[2].voter),
+            (0, 1, 2, 3)
+        );
+        assert_eq!(s.fallback(1), Some(n[1]));
+        let rt = SystemSched::with(&p, true, None, 0);
+        assert_eq!(rt.fallback(1), None);
+    }
+
+    #[test]
+    fn check_lines_name_every_process_with_priority_and_cpu() {
+        let p = plan(SYSTEM);
+        let s = SystemSched::with(&p, true, None, 0);
+        let mut out = String::new();
+        s.describe(1, &p.components[1], &mut out);
+        assert!(
+            out.contains("schedule  sequential (auto: 3 replicas share CPUs 0, 1)"),
+            "{out}"
+        );
+        assert!(
+            out.contains("process   voter      SCHED_RR 30, CPU 1"),
+            "{out}"
+        );
+        assert!(
+            out.contains("process   replica 0  SCHED_RR 28 (29 on its turn), CPU 0"),
+            "{out}"
+        );
+        assert!(
+            out.contains("process   replica 2  SCHED_RR 26 (29 on its turn), CPU 0"),
+            "{out}"
+        );
+        let refused = SystemSched::with(&p, true, Some("EPERM".into()), 0);
+        let mut out = String::new();
+        refused.describe(0, &p.components[0], &mut out);
+        assert!(
+            out.contains("nice 0 (instead of SCHED_RR 40: refused), any CPU"),
+            "{out}"
+        );
+    }
+}

@@ -1,0 +1,116 @@
+//! The core cases with the system running as an unprivileged user: `nobody` (through
+//! `setpriv`) when the tests run as root, else the user running them. Without CAP_SYS_NICE
+//! SCHED_RR is refused: bootstrap says so exactly once, and the system runs on nice values
+//! with every fault still detected and repaired. (The whole suite can be run this way with
+//! `S3RES_TEST_UNPRIVILEGED=1`.)
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use s3res_tests::{
+    assert_sink_whole, echo_pipeline, signals, EventKind, RecoveryMethod, Rng, RunningSystem,
+    System,
+};
+
+const LIMIT: Duration = Duration::from_secs(120);
+const TIMEOUT_US: u64 = 300_000;
+const REFUSED: &str = "SCHED_RR refused";
+
+/// How often the refusal must be said: once where SCHED_RR is refused, never where it is not.
+fn expected_refusals(sys: &System) -> usize {
+    let allowed = sys.round_robin_allowed();
+    eprintln!("SCHED_RR allowed for the unprivileged system: {allowed}");
+    usize::from(!allowed)
+}
+
+/// The repository's `system.json` (which gives every component a priority), as README runs it.
+#[test]
+fn unprivileged_echo_demo_runs_clean_and_says_once_that_sched_rr_is_refused() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../system.json");
+    let description = std::fs::read_to_string(&path).unwrap();
+    let sys = System::new().unprivileged();
+    let refusals = expected_refusals(&sys);
+    let mut run = sys.start(&description);
+    let out = run.wait_success(LIMIT);
+    let starts = out
+        .events
+        .iter()
+        .filter(|e| e.component == "echo" && e.kind == EventKind::Start)
+        .count();
+    assert_eq!(starts, 3, "{:#?}", out.events);
+    assert_said(&out.stderr, refusals);
+}
+
+/// source → echo (TMR, priority 30) → sink, started as an unprivileged user, with its three
+/// replicas running. Returns the system, the sink's summary path, and how often the refusal
+/// of SCHED_RR must be said.
+fn start_prioritized_echo(count: u32, hz: u32) -> (RunningSystem, PathBuf, usize) {
+    let sys = System::new().unprivileged();
+    let refusals = expected_refusals(&sys);
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+             "timeout_us": {TIMEOUT_US}, "priority": 30 }}"#
+    );
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&echo_pipeline(&summary, &echo, count, hz));
+    run.wait_for_replicas("echo", 3);
+    (run, summary, refusals)
+}
+
+fn assert_said(stderr: &str, refusals: usize) {
+    assert_eq!(stderr.matches(REFUSED).count(), refusals, "{stderr}");
+}
+
+/// Random replicas are killed while frames flow; each is a crash, repaired by fork with state.
+#[test]
+fn unprivileged_tmr_survives_kills_with_state() {
+    let mut rng = Rng::from_env();
+    let count = 4000;
+    let kills = 20;
+    let (mut run, summary, refusals) = start_prioritized_echo(count, 1000);
+    for _ in 0..kills {
+        let slot = rng.below(3) as usize;
+        let pid = run.replica_pids("echo")[&slot];
+        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+        let rec = run.wait_for_event(
+            |e| e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(pid),
+            Duration::from_secs(20),
+        );
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+        std::thread::sleep(Duration::from_millis(rng.range(5, 30)));
+    }
+    assert!(
+        run.try_status().is_none(),
+        "the system finished before all kills were done; make the source longer"
+    );
+    let out = run.wait_success(LIMIT);
+    let crashes = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::Crash)
+        .count();
+    assert_eq!(crashes, kills, "{:#?}", out.events);
+    assert_sink_whole(&summary, count);
+    assert_said(&out.stderr, refusals);
+}
+
+/// One corrupted frame is outvoted and its replica replaced.
+#[test]
+fn unprivileged_tmr_outvotes_a_corrupted_frame() {
+    let count = 1500;
+    let (mut run, summary, refusals) = start_prioritized_echo(count, 500);
+    let pid = run.replica_pids("echo")[&2];
+    s3res_tests::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue");
+    let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
+    assert_eq!(sdc.replica, Some(2), "{sdc:?}");
+    assert_eq!(sdc.pid, Some(pid), "{sdc:?}");
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let out = run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+    assert_said(&out.stderr, refusals);
+}

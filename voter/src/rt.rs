@@ -1,0 +1,182 @@
+//! Applies the scheme of [`crate::sched`] to the voter and its replicas: SCHED_RR priorities
+//! (or the nice values standing in for them), CPU pinning, and the raising of the replica whose
+//! turn it is. A refusal is said once, with what to do about it, and the voter runs on with
+//! what it has.
+
+use std::io;
+
+use replica_rt::sys;
+
+use crate::plan::{NiceFallback, VoterPlan};
+use crate::sched::{self, Schedule};
+
+/// What the voter may do to priorities, learned by trying.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    /// The component has no priority: leave policies and nice values alone.
+    Untouched,
+    /// SCHED_RR at the scheme's priorities.
+    RoundRobin(u8),
+    /// SCHED_RR refused: fixed nice values (no raising).
+    Nice(NiceFallback),
+}
+
+#[derive(Debug)]
+pub struct RealTime {
+    mode: Mode,
+    schedule: Schedule,
+    cpus: Vec<usize>,
+    voter_cpus: Vec<usize>,
+    /// The CPUs the voter could use before it pinned itself: what an unpinned replica gets
+    /// back when the voter is pinned (replicas inherit the voter's mask).
+    start_cpus: Vec<usize>,
+    nice: Option<NiceFallback>,
+    affinity_warned: bool,
+}
+
+impl RealTime {
+    pub fn new(plan: &VoterPlan) -> RealTime {
+        let mode = match (plan.priority, plan.realtime, plan.nice) {
+            (Some(p), true, _) => Mode::RoundRobin(p),
+            // SCHED_RR refused; a component without a priority also gets a nice value then,
+            // below every prioritized one (as SCHED_OTHER is below SCHED_RR).
+            (_, false, Some(n)) => Mode::Nice(n),
+            _ => Mode::Untouched,
+        };
+        RealTime {
+            mode,
+            schedule: plan.schedule,
+            cpus: plan.cpus.clone(),
+            voter_cpus: sched::voter_cpus(&plan.cpus, plan.voter_cpu),
+            start_cpus: sys::cpu_affinity(0).unwrap_or_default(),
+            nice: plan.nice,
+            affinity_warned: false,
+        }
+    }
+
+    /// Whether the replica whose turn it is can be raised above its siblings (SCHED_RR works).
+    pub fn can_raise(&self) -> bool {
+        matches!(self.mode, Mode::RoundRobin(_))
+    }
+
+    /// The voter's own priority and CPUs. Called before any replica exists, so the replicas
+    /// start from the voter's settings and are then set to their own.
+    pub fn apply_to_voter(&mut self) {
+        match self.mode {
+            Mode::Untouched => {}
+            Mode::RoundRobin(p) => {
+                if let Err(e) = sys::set_round_robin(0, p.into()) {
+                    self.refused(e);
+                    self.apply_nice(0, |n| n.voter);
+                }
+            }
+            Mode::Nice(n) => self.apply_nice_value(0, n.voter),
+        }
+        if !self.voter_cpus.is_empty() {
+            let cpus = self.voter_cpus.clone();
+            self.pin(0, &cpus, "the voter");
+        }
+        tracing::debug!(mode = ?self.mode, schedule = %self.schedule, cpus = ?self.voter_cpus, "voter scheduling applied");
+    }
+
+    /// Replica `slot`'s priority at rest and its CPU; for a replica just started by exec or
+    /// just forked from a donor (whose settings it inherited).
+    pub fn apply_to_replica(&mut self, pid: libc::pid_t, slot: usize) {
+        match self.mode {
+            Mode::Untouched => {}
+            Mode::RoundRobin(p) => {
+                let prio = sched::replica_priority(p, slot);
+                if let Err(e) = sys::set_round_robin(pid, prio.into()) {
+                    if !gone(&e) {
+                        self.refused(e);
+                        self.apply_nice(pid, |n| n.replicas);
+                    }
+                }
+            }
+            Mode::Nice(n) => self.apply_nice_value(pid, n.replicas),
+        }
+        match sched::replica_cpu(&self.cpus, slot) {
+            Some(cpu) => self.pin(pid, &[cpu], "a replica"),
+            None if !self.voter_cpus.is_empty() && !self.start_cpus.is_empty() => {
+                let cpus = self.start_cpus.clone();
+                self.pin(pid, &cpus, "a replica");
+            }
+            None => {}
+        }
+    }
+
+    /// Raises `pid` above its siblings (the replica whose turn it is, or a recovery donor).
+    /// Without SCHED_RR this does nothing: a nice value once raised cannot be lowered again.
+    pub fn raise(&mut self, pid: libc::pid_t) {
+        if let Mode::RoundRobin(p) = self.mode {
+            self.set_rt(pid, sched::turn_priority(p));
+        }
+    }
+
+    /// Puts replica `slot` (`pid`) back to its priority at rest.
+    pub fn rest(&mut self, pid: libc::pid_t, slot: usize) {
+        if let Mode::RoundRobin(p) = self.mode {
+            self.set_rt(pid, sched::replica_priority(p, slot));
+        }
+    }
+
+    fn set_rt(&mut self, pid: libc::pid_t, prio: u8) {
+        if let Err(e) = sys::set_rt_priority(pid, prio.into()) {
+            if !gone(&e) {
+                tracing::warn!(pid, priority = prio, error = %e, "could not change a replica's SCHED_RR priority");
+            }
+        }
+    }
+
+    /// SCHED_RR was refused although bootstrap's probe allowed it (or this voter was started
+    /// by something else): say so once and fall back to the nice values.
+    fn refused(&mut self, e: io::Error) {
+        if let Mode::RoundRobin(p) = self.mode {
+            tracing::warn!(
+                priority = p,
+                error = %e,
+                "SCHED_RR refused; falling back to nice values that keep the priority order \
+                 (no real-time guarantee, no raising of a replica's turn). Run as root or grant \
+                 CAP_SYS_NICE (or raise RLIMIT_RTPRIO) to get SCHED_RR"
+            );
+            self.mode = match self.nice {
+                Some(n) => Mode::Nice(n),
+                None => Mode::Untouched,
+            };
+        }
+    }
+
+    fn apply_nice(&mut self, pid: libc::pid_t, pick: impl Fn(&NiceFallback) -> i32) {
+        if let Mode::Nice(n) = self.mode {
+            self.apply_nice_value(pid, pick(&n));
+        }
+    }
+
+    fn apply_nice_value(&mut self, pid: libc::pid_t, nice: i32) {
+        if let Err(e) = sys::set_nice(pid, nice) {
+            if !gone(&e) {
+                tracing::warn!(pid, nice, error = %e, "could not set a nice value");
+            }
+        }
+    }
+
+    fn pin(&mut self, pid: libc::pid_t, cpus: &[usize], who: &str) {
+        if let Err(e) = sys::set_cpu_affinity(pid, cpus) {
+            if gone(&e) || self.affinity_warned {
+                return;
+            }
+            self.affinity_warned = true;
+            tracing::warn!(
+                ?cpus,
+                error = %e,
+                "could not pin {who} to its CPUs (is a cpuset narrower than the description?); \
+                 running where the kernel puts it. Fix `cpus`/`voter_cpu` or the cpuset to pin"
+            );
+        }
+    }
+}
+
+/// The process is gone already (its death is reported through its pidfd, not here).
+fn gone(e: &io::Error) -> bool {
+    e.raw_os_error() == Some(libc::ESRCH)
+}
