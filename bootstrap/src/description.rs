@@ -12,7 +12,7 @@ use thiserror::Error;
 
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
-use s3res_voter::plan::{default_restart_timeout_ms, RoundTrigger};
+use s3res_voter::plan::{default_restart_timeout_ms, default_start_timeout_ms, RoundTrigger};
 use s3res_voter::sched::{self, Schedule};
 
 use crate::exec::{self, SearchPath};
@@ -234,6 +234,7 @@ struct ComponentDesc {
     schedule: Option<ScheduleChoice>,
     rounds: Option<Vec<RoundDesc>>,
     restart_timeout_ms: Option<u64>,
+    start_timeout_ms: Option<u64>,
     inputs: Option<Vec<String>>,
     outputs: Option<Vec<String>>,
 }
@@ -415,6 +416,7 @@ impl Checker<'_> {
                 (desc.timeout_us.is_some(), "timeout_us"),
                 (desc.rounds.is_some(), "rounds"),
                 (desc.restart_timeout_ms.is_some(), "restart_timeout_ms"),
+                (desc.start_timeout_ms.is_some(), "start_timeout_ms"),
             ] {
                 if present {
                     warnings.push(format!(
@@ -428,6 +430,12 @@ impl Checker<'_> {
             return Err(self.err(
                 &field("restart_timeout_ms"),
                 "restart_timeout_ms must be more than 0",
+            ));
+        }
+        if desc.start_timeout_ms == Some(0) {
+            return Err(self.err(
+                &field("start_timeout_ms"),
+                "start_timeout_ms must be more than 0",
             ));
         }
 
@@ -787,6 +795,10 @@ impl Checker<'_> {
                 .desc
                 .restart_timeout_ms
                 .unwrap_or_else(default_restart_timeout_ms),
+            start_timeout_ms: d
+                .desc
+                .start_timeout_ms
+                .unwrap_or_else(default_start_timeout_ms),
             priority: d.priority,
             cpus: d.cpus,
             voter_cpu: d.voter_cpu,

@@ -97,6 +97,7 @@ pub struct ComponentPlan {
     /// Round deadline in microseconds; 0 for an unprotected component.
     pub timeout_us: u64,
     pub restart_timeout_ms: u64,
+    pub start_timeout_ms: u64,
     /// SCHED_RR priority: of the component, or of the voter (replicas run below it).
     pub priority: Option<u8>,
     /// CPUs: the component's mask, or the CPUs the replicas are spread over.
@@ -214,8 +215,8 @@ impl SystemPlan {
             }
             let _ = writeln!(
                 out,
-                "  timeout   {} us per round, {} ms per restart",
-                c.timeout_us, c.restart_timeout_ms
+                "  timeout   {} us per round, {} ms per restart, {} ms for a fresh replica's first answer",
+                c.timeout_us, c.restart_timeout_ms, c.start_timeout_ms
             );
         }
         match c.priority {

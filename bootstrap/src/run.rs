@@ -500,6 +500,7 @@ fn spawn_voter(
         events_fd: Some(events_target),
         socket_path,
         restart_timeout_ms: c.restart_timeout_ms,
+        start_timeout_ms: c.start_timeout_ms,
         priority: c.priority,
         cpus: c.cpus.clone(),
         voter_cpu: c.voter_cpu,

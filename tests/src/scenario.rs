@@ -45,19 +45,25 @@ pub fn assert_sink_whole(summary: &Path, count: u32) {
 }
 
 impl RunningSystem {
-    /// Waits until `replicas` replicas of `component` have started, then a little longer so
-    /// that frames are flowing.
+    /// Waits until `replicas` replicas of `component` have started and each has installed
+    /// replica-rt's signal handlers (so a restart or injection signal sent now is handled, not
+    /// fatal). Readiness is read from the kernel (`SigCgt` in `/proc/PID/status`), not guessed
+    /// with a sleep.
     pub fn wait_for_replicas(&mut self, component: &str, replicas: usize) {
         let deadline = Instant::now() + Duration::from_secs(20);
-        while self.replica_pids(component).len() < replicas {
+        loop {
+            let pids = self.replica_pids(component);
+            if pids.len() >= replicas && pids.values().all(|&pid| crate::procs::handles_hooks(pid))
+            {
+                return;
+            }
             assert!(
                 Instant::now() < deadline && self.try_status().is_none(),
-                "the replicas of {component} did not start:\n{}",
+                "the replicas of {component} did not start (or never installed their handlers):\n{}",
                 crate::tail(&self.stderr(), 30)
             );
-            std::thread::sleep(Duration::from_millis(10));
+            std::thread::sleep(Duration::from_millis(5));
         }
-        std::thread::sleep(Duration::from_millis(200));
     }
 
     /// Waits for the system to finish, and checks it succeeded and left nothing behind.

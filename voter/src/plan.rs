@@ -52,6 +52,11 @@ pub struct VoterPlan {
     /// How long a recovery may wait for the donor's child to connect and take its fds.
     #[serde(default = "default_restart_timeout_ms")]
     pub restart_timeout_ms: u64,
+    /// How long a replica started by exec may take to give its first answer: until then it is
+    /// still starting (exec, linking, `mlockall` faulting in its pages), not hung. A round in
+    /// which such a replica takes part runs on `max(timeout_us, start_timeout_ms)`.
+    #[serde(default = "default_start_timeout_ms")]
+    pub start_timeout_ms: u64,
     /// SCHED_RR priority of the voter (replicas run below it); `None` leaves the default.
     #[serde(default)]
     pub priority: Option<u8>,
@@ -87,6 +92,10 @@ pub struct NiceFallback {
 
 fn yes() -> bool {
     true
+}
+
+pub fn default_start_timeout_ms() -> u64 {
+    1000
 }
 
 pub fn default_restart_timeout_ms() -> u64 {

@@ -426,7 +426,7 @@ impl Voter {
                 }
                 if let Some(expected) = round {
                     self.rounds_started += 1;
-                    let deadline = Instant::now() + Duration::from_micros(self.plan.timeout_us);
+                    let deadline = Instant::now() + self.allowance(members);
                     self.round = Some(Round::new(
                         self.rounds_started,
                         i,
@@ -703,10 +703,27 @@ impl Voter {
         if let Some(pid) = pid {
             self.rt.raise(pid);
         }
+        let allowance = self.allowance(ReplicaSet::EMPTY.with(next));
         let round = self.round.as_mut().expect("checked above");
         round.turn = Some(next);
-        round.deadline = Instant::now() + Duration::from_micros(self.plan.timeout_us);
+        round.deadline = Instant::now() + allowance;
         true
+    }
+
+    /// How long `replicas` get to answer a round: `timeout_us`, or the start-up allowance
+    /// (`start_timeout_ms`, if longer) while one of them has never answered. A replica started
+    /// by exec is still being loaded, linked and locked into memory when its first input
+    /// arrives; that is start-up, not a hang. A fork child is proven from the start.
+    fn allowance(&self, replicas: ReplicaSet) -> Duration {
+        let timeout = Duration::from_micros(self.plan.timeout_us);
+        let starting = replicas
+            .iter()
+            .any(|r| self.slots[r].as_ref().is_some_and(|rep| !rep.proven));
+        if starting {
+            timeout.max(Duration::from_millis(self.plan.start_timeout_ms))
+        } else {
+            timeout
+        }
     }
 
     /// At a deadline: takes one last look at replica `r`'s pipes (an answer may have arrived
@@ -740,11 +757,18 @@ impl Voter {
                     self.plan.outputs[o].name
                 ),
             ),
-            None => (
+            None if rep.proven => (
                 EventKind::Hang,
                 format!(
                     "no answer within {} µs{turn} in round {number}",
                     self.plan.timeout_us
+                ),
+            ),
+            None => (
+                EventKind::Hang,
+                format!(
+                    "no first answer within {} ms of start-up{turn} in round {number}",
+                    self.plan.start_timeout_ms.max(self.plan.timeout_us / 1000)
                 ),
             ),
         };
