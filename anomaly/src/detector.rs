@@ -130,10 +130,14 @@ impl Detector {
     }
 
     /// Scores `frame`, the next output frame of `replica`, against that replica's previous
-    /// accepted frame. A frame that raises no alarm becomes the replica's previous frame; a
-    /// frame that alarms does not (a corrupted value must not become the reference for the
-    /// next delta) — see [`resync`](Self::resync) for the voter overruling the detector.
+    /// frame, and makes it the replica's previous frame (unless it is short or holds NaN/Inf).
     /// Never allocates.
+    ///
+    /// An alarming frame becomes the reference too: a detector that kept the last good frame
+    /// instead would alarm on every later frame after a single false alarm. What happens to
+    /// the culprit's stream is the voter's business: [`copy_stream`](Self::copy_stream) when
+    /// it replaces the replica by a fork of a healthy one, [`reset_stream`](Self::reset_stream)
+    /// when it restarts it from scratch.
     ///
     /// # Panics
     /// If `replica >= self.replicas()` (a caller bug, like an out-of-range slice index).
@@ -189,9 +193,7 @@ impl Detector {
             }
         };
         let alarm = score > threshold;
-        if !alarm {
-            prev.copy_from_slice(&self.current);
-        }
+        prev.copy_from_slice(&self.current);
         Verdict {
             alarm,
             score,
@@ -205,9 +207,9 @@ impl Detector {
         }
     }
 
-    /// Makes `frame` the previous frame of `replica` without scoring it: for a voter that
-    /// overrules an alarm (every replica produced the same frame, so the change is real).
-    /// A frame that cannot be read (short, non-finite) resets the stream instead.
+    /// Makes `frame` the previous frame of `replica` without scoring it (say, the frame the
+    /// voter forwarded, when it did not score every replica). A frame that cannot be read
+    /// (short, non-finite) resets the stream instead.
     pub fn resync(&mut self, replica: usize, frame: &[u8]) {
         let n = self.current.len();
         match self.preprocess.read(&self.layout, frame, &mut self.current) {

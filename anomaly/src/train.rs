@@ -155,6 +155,17 @@ impl Trainer {
                 .chain([n])
                 .collect(),
         };
+        if config.sgd.epochs == 0 || config.sgd.batch == 0 {
+            return Err(TrainError::Config(
+                "epochs and batch must be at least 1".into(),
+            ));
+        }
+        if !(config.sgd.learning_rate > 0.0 && config.sgd.learning_rate.is_finite()) {
+            return Err(TrainError::Config(format!(
+                "learning rate {} must be a positive number",
+                config.sgd.learning_rate
+            )));
+        }
         if !(config.margin >= 1.0 && config.margin.is_finite()) {
             return Err(TrainError::Config(format!(
                 "margin {} must be at least 1",

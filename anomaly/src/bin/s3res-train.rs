@@ -281,8 +281,6 @@ fn check(model_path: &Path, files: &[PathBuf], max_frame: usize) -> Result<()> {
             worst = worst.max(verdict.score);
             if verdict.alarm {
                 alarms += 1;
-                // The voter would discard the frame and recover; here the stream goes on.
-                detector.resync(0, frame);
                 let field = verdict.field.map_or("-", |i| detector.field_name(i));
                 println!(
                     "alarm: {} frame {} score {:.4} (threshold {:.4}) field {} ({:?})",
