@@ -303,6 +303,58 @@ impl From<FieldLayout> for Vec<Field> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    const TYPES: [FieldType; 10] = [
+        FieldType::F64,
+        FieldType::F32,
+        FieldType::I64,
+        FieldType::U64,
+        FieldType::I32,
+        FieldType::U32,
+        FieldType::I16,
+        FieldType::U16,
+        FieldType::I8,
+        FieldType::U8,
+    ];
+
+    proptest! {
+        /// Any type at any offset reads back what was written there, and any shorter frame is
+        /// an error, never a panic.
+        #[test]
+        fn any_type_at_any_offset(
+            t in 0usize..10,
+            offset in 0usize..100,
+            raw in any::<u64>(),
+            fill in any::<u8>(),
+            cut in 0usize..200,
+        ) {
+            let ty = TYPES[t];
+            let layout = FieldLayout::new(vec![Field::new("v", ty, offset)]).unwrap();
+            let mut frame = vec![fill; offset + ty.size() + 3];
+            frame[offset..offset + ty.size()].copy_from_slice(&raw.to_le_bytes()[..ty.size()]);
+            let expected = match ty {
+                FieldType::F64 => f64::from_bits(raw),
+                FieldType::F32 => f64::from(f32::from_bits(raw as u32)),
+                FieldType::I64 => raw as i64 as f64,
+                FieldType::U64 => raw as f64,
+                FieldType::I32 => f64::from(raw as i32),
+                FieldType::U32 => f64::from(raw as u32),
+                FieldType::I16 => f64::from(raw as i16),
+                FieldType::U16 => f64::from(raw as u16),
+                FieldType::I8 => f64::from(raw as i8),
+                FieldType::U8 => f64::from(raw as u8),
+            };
+            let mut out = [0.0];
+            layout.decode(&frame, &mut out).unwrap();
+            prop_assert!(out[0] == expected || (out[0].is_nan() && expected.is_nan()));
+            let short = cut.min(offset + ty.size() - 1);
+            prop_assert_eq!(
+                layout.decode(&frame[..short], &mut out),
+                Err(DecodeError::ShortFrame { have: short, need: offset + ty.size() })
+            );
+        }
+    }
 
     fn put(frame: &mut [u8], offset: usize, bytes: &[u8]) {
         frame[offset..offset + bytes.len()].copy_from_slice(bytes);
