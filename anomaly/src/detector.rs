@@ -168,14 +168,18 @@ impl Detector {
                 cause: Cause::Warmup,
             };
         }
-        for i in 0..n {
-            let x = if self.preprocess.delta {
-                self.current[i] - prev[i]
-            } else {
-                self.current[i]
-            };
+        let delta = self.preprocess.delta;
+        for ((((z, cur), old), mean), inv) in self
+            .standard
+            .iter_mut()
+            .zip(self.current.iter())
+            .zip(prev.iter())
+            .zip(self.mean.iter())
+            .zip(self.inv_sigma.iter())
+        {
+            let x = if delta { cur - old } else { *cur };
             // x is finite or ±∞ (a finite difference can overflow), never NaN; so is z.
-            self.standard[i] = ((x - self.mean[i]) * self.inv_sigma[i]).clamp(-CLAMP, CLAMP);
+            *z = ((x - mean) * inv).clamp(-CLAMP, CLAMP);
         }
         let (score, field) = match &mut self.scorer {
             Scorer::Gaussian { .. } => largest(self.standard.iter().map(|z| z.abs())),
