@@ -6,8 +6,8 @@
 //! empty call, is printed too and not subtracted); the batch figure is the mean over 1000
 //! calls timed together, free of the timer's cost.
 
-use s3res_anomaly::synthetic::{robot_layout, Robot, FRAME_LEN};
-use s3res_anomaly::{AutoencoderConfig, Detector, FloatRepr, Model, Preprocess, Trainer};
+use s3res_anomaly::synthetic::{robot_layout, trainer_for, Robot, FRAME_LEN};
+use s3res_anomaly::{AutoencoderConfig, Detector, FloatRepr, Model};
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -62,19 +62,8 @@ fn main() {
         percentile(&timer, 0.99)
     );
     for floats in [FloatRepr::Value, FloatRepr::SignExponent] {
-        let mut trainer = Trainer::new(
-            layout.clone(),
-            Preprocess {
-                delta: true,
-                floats,
-            },
-        );
-        for run in 0..4 {
-            trainer.begin_stream();
-            for f in Robot::new(run).frames(5_000) {
-                trainer.push(&f).expect("frames fit the layout");
-            }
-        }
+        let runs: Vec<_> = (0..4).map(|run| Robot::new(run).frames(5_000)).collect();
+        let trainer = trainer_for(runs.iter().map(Vec::as_slice), floats);
         let gaussian = trainer.gaussian(6.0, 1e-6).expect("enough samples");
         let autoencoder = trainer
             .autoencoder(&AutoencoderConfig::default())

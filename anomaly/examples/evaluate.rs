@@ -9,8 +9,10 @@
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use s3res_anomaly::synthetic::{dmr_campaign, robot_layout, value_ranges, Campaign, Robot};
-use s3res_anomaly::{AutoencoderConfig, Detector, FloatRepr, Preprocess, Trainer};
+use s3res_anomaly::synthetic::{
+    dmr_campaign, robot_layout, trainer_for, value_ranges, Campaign, Robot,
+};
+use s3res_anomaly::{AutoencoderConfig, Detector, FloatRepr};
 
 fn main() {
     let seed: u64 = std::env::args()
@@ -29,17 +31,7 @@ fn main() {
     let ranges = value_ranges(&layout, &all_train);
 
     for floats in [FloatRepr::Value, FloatRepr::SignExponent] {
-        let pre = Preprocess {
-            delta: true,
-            floats,
-        };
-        let mut trainer = Trainer::new(layout.clone(), pre);
-        for run in &train_runs {
-            trainer.begin_stream();
-            for f in run {
-                trainer.push(f).expect("synthetic frames fit the layout");
-            }
-        }
+        let trainer = trainer_for(train_runs.iter().map(Vec::as_slice), floats);
         let started = std::time::Instant::now();
         let ae = trainer
             .autoencoder(&AutoencoderConfig {

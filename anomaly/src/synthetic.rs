@@ -275,3 +275,25 @@ pub fn value_ranges(layout: &FieldLayout, frames: &[[u8; FRAME_LEN]]) -> Vec<f64
     }
     lo.iter().zip(&hi).map(|(l, h)| (h - l).max(0.0)).collect()
 }
+
+/// A trainer fed with `runs`, each run one stream, features as `floats` says (deltas).
+pub fn trainer_for<'a>(
+    runs: impl IntoIterator<Item = &'a [[u8; FRAME_LEN]]>,
+    floats: crate::FloatRepr,
+) -> crate::Trainer {
+    let mut trainer = crate::Trainer::new(
+        robot_layout(),
+        crate::Preprocess {
+            delta: true,
+            floats,
+        },
+    );
+    for run in runs {
+        trainer.begin_stream();
+        for f in run {
+            // Cannot fail: synthetic frames are as long as the layout needs.
+            let _ = trainer.push(f);
+        }
+    }
+    trainer
+}

@@ -2,8 +2,8 @@
 //! by a global allocator that tallies this thread's allocations.
 
 use s3res_anomaly::network::Sgd;
-use s3res_anomaly::synthetic::{flip, robot_layout, Robot};
-use s3res_anomaly::{AutoencoderConfig, Detector, FloatRepr, Preprocess, Trainer};
+use s3res_anomaly::synthetic::{flip, robot_layout, trainer_for, Robot};
+use s3res_anomaly::{AutoencoderConfig, Detector, FloatRepr};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
@@ -52,16 +52,7 @@ fn observe_does_not_allocate() {
     let layout = robot_layout();
     let frames = Robot::new(seed).frames(2_000);
     for floats in [FloatRepr::Value, FloatRepr::SignExponent] {
-        let mut trainer = Trainer::new(
-            layout.clone(),
-            Preprocess {
-                delta: true,
-                floats,
-            },
-        );
-        for f in &frames[..1_000] {
-            trainer.push(f).unwrap();
-        }
+        let trainer = trainer_for([&frames[..1_000]], floats);
         let gaussian = trainer.gaussian(6.0, 1e-6).unwrap();
         let autoencoder = trainer
             .autoencoder(&AutoencoderConfig {

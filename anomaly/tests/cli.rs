@@ -11,10 +11,11 @@ struct Run {
     stderr: String,
 }
 
-/// Runs s3res-train with `args` in `dir`, killing it if it outlives 120 s.
-fn train(dir: &Path, args: &[&str]) -> Run {
+/// Runs s3res-train with `args` (split at spaces) in `dir`, killing it if it outlives 120 s.
+fn train(dir: &Path, args: &str) -> Run {
+    let args: Vec<&str> = args.split_whitespace().collect();
     let mut child = Command::new(env!("CARGO_BIN_EXE_s3res-train"))
-        .args(args)
+        .args(&args)
         .current_dir(dir)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::piped())
@@ -48,33 +49,13 @@ fn train_and_check_both_models() {
     for (seed, file) in [("1", "a.bin"), ("2", "b.bin"), ("3", "held.bin")] {
         let r = train(
             d,
-            &[
-                "synthetic",
-                "--seed",
-                seed,
-                "--count",
-                "3000",
-                "--out",
-                file,
-                "--layout-out",
-                "layout.json",
-            ],
+            &format!("synthetic --seed {seed} --count 3000 --out {file} --layout-out layout.json"),
         );
         assert!(r.ok, "{}", r.stderr);
     }
     let r = train(
         d,
-        &[
-            "gaussian",
-            "--layout",
-            "layout.json",
-            "--frames",
-            "a.bin",
-            "--frames",
-            "b.bin",
-            "--out",
-            "g.json",
-        ],
+        "gaussian --layout layout.json --frames a.bin --frames b.bin --out g.json",
     );
     assert!(
         r.ok && r.stdout.contains("wrote gaussian model to g.json"),
@@ -84,21 +65,7 @@ fn train_and_check_both_models() {
     );
     let r = train(
         d,
-        &[
-            "autoencoder",
-            "--layout",
-            "layout.json",
-            "--frames",
-            "a.bin",
-            "--frames",
-            "b.bin",
-            "--out",
-            "ae.json",
-            "--seed",
-            "3",
-            "--epochs",
-            "10",
-        ],
+        "autoencoder --layout layout.json --frames a.bin --frames b.bin --out ae.json --seed 3 --epochs 10",
     );
     assert!(
         r.ok && r.stdout.contains("wrote autoencoder model"),
@@ -116,7 +83,7 @@ fn train_and_check_both_models() {
     );
 
     for m in ["g.json", "ae.json"] {
-        let r = train(d, &["check", "--model", m, "--frames", "held.bin"]);
+        let r = train(d, &format!("check --model {m} --frames held.bin"));
         assert!(r.ok, "{}", r.stderr);
         assert!(
             r.stdout.contains("3000 frames, 0 alarms"),
@@ -126,123 +93,71 @@ fn train_and_check_both_models() {
     }
 }
 
+/// Runs s3res-train expecting it to fail with every one of `expected` in its error output.
+fn refused(dir: &Path, args: &str, expected: &[&str]) {
+    let r = train(dir, args);
+    assert!(!r.ok, "{args} succeeded: {}", r.stdout);
+    for e in expected {
+        assert!(r.stderr.contains(e), "{args}: no {e:?} in {}", r.stderr);
+    }
+}
+
 #[test]
 fn bad_input_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let r = train(
         d,
-        &[
-            "synthetic",
-            "--count",
-            "100",
-            "--out",
-            "f.bin",
-            "--layout-out",
-            "good.json",
-        ],
+        "synthetic --count 100 --out f.bin --layout-out good.json",
     );
     assert!(r.ok, "{}", r.stderr);
+    let write = |name: &str, text: &str| std::fs::write(d.join(name), text).unwrap();
 
-    std::fs::write(
-        d.join("overlap.json"),
+    write(
+        "overlap.json",
         "[\n {\"name\":\"x\",\"type\":\"f64\",\"offset\":0},\n {\"name\":\"y\",\"type\":\"f64\",\"offset\":4}\n]",
-    )
-    .unwrap();
-    let r = train(
+    );
+    refused(
         d,
+        "gaussian --layout overlap.json --frames f.bin --out m.json",
         &[
-            "gaussian",
-            "--layout",
-            "overlap.json",
-            "--frames",
-            "f.bin",
-            "--out",
-            "m.json",
+            "layout overlap.json",
+            "field `y` (bytes 4..12) overlaps field `x` (bytes 0..8)",
         ],
     );
-    assert!(!r.ok);
-    assert!(r.stderr.contains("layout overlap.json"), "{}", r.stderr);
-    assert!(
-        r.stderr
-            .contains("field `y` (bytes 4..12) overlaps field `x` (bytes 0..8)"),
-        "{}",
-        r.stderr
-    );
-
-    std::fs::write(
-        d.join("typo.json"),
+    write(
+        "typo.json",
         "[\n {\"name\":\"x\",\"type\":\"float\",\"offset\":0}\n]",
-    )
-    .unwrap();
-    let r = train(
+    );
+    refused(
         d,
-        &[
-            "gaussian",
-            "--layout",
-            "typo.json",
-            "--frames",
-            "f.bin",
-            "--out",
-            "m.json",
-        ],
+        "gaussian --layout typo.json --frames f.bin --out m.json",
+        &["unknown variant `float`", "line 2"],
     );
-    assert!(!r.ok);
-    assert!(
-        r.stderr.contains("unknown variant `float`") && r.stderr.contains("line 2"),
-        "{}",
-        r.stderr
-    );
-
     // A channel entry with a `fields` member is accepted as a layout too.
-    std::fs::write(
-        d.join("far.json"),
+    write(
+        "far.json",
         "{\"fields\": [{\"name\":\"far\",\"type\":\"u8\",\"offset\":200}]}",
-    )
-    .unwrap();
-    let r = train(
+    );
+    refused(
         d,
-        &[
-            "gaussian", "--layout", "far.json", "--frames", "f.bin", "--out", "m.json",
-        ],
+        "gaussian --layout far.json --frames f.bin --out m.json",
+        &["every frame is shorter than the layout needs (201 bytes)"],
     );
-    assert!(!r.ok);
-    assert!(
-        r.stderr
-            .contains("every frame is shorter than the layout needs (201 bytes)"),
-        "{}",
-        r.stderr
-    );
-
     std::fs::write(d.join("cut.bin"), [10u8, 0, 0, 0, 1, 2]).unwrap();
-    let r = train(
+    refused(
         d,
-        &[
-            "gaussian",
-            "--layout",
-            "good.json",
-            "--frames",
-            "cut.bin",
-            "--out",
-            "m.json",
-        ],
+        "gaussian --layout good.json --frames cut.bin --out m.json",
+        &["frame file cut.bin, frame 0"],
     );
-    assert!(!r.ok);
-    assert!(
-        r.stderr.contains("frame file cut.bin, frame 0"),
-        "{}",
-        r.stderr
+    write("notamodel.json", "{\"format\":\"x\"}");
+    refused(
+        d,
+        "check --model notamodel.json --frames f.bin",
+        &["model notamodel.json"],
     );
 
-    std::fs::write(d.join("notamodel.json"), "{\"format\":\"x\"}").unwrap();
-    let r = train(
-        d,
-        &["check", "--model", "notamodel.json", "--frames", "f.bin"],
-    );
-    assert!(!r.ok);
-    assert!(r.stderr.contains("model notamodel.json"), "{}", r.stderr);
-
-    let r = train(d, &["--help"]);
+    let r = train(d, "--help");
     assert!(
         r.ok && r.stdout.contains("4-byte little-endian length"),
         "{}",

@@ -6,29 +6,17 @@ use rand_chacha::ChaCha8Rng;
 use s3res_anomaly::model::DetectorModel;
 use s3res_anomaly::network::{default_sizes, Network, Sgd};
 use s3res_anomaly::synthetic::{
-    dmr_campaign, flip, robot_layout, value_ranges, Campaign, Robot, FRAME_LEN,
+    dmr_campaign, flip, robot_layout, trainer_for, value_ranges, Campaign, Robot, FRAME_LEN,
 };
-use s3res_anomaly::{
-    AutoencoderConfig, Cause, Detector, FieldType, FloatRepr, Model, Preprocess, Trainer,
-};
+use s3res_anomaly::{AutoencoderConfig, Cause, Detector, FieldType, FloatRepr, Model, Trainer};
 
 const SEED: u64 = 42;
 
 fn trainer(runs: std::ops::Range<u64>, frames: usize, floats: FloatRepr) -> Trainer {
-    let mut trainer = Trainer::new(
-        robot_layout(),
-        Preprocess {
-            delta: true,
-            floats,
-        },
-    );
-    for run in runs {
-        trainer.begin_stream();
-        for f in Robot::new(SEED * 1000 + run).frames(frames) {
-            trainer.push(&f).unwrap();
-        }
-    }
-    trainer
+    let runs: Vec<_> = runs
+        .map(|r| Robot::new(SEED * 1000 + r).frames(frames))
+        .collect();
+    trainer_for(runs.iter().map(Vec::as_slice), floats)
 }
 
 fn small_autoencoder(trainer: &Trainer) -> Model {
