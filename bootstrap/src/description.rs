@@ -12,7 +12,7 @@ use thiserror::Error;
 
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
-use s3res_voter::plan::{default_restart_timeout_ms, RoundTrigger};
+use s3res_voter::plan::{default_restart_timeout_ms, default_stream_window, Mode, RoundTrigger};
 
 use crate::exec::{self, SearchPath};
 use crate::plan::{ChannelPlan, ComponentPlan, Endpoint, PortPlan, Redundancy, SystemPlan};
@@ -203,14 +203,6 @@ struct SystemDesc {
     channels: Vec<ChannelDesc>,
 }
 
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
-enum Mode {
-    #[default]
-    Reactive,
-    Stream,
-}
-
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ComponentDesc {
@@ -222,6 +214,8 @@ struct ComponentDesc {
     replicas: Option<u64>,
     #[serde(default)]
     mode: Mode,
+    /// Stream mode: how many frames a replica may run ahead of the slowest.
+    window: Option<u64>,
     timeout_us: Option<u64>,
     // Signed, so that `-1` gets our range message rather than a type error.
     priority: Option<i64>,
@@ -257,7 +251,11 @@ struct Draft {
     timeout_us: u64,
     priority: Option<u8>,
     cpus: Vec<usize>,
+    window: usize,
 }
+
+/// Largest stream window: frames are buffered per replica and output, so keep it sane.
+const MAX_STREAM_WINDOW: u64 = 65_536;
 
 /// A port as the channels use it: which channel, and where that was written.
 #[derive(Debug, Clone)]
@@ -352,13 +350,6 @@ impl Checker<'_> {
                 ),
             ));
         }
-        if desc.mode == Mode::Stream {
-            return Err(self.err(
-                &field("mode"),
-                "stream mode is not built yet (next release); use `reactive`",
-            ));
-        }
-
         let protected = desc.redundancy != Redundancy::None;
         let replicas =
             match desc.replicas {
@@ -412,6 +403,7 @@ impl Checker<'_> {
                 "restart_timeout_ms must be more than 0",
             ));
         }
+        let window = self.stream_window(&name, &desc, protected, warnings)?;
 
         let priority = match desc.priority {
             None => None,
@@ -456,7 +448,42 @@ impl Checker<'_> {
             timeout_us,
             priority,
             cpus,
+            window,
         })
+    }
+
+    /// The stream window (frames a replica may run ahead); checks the mode-specific fields.
+    fn stream_window(
+        &self,
+        name: &str,
+        desc: &ComponentDesc,
+        protected: bool,
+        warnings: &mut Vec<String>,
+    ) -> Result<usize, DescriptionError> {
+        let field = |f: &str| member_path(&member_path("components", name), f);
+        if desc.mode == Mode::Stream && protected {
+            if desc.rounds.is_some() {
+                return Err(self.err(
+                    &field("rounds"),
+                    "`rounds` belong to reactive mode; a stream component has no rounds (its outputs are voted frame by frame)",
+                ));
+            }
+        } else if desc.window.is_some() {
+            let why = if protected {
+                "is for stream mode only (this component is reactive)"
+            } else {
+                "is ignored without redundancy"
+            };
+            warnings.push(format!("component {name}: `window` {why}"));
+        }
+        match desc.window {
+            None => Ok(default_stream_window()),
+            Some(w) if (1..=MAX_STREAM_WINDOW).contains(&w) => Ok(w as usize),
+            Some(w) => Err(self.err(
+                &field("window"),
+                format!("window {w} is outside 1..={MAX_STREAM_WINDOW} frames"),
+            )),
+        }
     }
 
     /// Checks every channel; returns them with, per `(component, port)`, the channel that
@@ -678,7 +705,9 @@ impl Checker<'_> {
             ));
         }
 
-        let rounds = if d.replicas > 0 {
+        let rounds = if d.replicas > 0 && d.desc.mode == Mode::Stream {
+            Vec::new()
+        } else if d.replicas > 0 {
             let rounds = self.rounds(&d, &inputs, &outputs)?;
             if rounds.is_empty() {
                 // The voter paces a reactive component by its input: without a round-starting
@@ -686,7 +715,7 @@ impl Checker<'_> {
                 return Err(self.err(
                     &member_path(&member_path("components", &d.name), "redundancy"),
                     format!(
-                        "protected component `{}` has no input that starts a round; reactive mode needs one (a protected component without inputs needs stream mode, not built yet)",
+                        "protected component `{}` has no input that starts a round; reactive mode needs one (a protected component without inputs needs `\"mode\": \"stream\"`)",
                         d.name
                     ),
                 ));
@@ -712,6 +741,8 @@ impl Checker<'_> {
             inputs,
             outputs,
             rounds,
+            mode: d.desc.mode,
+            window: d.window,
         })
     }
 

@@ -491,6 +491,8 @@ fn spawn_voter(
         restart_timeout_ms: c.restart_timeout_ms,
         priority: c.priority,
         cpus: c.cpus.clone(),
+        mode: c.mode,
+        window: c.window,
     };
     let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
     cmd.arg("--plan").arg(voter_plan.to_json());
