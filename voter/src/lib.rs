@@ -4,7 +4,8 @@
 //! their output frames, detects faulty replicas and replaces them.
 //!
 //! Read top-down: [`vote`] is the voting rule; [`round`] a reactive round; [`voter`] the event
-//! loop that detects faults; [`recovery`] the fork-and-hand-over sequence; [`replica`] the
+//! loop that detects faults; [`stream`] the event loop of stream mode (its bookkeeping in
+//! [`stream::ledger`]); [`recovery`] the fork-and-hand-over sequence; [`replica`] the
 //! process handle; [`channel`] the non-blocking pipe ends; [`plan`] and [`event`] the contracts
 //! with bootstrap.
 
@@ -14,5 +15,6 @@ pub mod plan;
 pub mod recovery;
 pub mod replica;
 pub mod round;
+pub mod stream;
 pub mod vote;
 pub mod voter;

@@ -22,7 +22,7 @@ use thiserror::Error;
 
 use crate::channel::{Fill, FrameReader, FrameWriter};
 use crate::event::{Event, EventKind, RecoveryMethod};
-use crate::plan::VoterPlan;
+use crate::plan::{Mode, VoterPlan};
 use crate::recovery;
 use crate::replica::Replica;
 use crate::round::{OutputSet, Round};
@@ -31,13 +31,13 @@ use crate::vote::{vote, ReplicaSet, VoteOutcome, MAX_REPLICAS};
 /// How long a replica whose output pipe closed may take to show up as dead before we call it a
 /// protocol fault instead of a crash. The kernel closes a dying process's fds before it signals
 /// the exit, so the two are seen a moment apart.
-const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
+pub(crate) const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
 /// How long replicas get to exit by themselves after their input is closed at the end.
-const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
+pub(crate) const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 /// How long downstream gets to take the last voted frames at the end.
-const OUTPUT_DRAIN_LIMIT: Duration = Duration::from_secs(10);
+pub(crate) const OUTPUT_DRAIN_LIMIT: Duration = Duration::from_secs(10);
 /// How long to wait for a killed replica to be gone before recovering its slot anyway.
-const DEATH_WAIT: Duration = Duration::from_secs(1);
+pub(crate) const DEATH_WAIT: Duration = Duration::from_secs(1);
 
 #[derive(Debug, Error)]
 pub enum VoterError {
@@ -53,37 +53,80 @@ pub enum VoterError {
     Unrecoverable(String),
 }
 
-fn io_err(what: impl Into<String>) -> impl FnOnce(io::Error) -> VoterError {
+pub(crate) fn io_err(what: impl Into<String>) -> impl FnOnce(io::Error) -> VoterError {
     let what = what.into();
     move |source| VoterError::Io { what, source }
 }
 
 /// An input of the protected component: read by the voter, copied to every replica.
-struct ExternalInput {
-    name: String,
-    reader: FrameReader,
+pub(crate) struct ExternalInput {
+    pub(crate) name: String,
+    pub(crate) reader: FrameReader,
     /// The outputs a frame on this input expects (its round), or `None` if it starts none.
     round: Option<OutputSet>,
 }
 
 /// An output of the protected component: the voter writes the winners here.
-struct ExternalOutput {
-    name: String,
-    writer: FrameWriter,
+pub(crate) struct ExternalOutput {
+    pub(crate) name: String,
+    pub(crate) writer: FrameWriter,
     /// The reader went away; later frames are dropped (said once).
-    broken: bool,
+    pub(crate) broken: bool,
+}
+
+impl ExternalOutput {
+    /// Queues `frame` for downstream and writes what the pipe takes now.
+    pub(crate) fn send(&mut self, frame: &[u8]) {
+        if self.broken {
+            return;
+        }
+        if let Err(e) = self.writer.send(frame) {
+            tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+            self.broken = true;
+            self.writer.discard();
+        }
+    }
+
+    /// Writes what is queued, as far as the pipe takes it now.
+    pub(crate) fn flush(&mut self) {
+        if let Err(e) = self.writer.flush() {
+            if !self.broken {
+                tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+                self.broken = true;
+            }
+            // Nothing queued for a reader that will never come.
+            self.writer.discard();
+        }
+    }
+
+    /// Writes out what is still queued, blocking up to `deadline`.
+    pub(crate) fn drain(&mut self, deadline: Instant) {
+        while self.writer.has_pending() && !self.broken {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let mut pfd = [libc::pollfd {
+                fd: self.writer.as_fd().as_raw_fd(),
+                events: libc::POLLOUT,
+                revents: 0,
+            }];
+            if left.is_zero() || sys::ppoll(&mut pfd, Some(left)).unwrap_or(0) == 0 {
+                tracing::warn!(output = %self.name, "downstream did not take the last frames");
+                return;
+            }
+            self.flush();
+        }
+    }
 }
 
 /// A replica that was found faulty and killed, waiting to be replaced.
-struct Fault {
-    slot: usize,
-    replica: Replica,
-    detected_ns: u64,
+pub(crate) struct Fault {
+    pub(crate) slot: usize,
+    pub(crate) replica: Replica,
+    pub(crate) detected_ns: u64,
 }
 
 /// Why the loop ends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Stop {
+pub(crate) enum Stop {
     /// Every input closed: let replicas finish, then exit cleanly.
     InputsClosed,
     /// SIGTERM/SIGINT.
@@ -92,7 +135,7 @@ enum Stop {
 
 /// What a slot of the poll set stands for.
 #[derive(Debug, Clone, Copy)]
-enum Token {
+pub(crate) enum Token {
     Signal,
     Input(usize),
     OutputWritable(usize),
@@ -125,47 +168,13 @@ impl Voter {
     /// Takes over the fds named in `plan`, binds the socket, and starts the replicas.
     pub fn start(plan: VoterPlan) -> Result<Voter, VoterError> {
         validate(&plan)?;
-        // Orphans (children of a donor that died) come to us, so they are reaped and killed.
-        sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
-        let signals = block_signals()?;
-
-        let inputs = plan
-            .inputs
-            .iter()
-            .map(|p| {
-                let round = plan.rounds.iter().find(|r| r.input == p.name).map(|r| {
-                    r.outputs.iter().fold(0, |set, name| {
-                        set | 1 << plan.outputs.iter().position(|o| &o.name == name).unwrap()
-                    })
-                });
-                Ok(ExternalInput {
-                    name: p.name.clone(),
-                    reader: FrameReader::new(inherited(p.fd), p.max_frame)
-                        .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
-                    round,
-                })
-            })
-            .collect::<Result<Vec<_>, VoterError>>()?;
-        let outputs = plan
-            .outputs
-            .iter()
-            .map(|p| {
-                Ok(ExternalOutput {
-                    name: p.name.clone(),
-                    writer: FrameWriter::new(inherited(p.fd))
-                        .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
-                    broken: false,
-                })
-            })
-            .collect::<Result<Vec<_>, VoterError>>()?;
-        let events = plan.events_fd.map(inherited);
-
-        let _ = std::fs::remove_file(&plan.socket_path);
-        let listener = UnixListener::bind(&plan.socket_path)
-            .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
-        // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
-        let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
-        listener.set_nonblocking(true).map_err(io_err("socket"))?;
+        let Endpoints {
+            signals,
+            inputs,
+            outputs,
+            events,
+            listener,
+        } = Endpoints::open(&plan)?;
 
         let n = plan.replicas;
         let mut voter = Voter {
@@ -346,14 +355,8 @@ impl Voter {
     }
 
     fn on_signal(&mut self) {
-        while let Ok(Some(info)) = self.signals.read_signal() {
-            match info.ssi_signo as i32 {
-                libc::SIGCHLD => reap_children(),
-                sig => {
-                    tracing::info!(signal = sig, "stop requested");
-                    self.stop = Some(Stop::Requested);
-                }
-            }
+        if stop_requested(&self.signals) {
+            self.stop = Some(Stop::Requested);
         }
     }
 
@@ -427,27 +430,11 @@ impl Voter {
     // ----- output side ------------------------------------------------------------------
 
     fn flush_output(&mut self, o: usize) {
-        let out = &mut self.outputs[o];
-        if let Err(e) = out.writer.flush() {
-            if !out.broken {
-                tracing::warn!(output = %out.name, error = %e, "downstream is gone; dropping further output");
-                out.broken = true;
-            }
-            // Nothing queued for a reader that will never come.
-            out.writer.discard();
-        }
+        self.outputs[o].flush();
     }
 
     fn forward(&mut self, o: usize, winner: usize) {
-        let out = &mut self.outputs[o];
-        if out.broken {
-            return;
-        }
-        if let Err(e) = out.writer.send(&self.answers[winner][o]) {
-            tracing::warn!(output = %out.name, error = %e, "downstream is gone; dropping further output");
-            out.broken = true;
-            out.writer.discard();
-        }
+        self.outputs[o].send(&self.answers[winner][o]);
     }
 
     fn on_replica_output(&mut self, r: usize, o: usize) {
@@ -830,26 +817,7 @@ impl Voter {
     }
 
     fn emit(&self, ev: Event) {
-        // Bootstrap logs every event it gathers; here they are only traced, so that a run
-        // shows each event once. Without an events fd, the voter's own log is all there is.
-        if self.events.is_some() {
-            tracing::debug!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
-        } else {
-            tracing::warn!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
-        }
-        let Some(fd) = &self.events else { return };
-        let line = ev.to_line();
-        let mut bytes = line.as_bytes();
-        // One write per line: below PIPE_BUF it is atomic, so lines of several voters never mix.
-        while !bytes.is_empty() {
-            match sys::write(fd.as_fd(), bytes) {
-                Ok(n) => bytes = &bytes[n..],
-                Err(e) => {
-                    tracing::warn!(error = %e, "cannot write events");
-                    return;
-                }
-            }
-        }
+        write_event(self.events.as_ref(), &ev);
     }
 
     // ----- the end ---------------------------------------------------------------------
@@ -884,40 +852,17 @@ impl Voter {
 
     /// Writes out what is still queued for downstream, blocking up to `deadline`.
     fn drain_output(&mut self, o: usize, deadline: Instant) {
-        while self.outputs[o].writer.has_pending() && !self.outputs[o].broken {
-            let left = deadline.saturating_duration_since(Instant::now());
-            let mut pfd = [libc::pollfd {
-                fd: self.outputs[o].writer.as_fd().as_raw_fd(),
-                events: libc::POLLOUT,
-                revents: 0,
-            }];
-            if left.is_zero() || sys::ppoll(&mut pfd, Some(left)).unwrap_or(0) == 0 {
-                tracing::warn!(output = %self.outputs[o].name, "downstream did not take the last frames");
-                return;
-            }
-            self.flush_output(o);
-        }
+        self.outputs[o].drain(deadline);
     }
 
     /// Kills every replica and everything re-parented to us; removes the socket.
     fn shut_down(&mut self) {
-        // On a requested stop, whatever downstream can take right now still goes out.
-        for o in 0..self.outputs.len() {
-            if self.outputs[o].writer.has_pending() && !self.outputs[o].broken {
-                self.flush_output(o);
-            }
-        }
-        for rep in self.slots.iter().flatten() {
-            rep.kill();
-        }
-        for fault in &self.faults {
-            fault.replica.kill();
-        }
-        for rep in self.slots.iter().flatten() {
-            rep.exited_within(DEATH_WAIT);
-        }
-        kill_all_children(Duration::from_secs(3));
-        let _ = std::fs::remove_file(&self.plan.socket_path);
+        shut_down(
+            &self.plan,
+            &mut self.outputs,
+            self.slots.iter().flatten(),
+            &self.faults,
+        );
     }
 }
 
@@ -934,7 +879,49 @@ impl Drop for Voter {
     }
 }
 
-fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
+/// Kills every replica (trusted or faulty) and everything re-parented to us, after giving
+/// downstream whatever it takes at once; removes the socket.
+pub(crate) fn shut_down<'a>(
+    plan: &VoterPlan,
+    outputs: &mut [ExternalOutput],
+    replicas: impl Iterator<Item = &'a Replica> + Clone,
+    faults: &[Fault],
+) {
+    // On a requested stop, whatever downstream can take right now still goes out.
+    for out in outputs.iter_mut() {
+        if out.writer.has_pending() && !out.broken {
+            out.flush();
+        }
+    }
+    for rep in replicas.clone() {
+        rep.kill();
+    }
+    for fault in faults {
+        fault.replica.kill();
+    }
+    for rep in replicas {
+        rep.exited_within(DEATH_WAIT);
+    }
+    kill_all_children(Duration::from_secs(3));
+    let _ = std::fs::remove_file(&plan.socket_path);
+}
+
+/// Reads the signalfd: reaps on SIGCHLD; `true` if SIGTERM/SIGINT came.
+pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
+    let mut stop = false;
+    while let Ok(Some(info)) = signals.read_signal() {
+        match info.ssi_signo as i32 {
+            libc::SIGCHLD => reap_children(),
+            sig => {
+                tracing::info!(signal = sig, "stop requested");
+                stop = true;
+            }
+        }
+    }
+    stop
+}
+
+pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
     let fail = |m: String| Err(VoterError::Plan(m));
     if plan.replicas == 0 || plan.replicas > MAX_REPLICAS {
         return fail(format!(
@@ -961,10 +948,103 @@ fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
             }
         }
     }
-    if plan.rounds.is_empty() {
-        return fail("reactive mode needs at least one input that starts rounds".into());
+    match plan.mode {
+        Mode::Reactive if plan.rounds.is_empty() => {
+            fail("reactive mode needs at least one input that starts rounds".into())
+        }
+        Mode::Stream if !plan.rounds.is_empty() => {
+            fail("stream mode has no rounds; the plan lists some".into())
+        }
+        Mode::Stream if plan.window == 0 => fail("the stream window must be above 0".into()),
+        _ => Ok(()),
     }
-    Ok(())
+}
+
+/// What a voter opens before it starts replicas, whatever its mode.
+pub(crate) struct Endpoints {
+    pub(crate) signals: SignalFd,
+    pub(crate) inputs: Vec<ExternalInput>,
+    pub(crate) outputs: Vec<ExternalOutput>,
+    pub(crate) events: Option<OwnedFd>,
+    pub(crate) listener: UnixListener,
+}
+
+impl Endpoints {
+    /// Becomes a subreaper, takes the signals, adopts the fds named in `plan`, binds the socket.
+    pub(crate) fn open(plan: &VoterPlan) -> Result<Endpoints, VoterError> {
+        // Orphans (children of a donor that died) come to us, so they are reaped and killed.
+        sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
+        let signals = block_signals()?;
+
+        let inputs = plan
+            .inputs
+            .iter()
+            .map(|p| {
+                let round = plan.rounds.iter().find(|r| r.input == p.name).map(|r| {
+                    r.outputs.iter().fold(0, |set, name| {
+                        set | 1 << plan.outputs.iter().position(|o| &o.name == name).unwrap()
+                    })
+                });
+                Ok(ExternalInput {
+                    name: p.name.clone(),
+                    reader: FrameReader::new(inherited(p.fd), p.max_frame)
+                        .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
+                    round,
+                })
+            })
+            .collect::<Result<Vec<_>, VoterError>>()?;
+        let outputs = plan
+            .outputs
+            .iter()
+            .map(|p| {
+                Ok(ExternalOutput {
+                    name: p.name.clone(),
+                    writer: FrameWriter::new(inherited(p.fd))
+                        .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
+                    broken: false,
+                })
+            })
+            .collect::<Result<Vec<_>, VoterError>>()?;
+        let events = plan.events_fd.map(inherited);
+
+        let _ = std::fs::remove_file(&plan.socket_path);
+        let listener = UnixListener::bind(&plan.socket_path)
+            .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
+        // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
+        let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
+        listener.set_nonblocking(true).map_err(io_err("socket"))?;
+        Ok(Endpoints {
+            signals,
+            inputs,
+            outputs,
+            events,
+            listener,
+        })
+    }
+}
+
+/// Writes one event line to the events fd (and traces it).
+pub(crate) fn write_event(events: Option<&OwnedFd>, ev: &Event) {
+    // Bootstrap logs every event it gathers; here they are only traced, so that a run
+    // shows each event once. Without an events fd, the voter's own log is all there is.
+    if events.is_some() {
+        tracing::debug!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
+    } else {
+        tracing::warn!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
+    }
+    let Some(fd) = events else { return };
+    let line = ev.to_line();
+    let mut bytes = line.as_bytes();
+    // One write per line: below PIPE_BUF it is atomic, so lines of several voters never mix.
+    while !bytes.is_empty() {
+        match sys::write(fd.as_fd(), bytes) {
+            Ok(n) => bytes = &bytes[n..],
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot write events");
+                return;
+            }
+        }
+    }
 }
 
 /// Takes ownership of an fd this process inherited.
@@ -973,7 +1053,7 @@ fn inherited(fd: RawFd) -> OwnedFd {
 }
 
 /// SIGTERM/SIGINT/SIGCHLD arrive through a signalfd, read in the event loop.
-fn block_signals() -> Result<SignalFd, VoterError> {
+pub(crate) fn block_signals() -> Result<SignalFd, VoterError> {
     let mut mask = SigSet::empty();
     for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD] {
         mask.add(s);
@@ -985,7 +1065,7 @@ fn block_signals() -> Result<SignalFd, VoterError> {
 }
 
 /// Reaps every child that has exited (replicas we started, orphans re-parented to us).
-fn reap_children() {
+pub(crate) fn reap_children() {
     while let Ok(Some((pid, status))) = sys::reap_any() {
         tracing::trace!(pid, %status, "reaped");
     }
@@ -993,7 +1073,7 @@ fn reap_children() {
 
 /// Kills every child of ours until none is left (or `limit` passes). As a subreaper we inherit
 /// the children of dying children, so this converges on the whole subtree.
-fn kill_all_children(limit: Duration) {
+pub(crate) fn kill_all_children(limit: Duration) {
     let end = Instant::now() + limit;
     let me = std::process::id() as i32;
     loop {
