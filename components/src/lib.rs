@@ -424,7 +424,10 @@ mod tests {
         }
         out.extend(b.finish());
         assert_eq!(out, (0..200).map(src).collect::<Vec<_>>());
-        assert!(sizes.len() > 1 && sizes.iter().all(|&n| (1..=5).contains(&n)), "{sizes:?}");
+        assert!(
+            sizes.len() > 1 && sizes.iter().all(|&n| (1..=5).contains(&n)),
+            "{sizes:?}"
+        );
     }
 
     #[test]

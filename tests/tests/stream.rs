@@ -180,9 +180,16 @@ fn stream_tmr_replaces_a_stopped_laggard() {
     let pid = run.replica_pids("echo")[&slot];
     s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP");
     let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
-    assert_eq!((hang.replica, hang.pid), (Some(slot), Some(pid)), "{hang:?}");
+    assert_eq!(
+        (hang.replica, hang.pid),
+        (Some(slot), Some(pid)),
+        "{hang:?}"
+    );
     assert!(
-        hang.detail.as_deref().unwrap_or("").contains("furthest behind"),
+        hang.detail
+            .as_deref()
+            .unwrap_or("")
+            .contains("furthest behind"),
         "{hang:?}"
     );
     let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));

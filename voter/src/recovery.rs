@@ -157,7 +157,13 @@ pub fn fork(
     }
     let first_output = plan.inputs.len();
     let frames_sent = (0..plan.outputs.len())
-        .map(|o| ready.frames_sent.get(first_output + o).copied().unwrap_or(0))
+        .map(|o| {
+            ready
+                .frames_sent
+                .get(first_output + o)
+                .copied()
+                .unwrap_or(0)
+        })
         .collect();
     Ok(Forked {
         replica: child,

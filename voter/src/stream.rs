@@ -374,14 +374,30 @@ impl StreamVoter {
         }
     }
 
-    /// Decodes what is buffered for every trusted replica, as far as the window allows (a
-    /// replica held back may be let on after the others caught up).
+    /// Decodes what is buffered for every trusted replica, as far as the window allows, until
+    /// nothing more can be taken: one replica catching up lets another on, and the frames
+    /// are already here (no pipe will wake the loop for them).
     fn decode_all(&mut self) {
-        for r in 0..self.slots.len() {
-            for o in 0..self.outputs.len() {
-                self.decode(r, o, Until::Window);
+        loop {
+            let before = self.taken();
+            for r in 0..self.slots.len() {
+                for o in 0..self.outputs.len() {
+                    self.decode(r, o, Until::Window);
+                }
+            }
+            if self.taken() == before {
+                return;
             }
         }
+    }
+
+    /// Frames taken into the ledger so far, over all trusted replicas and outputs.
+    fn taken(&self) -> u64 {
+        self.alive()
+            .iter()
+            .flat_map(|r| (0..self.outputs.len()).map(move |o| (r, o)))
+            .map(|(r, o)| self.ledger.pos(r, o))
+            .sum()
     }
 
     /// Takes the whole frames buffered for replica `r` on output `o` into the ledger.
@@ -543,19 +559,30 @@ impl StreamVoter {
     /// Blames the replicas on the wrong side of the oldest overdue frame (see
     /// [`ledger::Overdue::blames_laggards`]).
     fn check_deadlines(&mut self) {
-        if self.ledger.overdue(self.alive(), self.timeout, Instant::now()).is_none() {
+        if self
+            .ledger
+            .overdue(self.alive(), self.timeout, Instant::now())
+            .is_none()
+        {
             return;
         }
         // One last look first: a frame may have arrived while the voter itself was busy, and
         // the voter's lateness is not the replica's fault.
-        for r in self.alive().iter() {
-            for o in 0..self.outputs.len() {
-                if let Some(rep) = self.slots[r].as_mut() {
-                    let _ = rep.outputs[o].fill();
-                }
-                self.decode(r, o, Until::Window);
+        for r in 0..self.slots.len() {
+            let Some(rep) = self.slots[r].as_mut() else {
+                continue;
+            };
+            // A read error shows on the next read; a closed pipe is handled like any other.
+            let closed = rep
+                .outputs
+                .iter_mut()
+                .filter(|out| !out.is_closed())
+                .any(|out| matches!(out.fill(), Ok(Fill::Closed)));
+            if closed {
+                self.on_output_closed(r);
             }
         }
+        self.decode_all();
         let Some(od) = self
             .ledger
             .overdue(self.alive(), self.timeout, Instant::now())
@@ -641,8 +668,8 @@ impl StreamVoter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = (0..self.slots.len())
-            .find(|&d| self.slots[d].as_ref().is_some_and(Self::may_donate));
+        let donor =
+            (0..self.slots.len()).find(|&d| self.slots[d].as_ref().is_some_and(Self::may_donate));
         if let Some(d) = donor {
             match self.fork_into(slot, d) {
                 Ok(pid) => {
@@ -798,7 +825,30 @@ impl StreamVoter {
     /// Writes out what is queued for downstream and lets the replicas exit.
     fn finish(&mut self) -> Result<(), VoterError> {
         if !self.all_finished() {
-            tracing::warn!("replicas did not finish their output in time; stopping them");
+            let alive = self.alive();
+            let state: Vec<String> = (0..self.outputs.len())
+                .map(|o| {
+                    let per_slot: Vec<String> = alive
+                        .iter()
+                        .map(|r| {
+                            let out = &self.slots[r].as_ref().expect("alive").outputs[o];
+                            format!(
+                                "{r}: frame {} (buffered {} B{})",
+                                self.ledger.pos(r, o),
+                                out.decoder.pending(),
+                                if out.is_closed() { ", closed" } else { "" }
+                            )
+                        })
+                        .collect();
+                    format!(
+                        "`{}` next {}: {}",
+                        self.plan.outputs[o].name,
+                        self.ledger.next(o),
+                        per_slot.join(", ")
+                    )
+                })
+                .collect();
+            tracing::warn!(state = %state.join("; "), "replicas did not finish their output in time; stopping them");
         }
         let drain_deadline = Instant::now() + OUTPUT_DRAIN_LIMIT;
         for out in &mut self.outputs {
@@ -808,7 +858,10 @@ impl StreamVoter {
         for rep in self.slots.iter().flatten() {
             let left = deadline.saturating_duration_since(Instant::now());
             if !rep.exited_within(left) {
-                tracing::warn!(pid = rep.pid, "replica did not exit after its input closed; killing it");
+                tracing::warn!(
+                    pid = rep.pid,
+                    "replica did not exit after its input closed; killing it"
+                );
             }
         }
         Ok(())
@@ -847,9 +900,7 @@ fn catches_restart_signal(pid: libc::pid_t) -> bool {
         .lines()
         .find_map(|l| l.strip_prefix("SigCgt:"))
         .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
-        .is_some_and(|mask| {
-            mask & (1 << (replica_rt::contract::signals::RESTART - 1)) != 0
-        })
+        .is_some_and(|mask| mask & (1 << (replica_rt::contract::signals::RESTART - 1)) != 0)
 }
 
 #[cfg(test)]

@@ -376,7 +376,10 @@ mod tests {
         let t = Instant::now();
         l.accept(0, 0, b"a", t);
         l.accept(0, 0, b"b", t);
-        assert!(decide_all(&mut l, 0, all).is_empty(), "one copy decides nothing");
+        assert!(
+            decide_all(&mut l, 0, all).is_empty(),
+            "one copy decides nothing"
+        );
         l.accept(1, 0, b"a", t);
         let d = decide_all(&mut l, 0, all);
         assert_eq!(
@@ -458,7 +461,10 @@ mod tests {
         assert_eq!(l.next_deadline(all, T), Some(t0 + T));
         assert_eq!(l.overdue(all, T, t0 + T / 2), None);
         let od = l.overdue(all, T, t0 + T).unwrap();
-        assert_eq!((od.index, od.producers, od.laggards), (0, set(&[0, 1]), set(&[2])));
+        assert_eq!(
+            (od.index, od.producers, od.laggards),
+            (0, set(&[0, 1]), set(&[2]))
+        );
         assert!(od.blames_laggards());
         // Once 2 is no longer trusted, nobody is late and old entries go.
         l.forget(2);
