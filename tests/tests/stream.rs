@@ -263,3 +263,47 @@ fn stream_inputs_without_output_cause_no_false_hang() {
     assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
     assert_sink_whole(&summary, count);
 }
+
+/// The stream example of `docs/system-description.md`, verbatim, runs clean: the sink
+/// (`--stateful --expect 2000`) fails, and so bootstrap fails, unless every frame came once, in
+/// order, with the batch's state intact.
+#[test]
+fn the_documented_stream_example_runs_clean() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/system-description.md");
+    let doc = std::fs::read_to_string(&path).unwrap();
+    let section = doc
+        .split("## Example: a stream component (TMR)")
+        .nth(1)
+        .expect("the doc has the stream example");
+    let json = section
+        .split("```json")
+        .nth(1)
+        .and_then(|s| s.split("```").next())
+        .expect("the example is a json block");
+    let mut run = System::new().start(json);
+    let out = run.wait_success(LIMIT);
+    let starts = out
+        .events
+        .iter()
+        .filter(|e| e.component == "batch" && e.kind == EventKind::Start)
+        .count();
+    assert_eq!(starts, 3, "{:?}", out.events);
+}
+
+/// The tightest window (a replica may be one frame ahead) with bursts sent as fast as the
+/// pipes take them: the replicas are read in lockstep, and the voter takes frames that are
+/// already buffered without waiting for a pipe to wake it (an earlier version stalled here at
+/// the end of the stream).
+#[test]
+fn stream_window_of_one_passes_fast_bursts_whole() {
+    let count = 3000;
+    let sys = System::new();
+    let batch = r#"{ "exec": "s3res-batch", "args": ["--every", "9", "--vary", "--stateful"], "redundancy": "tmr", "mode": "stream", "timeout_us": 300000, "window": 1 }"#;
+    let summary = sys.path("summary.json");
+    let desc = echo_pipeline(&summary, batch, count, 0);
+    let mut run = sys.start(&desc);
+    let out = run.wait_success(LIMIT);
+    assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
