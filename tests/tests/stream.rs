@@ -2,11 +2,12 @@
 //! sink`, where `s3res-batch` answers nothing for most inputs and then a burst, so outputs are
 //! not one per input. Every test runs the real bootstrap, voter and replicas.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use s3res_tests::{
-    assert_sink_whole, echo_pipeline, signals, sink_summary, Event, EventKind, RecoveryMethod, Rng,
-    RunningSystem, System,
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
+    Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
 };
 
 /// Generous, so that a loaded CI machine does not see false hangs; the tests check behaviour,
@@ -14,20 +15,23 @@ use s3res_tests::{
 const TIMEOUT_US: u64 = 300_000;
 const LIMIT: Duration = Duration::from_secs(120);
 
-/// source → batch (stream mode) → sink, with the sink's summary in `summary.json`.
-fn batch_system(
-    sys: &System,
+/// Starts source → batch (stream mode, `redundancy`, `batch_args`) → sink; the source sends
+/// `count` frames at `hz`. Returns the running system and the path of the sink's summary.
+fn start_batch(
     redundancy: &str,
     batch_args: &[&str],
     timeout_us: u64,
     count: u32,
     hz: u32,
-) -> String {
+) -> (RunningSystem, PathBuf) {
     let batch = format!(
         r#"{{ "exec": "s3res-batch", "args": {}, "redundancy": "{redundancy}", "mode": "stream", "timeout_us": {timeout_us} }}"#,
         serde_json::to_string(batch_args).unwrap()
     );
-    echo_pipeline(&sys.path("summary.json"), &batch, count, hz)
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let desc = echo_pipeline(&summary, &batch, count, hz);
+    (sys.start(&desc), summary)
 }
 
 fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
@@ -48,25 +52,11 @@ fn faults(events: &[Event]) -> Vec<&Event> {
         .collect()
 }
 
-/// Waits until the sink has seen output of the batch (frames are flowing through the voter).
-fn wait_for_replicas(run: &mut RunningSystem, replicas: usize) {
-    run.wait_for_replicas("echo", replicas);
-}
-
 #[test]
 fn stream_tmr_passes_bursts_through_whole() {
     let count = 600;
-    let sys = System::new();
-    let desc = batch_system(
-        &sys,
-        "tmr",
-        &["--every", "7", "--vary", "--stateful"],
-        TIMEOUT_US,
-        count,
-        1000,
-    );
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
+    let args = ["--every", "7", "--vary", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 1000);
     let out = run.wait_success(LIMIT);
     assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
     assert_sink_whole(&summary, count);
@@ -79,45 +69,13 @@ fn stream_tmr_survives_repeated_kills_with_state() {
     let mut rng = Rng::from_env();
     let kills = 25;
     let count = 5000;
-    let sys = System::new();
-    let desc = batch_system(
-        &sys,
-        "tmr",
-        &["--every", "9", "--vary", "--stateful"],
-        TIMEOUT_US,
-        count,
-        800,
-    );
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
-    wait_for_replicas(&mut run, 3);
+    let args = ["--every", "9", "--vary", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 800);
+    run.wait_for_replicas("echo", 3);
 
-    let mut killed = Vec::new();
-    for _ in 0..kills {
-        let pids = run.replica_pids("echo");
-        let slot = rng.below(3) as usize;
-        let pid = pids[&slot];
-        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
-        let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
-        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
-        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
-        killed.push((slot, pid));
-        std::thread::sleep(Duration::from_millis(rng.range(20, 120)));
-    }
-    assert!(
-        run.try_status().is_none(),
-        "the system finished before all {kills} kills were done; make the source longer"
-    );
+    let killed = run.kill_random_replicas(&mut rng, "echo", 3, kills, (20, 120));
     let out = run.wait_success(LIMIT);
-    let crashes = of_kind(&out.events, EventKind::Crash);
-    for (slot, pid) in &killed {
-        assert!(
-            crashes
-                .iter()
-                .any(|e| e.replica == Some(*slot) && e.pid == Some(*pid)),
-            "kill of replica {slot} (pid {pid}) was not recorded as a crash"
-        );
-    }
+    assert_kills_were_crashes(&out.events, "echo", &killed);
     assert_eq!(
         faults(&out.events).len(),
         kills,
@@ -127,29 +85,26 @@ fn stream_tmr_survives_repeated_kills_with_state() {
     assert_sink_whole(&summary, count);
 }
 
-/// One corrupted frame in one replica is outvoted: an `sdc` naming that replica, a repair by
-/// fork, and the sink sees nothing of it.
-#[test]
-fn stream_tmr_outvotes_a_corrupted_frame() {
+/// Injects one fault into TMR replica 1 while bursts flow; it must be recorded as `kind` with
+/// a detail containing `detail`, repaired by fork, and invisible to the sink.
+fn tmr_single_fault(batch_args: &[&str], inject: impl FnOnce(i32), kind: EventKind, detail: &str) {
     let count = 1500;
-    let sys = System::new();
-    let desc = batch_system(
-        &sys,
-        "tmr",
-        &["--every", "5", "--stateful"],
-        TIMEOUT_US,
-        count,
-        500,
-    );
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
-    wait_for_replicas(&mut run, 3);
+    let (mut run, summary) = start_batch("tmr", batch_args, TIMEOUT_US, count, 500);
+    run.wait_for_replicas("echo", 3);
 
     let slot = 1;
     let pid = run.replica_pids("echo")[&slot];
-    s3res_tests::sigqueue(pid, signals::INJECT_SDC, 77).expect("sigqueue");
-    let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
-    assert_eq!((sdc.replica, sdc.pid), (Some(slot), Some(pid)), "{sdc:?}");
+    inject(pid);
+    let fault = run.wait_for_event(|e| e.kind == kind, Duration::from_secs(20));
+    assert_eq!(
+        (fault.replica, fault.pid),
+        (Some(slot), Some(pid)),
+        "{fault:?}"
+    );
+    assert!(
+        fault.detail.as_deref().unwrap_or("").contains(detail),
+        "{fault:?}"
+    );
     let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
 
@@ -158,46 +113,26 @@ fn stream_tmr_outvotes_a_corrupted_frame() {
     assert_sink_whole(&summary, count);
 }
 
-/// A stopped replica falls behind: at the deadline the laggard is the `hang` suspect, it is
-/// replaced by fork, and the stream goes on whole.
+/// One corrupted frame in one replica is outvoted: an `sdc` naming that replica.
+#[test]
+fn stream_tmr_outvotes_a_corrupted_frame() {
+    tmr_single_fault(
+        &["--every", "5", "--stateful"],
+        |pid| s3res_tests::sigqueue(pid, signals::INJECT_SDC, 77).expect("sigqueue"),
+        EventKind::Sdc,
+        "differs from the majority",
+    );
+}
+
+/// A stopped replica falls behind: at the deadline the laggard is the `hang` suspect.
 #[test]
 fn stream_tmr_replaces_a_stopped_laggard() {
-    let count = 1500;
-    let sys = System::new();
-    let desc = batch_system(
-        &sys,
-        "tmr",
+    tmr_single_fault(
         &["--every", "4", "--vary", "--stateful"],
-        TIMEOUT_US,
-        count,
-        500,
+        |pid| s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP"),
+        EventKind::Hang,
+        "furthest behind",
     );
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
-    wait_for_replicas(&mut run, 3);
-
-    let slot = 2;
-    let pid = run.replica_pids("echo")[&slot];
-    s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP");
-    let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
-    assert_eq!(
-        (hang.replica, hang.pid),
-        (Some(slot), Some(pid)),
-        "{hang:?}"
-    );
-    assert!(
-        hang.detail
-            .as_deref()
-            .unwrap_or("")
-            .contains("furthest behind"),
-        "{hang:?}"
-    );
-    let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
-    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
-
-    let out = run.wait_success(LIMIT);
-    assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
-    assert_sink_whole(&summary, count);
 }
 
 /// DMR sees a corrupted frame but cannot tell which replica is wrong: an unattributed `sdc`,
@@ -205,39 +140,23 @@ fn stream_tmr_replaces_a_stopped_laggard() {
 #[test]
 fn stream_dmr_disagreement_is_recorded_and_does_not_stall() {
     let count = 1500;
-    let sys = System::new();
-    let desc = batch_system(
-        &sys,
+    let (mut run, summary) = start_batch(
         "dmr",
         &["--every", "6", "--stateful"],
         TIMEOUT_US,
         count,
         500,
     );
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
-    wait_for_replicas(&mut run, 2);
+    run.wait_for_replicas("echo", 2);
 
-    let pids = run.replica_pids("echo");
-    s3res_tests::sigqueue(pids[&0], signals::INJECT_SDC, 70).expect("sigqueue");
-    let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
-    assert_eq!(sdc.replica, None, "DMR must not attribute: {sdc:?}");
-    assert!(
-        sdc.detail.as_deref().unwrap_or("").contains("withheld"),
-        "{sdc:?}"
-    );
+    let pids = run.inject_unattributable_sdc("echo", 70);
 
     let out = run.wait(LIMIT);
     run.assert_nothing_left();
     // The sink misses exactly the withheld frame (so it, and bootstrap, report failure); every
     // frame after it came.
     assert!(!out.status.success());
-    let s = sink_summary(&summary);
-    assert_eq!(s["missing"], 1, "{s}");
-    assert_eq!(s["frames"], count - 1, "{s}");
-    for field in ["duplicated", "reordered", "corrupt", "state_breaks"] {
-        assert_eq!(s[field], 0, "{field}: {s}");
-    }
+    assert_sink_missed_one(&summary, count);
     assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
     assert!(of_kind(&out.events, EventKind::Recovery).is_empty());
     assert_eq!(run.replica_pids("echo"), pids);
@@ -248,17 +167,8 @@ fn stream_dmr_disagreement_is_recorded_and_does_not_stall() {
 #[test]
 fn stream_inputs_without_output_cause_no_false_hang() {
     let count = 300;
-    let sys = System::new();
-    let desc = batch_system(
-        &sys,
-        "tmr",
-        &["--every", "25", "--stateful"],
-        50_000,
-        count,
-        100,
-    );
-    let summary = sys.path("summary.json");
-    let mut run = sys.start(&desc);
+    let (mut run, summary) =
+        start_batch("tmr", &["--every", "25", "--stateful"], 50_000, count, 100);
     let out = run.wait_success(LIMIT);
     assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
     assert_sink_whole(&summary, count);

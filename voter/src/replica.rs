@@ -147,6 +147,24 @@ impl Replica {
         })
     }
 
+    /// An output pipe of this replica was seen closed: `true` if the process is already gone
+    /// (a crash); else the time is noted, and [`crate::voter::closed_output_fault`] decides once
+    /// the grace is over (the kernel closes a dying process's fds just before it reports the
+    /// exit).
+    pub fn note_output_closed(&mut self) -> bool {
+        if self.exited_within(std::time::Duration::ZERO) {
+            return true;
+        }
+        self.output_closed_at
+            .get_or_insert_with(std::time::Instant::now);
+        false
+    }
+
+    /// Writes what is queued for input `i`, as far as the pipe takes it now.
+    pub fn flush_input(&mut self, i: usize) -> io::Result<()> {
+        self.inputs[i].writer.flush()
+    }
+
     /// SIGKILL, through the pidfd (no pid-reuse race).
     pub fn kill(&self) {
         if let Err(e) = sys::pidfd_send_signal(self.pidfd.as_fd(), libc::SIGKILL) {

@@ -22,7 +22,6 @@ use std::os::unix::net::UnixListener;
 use std::time::{Duration, Instant};
 
 use nix::sys::signalfd::SignalFd;
-use replica_rt::frame::FrameError;
 use replica_rt::sys;
 
 use crate::channel::Fill;
@@ -32,9 +31,10 @@ use crate::recovery::{self, DonorState};
 use crate::replica::Replica;
 use crate::vote::ReplicaSet;
 use crate::voter::{
-    io_err, reap_children, shut_down, stop_requested, validate, write_event, Endpoints,
-    ExternalInput, ExternalOutput, Fault, Stop, Token, VoterError, DEATH_WAIT, EXIT_AFTER_EOF,
-    OUTPUT_DRAIN_LIMIT, SHUTDOWN_GRACE,
+    closed_output_fault, io_err, kill_replicas, recovery_event, replace_by_exec, shut_down,
+    start_replicas, stop_requested, validate, write_event, Endpoints, ExternalInput,
+    ExternalOutput, Fault, Stop, Token, VoterError, EXIT_AFTER_EOF, OUTPUT_DRAIN_LIMIT,
+    SHUTDOWN_GRACE,
 };
 use boost::Boost;
 use ledger::{Arrival, Decision, Ledger};
@@ -87,10 +87,11 @@ impl StreamVoter {
             listener,
         } = Endpoints::open(&plan)?;
         let n = plan.replicas;
-        let mut voter = StreamVoter {
+        let slots = start_replicas(&plan, events.as_ref())?;
+        Ok(StreamVoter {
             timeout: Duration::from_micros(plan.timeout_us),
             ledger: Ledger::new(n, plan.outputs.len(), plan.window),
-            slots: (0..n).map(|_| None).collect(),
+            slots,
             exited: vec![false; n],
             plan,
             inputs,
@@ -106,19 +107,7 @@ impl StreamVoter {
             boost: Boost::default(),
             poll_fds: Vec::new(),
             poll_tokens: Vec::new(),
-        };
-        for slot in 0..n {
-            let replica = Replica::spawn(&voter.plan, slot).map_err(io_err(format!(
-                "starting replica {slot} ({})",
-                voter.plan.exec.display()
-            )))?;
-            let mut ev = voter.event(EventKind::Start);
-            ev.replica = Some(slot);
-            ev.pid = Some(replica.pid);
-            voter.emit(ev);
-            voter.slots[slot] = Some(replica);
-        }
-        Ok(voter)
+        })
     }
 
     /// Runs until the inputs close and the replicas have finished, or a stop is requested.
@@ -194,12 +183,11 @@ impl StreamVoter {
                 Token::ReplicaExit(r) => self.on_replica_exit(r),
                 Token::ReplicaOutput(r, o) => self.on_replica_output(r, o),
                 Token::ReplicaInputWritable(r, i) => {
-                    if let Some(rep) = self.slots[r].as_mut() {
-                        if let Err(e) = rep.inputs[i].writer.flush() {
-                            let detail =
-                                format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
-                            self.fault(r, EventKind::Protocol, detail);
-                        }
+                    let flushed = self.slots[r].as_mut().map(|rep| rep.flush_input(i));
+                    if let Some(Err(e)) = flushed {
+                        let detail =
+                            format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
+                        self.fault(r, EventKind::Protocol, detail);
                     }
                 }
             }
@@ -302,20 +290,7 @@ impl StreamVoter {
     }
 
     fn on_input_readable(&mut self, i: usize) {
-        let input = &mut self.inputs[i];
-        match input.reader.fill() {
-            Ok(Fill::Open) => {}
-            Ok(Fill::Closed) => {
-                if let Err(e) = input.reader.decoder.finish() {
-                    tracing::warn!(input = %input.name, error = %e, "input closed mid-frame");
-                }
-                tracing::debug!(input = %input.name, "input closed");
-            }
-            Err(e) => {
-                tracing::error!(input = %input.name, error = %e, "reading input failed; treating it as closed");
-                input.reader.close();
-            }
-        }
+        self.inputs[i].read();
         self.delivered_all = false;
         self.deliver_input();
     }
@@ -517,42 +492,22 @@ impl StreamVoter {
         if self.ending.is_some() {
             return;
         }
-        let Some(rep) = self.slots[r].as_mut() else {
-            return;
-        };
-        if rep.exited_within(Duration::ZERO) {
+        if self.slots[r]
+            .as_mut()
+            .is_some_and(Replica::note_output_closed)
+        {
             self.fault(r, EventKind::Crash, "the replica process died".into());
-        } else if rep.output_closed_at.is_none() {
-            rep.output_closed_at = Some(Instant::now());
         }
     }
 
     fn fault_closed_outputs(&mut self) {
         for r in 0..self.slots.len() {
-            let Some(rep) = self.slots[r].as_ref() else {
-                continue;
-            };
-            let Some(since) = rep.output_closed_at else {
-                continue;
-            };
-            if since.elapsed() < EXIT_AFTER_EOF {
-                continue;
+            let verdict = self.slots[r]
+                .as_ref()
+                .and_then(|rep| closed_output_fault(rep, &self.plan));
+            if let Some((kind, detail)) = verdict {
+                self.fault(r, kind, detail);
             }
-            if rep.exited_within(Duration::ZERO) {
-                self.fault(r, EventKind::Crash, "the replica process died".into());
-                continue;
-            }
-            let closed = rep
-                .outputs
-                .iter()
-                .position(|out| out.is_closed())
-                .unwrap_or(0);
-            let name = &self.plan.outputs[closed].name;
-            let detail = match rep.outputs[closed].decoder.finish() {
-                Err(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
-                _ => format!("closed its output `{name}`"),
-            };
-            self.fault(r, EventKind::Protocol, detail);
         }
     }
 
@@ -642,20 +597,8 @@ impl StreamVoter {
                 // At the end a replacement would only be closed again; the fault is recorded.
                 continue;
             }
-            let Fault {
-                slot,
-                replica: old,
-                detected_ns,
-            } = fault;
-            if !old.exited_within(DEATH_WAIT) {
-                tracing::warn!(pid = old.pid, "killed replica has not exited yet");
-            }
-            if old.our_child {
-                let _ = sys::reap(old.pid);
-            }
-            drop(old.pidfd);
-            reap_children();
-            self.replace(slot, old.pid, detected_ns)?;
+            let (slot, old_pid, detected_ns) = fault.retire();
+            self.replace(slot, old_pid, detected_ns)?;
         }
         Ok(())
     }
@@ -673,7 +616,7 @@ impl StreamVoter {
         if let Some(d) = donor {
             match self.fork_into(slot, d) {
                 Ok(pid) => {
-                    let mut ev = self.recovery_event(slot, old_pid, pid, detected_ns);
+                    let mut ev = recovery_event(&self.plan, slot, old_pid, pid, detected_ns);
                     ev.donor = Some(d);
                     ev.method = Some(RecoveryMethod::Fork);
                     ev.state_lost = Some(false);
@@ -686,32 +629,19 @@ impl StreamVoter {
                 }
             }
         }
-        match Replica::spawn(&self.plan, slot) {
-            Ok(fresh) => {
-                let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
-                ev.method = Some(RecoveryMethod::Exec);
-                ev.state_lost = Some(true);
-                self.emit(ev);
-                self.ledger.start_fresh(slot);
-                self.slots[slot] = Some(fresh);
-                self.exited[slot] = false;
-                Ok(())
-            }
-            Err(e) => {
-                let mut ev = self.event(EventKind::RecoveryFailed);
-                ev.replica = Some(slot);
-                ev.pid = Some(old_pid);
-                ev.detail = Some(format!("could not start {}: {e}", self.plan.exec.display()));
-                self.emit(ev);
-                if self.slots.iter().all(Option::is_none) {
-                    return Err(VoterError::Unrecoverable(format!(
-                        "no replica left and {} cannot be started: {e}",
-                        self.plan.exec.display()
-                    )));
-                }
-                Ok(())
-            }
+        let started = replace_by_exec(
+            &self.plan,
+            self.events.as_ref(),
+            &mut self.slots,
+            slot,
+            old_pid,
+            detected_ns,
+        )?;
+        if started {
+            self.ledger.start_fresh(slot);
+            self.exited[slot] = false;
         }
+        Ok(())
     }
 
     /// Forks `donor` into `slot`, and gives the child the donor's place in the ledger: the
@@ -774,15 +704,6 @@ impl StreamVoter {
                 return;
             }
         }
-    }
-
-    fn recovery_event(&self, slot: usize, old_pid: i32, new_pid: i32, detected_ns: u64) -> Event {
-        let mut ev = self.event(EventKind::Recovery);
-        ev.replica = Some(slot);
-        ev.pid = Some(old_pid);
-        ev.new_pid = Some(new_pid);
-        ev.recovery_us = Some(ev.ts_ns.saturating_sub(detected_ns) / 1000);
-        ev
     }
 
     // ----- the end -------------------------------------------------------------------------
@@ -881,12 +802,7 @@ impl StreamVoter {
 /// Also on a panic: no replica outlives its voter.
 impl Drop for StreamVoter {
     fn drop(&mut self) {
-        for rep in self.slots.iter().flatten() {
-            rep.kill();
-        }
-        for fault in &self.faults {
-            fault.replica.kill();
-        }
+        kill_replicas(&self.slots, &self.faults);
     }
 }
 

@@ -177,9 +177,10 @@ impl Voter {
         } = Endpoints::open(&plan)?;
 
         let n = plan.replicas;
-        let mut voter = Voter {
+        let slots = start_replicas(&plan, events.as_ref())?;
+        let voter = Voter {
             answers: vec![vec![Vec::new(); plan.outputs.len()]; n],
-            slots: (0..n).map(|_| None).collect(),
+            slots,
             plan,
             inputs,
             outputs,
@@ -194,17 +195,6 @@ impl Voter {
             poll_fds: Vec::new(),
             poll_tokens: Vec::new(),
         };
-        for slot in 0..n {
-            let replica = Replica::spawn(&voter.plan, slot).map_err(io_err(format!(
-                "starting replica {slot} ({})",
-                voter.plan.exec.display()
-            )))?;
-            let mut ev = voter.event(EventKind::Start);
-            ev.replica = Some(slot);
-            ev.pid = Some(replica.pid);
-            voter.emit(ev);
-            voter.slots[slot] = Some(replica);
-        }
         Ok(voter)
     }
 
@@ -262,12 +252,11 @@ impl Voter {
                 }
                 Token::ReplicaOutput(r, o) => self.on_replica_output(r, o),
                 Token::ReplicaInputWritable(r, i) => {
-                    if let Some(rep) = self.slots[r].as_mut() {
-                        if let Err(e) = rep.inputs[i].writer.flush() {
-                            let detail =
-                                format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
-                            self.fault(r, EventKind::Protocol, detail);
-                        }
+                    let flushed = self.slots[r].as_mut().map(|rep| rep.flush_input(i));
+                    if let Some(Err(e)) = flushed {
+                        let detail =
+                            format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
+                        self.fault(r, EventKind::Protocol, detail);
                     }
                 }
             }
@@ -363,20 +352,7 @@ impl Voter {
     // ----- input side -------------------------------------------------------------------
 
     fn on_input_readable(&mut self, i: usize) {
-        let input = &mut self.inputs[i];
-        match input.reader.fill() {
-            Ok(Fill::Open) => {}
-            Ok(Fill::Closed) => {
-                if let Err(e) = input.reader.decoder.finish() {
-                    tracing::warn!(input = %input.name, error = %e, "input closed mid-frame");
-                }
-                tracing::debug!(input = %input.name, "input closed");
-            }
-            Err(e) => {
-                tracing::error!(input = %input.name, error = %e, "reading input failed; treating it as closed");
-                input.reader.close();
-            }
-        }
+        self.inputs[i].read();
         self.start_rounds_from_buffered_input();
     }
 
@@ -494,43 +470,23 @@ impl Voter {
     /// reports the exit, so this is a crash if the pidfd follows within [`EXIT_AFTER_EOF`] (the
     /// event loop watches it, without blocking), else a protocol fault.
     fn on_output_closed(&mut self, r: usize) {
-        let Some(rep) = self.slots[r].as_mut() else {
-            return;
-        };
-        if rep.exited_within(Duration::ZERO) {
+        if self.slots[r]
+            .as_mut()
+            .is_some_and(Replica::note_output_closed)
+        {
             self.fault(r, EventKind::Crash, "the replica process died".into());
-        } else if rep.output_closed_at.is_none() {
-            rep.output_closed_at = Some(Instant::now());
         }
     }
 
     /// Replicas whose output closed more than [`EXIT_AFTER_EOF`] ago and which still live.
     fn fault_closed_outputs(&mut self) {
         for r in 0..self.slots.len() {
-            let Some(rep) = self.slots[r].as_ref() else {
-                continue;
-            };
-            let Some(since) = rep.output_closed_at else {
-                continue;
-            };
-            if since.elapsed() < EXIT_AFTER_EOF {
-                continue;
+            let verdict = self.slots[r]
+                .as_ref()
+                .and_then(|rep| closed_output_fault(rep, &self.plan));
+            if let Some((kind, detail)) = verdict {
+                self.fault(r, kind, detail);
             }
-            if rep.exited_within(Duration::ZERO) {
-                self.fault(r, EventKind::Crash, "the replica process died".into());
-                continue;
-            }
-            let closed = rep
-                .outputs
-                .iter()
-                .position(|out| out.is_closed())
-                .unwrap_or(0);
-            let name = &self.plan.outputs[closed].name;
-            let detail = match rep.outputs[closed].decoder.finish() {
-                Err(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
-                _ => format!("closed its output `{name}`"),
-            };
-            self.fault(r, EventKind::Protocol, detail);
         }
     }
 
@@ -729,20 +685,8 @@ impl Voter {
             if self.stop.is_some() {
                 continue;
             }
-            let Fault {
-                slot,
-                replica: old,
-                detected_ns,
-            } = fault;
-            if !old.exited_within(DEATH_WAIT) {
-                tracing::warn!(pid = old.pid, "killed replica has not exited yet");
-            }
-            if old.our_child {
-                let _ = sys::reap(old.pid);
-            }
-            drop(old.pidfd);
-            reap_children();
-            self.replace(slot, old.pid, detected_ns)?;
+            let (slot, old_pid, detected_ns) = fault.retire();
+            self.replace(slot, old_pid, detected_ns)?;
         }
         Ok(())
     }
@@ -762,7 +706,7 @@ impl Voter {
                 &family,
             ) {
                 Ok(child) => {
-                    let mut ev = self.recovery_event(slot, old_pid, child.pid, detected_ns);
+                    let mut ev = recovery_event(&self.plan, slot, old_pid, child.pid, detected_ns);
                     ev.donor = Some(d);
                     ev.method = Some(RecoveryMethod::Fork);
                     ev.state_lost = Some(false);
@@ -775,39 +719,15 @@ impl Voter {
                 }
             }
         }
-        match Replica::spawn(&self.plan, slot) {
-            Ok(fresh) => {
-                let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
-                ev.method = Some(RecoveryMethod::Exec);
-                ev.state_lost = Some(true);
-                self.emit(ev);
-                self.slots[slot] = Some(fresh);
-                Ok(())
-            }
-            Err(e) => {
-                let mut ev = self.event(EventKind::RecoveryFailed);
-                ev.replica = Some(slot);
-                ev.pid = Some(old_pid);
-                ev.detail = Some(format!("could not start {}: {e}", self.plan.exec.display()));
-                self.emit(ev);
-                if self.slots.iter().all(Option::is_none) {
-                    return Err(VoterError::Unrecoverable(format!(
-                        "no replica left and {} cannot be started: {e}",
-                        self.plan.exec.display()
-                    )));
-                }
-                Ok(())
-            }
-        }
-    }
-
-    fn recovery_event(&self, slot: usize, old_pid: i32, new_pid: i32, detected_ns: u64) -> Event {
-        let mut ev = self.event(EventKind::Recovery);
-        ev.replica = Some(slot);
-        ev.pid = Some(old_pid);
-        ev.new_pid = Some(new_pid);
-        ev.recovery_us = Some(ev.ts_ns.saturating_sub(detected_ns) / 1000);
-        ev
+        replace_by_exec(
+            &self.plan,
+            self.events.as_ref(),
+            &mut self.slots,
+            slot,
+            old_pid,
+            detected_ns,
+        )
+        .map(drop)
     }
 
     // ----- events ------------------------------------------------------------------------
@@ -870,11 +790,152 @@ impl Voter {
 /// voter should not depend on it).
 impl Drop for Voter {
     fn drop(&mut self) {
-        for rep in self.slots.iter().flatten() {
-            rep.kill();
+        kill_replicas(&self.slots, &self.faults);
+    }
+}
+
+/// Kills every replica, trusted or faulty.
+pub(crate) fn kill_replicas(slots: &[Option<Replica>], faults: &[Fault]) {
+    for rep in slots.iter().flatten() {
+        rep.kill();
+    }
+    for fault in faults {
+        fault.replica.kill();
+    }
+}
+
+/// Starts every replica by exec, in slot order, each with a `start` event.
+pub(crate) fn start_replicas(
+    plan: &VoterPlan,
+    events: Option<&OwnedFd>,
+) -> Result<Vec<Option<Replica>>, VoterError> {
+    let mut slots: Vec<Option<Replica>> = (0..plan.replicas).map(|_| None).collect();
+    for (slot, place) in slots.iter_mut().enumerate() {
+        let replica = Replica::spawn(plan, slot).map_err(io_err(format!(
+            "starting replica {slot} ({})",
+            plan.exec.display()
+        )))?;
+        let mut ev = Event::new(&plan.system, &plan.component, EventKind::Start);
+        ev.replica = Some(slot);
+        ev.pid = Some(replica.pid);
+        write_event(events, &ev);
+        *place = Some(replica);
+    }
+    Ok(slots)
+}
+
+/// A `recovery` event: `slot` went from `old_pid` to `new_pid`, `detected_ns` after the fault.
+pub(crate) fn recovery_event(
+    plan: &VoterPlan,
+    slot: usize,
+    old_pid: i32,
+    new_pid: i32,
+    detected_ns: u64,
+) -> Event {
+    let mut ev = Event::new(&plan.system, &plan.component, EventKind::Recovery);
+    ev.replica = Some(slot);
+    ev.pid = Some(old_pid);
+    ev.new_pid = Some(new_pid);
+    ev.recovery_us = Some(ev.ts_ns.saturating_sub(detected_ns) / 1000);
+    ev
+}
+
+/// Fills `slot` with a fresh replica started by exec (state lost, and the event says so).
+/// `Ok(false)` if it could not be started but other replicas remain; an error if none does.
+pub(crate) fn replace_by_exec(
+    plan: &VoterPlan,
+    events: Option<&OwnedFd>,
+    slots: &mut [Option<Replica>],
+    slot: usize,
+    old_pid: i32,
+    detected_ns: u64,
+) -> Result<bool, VoterError> {
+    match Replica::spawn(plan, slot) {
+        Ok(fresh) => {
+            let mut ev = recovery_event(plan, slot, old_pid, fresh.pid, detected_ns);
+            ev.method = Some(RecoveryMethod::Exec);
+            ev.state_lost = Some(true);
+            write_event(events, &ev);
+            slots[slot] = Some(fresh);
+            Ok(true)
         }
-        for fault in &self.faults {
-            fault.replica.kill();
+        Err(e) => {
+            let mut ev = Event::new(&plan.system, &plan.component, EventKind::RecoveryFailed);
+            ev.replica = Some(slot);
+            ev.pid = Some(old_pid);
+            ev.detail = Some(format!("could not start {}: {e}", plan.exec.display()));
+            write_event(events, &ev);
+            if slots.iter().all(Option::is_none) {
+                return Err(VoterError::Unrecoverable(format!(
+                    "no replica left and {} cannot be started: {e}",
+                    plan.exec.display()
+                )));
+            }
+            Ok(false)
+        }
+    }
+}
+
+/// What a replica whose output pipe closed turns out to be once [`EXIT_AFTER_EOF`] has passed:
+/// a crash if it is gone, a protocol fault if it lives. `None` while the grace runs, or if no
+/// output of it closed.
+pub(crate) fn closed_output_fault(rep: &Replica, plan: &VoterPlan) -> Option<(EventKind, String)> {
+    let since = rep.output_closed_at?;
+    if since.elapsed() < EXIT_AFTER_EOF {
+        return None;
+    }
+    if rep.exited_within(Duration::ZERO) {
+        return Some((EventKind::Crash, "the replica process died".into()));
+    }
+    let closed = rep
+        .outputs
+        .iter()
+        .position(|out| out.is_closed())
+        .unwrap_or(0);
+    let name = &plan.outputs[closed].name;
+    let detail = match rep.outputs[closed].decoder.finish() {
+        Err(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
+        _ => format!("closed its output `{name}`"),
+    };
+    Some((EventKind::Protocol, detail))
+}
+
+impl Fault {
+    /// Makes sure the killed replica is gone (bounded) and reaped; returns its slot, pid and
+    /// when it was found faulty.
+    pub(crate) fn retire(self) -> (usize, i32, u64) {
+        let Fault {
+            slot,
+            replica: old,
+            detected_ns,
+        } = self;
+        if !old.exited_within(DEATH_WAIT) {
+            tracing::warn!(pid = old.pid, "killed replica has not exited yet");
+        }
+        if old.our_child {
+            let _ = sys::reap(old.pid);
+        }
+        drop(old.pidfd);
+        reap_children();
+        (slot, old.pid, detected_ns)
+    }
+}
+
+impl ExternalInput {
+    /// One read from upstream into the decoder; an end or an error closes the input (logged).
+    pub(crate) fn read(&mut self) {
+        match self.reader.fill() {
+            Ok(Fill::Open) => {}
+            Ok(Fill::Closed) => {
+                if let Err(e) = self.reader.decoder.finish() {
+                    tracing::warn!(input = %self.name, error = %e, "input closed mid-frame");
+                }
+                tracing::debug!(input = %self.name, "input closed");
+            }
+            Err(e) => {
+                tracing::error!(input = %self.name, error = %e, "reading input failed; treating it as closed");
+                self.reader.close();
+            }
         }
     }
 }

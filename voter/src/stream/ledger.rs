@@ -251,7 +251,7 @@ impl Ledger {
         for o in 0..self.outputs.len() {
             let slowest = self.slowest(o, alive);
             let out = &mut self.outputs[o];
-            while out.base < out.next && slowest.map_or(true, |min| out.base < min) {
+            while out.base < out.next && !matches!(slowest, Some(min) if out.base >= min) {
                 out.entries.pop_front();
                 out.base += 1;
             }
