@@ -133,11 +133,18 @@ impl RunningSystem {
         pids
     }
 
-    /// Waits until `replicas` replicas of `component` have started, then a little longer so
-    /// that frames are flowing.
+    /// Waits until `replicas` replicas of `component` have started and have their signal
+    /// handlers in place (an injection signal before replica-rt's `init` would simply kill a
+    /// replica), then a little longer so that frames are flowing.
     pub fn wait_for_replicas(&mut self, component: &str, replicas: usize) {
         let deadline = Instant::now() + Duration::from_secs(20);
-        while self.replica_pids(component).len() < replicas {
+        let ready = |pids: &std::collections::BTreeMap<usize, i32>| {
+            pids.len() >= replicas
+                && pids
+                    .values()
+                    .all(|&pid| s3res_voter::replica::catches_restart_signal(pid))
+        };
+        while !ready(&self.replica_pids(component)) {
             assert!(
                 Instant::now() < deadline && self.try_status().is_none(),
                 "the replicas of {component} did not start:\n{}",

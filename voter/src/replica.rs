@@ -179,3 +179,29 @@ impl Replica {
         sys::wait_readable(self.pidfd.as_fd(), timeout).unwrap_or(true)
     }
 }
+
+/// Whether `pid` has a handler for the restart signal installed (`SigCgt` in
+/// `/proc/PID/status`): replica-rt's `init` has run (it installs this handler last, after the
+/// injection handlers), so a RESTART would fork it rather than kill it.
+pub fn catches_restart_signal(pid: libc::pid_t) -> bool {
+    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
+        return false;
+    };
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigCgt:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+        .is_some_and(|mask| mask & (1 << (replica_rt::contract::signals::RESTART - 1)) != 0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn restart_handler_is_seen_in_proc() {
+        // The test process does not catch SIGUSR1; pid 0 does not exist in /proc.
+        assert!(!catches_restart_signal(std::process::id() as libc::pid_t));
+        assert!(!catches_restart_signal(0));
+    }
+}

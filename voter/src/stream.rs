@@ -28,7 +28,7 @@ use crate::channel::Fill;
 use crate::event::{Event, EventKind, RecoveryMethod};
 use crate::plan::VoterPlan;
 use crate::recovery::{self, DonorState};
-use crate::replica::Replica;
+use crate::replica::{catches_restart_signal, Replica};
 use crate::vote::ReplicaSet;
 use crate::voter::{
     closed_output_fault, io_err, kill_replicas, recovery_event, replace_by_exec, shut_down,
@@ -803,30 +803,5 @@ impl StreamVoter {
 impl Drop for StreamVoter {
     fn drop(&mut self) {
         kill_replicas(&self.slots, &self.faults);
-    }
-}
-
-/// Whether `pid` has a handler for the restart signal installed (`SigCgt` in
-/// `/proc/PID/status`), i.e. replica-rt's `init` has run and a RESTART would fork, not kill.
-fn catches_restart_signal(pid: libc::pid_t) -> bool {
-    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
-        return false;
-    };
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("SigCgt:"))
-        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
-        .is_some_and(|mask| mask & (1 << (replica_rt::contract::signals::RESTART - 1)) != 0)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn restart_handler_is_seen_in_proc() {
-        // The test process does not catch SIGUSR1; pid 0 does not exist in /proc.
-        assert!(!catches_restart_signal(std::process::id() as libc::pid_t));
-        assert!(!catches_restart_signal(0));
     }
 }
