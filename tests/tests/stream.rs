@@ -223,3 +223,35 @@ fn stream_window_of_one_passes_fast_bursts_whole() {
     assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
     assert_sink_whole(&summary, count);
 }
+
+/// SMR has no donor: a killed replica is started afresh by exec, the event says the state is
+/// lost, and the stream goes on from the next frame: the frames the dead replica held are
+/// missing at the sink and its counter starts again (a state break), but nothing is doubled
+/// and the voter does not stall.
+#[test]
+fn stream_smr_restarts_by_exec_and_goes_on() {
+    let count = 1500;
+    let every = 10;
+    let args = ["--every", "10", "--stateful"];
+    let (mut run, summary) = start_batch("smr", &args, TIMEOUT_US, count, 500);
+    run.wait_for_replicas("echo", 1);
+
+    let pid = run.replica_pids("echo")[&0];
+    s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 0, pid), Duration::from_secs(20));
+    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
+    assert_eq!(rec.state_lost, Some(true), "{rec:?}");
+
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
+    let s = s3res_tests::sink_summary(&summary);
+    assert_eq!(s["state_breaks"], 1, "{s}");
+    let missing = s["missing"].as_u64().unwrap();
+    // What the dead replica held (under one batch) and what was in its input pipe.
+    assert!(missing < 3 * every, "{s}");
+    assert_eq!(s["frames"].as_u64().unwrap(), count as u64 - missing, "{s}");
+    for field in ["duplicated", "reordered", "corrupt"] {
+        assert_eq!(s[field], 0, "{field}: {s}");
+    }
+}
