@@ -706,6 +706,18 @@ impl Checker<'_> {
         }
 
         let rounds = if d.replicas > 0 && d.desc.mode == Mode::Stream {
+            if inputs.is_empty() {
+                // The voter ends a stream component when its input ends; one that produces
+                // output on its own would be cut off (and its replicas' normal exit taken
+                // for crashes).
+                return Err(self.err(
+                    &member_path(&member_path("components", &d.name), "mode"),
+                    format!(
+                        "protected stream component `{}` has no input; stream mode needs one (components that produce output on their own are not supported yet)",
+                        d.name
+                    ),
+                ));
+            }
             Vec::new()
         } else if d.replicas > 0 {
             let rounds = self.rounds(&d, &inputs, &outputs)?;

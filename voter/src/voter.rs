@@ -1017,6 +1017,9 @@ pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
             fail("stream mode has no rounds; the plan lists some".into())
         }
         Mode::Stream if plan.window == 0 => fail("the stream window must be above 0".into()),
+        Mode::Stream if plan.inputs.is_empty() => {
+            fail("stream mode needs an input (its end ends the component)".into())
+        }
         _ => Ok(()),
     }
 }

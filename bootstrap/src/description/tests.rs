@@ -264,20 +264,19 @@ fn stream_mode_is_passed_to_the_voter_without_rounds() {
         r#"{"name": "x", "components": {
   "planner": {"exec": "run.sh", "redundancy": "tmr", "timeout_us": 5, "mode": "stream", "window": 8},
   "mapper": {"exec": "run.sh", "redundancy": "dmr", "timeout_us": 5, "mode": "stream"}},
- "channels": [{"from": "stdin", "to": "planner.in"}, {"from": "planner.out", "to": "stdout"}]}"#,
+ "channels": [{"from": "stdin", "to": "planner.in"}, {"from": "planner.out", "to": "mapper.in"}]}"#,
     );
     let planner = &plan.components[0];
     assert_eq!(planner.mode, Mode::Stream);
     assert_eq!(planner.window, 8);
     assert!(planner.rounds.is_empty());
-    // A stream component needs no input at all: its voter is paced by its outputs.
     let mapper = &plan.components[1];
-    assert!(mapper.inputs.is_empty());
+    assert!(mapper.outputs.is_empty(), "outputs may be none");
     assert_eq!(mapper.window, s3res_voter::plan::DEFAULT_STREAM_WINDOW);
 }
 
 #[test]
-fn stream_mode_has_no_rounds_and_a_sane_window() {
+fn stream_mode_wants_an_input_no_rounds_and_a_sane_window() {
     let f = fixture();
     f.fails(
         "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 5,\n \"mode\": \"stream\", \"rounds\": []}}}",
@@ -290,6 +289,12 @@ fn stream_mode_has_no_rounds_and_a_sane_window() {
         4,
         "components.a.window",
         "window 0 is outside 1..=65536",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 5,\n \"mode\": \"stream\"}}}",
+        3,
+        "components.a.mode",
+        "stream mode needs one",
     );
     let plan = f.ok(
         r#"{"name": "x", "components": {"a": {"exec": "run.sh", "redundancy": "tmr", "timeout_us": 5, "window": 3}},
