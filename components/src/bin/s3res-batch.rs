@@ -1,6 +1,6 @@
 //! `s3res-batch`: a stream component; outputs are not one per input. See `--help`.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_components::{Batcher, Echo};
 
@@ -24,8 +24,8 @@ use s3res_components::{Batcher, Echo};
 #[command(version, verbatim_doc_comment)]
 struct Cli {
     /// Frames per batch (with --vary: the largest batch).
-    #[arg(long, value_name = "N", default_value_t = 8)]
-    every: usize,
+    #[arg(long, value_name = "N", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]
+    every: u32,
     /// Vary the batch size (1 to N), deterministically from the frames.
     #[arg(long)]
     vary: bool,
@@ -37,13 +37,10 @@ struct Cli {
 fn main() -> Result<()> {
     replica_rt::init_logging("batch");
     let cli = Cli::parse();
-    if cli.every == 0 {
-        bail!("--every 0: a batch holds at least one frame");
-    }
     let mut rt = replica_rt::init().context("starting the s3res runtime")?;
     let mut input = rt.input("in").context("opening the input port")?;
     let mut output = rt.output("out").context("opening the output port")?;
-    let mut batcher = Batcher::new(cli.every, cli.vary);
+    let mut batcher = Batcher::new(cli.every as usize, cli.vary);
     let mut echo = Echo::new(cli.stateful);
     let mut sent: u64 = 0;
     while let Some(frame) = input.recv().context("receiving")? {
