@@ -87,7 +87,7 @@ impl StreamVoter {
             listener,
         } = Endpoints::open(&plan)?;
         let n = plan.replicas;
-        let slots = start_replicas(&plan, events.as_ref())?;
+        let slots = start_replicas(&plan, events.as_ref(), |_, _| {})?;
         Ok(StreamVoter {
             timeout: Duration::from_micros(plan.timeout_us),
             ledger: Ledger::new(n, plan.outputs.len(), plan.window),
@@ -633,9 +633,8 @@ impl StreamVoter {
             &self.plan,
             self.events.as_ref(),
             &mut self.slots,
-            slot,
-            old_pid,
-            detected_ns,
+            (slot, old_pid, detected_ns),
+            |_, _| {},
         )?;
         if started {
             self.ledger.start_fresh(slot);

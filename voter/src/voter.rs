@@ -177,7 +177,7 @@ impl Voter {
         } = Endpoints::open(&plan)?;
 
         let n = plan.replicas;
-        let slots = start_replicas(&plan, events.as_ref())?;
+        let slots = start_replicas(&plan, events.as_ref(), |_, _| {})?;
         let voter = Voter {
             answers: vec![vec![Vec::new(); plan.outputs.len()]; n],
             slots,
@@ -723,9 +723,8 @@ impl Voter {
             &self.plan,
             self.events.as_ref(),
             &mut self.slots,
-            slot,
-            old_pid,
-            detected_ns,
+            (slot, old_pid, detected_ns),
+            |_, _| {},
         )
         .map(drop)
     }
@@ -804,10 +803,12 @@ pub(crate) fn kill_replicas(slots: &[Option<Replica>], faults: &[Fault]) {
     }
 }
 
-/// Starts every replica by exec, in slot order, each with a `start` event.
+/// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,
+/// slot)` runs for each new process first (to apply scheduling settings).
 pub(crate) fn start_replicas(
     plan: &VoterPlan,
     events: Option<&OwnedFd>,
+    mut on_spawn: impl FnMut(libc::pid_t, usize),
 ) -> Result<Vec<Option<Replica>>, VoterError> {
     let mut slots: Vec<Option<Replica>> = (0..plan.replicas).map(|_| None).collect();
     for (slot, place) in slots.iter_mut().enumerate() {
@@ -815,6 +816,7 @@ pub(crate) fn start_replicas(
             "starting replica {slot} ({})",
             plan.exec.display()
         )))?;
+        on_spawn(replica.pid, slot);
         let mut ev = Event::new(&plan.system, &plan.component, EventKind::Start);
         ev.replica = Some(slot);
         ev.pid = Some(replica.pid);
@@ -840,18 +842,19 @@ pub(crate) fn recovery_event(
     ev
 }
 
-/// Fills `slot` with a fresh replica started by exec (state lost, and the event says so).
-/// `Ok(false)` if it could not be started but other replicas remain; an error if none does.
+/// Fills `slot` with a fresh replica started by exec (state lost, and the event says so);
+/// `on_spawn(pid, slot)` runs for the new process first. `Ok(false)` if it could not be
+/// started but other replicas remain; an error if none does.
 pub(crate) fn replace_by_exec(
     plan: &VoterPlan,
     events: Option<&OwnedFd>,
     slots: &mut [Option<Replica>],
-    slot: usize,
-    old_pid: i32,
-    detected_ns: u64,
+    (slot, old_pid, detected_ns): (usize, i32, u64),
+    on_spawn: impl FnOnce(libc::pid_t, usize),
 ) -> Result<bool, VoterError> {
     match Replica::spawn(plan, slot) {
         Ok(fresh) => {
+            on_spawn(fresh.pid, slot);
             let mut ev = recovery_event(plan, slot, old_pid, fresh.pid, detected_ns);
             ev.method = Some(RecoveryMethod::Exec);
             ev.state_lost = Some(true);
