@@ -255,3 +255,40 @@ fn stream_smr_restarts_by_exec_and_goes_on() {
         assert_eq!(s[field], 0, "{field}: {s}");
     }
 }
+
+/// Two faults in two slots: replicas 1 and 2 are stopped, so the frames replica 0 goes on
+/// producing from the input it already has cannot be decided; then replica 1 is killed. The
+/// fork child of replica 0 joins with those undecided frames, which its state is already past
+/// (they count as its own, and with replica 0's make a majority); then the stopped laggard 2
+/// is the `hang` suspect and is replaced too. No stall, no frame lost or doubled.
+#[test]
+fn stream_tmr_child_joins_while_frames_are_undecided() {
+    let count = 2000;
+    let args = ["--every", "3", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 1000);
+    run.wait_for_replicas("echo", 3);
+
+    let pids = run.replica_pids("echo");
+    for slot in [1, 2] {
+        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("SIGSTOP");
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
+    assert_eq!(
+        (rec.method, rec.donor),
+        (Some(RecoveryMethod::Fork), Some(0)),
+        "{rec:?}"
+    );
+    let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
+    assert_eq!(
+        (hang.replica, hang.pid),
+        (Some(2), Some(pids[&2])),
+        "{hang:?}"
+    );
+    run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+
+    let out = run.wait_success(LIMIT);
+    assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
