@@ -12,7 +12,9 @@ use thiserror::Error;
 
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
-use s3res_voter::plan::{default_restart_timeout_ms, default_start_timeout_ms, RoundTrigger};
+use s3res_voter::plan::{
+    default_restart_timeout_ms, default_start_timeout_ms, default_stream_window, Mode, RoundTrigger,
+};
 use s3res_voter::sched::{self, Schedule};
 
 use crate::exec::{self, SearchPath};
@@ -207,14 +209,6 @@ struct SystemDesc {
     channels: Vec<ChannelDesc>,
 }
 
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "lowercase")]
-enum Mode {
-    #[default]
-    Reactive,
-    Stream,
-}
-
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ComponentDesc {
@@ -226,6 +220,8 @@ struct ComponentDesc {
     replicas: Option<u64>,
     #[serde(default)]
     mode: Mode,
+    /// Stream mode: how many frames a replica may run ahead of the slowest.
+    window: Option<u64>,
     timeout_us: Option<u64>,
     // Signed, so that `-1` gets our range message rather than a type error.
     priority: Option<i64>,
@@ -276,7 +272,11 @@ struct Draft {
     voter_cpu: Option<usize>,
     schedule: Schedule,
     schedule_auto: bool,
+    window: usize,
 }
+
+/// Largest stream window: frames are buffered per replica and output, so keep it sane.
+const MAX_STREAM_WINDOW: u64 = 65_536;
 
 /// A port as the channels use it: which channel, and where that was written.
 #[derive(Debug, Clone)]
@@ -371,13 +371,6 @@ impl Checker<'_> {
                 ),
             ));
         }
-        if desc.mode == Mode::Stream {
-            return Err(self.err(
-                &field("mode"),
-                "stream mode is not built yet (next release); use `reactive`",
-            ));
-        }
-
         let protected = desc.redundancy != Redundancy::None;
         let replicas =
             match desc.replicas {
@@ -438,6 +431,7 @@ impl Checker<'_> {
                 "start_timeout_ms must be more than 0",
             ));
         }
+        let window = self.stream_window(&name, &desc, protected, warnings)?;
 
         let priority = match desc.priority {
             None => None,
@@ -528,6 +522,7 @@ impl Checker<'_> {
             voter_cpu,
             schedule,
             schedule_auto: choice == ScheduleChoice::Auto,
+            window,
         })
     }
 
@@ -545,6 +540,40 @@ impl Checker<'_> {
                     ),
                 )
             })
+    }
+
+    /// The stream window (frames a replica may run ahead); checks the mode-specific fields.
+    fn stream_window(
+        &self,
+        name: &str,
+        desc: &ComponentDesc,
+        protected: bool,
+        warnings: &mut Vec<String>,
+    ) -> Result<usize, DescriptionError> {
+        let field = |f: &str| member_path(&member_path("components", name), f);
+        if desc.mode == Mode::Stream && protected {
+            if desc.rounds.is_some() {
+                return Err(self.err(
+                    &field("rounds"),
+                    "`rounds` belong to reactive mode; a stream component has no rounds (its outputs are voted frame by frame)",
+                ));
+            }
+        } else if desc.window.is_some() {
+            let why = if protected {
+                "is for stream mode only (this component is reactive)"
+            } else {
+                "is ignored without redundancy"
+            };
+            warnings.push(format!("component {name}: `window` {why}"));
+        }
+        match desc.window {
+            None => Ok(default_stream_window()),
+            Some(w) if (1..=MAX_STREAM_WINDOW).contains(&w) => Ok(w as usize),
+            Some(w) => Err(self.err(
+                &field("window"),
+                format!("window {w} is outside 1..={MAX_STREAM_WINDOW} frames"),
+            )),
+        }
     }
 
     /// Checks every channel; returns them with, per `(component, port)`, the channel that
@@ -766,7 +795,21 @@ impl Checker<'_> {
             ));
         }
 
-        let rounds = if d.replicas > 0 {
+        let rounds = if d.replicas > 0 && d.desc.mode == Mode::Stream {
+            if inputs.is_empty() {
+                // The voter ends a stream component when its input ends; one that produces
+                // output on its own would be cut off (and its replicas' normal exit taken
+                // for crashes).
+                return Err(self.err(
+                    &member_path(&member_path("components", &d.name), "mode"),
+                    format!(
+                        "protected stream component `{}` has no input; stream mode needs one (components that produce output on their own are not supported yet)",
+                        d.name
+                    ),
+                ));
+            }
+            Vec::new()
+        } else if d.replicas > 0 {
             let rounds = self.rounds(&d, &inputs, &outputs)?;
             if rounds.is_empty() {
                 // The voter paces a reactive component by its input: without a round-starting
@@ -774,7 +817,7 @@ impl Checker<'_> {
                 return Err(self.err(
                     &member_path(&member_path("components", &d.name), "redundancy"),
                     format!(
-                        "protected component `{}` has no input that starts a round; reactive mode needs one (a protected component without inputs needs stream mode, not built yet)",
+                        "protected component `{}` has no input that starts a round; reactive mode needs one (a protected component without inputs needs `\"mode\": \"stream\"`)",
                         d.name
                     ),
                 ));
@@ -807,6 +850,8 @@ impl Checker<'_> {
             inputs,
             outputs,
             rounds,
+            mode: d.desc.mode,
+            window: d.window,
         })
     }
 

@@ -4,7 +4,7 @@
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
-use s3res_voter::plan::RoundTrigger;
+use s3res_voter::plan::{Mode, RoundTrigger};
 use s3res_voter::sched::Schedule;
 use serde::Deserialize;
 
@@ -110,8 +110,12 @@ pub struct ComponentPlan {
     pub schedule_auto: bool,
     pub inputs: Vec<PortPlan>,
     pub outputs: Vec<PortPlan>,
-    /// Explicit round triggers (empty for an unprotected component).
+    /// Explicit round triggers (empty for an unprotected component and in stream mode).
     pub rounds: Vec<RoundTrigger>,
+    /// How its voter votes (meaningful for a protected component only).
+    pub mode: Mode,
+    /// Stream mode: frames a replica may run ahead of the slowest.
+    pub window: usize,
 }
 
 impl ComponentPlan {
@@ -204,6 +208,13 @@ impl SystemPlan {
         for p in &c.outputs {
             let _ = writeln!(out, "  out {:<8} -> {}", p.name, self.port_peer(p, false));
         }
+        if c.is_protected() && c.mode == Mode::Stream {
+            let _ = writeln!(
+                out,
+                "  stream    the k-th frame of each output is voted; a replica may run {} frame(s) ahead",
+                c.window
+            );
+        }
         if c.is_protected() {
             for r in &c.rounds {
                 let _ = writeln!(
@@ -213,9 +224,13 @@ impl SystemPlan {
                     r.outputs.join(", ")
                 );
             }
+            let per = match c.mode {
+                Mode::Reactive => "per round",
+                Mode::Stream => "for a replica behind the others",
+            };
             let _ = writeln!(
                 out,
-                "  timeout   {} us per round, {} ms per restart, {} ms for a fresh replica's first answer",
+                "  timeout   {} us {per}, {} ms per restart, {} ms for a fresh replica's first answer",
                 c.timeout_us, c.restart_timeout_ms, c.start_timeout_ms
             );
         }

@@ -507,6 +507,8 @@ fn spawn_voter(
         schedule: c.schedule,
         realtime: sched.realtime(),
         nice: sched.fallback(index),
+        mode: c.mode,
+        window: c.window,
     };
     let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
     cmd.arg("--plan").arg(voter_plan.to_json());

@@ -83,6 +83,53 @@ impl Echo {
     }
 }
 
+/// The batching of `s3res-batch`: frames are held until a batch is full, then let out together.
+#[derive(Debug)]
+pub struct Batcher {
+    every: usize,
+    vary: bool,
+    /// Size of the batch being filled (fixed at its first frame).
+    size: usize,
+    held: Vec<Vec<u8>>,
+}
+
+impl Batcher {
+    pub fn new(every: usize, vary: bool) -> Self {
+        Batcher {
+            every: every.max(1),
+            vary,
+            size: 0,
+            held: Vec::new(),
+        }
+    }
+
+    /// Holds `frame`; returns the batch if it is now full (else nothing).
+    pub fn push(&mut self, frame: &[u8]) -> Vec<Vec<u8>> {
+        if self.held.is_empty() {
+            self.size = if self.vary {
+                // From the frame's bytes, so every replica picks the same size.
+                let h = frame
+                    .iter()
+                    .fold(0usize, |h, &b| h.wrapping_mul(31).wrapping_add(b as usize));
+                1 + h % self.every
+            } else {
+                self.every
+            };
+        }
+        self.held.push(frame.to_vec());
+        if self.held.len() >= self.size {
+            std::mem::take(&mut self.held)
+        } else {
+            Vec::new()
+        }
+    }
+
+    /// What is still held, at the end of the input.
+    pub fn finish(&mut self) -> Vec<Vec<u8>> {
+        std::mem::take(&mut self.held)
+    }
+}
+
 /// What the sink counted. Serialised as the `--summary` JSON.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
 pub struct Summary {
@@ -354,6 +401,33 @@ mod tests {
         // The first frame's prefix must equal its seq.
         assert_eq!(run(true, &[echoed(5, 0)], None).state_breaks, 1);
         assert!(run(true, &[echoed(0, 0), echoed(1, 1)], Some(2)).ok);
+    }
+
+    #[test]
+    fn batches_hold_frames_and_let_them_out_together() {
+        let mut b = Batcher::new(3, false);
+        assert!(b.push(b"a").is_empty());
+        assert!(b.push(b"b").is_empty());
+        assert_eq!(b.push(b"c"), [b"a".to_vec(), b"b".to_vec(), b"c".to_vec()]);
+        assert!(b.push(b"d").is_empty());
+        assert_eq!(b.finish(), [b"d".to_vec()]);
+        // Varying sizes stay within 1..=N and every frame comes out once, in order.
+        let mut b = Batcher::new(5, true);
+        let mut out = Vec::new();
+        let mut sizes = std::collections::BTreeSet::new();
+        for seq in 0..200u64 {
+            let batch = b.push(&src(seq));
+            if !batch.is_empty() {
+                sizes.insert(batch.len());
+            }
+            out.extend(batch);
+        }
+        out.extend(b.finish());
+        assert_eq!(out, (0..200).map(src).collect::<Vec<_>>());
+        assert!(
+            sizes.len() > 1 && sizes.iter().all(|&n| (1..=5).contains(&n)),
+            "{sizes:?}"
+        );
     }
 
     #[test]

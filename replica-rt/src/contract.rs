@@ -109,6 +109,11 @@ pub mod handshake {
     pub struct Ready {
         pub magic: u32,
         pub pid: i32,
+        /// Whole frames this process (and the donor before the fork, since its exec) had sent on
+        /// each port at the moment of the fork, indexed by port position (fd − 3); 0 for inputs.
+        /// A stream-mode voter uses it to line the child's output up with the donor's: the
+        /// child's next frame on a port is number `frames_sent[port]` of that port.
+        pub frames_sent: [u64; MAX_PORTS],
     }
 
     pub const TRANSFER_MAGIC: u32 = u32::from_le_bytes(*b"S3fd");
@@ -155,14 +160,24 @@ pub mod handshake {
         pub fn to_bytes(self) -> [u8; Self::SIZE] {
             let mut out = [0u8; Self::SIZE];
             out[..4].copy_from_slice(&self.magic.to_ne_bytes());
-            out[4..].copy_from_slice(&self.pid.to_ne_bytes());
+            out[4..8].copy_from_slice(&self.pid.to_ne_bytes());
+            for (k, n) in self.frames_sent.iter().enumerate() {
+                out[8 + 8 * k..16 + 8 * k].copy_from_slice(&n.to_ne_bytes());
+            }
             out
         }
 
         pub fn from_bytes(b: [u8; Self::SIZE]) -> Self {
+            let mut frames_sent = [0u64; MAX_PORTS];
+            for (k, n) in frames_sent.iter_mut().enumerate() {
+                let mut word = [0u8; 8];
+                word.copy_from_slice(&b[8 + 8 * k..16 + 8 * k]);
+                *n = u64::from_ne_bytes(word);
+            }
             Ready {
                 magic: u32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
                 pid: i32::from_ne_bytes([b[4], b[5], b[6], b[7]]),
+                frames_sent,
             }
         }
     }
@@ -181,5 +196,25 @@ pub mod signals {
     /// Injection: enter an endless loop (a control-flow error that never answers).
     pub fn inject_cfe() -> libc::c_int {
         libc::SIGRTMIN() + 2
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::handshake::{Ready, READY_MAGIC};
+    use super::MAX_PORTS;
+
+    #[test]
+    fn ready_roundtrips_with_its_frame_counts() {
+        let mut frames_sent = [0u64; MAX_PORTS];
+        frames_sent[1] = 7;
+        frames_sent[MAX_PORTS - 1] = u64::MAX;
+        let ready = Ready {
+            magic: READY_MAGIC,
+            pid: 4242,
+            frames_sent,
+        };
+        assert_eq!(Ready::from_bytes(ready.to_bytes()), ready);
+        assert_eq!(Ready::SIZE, 8 + 8 * MAX_PORTS);
     }
 }

@@ -5,7 +5,7 @@ use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
 
 use thiserror::Error;
 
-use crate::contract::signals;
+use crate::contract::{signals, FIRST_PORT_FD};
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
 use crate::{inject, restart, sys};
 
@@ -170,16 +170,20 @@ pub struct OutPort {
     buf: Vec<u8>,
     /// In replica mode a RESTART must not fork in the middle of a frame (see `restart`).
     replica: bool,
+    /// Position in the port map (fd − 3), under which whole frames sent are counted for the
+    /// restart handshake; `None` off the replica fd layout (standalone stdout).
+    position: Option<usize>,
 }
 
 impl OutPort {
     pub(crate) fn new(name: String, fd: OwnedFd, max: usize, replica: bool) -> Self {
         OutPort {
             name,
-            fd,
             max,
             buf: Vec::with_capacity(HEADER_LEN + max.min(frame::DEFAULT_MAX_FRAME)),
             replica,
+            position: usize::try_from(fd.as_raw_fd() - FIRST_PORT_FD).ok(),
+            fd,
         }
     }
 
@@ -210,7 +214,12 @@ impl OutPort {
         } else {
             None
         };
-        write_all(self.fd.as_fd(), &self.buf).map_err(|e| self.io_error(e))
+        write_all(self.fd.as_fd(), &self.buf).map_err(|e| self.io_error(e))?;
+        // Still under the RESTART block: a fork sees the count and the pipe agree.
+        if let Some(position) = self.position {
+            restart::count_sent(position);
+        }
+        Ok(())
     }
 
     /// Writes `bytes` as they are, not as a frame. Only for test aids that must produce broken

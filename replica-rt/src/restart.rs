@@ -22,7 +22,7 @@
 //! 2. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its
 //!    target number and close the received copy: the component's ports keep their numbers, now on
 //!    the new pipes;
-//! 3. answer [`Ready`] with its pid and close the socket;
+//! 3. answer [`Ready`] with its pid and the frames sent per port so far, and close the socket;
 //! 4. write to every resident private writable page ([`crate::cow`]) so no physical page is
 //!    shared with the donor, and `mlockall` again (locks are not inherited over fork). (Where
 //!    `mlockall` succeeds, populating writable private mappings also breaks COW; the walk is what
@@ -46,7 +46,7 @@
 //! drained enough of its output for the write to finish.
 
 use std::mem::{size_of, MaybeUninit};
-use std::sync::atomic::{AtomicI32, Ordering};
+use std::sync::atomic::{AtomicI32, AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 use crate::contract::handshake::{
@@ -75,6 +75,20 @@ static VOTER_ADDR: OnceLock<VoterAddr> = OnceLock::new();
 /// Pid of the donor, set in a freshly forked child; the runtime logs it once on the next send or
 /// receive (the handler itself cannot log).
 static FORKED_FROM: AtomicI32 = AtomicI32::new(0);
+
+/// Whole frames sent on each port since exec, by port position (fd − [`FIRST_PORT_FD`]). Updated
+/// by [`crate::OutPort::send`] while RESTART is blocked, so at a fork it counts exactly the frames
+/// that are whole in the donor's output pipes; the child reports it in [`Ready`].
+///
+/// [`FIRST_PORT_FD`]: crate::contract::FIRST_PORT_FD
+static FRAMES_SENT: [AtomicU64; MAX_PORTS] = [const { AtomicU64::new(0) }; MAX_PORTS];
+
+/// Counts one whole frame sent on the port at position `port` (see [`FRAMES_SENT`]).
+pub(crate) fn count_sent(port: usize) {
+    if let Some(n) = FRAMES_SENT.get(port) {
+        n.fetch_add(1, Ordering::Relaxed);
+    }
+}
 
 /// The socket path does not fit in a `sockaddr_un` (or is empty).
 #[derive(Debug, thiserror::Error)]
@@ -200,11 +214,16 @@ fn join_voter(nonce: u32) -> Result<(), ()> {
         return Err(());
     }
     place_fds(fds, &transfer.targets[..n])?;
+    let mut frames_sent = [0u64; MAX_PORTS];
+    for (dst, n) in frames_sent.iter_mut().zip(&FRAMES_SENT) {
+        *dst = n.load(Ordering::Relaxed);
+    }
     send_all(
         sock.0,
         &Ready {
             magic: READY_MAGIC,
             pid: sys::getpid(),
+            frames_sent,
         }
         .to_bytes(),
     )

@@ -205,9 +205,16 @@ fn restart_by_fork() -> Result<()> {
     // The real restart.
     let started = Instant::now();
     sys::sigqueue(donor_pid, signals::RESTART, NONCE as i32)?;
-    let (second, child) = join_child(&listener, donor_pid, &mut guard)?;
+    let (second, child, ready) = join_child(&listener, donor_pid, &mut guard)?;
     println!("restart: signal to Ready in {:?}", started.elapsed());
     let _ = child;
+    // The child reports the whole frames its process had sent per port: two, on `out`.
+    let out_position = (OUT_FD - contract::FIRST_PORT_FD) as usize;
+    ensure!(
+        ready.frames_sent[out_position] == 2 && ready.frames_sent[0] == 0,
+        "Ready counts {:?}",
+        &ready.frames_sent[..2]
+    );
 
     // Both carry on from the same state: two answers were given before the fork.
     let a = roundtrip(&second.to_replica, &second.from_replica, b"child")?;
@@ -240,7 +247,13 @@ fn restart_by_fork() -> Result<()> {
         "big answer differs ({} bytes)",
         a.len()
     );
-    let (third, _) = join_child(&listener, donor_pid, &mut guard)?;
+    let (third, _, ready) = join_child(&listener, donor_pid, &mut guard)?;
+    // "donor" and the big answer came after the first fork: four frames, the big one whole.
+    ensure!(
+        ready.frames_sent[out_position] == 4,
+        "Ready counts {:?}",
+        &ready.frames_sent[..2]
+    );
     let a = roundtrip(&third.to_replica, &third.from_replica, b"third")?;
     ensure!(
         a == answer(4, b"third"),
@@ -269,7 +282,7 @@ fn join_child(
     listener: &UnixListener,
     donor: libc::pid_t,
     guard: &mut Guard,
-) -> Result<(TestEnds, libc::pid_t)> {
+) -> Result<(TestEnds, libc::pid_t, Ready)> {
     let (mut stream, child) = accept_child(listener, donor)?;
     guard.forked.push(sys::pidfd_open(child)?);
     let p = pipes()?;
@@ -295,6 +308,7 @@ fn join_child(
             from_replica: p.from_replica,
         },
         child,
+        ready,
     ))
 }
 

@@ -34,7 +34,9 @@ pub mod system;
 pub use bins::{bin_dir, bin_path};
 pub use events::{parse_events, replica_pids};
 pub use rng::Rng;
-pub use scenario::{assert_sink_whole, echo_pipeline};
+pub use scenario::{
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,
+};
 pub use system::{is_root, Outcome, RunningSystem, System};
 
 use std::path::Path;

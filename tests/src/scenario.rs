@@ -44,19 +44,105 @@ pub fn assert_sink_whole(summary: &Path, count: u32) {
     assert_eq!(summary["ok"], true, "sink summary: {summary}");
 }
 
+/// Every `(slot, pid)` in `killed` was recorded as a `crash` of `component`.
+pub fn assert_kills_were_crashes(
+    events: &[crate::Event],
+    component: &str,
+    killed: &[(usize, i32)],
+) {
+    for (slot, pid) in killed {
+        assert!(
+            events.iter().any(|e| e.kind == crate::EventKind::Crash
+                && e.component == component
+                && e.replica == Some(*slot)
+                && e.pid == Some(*pid)),
+            "kill of replica {slot} (pid {pid}) was not recorded as a crash"
+        );
+    }
+}
+
+/// The sink's summary says exactly one of `count` frames is missing (a withheld one) and
+/// nothing else went wrong: no duplicate, reorder, corruption or state break.
+pub fn assert_sink_missed_one(summary: &Path, count: u32) {
+    let s = sink_summary(summary);
+    assert_eq!(s["missing"], 1, "{s}");
+    assert_eq!(s["frames"], count - 1, "{s}");
+    for field in ["duplicated", "reordered", "corrupt", "state_breaks"] {
+        assert_eq!(s[field], 0, "{field}: {s}");
+    }
+}
+
 impl RunningSystem {
+    /// SIGKILLs a random replica of `component` (one of `replicas`) `kills` times, waiting
+    /// after each for its repair by fork with state kept, then `pause_ms` (a random number of
+    /// milliseconds in that range) while frames flow. Returns the `(slot, pid)` of each kill.
+    pub fn kill_random_replicas(
+        &mut self,
+        rng: &mut crate::Rng,
+        component: &str,
+        replicas: usize,
+        kills: usize,
+        pause_ms: (u64, u64),
+    ) -> Vec<(usize, i32)> {
+        let mut killed = Vec::new();
+        for _ in 0..kills {
+            let slot = rng.below(replicas as u64) as usize;
+            let pid = self.replica_pids(component)[&slot];
+            crate::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+            let rec = self.wait_for_event(
+                |e| {
+                    e.kind == crate::EventKind::Recovery
+                        && e.component == component
+                        && e.replica == Some(slot)
+                        && e.pid == Some(pid)
+                },
+                Duration::from_secs(20),
+            );
+            assert_eq!(rec.method, Some(crate::RecoveryMethod::Fork), "{rec:?}");
+            assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+            assert_ne!(rec.new_pid, Some(pid));
+            killed.push((slot, pid));
+            std::thread::sleep(Duration::from_millis(rng.range(pause_ms.0, pause_ms.1)));
+        }
+        assert!(
+            self.try_status().is_none(),
+            "the system finished before all {kills} kills were done; make the source longer"
+        );
+        killed
+    }
+
+    /// DMR: flips `bit` of the next frame of replica 0 of `component` and waits for the
+    /// `sdc` that cannot be attributed (no `replica`, the frame withheld). Returns the pids of
+    /// the replicas at the injection (nobody should be replaced).
+    pub fn inject_unattributable_sdc(
+        &mut self,
+        component: &str,
+        bit: i32,
+    ) -> std::collections::BTreeMap<usize, i32> {
+        let pids = self.replica_pids(component);
+        crate::sigqueue(pids[&0], crate::signals::INJECT_SDC, bit).expect("sigqueue");
+        let sdc = self.wait_for_event(
+            |e| e.kind == crate::EventKind::Sdc && e.component == component,
+            Duration::from_secs(20),
+        );
+        assert_eq!(sdc.replica, None, "DMR must not attribute: {sdc:?}");
+        assert!(
+            sdc.detail.as_deref().unwrap_or("").contains("withheld"),
+            "{sdc:?}"
+        );
+        pids
+    }
+
     /// Waits until `replicas` replicas of `component` have started and each has installed
-    /// replica-rt's signal handlers (so a restart or injection signal sent now is handled, not
-    /// fatal). Readiness is read from the kernel (`SigCgt` in `/proc/PID/status`), not guessed
-    /// with a sleep.
+    /// replica-rt's signal handlers (an injection signal before replica-rt's `init` would
+    /// simply kill a replica). Readiness is read from the kernel (`SigCgt` in
+    /// `/proc/PID/status`), not guessed with a sleep.
     pub fn wait_for_replicas(&mut self, component: &str, replicas: usize) {
         let deadline = Instant::now() + Duration::from_secs(20);
-        loop {
-            let pids = self.replica_pids(component);
-            if pids.len() >= replicas && pids.values().all(|&pid| crate::procs::handles_hooks(pid))
-            {
-                return;
-            }
+        let ready = |pids: &std::collections::BTreeMap<usize, i32>| {
+            pids.len() >= replicas && pids.values().all(|&pid| crate::procs::handles_hooks(pid))
+        };
+        while !ready(&self.replica_pids(component)) {
             assert!(
                 Instant::now() < deadline && self.try_status().is_none(),
                 "the replicas of {component} did not start (or never installed their handlers):\n{}",

@@ -5,8 +5,8 @@
 use std::time::Duration;
 
 use s3res_tests::{
-    assert_sink_whole, echo_pipeline, signals, sink_summary, Event, EventKind, RecoveryMethod, Rng,
-    System,
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
+    sink_summary, Event, EventKind, RecoveryMethod, Rng, System,
 };
 
 /// Generous, so that a loaded CI machine running tests in parallel does not see false hangs;
@@ -52,35 +52,9 @@ fn survive_repeated_kills(redundancy: &str, replicas: usize, kills: usize) {
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", replicas);
 
-    let mut killed = Vec::new();
-    for _ in 0..kills {
-        let pids = run.replica_pids("echo");
-        let slot = rng.below(replicas as u64) as usize;
-        let pid = pids[&slot];
-        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
-        let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
-        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
-        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
-        assert_ne!(rec.new_pid, Some(pid));
-        killed.push((slot, pid));
-        std::thread::sleep(Duration::from_millis(rng.range(5, 30)));
-    }
-    assert!(
-        run.try_status().is_none(),
-        "the system finished before all {kills} kills were done; make the source longer"
-    );
-
+    let killed = run.kill_random_replicas(&mut rng, "echo", replicas, kills, (5, 30));
     let out = run.wait_success(LIMIT);
-
-    let crashes = of_kind(&out.events, EventKind::Crash);
-    for (slot, pid) in &killed {
-        assert!(
-            crashes
-                .iter()
-                .any(|e| e.replica == Some(*slot) && e.pid == Some(*pid)),
-            "kill of replica {slot} (pid {pid}) was not recorded as a crash"
-        );
-    }
+    assert_kills_were_crashes(&out.events, "echo", &killed);
     assert_sink_whole(&summary, count);
 }
 
@@ -151,25 +125,13 @@ fn dmr_detects_but_does_not_guess_a_corruption() {
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 2);
 
-    let pids = run.replica_pids("echo");
-    s3res_tests::sigqueue(pids[&0], signals::INJECT_SDC, 5).expect("sigqueue");
-    let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
-    assert_eq!(sdc.replica, None, "DMR must not attribute: {sdc:?}");
-    assert!(
-        sdc.detail.as_deref().unwrap_or("").contains("withheld"),
-        "{sdc:?}"
-    );
+    let pids = run.inject_unattributable_sdc("echo", 5);
 
     let out = run.wait(LIMIT);
     run.assert_nothing_left();
     // The sink misses exactly the withheld frame, so it (and bootstrap) report failure.
     assert!(!out.status.success());
-    let s = sink_summary(&summary);
-    assert_eq!(s["missing"], 1, "{s}");
-    assert_eq!(s["frames"], count - 1, "{s}");
-    for field in ["duplicated", "reordered", "corrupt", "state_breaks"] {
-        assert_eq!(s[field], 0, "{field}: {s}");
-    }
+    assert_sink_missed_one(&summary, count);
     assert!(
         of_kind(&out.events, EventKind::Recovery).is_empty(),
         "nobody is blamed, nobody replaced"

@@ -4,7 +4,9 @@
 //! their output frames, detects faulty replicas and replaces them.
 //!
 //! Read top-down: [`vote`] is the voting rule; [`round`] a reactive round; [`voter`] the event
-//! loop that detects faults; [`clock`] its deadlines on the CPU's counter; [`recovery`] the fork-and-hand-over sequence; [`replica`] the
+//! loop that detects faults; [`clock`] its deadlines on the CPU's counter; [`stream`] the event
+//! loop of stream mode (its bookkeeping in [`stream::ledger`]); [`recovery`] the
+//! fork-and-hand-over sequence; [`replica`] the
 //! process handle; [`channel`] the non-blocking pipe ends; [`plan`] and [`event`] the contracts
 //! with bootstrap.
 
@@ -17,5 +19,6 @@ pub mod replica;
 pub mod round;
 pub mod rt;
 pub mod sched;
+pub mod stream;
 pub mod vote;
 pub mod voter;

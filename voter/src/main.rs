@@ -2,7 +2,8 @@
 
 use anyhow::Context;
 use clap::Parser;
-use s3res_voter::plan::VoterPlan;
+use s3res_voter::plan::{Mode, VoterPlan};
+use s3res_voter::stream::StreamVoter;
 use s3res_voter::voter::{Voter, VoterError};
 
 /// The voter of one protected s3res component.
@@ -12,6 +13,9 @@ use s3res_voter::voter::{Voter, VoterError};
 /// replicas, copies every input frame to each, votes on their answers byte for byte, forwards
 /// the majority, and replaces crashed, hung, corrupted or misbehaving replicas by forking a
 /// healthy one. Events (faults, recoveries) go as JSON lines to the plan's events fd.
+///
+/// Two modes: reactive (a round per input frame, one answer per output) and stream (the k-th
+/// frame of each output is voted across replicas; see docs/stream-mode.md).
 ///
 /// Exit status: 0 when the inputs closed and the replicas finished, or on SIGTERM/SIGINT;
 /// 1 on a start-up error; 3 when the component failed beyond recovery.
@@ -42,8 +46,10 @@ fn run() -> anyhow::Result<()> {
     let plan = VoterPlan::from_json(&cli.plan).context("reading --plan")?;
     let span = tracing::info_span!("voter", component = %plan.component);
     let _enter = span.enter();
-    let voter = Voter::start(plan)?;
-    voter.run()?;
+    match plan.mode {
+        Mode::Reactive => Voter::start(plan)?.run()?,
+        Mode::Stream => StreamVoter::start(plan)?.run()?,
+    }
     Ok(())
 }
 

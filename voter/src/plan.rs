@@ -27,6 +27,26 @@ pub struct RoundTrigger {
     pub outputs: Vec<String>,
 }
 
+/// How the voter paces and votes a component.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// S³RES VoterM: a frame on a round-starting input opens a round; every replica answers
+    /// exactly one frame on each of the round's outputs before the deadline.
+    #[default]
+    Reactive,
+    /// S³RES VoterD: outputs are not one per input; the k-th frame of each output is voted
+    /// across replicas (see `docs/stream-mode.md`).
+    Stream,
+}
+
+/// Default [`VoterPlan::window`]: how many frames a replica may run ahead of the slowest.
+pub const DEFAULT_STREAM_WINDOW: usize = 64;
+
+pub fn default_stream_window() -> usize {
+    DEFAULT_STREAM_WINDOW
+}
+
 /// Everything a voter needs to run one protected component.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct VoterPlan {
@@ -77,6 +97,13 @@ pub struct VoterPlan {
     /// the nice values alone.
     #[serde(default)]
     pub nice: Option<NiceFallback>,
+    /// Reactive (rounds) or stream (k-th frame voting).
+    #[serde(default)]
+    pub mode: Mode,
+    /// Stream mode: frames per output a replica may run ahead of the slowest trusted replica
+    /// before the voter stops reading it (back-pressure through its pipe).
+    #[serde(default = "default_stream_window")]
+    pub window: usize,
 }
 
 /// Nice values used instead of SCHED_RR priorities, chosen by bootstrap so that the order of

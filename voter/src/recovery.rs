@@ -11,7 +11,12 @@
 //!    this attempt's nonce (a late child of an earlier attempt has an older state);
 //! 5. send it fresh pipes by `SCM_RIGHTS`, which it puts on the donor's fd numbers, and wait
 //!    for its `Ready`;
-//! 6. give the taken-back input, followed by whatever is still queued for the donor, to both.
+//! 6. give the taken-back input, followed by whatever is still queued for the donor, to both
+//!    (to the donor only after the fork: what it read in between would reach the child twice).
+//!
+//! In stream mode ([`DonorState::Streaming`]) the donor is not idle: it may be writing output
+//! while we wait, so its output pipes are read meanwhile, and the child's `Ready` says how many
+//! whole frames its process had sent on each output, which is where its own output starts.
 
 use std::io::{self, Read};
 use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
@@ -62,7 +67,28 @@ struct Joined {
     pidfd: OwnedFd,
 }
 
-/// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
+/// Where the donor is when it is asked to fork.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DonorState {
+    /// Reactive mode: between rounds, idle. A partial frame of it in our decoder is an error.
+    Quiet,
+    /// Stream mode: it may be writing output right now. Its output pipes are read while we wait
+    /// for the child (a donor blocked on a full pipe holds RESTART until its frame is out), and
+    /// the child's [`Forked::frames_sent`] says where its output starts.
+    Streaming,
+}
+
+/// A new replica made by fork, and where its output starts.
+#[derive(Debug)]
+pub struct Forked {
+    pub replica: Replica,
+    /// Whole frames the process had sent per output at the fork, indexed like `plan.outputs`:
+    /// the child's next frame on output `o` is frame number `frames_sent[o]` of its process.
+    pub frames_sent: Vec<u64>,
+}
+
+/// Makes a copy of `donor` by fork at a quiet point (reactive mode). `nonce` must differ from
+/// every earlier attempt's.
 pub fn fork_from(
     plan: &VoterPlan,
     listener: &UnixListener,
@@ -70,14 +96,28 @@ pub fn fork_from(
     nonce: u32,
     family: &[libc::pid_t],
 ) -> Result<Replica, RecoveryError> {
+    fork(plan, listener, donor, nonce, family, DonorState::Quiet).map(|f| f.replica)
+}
+
+/// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
+pub fn fork(
+    plan: &VoterPlan,
+    listener: &UnixListener,
+    donor: &mut Replica,
+    nonce: u32,
+    family: &[libc::pid_t],
+    state: DonorState,
+) -> Result<Forked, RecoveryError> {
     let timeout = Duration::from_millis(plan.restart_timeout_ms);
     let deadline = Instant::now() + timeout;
 
-    // 1. The donor must not be in the middle of an answer we have partly read.
-    for out in &mut donor.outputs {
-        out.fill().map_err(io_err("reading the donor's output"))?;
-        if out.decoder.pending() > 0 {
-            return Err(RecoveryError::DonorMidFrame(donor.pid));
+    // 1. At a quiet point the donor must not be in the middle of an answer we have partly read.
+    if state == DonorState::Quiet {
+        for out in &mut donor.outputs {
+            out.fill().map_err(io_err("reading the donor's output"))?;
+            if out.decoder.pending() > 0 {
+                return Err(RecoveryError::DonorMidFrame(donor.pid));
+            }
         }
     }
     let mut taken_back = Vec::with_capacity(donor.inputs.len());
@@ -97,15 +137,17 @@ pub fn fork_from(
         .zip(&taken_back)
         .map(|(input, bytes)| [bytes.as_slice(), input.writer.unwritten()].concat())
         .collect();
-    give_back(donor, &taken_back);
 
-    // 2.–5.
+    // 2.–5. The donor's input pipes stay empty until the fork is done: input it read between
+    // a give-back and the fork would reach the child twice (in its memory and in its pipe).
     refuse_backlog(listener, family);
     let joined = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
         .map_err(io_err("signalling the donor"))
-        .and_then(|()| accept_child(listener, donor, nonce, family, deadline, timeout))?;
+        .and_then(|()| accept_child(listener, donor, nonce, family, deadline, timeout, state));
+    give_back(donor, &taken_back);
+    let joined = joined?;
     let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
-    let mut child = hand_over_pipes(plan, joined, deadline).inspect_err(|_| {
+    let (mut child, ready) = hand_over_pipes(plan, joined, deadline).inspect_err(|_| {
         // The child exists but will never be used: do not leave it behind.
         let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
     })?;
@@ -115,7 +157,20 @@ pub fn fork_from(
         input.writer.queue_raw(stream);
         let _ = input.writer.flush();
     }
-    Ok(child)
+    let first_output = plan.inputs.len();
+    let frames_sent = (0..plan.outputs.len())
+        .map(|o| {
+            ready
+                .frames_sent
+                .get(first_output + o)
+                .copied()
+                .unwrap_or(0)
+        })
+        .collect();
+    Ok(Forked {
+        replica: child,
+        frames_sent,
+    })
 }
 
 /// Puts the taken-back input in front of whatever is still queued for the donor.
@@ -153,32 +208,47 @@ fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str) {
 }
 
 /// Waits for the donor's child; refuses anyone else.
+/// A streaming donor's output pipes are read meanwhile (into their decoders, not decoded), so a
+/// donor blocked writing a frame can finish it and take the signal.
 fn accept_child(
     listener: &UnixListener,
-    donor: &Replica,
+    donor: &mut Replica,
     nonce: u32,
     family: &[libc::pid_t],
     deadline: Instant,
     timeout: Duration,
+    state: DonorState,
 ) -> Result<Joined, RecoveryError> {
+    let mut fds = Vec::with_capacity(2 + donor.outputs.len());
     loop {
         let now = Instant::now();
         if now >= deadline {
             return Err(RecoveryError::ConnectTimeout(timeout));
         }
-        let mut fds = [
-            libc::pollfd {
-                fd: listener.as_raw_fd(),
+        fds.clear();
+        for fd in [listener.as_raw_fd(), donor.pidfd.as_raw_fd()] {
+            fds.push(libc::pollfd {
+                fd,
                 events: libc::POLLIN,
                 revents: 0,
-            },
-            libc::pollfd {
-                fd: donor.pidfd.as_raw_fd(),
-                events: libc::POLLIN,
-                revents: 0,
-            },
-        ];
+            });
+        }
+        if state == DonorState::Streaming {
+            for out in donor.outputs.iter().filter(|out| !out.is_closed()) {
+                fds.push(libc::pollfd {
+                    fd: out.as_fd().as_raw_fd(),
+                    events: libc::POLLIN,
+                    revents: 0,
+                });
+            }
+        }
         sys::ppoll(&mut fds, Some(deadline - now)).map_err(io_err("waiting for the child"))?;
+        if fds[2..].iter().any(|p| p.revents != 0) {
+            for out in donor.outputs.iter_mut().filter(|out| !out.is_closed()) {
+                // A read error or a closed pipe shows again in the voter's own loop.
+                let _ = out.fill();
+            }
+        }
         if fds[0].revents == 0 {
             if fds[1].revents != 0 {
                 return Err(RecoveryError::DonorDied(donor.pid));
@@ -250,7 +320,7 @@ fn hand_over_pipes(
     plan: &VoterPlan,
     joined: Joined,
     deadline: Instant,
-) -> Result<Replica, RecoveryError> {
+) -> Result<(Replica, Ready), RecoveryError> {
     let Joined { conn, pid, pidfd } = joined;
     let pipes = ReplicaPipes::new(plan).map_err(io_err("creating pipes"))?;
     let mut transfer = FdTransfer {
@@ -289,7 +359,7 @@ fn hand_over_pipes(
             ready.magic, ready.pid
         )));
     }
-    Ok(Replica {
+    let replica = Replica {
         pid,
         pidfd,
         inputs,
@@ -298,5 +368,6 @@ fn hand_over_pipes(
         // A fork of a replica that has answered: its handler is in place.
         proven: true,
         output_closed_at: None,
-    })
+    };
+    Ok((replica, ready))
 }

@@ -147,6 +147,24 @@ impl Replica {
         })
     }
 
+    /// An output pipe of this replica was seen closed: `true` if the process is already gone
+    /// (a crash); else the time is noted, and [`crate::voter::closed_output_fault`] decides once
+    /// the grace is over (the kernel closes a dying process's fds just before it reports the
+    /// exit).
+    pub fn note_output_closed(&mut self) -> bool {
+        if self.exited_within(std::time::Duration::ZERO) {
+            return true;
+        }
+        self.output_closed_at
+            .get_or_insert_with(crate::clock::Instant::now);
+        false
+    }
+
+    /// Writes what is queued for input `i`, as far as the pipe takes it now.
+    pub fn flush_input(&mut self, i: usize) -> io::Result<()> {
+        self.inputs[i].writer.flush()
+    }
+
     /// SIGKILL, through the pidfd (no pid-reuse race).
     pub fn kill(&self) {
         if let Err(e) = sys::pidfd_send_signal(self.pidfd.as_fd(), libc::SIGKILL) {
@@ -159,5 +177,41 @@ impl Replica {
     /// Whether the process has exited (its pidfd is readable), waiting up to `timeout`.
     pub fn exited_within(&self, timeout: std::time::Duration) -> bool {
         sys::wait_readable(self.pidfd.as_fd(), timeout).unwrap_or(true)
+    }
+}
+
+/// Whether `pid` has a handler for the restart signal installed (`SigCgt` in
+/// `/proc/PID/status`): replica-rt's `init` has run (it installs this handler last, after the
+/// injection handlers), so a RESTART would fork it rather than kill it.
+impl Replica {
+    /// Whether this replica can be a recovery donor: its restart handler is installed (before
+    /// replica-rt's `init` the restart signal would simply kill it). Known once it has sent a
+    /// frame; before that (a replica killed right after start, a stream replica that has not
+    /// produced yet) the kernel's `SigCgt` says whether it catches the signal.
+    pub fn may_donate(&self) -> bool {
+        self.proven || catches_restart_signal(self.pid)
+    }
+}
+
+pub fn catches_restart_signal(pid: libc::pid_t) -> bool {
+    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
+        return false;
+    };
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigCgt:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+        .is_some_and(|mask| mask & (1 << (replica_rt::contract::signals::RESTART - 1)) != 0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn restart_handler_is_seen_in_proc() {
+        // The test process does not catch SIGUSR1; pid 0 does not exist in /proc.
+        assert!(!catches_restart_signal(std::process::id() as libc::pid_t));
+        assert!(!catches_restart_signal(0));
     }
 }

@@ -23,7 +23,7 @@ use thiserror::Error;
 use crate::channel::{Fill, FrameReader, FrameWriter};
 use crate::clock::{self, ClockError, Deadlines, Instant, Timer};
 use crate::event::{Event, EventKind, RecoveryMethod};
-use crate::plan::VoterPlan;
+use crate::plan::{Mode, VoterPlan};
 use crate::recovery;
 use crate::replica::Replica;
 use crate::round::{OutputSet, Round};
@@ -34,13 +34,13 @@ use crate::vote::{vote, ReplicaSet, VoteOutcome, MAX_REPLICAS};
 /// How long a replica whose output pipe closed may take to show up as dead before we call it a
 /// protocol fault instead of a crash. The kernel closes a dying process's fds before it signals
 /// the exit, so the two are seen a moment apart.
-const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
+pub(crate) const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
 /// How long replicas get to exit by themselves after their input is closed at the end.
-const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
+pub(crate) const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 /// How long downstream gets to take the last voted frames at the end.
-const OUTPUT_DRAIN_LIMIT: Duration = Duration::from_secs(10);
+pub(crate) const OUTPUT_DRAIN_LIMIT: Duration = Duration::from_secs(10);
 /// How long to wait for a killed replica to be gone before recovering its slot anyway.
-const DEATH_WAIT: Duration = Duration::from_secs(1);
+pub(crate) const DEATH_WAIT: Duration = Duration::from_secs(1);
 
 #[derive(Debug, Error)]
 pub enum VoterError {
@@ -58,37 +58,80 @@ pub enum VoterError {
     Clock(#[from] ClockError),
 }
 
-fn io_err(what: impl Into<String>) -> impl FnOnce(io::Error) -> VoterError {
+pub(crate) fn io_err(what: impl Into<String>) -> impl FnOnce(io::Error) -> VoterError {
     let what = what.into();
     move |source| VoterError::Io { what, source }
 }
 
 /// An input of the protected component: read by the voter, copied to every replica.
-struct ExternalInput {
-    name: String,
-    reader: FrameReader,
+pub(crate) struct ExternalInput {
+    pub(crate) name: String,
+    pub(crate) reader: FrameReader,
     /// The outputs a frame on this input expects (its round), or `None` if it starts none.
     round: Option<OutputSet>,
 }
 
 /// An output of the protected component: the voter writes the winners here.
-struct ExternalOutput {
-    name: String,
-    writer: FrameWriter,
+pub(crate) struct ExternalOutput {
+    pub(crate) name: String,
+    pub(crate) writer: FrameWriter,
     /// The reader went away; later frames are dropped (said once).
-    broken: bool,
+    pub(crate) broken: bool,
+}
+
+impl ExternalOutput {
+    /// Queues `frame` for downstream and writes what the pipe takes now.
+    pub(crate) fn send(&mut self, frame: &[u8]) {
+        if self.broken {
+            return;
+        }
+        if let Err(e) = self.writer.send(frame) {
+            tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+            self.broken = true;
+            self.writer.discard();
+        }
+    }
+
+    /// Writes what is queued, as far as the pipe takes it now.
+    pub(crate) fn flush(&mut self) {
+        if let Err(e) = self.writer.flush() {
+            if !self.broken {
+                tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+                self.broken = true;
+            }
+            // Nothing queued for a reader that will never come.
+            self.writer.discard();
+        }
+    }
+
+    /// Writes out what is still queued, blocking up to `deadline`.
+    pub(crate) fn drain(&mut self, deadline: Instant) {
+        while self.writer.has_pending() && !self.broken {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let mut pfd = [libc::pollfd {
+                fd: self.writer.as_fd().as_raw_fd(),
+                events: libc::POLLOUT,
+                revents: 0,
+            }];
+            if left.is_zero() || sys::ppoll(&mut pfd, Some(left)).unwrap_or(0) == 0 {
+                tracing::warn!(output = %self.name, "downstream did not take the last frames");
+                return;
+            }
+            self.flush();
+        }
+    }
 }
 
 /// A replica that was found faulty and killed, waiting to be replaced.
-struct Fault {
-    slot: usize,
-    replica: Replica,
-    detected_ns: u64,
+pub(crate) struct Fault {
+    pub(crate) slot: usize,
+    pub(crate) replica: Replica,
+    pub(crate) detected_ns: u64,
 }
 
 /// Why the loop ends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Stop {
+pub(crate) enum Stop {
     /// Every input closed: let replicas finish, then exit cleanly.
     InputsClosed,
     /// SIGTERM/SIGINT.
@@ -97,7 +140,7 @@ enum Stop {
 
 /// What a slot of the poll set stands for.
 #[derive(Debug, Clone, Copy)]
-enum Token {
+pub(crate) enum Token {
     Signal,
     Input(usize),
     OutputWritable(usize),
@@ -136,47 +179,13 @@ impl Voter {
         validate(&plan)?;
         // Calibrated before the first round, so that it never eats into a deadline.
         clock::init()?;
-        // Orphans (children of a donor that died) come to us, so they are reaped and killed.
-        sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
-        let signals = block_signals()?;
-
-        let inputs = plan
-            .inputs
-            .iter()
-            .map(|p| {
-                let round = plan.rounds.iter().find(|r| r.input == p.name).map(|r| {
-                    r.outputs.iter().fold(0, |set, name| {
-                        set | 1 << plan.outputs.iter().position(|o| &o.name == name).unwrap()
-                    })
-                });
-                Ok(ExternalInput {
-                    name: p.name.clone(),
-                    reader: FrameReader::new(inherited(p.fd), p.max_frame)
-                        .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
-                    round,
-                })
-            })
-            .collect::<Result<Vec<_>, VoterError>>()?;
-        let outputs = plan
-            .outputs
-            .iter()
-            .map(|p| {
-                Ok(ExternalOutput {
-                    name: p.name.clone(),
-                    writer: FrameWriter::new(inherited(p.fd))
-                        .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
-                    broken: false,
-                })
-            })
-            .collect::<Result<Vec<_>, VoterError>>()?;
-        let events = plan.events_fd.map(inherited);
-
-        let _ = std::fs::remove_file(&plan.socket_path);
-        let listener = UnixListener::bind(&plan.socket_path)
-            .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
-        // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
-        let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
-        listener.set_nonblocking(true).map_err(io_err("socket"))?;
+        let Endpoints {
+            signals,
+            inputs,
+            outputs,
+            events,
+            listener,
+        } = Endpoints::open(&plan)?;
 
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
@@ -184,10 +193,13 @@ impl Voter {
 
         let n = plan.replicas;
         let n_inputs = plan.inputs.len();
-        let mut voter = Voter {
+        let slots = start_replicas(&plan, events.as_ref(), |pid, slot| {
+            rt.apply_to_replica(pid, slot)
+        })?;
+        let voter = Voter {
             rt,
             answers: vec![vec![Vec::new(); plan.outputs.len()]; n],
-            slots: (0..n).map(|_| None).collect(),
+            slots,
             plan,
             inputs,
             outputs,
@@ -203,18 +215,6 @@ impl Voter {
             poll_tokens: Vec::new(),
             timers: Deadlines::new(n_inputs, n),
         };
-        for slot in 0..n {
-            let replica = Replica::spawn(&voter.plan, slot).map_err(io_err(format!(
-                "starting replica {slot} ({})",
-                voter.plan.exec.display()
-            )))?;
-            voter.rt.apply_to_replica(replica.pid, slot);
-            let mut ev = voter.event(EventKind::Start);
-            ev.replica = Some(slot);
-            ev.pid = Some(replica.pid);
-            voter.emit(ev);
-            voter.slots[slot] = Some(replica);
-        }
         Ok(voter)
     }
 
@@ -272,12 +272,11 @@ impl Voter {
                 }
                 Token::ReplicaOutput(r, o) => self.on_replica_output(r, o),
                 Token::ReplicaInputWritable(r, i) => {
-                    if let Some(rep) = self.slots[r].as_mut() {
-                        if let Err(e) = rep.inputs[i].writer.flush() {
-                            let detail =
-                                format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
-                            self.fault(r, EventKind::Protocol, detail);
-                        }
+                    let flushed = self.slots[r].as_mut().map(|rep| rep.flush_input(i));
+                    if let Some(Err(e)) = flushed {
+                        let detail =
+                            format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
+                        self.fault(r, EventKind::Protocol, detail);
                     }
                 }
             }
@@ -365,34 +364,15 @@ impl Voter {
     }
 
     fn on_signal(&mut self) {
-        while let Ok(Some(info)) = self.signals.read_signal() {
-            match info.ssi_signo as i32 {
-                libc::SIGCHLD => reap_children(),
-                sig => {
-                    tracing::info!(signal = sig, "stop requested");
-                    self.stop = Some(Stop::Requested);
-                }
-            }
+        if stop_requested(&self.signals) {
+            self.stop = Some(Stop::Requested);
         }
     }
 
     // ----- input side -------------------------------------------------------------------
 
     fn on_input_readable(&mut self, i: usize) {
-        let input = &mut self.inputs[i];
-        match input.reader.fill() {
-            Ok(Fill::Open) => {}
-            Ok(Fill::Closed) => {
-                if let Err(e) = input.reader.decoder.finish() {
-                    tracing::warn!(input = %input.name, error = %e, "input closed mid-frame");
-                }
-                tracing::debug!(input = %input.name, "input closed");
-            }
-            Err(e) => {
-                tracing::error!(input = %input.name, error = %e, "reading input failed; treating it as closed");
-                input.reader.close();
-            }
-        }
+        self.inputs[i].read();
         self.start_rounds_from_buffered_input();
     }
 
@@ -455,27 +435,11 @@ impl Voter {
     // ----- output side ------------------------------------------------------------------
 
     fn flush_output(&mut self, o: usize) {
-        let out = &mut self.outputs[o];
-        if let Err(e) = out.writer.flush() {
-            if !out.broken {
-                tracing::warn!(output = %out.name, error = %e, "downstream is gone; dropping further output");
-                out.broken = true;
-            }
-            // Nothing queued for a reader that will never come.
-            out.writer.discard();
-        }
+        self.outputs[o].flush();
     }
 
     fn forward(&mut self, o: usize, winner: usize) {
-        let out = &mut self.outputs[o];
-        if out.broken {
-            return;
-        }
-        if let Err(e) = out.writer.send(&self.answers[winner][o]) {
-            tracing::warn!(output = %out.name, error = %e, "downstream is gone; dropping further output");
-            out.broken = true;
-            out.writer.discard();
-        }
+        self.outputs[o].send(&self.answers[winner][o]);
     }
 
     fn on_replica_output(&mut self, r: usize, o: usize) {
@@ -535,45 +499,23 @@ impl Voter {
     /// reports the exit, so this is a crash if the pidfd follows within [`EXIT_AFTER_EOF`] (the
     /// event loop watches it, without blocking), else a protocol fault.
     fn on_output_closed(&mut self, r: usize) {
-        let Some(rep) = self.slots[r].as_mut() else {
-            return;
-        };
-        if rep.exited_within(Duration::ZERO) {
+        if self.slots[r]
+            .as_mut()
+            .is_some_and(Replica::note_output_closed)
+        {
             self.fault(r, EventKind::Crash, "the replica process died".into());
-        } else if rep.output_closed_at.is_none() {
-            rep.output_closed_at = Some(Instant::now());
         }
     }
 
     /// Replicas whose output closed more than [`EXIT_AFTER_EOF`] ago and which still live.
     fn fault_closed_outputs(&mut self) {
         for r in 0..self.slots.len() {
-            let Some(rep) = self.slots[r].as_ref() else {
-                continue;
-            };
-            let Some(since) = rep.output_closed_at else {
-                continue;
-            };
-            // On the counter, exactly as `next_wakeup` set the timer (a duration read off the
-            // counter is rounded down, and could keep the loop spinning a few µs past it).
-            if Instant::now() < since + EXIT_AFTER_EOF {
-                continue;
+            let verdict = self.slots[r]
+                .as_ref()
+                .and_then(|rep| closed_output_fault(rep, &self.plan));
+            if let Some((kind, detail)) = verdict {
+                self.fault(r, kind, detail);
             }
-            if rep.exited_within(Duration::ZERO) {
-                self.fault(r, EventKind::Crash, "the replica process died".into());
-                continue;
-            }
-            let closed = rep
-                .outputs
-                .iter()
-                .position(|out| out.is_closed())
-                .unwrap_or(0);
-            let name = &self.plan.outputs[closed].name;
-            let detail = match rep.outputs[closed].decoder.finish() {
-                Err(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
-                _ => format!("closed its output `{name}`"),
-            };
-            self.fault(r, EventKind::Protocol, detail);
         }
     }
 
@@ -872,27 +814,15 @@ impl Voter {
             if self.stop.is_some() {
                 continue;
             }
-            let Fault {
-                slot,
-                replica: old,
-                detected_ns,
-            } = fault;
-            if !old.exited_within(DEATH_WAIT) {
-                tracing::warn!(pid = old.pid, "killed replica has not exited yet");
-            }
-            if old.our_child {
-                let _ = sys::reap(old.pid);
-            }
-            drop(old.pidfd);
-            reap_children();
-            self.replace(slot, old.pid, detected_ns)?;
+            let (slot, old_pid, detected_ns) = fault.retire();
+            self.replace(slot, old_pid, detected_ns)?;
         }
         Ok(())
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor =
-            (0..self.slots.len()).find(|&d| self.slots[d].as_ref().is_some_and(|r| r.proven));
+        let donor = (0..self.slots.len())
+            .find(|&d| self.slots[d].as_ref().is_some_and(Replica::may_donate));
         if let Some(d) = donor {
             let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
             self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
@@ -912,7 +842,7 @@ impl Voter {
                 Ok(child) => {
                     // The child inherited the donor's priority and CPU; it takes the slot's.
                     self.rt.apply_to_replica(child.pid, slot);
-                    let mut ev = self.recovery_event(slot, old_pid, child.pid, detected_ns);
+                    let mut ev = recovery_event(&self.plan, slot, old_pid, child.pid, detected_ns);
                     ev.donor = Some(d);
                     ev.method = Some(RecoveryMethod::Fork);
                     ev.state_lost = Some(false);
@@ -925,40 +855,14 @@ impl Voter {
                 }
             }
         }
-        match Replica::spawn(&self.plan, slot) {
-            Ok(fresh) => {
-                self.rt.apply_to_replica(fresh.pid, slot);
-                let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
-                ev.method = Some(RecoveryMethod::Exec);
-                ev.state_lost = Some(true);
-                self.emit(ev);
-                self.slots[slot] = Some(fresh);
-                Ok(())
-            }
-            Err(e) => {
-                let mut ev = self.event(EventKind::RecoveryFailed);
-                ev.replica = Some(slot);
-                ev.pid = Some(old_pid);
-                ev.detail = Some(format!("could not start {}: {e}", self.plan.exec.display()));
-                self.emit(ev);
-                if self.slots.iter().all(Option::is_none) {
-                    return Err(VoterError::Unrecoverable(format!(
-                        "no replica left and {} cannot be started: {e}",
-                        self.plan.exec.display()
-                    )));
-                }
-                Ok(())
-            }
-        }
-    }
-
-    fn recovery_event(&self, slot: usize, old_pid: i32, new_pid: i32, detected_ns: u64) -> Event {
-        let mut ev = self.event(EventKind::Recovery);
-        ev.replica = Some(slot);
-        ev.pid = Some(old_pid);
-        ev.new_pid = Some(new_pid);
-        ev.recovery_us = Some(ev.ts_ns.saturating_sub(detected_ns) / 1000);
-        ev
+        replace_by_exec(
+            &self.plan,
+            self.events.as_ref(),
+            &mut self.slots,
+            (slot, old_pid, detected_ns),
+            |pid, slot| self.rt.apply_to_replica(pid, slot),
+        )
+        .map(drop)
     }
 
     // ----- events ------------------------------------------------------------------------
@@ -968,26 +872,7 @@ impl Voter {
     }
 
     fn emit(&self, ev: Event) {
-        // Bootstrap logs every event it gathers; here they are only traced, so that a run
-        // shows each event once. Without an events fd, the voter's own log is all there is.
-        if self.events.is_some() {
-            tracing::debug!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
-        } else {
-            tracing::warn!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
-        }
-        let Some(fd) = &self.events else { return };
-        let line = ev.to_line();
-        let mut bytes = line.as_bytes();
-        // One write per line: below PIPE_BUF it is atomic, so lines of several voters never mix.
-        while !bytes.is_empty() {
-            match sys::write(fd.as_fd(), bytes) {
-                Ok(n) => bytes = &bytes[n..],
-                Err(e) => {
-                    tracing::warn!(error = %e, "cannot write events");
-                    return;
-                }
-            }
-        }
+        write_event(self.events.as_ref(), &ev);
     }
 
     // ----- the end ---------------------------------------------------------------------
@@ -1022,40 +907,17 @@ impl Voter {
 
     /// Writes out what is still queued for downstream, blocking up to `deadline`.
     fn drain_output(&mut self, o: usize, deadline: Instant) {
-        while self.outputs[o].writer.has_pending() && !self.outputs[o].broken {
-            let left = deadline.saturating_duration_since(Instant::now());
-            let mut pfd = [libc::pollfd {
-                fd: self.outputs[o].writer.as_fd().as_raw_fd(),
-                events: libc::POLLOUT,
-                revents: 0,
-            }];
-            if left.is_zero() || sys::ppoll(&mut pfd, Some(left)).unwrap_or(0) == 0 {
-                tracing::warn!(output = %self.outputs[o].name, "downstream did not take the last frames");
-                return;
-            }
-            self.flush_output(o);
-        }
+        self.outputs[o].drain(deadline);
     }
 
     /// Kills every replica and everything re-parented to us; removes the socket.
     fn shut_down(&mut self) {
-        // On a requested stop, whatever downstream can take right now still goes out.
-        for o in 0..self.outputs.len() {
-            if self.outputs[o].writer.has_pending() && !self.outputs[o].broken {
-                self.flush_output(o);
-            }
-        }
-        for rep in self.slots.iter().flatten() {
-            rep.kill();
-        }
-        for fault in &self.faults {
-            fault.replica.kill();
-        }
-        for rep in self.slots.iter().flatten() {
-            rep.exited_within(DEATH_WAIT);
-        }
-        kill_all_children(Duration::from_secs(3));
-        let _ = std::fs::remove_file(&self.plan.socket_path);
+        shut_down(
+            &self.plan,
+            &mut self.outputs,
+            self.slots.iter().flatten(),
+            &self.faults,
+        );
     }
 }
 
@@ -1063,16 +925,205 @@ impl Voter {
 /// voter should not depend on it).
 impl Drop for Voter {
     fn drop(&mut self) {
-        for rep in self.slots.iter().flatten() {
-            rep.kill();
+        kill_replicas(&self.slots, &self.faults);
+    }
+}
+
+/// Kills every replica, trusted or faulty.
+pub(crate) fn kill_replicas(slots: &[Option<Replica>], faults: &[Fault]) {
+    for rep in slots.iter().flatten() {
+        rep.kill();
+    }
+    for fault in faults {
+        fault.replica.kill();
+    }
+}
+
+/// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,
+/// slot)` runs for each new process first (to apply scheduling settings).
+pub(crate) fn start_replicas(
+    plan: &VoterPlan,
+    events: Option<&OwnedFd>,
+    mut on_spawn: impl FnMut(libc::pid_t, usize),
+) -> Result<Vec<Option<Replica>>, VoterError> {
+    let mut slots: Vec<Option<Replica>> = (0..plan.replicas).map(|_| None).collect();
+    for (slot, place) in slots.iter_mut().enumerate() {
+        let replica = Replica::spawn(plan, slot).map_err(io_err(format!(
+            "starting replica {slot} ({})",
+            plan.exec.display()
+        )))?;
+        on_spawn(replica.pid, slot);
+        let mut ev = Event::new(&plan.system, &plan.component, EventKind::Start);
+        ev.replica = Some(slot);
+        ev.pid = Some(replica.pid);
+        write_event(events, &ev);
+        *place = Some(replica);
+    }
+    Ok(slots)
+}
+
+/// A `recovery` event: `slot` went from `old_pid` to `new_pid`, `detected_ns` after the fault.
+pub(crate) fn recovery_event(
+    plan: &VoterPlan,
+    slot: usize,
+    old_pid: i32,
+    new_pid: i32,
+    detected_ns: u64,
+) -> Event {
+    let mut ev = Event::new(&plan.system, &plan.component, EventKind::Recovery);
+    ev.replica = Some(slot);
+    ev.pid = Some(old_pid);
+    ev.new_pid = Some(new_pid);
+    ev.recovery_us = Some(ev.ts_ns.saturating_sub(detected_ns) / 1000);
+    ev
+}
+
+/// Fills `slot` with a fresh replica started by exec (state lost, and the event says so);
+/// `on_spawn(pid, slot)` runs for the new process first. `Ok(false)` if it could not be
+/// started but other replicas remain; an error if none does.
+pub(crate) fn replace_by_exec(
+    plan: &VoterPlan,
+    events: Option<&OwnedFd>,
+    slots: &mut [Option<Replica>],
+    (slot, old_pid, detected_ns): (usize, i32, u64),
+    on_spawn: impl FnOnce(libc::pid_t, usize),
+) -> Result<bool, VoterError> {
+    match Replica::spawn(plan, slot) {
+        Ok(fresh) => {
+            on_spawn(fresh.pid, slot);
+            let mut ev = recovery_event(plan, slot, old_pid, fresh.pid, detected_ns);
+            ev.method = Some(RecoveryMethod::Exec);
+            ev.state_lost = Some(true);
+            write_event(events, &ev);
+            slots[slot] = Some(fresh);
+            Ok(true)
         }
-        for fault in &self.faults {
-            fault.replica.kill();
+        Err(e) => {
+            let mut ev = Event::new(&plan.system, &plan.component, EventKind::RecoveryFailed);
+            ev.replica = Some(slot);
+            ev.pid = Some(old_pid);
+            ev.detail = Some(format!("could not start {}: {e}", plan.exec.display()));
+            write_event(events, &ev);
+            if slots.iter().all(Option::is_none) {
+                return Err(VoterError::Unrecoverable(format!(
+                    "no replica left and {} cannot be started: {e}",
+                    plan.exec.display()
+                )));
+            }
+            Ok(false)
         }
     }
 }
 
-fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
+/// What a replica whose output pipe closed turns out to be once [`EXIT_AFTER_EOF`] has passed:
+/// a crash if it is gone, a protocol fault if it lives. `None` while the grace runs, or if no
+/// output of it closed.
+pub(crate) fn closed_output_fault(rep: &Replica, plan: &VoterPlan) -> Option<(EventKind, String)> {
+    let since = rep.output_closed_at?;
+    // On the counter, exactly as `next_wakeup` set the timer (a duration read off the counter
+    // is rounded down, and could keep the loop spinning a few µs past it).
+    if Instant::now() < since + EXIT_AFTER_EOF {
+        return None;
+    }
+    if rep.exited_within(Duration::ZERO) {
+        return Some((EventKind::Crash, "the replica process died".into()));
+    }
+    let closed = rep
+        .outputs
+        .iter()
+        .position(|out| out.is_closed())
+        .unwrap_or(0);
+    let name = &plan.outputs[closed].name;
+    let detail = match rep.outputs[closed].decoder.finish() {
+        Err(e @ FrameError::Truncated { .. }) => format!("output `{name}`: {e}"),
+        _ => format!("closed its output `{name}`"),
+    };
+    Some((EventKind::Protocol, detail))
+}
+
+impl Fault {
+    /// Makes sure the killed replica is gone (bounded) and reaped; returns its slot, pid and
+    /// when it was found faulty.
+    pub(crate) fn retire(self) -> (usize, i32, u64) {
+        let Fault {
+            slot,
+            replica: old,
+            detected_ns,
+        } = self;
+        if !old.exited_within(DEATH_WAIT) {
+            tracing::warn!(pid = old.pid, "killed replica has not exited yet");
+        }
+        if old.our_child {
+            let _ = sys::reap(old.pid);
+        }
+        drop(old.pidfd);
+        reap_children();
+        (slot, old.pid, detected_ns)
+    }
+}
+
+impl ExternalInput {
+    /// One read from upstream into the decoder; an end or an error closes the input (logged).
+    pub(crate) fn read(&mut self) {
+        match self.reader.fill() {
+            Ok(Fill::Open) => {}
+            Ok(Fill::Closed) => {
+                if let Err(e) = self.reader.decoder.finish() {
+                    tracing::warn!(input = %self.name, error = %e, "input closed mid-frame");
+                }
+                tracing::debug!(input = %self.name, "input closed");
+            }
+            Err(e) => {
+                tracing::error!(input = %self.name, error = %e, "reading input failed; treating it as closed");
+                self.reader.close();
+            }
+        }
+    }
+}
+
+/// Kills every replica (trusted or faulty) and everything re-parented to us, after giving
+/// downstream whatever it takes at once; removes the socket.
+pub(crate) fn shut_down<'a>(
+    plan: &VoterPlan,
+    outputs: &mut [ExternalOutput],
+    replicas: impl Iterator<Item = &'a Replica> + Clone,
+    faults: &[Fault],
+) {
+    // On a requested stop, whatever downstream can take right now still goes out.
+    for out in outputs.iter_mut() {
+        if out.writer.has_pending() && !out.broken {
+            out.flush();
+        }
+    }
+    for rep in replicas.clone() {
+        rep.kill();
+    }
+    for fault in faults {
+        fault.replica.kill();
+    }
+    for rep in replicas {
+        rep.exited_within(DEATH_WAIT);
+    }
+    kill_all_children(Duration::from_secs(3));
+    let _ = std::fs::remove_file(&plan.socket_path);
+}
+
+/// Reads the signalfd: reaps on SIGCHLD; `true` if SIGTERM/SIGINT came.
+pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
+    let mut stop = false;
+    while let Ok(Some(info)) = signals.read_signal() {
+        match info.ssi_signo as i32 {
+            libc::SIGCHLD => reap_children(),
+            sig => {
+                tracing::info!(signal = sig, "stop requested");
+                stop = true;
+            }
+        }
+    }
+    stop
+}
+
+pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
     let fail = |m: String| Err(VoterError::Plan(m));
     if plan.replicas == 0 || plan.replicas > MAX_REPLICAS {
         return fail(format!(
@@ -1099,10 +1150,106 @@ fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
             }
         }
     }
-    if plan.rounds.is_empty() {
-        return fail("reactive mode needs at least one input that starts rounds".into());
+    match plan.mode {
+        Mode::Reactive if plan.rounds.is_empty() => {
+            fail("reactive mode needs at least one input that starts rounds".into())
+        }
+        Mode::Stream if !plan.rounds.is_empty() => {
+            fail("stream mode has no rounds; the plan lists some".into())
+        }
+        Mode::Stream if plan.window == 0 => fail("the stream window must be above 0".into()),
+        Mode::Stream if plan.inputs.is_empty() => {
+            fail("stream mode needs an input (its end ends the component)".into())
+        }
+        _ => Ok(()),
     }
-    Ok(())
+}
+
+/// What a voter opens before it starts replicas, whatever its mode.
+pub(crate) struct Endpoints {
+    pub(crate) signals: SignalFd,
+    pub(crate) inputs: Vec<ExternalInput>,
+    pub(crate) outputs: Vec<ExternalOutput>,
+    pub(crate) events: Option<OwnedFd>,
+    pub(crate) listener: UnixListener,
+}
+
+impl Endpoints {
+    /// Becomes a subreaper, takes the signals, adopts the fds named in `plan`, binds the socket.
+    pub(crate) fn open(plan: &VoterPlan) -> Result<Endpoints, VoterError> {
+        // Orphans (children of a donor that died) come to us, so they are reaped and killed.
+        sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
+        let signals = block_signals()?;
+
+        let inputs = plan
+            .inputs
+            .iter()
+            .map(|p| {
+                let round = plan.rounds.iter().find(|r| r.input == p.name).map(|r| {
+                    r.outputs.iter().fold(0, |set, name| {
+                        set | 1 << plan.outputs.iter().position(|o| &o.name == name).unwrap()
+                    })
+                });
+                Ok(ExternalInput {
+                    name: p.name.clone(),
+                    reader: FrameReader::new(inherited(p.fd), p.max_frame)
+                        .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
+                    round,
+                })
+            })
+            .collect::<Result<Vec<_>, VoterError>>()?;
+        let outputs = plan
+            .outputs
+            .iter()
+            .map(|p| {
+                Ok(ExternalOutput {
+                    name: p.name.clone(),
+                    writer: FrameWriter::new(inherited(p.fd))
+                        .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
+                    broken: false,
+                })
+            })
+            .collect::<Result<Vec<_>, VoterError>>()?;
+        let events = plan.events_fd.map(inherited);
+
+        let _ = std::fs::remove_file(&plan.socket_path);
+        let listener = UnixListener::bind(&plan.socket_path)
+            .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
+        // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
+        let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
+        listener.set_nonblocking(true).map_err(io_err("socket"))?;
+        Ok(Endpoints {
+            signals,
+            inputs,
+            outputs,
+            events,
+            listener,
+        })
+    }
+}
+
+/// Writes one event line to the events fd (and traces it).
+pub(crate) fn write_event(events: Option<&OwnedFd>, ev: &Event) {
+    // Bootstrap logs every event it gathers; here they are only traced, so that a run
+    // shows each event once. Without an events fd, the voter's own log is all there is.
+    if events.is_some() {
+        tracing::debug!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
+    } else {
+        tracing::warn!(kind = ?ev.kind, replica = ev.replica, pid = ev.pid, detail = ev.detail.as_deref(), "event");
+    }
+    let Some(fd) = events else { return };
+    let line = ev.to_line();
+    let mut bytes = line.as_bytes();
+    // One write per line: below PIPE_BUF it is atomic, so lines of several voters never mix.
+    while !bytes.is_empty() {
+        match sys::write(fd.as_fd(), bytes) {
+            Ok(n) => bytes = &bytes[n..],
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot write events");
+                return;
+            }
+        }
+    }
 }
 
 /// Takes ownership of an fd this process inherited.
@@ -1111,7 +1258,7 @@ fn inherited(fd: RawFd) -> OwnedFd {
 }
 
 /// SIGTERM/SIGINT/SIGCHLD arrive through a signalfd, read in the event loop.
-fn block_signals() -> Result<SignalFd, VoterError> {
+pub(crate) fn block_signals() -> Result<SignalFd, VoterError> {
     let mut mask = SigSet::empty();
     for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD] {
         mask.add(s);
@@ -1123,7 +1270,7 @@ fn block_signals() -> Result<SignalFd, VoterError> {
 }
 
 /// Reaps every child that has exited (replicas we started, orphans re-parented to us).
-fn reap_children() {
+pub(crate) fn reap_children() {
     while let Ok(Some((pid, status))) = sys::reap_any() {
         tracing::trace!(pid, %status, "reaped");
     }
@@ -1131,7 +1278,7 @@ fn reap_children() {
 
 /// Kills every child of ours until none is left (or `limit` passes). As a subreaper we inherit
 /// the children of dying children, so this converges on the whole subtree.
-fn kill_all_children(limit: Duration) {
+pub(crate) fn kill_all_children(limit: Duration) {
     let end = Instant::now() + limit;
     let me = std::process::id() as i32;
     loop {

@@ -259,13 +259,52 @@ fn unknown_redundancy_and_mode() {
 }
 
 #[test]
-fn stream_mode_is_not_built_yet() {
+fn stream_mode_is_passed_to_the_voter_without_rounds() {
     let f = fixture();
+    let plan = f.ok(
+        r#"{"name": "x", "components": {
+  "planner": {"exec": "run.sh", "redundancy": "tmr", "timeout_us": 5, "mode": "stream", "window": 8},
+  "mapper": {"exec": "run.sh", "redundancy": "dmr", "timeout_us": 5, "mode": "stream"}},
+ "channels": [{"from": "stdin", "to": "planner.in"}, {"from": "planner.out", "to": "mapper.in"}]}"#,
+    );
+    let planner = &plan.components[0];
+    assert_eq!(planner.mode, Mode::Stream);
+    assert_eq!(planner.window, 8);
+    assert!(planner.rounds.is_empty());
+    let mapper = &plan.components[1];
+    assert!(mapper.outputs.is_empty(), "outputs may be none");
+    assert_eq!(mapper.window, s3res_voter::plan::DEFAULT_STREAM_WINDOW);
+}
+
+#[test]
+fn stream_mode_wants_an_input_no_rounds_and_a_sane_window() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 5,\n \"mode\": \"stream\", \"rounds\": []}}}",
+        3,
+        "components.a.rounds",
+        "a stream component has no rounds",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 5,\n \"mode\": \"stream\",\n \"window\": 0}}}",
+        4,
+        "components.a.window",
+        "window 0 is outside 1..=65536",
+    );
     f.fails(
         "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 5,\n \"mode\": \"stream\"}}}",
         3,
         "components.a.mode",
-        "stream mode is not built yet (next release)",
+        "stream mode needs one",
+    );
+    let plan = f.ok(
+        r#"{"name": "x", "components": {"a": {"exec": "run.sh", "redundancy": "tmr", "timeout_us": 5, "window": 3}},
+ "channels": [{"from": "stdin", "to": "a.in"}]}"#,
+    );
+    assert!(
+        plan.warnings[0].contains("`window` is for stream mode only"),
+        "{:?}",
+        plan.warnings
     );
 }
 

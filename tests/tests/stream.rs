@@ -1,0 +1,294 @@
+//! End to end: stream mode (S³RES VoterD). `source → batch (protected, "mode": "stream") →
+//! sink`, where `s3res-batch` answers nothing for most inputs and then a burst, so outputs are
+//! not one per input. Every test runs the real bootstrap, voter and replicas.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use s3res_tests::{
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
+    Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
+};
+
+/// Generous, so that a loaded CI machine does not see false hangs; the tests check behaviour,
+/// not speed.
+const TIMEOUT_US: u64 = 300_000;
+const LIMIT: Duration = Duration::from_secs(120);
+
+/// Starts source → batch (stream mode, `redundancy`, `batch_args`) → sink; the source sends
+/// `count` frames at `hz`. Returns the running system and the path of the sink's summary.
+fn start_batch(
+    redundancy: &str,
+    batch_args: &[&str],
+    timeout_us: u64,
+    count: u32,
+    hz: u32,
+) -> (RunningSystem, PathBuf) {
+    let batch = format!(
+        r#"{{ "exec": "s3res-batch", "args": {}, "redundancy": "{redundancy}", "mode": "stream", "timeout_us": {timeout_us} }}"#,
+        serde_json::to_string(batch_args).unwrap()
+    );
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let desc = echo_pipeline(&summary, &batch, count, hz);
+    (sys.start(&desc), summary)
+}
+
+fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
+    events
+        .iter()
+        .filter(|e| e.kind == kind && e.component == "echo")
+        .collect()
+}
+
+fn is_recovery_of(e: &Event, slot: usize, old_pid: i32) -> bool {
+    e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(old_pid)
+}
+
+fn faults(events: &[Event]) -> Vec<&Event> {
+    events
+        .iter()
+        .filter(|e| !matches!(e.kind, EventKind::Start | EventKind::Recovery))
+        .collect()
+}
+
+#[test]
+fn stream_tmr_passes_bursts_through_whole() {
+    let count = 600;
+    let args = ["--every", "7", "--vary", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 1000);
+    let out = run.wait_success(LIMIT);
+    assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// Kills a random replica many times while bursts flow; every kill is a crash repaired by fork
+/// with the state kept (held frames and counter), and the sink sees every frame once, in order.
+#[test]
+fn stream_tmr_survives_repeated_kills_with_state() {
+    let mut rng = Rng::from_env();
+    let kills = 25;
+    let count = 5000;
+    let args = ["--every", "9", "--vary", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 800);
+    run.wait_for_replicas("echo", 3);
+
+    let killed = run.kill_random_replicas(&mut rng, "echo", 3, kills, (20, 120));
+    let out = run.wait_success(LIMIT);
+    assert_kills_were_crashes(&out.events, "echo", &killed);
+    assert_eq!(
+        faults(&out.events).len(),
+        kills,
+        "only the kills: {:?}",
+        faults(&out.events)
+    );
+    assert_sink_whole(&summary, count);
+}
+
+/// Injects one fault into TMR replica 1 while bursts flow; it must be recorded as `kind` with
+/// a detail containing `detail`, repaired by fork, and invisible to the sink.
+fn tmr_single_fault(batch_args: &[&str], inject: impl FnOnce(i32), kind: EventKind, detail: &str) {
+    let count = 1500;
+    let (mut run, summary) = start_batch("tmr", batch_args, TIMEOUT_US, count, 500);
+    run.wait_for_replicas("echo", 3);
+
+    let slot = 1;
+    let pid = run.replica_pids("echo")[&slot];
+    inject(pid);
+    let fault = run.wait_for_event(|e| e.kind == kind, Duration::from_secs(20));
+    assert_eq!(
+        (fault.replica, fault.pid),
+        (Some(slot), Some(pid)),
+        "{fault:?}"
+    );
+    assert!(
+        fault.detail.as_deref().unwrap_or("").contains(detail),
+        "{fault:?}"
+    );
+    let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+
+    let out = run.wait_success(LIMIT);
+    assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// One corrupted frame in one replica is outvoted: an `sdc` naming that replica.
+#[test]
+fn stream_tmr_outvotes_a_corrupted_frame() {
+    tmr_single_fault(
+        &["--every", "5", "--stateful"],
+        |pid| s3res_tests::sigqueue(pid, signals::INJECT_SDC, 77).expect("sigqueue"),
+        EventKind::Sdc,
+        "differs from the majority",
+    );
+}
+
+/// A stopped replica falls behind: at the deadline the laggard is the `hang` suspect.
+#[test]
+fn stream_tmr_replaces_a_stopped_laggard() {
+    tmr_single_fault(
+        &["--every", "4", "--vary", "--stateful"],
+        |pid| s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP"),
+        EventKind::Hang,
+        "furthest behind",
+    );
+}
+
+/// DMR sees a corrupted frame but cannot tell which replica is wrong: an unattributed `sdc`,
+/// that one frame withheld, nobody replaced, and the stream does not stall.
+#[test]
+fn stream_dmr_disagreement_is_recorded_and_does_not_stall() {
+    let count = 1500;
+    let (mut run, summary) = start_batch(
+        "dmr",
+        &["--every", "6", "--stateful"],
+        TIMEOUT_US,
+        count,
+        500,
+    );
+    run.wait_for_replicas("echo", 2);
+
+    let pids = run.inject_unattributable_sdc("echo", 70);
+
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    // The sink misses exactly the withheld frame (so it, and bootstrap, report failure); every
+    // frame after it came.
+    assert!(!out.status.success());
+    assert_sink_missed_one(&summary, count);
+    assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
+    assert!(of_kind(&out.events, EventKind::Recovery).is_empty());
+    assert_eq!(run.replica_pids("echo"), pids);
+}
+
+/// Inputs that produce no output start no deadline: with bursts far apart (one every 50
+/// inputs at 50 Hz, a second) and a deadline of 300 ms, nothing is called a hang. (Reactive
+/// mode would want an answer to each input within the deadline.)
+#[test]
+fn stream_inputs_without_output_cause_no_false_hang() {
+    let count = 300;
+    let (mut run, summary) = start_batch(
+        "tmr",
+        &["--every", "50", "--stateful"],
+        TIMEOUT_US,
+        count,
+        50,
+    );
+    let out = run.wait_success(LIMIT);
+    assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// The stream example of `docs/system-description.md`, verbatim, runs clean: the sink
+/// (`--stateful --expect 2000`) fails, and so bootstrap fails, unless every frame came once, in
+/// order, with the batch's state intact.
+#[test]
+fn the_documented_stream_example_runs_clean() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/system-description.md");
+    let doc = std::fs::read_to_string(&path).unwrap();
+    let section = doc
+        .split("## Example: a stream component (TMR)")
+        .nth(1)
+        .expect("the doc has the stream example");
+    let json = section
+        .split("```json")
+        .nth(1)
+        .and_then(|s| s.split("```").next())
+        .expect("the example is a json block");
+    let mut run = System::new().start(json);
+    let out = run.wait_success(LIMIT);
+    let starts = out
+        .events
+        .iter()
+        .filter(|e| e.component == "batch" && e.kind == EventKind::Start)
+        .count();
+    assert_eq!(starts, 3, "{:?}", out.events);
+}
+
+/// The tightest window (a replica may be one frame ahead) with bursts sent as fast as the
+/// pipes take them: the replicas are read in lockstep, and the voter takes frames that are
+/// already buffered without waiting for a pipe to wake it (an earlier version stalled here at
+/// the end of the stream).
+#[test]
+fn stream_window_of_one_passes_fast_bursts_whole() {
+    let count = 3000;
+    let sys = System::new();
+    let batch = r#"{ "exec": "s3res-batch", "args": ["--every", "9", "--vary", "--stateful"], "redundancy": "tmr", "mode": "stream", "timeout_us": 300000, "window": 1 }"#;
+    let summary = sys.path("summary.json");
+    let desc = echo_pipeline(&summary, batch, count, 0);
+    let mut run = sys.start(&desc);
+    let out = run.wait_success(LIMIT);
+    assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// SMR has no donor: a killed replica is started afresh by exec, the event says the state is
+/// lost, and the stream goes on from the next frame: the frames the dead replica held are
+/// missing at the sink and its counter starts again (a state break), but nothing is doubled
+/// and the voter does not stall.
+#[test]
+fn stream_smr_restarts_by_exec_and_goes_on() {
+    let count = 1500;
+    let every = 10;
+    let args = ["--every", "10", "--stateful"];
+    let (mut run, summary) = start_batch("smr", &args, TIMEOUT_US, count, 500);
+    run.wait_for_replicas("echo", 1);
+
+    let pid = run.replica_pids("echo")[&0];
+    s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 0, pid), Duration::from_secs(20));
+    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
+    assert_eq!(rec.state_lost, Some(true), "{rec:?}");
+
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
+    let s = s3res_tests::sink_summary(&summary);
+    assert_eq!(s["state_breaks"], 1, "{s}");
+    let missing = s["missing"].as_u64().unwrap();
+    // What the dead replica held (under one batch) and what was in its input pipe.
+    assert!(missing < 3 * every, "{s}");
+    assert_eq!(s["frames"].as_u64().unwrap(), count as u64 - missing, "{s}");
+    for field in ["duplicated", "reordered", "corrupt"] {
+        assert_eq!(s[field], 0, "{field}: {s}");
+    }
+}
+
+/// Two faults in two slots: replicas 1 and 2 are stopped, so the frames replica 0 goes on
+/// producing from the input it already has cannot be decided; then replica 1 is killed. The
+/// fork child of replica 0 joins with those undecided frames, which its state is already past
+/// (they count as its own, and with replica 0's make a majority); then the stopped laggard 2
+/// is the `hang` suspect and is replaced too. No stall, no frame lost or doubled.
+#[test]
+fn stream_tmr_child_joins_while_frames_are_undecided() {
+    let count = 2000;
+    let args = ["--every", "3", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 1000);
+    run.wait_for_replicas("echo", 3);
+
+    let pids = run.replica_pids("echo");
+    for slot in [1, 2] {
+        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("SIGSTOP");
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
+    assert_eq!(
+        (rec.method, rec.donor),
+        (Some(RecoveryMethod::Fork), Some(0)),
+        "{rec:?}"
+    );
+    let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
+    assert_eq!(
+        (hang.replica, hang.pid),
+        (Some(2), Some(pids[&2])),
+        "{hang:?}"
+    );
+    run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+
+    let out = run.wait_success(LIMIT);
+    assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}

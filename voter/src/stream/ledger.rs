@@ -1,0 +1,538 @@
+//! The bookkeeping of stream mode (S³RES VoterD), without processes or pipes: which frame of
+//! each output every replica has produced, which frames are decided, who is late. The event
+//! loop in [`crate::stream`] feeds it frames and acts on what it says.
+//!
+//! Frames of an output are numbered 0, 1, 2, ... in the order each replica produces them. For
+//! every output the ledger keeps
+//! * `next`: the number of the next frame to decide (everything below is forwarded or withheld);
+//! * per slot, `pos`: the number the slot's next frame will get;
+//! * the *entries* `base..`: per frame, each slot's copy while it is undecided, the arrival time
+//!   of each slot's copy, and the verdict once decided. Entries below every trusted slot's `pos`
+//!   are dropped, so memory is bounded by the window (a slot `window` frames ahead of the
+//!   slowest is not read: [`Ledger::may_read`]).
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use crate::clock::Instant;
+
+use crate::vote::{vote, ReplicaSet, VoteOutcome};
+
+/// What became of a frame number.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Verdict {
+    Open,
+    /// The majority's frame, kept to check the copies of replicas that were late.
+    Forwarded(Vec<u8>),
+    /// No two (no majority of) replicas agreed: nothing was forwarded, nobody blamed.
+    Withheld,
+}
+
+#[derive(Debug)]
+struct Entry {
+    /// Each slot's copy, while undecided.
+    frames: Vec<Option<Vec<u8>>>,
+    /// When each slot's copy arrived (kept after the decision: it starts the laggards' clock).
+    seen: Vec<Option<Instant>>,
+    verdict: Verdict,
+}
+
+impl Entry {
+    fn new(n: usize) -> Self {
+        Entry {
+            frames: vec![None; n],
+            seen: vec![None; n],
+            verdict: Verdict::Open,
+        }
+    }
+}
+
+#[derive(Debug)]
+struct OutputLedger {
+    next: u64,
+    base: u64,
+    entries: VecDeque<Entry>,
+}
+
+impl OutputLedger {
+    fn entry(&self, index: u64) -> Option<&Entry> {
+        index
+            .checked_sub(self.base)
+            .and_then(|k| self.entries.get(k as usize))
+    }
+}
+
+/// What [`Ledger::accept`] found about a frame that came after its number was decided.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Arrival {
+    /// Stored for the vote (or it agrees with the frame already forwarded, or that number was
+    /// withheld and there is nothing to compare with).
+    Fine,
+    /// A late copy that differs from the frame the majority forwarded: an `sdc`.
+    DiffersFromForwarded(u64),
+}
+
+/// One decision on one output.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Decision {
+    /// `frame` had a majority; `dissent` sent something else.
+    Forward {
+        index: u64,
+        frame: Vec<u8>,
+        dissent: ReplicaSet,
+    },
+    /// No frame can reach a majority; `answered` sent frames that disagree.
+    Withhold { index: u64, answered: ReplicaSet },
+}
+
+/// A frame some replicas produced and others did not within the timeout.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Overdue {
+    pub output: usize,
+    pub index: u64,
+    /// Trusted slots that produced it.
+    pub producers: ReplicaSet,
+    /// Trusted slots that did not (and are being read).
+    pub laggards: ReplicaSet,
+}
+
+impl Overdue {
+    /// The documented rule: the larger side is right; on a tie (DMR) the laggards are blamed,
+    /// as in S³RES, so that a hung replica can never stall the component.
+    pub fn blames_laggards(&self) -> bool {
+        self.producers.len() >= self.laggards.len()
+    }
+}
+
+#[derive(Debug)]
+pub struct Ledger {
+    n: usize,
+    window: u64,
+    outputs: Vec<OutputLedger>,
+    /// `pos[slot][output]`: the number the slot's next frame on that output gets.
+    pos: Vec<Vec<u64>>,
+    /// `received[slot][output]`: frames received from the slot's current process. `pos -
+    /// received` maps the process's own frame count onto the output's numbering.
+    received: Vec<Vec<u64>>,
+}
+
+impl Ledger {
+    pub fn new(replicas: usize, outputs: usize, window: usize) -> Self {
+        Ledger {
+            n: replicas,
+            window: window.max(1) as u64,
+            outputs: (0..outputs)
+                .map(|_| OutputLedger {
+                    next: 0,
+                    base: 0,
+                    entries: VecDeque::new(),
+                })
+                .collect(),
+            pos: vec![vec![0; outputs]; replicas],
+            received: vec![vec![0; outputs]; replicas],
+        }
+    }
+
+    /// Number of the next frame to decide on `o`.
+    pub fn next(&self, o: usize) -> u64 {
+        self.outputs[o].next
+    }
+
+    /// Number the next frame of `slot` on `o` gets.
+    pub fn pos(&self, slot: usize, o: usize) -> u64 {
+        self.pos[slot][o]
+    }
+
+    /// Frames received from the current process of `slot` on `o`.
+    pub fn received(&self, slot: usize, o: usize) -> u64 {
+        self.received[slot][o]
+    }
+
+    fn slowest(&self, o: usize, alive: ReplicaSet) -> Option<u64> {
+        alive.iter().map(|s| self.pos[s][o]).min()
+    }
+
+    /// Whether the voter should read `slot`'s output `o` now: not while it is `window` frames
+    /// (or more) ahead of the slowest trusted replica.
+    pub fn may_read(&self, slot: usize, o: usize, alive: ReplicaSet) -> bool {
+        match self.slowest(o, alive) {
+            Some(min) => self.pos[slot][o] < min + self.window,
+            None => true,
+        }
+    }
+
+    /// Whether `slot` is held back on some output (then it is not blamed for being late).
+    pub fn held_back(&self, slot: usize, alive: ReplicaSet) -> bool {
+        (0..self.outputs.len()).any(|o| !self.may_read(slot, o, alive))
+    }
+
+    /// Some trusted replica has produced a frame another has not, or a frame is undecided.
+    pub fn out_of_step(&self, alive: ReplicaSet) -> bool {
+        self.outputs.iter().enumerate().any(|(o, out)| {
+            let mut positions = alive.iter().map(|s| self.pos[s][o]);
+            let first = positions.next();
+            positions.any(|p| Some(p) != first)
+                || out
+                    .entries
+                    .iter()
+                    .any(|e| e.verdict == Verdict::Open && e.seen.iter().any(Option::is_some))
+        })
+    }
+
+    /// The trusted slot furthest behind (fewest frames over all outputs), if they differ.
+    pub fn laggard(&self, alive: ReplicaSet) -> Option<usize> {
+        let total = |s: usize| self.pos[s].iter().sum::<u64>();
+        let lowest = alive.iter().min_by_key(|&s| (total(s), s))?;
+        let highest = alive.iter().map(total).max()?;
+        (total(lowest) < highest).then_some(lowest)
+    }
+
+    /// Takes frame `pos(slot, o)` of `slot`.
+    pub fn accept(&mut self, slot: usize, o: usize, frame: &[u8], now: Instant) -> Arrival {
+        let index = self.pos[slot][o];
+        self.pos[slot][o] += 1;
+        self.received[slot][o] += 1;
+        let n = self.n;
+        let out = &mut self.outputs[o];
+        let Some(k) = index.checked_sub(out.base) else {
+            // Behind every trusted replica's position: cannot happen for a trusted slot.
+            return Arrival::Fine;
+        };
+        while out.entries.len() <= k as usize {
+            out.entries.push_back(Entry::new(n));
+        }
+        let entry = &mut out.entries[k as usize];
+        entry.seen[slot] = Some(now);
+        match &entry.verdict {
+            Verdict::Open => {
+                entry.frames[slot] = Some(frame.to_vec());
+                Arrival::Fine
+            }
+            Verdict::Forwarded(winner) if winner.as_slice() != frame => {
+                Arrival::DiffersFromForwarded(index)
+            }
+            Verdict::Forwarded(_) | Verdict::Withheld => Arrival::Fine,
+        }
+    }
+
+    /// Decides the next frame of `o` if it can be decided now (call until `None`).
+    pub fn decide(&mut self, o: usize, alive: ReplicaSet) -> Option<Decision> {
+        let out = &mut self.outputs[o];
+        let k = out.next.checked_sub(out.base)? as usize;
+        let entry = out.entries.get_mut(k)?;
+        let index = out.next;
+        let decision = match vote(&entry.frames, alive) {
+            VoteOutcome::Pending => return None,
+            VoteOutcome::Majority {
+                winner, dissent, ..
+            } => {
+                let frame = entry.frames[winner].take().unwrap_or_default();
+                entry.verdict = Verdict::Forwarded(frame.clone());
+                Decision::Forward {
+                    index,
+                    frame,
+                    dissent,
+                }
+            }
+            VoteOutcome::NoMajority => {
+                let answered = alive
+                    .iter()
+                    .filter(|&s| entry.frames[s].is_some())
+                    .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+                entry.verdict = Verdict::Withheld;
+                Decision::Withhold { index, answered }
+            }
+        };
+        entry.frames.iter_mut().for_each(|f| *f = None);
+        out.next += 1;
+        Some(decision)
+    }
+
+    /// Drops decided entries every trusted slot is past.
+    pub fn trim(&mut self, alive: ReplicaSet) {
+        for o in 0..self.outputs.len() {
+            let slowest = self.slowest(o, alive);
+            let out = &mut self.outputs[o];
+            while out.base < out.next && !matches!(slowest, Some(min) if out.base >= min) {
+                out.entries.pop_front();
+                out.base += 1;
+            }
+        }
+    }
+
+    /// `slot` is no longer trusted: its undecided copies and arrival times no longer count.
+    pub fn forget(&mut self, slot: usize) {
+        for out in &mut self.outputs {
+            for e in &mut out.entries {
+                e.frames[slot] = None;
+                e.seen[slot] = None;
+            }
+        }
+    }
+
+    /// `slot` now holds a fork child of `donor` whose process had sent `frames_sent[o]` frames
+    /// on each output. The child's next frame on `o` is numbered like the donor's frame of that
+    /// count; the donor's frames before it (which the child's state is already past) are
+    /// copied to the child as if it had produced them. The donor's frames up to there must
+    /// have been received already ([`Ledger::received`] ≥ `frames_sent`).
+    pub fn join_from(&mut self, slot: usize, donor: usize, frames_sent: &[u64]) {
+        for (o, &sent) in frames_sent.iter().enumerate() {
+            let offset = self.pos[donor][o] - self.received[donor][o];
+            let child_pos = offset + sent;
+            self.pos[slot][o] = child_pos;
+            self.received[slot][o] = sent;
+            let out = &mut self.outputs[o];
+            for index in out.base.max(out.next)..child_pos {
+                let Some(e) = out.entries.get_mut((index - out.base) as usize) else {
+                    break;
+                };
+                e.frames[slot] = e.frames[donor].clone();
+                e.seen[slot] = e.seen[donor];
+            }
+        }
+    }
+
+    /// `slot` now holds a fresh process (exec, state lost): its first frame on each output is
+    /// taken as the next one to decide.
+    pub fn start_fresh(&mut self, slot: usize) {
+        for o in 0..self.outputs.len() {
+            self.pos[slot][o] = self.outputs[o].next;
+            self.received[slot][o] = 0;
+        }
+    }
+
+    /// When the earliest laggard deadline falls: `timeout` after the first trusted copy of the
+    /// oldest frame some trusted, read replica has not produced. `None` while nobody is ahead.
+    pub fn next_deadline(&self, alive: ReplicaSet, timeout: Duration) -> Option<Instant> {
+        (0..self.outputs.len())
+            .filter_map(|o| self.oldest_owed(o, alive).map(|(_, since)| since + timeout))
+            .min()
+    }
+
+    /// The oldest frame of `o` owed by a trusted replica that is being read, and since when.
+    fn oldest_owed(&self, o: usize, alive: ReplicaSet) -> Option<(u64, Instant)> {
+        let read = alive
+            .iter()
+            .filter(|&s| !self.held_back(s, alive))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+        let out = &self.outputs[o];
+        let lowest = read.iter().map(|s| self.pos[s][o]).min()?;
+        let mut index = lowest.max(out.base);
+        while let Some(e) = out.entry(index) {
+            let since = alive.iter().filter_map(|s| e.seen[s]).min();
+            let owed = read.iter().any(|s| self.pos[s][o] <= index);
+            if let (Some(since), true) = (since, owed) {
+                return Some((index, since));
+            }
+            index += 1;
+        }
+        None
+    }
+
+    /// The oldest frame that is overdue at `now`, on any output.
+    pub fn overdue(&self, alive: ReplicaSet, timeout: Duration, now: Instant) -> Option<Overdue> {
+        (0..self.outputs.len())
+            .filter_map(|o| {
+                let (index, since) = self.oldest_owed(o, alive)?;
+                (now >= since + timeout).then_some((o, index, since))
+            })
+            .min_by_key(|&(_, _, since)| since)
+            .map(|(output, index, _)| {
+                let mut producers = ReplicaSet::EMPTY;
+                let mut laggards = ReplicaSet::EMPTY;
+                for s in alive.iter() {
+                    if self.pos[s][output] > index {
+                        producers = producers.with(s);
+                    } else if !self.held_back(s, alive) {
+                        laggards = laggards.with(s);
+                    }
+                }
+                Overdue {
+                    output,
+                    index,
+                    producers,
+                    laggards,
+                }
+            })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn set(ids: &[usize]) -> ReplicaSet {
+        ids.iter().fold(ReplicaSet::EMPTY, |s, &i| s.with(i))
+    }
+
+    fn decide_all(l: &mut Ledger, o: usize, alive: ReplicaSet) -> Vec<Decision> {
+        std::iter::from_fn(|| l.decide(o, alive)).collect()
+    }
+
+    const T: Duration = Duration::from_millis(100);
+
+    #[test]
+    fn majority_forwards_each_frame_once_in_order() {
+        let mut l = Ledger::new(3, 1, 8);
+        let all = set(&[0, 1, 2]);
+        let t = Instant::now();
+        l.accept(0, 0, b"a", t);
+        l.accept(0, 0, b"b", t);
+        assert!(
+            decide_all(&mut l, 0, all).is_empty(),
+            "one copy decides nothing"
+        );
+        l.accept(1, 0, b"a", t);
+        let d = decide_all(&mut l, 0, all);
+        assert_eq!(
+            d,
+            [Decision::Forward {
+                index: 0,
+                frame: b"a".to_vec(),
+                dissent: ReplicaSet::EMPTY
+            }]
+        );
+        l.accept(1, 0, b"b", t);
+        assert_eq!(decide_all(&mut l, 0, all).len(), 1);
+        assert_eq!(l.next(0), 2);
+        // The third replica is late; its copies are checked against what was forwarded.
+        assert_eq!(l.accept(2, 0, b"a", t), Arrival::Fine);
+        assert_eq!(l.accept(2, 0, b"X", t), Arrival::DiffersFromForwarded(1));
+    }
+
+    #[test]
+    fn minority_is_dissent_and_no_majority_is_withheld() {
+        let mut l = Ledger::new(3, 1, 8);
+        let all = set(&[0, 1, 2]);
+        let t = Instant::now();
+        for (s, f) in [(0, "x"), (1, "y"), (2, "x")] {
+            l.accept(s, 0, f.as_bytes(), t);
+        }
+        assert_eq!(
+            decide_all(&mut l, 0, all),
+            [Decision::Forward {
+                index: 0,
+                frame: b"x".to_vec(),
+                dissent: set(&[1])
+            }]
+        );
+        for (s, f) in [(0, "p"), (1, "q"), (2, "r")] {
+            l.accept(s, 0, f.as_bytes(), t);
+        }
+        assert_eq!(
+            decide_all(&mut l, 0, all),
+            [Decision::Withhold {
+                index: 1,
+                answered: all
+            }]
+        );
+        assert_eq!(l.next(0), 2, "a withheld frame does not stall the output");
+    }
+
+    #[test]
+    fn dmr_disagreement_is_withheld_not_stalled() {
+        let mut l = Ledger::new(2, 1, 8);
+        let both = set(&[0, 1]);
+        let t = Instant::now();
+        l.accept(0, 0, b"x", t);
+        l.accept(1, 0, b"y", t);
+        l.accept(0, 0, b"z", t);
+        l.accept(1, 0, b"z", t);
+        let d = decide_all(&mut l, 0, both);
+        assert!(matches!(d[0], Decision::Withhold { index: 0, .. }), "{d:?}");
+        assert!(matches!(d[1], Decision::Forward { index: 1, .. }), "{d:?}");
+    }
+
+    #[test]
+    fn window_holds_back_a_replica_far_ahead_and_deadlines_name_the_laggard() {
+        let mut l = Ledger::new(3, 1, 2);
+        let all = set(&[0, 1, 2]);
+        let t0 = Instant::now();
+        assert!(!l.out_of_step(all));
+        assert_eq!(l.next_deadline(all, T), None, "nobody ahead: no deadline");
+        l.accept(0, 0, b"a", t0);
+        l.accept(0, 0, b"b", t0 + T);
+        assert!(!l.may_read(0, 0, all), "two ahead with a window of two");
+        assert!(l.may_read(1, 0, all));
+        assert!(l.out_of_step(all));
+        assert_eq!(l.laggard(all), Some(1));
+        l.accept(1, 0, b"a", t0);
+        l.accept(1, 0, b"b", t0);
+        decide_all(&mut l, 0, all);
+        // Replica 2 owes frame 0 since t0 (the first copy); the two others agree.
+        assert_eq!(l.next_deadline(all, T), Some(t0 + T));
+        assert_eq!(l.overdue(all, T, t0 + T / 2), None);
+        let od = l.overdue(all, T, t0 + T).unwrap();
+        assert_eq!(
+            (od.index, od.producers, od.laggards),
+            (0, set(&[0, 1]), set(&[2]))
+        );
+        assert!(od.blames_laggards());
+        // Once 2 is no longer trusted, nobody is late and old entries go.
+        l.forget(2);
+        let two = set(&[0, 1]);
+        assert_eq!(l.next_deadline(two, T), None);
+        l.trim(two);
+        assert!(!l.out_of_step(two));
+    }
+
+    #[test]
+    fn a_lone_producer_of_an_extra_frame_is_the_suspect() {
+        let mut l = Ledger::new(3, 1, 8);
+        let all = set(&[0, 1, 2]);
+        let t0 = Instant::now();
+        l.accept(2, 0, b"extra", t0);
+        let od = l.overdue(all, T, t0 + T).unwrap();
+        assert_eq!((od.producers, od.laggards), (set(&[2]), set(&[0, 1])));
+        assert!(!od.blames_laggards());
+        // DMR: one against one, the laggard is blamed (it might be hung; never stall).
+        let mut l = Ledger::new(2, 1, 8);
+        l.accept(0, 0, b"f", t0);
+        let od = l.overdue(set(&[0, 1]), T, t0 + T).unwrap();
+        assert!(od.blames_laggards());
+        assert_eq!(od.laggards, set(&[1]));
+    }
+
+    #[test]
+    fn a_fork_child_joins_at_its_donors_position() {
+        let mut l = Ledger::new(3, 2, 8);
+        let all = set(&[0, 1, 2]);
+        let t = Instant::now();
+        // Donor 0 produced three frames on output 0, one on output 1; replica 1 one each.
+        for f in ["a", "b", "c"] {
+            l.accept(0, 0, f.as_bytes(), t);
+        }
+        l.accept(0, 1, b"m", t);
+        l.accept(1, 0, b"a", t);
+        l.accept(1, 1, b"m", t);
+        decide_all(&mut l, 0, all);
+        decide_all(&mut l, 1, all);
+        // Replica 2 crashed; the child was forked when the donor had sent 2 and 1 frames.
+        l.forget(2);
+        l.join_from(2, 0, &[2, 1]);
+        assert_eq!((l.pos(2, 0), l.pos(2, 1)), (2, 1));
+        // The child inherited the donor's undecided frame 1 ("b"), so with replica 1 it
+        // makes a majority; frame 2 ("c") came after the fork: the child makes its own.
+        l.accept(1, 0, b"b", t);
+        let d = decide_all(&mut l, 0, all);
+        assert_eq!(d.len(), 1);
+        assert!(matches!(&d[0], Decision::Forward { index: 1, frame, .. } if frame == b"b"));
+        l.accept(2, 0, b"c", t);
+        assert_eq!(decide_all(&mut l, 0, all).len(), 1);
+        assert_eq!(l.next(0), 3);
+    }
+
+    #[test]
+    fn a_fresh_replica_starts_at_the_next_undecided_frame() {
+        let mut l = Ledger::new(1, 1, 8);
+        let one = set(&[0]);
+        let t = Instant::now();
+        l.accept(0, 0, b"a", t);
+        decide_all(&mut l, 0, one);
+        l.forget(0);
+        l.start_fresh(0);
+        assert_eq!(l.pos(0, 0), 1);
+        l.accept(0, 0, b"b", t);
+        assert_eq!(decide_all(&mut l, 0, one).len(), 1);
+    }
+}
