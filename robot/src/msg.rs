@@ -23,7 +23,7 @@ use thiserror::Error;
 pub const RANGES: usize = 16;
 
 /// Most waypoints one [`Waypoints`] frame may carry.
-pub const MAX_WAYPOINTS: usize = 4096;
+pub const MAX_WAYPOINTS: usize = 4000;
 
 /// Largest grid side a [`MapUpdate`] may carry.
 pub const MAX_GRID_SIDE: usize = 1024;

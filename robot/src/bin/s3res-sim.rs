@@ -53,7 +53,7 @@ struct WorldArgs {
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Maze cells per side.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(2..=64))]
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(2..=32))]
     cells: u64,
     /// Simulated seconds per period.
     #[arg(long, default_value_t = 0.1)]
