@@ -147,10 +147,8 @@ impl InPort {
                     Err(e) => Err(self.frame_error(e)),
                 };
             }
-            let left = match deadline {
-                None => None,
-                Some(d) => Some(Duration::from_nanos(d.saturating_sub(sys::monotonic_ns()))),
-            };
+            let left =
+                deadline.map(|d| Duration::from_nanos(d.saturating_sub(sys::monotonic_ns())));
             let mut pfd = [libc::pollfd {
                 fd: self.fd.as_raw_fd(),
                 events: libc::POLLIN,

@@ -59,7 +59,10 @@ impl Downstream {
         match port.send(payload) {
             Ok(()) => Ok(()),
             Err(e) if reader_gone(&e) => {
-                tracing::info!(port = port.name(), "the reader has finished; not sending any more");
+                tracing::info!(
+                    port = port.name(),
+                    "the reader has finished; not sending any more"
+                );
                 self.port = None;
                 Ok(())
             }

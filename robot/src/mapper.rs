@@ -66,7 +66,7 @@ impl Mapper {
     /// Integrates one scan; returns the update to send if the schedule says so.
     pub fn on_scan(&mut self, scan: &Scan) -> Option<MapUpdate> {
         let (w, h) = (scan.grid_w as usize, scan.grid_h as usize);
-        if w == 0 || h == 0 || !(scan.block > 0.0) {
+        if w == 0 || h == 0 || scan.block.is_nan() || scan.block <= 0.0 {
             return None;
         }
         if (w, h) != (self.w, self.h) || scan.block != self.block {
@@ -81,7 +81,8 @@ impl Mapper {
             let a = scan.theta + i as f64 * std::f64::consts::TAU / RANGES as f64;
             self.integrate_beam(scan.x, scan.y, a, r);
         }
-        if scan.seq % self.every != 0 {
+        // (`checked_rem`, not `is_multiple_of`: the workspace supports Rust 1.80.)
+        if scan.seq.checked_rem(self.every) != Some(0) {
             return None;
         }
         let cells = (0..h)

@@ -61,12 +61,7 @@ struct Reader<'a> {
 
 impl<'a> Reader<'a> {
     /// Checks tag and exact length (`fixed` bytes after the tag, plus `extra`).
-    fn open(
-        b: &'a [u8],
-        want: &'static str,
-        tag: u8,
-        len: usize,
-    ) -> Result<Reader<'a>, MsgError> {
+    fn open(b: &'a [u8], want: &'static str, tag: u8, len: usize) -> Result<Reader<'a>, MsgError> {
         let Some(&got) = b.first() else {
             return Err(MsgError::Empty { want });
         };
@@ -152,7 +147,14 @@ impl Scan {
         out.extend_from_slice(&self.seq.to_le_bytes());
         out.extend_from_slice(&self.grid_w.to_le_bytes());
         out.extend_from_slice(&self.grid_h.to_le_bytes());
-        for v in [self.block, self.x, self.y, self.theta, self.goal_x, self.goal_y] {
+        for v in [
+            self.block,
+            self.x,
+            self.y,
+            self.theta,
+            self.goal_x,
+            self.goal_y,
+        ] {
             put_f64(out, v);
         }
         for r in self.ranges {

@@ -104,7 +104,10 @@ impl Navigator {
         {
             self.path.drain(..nearest);
         }
-        let off_path = self.path.first().map_or(true, |p| dist(p) > self.p.off_path);
+        let off_path = match self.path.first() {
+            Some(p) => dist(p) > self.p.off_path,
+            None => true,
+        };
         let target = self
             .path
             .iter()
@@ -117,9 +120,10 @@ impl Navigator {
         // Ask for a plan when there is none, the robot strayed, or the path ran out short of
         // the goal; not more often than every `request_every` periods.
         let need = self.path.is_empty() || off_path || (near_end && goal_dist > 0.3);
-        let due = self
-            .last_request
-            .is_none_or(|r| s.seq.wrapping_sub(r) >= self.p.request_every);
+        let due = match self.last_request {
+            Some(r) => s.seq.wrapping_sub(r) >= self.p.request_every,
+            None => true,
+        };
         let want = need && due;
         if want {
             self.last_request = Some(s.seq);

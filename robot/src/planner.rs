@@ -102,7 +102,11 @@ fn heuristic(a: (i64, i64), b: (i64, i64)) -> u32 {
 /// A shortest path from `start` to `goal` (cells), both included, with its cost; `None` if the
 /// goal cannot be reached. The start cell may be occupied or inflated (the robot is where it
 /// is); the goal must not be occupied.
-pub fn astar(grid: &Grid, start: (usize, usize), goal: (usize, usize)) -> Option<(Vec<(usize, usize)>, u32)> {
+pub fn astar(
+    grid: &Grid,
+    start: (usize, usize),
+    goal: (usize, usize),
+) -> Option<(Vec<(usize, usize)>, u32)> {
     let (w, h) = (grid.w, grid.h);
     if start.0 >= w || start.1 >= h || goal.0 >= w || goal.1 >= h {
         return None;
@@ -293,15 +297,16 @@ mod tests {
         // bottom one is nearer.
         let g = Grid::from_rows(&[
             ".......", //
-            "...#...",
-            "...#...",
-            "...#...",
-            "...#...",
-            ".......",
+            "...#...", "...#...", "...#...", "...#...", ".......",
         ]);
         let (p, _) = astar(&g, (0, 1), (6, 1)).unwrap();
-        assert!(p.iter().all(|&(x, y)| g.at(x as i64, y as i64) != Cell::Occupied));
-        assert!(p.contains(&(3, 0)), "goes through the near (bottom) gap: {p:?}");
+        assert!(p
+            .iter()
+            .all(|&(x, y)| g.at(x as i64, y as i64) != Cell::Occupied));
+        assert!(
+            p.contains(&(3, 0)),
+            "goes through the near (bottom) gap: {p:?}"
+        );
         assert_eq!(*p.first().unwrap(), (0, 1));
         assert_eq!(*p.last().unwrap(), (6, 1));
     }
@@ -311,13 +316,13 @@ mod tests {
         // A U-shaped free corridor in occupied rock: the only path has 8 straight steps.
         let g = Grid::from_rows(&[
             "#####", //
-            "#...#",
-            "#.#.#",
-            "#.#.#",
-            "#####",
+            "#...#", "#.#.#", "#.#.#", "#####",
         ]);
         let (p, cost) = astar(&g, (1, 1), (3, 1)).unwrap();
-        assert_eq!(p, vec![(1, 1), (1, 2), (1, 3), (2, 3), (3, 3), (3, 2), (3, 1)]);
+        assert_eq!(
+            p,
+            vec![(1, 1), (1, 2), (1, 3), (2, 3), (3, 3), (3, 2), (3, 1)]
+        );
         // Every cell of this corridor touches rock: each step costs STRAIGHT + INFLATED_COST.
         assert_eq!(cost, 6 * (STRAIGHT + INFLATED_COST));
     }

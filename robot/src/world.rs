@@ -136,7 +136,11 @@ impl World {
     fn wall_blocks(&self, a: (usize, usize), b: (usize, usize)) -> Vec<(usize, usize)> {
         let c = self.spec.corridor.max(1);
         let pitch = c + 1;
-        let (lo, hi) = if (a.0, a.1) < (b.0, b.1) { (a, b) } else { (b, a) };
+        let (lo, hi) = if (a.0, a.1) < (b.0, b.1) {
+            (a, b)
+        } else {
+            (b, a)
+        };
         if lo.1 == hi.1 {
             // East-west neighbours: a vertical wall column.
             let bx = (lo.0 + 1) * pitch;
@@ -313,7 +317,10 @@ mod tests {
         for seed in 0..50 {
             let w = World::generate(MazeSpec::new(seed));
             assert_eq!(w, World::generate(MazeSpec::new(seed)));
-            assert!(w.cell_distance_start_to_goal().unwrap() >= 14, "seed {seed}");
+            assert!(
+                w.cell_distance_start_to_goal().unwrap() >= 14,
+                "seed {seed}"
+            );
             let (sx, sy) = w.start();
             assert!(!w.disc_hits_wall(sx, sy, 0.3));
             let (gx, gy) = w.goal();

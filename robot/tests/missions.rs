@@ -140,7 +140,11 @@ fn tmr_mission_survives_navigator_kills() {
     let out = run.wait_success(LIMIT);
     let m = mission(&run);
     eprintln!("tmr, seed 1, {} kills: {}", killed.len(), line(&m));
-    assert!(killed.len() >= 5, "too few kills ({}) to mean anything", killed.len());
+    assert!(
+        killed.len() >= 5,
+        "too few kills ({}) to mean anything",
+        killed.len()
+    );
     for (slot, pid) in &killed {
         let of = |kind: EventKind| {
             out.events.iter().any(|e| {
@@ -155,8 +159,14 @@ fn tmr_mission_survives_navigator_kills() {
         if last && !of(EventKind::Crash) {
             continue;
         }
-        assert!(of(EventKind::Crash), "kill of {slot}/{pid} not seen as a crash");
-        assert!(of(EventKind::Recovery), "kill of {slot}/{pid} not recovered");
+        assert!(
+            of(EventKind::Crash),
+            "kill of {slot}/{pid} not seen as a crash"
+        );
+        assert!(
+            of(EventKind::Recovery),
+            "kill of {slot}/{pid} not recovered"
+        );
         let rec = out
             .events
             .iter()

@@ -28,7 +28,8 @@ fn main() -> Result<()> {
     let mut load = optional_input(&mut rt, "load")?;
     let mut out = match &cli.out {
         Some(p) => {
-            let f = std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
+            let f =
+                std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
             let mut w = std::io::BufWriter::new(f);
             writeln!(w, "seq,x,y,theta,v,w")?;
             Some(w)
@@ -45,7 +46,11 @@ fn main() -> Result<()> {
             (None, None) => break,
         }
         .context("waiting for input")?;
-        let (t_idx, l_idx) = if telemetry.is_some() { (0, 1) } else { (usize::MAX, 0) };
+        let (t_idx, l_idx) = if telemetry.is_some() {
+            (0, 1)
+        } else {
+            (usize::MAX, 0)
+        };
         if ready.is_ready(t_idx) {
             if let Some(port) = telemetry.as_mut() {
                 let mut lines = Vec::new();

@@ -38,7 +38,8 @@ fn main() -> Result<()> {
     // Map updates read ahead of the request that needs them, in arrival order (= seq order).
     let mut pending: VecDeque<MapUpdate> = VecDeque::new();
     let mut maps_open = true;
-    let take_map = |frame: &[u8], pending: &mut VecDeque<MapUpdate>| match MapUpdate::decode(frame) {
+    let take_map = |frame: &[u8], pending: &mut VecDeque<MapUpdate>| match MapUpdate::decode(frame)
+    {
         Ok(update) => pending.push_back(update),
         Err(e) => tracing::warn!(error = %e, "not a map update; skipped"),
     };

@@ -13,7 +13,8 @@ use s3res_robot::msg::Scan;
 ///
 /// One frame in, exactly one frame out on each output: a reactive round of the voter is
 /// `{"input": "raw", "outputs": ["nav", "map"]}`. A frame that is not a scan is answered with
-/// the last good scan again (logged), so the round is still complete.
+/// the last good scan again (logged), so the round is still complete (before the first good
+/// scan there is nothing to repeat, and the frame goes unanswered).
 #[derive(Parser)]
 #[command(version, verbatim_doc_comment)]
 struct Cli {

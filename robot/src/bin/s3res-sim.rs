@@ -164,7 +164,9 @@ fn render(args: RenderArgs) -> Result<()> {
         if s.config.maze != first.config.maze {
             bail!(
                 "{} is a mission in another maze than {} (seed or size differ)",
-                args.overlay.as_ref().map_or(String::new(), |p| p.display().to_string()),
+                args.overlay
+                    .as_ref()
+                    .map_or(String::new(), |p| p.display().to_string()),
                 args.summary.display()
             );
         }
@@ -184,7 +186,10 @@ fn optional_output(rt: &mut replica_rt::Runtime, name: &str) -> Result<Option<Ou
     if !declared {
         return Ok(None);
     }
-    Ok(Some(rt.output(name).with_context(|| format!("opening output {name}"))?))
+    Ok(Some(
+        rt.output(name)
+            .with_context(|| format!("opening output {name}"))?,
+    ))
 }
 
 fn run(args: RunArgs) -> Result<bool> {
@@ -205,7 +210,12 @@ fn run(args: RunArgs) -> Result<bool> {
     let mut controller_gone = false;
     let started = Instant::now();
     let mut next = started;
-    tracing::info!(seed = cfg.maze.seed, hz = args.hz, dt = cfg.dt, "mission starts");
+    tracing::info!(
+        seed = cfg.maze.seed,
+        hz = args.hz,
+        dt = cfg.dt,
+        "mission starts"
+    );
     while sim.is_running() {
         let seq = sim.seq();
         sim.scan().encode(&mut buf);
@@ -229,7 +239,10 @@ fn run(args: RunArgs) -> Result<bool> {
                 std::thread::sleep(deadline - now);
                 break;
             }
-            match cmd_in.recv_timeout(deadline - now).context("receiving a command")? {
+            match cmd_in
+                .recv_timeout(deadline - now)
+                .context("receiving a command")?
+            {
                 TryRecv::Frame(bytes) => match Cmd::decode(bytes) {
                     Ok(c) if c.seq == seq => answer = Some(c),
                     // An answer to an earlier period, already counted late.
@@ -241,7 +254,10 @@ fn run(args: RunArgs) -> Result<bool> {
                 },
                 TryRecv::Empty => break,
                 TryRecv::Closed => {
-                    tracing::warn!(seq, "the command channel closed: the robot keeps its last command");
+                    tracing::warn!(
+                        seq,
+                        "the command channel closed: the robot keeps its last command"
+                    );
                     controller_gone = true;
                 }
             }
@@ -264,13 +280,13 @@ fn run(args: RunArgs) -> Result<bool> {
     let drain_until = Instant::now() + Duration::from_millis(args.drain_ms);
     while !controller_gone {
         let left = drain_until.saturating_duration_since(Instant::now());
-        if left.is_zero() {
-            tracing::warn!("the command channel is still open after the mission; not waiting longer");
-            break;
-        }
-        match cmd_in.recv_timeout(left) {
-            Ok(TryRecv::Closed) | Err(_) => break,
-            Ok(_) => {}
+        controller_gone = left.is_zero();
+        if controller_gone {
+            tracing::warn!(
+                "the command channel is still open after the mission; not waiting longer"
+            );
+        } else if let Ok(TryRecv::Closed) | Err(_) = cmd_in.recv_timeout(left) {
+            controller_gone = true;
         }
     }
     let summary = sim.summary(args.hz, wall);
