@@ -22,6 +22,9 @@ pub struct Controllers {
     /// The mapper sends an update every this many scans.
     pub map_every: u32,
     pub nav: NavParams,
+    /// Periods every command is delayed by before the sim applies it (0: ideal timing). The
+    /// sim counts each such period late, as it would a command that came late.
+    pub latency: u32,
 }
 
 impl Default for Controllers {
@@ -30,6 +33,7 @@ impl Default for Controllers {
             window: 3,
             map_every: 5,
             nav: NavParams::default(),
+            latency: 0,
         }
     }
 }
@@ -42,6 +46,7 @@ pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
     let mut mapper = Mapper::new(ctl.map_every);
     let mut planner = Planner::new();
     let mut to_nav = VecDeque::new();
+    let mut in_flight = VecDeque::new();
     while sim.is_running() {
         let raw = sim.scan();
         let clean = filter.apply(&raw);
@@ -54,7 +59,13 @@ pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
             to_nav.extend(planner.on_map(&update));
         }
         to_nav.extend(planner.on_request(&request));
-        sim.step(Some(cmd));
+        in_flight.push_back(cmd);
+        let applied = if in_flight.len() > ctl.latency as usize {
+            in_flight.pop_front()
+        } else {
+            None
+        };
+        sim.step(applied);
     }
     sim.summary(0.0, 0.0)
 }
@@ -76,6 +87,21 @@ mod tests {
         let a = run_in_process(SimConfig::new(3), Controllers::default());
         let b = run_in_process(SimConfig::new(3), Controllers::default());
         assert_eq!(a, b);
+    }
+
+    /// Commands that reach the robot two periods late (the previous one in force meanwhile)
+    /// still bring it home: the controller tolerates the lateness a loaded machine causes.
+    #[test]
+    fn missions_tolerate_two_periods_of_latency() {
+        for seed in [1, 2, 3, 4] {
+            let ctl = Controllers {
+                latency: 2,
+                ..Controllers::default()
+            };
+            let s = run_in_process(SimConfig::new(seed), ctl);
+            assert!(s.success, "seed {seed}: {}", s.line());
+            assert!(s.late_periods >= 2);
+        }
     }
 
     /// Without the filter's median (window 1) the outliers reach the navigator and the mapper;

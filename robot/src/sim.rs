@@ -42,7 +42,7 @@ impl SimConfig {
     pub fn new(seed: u64) -> SimConfig {
         SimConfig {
             maze: MazeSpec::new(seed),
-            dt: 0.1,
+            dt: 0.05,
             time_limit_s: 120.0,
             radius: 0.15,
             max_range: 2.0,
@@ -211,28 +211,30 @@ impl Sim {
         }
     }
 
-    /// Ends the current period: `cmd` is the answer to this period's scan if it came in time
-    /// (`None`: late, the previous command stays). Integrates the pose and decides the mission.
+    /// Ends the current period: `cmd` is the freshest command that came during it (`None`: no
+    /// new command, the previous one stays in force). The period is late unless `cmd` answers
+    /// this period's scan; a command answering an earlier scan, which came late, still replaces
+    /// an older one in force. Integrates the pose and decides the mission.
     pub fn step(&mut self, cmd: Option<Cmd>) -> Outcome {
         if !self.is_running() {
             return self.outcome;
         }
-        match cmd {
-            Some(c) => {
-                self.cmd = Cmd {
-                    seq: c.seq,
-                    v: finite_or_zero(c.v).clamp(-self.cfg.v_max, self.cfg.v_max),
-                    w: finite_or_zero(c.w).clamp(-self.cfg.w_max, self.cfg.w_max),
-                    plan: c.plan,
-                };
-                if c.plan != self.last_plan {
-                    if self.last_plan != 0 {
-                        self.replans += 1;
-                    }
-                    self.last_plan = c.plan;
+        if !matches!(cmd, Some(c) if c.seq == self.seq) {
+            self.late += 1;
+        }
+        if let Some(c) = cmd {
+            self.cmd = Cmd {
+                seq: c.seq,
+                v: finite_or_zero(c.v).clamp(-self.cfg.v_max, self.cfg.v_max),
+                w: finite_or_zero(c.w).clamp(-self.cfg.w_max, self.cfg.w_max),
+                plan: c.plan,
+            };
+            if c.plan != self.last_plan {
+                if self.last_plan != 0 {
+                    self.replans += 1;
                 }
+                self.last_plan = c.plan;
             }
-            None => self.late += 1,
         }
         let h = self.cfg.dt / SUBSTEPS as f64;
         for _ in 0..SUBSTEPS {
@@ -362,12 +364,21 @@ mod tests {
         sim.step(Some(cmd));
         let t1 = sim.theta;
         sim.step(None);
-        assert!((wrap_angle(sim.theta - t1) - 0.1).abs() < 1e-9);
+        assert!((wrap_angle(sim.theta - t1) - sim.cfg.dt).abs() < 1e-9);
         let s = sim.summary(0.0, 0.0);
         assert_eq!((s.late_periods, s.periods), (1, 2));
+        // The answer to scan 1 arrives during period 2: it replaces the command in force, and
+        // period 2 is late all the same.
+        sim.step(Some(Cmd {
+            seq: 1,
+            w: -1.0,
+            ..cmd
+        }));
+        assert_eq!(sim.cmd.w, -1.0);
+        assert_eq!(sim.summary(0.0, 0.0).late_periods, 2);
         // Garbage commands are saturated, NaN is stopped.
         sim.step(Some(Cmd {
-            seq: 2,
+            seq: 3,
             v: f64::NAN,
             w: 1e300,
             plan: 2,
@@ -386,7 +397,7 @@ mod tests {
         while sim.step(None) == Outcome::Running {
             n += 1;
         }
-        assert_eq!(n, 9);
+        assert_eq!(n, (1.0 / sim.cfg.dt).round() as usize - 1);
         assert_eq!(sim.outcome(), Outcome::TimeLimit);
     }
 

@@ -176,6 +176,76 @@ fn tmr_mission_survives_navigator_kills() {
     }
     assert_eq!(m["success"], true, "{}", line(&m));
     assert_eq!(m["collisions"], 0);
+    // The replicas agreed on every frame they sent: the navigator's and the filter's outputs
+    // depend on their inputs only, not on timing.
+    let sdc: Vec<_> = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::Sdc)
+        .collect();
+    assert!(sdc.is_empty(), "replicas disagreed: {sdc:?}");
+}
+
+/// Sensor filter and navigator under TMR; one bit of the next frame of a navigator replica is
+/// flipped (SIGUSR2 with the bit as value) about twice a second, seeded. Every corruption is
+/// outvoted (an `sdc` event naming that replica), the replica is replaced by fork, and the
+/// mission succeeds.
+#[test]
+fn tmr_mission_outvotes_corrupted_navigator_frames() {
+    let mut rng = Rng::from_env();
+    let sys = System::new();
+    let desc = robot_system(&sys, "tmr", 4, &[]);
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("navigator", 3);
+
+    let mut flipped = Vec::new();
+    let started = Instant::now();
+    while run.try_status().is_none() && started.elapsed() < LIMIT {
+        std::thread::sleep(Duration::from_millis(rng.range(300, 700)));
+        let slot = rng.below(3) as usize;
+        let Some(&pid) = run.replica_pids("navigator").get(&slot) else {
+            continue;
+        };
+        // A bit of the command (25 bytes) or of the request (38), whichever is sent next.
+        let bit = rng.below(25 * 8) as i32;
+        if s3res_tests::sigqueue(pid, s3res_tests::signals::INJECT_SDC, bit).is_err() {
+            break;
+        }
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            let recovered = run.events().iter().any(|e| {
+                e.kind == EventKind::Recovery && e.component == "navigator" && e.pid == Some(pid)
+            });
+            if recovered || run.try_status().is_some() || Instant::now() > deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        flipped.push((slot, pid, bit));
+    }
+    let out = run.wait_success(LIMIT);
+    let m = mission(&run);
+    eprintln!("tmr, seed 4, {} bit flips: {}", flipped.len(), line(&m));
+    assert!(flipped.len() >= 5, "too few flips ({})", flipped.len());
+    for (i, (slot, pid, bit)) in flipped.iter().enumerate() {
+        let seen = |kind: EventKind| {
+            out.events.iter().any(|e| {
+                e.kind == kind
+                    && e.component == "navigator"
+                    && e.replica == Some(*slot)
+                    && e.pid == Some(*pid)
+            })
+        };
+        if i + 1 == flipped.len() && !seen(EventKind::Sdc) {
+            continue; // sent as the mission ended
+        }
+        assert!(
+            seen(EventKind::Sdc),
+            "flip of bit {bit} in {slot}/{pid} not outvoted"
+        );
+        assert!(seen(EventKind::Recovery), "{slot}/{pid} not replaced");
+    }
+    assert_eq!(m["success"], true, "{}", line(&m));
 }
 
 /// The same fault without protection: the navigator is SIGKILLed once, early. The robot keeps

@@ -5,7 +5,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use replica_rt::{OutPort, TryRecv};
+use replica_rt::TryRecv;
+use s3res_robot::component::optional_output;
 use s3res_robot::mission::{run_in_process, Controllers};
 use s3res_robot::msg::{Cmd, Tick};
 use s3res_robot::sim::{Sim, SimConfig, Summary};
@@ -18,7 +19,8 @@ use s3res_robot::svg;
 /// Each period (--hz per wall-clock second, --dt simulated seconds each) it sends a scan on
 /// output `sensors` (and, if connected, the pose on `telemetry` and a work unit on `tick`),
 /// then waits until the period ends for the command answering that scan on input `cmd`. A
-/// command that is late leaves the previous one in force, and the period is counted late.
+/// command that is late leaves the previous one in force, and the period is counted late (a
+/// late answer to an earlier scan, when it comes, replaces an older command in force).
 ///
 /// The mission succeeds when the robot reaches the goal (the far corner) before --time-limit
 /// simulated seconds without touching a wall; a contact ends it at once. Then the sim closes
@@ -56,7 +58,7 @@ struct WorldArgs {
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(2..=32))]
     cells: u64,
     /// Simulated seconds per period.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.05)]
     dt: f64,
     /// Simulated seconds before the mission fails.
     #[arg(long, default_value_t = 120.0)]
@@ -90,8 +92,8 @@ impl WorldArgs {
 struct RunArgs {
     #[command(flatten)]
     world: WorldArgs,
-    /// Control periods per wall-clock second. With the default --dt of 0.1 s, 50 Hz runs the
-    /// simulated world five times faster than real time.
+    /// Control periods per wall-clock second. With the default --dt of 0.05 s, 50 Hz runs the
+    /// simulated world 2.5 times faster than real time.
     #[arg(long, default_value_t = 50.0)]
     hz: f64,
     /// How long to wait, after the mission, for the controllers to close `cmd`, milliseconds.
@@ -176,20 +178,9 @@ fn render(args: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// An output that the system description may leave unconnected.
-fn optional_output(rt: &mut replica_rt::Runtime, name: &str) -> Result<Option<OutPort>> {
-    let declared = rt
-        .ports()
-        .ports
-        .iter()
-        .any(|p| p.name == name && p.dir == replica_rt::contract::Direction::Out);
-    if !declared {
-        return Ok(None);
-    }
-    Ok(Some(
-        rt.output(name)
-            .with_context(|| format!("opening output {name}"))?,
-    ))
+/// Whether `c` answers a later scan than `than` (or there is none).
+fn fresher(c: &Cmd, than: &Option<Cmd>) -> bool {
+    !matches!(than, Some(t) if t.seq >= c.seq)
 }
 
 fn run(args: RunArgs) -> Result<bool> {
@@ -210,6 +201,7 @@ fn run(args: RunArgs) -> Result<bool> {
     let mut controller_gone = false;
     let started = Instant::now();
     let mut next = started;
+    let mut applied: Option<Cmd> = None;
     tracing::info!(
         seed = cfg.maze.seed,
         hz = args.hz,
@@ -244,8 +236,11 @@ fn run(args: RunArgs) -> Result<bool> {
                 .context("receiving a command")?
             {
                 TryRecv::Frame(bytes) => match Cmd::decode(bytes) {
-                    Ok(c) if c.seq == seq => answer = Some(c),
-                    // An answer to an earlier period, already counted late.
+                    // The freshest command wins, even one answering an earlier scan that came
+                    // late (the period still counts late); an older one than in force is dropped.
+                    Ok(c) if c.seq <= seq && fresher(&c, &applied) && fresher(&c, &answer) => {
+                        answer = Some(c)
+                    }
                     Ok(_) => {}
                     Err(e) => {
                         bad_frames += 1;
@@ -261,6 +256,9 @@ fn run(args: RunArgs) -> Result<bool> {
                     controller_gone = true;
                 }
             }
+        }
+        if let Some(c) = answer {
+            applied = Some(c);
         }
         sim.step(answer);
         next = deadline;
