@@ -12,6 +12,7 @@ use crate::filter::MedianFilter;
 use crate::mapper::Mapper;
 use crate::navigator::{NavParams, Navigator};
 use crate::planner::Planner;
+use crate::rng::SplitMix64;
 use crate::sim::{Sim, SimConfig, Summary};
 
 /// Settings of the control components (as their command lines set them).
@@ -25,6 +26,10 @@ pub struct Controllers {
     /// Periods every command is delayed by before the sim applies it (0: ideal timing). The
     /// sim counts each such period late, as it would a command that came late.
     pub latency: u32,
+    /// Seeded bursts of late periods (no command arrives, the previous one stays in force):
+    /// per mille chance that a period starts a burst of 1 to `burst_max` late periods. 0: none.
+    pub burst_per_mille: u32,
+    pub burst_max: u32,
 }
 
 impl Default for Controllers {
@@ -34,6 +39,8 @@ impl Default for Controllers {
             map_every: 5,
             nav: NavParams::default(),
             latency: 0,
+            burst_per_mille: 0,
+            burst_max: 0,
         }
     }
 }
@@ -47,6 +54,8 @@ pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
     let mut planner = Planner::new();
     let mut to_nav = VecDeque::new();
     let mut in_flight = VecDeque::new();
+    let mut bursts = SplitMix64::new(cfg.maze.seed ^ 0xb0b5);
+    let mut late_left = 0u32;
     while sim.is_running() {
         let raw = sim.scan();
         let clean = filter.apply(&raw);
@@ -60,11 +69,18 @@ pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
         }
         to_nav.extend(planner.on_request(&request));
         in_flight.push_back(cmd);
-        let applied = if in_flight.len() > ctl.latency as usize {
+        let mut applied = if in_flight.len() > ctl.latency as usize {
             in_flight.pop_front()
         } else {
             None
         };
+        if late_left == 0 && bursts.below(1000) < u64::from(ctl.burst_per_mille) {
+            late_left = 1 + bursts.below(u64::from(ctl.burst_max.max(1))) as u32;
+        }
+        if late_left > 0 {
+            late_left -= 1;
+            applied = None;
+        }
         sim.step(applied);
     }
     sim.summary(0.0, 0.0)
@@ -101,6 +117,22 @@ mod tests {
             let s = run_in_process(SimConfig::new(seed), ctl);
             assert!(s.success, "seed {seed}: {}", s.line());
             assert!(s.late_periods >= 2);
+        }
+    }
+
+    /// Bursts of up to ten late periods in a row (3 % of periods start one; seeded): the last
+    /// command stays in force meanwhile, and the robot still never touches a wall.
+    #[test]
+    fn missions_tolerate_bursts_of_late_commands() {
+        for seed in [1, 2, 3, 4] {
+            let ctl = Controllers {
+                burst_per_mille: 30,
+                burst_max: 10,
+                ..Controllers::default()
+            };
+            let s = run_in_process(SimConfig::new(seed), ctl);
+            assert!(s.success, "seed {seed}: {}", s.line());
+            assert!(s.late_periods > 20, "{}", s.line());
         }
     }
 

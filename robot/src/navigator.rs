@@ -34,6 +34,9 @@ pub struct NavParams {
     pub request_every: u32,
     /// The robot's radius, metres (for the room in front).
     pub radius: f64,
+    /// Seconds the robot must be able to keep its command without reaching a wall ahead: a
+    /// command may stay in force for several periods when the next ones are late.
+    pub stale_horizon: f64,
 }
 
 impl Default for NavParams {
@@ -48,6 +51,7 @@ impl Default for NavParams {
             off_path: 0.6,
             request_every: 10,
             radius: 0.15,
+            stale_horizon: 0.8,
         }
     }
 }
@@ -163,10 +167,14 @@ impl Navigator {
             (0.0, 0.0)
         };
         let mut front: f64 = f64::INFINITY;
+        let mut ahead: f64 = f64::INFINITY;
         for (i, &r) in s.ranges.iter().enumerate() {
             let a = s.theta + i as f64 * std::f64::consts::TAU / RANGES as f64;
             if i <= 2 || i >= RANGES - 2 {
                 front = front.min(r);
+            }
+            if i <= 1 || i >= RANGES - 1 {
+                ahead = ahead.min(r);
             }
             if r < self.p.influence {
                 let r = r.max(0.05);
@@ -188,7 +196,41 @@ impl Navigator {
         if d < 0.5 {
             v = v.min(0.2 + d);
         }
-        (v, w)
+        // Safe if it stays in force: no wall ahead within `stale_horizon` at this speed, and the
+        // arc it drives for that long keeps clear of every echo.
+        v = v.min(((ahead - self.p.radius - 0.05) / self.p.stale_horizon).max(0.0));
+        for _ in 0..4 {
+            if self.arc_is_clear(s, v, w) {
+                return (v, w);
+            }
+            v *= 0.5;
+        }
+        (0.0, w)
+    }
+
+    /// Whether driving `(v, w)` for `stale_horizon` seconds keeps the robot's body clear of every
+    /// point where a beam hit, with a margin. Robot frame: the robot at the origin facing +x.
+    fn arc_is_clear(&self, s: &Scan, v: f64, w: f64) -> bool {
+        const STEPS: u32 = 10;
+        let clearance = self.p.radius + 0.04;
+        let h = self.p.stale_horizon / STEPS as f64;
+        let (mut x, mut y, mut th) = (0.0f64, 0.0f64, 0.0f64);
+        for _ in 0..STEPS {
+            x += v * h * th.cos();
+            y += v * h * th.sin();
+            th += w * h;
+            for (i, &r) in s.ranges.iter().enumerate() {
+                if r >= 1.99 {
+                    continue; // nothing seen on this beam
+                }
+                let a = i as f64 * std::f64::consts::TAU / RANGES as f64;
+                let (px, py) = (r * a.cos(), r * a.sin());
+                if (px - x).powi(2) + (py - y).powi(2) < clearance * clearance {
+                    return false;
+                }
+            }
+        }
+        true
     }
 }
 
@@ -254,6 +296,32 @@ mod tests {
         r[0] = 0.2;
         let (cmd, _) = nav.on_scan(&scan_at(0.0, 0.0, 0.0, r));
         assert!(cmd.v < 0.05, "{cmd:?}");
+    }
+
+    #[test]
+    fn commands_stay_safe_if_they_stay_in_force() {
+        let p = NavParams::default();
+        let mut nav = Navigator::new(p);
+        nav.on_waypoints(&Waypoints {
+            plan: 1,
+            seq: 0,
+            points: vec![(0.25, 0.0), (3.0, 0.0)],
+        });
+        // A wall 0.6 m ahead: the robot may not drive so fast that the command, kept for
+        // `stale_horizon`, would take it into the wall.
+        let mut r = [2.0; RANGES];
+        r[0] = 0.6;
+        r[1] = 0.6 / (std::f64::consts::PI / 8.0).cos();
+        r[15] = r[1];
+        let (cmd, _) = nav.on_scan(&scan_at(0.0, 0.0, 0.0, r));
+        assert!(cmd.v > 0.0, "{cmd:?}");
+        assert!(cmd.v * p.stale_horizon <= 0.6 - p.radius, "{cmd:?}");
+        // An echo right where the arc would go: it slows down or stops.
+        let mut r = [2.0; RANGES];
+        r[1] = 0.35;
+        let (cmd, _) = nav.on_scan(&scan_at(0.0, 0.0, 0.0, r));
+        let clear = (0.35f64 - p.radius) / p.stale_horizon;
+        assert!(cmd.v <= clear, "{cmd:?}");
     }
 
     #[test]
