@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use replica_rt::TryRecv;
-use s3res_robot::component::optional_output;
+use s3res_robot::component::{optional_output, Downstream};
 use s3res_robot::mission::{run_in_process, Controllers};
 use s3res_robot::msg::{Cmd, Tick};
 use s3res_robot::sim::{Sim, SimConfig, Summary};
@@ -189,10 +189,14 @@ fn run(args: RunArgs) -> Result<bool> {
         bail!("--hz must be in (0, 10000], got {}", args.hz);
     }
     let mut rt = replica_rt::init().context("starting the s3res runtime")?;
-    let mut sensors = rt.output("sensors").context("opening output sensors")?;
+    // A reader that dies (an unprotected component killed) must not end the mission early:
+    // the robot carries on with its last command, and the verdict says what came of it.
+    let mut sensors = Downstream::new(Some(
+        rt.output("sensors").context("opening output sensors")?,
+    ));
     let mut cmd_in = rt.input("cmd").context("opening input cmd")?;
-    let mut telemetry = optional_output(&mut rt, "telemetry")?;
-    let mut tick = optional_output(&mut rt, "tick")?;
+    let mut telemetry = Downstream::new(optional_output(&mut rt, "telemetry")?);
+    let mut tick = Downstream::new(optional_output(&mut rt, "tick")?);
 
     let mut sim = Sim::new(cfg);
     let period = Duration::from_secs_f64(1.0 / args.hz);
@@ -212,14 +216,10 @@ fn run(args: RunArgs) -> Result<bool> {
         let seq = sim.seq();
         sim.scan().encode(&mut buf);
         sensors.send(&buf).context("sending the scan")?;
-        if let Some(t) = telemetry.as_mut() {
-            sim.telemetry().encode(&mut buf);
-            t.send(&buf).context("sending telemetry")?;
-        }
-        if let Some(t) = tick.as_mut() {
-            Tick { seq }.encode(&mut buf);
-            t.send(&buf).context("sending the tick")?;
-        }
+        sim.telemetry().encode(&mut buf);
+        telemetry.send(&buf).context("sending telemetry")?;
+        Tick { seq }.encode(&mut buf);
+        tick.send(&buf).context("sending the tick")?;
         let deadline = next + period;
         let mut answer = None;
         loop {
@@ -270,9 +270,9 @@ fn run(args: RunArgs) -> Result<bool> {
     }
     let wall = started.elapsed().as_secs_f64();
     // Close every output: the whole system sees end of input and finishes.
-    drop(sensors);
-    drop(telemetry);
-    drop(tick);
+    sensors.close();
+    telemetry.close();
+    tick.close();
     // Keep reading commands until the controllers close them, so none of them writes into a
     // closed pipe on the way out.
     let drain_until = Instant::now() + Duration::from_millis(args.drain_ms);
