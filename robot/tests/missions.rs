@@ -41,6 +41,41 @@ fn robot_system(sys: &System, level: &str, seed: u64, sim_extra: &[&str]) -> Val
     desc
 }
 
+/// Until the system finishes: every 0.3–0.7 s, picks a random navigator replica and calls
+/// `inject(rng, pid)` on it, then waits for that replica's recovery before the next one (the
+/// paper's single-fault assumption). `inject` returns `None` when the replica is already gone
+/// (the mission just ended). Returns `(slot, pid, what inject returned)` per injection.
+fn inject_until_end<T>(
+    run: &mut RunningSystem,
+    rng: &mut Rng,
+    mut inject: impl FnMut(&mut Rng, i32) -> Option<T>,
+) -> Vec<(usize, i32, T)> {
+    let mut done = Vec::new();
+    let started = Instant::now();
+    while run.try_status().is_none() && started.elapsed() < LIMIT {
+        std::thread::sleep(Duration::from_millis(rng.range(300, 700)));
+        let slot = rng.below(3) as usize;
+        let Some(&pid) = run.replica_pids("navigator").get(&slot) else {
+            continue;
+        };
+        let Some(what) = inject(rng, pid) else {
+            break;
+        };
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            let recovered = run.events().iter().any(|e| {
+                e.kind == EventKind::Recovery && e.component == "navigator" && e.pid == Some(pid)
+            });
+            if recovered || run.try_status().is_some() || Instant::now() > deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        done.push((slot, pid, what));
+    }
+    done
+}
+
 fn mission(run: &RunningSystem) -> Value {
     let path = run.path("mission.json");
     let text = std::fs::read_to_string(&path)
@@ -110,35 +145,9 @@ fn tmr_mission_survives_navigator_kills() {
     run.wait_for_replicas("navigator", 3);
     run.wait_for_replicas("filter", 3);
 
-    let mut killed = Vec::new();
-    let started = Instant::now();
-    while run.try_status().is_none() && started.elapsed() < LIMIT {
-        std::thread::sleep(Duration::from_millis(rng.range(300, 700)));
-        let pids = run.replica_pids("navigator");
-        let slot = rng.below(3) as usize;
-        let Some(&pid) = pids.get(&slot) else {
-            continue;
-        };
-        // The mission may just have ended: a replica that is already gone is not a kill.
-        if s3res_tests::kill_pid(pid, libc::SIGKILL).is_err() {
-            break;
-        }
-        // Wait for the recovery before the next kill (the paper's single-fault assumption).
-        let deadline = Instant::now() + Duration::from_secs(10);
-        loop {
-            let recovered = run.events().iter().any(|e| {
-                e.kind == EventKind::Recovery
-                    && e.component == "navigator"
-                    && e.replica == Some(slot)
-                    && e.pid == Some(pid)
-            });
-            if recovered || run.try_status().is_some() || Instant::now() > deadline {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        killed.push((slot, pid));
-    }
+    let killed = inject_until_end(&mut run, &mut rng, |_, pid| {
+        s3res_tests::kill_pid(pid, libc::SIGKILL).ok()
+    });
     let out = run.wait_success(LIMIT);
     let m = mission(&run);
     eprintln!("tmr, seed 1, {} kills: {}", killed.len(), line(&m));
@@ -147,7 +156,7 @@ fn tmr_mission_survives_navigator_kills() {
         "too few kills ({}) to mean anything",
         killed.len()
     );
-    for (slot, pid) in &killed {
+    for (slot, pid, ()) in &killed {
         let of = |kind: EventKind| {
             out.events.iter().any(|e| {
                 e.kind == kind
@@ -157,7 +166,7 @@ fn tmr_mission_survives_navigator_kills() {
             })
         };
         // A kill in the last moments may race the end of the mission; every other must show.
-        let last = Some(&(*slot, *pid)) == killed.last();
+        let last = Some(&(*slot, *pid, ())) == killed.last();
         if last && !of(EventKind::Crash) {
             continue;
         }
@@ -200,31 +209,13 @@ fn tmr_mission_outvotes_corrupted_navigator_frames() {
     let mut run = sys.start_json(&desc);
     run.wait_for_replicas("navigator", 3);
 
-    let mut flipped = Vec::new();
-    let started = Instant::now();
-    while run.try_status().is_none() && started.elapsed() < LIMIT {
-        std::thread::sleep(Duration::from_millis(rng.range(300, 700)));
-        let slot = rng.below(3) as usize;
-        let Some(&pid) = run.replica_pids("navigator").get(&slot) else {
-            continue;
-        };
-        // A bit of the command (25 bytes) or of the request (38), whichever is sent next.
+    // A bit of the command (25 bytes) or of the request (38), whichever is sent next.
+    let flipped = inject_until_end(&mut run, &mut rng, |rng, pid| {
         let bit = rng.below(25 * 8) as i32;
-        if s3res_tests::sigqueue(pid, s3res_tests::signals::INJECT_SDC, bit).is_err() {
-            break;
-        }
-        let deadline = Instant::now() + Duration::from_secs(10);
-        loop {
-            let recovered = run.events().iter().any(|e| {
-                e.kind == EventKind::Recovery && e.component == "navigator" && e.pid == Some(pid)
-            });
-            if recovered || run.try_status().is_some() || Instant::now() > deadline {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        flipped.push((slot, pid, bit));
-    }
+        s3res_tests::sigqueue(pid, s3res_tests::signals::INJECT_SDC, bit)
+            .is_ok()
+            .then_some(bit)
+    });
     let out = run.wait_success(LIMIT);
     let m = mission(&run);
     eprintln!("tmr, seed 4, {} bit flips: {}", flipped.len(), line(&m));
