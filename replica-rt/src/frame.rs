@@ -107,6 +107,17 @@ impl FrameDecoder {
         Ok(Some(&self.buf[from..from + len]))
     }
 
+    /// Whether a whole frame (or an oversized header, which [`next_frame`](Self::next_frame)
+    /// then reports) is waiting, so that the next `next_frame` returns without more bytes.
+    pub fn has_frame(&self) -> bool {
+        let avail = &self.buf[self.start..self.end];
+        if avail.len() < HEADER_LEN {
+            return false;
+        }
+        let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
+        len > self.max || avail.len() >= HEADER_LEN + len
+    }
+
     /// Called at end of stream: an error if a frame was cut off.
     pub fn finish(&self) -> Result<(), FrameError> {
         let avail = &self.buf[self.start..self.end];

@@ -47,6 +47,7 @@ pub mod inject;
 mod logging;
 mod port;
 pub mod restart;
+pub mod select;
 pub mod sys;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -56,6 +57,7 @@ use thiserror::Error;
 use contract::{Direction, PortMap, PortSpec};
 pub use logging::init_logging;
 pub use port::{InPort, OutPort, RecvError, SendError};
+pub use select::{wait_any, Ready, TryRecv};
 
 static INITIALIZED: AtomicBool = AtomicBool::new(false);
 

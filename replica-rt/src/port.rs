@@ -56,11 +56,11 @@ pub enum SendError {
 #[derive(Debug)]
 pub struct InPort {
     name: String,
-    fd: OwnedFd,
-    dec: FrameDecoder,
+    pub(crate) fd: OwnedFd,
+    pub(crate) dec: FrameDecoder,
     /// The payload last returned by `recv`, copied out of the decoder.
-    frame: Vec<u8>,
-    eof: bool,
+    pub(crate) frame: Vec<u8>,
+    pub(crate) eof: bool,
 }
 
 impl InPort {
@@ -116,7 +116,7 @@ impl InPort {
     }
 
     /// One `read` into the decoder; `false` at end of stream.
-    fn fill(&mut self) -> Result<bool, RecvError> {
+    pub(crate) fn fill(&mut self) -> Result<bool, RecvError> {
         loop {
             let spare = self.dec.spare(READ_CHUNK);
             let got = sys::read(self.fd.as_fd(), spare);
@@ -133,14 +133,14 @@ impl InPort {
         }
     }
 
-    fn io_error(&self, source: io::Error) -> RecvError {
+    pub(crate) fn io_error(&self, source: io::Error) -> RecvError {
         RecvError::Io {
             port: self.name.clone(),
             source,
         }
     }
 
-    fn frame_error(&self, source: FrameError) -> RecvError {
+    pub(crate) fn frame_error(&self, source: FrameError) -> RecvError {
         RecvError::Frame {
             port: self.name.clone(),
             source,

@@ -1,0 +1,153 @@
+//! A whole mission in one process: the same algorithms as the components, called in the order
+//! the system description wires them, with ideal timing (every command in time, every plan
+//! delivered before the next scan).
+//!
+//! This is the *golden run* of a seed: deterministic, so the same seed gives the same trajectory
+//! bit for bit, and the reference a faulted run is compared with (`s3res-sim golden`, and the
+//! overlay of `s3res-sim render`).
+
+use std::collections::VecDeque;
+
+use crate::filter::MedianFilter;
+use crate::mapper::Mapper;
+use crate::navigator::{NavParams, Navigator};
+use crate::planner::Planner;
+use crate::rng::SplitMix64;
+use crate::sim::{Sim, SimConfig, Summary};
+
+/// Settings of the control components (as their command lines set them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Controllers {
+    /// Median window of the sensor filter.
+    pub window: usize,
+    /// The mapper sends an update every this many scans.
+    pub map_every: u32,
+    pub nav: NavParams,
+    /// Periods every command is delayed by before the sim applies it (0: ideal timing). The
+    /// sim counts each such period late, as it would a command that came late.
+    pub latency: u32,
+    /// Seeded bursts of late periods (no command arrives, the previous one stays in force):
+    /// per mille chance that a period starts a burst of 1 to `burst_max` late periods. 0: none.
+    pub burst_per_mille: u32,
+    pub burst_max: u32,
+}
+
+impl Default for Controllers {
+    fn default() -> Self {
+        Controllers {
+            window: 3,
+            map_every: 5,
+            nav: NavParams::default(),
+            latency: 0,
+            burst_per_mille: 0,
+            burst_max: 0,
+        }
+    }
+}
+
+/// Runs the mission of `cfg` to its end with every component in this process.
+pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
+    let mut sim = Sim::new(cfg);
+    let mut filter = MedianFilter::new(ctl.window);
+    let mut nav = Navigator::new(ctl.nav);
+    let mut mapper = Mapper::new(ctl.map_every);
+    let mut planner = Planner::new();
+    let mut to_nav = VecDeque::new();
+    let mut in_flight = VecDeque::new();
+    let mut bursts = SplitMix64::new(cfg.maze.seed ^ 0xb0b5);
+    let mut late_left = 0u32;
+    while sim.is_running() {
+        let raw = sim.scan();
+        let clean = filter.apply(&raw);
+        while let Some(w) = to_nav.pop_front() {
+            nav.on_waypoints(&w);
+        }
+        let (cmd, request) = nav.on_scan(&clean);
+        // The planner takes the map update of a period before that period's request.
+        if let Some(update) = mapper.on_scan(&clean) {
+            to_nav.extend(planner.on_map(&update));
+        }
+        to_nav.extend(planner.on_request(&request));
+        in_flight.push_back(cmd);
+        let mut applied = if in_flight.len() > ctl.latency as usize {
+            in_flight.pop_front()
+        } else {
+            None
+        };
+        if late_left == 0 && bursts.below(1000) < u64::from(ctl.burst_per_mille) {
+            late_left = 1 + bursts.below(u64::from(ctl.burst_max.max(1))) as u32;
+        }
+        if late_left > 0 {
+            late_left -= 1;
+            applied = None;
+        }
+        sim.step(applied);
+    }
+    sim.summary(0.0, 0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Golden missions: the robot reaches the goal without touching a wall, for several seeds,
+    /// and a seed replays to the same trajectory.
+    #[test]
+    fn golden_missions_succeed_and_replay() {
+        for seed in [1, 2, 3, 4, 5, 6, 7, 8] {
+            let s = run_in_process(SimConfig::new(seed), Controllers::default());
+            eprintln!("{}", s.line());
+            assert!(s.success, "seed {seed}: {}", s.line());
+            assert_eq!(s.collisions, 0);
+        }
+        let a = run_in_process(SimConfig::new(3), Controllers::default());
+        let b = run_in_process(SimConfig::new(3), Controllers::default());
+        assert_eq!(a, b);
+    }
+
+    /// Commands that reach the robot two periods late (the previous one in force meanwhile)
+    /// still bring it home: the controller tolerates the lateness a loaded machine causes.
+    #[test]
+    fn missions_tolerate_two_periods_of_latency() {
+        for seed in [1, 2, 3, 4] {
+            let ctl = Controllers {
+                latency: 2,
+                ..Controllers::default()
+            };
+            let s = run_in_process(SimConfig::new(seed), ctl);
+            assert!(s.success, "seed {seed}: {}", s.line());
+            assert!(s.late_periods >= 2);
+        }
+    }
+
+    /// Bursts of up to ten late periods in a row (3 % of periods start one; seeded): the last
+    /// command stays in force meanwhile, and the robot still never touches a wall.
+    #[test]
+    fn missions_tolerate_bursts_of_late_commands() {
+        for seed in [1, 2, 3, 4] {
+            let ctl = Controllers {
+                burst_per_mille: 30,
+                burst_max: 10,
+                ..Controllers::default()
+            };
+            let s = run_in_process(SimConfig::new(seed), ctl);
+            assert!(s.success, "seed {seed}: {}", s.line());
+            assert!(s.late_periods > 20, "{}", s.line());
+        }
+    }
+
+    /// Without the filter's median (window 1) the outliers reach the navigator and the mapper;
+    /// the run differs from the filtered one (the filter does something).
+    #[test]
+    fn the_filter_changes_the_run() {
+        let filtered = run_in_process(SimConfig::new(2), Controllers::default());
+        let raw = run_in_process(
+            SimConfig::new(2),
+            Controllers {
+                window: 1,
+                ..Controllers::default()
+            },
+        );
+        assert_ne!(filtered.trajectory, raw.trajectory);
+    }
+}

@@ -1,0 +1,403 @@
+//! The planner: A* on the mapper's occupancy grid.
+//!
+//! Costs are integers (1000 per straight step, 1414 per diagonal step), so that every replica
+//! finds the same path, ties included. Unknown cells are planned through (optimistically, with a
+//! small extra cost): the robot explores. Occupied cells are never entered, nor passed diagonally
+//! at a corner. A cell next to an occupied one costs extra ([`INFLATED_COST`]): paths keep to the
+//! middle of corridors, where the robot's body clears both walls.
+//!
+//! [`Planner`] answers requests and replans when a map update blocks the path it last sent.
+//! It must see map updates and requests in `seq` order (an update of `seq` v before a request
+//! of `seq` k ≥ v); [`Planner::needs_map_before`] tells the component which input to read next,
+//! so that the order — and with it every output — is the same in every replica whatever the
+//! timing (see `docs/maze-robot.md`, "Determinism").
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+
+use crate::msg::{Cell, MapUpdate, Request, Waypoints};
+
+pub const STRAIGHT: u32 = 1000;
+pub const DIAGONAL: u32 = 1414;
+/// Extra cost of entering a cell next to an occupied one.
+pub const INFLATED_COST: u32 = 4000;
+/// Extra cost of entering a cell nobody has seen.
+pub const UNKNOWN_COST: u32 = 200;
+
+/// An occupancy grid to plan on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grid {
+    pub w: usize,
+    pub h: usize,
+    pub cells: Vec<Cell>,
+}
+
+impl Grid {
+    pub fn new(w: usize, h: usize) -> Grid {
+        Grid {
+            w,
+            h,
+            cells: vec![Cell::Unknown; w * h],
+        }
+    }
+
+    /// A grid from rows of text, top row first: `#` occupied, `.` free, `?` unknown.
+    pub fn from_rows(rows: &[&str]) -> Grid {
+        let h = rows.len();
+        let w = rows.first().map_or(0, |r| r.len());
+        let mut g = Grid::new(w, h);
+        for (i, row) in rows.iter().enumerate() {
+            let cy = h - 1 - i;
+            for (cx, ch) in row.bytes().enumerate().take(w) {
+                g.cells[cy * w + cx] = match ch {
+                    b'#' => Cell::Occupied,
+                    b'.' => Cell::Free,
+                    _ => Cell::Unknown,
+                };
+            }
+        }
+        g
+    }
+
+    fn at(&self, cx: i64, cy: i64) -> Cell {
+        if cx < 0 || cy < 0 || cx as usize >= self.w || cy as usize >= self.h {
+            return Cell::Occupied;
+        }
+        self.cells[cy as usize * self.w + cx as usize]
+    }
+
+    /// Next to an occupied cell of the grid (outside the grid is impassable, not a wall).
+    fn inflated(&self, cx: i64, cy: i64) -> bool {
+        (-1..=1).any(|dy| {
+            (-1..=1).any(|dx| {
+                let (x, y) = (cx + dx, cy + dy);
+                x >= 0
+                    && y >= 0
+                    && (x as usize) < self.w
+                    && (y as usize) < self.h
+                    && self.cells[y as usize * self.w + x as usize] == Cell::Occupied
+            })
+        })
+    }
+
+    fn enter_cost(&self, cx: i64, cy: i64) -> u32 {
+        let mut c = 0;
+        if self.inflated(cx, cy) {
+            c += INFLATED_COST;
+        }
+        if self.at(cx, cy) == Cell::Unknown {
+            c += UNKNOWN_COST;
+        }
+        c
+    }
+}
+
+/// Octile distance: admissible for the step costs above (extra costs only add).
+fn heuristic(a: (i64, i64), b: (i64, i64)) -> u32 {
+    let (dx, dy) = ((a.0 - b.0).unsigned_abs(), (a.1 - b.1).unsigned_abs());
+    let (lo, hi) = (dx.min(dy) as u32, dx.max(dy) as u32);
+    STRAIGHT * (hi - lo) + DIAGONAL * lo
+}
+
+/// A shortest path from `start` to `goal` (cells), both included, with its cost; `None` if the
+/// goal cannot be reached. The start cell may be occupied or inflated (the robot is where it
+/// is); the goal must not be occupied.
+pub fn astar(
+    grid: &Grid,
+    start: (usize, usize),
+    goal: (usize, usize),
+) -> Option<(Vec<(usize, usize)>, u32)> {
+    let (w, h) = (grid.w, grid.h);
+    if start.0 >= w || start.1 >= h || goal.0 >= w || goal.1 >= h {
+        return None;
+    }
+    let idx = |c: (i64, i64)| c.1 as usize * w + c.0 as usize;
+    let s = (start.0 as i64, start.1 as i64);
+    let g = (goal.0 as i64, goal.1 as i64);
+    if grid.at(g.0, g.1) == Cell::Occupied {
+        return None;
+    }
+    let mut best = vec![u32::MAX; w * h];
+    let mut came = vec![usize::MAX; w * h];
+    let mut closed = vec![false; w * h];
+    // (f, h, cell index): ties broken by the heuristic, then the index — deterministic.
+    let mut open = BinaryHeap::new();
+    best[idx(s)] = 0;
+    open.push(Reverse((heuristic(s, g), heuristic(s, g), idx(s))));
+    while let Some(Reverse((_, _, i))) = open.pop() {
+        if closed[i] {
+            continue;
+        }
+        closed[i] = true;
+        let c = ((i % w) as i64, (i / w) as i64);
+        if c == g {
+            let mut path = vec![(c.0 as usize, c.1 as usize)];
+            let mut j = i;
+            while came[j] != usize::MAX {
+                j = came[j];
+                path.push((j % w, j / w));
+            }
+            path.reverse();
+            return Some((path, best[i]));
+        }
+        for (dx, dy) in [
+            (1, 0),
+            (-1, 0),
+            (0, 1),
+            (0, -1),
+            (1, 1),
+            (1, -1),
+            (-1, 1),
+            (-1, -1),
+        ] {
+            let n = (c.0 + dx, c.1 + dy);
+            if grid.at(n.0, n.1) == Cell::Occupied {
+                continue;
+            }
+            let diagonal = dx != 0 && dy != 0;
+            if diagonal
+                && (grid.at(c.0 + dx, c.1) == Cell::Occupied
+                    || grid.at(c.0, c.1 + dy) == Cell::Occupied)
+            {
+                continue;
+            }
+            let step = if diagonal { DIAGONAL } else { STRAIGHT };
+            let cost = best[i]
+                .saturating_add(step)
+                .saturating_add(grid.enter_cost(n.0, n.1));
+            let ni = idx(n);
+            if cost < best[ni] {
+                best[ni] = cost;
+                came[ni] = i;
+                let hh = heuristic(n, g);
+                open.push(Reverse((cost.saturating_add(hh), hh, ni)));
+            }
+        }
+    }
+    None
+}
+
+/// Answers requests and replans on map updates; see the module docs for the order it needs.
+#[derive(Debug, Clone)]
+pub struct Planner {
+    grid: Option<(Grid, f64)>,
+    next_map: u32,
+    plans: u32,
+    /// The cells of the last plan sent, for checking whether an update blocks it.
+    last_path: Vec<(usize, usize)>,
+    goal: (f64, f64),
+}
+
+impl Default for Planner {
+    fn default() -> Self {
+        Planner::new()
+    }
+}
+
+impl Planner {
+    pub fn new() -> Planner {
+        Planner {
+            grid: None,
+            next_map: 0,
+            plans: 0,
+            last_path: Vec::new(),
+            goal: (0.0, 0.0),
+        }
+    }
+
+    /// Whether the map update the mapper sends next must be taken before the request of period
+    /// `request_seq`.
+    pub fn needs_map_before(&self, request_seq: u32) -> bool {
+        request_seq >= self.next_map
+    }
+
+    /// Plans made so far.
+    pub fn plans(&self) -> u32 {
+        self.plans
+    }
+
+    /// Takes a map update; returns a new plan if the update blocks the last one.
+    pub fn on_map(&mut self, m: &MapUpdate) -> Option<Waypoints> {
+        self.next_map = m.next.max(m.seq.saturating_add(1));
+        let grid = Grid {
+            w: m.w as usize,
+            h: m.h as usize,
+            cells: m.cells.clone(),
+        };
+        let blocked = self.last_path.iter().any(|&(cx, cy)| {
+            let (cx, cy) = (cx as i64, cy as i64);
+            grid.at(cx, cy) == Cell::Occupied
+        });
+        self.grid = Some((grid, m.block));
+        self.goal = (m.goal_x, m.goal_y);
+        if blocked {
+            self.plan(m.seq, m.x, m.y)
+        } else {
+            None
+        }
+    }
+
+    /// Takes a request; answers it with a plan if it asks for one and a path exists.
+    pub fn on_request(&mut self, r: &Request) -> Option<Waypoints> {
+        if !r.want {
+            return None;
+        }
+        self.goal = (r.goal_x, r.goal_y);
+        self.plan(r.seq, r.x, r.y)
+    }
+
+    fn plan(&mut self, seq: u32, x: f64, y: f64) -> Option<Waypoints> {
+        let (grid, block) = self.grid.as_ref()?;
+        let cell = |px: f64, py: f64| -> Option<(usize, usize)> {
+            let (cx, cy) = ((px / block).floor(), (py / block).floor());
+            (px.is_finite()
+                && py.is_finite()
+                && cx >= 0.0
+                && cy >= 0.0
+                && cx < grid.w as f64
+                && cy < grid.h as f64)
+                .then_some((cx as usize, cy as usize))
+        };
+        let start = cell(x, y)?;
+        let goal = cell(self.goal.0, self.goal.1)?;
+        let (path, _) = astar(grid, start, goal)?;
+        let points = path
+            .iter()
+            .skip(1)
+            .map(|&(cx, cy)| ((cx as f64 + 0.5) * block, (cy as f64 + 0.5) * block))
+            .collect();
+        self.plans += 1;
+        self.last_path = path;
+        Some(Waypoints {
+            plan: self.plans,
+            seq,
+            points,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn open_grid_shortest_paths_are_straight_or_diagonal() {
+        let g = Grid::from_rows(&[".....", ".....", ".....", ".....", "....."]);
+        let (p, cost) = astar(&g, (0, 0), (4, 0)).unwrap();
+        assert_eq!(p, vec![(0, 0), (1, 0), (2, 0), (3, 0), (4, 0)]);
+        assert_eq!(cost, 4 * STRAIGHT);
+        let (p, cost) = astar(&g, (0, 0), (4, 4)).unwrap();
+        assert_eq!(p.len(), 5, "a diagonal: {p:?}");
+        assert_eq!(cost, 4 * DIAGONAL);
+    }
+
+    #[test]
+    fn finds_the_way_around_a_wall_and_the_shortest_of_two() {
+        // Rows top first. The wall in the middle column has gaps at the top and bottom; the
+        // bottom one is nearer.
+        let g = Grid::from_rows(&[
+            ".......", //
+            "...#...", "...#...", "...#...", "...#...", ".......",
+        ]);
+        let (p, _) = astar(&g, (0, 1), (6, 1)).unwrap();
+        assert!(p
+            .iter()
+            .all(|&(x, y)| g.at(x as i64, y as i64) != Cell::Occupied));
+        assert!(
+            p.contains(&(3, 0)),
+            "goes through the near (bottom) gap: {p:?}"
+        );
+        assert_eq!(*p.first().unwrap(), (0, 1));
+        assert_eq!(*p.last().unwrap(), (6, 1));
+    }
+
+    #[test]
+    fn exact_cost_on_a_known_corridor() {
+        // A U-shaped free corridor in occupied rock: the only path has 8 straight steps.
+        let g = Grid::from_rows(&[
+            "#####", //
+            "#...#", "#.#.#", "#.#.#", "#####",
+        ]);
+        let (p, cost) = astar(&g, (1, 1), (3, 1)).unwrap();
+        assert_eq!(
+            p,
+            vec![(1, 1), (1, 2), (1, 3), (2, 3), (3, 3), (3, 2), (3, 1)]
+        );
+        // Every cell of this corridor touches rock: each step costs STRAIGHT + INFLATED_COST.
+        assert_eq!(cost, 6 * (STRAIGHT + INFLATED_COST));
+    }
+
+    #[test]
+    fn no_corner_cutting_and_unreachable_goals() {
+        let g = Grid::from_rows(&[
+            "..#", //
+            "#..",
+        ]);
+        // (0,0) is the bottom-left '#'. From (0,1) to (1,0) diagonally would cut a corner.
+        let (p, _) = astar(&g, (0, 1), (1, 0)).unwrap();
+        assert_eq!(p, vec![(0, 1), (1, 1), (1, 0)]);
+        let walled = Grid::from_rows(&["..#..", "..#..", "..#.."]);
+        assert!(astar(&walled, (0, 0), (4, 0)).is_none());
+        assert!(astar(&walled, (0, 0), (2, 0)).is_none(), "goal in a wall");
+        assert!(astar(&walled, (0, 0), (9, 0)).is_none(), "goal outside");
+    }
+
+    #[test]
+    fn unknown_is_planned_through_and_corridor_middles_are_preferred() {
+        let g = Grid::from_rows(&["?????", "?????", "?????"]);
+        assert_eq!(astar(&g, (0, 1), (4, 1)).unwrap().0.len(), 5);
+        // A corridor three cells wide: the path keeps to the middle row.
+        let g = Grid::from_rows(&[
+            "#########", //
+            ".........",
+            ".........",
+            ".........",
+            "#########",
+        ]);
+        let (p, _) = astar(&g, (0, 2), (8, 2)).unwrap();
+        assert!(p.iter().all(|&(_, y)| y == 2), "{p:?}");
+    }
+
+    #[test]
+    fn planner_orders_inputs_and_replans_when_blocked() {
+        let rows = [".....", ".....", "....."];
+        let mut m = MapUpdate {
+            seq: 0,
+            next: 5,
+            w: 5,
+            h: 3,
+            block: 1.0,
+            x: 0.5,
+            y: 1.5,
+            goal_x: 4.5,
+            goal_y: 1.5,
+            cells: Grid::from_rows(&rows).cells,
+        };
+        let mut p = Planner::new();
+        assert!(p.needs_map_before(0));
+        assert_eq!(p.on_map(&m), None);
+        assert!(!p.needs_map_before(4) && p.needs_map_before(5));
+        let req = Request {
+            seq: 1,
+            want: true,
+            x: 0.5,
+            y: 1.5,
+            goal_x: 4.5,
+            goal_y: 1.5,
+        };
+        let w = p.on_request(&req).unwrap();
+        assert_eq!(w.plan, 1);
+        assert_eq!(*w.points.last().unwrap(), (4.5, 1.5));
+        assert_eq!(p.on_request(&Request { want: false, ..req }), None);
+        // An update that does not touch the path: no replan. One that does: a new plan.
+        m.seq = 5;
+        m.next = 10;
+        m.cells = Grid::from_rows(&["#....", ".....", "....."]).cells;
+        assert_eq!(p.on_map(&m), None);
+        m.seq = 10;
+        m.next = 15;
+        m.cells = Grid::from_rows(&["#....", "..#..", "....."]).cells;
+        let w = p.on_map(&m).expect("blocked path is replanned");
+        assert_eq!((w.plan, w.seq), (2, 10));
+    }
+}
