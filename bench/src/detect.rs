@@ -1,0 +1,334 @@
+//! `s3res-bench detect`: how fast the voter sees a fault, and whether it sees faults that are not
+//! there.
+//!
+//! - `crash`: SIGKILL to an idle replica; latency = the `crash` event's `ts_ns` − the time just
+//!   before `kill` (both CLOCK_MONOTONIC).
+//! - `crash-round`: SIGKILL, then at once a frame: the round trip of the round that discovers
+//!   the dead replica (it includes the recovery the voter does before it reads the frame).
+//! - `hang`: the injection signal (`SIGRTMIN+2`: the replica spins) to an idle replica, then a
+//!   frame; latency = the `hang` event's `ts_ns` − (time just before the frame was written +
+//!   timeout). The voter opens the round a little after the bench wrote the frame, so this is an
+//!   upper bound: it includes the frame's trip into the voter (a few µs, about half the SMR
+//!   round trip).
+//! - `false-positives`: fault-free TMR rounds at the smallest timeout; every fault event counts.
+
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use s3res_voter::event::{Event, EventKind};
+
+use crate::report::{self, histogram, Row, Summary};
+use crate::system::{Spec, System};
+use crate::Common;
+
+const WARMUP_ROUNDS: u64 = 200;
+const SETTLE_ROUNDS: u64 = 2;
+const ROUND_LIMIT: Duration = Duration::from_secs(10);
+const EVENT_LIMIT: Duration = Duration::from_secs(10);
+const FRAME: usize = 8;
+
+pub struct DetectOptions {
+    pub timeouts_us: Vec<u64>,
+    pub count: u64,
+    pub rounds: u64,
+    pub seed: u64,
+}
+
+/// splitmix64: small, seeded, good enough to pick victims.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n
+    }
+}
+
+pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
+    let echo = common.bins.path("s3res-echo")?;
+    let voter = common.bins.path("s3res-voter")?;
+    let spec = |timeout_us| Spec {
+        exec: echo.clone(),
+        args: Vec::new(),
+        replicas: 3,
+        timeout_us,
+        max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
+        voter: Some(voter.clone()),
+    };
+    let mut rng = Rng(o.seed);
+    let total = o.timeouts_us.len() as u64 * o.count * 3 + o.rounds;
+    let bar = common.progress(total, "detect");
+    let mut rows = Vec::new();
+    for &t in &o.timeouts_us {
+        if o.count == 0 {
+            break;
+        }
+        let mut system = System::start(&spec(t))?;
+        let mut seq = 0;
+        for _ in 0..WARMUP_ROUNDS {
+            round(&mut system, &mut seq)?;
+        }
+        bar.set_message(format!("crash, timeout {t} µs"));
+        rows.push(crashes(&mut system, &mut seq, t, o.count, &mut rng, &bar)?);
+        bar.set_message(format!("crash-round, timeout {t} µs"));
+        rows.push(crash_rounds(
+            &mut system,
+            &mut seq,
+            t,
+            o.count,
+            &mut rng,
+            &bar,
+        )?);
+        bar.set_message(format!("hang, timeout {t} µs"));
+        rows.push(hangs(&mut system, &mut seq, t, o.count, &mut rng, &bar)?);
+    }
+    if o.rounds > 0 {
+        let t = o.timeouts_us.iter().copied().min().unwrap_or(2000);
+        bar.set_message(format!("false positives, timeout {t} µs"));
+        rows.push(false_positives(&spec(t), o.rounds, &bar)?);
+    }
+    bar.finish_and_clear();
+    Ok(rows)
+}
+
+fn row(what: &str, h: &hdrhistogram::Histogram<u64>, timeout_us: u64, faults: u64) -> Row {
+    let mut r = Row::new("detect", 3, FRAME as u64, Summary::of(h));
+    r.what = Some(what.into());
+    r.timeout_us = Some(timeout_us);
+    r.faults = Some(faults);
+    r
+}
+
+/// Kill an idle replica; time to its `crash` event.
+fn crashes(
+    system: &mut System,
+    seq: &mut u64,
+    timeout_us: u64,
+    count: u64,
+    rng: &mut Rng,
+    bar: &indicatif::ProgressBar,
+) -> Result<Row> {
+    let mut h = histogram();
+    let mut misclassified = 0;
+    for _ in 0..count {
+        let slot = rng.below(3) as usize;
+        let pid = system.replicas[slot];
+        let t_kill = replica_rt::sys::monotonic_ns();
+        replica_rt::sys::kill(pid, libc::SIGKILL).with_context(|| {
+            format!(
+                "killing replica {slot} (pid {pid}); events so far: {:?}",
+                system.log
+            )
+        })?;
+        let ev = fault_of(system, slot)?;
+        if ev.kind == EventKind::Crash {
+            h.record(ev.ts_ns.saturating_sub(t_kill).max(1))?;
+        } else {
+            misclassified += 1;
+        }
+        recovered(system, slot)?;
+        settle(system, seq)?;
+        bar.inc(1);
+    }
+    let mut r = row("crash", &h, timeout_us, misclassified);
+    r.extra = Some(serde_json::json!({ "misclassified": misclassified }));
+    Ok(r)
+}
+
+/// Kill an idle replica and send a frame at once: the round that discovers the death.
+fn crash_rounds(
+    system: &mut System,
+    seq: &mut u64,
+    timeout_us: u64,
+    count: u64,
+    rng: &mut Rng,
+    bar: &indicatif::ProgressBar,
+) -> Result<Row> {
+    let mut h = histogram();
+    for _ in 0..count {
+        let slot = rng.below(3) as usize;
+        let pid = system.replicas[slot];
+        let mut frame = [0u8; FRAME];
+        crate::echo::fill_frame(*seq, &mut frame);
+        let t0 = replica_rt::sys::monotonic_ns();
+        replica_rt::sys::kill(pid, libc::SIGKILL).with_context(|| {
+            format!(
+                "killing replica {slot} (pid {pid}); events so far: {:?}",
+                system.log
+            )
+        })?;
+        system.input.send(&frame, ROUND_LIMIT)?;
+        let reply = system.output.recv(ROUND_LIMIT)?;
+        let t1 = replica_rt::sys::monotonic_ns();
+        if reply != frame {
+            bail!("wrong answer in the round after a kill");
+        }
+        *seq += 1;
+        h.record(t1 - t0)?;
+        fault_of(system, slot)?;
+        recovered(system, slot)?;
+        settle(system, seq)?;
+        bar.inc(1);
+    }
+    Ok(row("crash-round", &h, timeout_us, 0))
+}
+
+/// Make an idle replica spin, send a frame: time from the deadline to the `hang` event.
+fn hangs(
+    system: &mut System,
+    seq: &mut u64,
+    timeout_us: u64,
+    count: u64,
+    rng: &mut Rng,
+    bar: &indicatif::ProgressBar,
+) -> Result<Row> {
+    let mut h = histogram();
+    let mut misclassified = 0;
+    let cfe = replica_rt::contract::signals::inject_cfe();
+    for _ in 0..count {
+        let slot = rng.below(3) as usize;
+        let pid = system.replicas[slot];
+        replica_rt::sys::kill(pid, cfe).context("injecting a hang")?;
+        let mut frame = [0u8; FRAME];
+        crate::echo::fill_frame(*seq, &mut frame);
+        let t_send = replica_rt::sys::monotonic_ns();
+        system.input.send(&frame, ROUND_LIMIT)?;
+        let reply = system.output.recv(ROUND_LIMIT)?;
+        if reply != frame {
+            bail!("wrong answer in a round with a hung replica");
+        }
+        *seq += 1;
+        let ev = fault_of(system, slot)?;
+        if ev.kind == EventKind::Hang {
+            let deadline = t_send + timeout_us * 1000;
+            // Clamped at 1 ns: the voter cannot fire before its deadline, so an event "before"
+            // it would only be clock granularity.
+            h.record(ev.ts_ns.saturating_sub(deadline).max(1))?;
+        } else {
+            misclassified += 1;
+        }
+        recovered(system, slot)?;
+        settle(system, seq)?;
+        bar.inc(1);
+    }
+    let mut r = row("hang", &h, timeout_us, misclassified);
+    r.extra = Some(serde_json::json!({ "misclassified": misclassified }));
+    Ok(r)
+}
+
+/// Fault-free rounds; counts every fault event.
+fn false_positives(spec: &Spec, rounds: u64, bar: &indicatif::ProgressBar) -> Result<Row> {
+    let mut system = System::start(spec)?;
+    let mut seq = 0;
+    for _ in 0..WARMUP_ROUNDS {
+        round(&mut system, &mut seq)?;
+    }
+    let before = system.faults.len();
+    let mut h = histogram();
+    for k in 0..rounds {
+        let t0 = replica_rt::sys::monotonic_ns();
+        round(&mut system, &mut seq)?;
+        h.record(replica_rt::sys::monotonic_ns() - t0)?;
+        if k % 4096 == 4095 {
+            bar.inc(4096);
+            system.drain_events()?;
+        }
+    }
+    bar.inc(rounds % 4096);
+    // Let a fault of the last round arrive.
+    std::thread::sleep(Duration::from_micros(2 * spec.timeout_us) + Duration::from_millis(10));
+    system.drain_events()?;
+    let faults: Vec<&Event> = system.faults[before..].iter().collect();
+    for f in &faults {
+        tracing::warn!(kind = ?f.kind, replica = f.replica, detail = f.detail.as_deref(), "false positive");
+    }
+    let mut r = row("false-positives", &h, spec.timeout_us, faults.len() as u64);
+    r.extra = Some(serde_json::json!({
+        "kinds": faults.iter().map(|f| format!("{:?}", f.kind).to_lowercase()).collect::<Vec<_>>(),
+    }));
+    Ok(r)
+}
+
+/// The first fault event about `slot`.
+fn fault_of(system: &mut System, slot: usize) -> Result<Event> {
+    system.wait_event(
+        |e| {
+            e.replica == Some(slot)
+                && !matches!(
+                    e.kind,
+                    EventKind::Start | EventKind::Recovery | EventKind::RecoveryFailed
+                )
+        },
+        EVENT_LIMIT,
+    )
+}
+
+fn recovered(system: &mut System, slot: usize) -> Result<()> {
+    let ev = system.wait_event(
+        |e| {
+            e.replica == Some(slot)
+                && matches!(e.kind, EventKind::Recovery | EventKind::RecoveryFailed)
+        },
+        EVENT_LIMIT,
+    )?;
+    if ev.kind != EventKind::Recovery {
+        bail!("recovery failed: {:?}\n{}", ev.detail, system.log_tail());
+    }
+    Ok(())
+}
+
+fn settle(system: &mut System, seq: &mut u64) -> Result<()> {
+    for _ in 0..SETTLE_ROUNDS {
+        round(system, seq)?;
+    }
+    Ok(())
+}
+
+fn round(system: &mut System, seq: &mut u64) -> Result<()> {
+    let mut frame = [0u8; FRAME];
+    crate::echo::fill_frame(*seq, &mut frame);
+    let reply = system
+        .exchange(&frame, ROUND_LIMIT)
+        .with_context(|| format!("round {seq}"))?;
+    if reply != frame {
+        bail!("wrong answer in round {seq}");
+    }
+    *seq += 1;
+    Ok(())
+}
+
+pub fn render(rows: &[Row]) -> String {
+    let cells: Vec<Vec<String>> = rows
+        .iter()
+        .map(|r| {
+            vec![
+                r.what.clone().unwrap_or_default(),
+                r.timeout_us.map(|t| t.to_string()).unwrap_or_default(),
+                r.count.to_string(),
+                report::us(r.median_us),
+                report::us(r.p99_us),
+                report::us(r.max_us),
+                r.faults.map(|f| f.to_string()).unwrap_or_default(),
+            ]
+        })
+        .collect();
+    report::table(
+        &[
+            "measure",
+            "timeout µs",
+            "count",
+            "median µs",
+            "p99 µs",
+            "max µs",
+            "faults/misclassified",
+        ],
+        &cells,
+    )
+}

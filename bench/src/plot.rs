@@ -1,0 +1,215 @@
+//! SVG plots (plotters, SVG backend only: text is written as SVG `<text>`, so no font library
+//! is needed at build or run time).
+
+use std::path::Path;
+
+use anyhow::{anyhow, Result};
+use plotters::prelude::*;
+
+use crate::report::{self, Row};
+
+const PALETTE: [RGBColor; 6] = [
+    RGBColor(0x44, 0x44, 0x44),
+    RGBColor(0x1f, 0x77, 0xb4),
+    RGBColor(0x2c, 0xa0, 0x2c),
+    RGBColor(0xd6, 0x27, 0x28),
+    RGBColor(0x94, 0x67, 0xbd),
+    RGBColor(0xff, 0x7f, 0x0e),
+];
+
+fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
+    anyhow!("plotting: {e}")
+}
+
+/// A labelled line with points: `(x, y)` on log-log axes.
+struct Series {
+    label: String,
+    points: Vec<(f64, f64)>,
+    dashed: bool,
+}
+
+fn log_log(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    x_label: impl Fn(&f64) -> String,
+    series: &[Series],
+) -> Result<()> {
+    let all = series.iter().flat_map(|s| s.points.iter());
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in all {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    if x0 > x1 {
+        return Err(anyhow!("nothing to plot"));
+    }
+    let root = SVGBackend::new(path, (900, 560)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(16)
+        .x_label_area_size(48)
+        .y_label_area_size(64)
+        .build_cartesian_2d(
+            (x0 / 1.5..x1 * 1.5).log_scale(),
+            (y0 / 1.5..y1 * 1.5).log_scale(),
+        )
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_label_formatter(&x_label)
+        .y_label_formatter(&|y| format!("{y}"))
+        .draw()
+        .map_err(err)?;
+    for (i, s) in series.iter().enumerate() {
+        let color = PALETTE[i % PALETTE.len()];
+        let style = ShapeStyle {
+            color: color.to_rgba(),
+            filled: true,
+            stroke_width: 2,
+        };
+        if s.dashed {
+            chart
+                .draw_series(DashedLineSeries::new(s.points.iter().copied(), 6, 4, style))
+                .map_err(err)?
+                .label(s.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+        } else {
+            chart
+                .draw_series(LineSeries::new(s.points.iter().copied(), style))
+                .map_err(err)?
+                .label(s.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
+        }
+        chart
+            .draw_series(
+                s.points
+                    .iter()
+                    .map(|&(x, y)| Circle::new((x, y), 3, color.filled())),
+            )
+            .map_err(err)?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK)
+        .draw()
+        .map_err(err)?;
+    root.present().map_err(err)?;
+    Ok(())
+}
+
+/// Figure 3: median round trip by frame size, one line per replication level (and setup).
+pub fn round_trip(rows: &[Row], path: &Path) -> Result<()> {
+    let mut keys: Vec<(&str, usize)> = rows.iter().map(|r| (r.setup, r.replicas)).collect();
+    keys.sort();
+    keys.dedup();
+    let several_setups = keys.iter().any(|k| k.0 != keys[0].0);
+    let series: Vec<Series> = keys
+        .iter()
+        .map(|&(setup, n)| Series {
+            label: if several_setups {
+                format!("{} ({setup})", report::level_name(n))
+            } else {
+                report::level_name(n)
+            },
+            points: rows
+                .iter()
+                .filter(|r| r.setup == setup && r.replicas == n)
+                .map(|r| (r.size as f64, r.median_us))
+                .collect(),
+            dashed: setup != "plain",
+        })
+        .collect();
+    log_log(
+        path,
+        "s3res round trip by replication level (median)",
+        "frame payload",
+        "round trip, µs",
+        |x| report::bytes_name(x.round() as u64),
+        &series,
+    )
+}
+
+/// Figure 4: restart (detection → ready) and the fork+touch floor by state size.
+pub fn restart(rows: &[Row], path: &Path) -> Result<()> {
+    let series = vec![
+        Series {
+            label: "restart by fork, detection → ready (median)".into(),
+            points: rows.iter().map(|r| (r.size as f64, r.median_us)).collect(),
+            dashed: false,
+        },
+        Series {
+            label: "floor: fork + touch every page (median)".into(),
+            points: rows
+                .iter()
+                .filter_map(|r| r.floor_us.map(|f| (r.size as f64, f)))
+                .collect(),
+            dashed: true,
+        },
+    ];
+    log_log(
+        path,
+        "s3res TMR replica restart by component state",
+        "resident state",
+        "µs",
+        |x| report::bytes_name(x.round() as u64),
+        &series,
+    )
+}
+
+/// Detection latencies: median, p99 and max per measure and timeout.
+pub fn detect(rows: &[Row], path: &Path) -> Result<()> {
+    let timed: Vec<&Row> = rows
+        .iter()
+        .filter(|r| r.what.as_deref() != Some("false-positives") && r.count > 0)
+        .collect();
+    let series: Vec<Series> = ["median", "p99", "max"]
+        .iter()
+        .enumerate()
+        .map(|(k, name)| Series {
+            label: (*name).into(),
+            points: timed
+                .iter()
+                .enumerate()
+                .map(|(i, r)| {
+                    let y = [r.median_us, r.p99_us, r.max_us][k];
+                    ((i + 1) as f64, y.max(0.1))
+                })
+                .collect(),
+            dashed: k > 0,
+        })
+        .collect();
+    let labels: Vec<String> = timed
+        .iter()
+        .map(|r| {
+            format!(
+                "{} @{} ms",
+                r.what.as_deref().unwrap_or(""),
+                r.timeout_us.unwrap_or(0) as f64 / 1000.0
+            )
+        })
+        .collect();
+    log_log(
+        path,
+        "s3res fault detection latency",
+        "measure",
+        "µs",
+        move |x| {
+            let i = x.round() as usize;
+            if (x - i as f64).abs() < 0.05 && i >= 1 {
+                labels.get(i - 1).cloned().unwrap_or_default()
+            } else {
+                String::new()
+            }
+        },
+        &series,
+    )
+}
