@@ -17,8 +17,9 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use s3res_voter::event::{Event, EventKind};
 
+use crate::frames::FrameIoError;
 use crate::report::{self, histogram, Row, Summary};
-use crate::system::{Spec, System};
+use crate::system::{Setup, Spec, System};
 use crate::Common;
 
 const WARMUP_ROUNDS: u64 = 200;
@@ -28,6 +29,7 @@ const EVENT_LIMIT: Duration = Duration::from_secs(10);
 const FRAME: usize = 8;
 
 pub struct DetectOptions {
+    pub setup: Setup,
     pub timeouts_us: Vec<u64>,
     pub count: u64,
     pub rounds: u64,
@@ -71,6 +73,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
             break;
         }
         let mut system = System::start(&spec(t))?;
+        o.setup.apply(&system)?;
         let mut seq = 0;
         for _ in 0..WARMUP_ROUNDS {
             round(&mut system, &mut seq)?;
@@ -92,9 +95,13 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     if o.rounds > 0 {
         let t = o.timeouts_us.iter().copied().min().unwrap_or(2000);
         bar.set_message(format!("false positives, timeout {t} µs"));
-        rows.push(false_positives(&spec(t), o.rounds, &bar)?);
+        rows.push(false_positives(&spec(t), o.setup, o.rounds, &bar)?);
     }
     bar.finish_and_clear();
+    Setup::reset_bench();
+    for r in &mut rows {
+        r.setup = o.setup.name();
+    }
     Ok(rows)
 }
 
@@ -119,26 +126,21 @@ fn crashes(
     let mut misclassified = 0;
     for _ in 0..count {
         let slot = rng.below(3) as usize;
-        let pid = system.replicas[slot];
-        let t_kill = replica_rt::sys::monotonic_ns();
-        replica_rt::sys::kill(pid, libc::SIGKILL).with_context(|| {
-            format!(
-                "killing replica {slot} (pid {pid}); events so far: {:?}",
-                system.log
-            )
-        })?;
-        let ev = fault_of(system, slot)?;
+        let t_kill = inject(system, slot, libc::SIGKILL)?;
+        let ev = fault_of(system, slot, t_kill)?;
         if ev.kind == EventKind::Crash {
             h.record(ev.ts_ns.saturating_sub(t_kill).max(1))?;
         } else {
             misclassified += 1;
         }
-        recovered(system, slot)?;
+        recovered(system, slot, t_kill)?;
         settle(system, seq)?;
         bar.inc(1);
     }
     let mut r = row("crash", &h, timeout_us, misclassified);
-    r.extra = Some(serde_json::json!({ "misclassified": misclassified }));
+    r.extra = Some(
+        serde_json::json!({ "misclassified": misclassified, "lost_rounds": system.lost_rounds }),
+    );
     Ok(r)
 }
 
@@ -154,26 +156,12 @@ fn crash_rounds(
     let mut h = histogram();
     for _ in 0..count {
         let slot = rng.below(3) as usize;
-        let pid = system.replicas[slot];
-        let mut frame = [0u8; FRAME];
-        crate::echo::fill_frame(*seq, &mut frame);
-        let t0 = replica_rt::sys::monotonic_ns();
-        replica_rt::sys::kill(pid, libc::SIGKILL).with_context(|| {
-            format!(
-                "killing replica {slot} (pid {pid}); events so far: {:?}",
-                system.log
-            )
-        })?;
-        system.input.send(&frame, ROUND_LIMIT)?;
-        let reply = system.output.recv(ROUND_LIMIT)?;
-        let t1 = replica_rt::sys::monotonic_ns();
-        if reply != frame {
-            bail!("wrong answer in the round after a kill");
+        let t0 = inject(system, slot, libc::SIGKILL)?;
+        if round(system, seq)? {
+            h.record(replica_rt::sys::monotonic_ns() - t0)?;
         }
-        *seq += 1;
-        h.record(t1 - t0)?;
-        fault_of(system, slot)?;
-        recovered(system, slot)?;
+        fault_of(system, slot, t0)?;
+        recovered(system, slot, t0)?;
         settle(system, seq)?;
         bar.inc(1);
     }
@@ -194,18 +182,10 @@ fn hangs(
     let cfe = replica_rt::contract::signals::inject_cfe();
     for _ in 0..count {
         let slot = rng.below(3) as usize;
-        let pid = system.replicas[slot];
-        replica_rt::sys::kill(pid, cfe).context("injecting a hang")?;
-        let mut frame = [0u8; FRAME];
-        crate::echo::fill_frame(*seq, &mut frame);
+        let t_inject = inject(system, slot, cfe)?;
         let t_send = replica_rt::sys::monotonic_ns();
-        system.input.send(&frame, ROUND_LIMIT)?;
-        let reply = system.output.recv(ROUND_LIMIT)?;
-        if reply != frame {
-            bail!("wrong answer in a round with a hung replica");
-        }
-        *seq += 1;
-        let ev = fault_of(system, slot)?;
+        round(system, seq)?;
+        let ev = fault_of(system, slot, t_inject)?;
         if ev.kind == EventKind::Hang {
             let deadline = t_send + timeout_us * 1000;
             // Clamped at 1 ns: the voter cannot fire before its deadline, so an event "before"
@@ -214,18 +194,26 @@ fn hangs(
         } else {
             misclassified += 1;
         }
-        recovered(system, slot)?;
+        recovered(system, slot, t_inject)?;
         settle(system, seq)?;
         bar.inc(1);
     }
     let mut r = row("hang", &h, timeout_us, misclassified);
-    r.extra = Some(serde_json::json!({ "misclassified": misclassified }));
+    r.extra = Some(
+        serde_json::json!({ "misclassified": misclassified, "lost_rounds": system.lost_rounds }),
+    );
     Ok(r)
 }
 
 /// Fault-free rounds; counts every fault event.
-fn false_positives(spec: &Spec, rounds: u64, bar: &indicatif::ProgressBar) -> Result<Row> {
+fn false_positives(
+    spec: &Spec,
+    setup: Setup,
+    rounds: u64,
+    bar: &indicatif::ProgressBar,
+) -> Result<Row> {
     let mut system = System::start(spec)?;
+    setup.apply(&system)?;
     let mut seq = 0;
     for _ in 0..WARMUP_ROUNDS {
         round(&mut system, &mut seq)?;
@@ -234,8 +222,9 @@ fn false_positives(spec: &Spec, rounds: u64, bar: &indicatif::ProgressBar) -> Re
     let mut h = histogram();
     for k in 0..rounds {
         let t0 = replica_rt::sys::monotonic_ns();
-        round(&mut system, &mut seq)?;
-        h.record(replica_rt::sys::monotonic_ns() - t0)?;
+        if round(&mut system, &mut seq)? {
+            h.record(replica_rt::sys::monotonic_ns() - t0)?;
+        }
         if k % 4096 == 4095 {
             bar.inc(4096);
             system.drain_events()?;
@@ -251,16 +240,46 @@ fn false_positives(spec: &Spec, rounds: u64, bar: &indicatif::ProgressBar) -> Re
     }
     let mut r = row("false-positives", &h, spec.timeout_us, faults.len() as u64);
     r.extra = Some(serde_json::json!({
+        "rounds": rounds,
+        "lost_rounds": system.lost_rounds,
         "kinds": faults.iter().map(|f| format!("{:?}", f.kind).to_lowercase()).collect::<Vec<_>>(),
     }));
     Ok(r)
 }
 
-/// The first fault event about `slot`.
-fn fault_of(system: &mut System, slot: usize) -> Result<Event> {
+/// Sends `sig` to the current replica of `slot`; returns the time just before. If that
+/// replica is already gone (a fault the bench did not cause, whose events are still on their
+/// way: under load a replica can miss a short deadline), waits for its replacement and retries.
+fn inject(system: &mut System, slot: usize, sig: i32) -> Result<u64> {
+    system.drain_events()?;
+    for _ in 0..3 {
+        let pid = system.replicas[slot];
+        let t = replica_rt::sys::monotonic_ns();
+        match replica_rt::sys::kill(pid, sig) {
+            Ok(()) => return Ok(t),
+            Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {
+                tracing::debug!(
+                    slot,
+                    pid,
+                    "replica already gone; waiting for its replacement"
+                );
+                system.wait_event(
+                    |e| e.replica == Some(slot) && e.kind == EventKind::Recovery,
+                    EVENT_LIMIT,
+                )?;
+            }
+            Err(e) => return Err(e).context(format!("signal {sig} to replica {slot} (pid {pid})")),
+        }
+    }
+    bail!("replica {slot} kept disappearing before the injection")
+}
+
+/// The first fault event about `slot` at or after `since` (CLOCK_MONOTONIC ns).
+fn fault_of(system: &mut System, slot: usize, since: u64) -> Result<Event> {
     system.wait_event(
         |e| {
             e.replica == Some(slot)
+                && e.ts_ns >= since
                 && !matches!(
                     e.kind,
                     EventKind::Start | EventKind::Recovery | EventKind::RecoveryFailed
@@ -270,10 +289,11 @@ fn fault_of(system: &mut System, slot: usize) -> Result<Event> {
     )
 }
 
-fn recovered(system: &mut System, slot: usize) -> Result<()> {
+fn recovered(system: &mut System, slot: usize, since: u64) -> Result<()> {
     let ev = system.wait_event(
         |e| {
             e.replica == Some(slot)
+                && e.ts_ns >= since
                 && matches!(e.kind, EventKind::Recovery | EventKind::RecoveryFailed)
         },
         EVENT_LIMIT,
@@ -291,17 +311,47 @@ fn settle(system: &mut System, seq: &mut u64) -> Result<()> {
     Ok(())
 }
 
-fn round(system: &mut System, seq: &mut u64) -> Result<()> {
+/// One round. `Ok(false)` if the voter withheld the answer: every replica of the round was
+/// found faulty (under load, all of them can miss a short deadline); the voter says so with
+/// fault events, and the bench then waits for the recoveries and carries on.
+fn round(system: &mut System, seq: &mut u64) -> Result<bool> {
     let mut frame = [0u8; FRAME];
     crate::echo::fill_frame(*seq, &mut frame);
-    let reply = system
-        .exchange(&frame, ROUND_LIMIT)
-        .with_context(|| format!("round {seq}"))?;
-    if reply != frame {
-        bail!("wrong answer in round {seq}");
-    }
     *seq += 1;
-    Ok(())
+    let sent_at = replica_rt::sys::monotonic_ns();
+    system.input.send(&frame, ROUND_LIMIT)?;
+    let deadline = std::time::Instant::now() + ROUND_LIMIT;
+    loop {
+        match system.output.recv(Duration::from_millis(50)) {
+            Ok(reply) if reply == frame => return Ok(true),
+            Ok(_) => bail!("wrong answer in round {}\n{}", *seq - 1, system.log_tail()),
+            Err(FrameIoError::Timeout(_)) if std::time::Instant::now() < deadline => {
+                system.drain_events()?;
+                let faulty: Vec<usize> = system
+                    .faults
+                    .iter()
+                    .filter(|e| e.ts_ns >= sent_at)
+                    .filter_map(|e| e.replica)
+                    .collect();
+                if faulty.len() >= 3 {
+                    system.lost_rounds += 1;
+                    for slot in 0..3 {
+                        recovered(system, slot, sent_at)?;
+                    }
+                    return Ok(false);
+                }
+            }
+            Err(e) => {
+                return Err(e).with_context(|| {
+                    format!(
+                        "waiting for the answer to round {}\n{}",
+                        *seq - 1,
+                        system.log_tail()
+                    )
+                })
+            }
+        }
+    }
 }
 
 pub fn render(rows: &[Row]) -> String {

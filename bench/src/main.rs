@@ -123,6 +123,9 @@ enum Command {
         /// Seed of the choice of victim replicas (printed; random if not given).
         #[arg(long)]
         seed: Option<u64>,
+        /// How processes are scheduled (plain, rr, rr-pinned; see `echo --help`).
+        #[arg(long, value_parser = Setup::parse, default_value = "plain")]
+        setup: Setup,
     },
     /// Resident memory of an idle voter and of replica-rt components beyond their state.
     Memory {
@@ -251,10 +254,12 @@ fn run() -> Result<()> {
             count,
             rounds,
             seed,
+            setup,
         } => {
             let seed = seed.unwrap_or_else(|| replica_rt::sys::monotonic_ns());
             eprintln!("s3res-bench detect: seed = {seed}");
             let opts = detect::DetectOptions {
+                setup,
                 timeouts_us: timeout_us,
                 count,
                 rounds,

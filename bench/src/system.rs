@@ -93,6 +93,8 @@ pub struct System {
     pub faults: Vec<Event>,
     /// Every event in arrival order (kept for the subcommands that need them).
     pub log: Vec<Event>,
+    /// Rounds whose answer the voter withheld (every replica found faulty in the round).
+    pub lost_rounds: u64,
     group_slot: Option<usize>,
     workdir: tempfile::TempDir,
     reaped: bool,
@@ -160,6 +162,7 @@ impl System {
             cmd = Command::new(voter);
             cmd.arg("--plan")
                 .arg(plan.to_json())
+                .env("RUST_LOG", "warn")
                 .env_remove(ENV_VOTER_SOCKET)
                 .env_remove(ENV_REPLICA)
                 .env(ENV_COMPONENT, COMPONENT);
@@ -192,6 +195,7 @@ impl System {
             events: events_rx,
             faults: Vec::new(),
             log: Vec::new(),
+            lost_rounds: 0,
             group_slot,
             workdir,
             reaped: false,
@@ -302,7 +306,26 @@ impl System {
 
     /// The last lines the system wrote to stderr (for error messages).
     pub fn log_tail(&self) -> String {
-        log_tail(self.workdir.path())
+        let from = self.log.len().saturating_sub(8);
+        let events: Vec<String> = self.log[from..]
+            .iter()
+            .map(|e| {
+                format!(
+                    "{} {:?} replica {:?} pid {:?} round {:?} {}",
+                    e.ts_ns,
+                    e.kind,
+                    e.replica,
+                    e.pid,
+                    e.round,
+                    e.detail.as_deref().unwrap_or("")
+                )
+            })
+            .collect();
+        format!(
+            "{}\nlast events:\n{}",
+            log_tail(self.workdir.path()),
+            events.join("\n")
+        )
     }
 
     /// Writes `frame` and waits for the system's answer; errors carry the system's stderr.
