@@ -12,12 +12,12 @@
 //!   round trip).
 //! - `false-positives`: fault-free TMR rounds at the smallest timeout; every fault event counts.
 
+use std::os::fd::AsFd;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use s3res_voter::event::{Event, EventKind};
 
-use crate::frames::FrameIoError;
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};
 use crate::Common;
@@ -123,10 +123,22 @@ fn crashes(
     bar: &indicatif::ProgressBar,
 ) -> Result<Row> {
     let mut h = histogram();
+    let mut exit_h = histogram();
     let mut misclassified = 0;
     for _ in 0..count {
         let slot = rng.below(3) as usize;
-        let t_kill = inject(system, slot, libc::SIGKILL)?;
+        // The bench watches the death itself too: kill → pidfd readable is the kernel's part
+        // (the dying process's memory is torn down before its exit is reported).
+        let (t_kill, pidfd) = inject_watched(system, slot, libc::SIGKILL)?;
+        if let Some(fd) = &pidfd {
+            if replica_rt::sys::wait_readable(fd.as_fd(), EVENT_LIMIT).unwrap_or(false) {
+                exit_h.record(
+                    replica_rt::sys::monotonic_ns()
+                        .saturating_sub(t_kill)
+                        .max(1),
+                )?;
+            }
+        }
         let ev = fault_of(system, slot, t_kill)?;
         if ev.kind == EventKind::Crash {
             h.record(ev.ts_ns.saturating_sub(t_kill).max(1))?;
@@ -251,12 +263,22 @@ fn false_positives(
 /// replica is already gone (a fault the bench did not cause, whose events are still on their
 /// way: under load a replica can miss a short deadline), waits for its replacement and retries.
 fn inject(system: &mut System, slot: usize, sig: i32) -> Result<u64> {
+    inject_watched(system, slot, sig).map(|(t, _)| t)
+}
+
+/// [`inject`], also returning a pidfd of the process that got the signal.
+fn inject_watched(
+    system: &mut System,
+    slot: usize,
+    sig: i32,
+) -> Result<(u64, Option<std::os::fd::OwnedFd>)> {
     system.drain_events()?;
     for _ in 0..3 {
         let pid = system.replicas[slot];
+        let pidfd = replica_rt::sys::pidfd_open(pid).ok();
         let t = replica_rt::sys::monotonic_ns();
         match replica_rt::sys::kill(pid, sig) {
-            Ok(()) => return Ok(t),
+            Ok(()) => return Ok((t, pidfd)),
             Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {
                 tracing::debug!(
                     slot,
@@ -276,26 +298,26 @@ fn inject(system: &mut System, slot: usize, sig: i32) -> Result<u64> {
 
 /// The first fault event about `slot` at or after `since` (CLOCK_MONOTONIC ns).
 fn fault_of(system: &mut System, slot: usize, since: u64) -> Result<Event> {
-    system.wait_event(
+    system.wait_event_since(
         |e| {
             e.replica == Some(slot)
-                && e.ts_ns >= since
                 && !matches!(
                     e.kind,
                     EventKind::Start | EventKind::Recovery | EventKind::RecoveryFailed
                 )
         },
+        since,
         EVENT_LIMIT,
     )
 }
 
 fn recovered(system: &mut System, slot: usize, since: u64) -> Result<()> {
-    let ev = system.wait_event(
+    let ev = system.wait_event_since(
         |e| {
             e.replica == Some(slot)
-                && e.ts_ns >= since
                 && matches!(e.kind, EventKind::Recovery | EventKind::RecoveryFailed)
         },
+        since,
         EVENT_LIMIT,
     )?;
     if ev.kind != EventKind::Recovery {
@@ -311,47 +333,15 @@ fn settle(system: &mut System, seq: &mut u64) -> Result<()> {
     Ok(())
 }
 
-/// One round. `Ok(false)` if the voter withheld the answer: every replica of the round was
-/// found faulty (under load, all of them can miss a short deadline); the voter says so with
-/// fault events, and the bench then waits for the recoveries and carries on.
+/// One round; `false` if the voter withheld the answer (see `System::echo_round`).
 fn round(system: &mut System, seq: &mut u64) -> Result<bool> {
     let mut frame = [0u8; FRAME];
     crate::echo::fill_frame(*seq, &mut frame);
     *seq += 1;
-    let sent_at = replica_rt::sys::monotonic_ns();
-    system.input.send(&frame, ROUND_LIMIT)?;
-    let deadline = std::time::Instant::now() + ROUND_LIMIT;
-    loop {
-        match system.output.recv(Duration::from_millis(50)) {
-            Ok(reply) if reply == frame => return Ok(true),
-            Ok(_) => bail!("wrong answer in round {}\n{}", *seq - 1, system.log_tail()),
-            Err(FrameIoError::Timeout(_)) if std::time::Instant::now() < deadline => {
-                system.drain_events()?;
-                let faulty: Vec<usize> = system
-                    .faults
-                    .iter()
-                    .filter(|e| e.ts_ns >= sent_at)
-                    .filter_map(|e| e.replica)
-                    .collect();
-                if faulty.len() >= 3 {
-                    system.lost_rounds += 1;
-                    for slot in 0..3 {
-                        recovered(system, slot, sent_at)?;
-                    }
-                    return Ok(false);
-                }
-            }
-            Err(e) => {
-                return Err(e).with_context(|| {
-                    format!(
-                        "waiting for the answer to round {}\n{}",
-                        *seq - 1,
-                        system.log_tail()
-                    )
-                })
-            }
-        }
-    }
+    let answered = system
+        .echo_round(&frame, ROUND_LIMIT)
+        .with_context(|| format!("round {}", *seq - 1))?;
+    Ok(answered.is_some())
 }
 
 pub fn render(rows: &[Row]) -> String {
@@ -366,6 +356,17 @@ pub fn render(rows: &[Row]) -> String {
                 report::us(r.p99_us),
                 report::us(r.max_us),
                 r.faults.map(|f| f.to_string()).unwrap_or_default(),
+                r.extra
+                    .as_ref()
+                    .and_then(|e| e.get("lost_rounds"))
+                    .map(|v| v.to_string())
+                    .unwrap_or_default(),
+                r.extra
+                    .as_ref()
+                    .and_then(|e| e.get("kill_to_exit_median_us"))
+                    .and_then(|v| v.as_f64())
+                    .map(report::us)
+                    .unwrap_or_default(),
             ]
         })
         .collect();
@@ -378,6 +379,8 @@ pub fn render(rows: &[Row]) -> String {
             "p99 µs",
             "max µs",
             "faults/misclassified",
+            "lost rounds",
+            "kill→exit µs (kernel)",
         ],
         &cells,
     )

@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 
 use crate::report::{self, histogram, Row, Summary};
@@ -113,17 +113,10 @@ fn measure(
     for seq in 0..total {
         fill_frame(seq, &mut frame);
         let t0 = replica_rt::sys::monotonic_ns();
-        let reply = system
-            .exchange(&frame, ROUND_LIMIT)
+        let answered = system
+            .echo_round(&frame, ROUND_LIMIT)
             .with_context(|| format!("round trip {seq}"))?;
-        let t1 = replica_rt::sys::monotonic_ns();
-        if reply != frame.as_slice() {
-            bail!(
-                "the answer to frame {seq} differs from the frame ({} bytes back)",
-                reply.len()
-            );
-        }
-        if seq >= o.warmup {
+        if let (Some(t1), true) = (answered, seq >= o.warmup) {
             h.record(t1 - t0).context("recording")?;
         }
         if seq % 512 == 511 {
@@ -136,6 +129,9 @@ fn measure(
     if spec.replicas > 0 {
         row.timeout_us = Some(spec.timeout_us);
         row.faults = Some(system.faults.len() as u64);
+        if system.lost_rounds > 0 {
+            row.extra = Some(serde_json::json!({ "lost_rounds": system.lost_rounds }));
+        }
     }
     Ok(row)
 }

@@ -27,7 +27,7 @@ use replica_rt::sys as rsys;
 use s3res_voter::event::{Event, EventKind};
 use s3res_voter::plan::{ExternalPort, RoundTrigger, VoterPlan};
 
-use crate::frames::{FrameIn, FrameOut};
+use crate::frames::{FrameIn, FrameIoError, FrameOut};
 use crate::sys;
 
 /// Where the s3res executables are.
@@ -218,7 +218,7 @@ impl System {
 
     /// Waits until every process that should read the input is blocked reading it (fd 3, as
     /// `/proc/PID/syscall` shows): a replica still starting would miss a short first deadline.
-    fn wait_until_idle(&self, timeout: Duration) -> Result<()> {
+    pub fn wait_until_idle(&self, timeout: Duration) -> Result<()> {
         let pids: Vec<libc::pid_t> = if self.replicas.is_empty() {
             vec![self.top_pid]
         } else {
@@ -294,6 +294,76 @@ impl System {
                 if pred(&ev) {
                     return Ok(ev);
                 }
+            }
+        }
+    }
+
+    /// The first event at or after `since` (CLOCK_MONOTONIC ns) that `pred` accepts, whether it
+    /// has already arrived (and was kept in the log) or is still to come.
+    pub fn wait_event_since(
+        &mut self,
+        mut pred: impl FnMut(&Event) -> bool,
+        since: u64,
+        timeout: Duration,
+    ) -> Result<Event> {
+        if let Some(ev) = self.log.iter().find(|e| e.ts_ns >= since && pred(e)) {
+            return Ok(ev.clone());
+        }
+        self.wait_event(|e| e.ts_ns >= since && pred(e), timeout)
+    }
+
+    /// Writes `frame`, waits for the answer and checks that it equals `frame` (an echo).
+    /// Returns the time the answer had arrived, or `None` if the voter withheld it because every
+    /// replica of the round was found faulty (under heavy load all of them can miss a short
+    /// deadline): then it waits for their replacements, counts a lost round, and goes on.
+    pub fn echo_round(&mut self, frame: &[u8], limit: Duration) -> Result<Option<u64>> {
+        let sent_at = rsys::monotonic_ns();
+        let dir = self.workdir.path().to_path_buf();
+        self.input
+            .send(frame, limit)
+            .map_err(|e| anyhow!("sending a frame: {e}\n{}", log_tail(&dir)))?;
+        let deadline = Instant::now() + limit;
+        let n = self.replicas.len();
+        loop {
+            let wait = if n == 0 {
+                limit
+            } else {
+                Duration::from_millis(20)
+            };
+            match self.output.recv(wait) {
+                Ok(reply) => {
+                    let at = rsys::monotonic_ns();
+                    if reply != frame {
+                        bail!(
+                            "the answer ({} bytes) is not the frame ({} bytes)",
+                            reply.len(),
+                            frame.len()
+                        );
+                    }
+                    return Ok(Some(at));
+                }
+                Err(FrameIoError::Timeout(_)) if n > 0 && Instant::now() < deadline => {
+                    self.drain_events()?;
+                    let blamed = self
+                        .faults
+                        .iter()
+                        .filter(|e| e.ts_ns >= sent_at)
+                        .filter_map(|e| e.replica)
+                        .fold(0u64, |set, r| set | 1 << r);
+                    if blamed.count_ones() as usize >= n {
+                        self.lost_rounds += 1;
+                        for slot in 0..n {
+                            self.wait_event_since(
+                                |e| e.replica == Some(slot) && e.kind == EventKind::Recovery,
+                                sent_at,
+                                Duration::from_secs(30),
+                            )?;
+                        }
+                        self.wait_until_idle(Duration::from_secs(30))?;
+                        return Ok(None);
+                    }
+                }
+                Err(e) => bail!("waiting for the answer: {e}\n{}", self.log_tail()),
             }
         }
     }
