@@ -125,6 +125,7 @@ fn crashes(
     let mut h = histogram();
     let mut exit_h = histogram();
     let mut misclassified = 0;
+    let mut undetected = 0;
     for _ in 0..count {
         let slot = rng.below(3) as usize;
         // The bench watches the death itself too: kill → pidfd readable is the kernel's part
@@ -139,7 +140,10 @@ fn crashes(
                 )?;
             }
         }
-        let ev = fault_of(system, slot, t_kill)?;
+        let Some(ev) = fault_of(system, slot, t_kill)? else {
+            undetected += 1;
+            continue;
+        };
         if ev.kind == EventKind::Crash {
             h.record(ev.ts_ns.saturating_sub(t_kill).max(1))?;
         } else {
@@ -149,10 +153,15 @@ fn crashes(
         settle(system, seq)?;
         bar.inc(1);
     }
-    let mut r = row("crash", &h, timeout_us, misclassified);
-    r.extra = Some(
-        serde_json::json!({ "misclassified": misclassified, "lost_rounds": system.lost_rounds }),
-    );
+    let mut r = row("crash", &h, timeout_us, misclassified + undetected);
+    let exit = Summary::of(&exit_h);
+    r.extra = Some(serde_json::json!({
+        "misclassified": misclassified,
+        "undetected": undetected,
+        "lost_rounds": system.lost_rounds,
+        "kill_to_exit_median_us": exit.median_us,
+        "kill_to_exit_p99_us": exit.p99_us,
+    }));
     Ok(r)
 }
 
@@ -166,18 +175,25 @@ fn crash_rounds(
     bar: &indicatif::ProgressBar,
 ) -> Result<Row> {
     let mut h = histogram();
+    let mut undetected = 0;
     for _ in 0..count {
         let slot = rng.below(3) as usize;
         let t0 = inject(system, slot, libc::SIGKILL)?;
         if round(system, seq)? {
             h.record(replica_rt::sys::monotonic_ns() - t0)?;
         }
-        fault_of(system, slot, t0)?;
+        if fault_of(system, slot, t0)?.is_none() {
+            undetected += 1;
+            continue;
+        }
         recovered(system, slot, t0)?;
         settle(system, seq)?;
         bar.inc(1);
     }
-    Ok(row("crash-round", &h, timeout_us, 0))
+    let mut r = row("crash-round", &h, timeout_us, undetected);
+    r.extra =
+        Some(serde_json::json!({ "undetected": undetected, "lost_rounds": system.lost_rounds }));
+    Ok(r)
 }
 
 /// Make an idle replica spin, send a frame: time from the deadline to the `hang` event.
@@ -191,13 +207,17 @@ fn hangs(
 ) -> Result<Row> {
     let mut h = histogram();
     let mut misclassified = 0;
+    let mut undetected = 0;
     let cfe = replica_rt::contract::signals::inject_cfe();
     for _ in 0..count {
         let slot = rng.below(3) as usize;
         let t_inject = inject(system, slot, cfe)?;
         let t_send = replica_rt::sys::monotonic_ns();
         round(system, seq)?;
-        let ev = fault_of(system, slot, t_inject)?;
+        let Some(ev) = fault_of(system, slot, t_inject)? else {
+            undetected += 1;
+            continue;
+        };
         if ev.kind == EventKind::Hang {
             let deadline = t_send + timeout_us * 1000;
             // Clamped at 1 ns: the voter cannot fire before its deadline, so an event "before"
@@ -210,10 +230,12 @@ fn hangs(
         settle(system, seq)?;
         bar.inc(1);
     }
-    let mut r = row("hang", &h, timeout_us, misclassified);
-    r.extra = Some(
-        serde_json::json!({ "misclassified": misclassified, "lost_rounds": system.lost_rounds }),
-    );
+    let mut r = row("hang", &h, timeout_us, misclassified + undetected);
+    r.extra = Some(serde_json::json!({
+        "misclassified": misclassified,
+        "undetected": undetected,
+        "lost_rounds": system.lost_rounds,
+    }));
     Ok(r)
 }
 
@@ -277,7 +299,14 @@ fn inject_watched(
         let pid = system.replicas[slot];
         let pidfd = replica_rt::sys::pidfd_open(pid).ok();
         let t = replica_rt::sys::monotonic_ns();
-        match replica_rt::sys::kill(pid, sig) {
+        // A zombie accepts signals too: a replica the voter has killed but whose event has not
+        // arrived yet must not "take" the injection.
+        let result = if running(pid) {
+            replica_rt::sys::kill(pid, sig)
+        } else {
+            Err(std::io::Error::from_raw_os_error(libc::ESRCH))
+        };
+        match result {
             Ok(()) => return Ok((t, pidfd)),
             Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {
                 tracing::debug!(
@@ -296,9 +325,21 @@ fn inject_watched(
     bail!("replica {slot} kept disappearing before the injection")
 }
 
-/// The first fault event about `slot` at or after `since` (CLOCK_MONOTONIC ns).
-fn fault_of(system: &mut System, slot: usize, since: u64) -> Result<Event> {
-    system.wait_event_since(
+/// Whether `pid` exists and is not a zombie (`/proc/PID/stat`, the state after the name).
+fn running(pid: libc::pid_t) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .ok()
+        .and_then(|s| {
+            s.rsplit_once(") ")
+                .map(|(_, rest)| !rest.starts_with('Z') && !rest.starts_with('X'))
+        })
+        .unwrap_or(false)
+}
+
+/// The first fault event about `slot` at or after `since` (CLOCK_MONOTONIC ns); `None` if none
+/// came within [`EVENT_LIMIT`] (an undetected injection: counted, and the run goes on).
+fn fault_of(system: &mut System, slot: usize, since: u64) -> Result<Option<Event>> {
+    system.try_wait_event_since(
         |e| {
             e.replica == Some(slot)
                 && !matches!(

@@ -58,7 +58,8 @@ struct CommonArgs {
     /// One JSON object per configuration per line on stdout, instead of a table.
     #[arg(long, global = true)]
     json: bool,
-    /// Write SVG plots into DIR (created if missing).
+    /// Write SVG plots into DIR (created if missing): echo writes fig3-round-trip.svg,
+    /// restart fig4-restart.svg.
     #[arg(long, value_name = "DIR", global = true)]
     plot: Option<PathBuf>,
     /// Folder of the s3res executables (default: the folder of s3res-bench).
@@ -108,6 +109,10 @@ enum Command {
         /// takes a while to start, and hangs are not what this measures).
         #[arg(long, default_value_t = 2_000_000)]
         timeout_us: u64,
+        /// How processes are scheduled (plain, rr, rr-pinned; see `echo --help`). The floor's
+        /// fork runs at the bench's own scheduling of that setup.
+        #[arg(long, value_parser = Setup::parse, default_value = "plain")]
+        setup: Setup,
     },
     /// Crash and hang detection latency; false positives in fault-free rounds.
     Detect {
@@ -237,11 +242,12 @@ fn run() -> Result<()> {
             size,
             count,
             timeout_us,
+            setup,
         } => {
             if count == 0 {
                 bail!("--count must be at least 1");
             }
-            let rows = restart::run(&common, &size, count, timeout_us)?;
+            let rows = restart::run(&common, &size, count, timeout_us, setup)?;
             report::emit(&rows, json, restart::render);
             if let Some(dir) = plot_dir {
                 let path = dir.join("fig4-restart.svg");
@@ -267,11 +273,6 @@ fn run() -> Result<()> {
             };
             let rows = detect::run(&common, &opts)?;
             report::emit(&rows, json, detect::render);
-            if let Some(dir) = plot_dir {
-                let path = dir.join("detect.svg");
-                plot::detect(&rows, &path)?;
-                eprintln!("wrote {}", path.display());
-            }
         }
         Command::Memory { size } => {
             let rows = memory::run(&common, &size)?;

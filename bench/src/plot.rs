@@ -133,9 +133,20 @@ pub fn round_trip(rows: &[Row], path: &Path) -> Result<()> {
         "s3res round trip by replication level (median)",
         "frame payload",
         "round trip, µs",
-        |x| report::bytes_name(x.round() as u64),
+        axis_bytes,
         &series,
     )
+}
+
+/// Axis label for a byte count: the log axis puts its marks at powers of ten.
+fn axis_bytes(x: &f64) -> String {
+    let n = x.round() as u64;
+    match n {
+        n if n >= 1_000_000_000 => format!("{} GB", n / 1_000_000_000),
+        n if n >= 1_000_000 => format!("{} MB", n / 1_000_000),
+        n if n >= 1_000 => format!("{} kB", n / 1_000),
+        n => format!("{n} B"),
+    }
 }
 
 /// Figure 4: restart (detection → ready) and the fork+touch floor by state size.
@@ -160,56 +171,7 @@ pub fn restart(rows: &[Row], path: &Path) -> Result<()> {
         "s3res TMR replica restart by component state",
         "resident state",
         "µs",
-        |x| report::bytes_name(x.round() as u64),
-        &series,
-    )
-}
-
-/// Detection latencies: median, p99 and max per measure and timeout.
-pub fn detect(rows: &[Row], path: &Path) -> Result<()> {
-    let timed: Vec<&Row> = rows
-        .iter()
-        .filter(|r| r.what.as_deref() != Some("false-positives") && r.count > 0)
-        .collect();
-    let series: Vec<Series> = ["median", "p99", "max"]
-        .iter()
-        .enumerate()
-        .map(|(k, name)| Series {
-            label: (*name).into(),
-            points: timed
-                .iter()
-                .enumerate()
-                .map(|(i, r)| {
-                    let y = [r.median_us, r.p99_us, r.max_us][k];
-                    ((i + 1) as f64, y.max(0.1))
-                })
-                .collect(),
-            dashed: k > 0,
-        })
-        .collect();
-    let labels: Vec<String> = timed
-        .iter()
-        .map(|r| {
-            format!(
-                "{} @{} ms",
-                r.what.as_deref().unwrap_or(""),
-                r.timeout_us.unwrap_or(0) as f64 / 1000.0
-            )
-        })
-        .collect();
-    log_log(
-        path,
-        "s3res fault detection latency",
-        "measure",
-        "µs",
-        move |x| {
-            let i = x.round() as usize;
-            if (x - i as f64).abs() < 0.05 && i >= 1 {
-                labels.get(i - 1).cloned().unwrap_or_default()
-            } else {
-                String::new()
-            }
-        },
+        axis_bytes,
         &series,
     )
 }

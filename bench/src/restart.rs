@@ -11,7 +11,7 @@ use anyhow::{bail, Context, Result};
 use s3res_voter::event::{EventKind, RecoveryMethod};
 
 use crate::report::{self, histogram, Row, Summary};
-use crate::system::{Spec, System};
+use crate::system::{Setup, Spec, System};
 use crate::{sys, Common};
 
 /// Rounds after start (replicas must have answered before they can be donors).
@@ -24,7 +24,13 @@ const EVENT_LIMIT: Duration = Duration::from_secs(30);
 /// Frame payload of the rounds in between (bytes).
 const FRAME: usize = 64;
 
-pub fn run(common: &Common, sizes: &[u64], count: u64, timeout_us: u64) -> Result<Vec<Row>> {
+pub fn run(
+    common: &Common,
+    sizes: &[u64],
+    count: u64,
+    timeout_us: u64,
+    setup: Setup,
+) -> Result<Vec<Row>> {
     let ballast = common.bins.path("s3res-ballast")?;
     let voter = common.bins.path("s3res-voter")?;
     let bar = common.progress(sizes.len() as u64 * count * 2, "restart");
@@ -39,11 +45,13 @@ pub fn run(common: &Common, sizes: &[u64], count: u64, timeout_us: u64) -> Resul
             max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
             voter: Some(voter.clone()),
         };
-        let (restart, extra) = restarts(&spec, count, &bar)
+        let (restart, extra) = restarts(&spec, setup, count, &bar)
             .with_context(|| format!("restart with {} of state", report::bytes_name(size)))?;
         let floor = floor(size as usize, count, &bar)
             .with_context(|| format!("floor for {}", report::bytes_name(size)))?;
+        Setup::reset_bench();
         let mut row = Row::new("restart", 3, size, restart);
+        row.setup = setup.name();
         row.timeout_us = Some(timeout_us);
         row.floor_us = Some(floor.median_us);
         row.floor_p99_us = Some(floor.p99_us);
@@ -58,10 +66,13 @@ pub fn run(common: &Common, sizes: &[u64], count: u64, timeout_us: u64) -> Resul
 /// Kills a replica `count` times (slots in turn) and times each recovery from the events.
 fn restarts(
     spec: &Spec,
+    setup: Setup,
     count: u64,
     bar: &indicatif::ProgressBar,
 ) -> Result<(Summary, serde_json::Value)> {
     let mut system = System::start(spec)?;
+    // Fork children inherit their donor's policy and affinity.
+    setup.apply(&system)?;
     let mut seq = 0u64;
     for _ in 0..WARMUP_ROUNDS {
         round(&mut system, &mut seq)?;

@@ -275,9 +275,24 @@ impl System {
     /// Waits for the first event `pred` accepts (others are tracked and kept in the log).
     pub fn wait_event(
         &mut self,
-        mut pred: impl FnMut(&Event) -> bool,
+        pred: impl FnMut(&Event) -> bool,
         timeout: Duration,
     ) -> Result<Event> {
+        match self.try_wait_event(pred, timeout)? {
+            Some(ev) => Ok(ev),
+            None => bail!(
+                "the expected event did not come within {timeout:?}\n{}",
+                self.log_tail()
+            ),
+        }
+    }
+
+    /// [`wait_event`](Self::wait_event), `None` on timeout.
+    pub fn try_wait_event(
+        &mut self,
+        mut pred: impl FnMut(&Event) -> bool,
+        timeout: Duration,
+    ) -> Result<Option<Event>> {
         let deadline = Instant::now() + timeout;
         loop {
             if sys::interrupted() {
@@ -285,17 +300,28 @@ impl System {
             }
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
-                bail!(
-                    "the expected event did not come within {timeout:?}\n{}",
-                    self.log_tail()
-                );
+                return Ok(None);
             }
             if let Some(ev) = self.next_event(left.min(Duration::from_millis(100)))? {
                 if pred(&ev) {
-                    return Ok(ev);
+                    return Ok(Some(ev));
                 }
             }
         }
+    }
+
+    /// The first event at or after `since` that `pred` accepts, already arrived or to come;
+    /// `None` on timeout.
+    pub fn try_wait_event_since(
+        &mut self,
+        mut pred: impl FnMut(&Event) -> bool,
+        since: u64,
+        timeout: Duration,
+    ) -> Result<Option<Event>> {
+        if let Some(ev) = self.log.iter().find(|e| e.ts_ns >= since && pred(e)) {
+            return Ok(Some(ev.clone()));
+        }
+        self.try_wait_event(|e| e.ts_ns >= since && pred(e), timeout)
     }
 
     /// The first event at or after `since` (CLOCK_MONOTONIC ns) that `pred` accepts, whether it
