@@ -16,6 +16,7 @@ use std::os::fd::AsFd;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+use hdrhistogram::Histogram;
 use s3res_voter::event::{Event, EventKind};
 
 use crate::report::{self, histogram, Row, Summary};
@@ -105,12 +106,56 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     Ok(rows)
 }
 
-fn row(what: &str, h: &hdrhistogram::Histogram<u64>, timeout_us: u64, faults: u64) -> Row {
+fn row(what: &str, h: &Histogram<u64>, timeout_us: u64, faults: u64) -> Row {
     let mut r = Row::new("detect", 3, FRAME as u64, Summary::of(h));
     r.what = Some(what.into());
     r.timeout_us = Some(timeout_us);
     r.faults = Some(faults);
     r
+}
+
+/// Injections not seen as what they were.
+#[derive(Debug, Default)]
+struct Tally {
+    /// Seen as another kind of fault.
+    misclassified: u64,
+    /// No fault event about the victim within [`EVENT_LIMIT`].
+    undetected: u64,
+}
+
+impl Tally {
+    fn row(&self, what: &str, h: &Histogram<u64>, timeout_us: u64, system: &System) -> Row {
+        let mut r = row(what, h, timeout_us, self.misclassified + self.undetected);
+        r.extra = Some(serde_json::json!({
+            "misclassified": self.misclassified,
+            "undetected": self.undetected,
+            "lost_rounds": system.lost_rounds,
+        }));
+        r
+    }
+}
+
+/// After an injection into `slot` at `since`: the victim's fault event's timestamp if it is of
+/// kind `want` (else it is tallied), then the victim's replacement and two quiet rounds.
+fn observe(
+    system: &mut System,
+    seq: &mut u64,
+    slot: usize,
+    since: u64,
+    want: EventKind,
+    tally: &mut Tally,
+) -> Result<Option<u64>> {
+    let Some(ev) = fault_of(system, slot, since)? else {
+        tally.undetected += 1;
+        return Ok(None);
+    };
+    let ts = (ev.kind == want).then_some(ev.ts_ns);
+    if ts.is_none() {
+        tally.misclassified += 1;
+    }
+    recovered(system, slot, since)?;
+    settle(system, seq)?;
+    Ok(ts)
 }
 
 /// Kill an idle replica; time to its `crash` event.
@@ -124,8 +169,7 @@ fn crashes(
 ) -> Result<Row> {
     let mut h = histogram();
     let mut exit_h = histogram();
-    let mut misclassified = 0;
-    let mut undetected = 0;
+    let mut tally = Tally::default();
     for _ in 0..count {
         let slot = rng.below(3) as usize;
         // The bench watches the death itself too: kill → pidfd readable is the kernel's part
@@ -140,28 +184,17 @@ fn crashes(
                 )?;
             }
         }
-        let Some(ev) = fault_of(system, slot, t_kill)? else {
-            undetected += 1;
-            continue;
-        };
-        if ev.kind == EventKind::Crash {
-            h.record(ev.ts_ns.saturating_sub(t_kill).max(1))?;
-        } else {
-            misclassified += 1;
+        if let Some(ts) = observe(system, seq, slot, t_kill, EventKind::Crash, &mut tally)? {
+            h.record(ts.saturating_sub(t_kill).max(1))?;
         }
-        recovered(system, slot, t_kill)?;
-        settle(system, seq)?;
         bar.inc(1);
     }
-    let mut r = row("crash", &h, timeout_us, misclassified + undetected);
+    let mut r = tally.row("crash", &h, timeout_us, system);
     let exit = Summary::of(&exit_h);
-    r.extra = Some(serde_json::json!({
-        "misclassified": misclassified,
-        "undetected": undetected,
-        "lost_rounds": system.lost_rounds,
-        "kill_to_exit_median_us": exit.median_us,
-        "kill_to_exit_p99_us": exit.p99_us,
-    }));
+    if let Some(extra) = r.extra.as_mut() {
+        extra["kill_to_exit_median_us"] = exit.median_us.into();
+        extra["kill_to_exit_p99_us"] = exit.p99_us.into();
+    }
     Ok(r)
 }
 
@@ -175,25 +208,17 @@ fn crash_rounds(
     bar: &indicatif::ProgressBar,
 ) -> Result<Row> {
     let mut h = histogram();
-    let mut undetected = 0;
+    let mut tally = Tally::default();
     for _ in 0..count {
         let slot = rng.below(3) as usize;
         let t0 = inject(system, slot, libc::SIGKILL)?;
         if round(system, seq)? {
             h.record(replica_rt::sys::monotonic_ns() - t0)?;
         }
-        if fault_of(system, slot, t0)?.is_none() {
-            undetected += 1;
-            continue;
-        }
-        recovered(system, slot, t0)?;
-        settle(system, seq)?;
+        observe(system, seq, slot, t0, EventKind::Crash, &mut tally)?;
         bar.inc(1);
     }
-    let mut r = row("crash-round", &h, timeout_us, undetected);
-    r.extra =
-        Some(serde_json::json!({ "undetected": undetected, "lost_rounds": system.lost_rounds }));
-    Ok(r)
+    Ok(tally.row("crash-round", &h, timeout_us, system))
 }
 
 /// Make an idle replica spin, send a frame: time from the deadline to the `hang` event.
@@ -206,37 +231,22 @@ fn hangs(
     bar: &indicatif::ProgressBar,
 ) -> Result<Row> {
     let mut h = histogram();
-    let mut misclassified = 0;
-    let mut undetected = 0;
+    let mut tally = Tally::default();
     let cfe = replica_rt::contract::signals::inject_cfe();
     for _ in 0..count {
         let slot = rng.below(3) as usize;
         let t_inject = inject(system, slot, cfe)?;
         let t_send = replica_rt::sys::monotonic_ns();
         round(system, seq)?;
-        let Some(ev) = fault_of(system, slot, t_inject)? else {
-            undetected += 1;
-            continue;
-        };
-        if ev.kind == EventKind::Hang {
+        if let Some(ts) = observe(system, seq, slot, t_inject, EventKind::Hang, &mut tally)? {
             let deadline = t_send + timeout_us * 1000;
             // Clamped at 1 ns: the voter cannot fire before its deadline, so an event "before"
             // it would only be clock granularity.
-            h.record(ev.ts_ns.saturating_sub(deadline).max(1))?;
-        } else {
-            misclassified += 1;
+            h.record(ts.saturating_sub(deadline).max(1))?;
         }
-        recovered(system, slot, t_inject)?;
-        settle(system, seq)?;
         bar.inc(1);
     }
-    let mut r = row("hang", &h, timeout_us, misclassified + undetected);
-    r.extra = Some(serde_json::json!({
-        "misclassified": misclassified,
-        "undetected": undetected,
-        "lost_rounds": system.lost_rounds,
-    }));
-    Ok(r)
+    Ok(tally.row("hang", &h, timeout_us, system))
 }
 
 /// Fault-free rounds; counts every fault event.

@@ -232,11 +232,9 @@ fn run() -> Result<()> {
             };
             let rows = echo::run(&common, &opts)?;
             report::emit(&rows, json, echo::render);
-            if let Some(dir) = plot_dir {
-                let path = dir.join("fig3-round-trip.svg");
-                plot::round_trip(&rows, &path)?;
-                eprintln!("wrote {}", path.display());
-            }
+            write_plot(plot_dir, "fig3-round-trip.svg", |p| {
+                plot::round_trip(&rows, p)
+            })?;
         }
         Command::Restart {
             size,
@@ -249,11 +247,7 @@ fn run() -> Result<()> {
             }
             let rows = restart::run(&common, &size, count, timeout_us, setup)?;
             report::emit(&rows, json, restart::render);
-            if let Some(dir) = plot_dir {
-                let path = dir.join("fig4-restart.svg");
-                plot::restart(&rows, &path)?;
-                eprintln!("wrote {}", path.display());
-            }
+            write_plot(plot_dir, "fig4-restart.svg", |p| plot::restart(&rows, p))?;
         }
         Command::Detect {
             timeout_us,
@@ -278,6 +272,20 @@ fn run() -> Result<()> {
             let rows = memory::run(&common, &size)?;
             memory::emit(&rows, json);
         }
+    }
+    Ok(())
+}
+
+/// Writes plot `name` into `dir` with `draw`, if a plot folder was asked for.
+fn write_plot(
+    dir: Option<PathBuf>,
+    name: &str,
+    draw: impl FnOnce(&std::path::Path) -> Result<()>,
+) -> Result<()> {
+    if let Some(dir) = dir {
+        let path = dir.join(name);
+        draw(&path)?;
+        eprintln!("wrote {}", path.display());
     }
     Ok(())
 }
