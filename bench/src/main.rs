@@ -256,7 +256,7 @@ fn run() -> Result<()> {
             seed,
             setup,
         } => {
-            let seed = seed.unwrap_or_else(|| replica_rt::sys::monotonic_ns());
+            let seed = seed.unwrap_or_else(replica_rt::sys::monotonic_ns);
             eprintln!("s3res-bench detect: seed = {seed}");
             let opts = detect::DetectOptions {
                 setup,
