@@ -132,6 +132,12 @@ enum Command {
         #[arg(long, value_parser = Setup::parse, default_value = "plain")]
         setup: Setup,
     },
+    /// Draw the plots again from saved JSON lines (echo and restart rows) into --plot DIR.
+    Plot {
+        /// Files of JSON lines written with --json.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+    },
     /// Resident memory of an idle voter and of replica-rt components beyond their state.
     Memory {
         /// Ballast states to measure the runtime's overhead against (suffixes k, m).
@@ -267,6 +273,40 @@ fn run() -> Result<()> {
             };
             let rows = detect::run(&common, &opts)?;
             report::emit(&rows, json, detect::render);
+        }
+        Command::Plot { files } => {
+            let Some(dir) = plot_dir else {
+                bail!("plot needs --plot DIR");
+            };
+            let mut rows = Vec::new();
+            for f in &files {
+                let text = std::fs::read_to_string(f)
+                    .with_context(|| format!("reading {}", f.display()))?;
+                for (n, line) in text
+                    .lines()
+                    .enumerate()
+                    .filter(|(_, l)| !l.trim().is_empty())
+                {
+                    let v: serde_json::Value = serde_json::from_str(line)
+                        .with_context(|| format!("{}:{}: not JSON", f.display(), n + 1))?;
+                    rows.extend(report::Row::from_json(&v));
+                }
+            }
+            let (echo, restart): (Vec<_>, Vec<_>) =
+                rows.into_iter().partition(|r| r.bench == "echo");
+            if echo.is_empty() && restart.is_empty() {
+                bail!("no echo or restart rows in the given files");
+            }
+            if !echo.is_empty() {
+                write_plot(Some(dir.clone()), "fig3-round-trip.svg", |p| {
+                    plot::round_trip(&echo, p)
+                })?;
+            }
+            if !restart.is_empty() {
+                write_plot(Some(dir), "fig4-restart.svg", |p| {
+                    plot::restart(&restart, p)
+                })?;
+            }
         }
         Command::Memory { size } => {
             let rows = memory::run(&common, &size)?;

@@ -25,7 +25,10 @@ fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
 struct Series {
     label: String,
     points: Vec<(f64, f64)>,
-    dashed: bool,
+    /// Index into the palette.
+    color: usize,
+    /// `(dash, gap)` in pixels; `None` for a solid line.
+    dash: Option<(u32, u32)>,
 }
 
 fn log_log(
@@ -67,16 +70,21 @@ fn log_log(
         .y_label_formatter(&|y| format!("{y}"))
         .draw()
         .map_err(err)?;
-    for (i, s) in series.iter().enumerate() {
-        let color = PALETTE[i % PALETTE.len()];
+    for s in series {
+        let color = PALETTE[s.color % PALETTE.len()];
         let style = ShapeStyle {
             color: color.to_rgba(),
             filled: true,
             stroke_width: 2,
         };
-        if s.dashed {
+        if let Some((dash, gap)) = s.dash {
             chart
-                .draw_series(DashedLineSeries::new(s.points.iter().copied(), 6, 4, style))
+                .draw_series(DashedLineSeries::new(
+                    s.points.iter().copied(),
+                    dash,
+                    gap,
+                    style,
+                ))
                 .map_err(err)?
                 .label(s.label.clone())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color));
@@ -125,7 +133,12 @@ pub fn round_trip(rows: &[Row], path: &Path) -> Result<()> {
                 .filter(|r| r.setup == setup && r.replicas == n)
                 .map(|r| (r.size as f64, r.median_us))
                 .collect(),
-            dashed: setup != "plain",
+            color: n,
+            dash: match setup {
+                "plain" => None,
+                "rr" => Some((8, 4)),
+                _ => Some((2, 4)),
+            },
         })
         .collect();
     log_log(
@@ -149,23 +162,35 @@ fn axis_bytes(x: &f64) -> String {
     }
 }
 
-/// Figure 4: restart (detection → ready) and the fork+touch floor by state size.
+/// Figure 4: restart (detection → ready) and the fork+touch floor by state size, per setup.
 pub fn restart(rows: &[Row], path: &Path) -> Result<()> {
-    let series = vec![
-        Series {
-            label: "restart by fork, detection → ready (median)".into(),
-            points: rows.iter().map(|r| (r.size as f64, r.median_us)).collect(),
-            dashed: false,
-        },
-        Series {
-            label: "floor: fork + touch every page (median)".into(),
+    let mut setups: Vec<&str> = rows.iter().map(|r| r.setup).collect();
+    setups.sort();
+    setups.dedup();
+    let mut series = Vec::new();
+    for (k, &setup) in setups.iter().enumerate() {
+        let of = |r: &&Row| r.setup == setup;
+        series.push(Series {
+            label: format!("restart by fork, detection → ready, median ({setup})"),
             points: rows
                 .iter()
+                .filter(of)
+                .map(|r| (r.size as f64, r.median_us))
+                .collect(),
+            color: 3 + k,
+            dash: None,
+        });
+        series.push(Series {
+            label: format!("floor: fork + touch every page, median ({setup})"),
+            points: rows
+                .iter()
+                .filter(of)
                 .filter_map(|r| r.floor_us.map(|f| (r.size as f64, f)))
                 .collect(),
-            dashed: true,
-        },
-    ];
+            color: 3 + k,
+            dash: Some((8, 4)),
+        });
+    }
     log_log(
         path,
         "s3res TMR replica restart by component state",

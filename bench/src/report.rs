@@ -98,6 +98,38 @@ impl Row {
     pub fn to_json(&self) -> String {
         serde_json::to_string(self).expect("a row always serializes")
     }
+
+    /// An `echo` or `restart` row back from its JSON line (for replotting); `None` for other
+    /// benches or a line without the keys a plot needs.
+    pub fn from_json(v: &serde_json::Value) -> Option<Row> {
+        let bench = match v.get("bench")?.as_str()? {
+            "echo" => "echo",
+            "restart" => "restart",
+            _ => return None,
+        };
+        let setup = crate::system::Setup::parse(v.get("setup")?.as_str()?)
+            .ok()?
+            .name();
+        let num = |k: &str| v.get(k).and_then(serde_json::Value::as_f64);
+        let s = Summary {
+            count: v.get("count")?.as_u64()?,
+            median_us: num("median_us")?,
+            p99_us: num("p99_us")?,
+            p999_us: num("p999_us").unwrap_or(f64::NAN),
+            max_us: num("max_us")?,
+            min_us: f64::NAN,
+        };
+        let mut row = Row::new(
+            bench,
+            v.get("replicas")?.as_u64()? as usize,
+            v.get("size")?.as_u64()?,
+            s,
+        );
+        row.setup = setup;
+        row.floor_us = num("floor_us");
+        row.ratio = num("ratio");
+        Some(row)
+    }
 }
 
 /// `none`, `smr`, `dmr`, `tmr`, or `nmr(n)`.
@@ -209,6 +241,22 @@ mod tests {
             assert!(v.get(k).is_some(), "missing {k}: {v}");
         }
         assert!(v.get("floor_us").is_none());
+    }
+
+    #[test]
+    fn rows_come_back_from_json() {
+        let mut r = Row::new("restart", 3, 1 << 20, Summary::default());
+        r.setup = "rr";
+        r.floor_us = Some(12.5);
+        let v: serde_json::Value = serde_json::from_str(&r.to_json()).unwrap();
+        let back = Row::from_json(&v).unwrap();
+        assert_eq!(
+            (back.bench, back.setup, back.size),
+            ("restart", "rr", 1 << 20)
+        );
+        assert_eq!(back.floor_us, Some(12.5));
+        let other = serde_json::json!({"bench": "memory", "setup": "plain"});
+        assert!(Row::from_json(&other).is_none());
     }
 
     #[test]
