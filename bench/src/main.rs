@@ -91,8 +91,9 @@ enum Command {
         #[arg(long, default_value_t = 20_000)]
         timeout_us: u64,
         /// How processes are scheduled: plain (default scheduler), rr (SCHED_RR: bench and voter
-        /// 60, replicas 50), rr-pinned (rr, bench and voter on CPU 0, the rest on CPU 1).
-        /// rr and rr-pinned need root or CAP_SYS_NICE.
+        /// 60, replicas 50), rr-pinned (rr, bench and voter on CPU 0, the rest on CPU 1),
+        /// one-cpu (default scheduler, everything on CPU 0). rr and rr-pinned need root or
+        /// CAP_SYS_NICE.
         #[arg(long, value_delimiter = ',', value_parser = Setup::parse, default_value = "plain")]
         setup: Vec<Setup>,
     },
@@ -225,7 +226,11 @@ fn run() -> Result<()> {
             if count == 0 {
                 bail!("--count must be at least 1");
             }
-            if setup.iter().any(|&s| s != Setup::Plain) && !sys::is_root() {
+            if setup
+                .iter()
+                .any(|&s| matches!(s, Setup::Rr | Setup::RrPinned))
+                && !sys::is_root()
+            {
                 tracing::warn!("setups rr and rr-pinned need root or CAP_SYS_NICE; they may fail");
             }
             let opts = echo::EchoOptions {

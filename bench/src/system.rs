@@ -540,6 +540,11 @@ pub enum Setup {
     Rr,
     /// SCHED_RR as above, bench and voter on CPU 0, the component's processes on CPU 1.
     RrPinned,
+    /// Default scheduler, every process (bench, voter, replicas) on CPU 0: no cross-CPU
+    /// wake-up at all.
+    OneCpu,
+    /// SCHED_RR as `rr`, every process on CPU 0.
+    RrOneCpu,
 }
 
 impl Setup {
@@ -548,6 +553,8 @@ impl Setup {
             Setup::Plain => "plain",
             Setup::Rr => "rr",
             Setup::RrPinned => "rr-pinned",
+            Setup::OneCpu => "one-cpu",
+            Setup::RrOneCpu => "rr-one-cpu",
         }
     }
 
@@ -556,45 +563,51 @@ impl Setup {
             "plain" => Ok(Setup::Plain),
             "rr" => Ok(Setup::Rr),
             "rr-pinned" => Ok(Setup::RrPinned),
+            "one-cpu" => Ok(Setup::OneCpu),
+            "rr-one-cpu" => Ok(Setup::RrOneCpu),
             _ => Err(format!(
-                "unknown setup `{s}`; expected plain, rr or rr-pinned"
+                "unknown setup `{s}`; expected plain, rr, rr-pinned, one-cpu or rr-one-cpu"
             )),
         }
     }
 
     /// Applies the setup to the bench's calling thread and to `system`'s processes.
     pub fn apply(self, system: &System) -> Result<()> {
-        if self == Setup::Plain {
-            return Ok(());
-        }
-        let pinned = self == Setup::RrPinned;
+        let what = |who: &str, pid: i32| format!("SCHED_RR/affinity for {who} (pid {pid})");
+        // (SCHED_RR?, CPUs of the bench and voter, CPUs of the component's processes); an
+        // empty CPU list leaves the affinity alone.
+        let (rr, cpus_top, cpus_rest): (bool, &[usize], &[usize]) = match self {
+            Setup::Plain => return Ok(()),
+            Setup::Rr => (true, &[], &[]),
+            Setup::RrPinned => (true, &[0], &[1]),
+            Setup::OneCpu => (false, &[0], &[0]),
+            Setup::RrOneCpu => (true, &[0], &[0]),
+        };
         let cpus = sys::online_cpus();
-        if pinned && cpus < 2 {
-            bail!("rr-pinned needs 2 CPUs, this machine has {cpus}");
+        if cpus_rest.contains(&1) && cpus < 2 {
+            bail!("{} needs 2 CPUs, this machine has {cpus}", self.name());
         }
         let high = sys::Policy::RoundRobin(60);
         let low = sys::Policy::RoundRobin(50);
-        let what = |who: &str, pid: i32| format!("SCHED_RR/affinity for {who} (pid {pid})");
-        sys::set_policy(0, high).with_context(|| what("the bench", 0))?;
-        if pinned {
-            sys::set_affinity(0, &[0]).with_context(|| what("the bench", 0))?;
-        }
-        let top_policy = if system.replicas.is_empty() {
-            low
-        } else {
-            high
+        // The lone component (no voter) is "the rest", not the voter.
+        let alone = system.replicas.is_empty();
+        let apply = |pid: i32, who: &str, policy, cpus: &[usize]| -> Result<()> {
+            if rr {
+                sys::set_policy(pid, policy).with_context(|| what(who, pid))?;
+            }
+            if !cpus.is_empty() {
+                sys::set_affinity(pid, cpus).with_context(|| what(who, pid))?;
+            }
+            Ok(())
         };
-        sys::set_policy(system.top_pid, top_policy).with_context(|| what("top", system.top_pid))?;
-        if pinned {
-            let cpu = if system.replicas.is_empty() { 1 } else { 0 };
-            sys::set_affinity(system.top_pid, &[cpu])
-                .with_context(|| what("top", system.top_pid))?;
+        apply(0, "the bench", high, cpus_top)?;
+        if alone {
+            apply(system.top_pid, "the component", low, cpus_rest)?;
+        } else {
+            apply(system.top_pid, "the voter", high, cpus_top)?;
         }
         for &pid in &system.replicas {
-            sys::set_policy(pid, low).with_context(|| what("replica", pid))?;
-            if pinned {
-                sys::set_affinity(pid, &[1]).with_context(|| what("replica", pid))?;
-            }
+            apply(pid, "a replica", low, cpus_rest)?;
         }
         Ok(())
     }
