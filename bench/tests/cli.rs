@@ -117,7 +117,8 @@ fn echo_reports_every_configuration_with_its_ratio_and_plots() {
     cmd.args(["echo", "--replicas", "0,1,3", "--size", "8,4k"])
         .args(["--count", "200", "--warmup", "20", "--json", "--plot"])
         .arg(plots.path());
-    let rows = json_lines(&run(cmd));
+    let out = run(cmd);
+    let rows = json_lines(&out);
     assert_eq!(rows.len(), 6, "{rows:?}");
     for r in &rows {
         assert_keys(r, &KEYS);
