@@ -171,20 +171,40 @@ extern "C" fn on_restart(_sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *m
 fn become_replacement(nonce: u32) {
     let donor = getppid();
     crate::inject::clear_pending();
-    if join_voter(nonce).is_err() {
+    let Ok(sock) = join_voter(nonce) else {
         sys::exit_now(CHILD_FAILED);
-    }
+    };
+    // Own pages and locked memory *before* `Ready`: the voter counts us as a member of the next
+    // round from `Ready` on, and a page walk after it (milliseconds for a few MiB, tens of ms
+    // for tens of MiB) would make us miss that round's deadline and be killed as hung, again
+    // and again. It also makes the voter's recovery time the time to a replica that can answer.
     // SAFETY: the fork child has a single thread.
     let _ = unsafe { crate::cow::break_cow_sharing() };
     // Locks are not inherited over fork. A failure cannot be logged here; the donor already
     // logged it at init if it was refused.
     let _ = sys::lock_all_memory();
+    // Whole frames the donor had sent per port at the fork (stream mode lines our output up
+    // with the donor's from these).
+    let mut frames_sent = [0u64; MAX_PORTS];
+    for (dst, n) in frames_sent.iter_mut().zip(&FRAMES_SENT) {
+        *dst = n.load(Ordering::Relaxed);
+    }
+    let ready = Ready {
+        magic: READY_MAGIC,
+        pid: sys::getpid(),
+        frames_sent,
+    };
+    // A voter that gave up meanwhile has closed the connection: leave.
+    if send_all(sock.0, &ready.to_bytes()).is_err() {
+        sys::exit_now(CHILD_FAILED);
+    }
+    drop(sock);
     FORKED_FROM.store(donor, Ordering::Relaxed);
 }
 
-/// Steps 1–3 of the handshake. `Err(())` carries no detail: there is nobody to tell but the
-/// voter, which sees the exit.
-fn join_voter(nonce: u32) -> Result<(), ()> {
+/// Steps 1–3 of the handshake, up to (not including) `Ready`; returns the connection.
+/// `Err(())` carries no detail: there is nobody to tell but the voter, which sees the exit.
+fn join_voter(nonce: u32) -> Result<Fd, ()> {
     let addr = VOTER_ADDR.get().ok_or(())?;
     let sock = Fd(socket()?);
     // A voter that gave up on this attempt never answers: time out and exit, rather than
@@ -214,19 +234,7 @@ fn join_voter(nonce: u32) -> Result<(), ()> {
         return Err(());
     }
     place_fds(fds, &transfer.targets[..n])?;
-    let mut frames_sent = [0u64; MAX_PORTS];
-    for (dst, n) in frames_sent.iter_mut().zip(&FRAMES_SENT) {
-        *dst = n.load(Ordering::Relaxed);
-    }
-    send_all(
-        sock.0,
-        &Ready {
-            magic: READY_MAGIC,
-            pid: sys::getpid(),
-            frames_sent,
-        }
-        .to_bytes(),
-    )
+    Ok(sock)
 }
 
 /// Puts `fds[i]` on fd number `targets[i]` and closes `fds[i]`.

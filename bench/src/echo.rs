@@ -1,0 +1,173 @@
+//! `s3res-bench echo`: round trips through `s3res-echo`, directly (no voter) and under the
+//! voter at each replication level, for each frame size: the S³RES paper's Figure 3.
+
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use indicatif::ProgressBar;
+
+use crate::report::{self, histogram, Row, Summary};
+use crate::system::{Setup, Spec, System};
+use crate::Common;
+
+/// Longest a single round trip may take before the run is abandoned as broken.
+const ROUND_LIMIT: Duration = Duration::from_secs(5);
+
+pub struct EchoOptions {
+    pub replicas: Vec<usize>,
+    pub sizes: Vec<usize>,
+    pub count: u64,
+    pub warmup: u64,
+    pub timeout_us: u64,
+    pub setups: Vec<Setup>,
+}
+
+/// Payload of round `seq`: the seq, then bytes that depend on it, so a stale or mixed-up answer
+/// is seen.
+pub fn fill_frame(seq: u64, buf: &mut [u8]) {
+    let s = seq.to_le_bytes();
+    for (i, b) in buf.iter_mut().enumerate() {
+        *b = if i < 8 {
+            s[i]
+        } else {
+            (i as u8).wrapping_mul(31) ^ s[i % 8]
+        };
+    }
+}
+
+pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
+    let echo = common.bins.path("s3res-echo")?;
+    let voter = if o.replicas.iter().any(|&r| r > 0) {
+        Some(common.bins.path("s3res-voter")?)
+    } else {
+        None
+    };
+    let configs: Vec<(Setup, usize, usize)> = o
+        .setups
+        .iter()
+        .flat_map(|&setup| {
+            o.sizes
+                .iter()
+                .flat_map(move |&size| o.replicas.iter().map(move |&r| (setup, size, r)))
+        })
+        .collect();
+    let bar = common.progress(configs.len() as u64 * (o.count + o.warmup), "echo");
+    let mut rows = Vec::new();
+    for &(setup, size, replicas) in &configs {
+        bar.set_message(format!(
+            "{} {} {}",
+            setup.name(),
+            report::level_name(replicas),
+            report::bytes_name(size as u64)
+        ));
+        let spec = Spec {
+            exec: echo.clone(),
+            args: Vec::new(),
+            replicas,
+            timeout_us: o.timeout_us,
+            max_frame: size.max(replica_rt::frame::DEFAULT_MAX_FRAME),
+            voter: voter.clone(),
+        };
+        let result = measure(&spec, setup, size, o, &bar);
+        Setup::reset_bench();
+        let mut row = result.with_context(|| {
+            format!(
+                "echo, {} replicas, {size} bytes, setup {}",
+                replicas,
+                setup.name()
+            )
+        })?;
+        row.setup = setup.name();
+        rows.push(row);
+    }
+    bar.finish_and_clear();
+    // Ratio to the no-voter row of the same size and setup, measured in this run.
+    let baselines: Vec<(&'static str, u64, f64)> = rows
+        .iter()
+        .filter(|r| r.replicas == 0)
+        .map(|r| (r.setup, r.size, r.median_us))
+        .collect();
+    for r in &mut rows {
+        if let Some(&(_, _, base)) = baselines
+            .iter()
+            .find(|(s, z, _)| *s == r.setup && *z == r.size)
+        {
+            r.ratio = Some(r.median_us / base);
+        }
+    }
+    Ok(rows)
+}
+
+fn measure(
+    spec: &Spec,
+    setup: Setup,
+    size: usize,
+    o: &EchoOptions,
+    bar: &ProgressBar,
+) -> Result<Row> {
+    let mut system = System::start(spec)?;
+    setup.apply(&system)?;
+    let mut frame = vec![0u8; size];
+    let mut h = histogram();
+    let total = o.warmup + o.count;
+    for seq in 0..total {
+        fill_frame(seq, &mut frame);
+        let t0 = replica_rt::sys::monotonic_ns();
+        let answered = system
+            .echo_round(&frame, ROUND_LIMIT)
+            .with_context(|| format!("round trip {seq}"))?;
+        if let (Some(t1), true) = (answered, seq >= o.warmup) {
+            h.record(t1 - t0).context("recording")?;
+        }
+        if seq % 512 == 511 {
+            bar.inc(512);
+        }
+    }
+    bar.inc(total % 512);
+    system.drain_events()?;
+    let mut row = Row::new("echo", spec.replicas, size as u64, Summary::of(&h));
+    if spec.replicas > 0 {
+        row.timeout_us = Some(spec.timeout_us);
+        row.faults = Some(system.faults.len() as u64);
+        if system.lost_rounds > 0 {
+            row.extra = Some(serde_json::json!({ "lost_rounds": system.lost_rounds }));
+        }
+    }
+    Ok(row)
+}
+
+/// The echo table.
+pub fn render(rows: &[Row]) -> String {
+    let cells: Vec<Vec<String>> = rows
+        .iter()
+        .map(|r| {
+            vec![
+                r.setup.to_string(),
+                report::level_name(r.replicas),
+                report::bytes_name(r.size),
+                r.count.to_string(),
+                report::us(r.median_us),
+                report::us(r.p99_us),
+                report::us(r.p999_us),
+                report::us(r.max_us),
+                r.ratio.map(|x| format!("{x:.2}")).unwrap_or_default(),
+                r.faults.map(|f| f.to_string()).unwrap_or_default(),
+            ]
+        })
+        .collect();
+    report::table(
+        &[
+            "setup",
+            "level",
+            "size",
+            "count",
+            "median µs",
+            "p99 µs",
+            "p99.9 µs",
+            "max µs",
+            "×none",
+            "faults",
+        ],
+        &cells,
+    )
+}

@@ -1,0 +1,158 @@
+//! The bench's own ends of the pipes into and out of the system under test: whole frames
+//! (4-byte little-endian length, then the payload), non-blocking fds, every wait bounded by a
+//! deadline so a stuck system can never hang the bench.
+
+use std::io;
+use std::os::fd::{AsFd, AsRawFd, OwnedFd};
+use std::time::{Duration, Instant};
+
+use replica_rt::sys;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum FrameIoError {
+    #[error("no frame within {0:?}")]
+    Timeout(Duration),
+    #[error("the pipe closed")]
+    Closed,
+    #[error("interrupted (SIGINT/SIGTERM)")]
+    Interrupted,
+    #[error("frame of {0} bytes is larger than the {1}-byte limit")]
+    Oversized(usize, usize),
+    #[error(transparent)]
+    Io(#[from] io::Error),
+}
+
+/// Waits for `events` on `fd` until `deadline`.
+fn wait(fd: &OwnedFd, events: libc::c_short, deadline: Instant) -> Result<(), FrameIoError> {
+    loop {
+        if crate::sys::interrupted() {
+            return Err(FrameIoError::Interrupted);
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            return Err(FrameIoError::Timeout(Duration::ZERO));
+        }
+        let mut pfd = [libc::pollfd {
+            fd: fd.as_raw_fd(),
+            events,
+            revents: 0,
+        }];
+        match sys::ppoll(&mut pfd, Some(deadline - now)) {
+            Ok(0) => continue,
+            Ok(_) => return Ok(()),
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
+/// Writes frames into a pipe.
+pub struct FrameOut {
+    fd: OwnedFd,
+    buf: Vec<u8>,
+}
+
+impl FrameOut {
+    pub fn new(fd: OwnedFd) -> io::Result<Self> {
+        sys::set_nonblocking(fd.as_fd(), true)?;
+        Ok(FrameOut {
+            fd,
+            buf: Vec::new(),
+        })
+    }
+
+    /// Writes one whole frame, waiting for room until `timeout` has passed.
+    pub fn send(&mut self, payload: &[u8], timeout: Duration) -> Result<(), FrameIoError> {
+        self.buf.clear();
+        self.buf
+            .extend_from_slice(&(payload.len() as u32).to_le_bytes());
+        self.buf.extend_from_slice(payload);
+        let deadline = Instant::now() + timeout;
+        let mut done = 0;
+        while done < self.buf.len() {
+            match sys::write(self.fd.as_fd(), &self.buf[done..]) {
+                Ok(n) => done += n,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    wait(&self.fd, libc::POLLOUT, deadline).map_err(|e| match e {
+                        FrameIoError::Timeout(_) => FrameIoError::Timeout(timeout),
+                        e => e,
+                    })?
+                }
+                Err(e) if e.kind() == io::ErrorKind::BrokenPipe => {
+                    return Err(FrameIoError::Closed)
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e.into()),
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Reads frames from a pipe.
+pub struct FrameIn {
+    fd: OwnedFd,
+    max_frame: usize,
+    buf: Vec<u8>,
+    /// Bytes `start..end` of `buf` are received and not yet returned.
+    start: usize,
+    end: usize,
+}
+
+impl FrameIn {
+    pub fn new(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
+        sys::set_nonblocking(fd.as_fd(), true)?;
+        Ok(FrameIn {
+            fd,
+            max_frame,
+            buf: vec![0; 2 * (max_frame + 4)],
+            start: 0,
+            end: 0,
+        })
+    }
+
+    /// The length of the whole frame at `start`, if it is all here.
+    fn whole_frame(&self) -> Result<Option<usize>, FrameIoError> {
+        let have = self.end - self.start;
+        if have < 4 {
+            return Ok(None);
+        }
+        let b = &self.buf[self.start..self.start + 4];
+        let len = u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize;
+        if len > self.max_frame {
+            return Err(FrameIoError::Oversized(len, self.max_frame));
+        }
+        Ok((have >= 4 + len).then_some(len))
+    }
+
+    /// The next whole frame's payload, waiting up to `timeout`.
+    pub fn recv(&mut self, timeout: Duration) -> Result<&[u8], FrameIoError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(len) = self.whole_frame()? {
+                let at = self.start + 4;
+                self.start = at + len;
+                return Ok(&self.buf[at..at + len]);
+            }
+            // Keep the partial frame at the front so the rest fits behind it.
+            if self.start > 0 {
+                self.buf.copy_within(self.start..self.end, 0);
+                self.end -= self.start;
+                self.start = 0;
+            }
+            match sys::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
+                Ok(0) => return Err(FrameIoError::Closed),
+                Ok(n) => self.end += n,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    wait(&self.fd, libc::POLLIN, deadline).map_err(|e| match e {
+                        FrameIoError::Timeout(_) => FrameIoError::Timeout(timeout),
+                        e => e,
+                    })?
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e.into()),
+            }
+        }
+    }
+}

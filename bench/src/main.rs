@@ -1,0 +1,357 @@
+//! `s3res-bench`: what redundancy costs. See `--help` and docs/benchmarks.md.
+
+mod detect;
+mod echo;
+mod frames;
+mod memory;
+mod plot;
+mod report;
+mod restart;
+mod sys;
+mod system;
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use crate::system::{Bins, Setup};
+
+const LONG_ABOUT: &str = "\
+Measure what s3res redundancy costs, side by side with the no-voter baseline, in one run.
+
+  echo     round trip of a frame through s3res-echo: no voter (0) and under s3res-voter with
+           1 (SMR), 2 (DMR) or 3 (TMR) replicas, for each frame size (the S³RES paper's Fig. 3)
+  restart  a TMR ballast component of each state size loses a replica; time from the voter's
+           detection to the new replica ready, next to the floor: fork + touching every page
+           of the same size in the bench itself (Fig. 4)
+  detect   death → `crash` event and deadline → `hang` event, at 2 ms and 20 ms round timeouts;
+           fault events in fault-free TMR rounds at 2 ms (false positives)
+  memory   resident size of an idle voter and of replica-rt components beyond their state
+
+The bench starts s3res-voter the way s3res-bootstrap does and holds the voter's input and
+output pipes itself (no relay). Executables are taken from the bench's own folder (build with
+`cargo build --release` and run target/release/s3res-bench) or from --bin-dir.
+
+Each subcommand prints a table, or with --json one JSON object per configuration per line
+(keys: bench, replicas, size, count, median_us, p99_us, p999_us, max_us, setup, and where
+they apply what, timeout_us, floor_us, ratio, faults, extra). --plot DIR writes SVG plots.
+Everything the bench starts runs in its own process group and is killed and reaped on exit,
+on error, and on Ctrl-C.
+
+Benchmarks measure wall-clock time: run them on a quiet machine (check `uptime`).";
+
+#[derive(Parser)]
+#[command(name = "s3res-bench", version, about = "Measure what s3res redundancy costs", long_about = LONG_ABOUT)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+#[derive(Args)]
+struct CommonArgs {
+    /// One JSON object per configuration per line on stdout, instead of a table.
+    #[arg(long, global = true)]
+    json: bool,
+    /// Write SVG plots into DIR (created if missing): echo writes fig3-round-trip.svg,
+    /// restart fig4-restart.svg.
+    #[arg(long, value_name = "DIR", global = true)]
+    plot: Option<PathBuf>,
+    /// Folder of the s3res executables (default: the folder of s3res-bench).
+    #[arg(long, value_name = "DIR", global = true)]
+    bin_dir: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long, short, global = true)]
+    quiet: bool,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Round trip by replication level and frame size (Figure 3).
+    Echo {
+        /// Replication levels: 0 = no voter, 1 SMR, 2 DMR, 3 TMR (or more).
+        #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
+        replicas: Vec<usize>,
+        /// Frame payload sizes in bytes (suffixes k, m allowed: 4k = 4096).
+        #[arg(long, value_delimiter = ',', value_parser = parse_size,
+              default_value = "8,64,512,1024,2048,4096,65536")]
+        size: Vec<u64>,
+        /// Round trips measured per configuration.
+        #[arg(long, default_value_t = 20_000)]
+        count: u64,
+        /// Round trips before measuring (caches, page faults, scheduler).
+        #[arg(long, default_value_t = 2_000)]
+        warmup: u64,
+        /// Round deadline of the voter, µs.
+        #[arg(long, default_value_t = 20_000)]
+        timeout_us: u64,
+        /// How processes are scheduled: plain (default scheduler), rr (SCHED_RR: bench and voter
+        /// 60, replicas 50), rr-pinned (rr, bench and voter on CPU 0, the rest on CPU 1),
+        /// one-cpu (default scheduler, everything on CPU 0). rr and rr-pinned need root or
+        /// CAP_SYS_NICE.
+        #[arg(long, value_delimiter = ',', value_parser = Setup::parse, default_value = "plain")]
+        setup: Vec<Setup>,
+    },
+    /// Replica restart time by component state size, and the fork+touch floor (Figure 4).
+    Restart {
+        /// Resident state of the ballast component (suffixes k, m: 256k, 64m).
+        #[arg(long, value_delimiter = ',', value_parser = parse_size,
+              default_value = "256k,1m,8m,32m,64m")]
+        size: Vec<u64>,
+        /// Restarts measured per size (and floor samples).
+        #[arg(long, default_value_t = 30)]
+        count: u64,
+        /// Round deadline of the voter, µs (generous by default: a replica with a large state
+        /// takes a while to start, and hangs are not what this measures).
+        #[arg(long, default_value_t = 2_000_000)]
+        timeout_us: u64,
+        /// How processes are scheduled (plain, rr, rr-pinned; see `echo --help`). The floor's
+        /// fork runs at the bench's own scheduling of that setup.
+        #[arg(long, value_parser = Setup::parse, default_value = "plain")]
+        setup: Setup,
+    },
+    /// Crash and hang detection latency; false positives in fault-free rounds.
+    Detect {
+        /// Round timeouts, µs.
+        #[arg(long, value_delimiter = ',', default_value = "2000,20000")]
+        timeout_us: Vec<u64>,
+        /// Injected crashes and hangs per timeout.
+        #[arg(long, default_value_t = 1000)]
+        count: u64,
+        /// Fault-free TMR rounds for the false-positive count (at the smallest timeout; 0 skips).
+        #[arg(long, default_value_t = 1_000_000)]
+        rounds: u64,
+        /// Seed of the choice of victim replicas (printed; random if not given).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// How processes are scheduled (plain, rr, rr-pinned; see `echo --help`).
+        #[arg(long, value_parser = Setup::parse, default_value = "plain")]
+        setup: Setup,
+    },
+    /// Draw the plots again from saved JSON lines (echo and restart rows) into --plot DIR.
+    Plot {
+        /// Files of JSON lines written with --json.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+    },
+    /// Resident memory of an idle voter and of replica-rt components beyond their state.
+    Memory {
+        /// Ballast states to measure the runtime's overhead against (suffixes k, m).
+        #[arg(long, value_delimiter = ',', value_parser = parse_size, default_value = "0,8m")]
+        size: Vec<u64>,
+    },
+}
+
+/// What every subcommand needs.
+pub struct Common {
+    pub bins: Bins,
+    pub quiet: bool,
+}
+
+impl Common {
+    /// A progress bar on stderr (hidden with --quiet or when stderr is not a terminal).
+    pub fn progress(&self, total: u64, what: &str) -> ProgressBar {
+        if self.quiet || !std::io::stderr().is_terminal() {
+            return ProgressBar::hidden();
+        }
+        let bar = ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::stderr());
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{prefix} [{elapsed_precise}] {wide_bar} {pos}/{len} {msg}",
+            )
+            .expect("valid template"),
+        );
+        bar.set_prefix(what.to_owned());
+        bar
+    }
+}
+
+/// `8`, `4096`, `4k`, `4KiB`, `64m`, `64MiB`.
+fn parse_size(s: &str) -> Result<u64, String> {
+    let t = s.trim().to_ascii_lowercase();
+    let (num, mult) = if let Some(n) = t.strip_suffix("kib").or(t.strip_suffix('k')) {
+        (n, 1u64 << 10)
+    } else if let Some(n) = t.strip_suffix("mib").or(t.strip_suffix('m')) {
+        (n, 1 << 20)
+    } else if let Some(n) = t.strip_suffix('b') {
+        (n, 1)
+    } else {
+        (t.as_str(), 1)
+    };
+    num.trim()
+        .parse::<u64>()
+        .map(|n| n * mult)
+        .map_err(|_| format!("`{s}` is not a size (examples: 8, 4096, 4k, 64m)"))
+}
+
+fn main() -> ExitCode {
+    replica_rt::init_logging("bench");
+    match run() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("s3res-bench: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run() -> Result<()> {
+    let cli = Cli::parse();
+    sys::install_interrupt_handler().context("installing the Ctrl-C handler")?;
+    // Replicas whose voter died come to us, so they are reaped here.
+    replica_rt::sys::set_child_subreaper().context("becoming a child subreaper")?;
+    let common = Common {
+        bins: Bins::locate(cli.common.bin_dir.clone())?,
+        quiet: cli.common.quiet,
+    };
+    let json = cli.common.json;
+    let plot_dir = cli.common.plot.clone();
+    if let Some(dir) = &plot_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    match cli.command {
+        Command::Echo {
+            replicas,
+            size,
+            count,
+            warmup,
+            timeout_us,
+            setup,
+        } => {
+            if count == 0 {
+                bail!("--count must be at least 1");
+            }
+            if setup
+                .iter()
+                .any(|&s| matches!(s, Setup::Rr | Setup::RrPinned))
+                && !sys::is_root()
+            {
+                tracing::warn!("setups rr and rr-pinned need root or CAP_SYS_NICE; they may fail");
+            }
+            let opts = echo::EchoOptions {
+                replicas,
+                sizes: size.into_iter().map(|s| s as usize).collect(),
+                count,
+                warmup,
+                timeout_us,
+                setups: setup,
+            };
+            let rows = echo::run(&common, &opts)?;
+            report::emit(&rows, json, echo::render);
+            write_plot(plot_dir, "fig3-round-trip.svg", |p| {
+                plot::round_trip(&rows, p)
+            })?;
+        }
+        Command::Restart {
+            size,
+            count,
+            timeout_us,
+            setup,
+        } => {
+            if count == 0 {
+                bail!("--count must be at least 1");
+            }
+            let rows = restart::run(&common, &size, count, timeout_us, setup)?;
+            report::emit(&rows, json, restart::render);
+            write_plot(plot_dir, "fig4-restart.svg", |p| plot::restart(&rows, p))?;
+        }
+        Command::Detect {
+            timeout_us,
+            count,
+            rounds,
+            seed,
+            setup,
+        } => {
+            let seed = seed.unwrap_or_else(replica_rt::sys::monotonic_ns);
+            eprintln!("s3res-bench detect: seed = {seed}");
+            let opts = detect::DetectOptions {
+                setup,
+                timeouts_us: timeout_us,
+                count,
+                rounds,
+                seed,
+            };
+            let rows = detect::run(&common, &opts)?;
+            report::emit(&rows, json, detect::render);
+        }
+        Command::Plot { files } => {
+            let Some(dir) = plot_dir else {
+                bail!("plot needs --plot DIR");
+            };
+            let mut rows = Vec::new();
+            for f in &files {
+                let text = std::fs::read_to_string(f)
+                    .with_context(|| format!("reading {}", f.display()))?;
+                for (n, line) in text
+                    .lines()
+                    .enumerate()
+                    .filter(|(_, l)| !l.trim().is_empty())
+                {
+                    let v: serde_json::Value = serde_json::from_str(line)
+                        .with_context(|| format!("{}:{}: not JSON", f.display(), n + 1))?;
+                    rows.extend(report::Row::from_json(&v));
+                }
+            }
+            let (echo, restart): (Vec<_>, Vec<_>) =
+                rows.into_iter().partition(|r| r.bench == "echo");
+            if echo.is_empty() && restart.is_empty() {
+                bail!("no echo or restart rows in the given files");
+            }
+            if !echo.is_empty() {
+                write_plot(Some(dir.clone()), "fig3-round-trip.svg", |p| {
+                    plot::round_trip(&echo, p)
+                })?;
+            }
+            if !restart.is_empty() {
+                write_plot(Some(dir), "fig4-restart.svg", |p| {
+                    plot::restart(&restart, p)
+                })?;
+            }
+        }
+        Command::Memory { size } => {
+            let rows = memory::run(&common, &size)?;
+            memory::emit(&rows, json);
+        }
+    }
+    Ok(())
+}
+
+/// Writes plot `name` into `dir` with `draw`, if a plot folder was asked for.
+fn write_plot(
+    dir: Option<PathBuf>,
+    name: &str,
+    draw: impl FnOnce(&std::path::Path) -> Result<()>,
+) -> Result<()> {
+    if let Some(dir) = dir {
+        let path = dir.join(name);
+        draw(&path)?;
+        eprintln!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_parse_with_suffixes() {
+        assert_eq!(parse_size("8"), Ok(8));
+        assert_eq!(parse_size("4k"), Ok(4096));
+        assert_eq!(parse_size("256KiB"), Ok(256 << 10));
+        assert_eq!(parse_size("64m"), Ok(64 << 20));
+        assert_eq!(parse_size("64MiB"), Ok(64 << 20));
+        assert!(parse_size("lots").unwrap_err().contains("lots"));
+    }
+
+    #[test]
+    fn cli_is_well_formed() {
+        use clap::CommandFactory;
+        Cli::command().debug_assert();
+    }
+}

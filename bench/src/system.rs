@@ -1,0 +1,627 @@
+//! The system under test: one component, either run directly (the no-voter baseline) or under
+//! the real `s3res-voter`, started the way `s3res-bootstrap` starts it (a `VoterPlan` as JSON,
+//! the component's pipes on fds 3 and 4, the events pipe on fd 5, a socket in a private folder).
+//! The bench holds the other ends of those pipes itself: frames enter and leave the system
+//! without any relay.
+//!
+//! Everything started here lives in its own process group; dropping the [`System`] (also while
+//! unwinding from a panic) kills the group and reaps it, and SIGINT/SIGTERM kill every group at
+//! once (see `sys::install_interrupt_handler`). The voter also gets `PR_SET_PDEATHSIG`, so it
+//! dies with the bench even if the bench is SIGKILLed.
+
+use std::fs::File;
+use std::io::{BufRead, BufReader};
+use std::os::fd::{AsRawFd, OwnedFd};
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use replica_rt::contract::{
+    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET,
+    FIRST_PORT_FD,
+};
+use replica_rt::sys as rsys;
+use s3res_voter::event::{Event, EventKind};
+use s3res_voter::plan::{ExternalPort, RoundTrigger, VoterPlan};
+
+use crate::frames::{FrameIn, FrameIoError, FrameOut};
+use crate::sys;
+
+/// Where the s3res executables are.
+#[derive(Debug, Clone)]
+pub struct Bins {
+    dir: PathBuf,
+}
+
+impl Bins {
+    /// `dir` if given, else the folder of the running `s3res-bench` (as bootstrap finds the
+    /// voter beside itself).
+    pub fn locate(dir: Option<PathBuf>) -> Result<Bins> {
+        let dir = match dir {
+            Some(d) => d,
+            None => std::env::current_exe()
+                .context("finding the running executable")?
+                .parent()
+                .ok_or_else(|| anyhow!("the running executable has no folder"))?
+                .to_path_buf(),
+        };
+        Ok(Bins { dir })
+    }
+
+    pub fn path(&self, name: &str) -> Result<PathBuf> {
+        let p = self.dir.join(name);
+        if !p.is_file() {
+            bail!(
+                "{} not found (build the workspace first: cargo build --release; or name the \
+                 folder with --bin-dir)",
+                p.display()
+            );
+        }
+        Ok(p)
+    }
+}
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct Spec {
+    pub exec: PathBuf,
+    pub args: Vec<String>,
+    /// 0: the component runs directly, no voter. 1, 2, 3: SMR, DMR, TMR under `s3res-voter`.
+    pub replicas: usize,
+    pub timeout_us: u64,
+    pub max_frame: usize,
+    /// Kept for the voter (required when `replicas > 0`).
+    pub voter: Option<PathBuf>,
+}
+
+/// Name of the component in plans and events.
+const COMPONENT: &str = "bench";
+
+/// A running system with the bench holding its input and output.
+pub struct System {
+    pub input: FrameOut,
+    pub output: FrameIn,
+    /// The process the bench started: the voter, or the component itself.
+    pub top_pid: libc::pid_t,
+    /// Current pid of every replica slot (from `start` and `recovery` events).
+    pub replicas: Vec<libc::pid_t>,
+    events: Option<Receiver<Event>>,
+    /// Events that are neither `start` nor `recovery`: faults.
+    pub faults: Vec<Event>,
+    /// Every event in arrival order (kept for the subcommands that need them).
+    pub log: Vec<Event>,
+    /// Rounds whose answer the voter withheld (every replica found faulty in the round).
+    pub lost_rounds: u64,
+    group_slot: Option<usize>,
+    workdir: tempfile::TempDir,
+    reaped: bool,
+}
+
+impl System {
+    pub fn start(spec: &Spec) -> Result<System> {
+        let workdir = tempfile::Builder::new()
+            .prefix("s3res-bench-")
+            .tempdir()
+            .context("creating a temp dir")?;
+        let log = File::create(workdir.path().join("stderr.log")).context("log file")?;
+        let (in_r, in_w) = rsys::pipe().context("pipe")?;
+        let (out_r, out_w) = rsys::pipe().context("pipe")?;
+        let mut cmd;
+        let mut events_rx = None;
+        let mut keep: Vec<OwnedFd> = vec![in_r, out_w];
+        if spec.replicas == 0 {
+            cmd = Command::new(&spec.exec);
+            let ports = PortMap {
+                ports: vec![
+                    port("in", Direction::In, FIRST_PORT_FD, spec.max_frame),
+                    port("out", Direction::Out, FIRST_PORT_FD + 1, spec.max_frame),
+                ],
+            };
+            cmd.args(&spec.args)
+                .env(ENV_PORTS, ports.to_env())
+                .env_remove(ENV_VOTER_SOCKET)
+                .env_remove(ENV_REPLICA)
+                .env(ENV_COMPONENT, COMPONENT);
+        } else {
+            let voter = spec
+                .voter
+                .as_ref()
+                .ok_or_else(|| anyhow!("no voter binary"))?;
+            let (ev_r, ev_w) = rsys::pipe().context("events pipe")?;
+            keep.push(ev_w);
+            let plan = VoterPlan {
+                system: "s3res-bench".into(),
+                component: COMPONENT.into(),
+                exec: spec.exec.clone(),
+                args: spec.args.clone(),
+                replicas: spec.replicas,
+                timeout_us: spec.timeout_us,
+                inputs: vec![ExternalPort {
+                    name: "in".into(),
+                    fd: FIRST_PORT_FD,
+                    max_frame: spec.max_frame,
+                }],
+                outputs: vec![ExternalPort {
+                    name: "out".into(),
+                    fd: FIRST_PORT_FD + 1,
+                    max_frame: spec.max_frame,
+                }],
+                rounds: vec![RoundTrigger {
+                    input: "in".into(),
+                    outputs: vec!["out".into()],
+                }],
+                events_fd: Some(FIRST_PORT_FD + 2),
+                socket_path: workdir.path().join("v.sock"),
+                restart_timeout_ms: s3res_voter::plan::default_restart_timeout_ms(),
+                priority: None,
+                cpus: Vec::new(),
+                start_timeout_ms: s3res_voter::plan::default_start_timeout_ms(),
+                voter_cpu: None,
+                schedule: Default::default(),
+                realtime: true,
+                nice: None,
+                mode: Default::default(),
+                window: s3res_voter::plan::default_stream_window(),
+            };
+            cmd = Command::new(voter);
+            cmd.arg("--plan")
+                .arg(plan.to_json())
+                .env("RUST_LOG", "warn")
+                .env_remove(ENV_VOTER_SOCKET)
+                .env_remove(ENV_REPLICA)
+                .env(ENV_COMPONENT, COMPONENT);
+            events_rx = Some(spawn_event_reader(ev_r)?);
+        }
+        cmd.stdin(Stdio::null())
+            .stdout(Stdio::from(log.try_clone()?))
+            .stderr(Stdio::from(log))
+            .process_group(0);
+        let mapping = keep
+            .iter()
+            .enumerate()
+            .map(|(i, fd)| (fd.as_raw_fd(), FIRST_PORT_FD + i as i32))
+            .collect();
+        rsys::map_fds_on_exec(&mut cmd, mapping);
+        sys::kill_child_with_parent(&mut cmd);
+        let child = cmd
+            .spawn()
+            .with_context(|| format!("starting {:?}", cmd.get_program()))?;
+        let top_pid = child.id() as libc::pid_t;
+        drop(child);
+        // Our copies of the child's ends must go, or end of stream never comes.
+        drop(keep);
+        let group_slot = sys::register_group(top_pid);
+        let mut system = System {
+            input: FrameOut::new(in_w)?,
+            output: FrameIn::new(out_r, spec.max_frame)?,
+            top_pid,
+            replicas: vec![0; spec.replicas],
+            events: events_rx,
+            faults: Vec::new(),
+            log: Vec::new(),
+            lost_rounds: 0,
+            group_slot,
+            workdir,
+            reaped: false,
+        };
+        if spec.replicas > 0 {
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while system.replicas.contains(&0) {
+                let left = deadline.saturating_duration_since(Instant::now());
+                if system.next_event(left)?.is_none() {
+                    bail!(
+                        "the voter did not start its replicas within 10 s\n{}",
+                        system.log_tail()
+                    );
+                }
+            }
+        }
+        system.wait_until_idle(Duration::from_secs(30))?;
+        Ok(system)
+    }
+
+    /// Waits until every process that should read the input is blocked reading it (fd 3, as
+    /// `/proc/PID/syscall` shows): a replica still starting would miss a short first deadline.
+    pub fn wait_until_idle(&self, timeout: Duration) -> Result<()> {
+        let pids: Vec<libc::pid_t> = if self.replicas.is_empty() {
+            vec![self.top_pid]
+        } else {
+            self.replicas.clone()
+        };
+        let deadline = Instant::now() + timeout;
+        for pid in pids {
+            loop {
+                if reading_fd(pid, FIRST_PORT_FD) {
+                    break;
+                }
+                if Instant::now() > deadline || sys::interrupted() {
+                    bail!(
+                        "pid {pid} is not waiting for input after {timeout:?}\n{}",
+                        self.log_tail()
+                    );
+                }
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        }
+        Ok(())
+    }
+
+    /// The next event within `timeout` (`None` on timeout). Tracks replica pids and faults.
+    pub fn next_event(&mut self, timeout: Duration) -> Result<Option<Event>> {
+        let Some(rx) = &self.events else {
+            std::thread::sleep(timeout);
+            return Ok(None);
+        };
+        let ev = match rx.recv_timeout(timeout) {
+            Ok(ev) => ev,
+            Err(RecvTimeoutError::Timeout) => return Ok(None),
+            Err(RecvTimeoutError::Disconnected) => {
+                bail!("the voter's events pipe closed\n{}", self.log_tail())
+            }
+        };
+        match ev.kind {
+            EventKind::Start => {
+                if let (Some(slot), Some(pid)) = (ev.replica, ev.pid) {
+                    self.replicas[slot] = pid;
+                }
+            }
+            EventKind::Recovery => {
+                if let (Some(slot), Some(pid)) = (ev.replica, ev.new_pid) {
+                    self.replicas[slot] = pid;
+                }
+            }
+            _ => self.faults.push(ev.clone()),
+        }
+        self.log.push(ev.clone());
+        Ok(Some(ev))
+    }
+
+    /// Waits for the first event `pred` accepts (others are tracked and kept in the log).
+    pub fn wait_event(
+        &mut self,
+        pred: impl FnMut(&Event) -> bool,
+        timeout: Duration,
+    ) -> Result<Event> {
+        match self.try_wait_event(pred, timeout)? {
+            Some(ev) => Ok(ev),
+            None => bail!(
+                "the expected event did not come within {timeout:?}\n{}",
+                self.log_tail()
+            ),
+        }
+    }
+
+    /// [`wait_event`](Self::wait_event), `None` on timeout.
+    pub fn try_wait_event(
+        &mut self,
+        mut pred: impl FnMut(&Event) -> bool,
+        timeout: Duration,
+    ) -> Result<Option<Event>> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if sys::interrupted() {
+                bail!("interrupted");
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            if let Some(ev) = self.next_event(left.min(Duration::from_millis(100)))? {
+                if pred(&ev) {
+                    return Ok(Some(ev));
+                }
+            }
+        }
+    }
+
+    /// The first event at or after `since` that `pred` accepts, already arrived or to come;
+    /// `None` on timeout.
+    pub fn try_wait_event_since(
+        &mut self,
+        mut pred: impl FnMut(&Event) -> bool,
+        since: u64,
+        timeout: Duration,
+    ) -> Result<Option<Event>> {
+        if let Some(ev) = self.log.iter().find(|e| e.ts_ns >= since && pred(e)) {
+            return Ok(Some(ev.clone()));
+        }
+        self.try_wait_event(|e| e.ts_ns >= since && pred(e), timeout)
+    }
+
+    /// The first event at or after `since` (CLOCK_MONOTONIC ns) that `pred` accepts, whether it
+    /// has already arrived (and was kept in the log) or is still to come.
+    pub fn wait_event_since(
+        &mut self,
+        mut pred: impl FnMut(&Event) -> bool,
+        since: u64,
+        timeout: Duration,
+    ) -> Result<Event> {
+        if let Some(ev) = self.log.iter().find(|e| e.ts_ns >= since && pred(e)) {
+            return Ok(ev.clone());
+        }
+        self.wait_event(|e| e.ts_ns >= since && pred(e), timeout)
+    }
+
+    /// Writes `frame`, waits for the answer and checks that it equals `frame` (an echo).
+    /// Returns the time the answer had arrived, or `None` if the voter withheld it because every
+    /// replica of the round was found faulty (under heavy load all of them can miss a short
+    /// deadline): then it waits for their replacements, counts a lost round, and goes on.
+    pub fn echo_round(&mut self, frame: &[u8], limit: Duration) -> Result<Option<u64>> {
+        let sent_at = rsys::monotonic_ns();
+        let dir = self.workdir.path().to_path_buf();
+        self.input
+            .send(frame, limit)
+            .map_err(|e| anyhow!("sending a frame: {e}\n{}", log_tail(&dir)))?;
+        let deadline = Instant::now() + limit;
+        let n = self.replicas.len();
+        loop {
+            let wait = if n == 0 {
+                limit
+            } else {
+                Duration::from_millis(20)
+            };
+            match self.output.recv(wait) {
+                Ok(reply) => {
+                    let at = rsys::monotonic_ns();
+                    if reply != frame {
+                        bail!(
+                            "the answer ({} bytes) is not the frame ({} bytes)",
+                            reply.len(),
+                            frame.len()
+                        );
+                    }
+                    return Ok(Some(at));
+                }
+                Err(FrameIoError::Timeout(_)) if n > 0 && Instant::now() < deadline => {
+                    self.drain_events()?;
+                    let blamed = self
+                        .faults
+                        .iter()
+                        .filter(|e| e.ts_ns >= sent_at)
+                        .filter_map(|e| e.replica)
+                        .fold(0u64, |set, r| set | 1 << r);
+                    if blamed.count_ones() as usize >= n {
+                        self.lost_rounds += 1;
+                        for slot in 0..n {
+                            self.wait_event_since(
+                                |e| e.replica == Some(slot) && e.kind == EventKind::Recovery,
+                                sent_at,
+                                Duration::from_secs(30),
+                            )?;
+                        }
+                        self.wait_until_idle(Duration::from_secs(30))?;
+                        return Ok(None);
+                    }
+                }
+                Err(e) => bail!("waiting for the answer: {e}\n{}", self.log_tail()),
+            }
+        }
+    }
+
+    /// Takes every event that has arrived, without waiting.
+    pub fn drain_events(&mut self) -> Result<()> {
+        while self.next_event(Duration::ZERO)?.is_some() {}
+        Ok(())
+    }
+
+    /// The last lines the system wrote to stderr (for error messages).
+    pub fn log_tail(&self) -> String {
+        let from = self.log.len().saturating_sub(8);
+        let events: Vec<String> = self.log[from..]
+            .iter()
+            .map(|e| {
+                format!(
+                    "{} {:?} replica {:?} pid {:?} round {:?} {}",
+                    e.ts_ns,
+                    e.kind,
+                    e.replica,
+                    e.pid,
+                    e.round,
+                    e.detail.as_deref().unwrap_or("")
+                )
+            })
+            .collect();
+        format!(
+            "{}\nlast events:\n{}",
+            log_tail(self.workdir.path()),
+            events.join("\n")
+        )
+    }
+
+    /// Writes `frame` and waits for the system's answer; errors carry the system's stderr.
+    pub fn exchange(&mut self, frame: &[u8], timeout: Duration) -> Result<&[u8]> {
+        let dir = self.workdir.path();
+        self.input
+            .send(frame, timeout)
+            .map_err(|e| anyhow!("sending a frame: {e}\n{}", log_tail(dir)))?;
+        self.output
+            .recv(timeout)
+            .map_err(|e| anyhow!("waiting for the answer: {e}\n{}", log_tail(dir)))
+    }
+
+    /// Kills the process group and reaps it (and whatever was re-parented to the bench).
+    pub fn stop(&mut self) {
+        if self.reaped {
+            return;
+        }
+        self.reaped = true;
+        let _ = sys::kill_group(self.top_pid, libc::SIGKILL);
+        if let Some(slot) = self.group_slot.take() {
+            sys::unregister_group(slot);
+        }
+        let deadline = Instant::now() + Duration::from_secs(5);
+        // The top process first (our child), then replicas re-parented to us (subreaper).
+        loop {
+            match rsys::reap(self.top_pid) {
+                Ok(Some(_)) | Err(_) => break,
+                Ok(None) if Instant::now() > deadline => break,
+                Ok(None) => std::thread::sleep(Duration::from_millis(1)),
+            }
+        }
+        let group = self.top_pid;
+        loop {
+            let left: Vec<_> = rsys::children_of(std::process::id() as i32)
+                .into_iter()
+                .filter(|&p| rsys::process_group(p) == Some(group))
+                .collect();
+            for &p in &left {
+                let _ = rsys::kill(p, libc::SIGKILL);
+                let _ = rsys::reap(p);
+            }
+            if left.is_empty() || Instant::now() > deadline {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+}
+
+impl Drop for System {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// Whether `pid` is blocked in `read(fd, ...)` (`/proc/PID/syscall` starts with `0 0x<fd>`).
+/// Readable for our own children (same user, or root).
+fn reading_fd(pid: libc::pid_t, fd: i32) -> bool {
+    let Ok(text) = std::fs::read_to_string(format!("/proc/{pid}/syscall")) else {
+        return false;
+    };
+    let mut words = text.split_whitespace();
+    words.next() == Some("0") && words.next() == Some(format!("{fd:#x}").as_str())
+}
+
+/// The last lines a system wrote to `dir/stderr.log`.
+fn log_tail(dir: &Path) -> String {
+    let text = std::fs::read_to_string(dir.join("stderr.log")).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    let from = lines.len().saturating_sub(20);
+    format!(
+        "system's stderr (last lines):\n{}",
+        lines[from..].join("\n")
+    )
+}
+
+fn port(name: &str, dir: Direction, fd: i32, max_frame: usize) -> PortSpec {
+    PortSpec {
+        name: name.into(),
+        dir,
+        fd,
+        max_frame,
+    }
+}
+
+/// Reads the voter's events pipe on a thread (so a burst of events never blocks the voter)
+/// and hands each parsed event over.
+fn spawn_event_reader(fd: OwnedFd) -> Result<Receiver<Event>> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::Builder::new()
+        .name("events".into())
+        .spawn(move || {
+            for line in BufReader::new(File::from(fd)).lines() {
+                let Ok(line) = line else { return };
+                match serde_json::from_str::<Event>(&line) {
+                    Ok(ev) => {
+                        if tx.send(ev).is_err() {
+                            return;
+                        }
+                    }
+                    Err(e) => tracing::warn!(error = %e, line, "unparsable event"),
+                }
+            }
+        })
+        .context("starting the events thread")?;
+    Ok(rx)
+}
+
+/// How the processes of a configuration are scheduled (rows are labelled with it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Setup {
+    /// Default time-sharing, no pinning: what a user gets without privileges.
+    Plain,
+    /// SCHED_RR: bench and voter at 60, replicas at 50 (set by the bench on the pids it started).
+    Rr,
+    /// SCHED_RR as above, bench and voter on CPU 0, the component's processes on CPU 1.
+    RrPinned,
+    /// Default scheduler, every process (bench, voter, replicas) on CPU 0: no cross-CPU
+    /// wake-up at all.
+    OneCpu,
+    /// SCHED_RR as `rr`, every process on CPU 0.
+    RrOneCpu,
+}
+
+impl Setup {
+    pub fn name(self) -> &'static str {
+        match self {
+            Setup::Plain => "plain",
+            Setup::Rr => "rr",
+            Setup::RrPinned => "rr-pinned",
+            Setup::OneCpu => "one-cpu",
+            Setup::RrOneCpu => "rr-one-cpu",
+        }
+    }
+
+    pub fn parse(s: &str) -> Result<Setup, String> {
+        match s {
+            "plain" => Ok(Setup::Plain),
+            "rr" => Ok(Setup::Rr),
+            "rr-pinned" => Ok(Setup::RrPinned),
+            "one-cpu" => Ok(Setup::OneCpu),
+            "rr-one-cpu" => Ok(Setup::RrOneCpu),
+            _ => Err(format!(
+                "unknown setup `{s}`; expected plain, rr, rr-pinned, one-cpu or rr-one-cpu"
+            )),
+        }
+    }
+
+    /// Applies the setup to the bench's calling thread and to `system`'s processes.
+    pub fn apply(self, system: &System) -> Result<()> {
+        let what = |who: &str, pid: i32| format!("SCHED_RR/affinity for {who} (pid {pid})");
+        // (SCHED_RR?, CPUs of the bench and voter, CPUs of the component's processes); an
+        // empty CPU list leaves the affinity alone.
+        let (rr, cpus_top, cpus_rest): (bool, &[usize], &[usize]) = match self {
+            Setup::Plain => return Ok(()),
+            Setup::Rr => (true, &[], &[]),
+            Setup::RrPinned => (true, &[0], &[1]),
+            Setup::OneCpu => (false, &[0], &[0]),
+            Setup::RrOneCpu => (true, &[0], &[0]),
+        };
+        let cpus = sys::online_cpus();
+        if cpus_rest.contains(&1) && cpus < 2 {
+            bail!("{} needs 2 CPUs, this machine has {cpus}", self.name());
+        }
+        let high = sys::Policy::RoundRobin(60);
+        let low = sys::Policy::RoundRobin(50);
+        // The lone component (no voter) is "the rest", not the voter.
+        let alone = system.replicas.is_empty();
+        let apply = |pid: i32, who: &str, policy, cpus: &[usize]| -> Result<()> {
+            if rr {
+                sys::set_policy(pid, policy).with_context(|| what(who, pid))?;
+            }
+            if !cpus.is_empty() {
+                sys::set_affinity(pid, cpus).with_context(|| what(who, pid))?;
+            }
+            Ok(())
+        };
+        apply(0, "the bench", high, cpus_top)?;
+        if alone {
+            apply(system.top_pid, "the component", low, cpus_rest)?;
+        } else {
+            apply(system.top_pid, "the voter", high, cpus_top)?;
+        }
+        for &pid in &system.replicas {
+            apply(pid, "a replica", low, cpus_rest)?;
+        }
+        Ok(())
+    }
+
+    /// Puts the bench's calling thread back to the default.
+    pub fn reset_bench() {
+        let _ = sys::set_policy(0, sys::Policy::Other);
+        let _ = sys::set_affinity(0, &[]);
+    }
+}
