@@ -180,7 +180,11 @@ impl StreamVoter {
         let timeout = self
             .next_wakeup()
             .map(|t| t.saturating_duration_since(Instant::now()));
-        let ready = sys::ppoll(&mut self.poll_fds, timeout).map_err(io_err("ppoll"))?;
+        // Not `.map_err(io_err("ppoll"))`: that builds its String on every wake-up, error or not.
+        let ready = sys::ppoll(&mut self.poll_fds, timeout).map_err(|source| VoterError::Io {
+            what: "ppoll".into(),
+            source,
+        })?;
         if ready == 0 {
             return Ok(());
         }
