@@ -31,10 +31,9 @@ use crate::recovery::{self, DonorState};
 use crate::replica::Replica;
 use crate::vote::ReplicaSet;
 use crate::voter::{
-    closed_output_fault, io_err, kill_replicas, recovery_event, replace_by_exec, shut_down,
-    start_replicas, stop_requested, validate, write_event, Endpoints, ExternalInput,
-    ExternalOutput, Fault, Stop, Token, VoterError, EXIT_AFTER_EOF, OUTPUT_DRAIN_LIMIT,
-    SHUTDOWN_GRACE,
+    closed_output_fault, kill_replicas, recovery_event, replace_by_exec, shut_down, start_replicas,
+    stop_requested, validate, write_event, Endpoints, ExternalInput, ExternalOutput, Fault, Stop,
+    Token, VoterError, EXIT_AFTER_EOF, OUTPUT_DRAIN_LIMIT, SHUTDOWN_GRACE,
 };
 use boost::Boost;
 
