@@ -180,9 +180,6 @@ impl Replica {
     }
 }
 
-/// Whether `pid` has a handler for the restart signal installed (`SigCgt` in
-/// `/proc/PID/status`): replica-rt's `init` has run (it installs this handler last, after the
-/// injection handlers), so a RESTART would fork it rather than kill it.
 impl Replica {
     /// Whether this replica can be a recovery donor: its restart handler is installed (before
     /// replica-rt's `init` the restart signal would simply kill it). Known once it has sent a
@@ -191,8 +188,50 @@ impl Replica {
     pub fn may_donate(&self) -> bool {
         self.proven || catches_restart_signal(self.pid)
     }
+
+    /// How good a recovery donor this replica is, lower is better; `None`: it cannot donate.
+    /// A replica that has answered (and so was voted with) beats one that has not: a replica
+    /// just restarted by exec has lost its state, and cloning it over a healthy slot would
+    /// spread the loss. A stopped replica (SIGSTOP, a debugger, an injector's ptrace stop)
+    /// would only make the attempt time out, so a running one is preferred.
+    pub fn donor_rank(&self) -> Option<u8> {
+        if !self.may_donate() {
+            return None;
+        }
+        let stopped = is_stopped(self.pid);
+        Some(match (self.proven, stopped) {
+            (true, false) => 0,
+            (true, true) => 1,
+            (false, false) => 2,
+            (false, true) => 3,
+        })
+    }
 }
 
+/// The best donor among `slots` (lowest [`Replica::donor_rank`], then lowest slot).
+pub fn best_donor(slots: &[Option<Replica>]) -> Option<usize> {
+    slots
+        .iter()
+        .enumerate()
+        .filter_map(|(d, rep)| rep.as_ref()?.donor_rank().map(|rank| (rank, d)))
+        .min()
+        .map(|(_, d)| d)
+}
+
+/// Whether `pid` is stopped or traced (state `T` or `t` in `/proc/PID/stat`).
+fn is_stopped(pid: libc::pid_t) -> bool {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return false;
+    };
+    // The state follows the last ')': the command name may itself contain parentheses.
+    stat.rsplit_once(')')
+        .and_then(|(_, rest)| rest.trim_start().chars().next())
+        .is_some_and(|state| state == 'T' || state == 't')
+}
+
+/// Whether `pid` has a handler for the restart signal installed (`SigCgt` in
+/// `/proc/PID/status`): replica-rt's `init` has run (it installs this handler last, after the
+/// injection handlers), so a RESTART would fork it rather than kill it.
 pub fn catches_restart_signal(pid: libc::pid_t) -> bool {
     let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
         return false;

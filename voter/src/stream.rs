@@ -640,8 +640,7 @@ impl StreamVoter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = (0..self.slots.len())
-            .find(|&d| self.slots[d].as_ref().is_some_and(Replica::may_donate));
+        let donor = crate::replica::best_donor(&self.slots);
         if let Some(d) = donor {
             match self.fork_into(slot, d) {
                 Ok(pid) => {
@@ -682,6 +681,10 @@ impl StreamVoter {
         let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
         self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
         let donor = self.slots[d].as_mut().expect("donor slot is filled");
+        let donor_pid = donor.pid;
+        // S³RES §4.4, as in reactive mode: the donor runs above its siblings while it forks (a
+        // boosted laggard on its CPU would otherwise starve it into the accept timeout).
+        self.rt.raise(donor_pid);
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
@@ -689,8 +692,13 @@ impl StreamVoter {
             self.restart_nonce,
             &family,
             DonorState::Streaming,
-        )
-        .map_err(|e| e.to_string())?;
+        );
+        self.rt.rest(donor_pid, d);
+        if self.boosted.is_some_and(|(pid, _)| pid == donor_pid) {
+            // Put back to rest above: the next `boost_laggard` raises it again if it still lags.
+            self.boosted = None;
+        }
+        let forked = forked.map_err(|e| e.to_string())?;
         for (o, &sent) in forked.frames_sent.iter().enumerate() {
             self.read_donor_until(d, o, sent);
             let short = self.slots[d]

@@ -825,8 +825,7 @@ impl Voter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = (0..self.slots.len())
-            .find(|&d| self.slots[d].as_ref().is_some_and(Replica::may_donate));
+        let donor = crate::replica::best_donor(&self.slots);
         if let Some(d) = donor {
             let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
             self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
