@@ -1,4 +1,4 @@
-//! `s3res-bootstrap [--check] [--events FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
+//! `s3res-bootstrap [--check] [--events FILE] [--state FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
 
 use std::io::IsTerminal as _;
 use std::path::PathBuf;
@@ -76,6 +76,13 @@ struct Cli {
     /// Append every voter event (one JSON object per line) to FILE, created or truncated at start.
     #[arg(long, value_name = "FILE")]
     events: Option<PathBuf>,
+
+    /// Keep a live view of the running system in FILE (JSON, rewritten atomically on every
+    /// replica start, fault and recovery): each component with its pid, or its voter's pid and
+    /// the current pid of every replica slot. Fault injectors read it to find their targets
+    /// (see docs/campaigns.md).
+    #[arg(long, value_name = "FILE")]
+    state: Option<PathBuf>,
 
     /// After SIGTERM to the components, wait this long before SIGKILL.
     #[arg(long, value_name = "N", default_value_t = 2000)]
@@ -162,6 +169,7 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         voter,
         events_file: cli.events.clone(),
         stop_timeout: Duration::from_millis(cli.stop_timeout_ms),
+        state_file: cli.state.clone(),
     };
     let report =
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;
