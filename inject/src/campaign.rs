@@ -103,7 +103,10 @@ pub fn run(c: &CampaignRun) -> anyhow::Result<Summary> {
         injections: all_inj,
     };
     let summaries = report::write_outputs(&c.out, &[out])?;
-    Ok(summaries.into_iter().next().expect("one campaign, one summary"))
+    Ok(summaries
+        .into_iter()
+        .next()
+        .expect("one campaign, one summary"))
 }
 
 /// The run's folder: under `OUT/runs/` if kept, else a temporary folder removed on drop.
@@ -276,8 +279,7 @@ impl Progress {
                 b.inc(1);
             }
             None => {
-                if self.last_line.elapsed() >= Duration::from_secs(10) || self.done == self.total
-                {
+                if self.last_line.elapsed() >= Duration::from_secs(10) || self.done == self.total {
                     let elapsed = self.started.elapsed().as_secs_f64();
                     let eta = elapsed / self.done as f64 * (self.total - self.done) as f64;
                     eprintln!(

@@ -43,6 +43,19 @@ pub struct OutputDiff {
     pub bits_differing: u64,
     /// The outputs have different lengths.
     pub length_differs: bool,
+    /// Where the first difference is: frame index, byte offset in its payload, XOR of the
+    /// two bytes there.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first: Option<FirstDifference>,
+}
+
+/// The first differing byte of two outputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FirstDifference {
+    pub frame: u64,
+    /// Offset in the frame's payload (negative: in the 4-byte length header).
+    pub payload_offset: i64,
+    pub xor: u8,
 }
 
 /// Compares two outputs byte by byte and frame by frame.
@@ -59,7 +72,24 @@ pub fn diff(out: &[u8], golden: &[u8]) -> OutputDiff {
             .map(|(x, y)| u64::from((x ^ y).count_ones()))
             .sum(),
         length_differs: out.len() != golden.len(),
+        first: first_difference(out, golden, &b),
     }
+}
+
+fn first_difference(out: &[u8], golden: &[u8], golden_frames: &[&[u8]]) -> Option<FirstDifference> {
+    let at = out.iter().zip(golden).position(|(x, y)| x != y)?;
+    let mut start = 0;
+    for (i, f) in golden_frames.iter().enumerate() {
+        if at < start + f.len() {
+            return Some(FirstDifference {
+                frame: i as u64,
+                payload_offset: (at - start) as i64 - 4,
+                xor: out[at] ^ golden[at],
+            });
+        }
+        start += f.len();
+    }
+    None
 }
 
 /// Splits a byte stream into frames (a trailing partial frame is one more "frame").
@@ -168,7 +198,10 @@ pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
     if c.out.join("classify.jsonl").exists() {
-        bail!("{} already holds a classification; give a new --out folder", c.out.display());
+        bail!(
+            "{} already holds a classification; give a new --out folder",
+            c.out.display()
+        );
     }
     let _ = replica_rt::sys::set_child_subreaper();
     let stamp = std::process::id();
@@ -193,7 +226,9 @@ pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
         let Some(planned) = plan_single(&c.params, c.seed, r) else {
             bail!("fault `none` or no component: nothing to classify");
         };
-        let dir = tempfile::Builder::new().prefix("s3res-classify-").tempdir()?;
+        let dir = tempfile::Builder::new()
+            .prefix("s3res-classify-")
+            .tempdir()?;
         let result = run_once(
             &c.setup(dir.path(), format!("{stamp}-{}-{r}", c.seed)),
             std::slice::from_ref(&planned),
@@ -316,6 +351,14 @@ mod tests {
         assert_eq!((d.frames, d.golden_frames), (2, 2));
         assert_eq!((d.frames_differing, d.bits_differing), (1, 2));
         assert!(!d.length_differs);
+        assert_eq!(
+            d.first,
+            Some(FirstDifference {
+                frame: 1,
+                payload_offset: 1,
+                xor: 0x81
+            })
+        );
         let short = &golden[..golden.len() - 1];
         let d = diff(short, &golden);
         assert!(d.length_differs);

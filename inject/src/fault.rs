@@ -11,7 +11,17 @@ use replica_rt::contract::signals::{self, VarRequest};
 
 /// What kind of fault a campaign injects.
 #[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, clap::ValueEnum,
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    Serialize,
+    Deserialize,
+    clap::ValueEnum,
 )]
 #[serde(rename_all = "lowercase")]
 pub enum FaultKind {
@@ -55,12 +65,19 @@ pub enum Action {
     Exec,
     /// `value` is the `sigqueue` value: the bit to flip, reduced by the replica modulo the
     /// frame's bit count (bit 0 = lowest bit of the first payload byte).
-    Sdc { value: u32 },
+    Sdc {
+        value: u32,
+    },
     Cfe,
     /// Flip `bits` (bit 0 = lowest bit of byte `offset`, little-endian) of the next frame.
-    Var { offset: u32, bits: Vec<u32> },
+    Var {
+        offset: u32,
+        bits: Vec<u32>,
+    },
     /// A register flip; `seed` seeds the ChaCha8 generator handed to the register injector.
-    Reg { seed: u64 },
+    Reg {
+        seed: u64,
+    },
 }
 
 impl Action {

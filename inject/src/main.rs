@@ -314,8 +314,14 @@ fn parse_shard(s: &str) -> Result<(u64, u64), String> {
     let (k, n) = s
         .split_once('/')
         .ok_or_else(|| format!("`{s}` is not K/N (e.g. 3/10)"))?;
-    let k: u64 = k.trim().parse().map_err(|_| format!("`{k}` is not a number"))?;
-    let n: u64 = n.trim().parse().map_err(|_| format!("`{n}` is not a number"))?;
+    let k: u64 = k
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{k}` is not a number"))?;
+    let n: u64 = n
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{n}` is not a number"))?;
     if n == 0 || k == 0 || k > n {
         return Err(format!("shard {k}/{n}: K must be in 1..={n}"));
     }
@@ -323,7 +329,8 @@ fn parse_shard(s: &str) -> Result<(u64, u64), String> {
 }
 
 fn seconds(what: &str, s: f64) -> anyhow::Result<Duration> {
-    Duration::try_from_secs_f64(s).map_err(|_| anyhow::anyhow!("{what} {s} is not a duration in seconds"))
+    Duration::try_from_secs_f64(s)
+        .map_err(|_| anyhow::anyhow!("{what} {s} is not a duration in seconds"))
 }
 
 fn init_logging(cli: &Cli) {
@@ -366,8 +373,7 @@ fn find_bootstrap() -> anyhow::Result<PathBuf> {
     match std::env::var(BOOTSTRAP_ENV) {
         Ok(path) => {
             let cwd = std::env::current_dir()?;
-            exec::resolve(&path, &cwd, &search)
-                .map_err(|e| anyhow::anyhow!("{BOOTSTRAP_ENV}: {e}"))
+            exec::resolve(&path, &cwd, &search).map_err(|e| anyhow::anyhow!("{BOOTSTRAP_ENV}: {e}"))
         }
         Err(_) => search
             .find(BOOTSTRAP_BIN)
@@ -427,33 +433,47 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut planned = draw_injection(&params, &mut rng, 0, 0).context("nothing to inject")?;
-    if let (Some(bit), s3res_inject::fault::Action::Sdc { value }) = (a.bit, &mut planned.action)
-    {
+    if let (Some(bit), s3res_inject::fault::Action::Sdc { value }) = (a.bit, &mut planned.action) {
         *value = bit;
     }
     let target = match (a.replica, a.pid) {
         (Some(slot), _) => {
-            let c = view
-                .components
-                .get(&a.component)
-                .with_context(|| format!("no component `{}` in {}", a.component, a.state.display()))?;
+            let c = view.components.get(&a.component).with_context(|| {
+                format!("no component `{}` in {}", a.component, a.state.display())
+            })?;
             let r = c.replicas.get(slot).with_context(|| {
-                format!("{} has {} replica slot(s); there is no slot {slot}", a.component, c.replicas.len())
+                format!(
+                    "{} has {} replica slot(s); there is no slot {slot}",
+                    a.component,
+                    c.replicas.len()
+                )
             })?;
             Target {
                 component: a.component.clone(),
                 slot: Some(slot),
-                pid: r.pid.with_context(|| format!("slot {slot} of {} has no process ({:?})", a.component, r.state))?,
+                pid: r.pid.with_context(|| {
+                    format!(
+                        "slot {slot} of {} has no process ({:?})",
+                        a.component, r.state
+                    )
+                })?,
             }
         }
         (None, Some(pid)) => {
-            let c = view
-                .components
-                .get(&a.component)
-                .with_context(|| format!("no component `{}` in {}", a.component, a.state.display()))?;
-            let slot = c.replicas.iter().find(|r| r.pid == Some(pid)).map(|r| r.slot);
+            let c = view.components.get(&a.component).with_context(|| {
+                format!("no component `{}` in {}", a.component, a.state.display())
+            })?;
+            let slot = c
+                .replicas
+                .iter()
+                .find(|r| r.pid == Some(pid))
+                .map(|r| r.slot);
             if slot.is_none() && c.pid != Some(pid) {
-                bail!("pid {pid} is not a process of {} in {}", a.component, a.state.display());
+                bail!(
+                    "pid {pid} is not a process of {} in {}",
+                    a.component,
+                    a.state.display()
+                );
             }
             Target {
                 component: a.component.clone(),
@@ -487,7 +507,10 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
 
 fn cmd_campaign(a: &CampaignArgs) -> anyhow::Result<()> {
     if !(a.rate.is_finite() && a.rate > 0.0) && a.fault != FaultKind::None {
-        bail!("--rate {} is not a rate: give injections per second, e.g. 2", a.rate);
+        bail!(
+            "--rate {} is not a rate: give injections per second, e.g. 2",
+            a.rate
+        );
     }
     if a.runs == 0 {
         bail!("--runs 0: nothing to do");
@@ -551,7 +574,8 @@ fn cmd_campaign(a: &CampaignArgs) -> anyhow::Result<()> {
         run.info.fault,
         run.info.system_name,
         run.info.run_indices().count(),
-        a.shard.map_or(String::new(), |(k, n)| format!(" (shard {k}/{n})")),
+        a.shard
+            .map_or(String::new(), |(k, n)| format!(" (shard {k}/{n})")),
         a.seed
     );
     let s = campaign::run(&run)?;
@@ -595,7 +619,10 @@ fn cmd_classify(a: &ClassifyArgs) -> anyhow::Result<()> {
 
 fn cmd_merge(a: &MergeArgs) -> anyhow::Result<()> {
     if a.out.join("summary.json").exists() {
-        bail!("{} already holds results; give a new --out folder", a.out.display());
+        bail!(
+            "{} already holds results; give a new --out folder",
+            a.out.display()
+        );
     }
     let parts = a
         .inputs

@@ -208,7 +208,7 @@ mod tests {
         let events = vec![
             ev(105, EventKind::Sdc, Some(0), 100), // another slot
             ev(106, EventKind::Sdc, Some(1), 999), // same slot, other pid
-            ev(95, EventKind::Hang, Some(1), 101),  // before the injection
+            ev(95, EventKind::Hang, Some(1), 101), // before the injection
         ];
         let m = match_run(&[fired(100, 1, 101)], &events, 2000 * MS, false);
         assert_eq!(m.false_positives, 3);
@@ -220,7 +220,10 @@ mod tests {
             10 * MS,
             true,
         );
-        assert_eq!((m.per_injection[0].0, m.false_positives), (Outcome::Benign, 1));
+        assert_eq!(
+            (m.per_injection[0].0, m.false_positives),
+            (Outcome::Benign, 1)
+        );
     }
 
     #[test]
@@ -238,7 +241,11 @@ mod tests {
         let outcomes: Vec<Outcome> = m.per_injection.iter().map(|x| x.0).collect();
         assert_eq!(
             outcomes,
-            vec![Outcome::Undetected, Outcome::Unrecovered, Outcome::Unrecovered]
+            vec![
+                Outcome::Undetected,
+                Outcome::Unrecovered,
+                Outcome::Unrecovered
+            ]
         );
         assert_eq!(m.false_positives, 0);
         assert!(Outcome::Undetected.is_error() && !Outcome::Benign.is_error());

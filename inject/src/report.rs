@@ -191,7 +191,9 @@ pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord
         count(Outcome::Undetected),
         count(Outcome::Benign),
     );
-    let collect = |f: fn(&Match) -> Option<u64>| Stats::of(inj.iter().filter_map(|r| f(&r.matched)).collect());
+    let collect = |f: fn(&Match) -> Option<u64>| {
+        Stats::of(inj.iter().filter_map(|r| f(&r.matched)).collect())
+    };
     Summary {
         config: info.config.clone(),
         fault: info.fault,
@@ -509,13 +511,20 @@ mod tests {
         let whole = CampaignOutput {
             info: info(None),
             runs: (0..4).map(|r| run(r, r != 2, r)).collect(),
-            injections: (0..4).map(|r| inj(r, Outcome::Recovered, Some(r))).collect(),
+            injections: (0..4)
+                .map(|r| inj(r, Outcome::Recovered, Some(r)))
+                .collect(),
         };
         let shard = |k: u64| {
             let i = info(Some((k, 2)));
             let runs: Vec<u64> = i.run_indices().collect();
             CampaignOutput {
-                runs: whole.runs.iter().filter(|r| runs.contains(&r.run)).cloned().collect(),
+                runs: whole
+                    .runs
+                    .iter()
+                    .filter(|r| runs.contains(&r.run))
+                    .cloned()
+                    .collect(),
                 injections: whole
                     .injections
                     .iter()

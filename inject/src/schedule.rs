@@ -90,11 +90,10 @@ impl VarSpec {
             return bits.clone();
         }
         let range = self.field.bits();
-        let mut bits: Vec<u32> =
-            rand::seq::index::sample(rng, range.len(), self.flips as usize)
-                .into_iter()
-                .map(|i| range.start + i as u32)
-                .collect();
+        let mut bits: Vec<u32> = rand::seq::index::sample(rng, range.len(), self.flips as usize)
+            .into_iter()
+            .map(|i| range.start + i as u32)
+            .collect();
         bits.sort_unstable();
         bits
     }
@@ -255,7 +254,10 @@ mod tests {
         p.rate_hz = 2.0;
         p.window = Duration::from_millis(2100);
         let at: Vec<u64> = plan_run(&p, 0, 0).iter().map(|x| x.at_ns).collect();
-        assert_eq!(at, vec![500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000]);
+        assert_eq!(
+            at,
+            vec![500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000]
+        );
         assert!(plan_run(&params(FaultKind::None), 0, 0).is_empty());
     }
 

@@ -39,6 +39,8 @@ pub struct System {
     dir: TempDir,
     stdin: Option<Vec<u8>>,
     events: bool,
+    /// Extra bootstrap options, before the description.
+    args: Vec<std::ffi::OsString>,
 }
 
 impl Default for System {
@@ -58,6 +60,7 @@ impl System {
             dir,
             stdin: None,
             events: true,
+            args: Vec::new(),
         }
     }
 
@@ -74,6 +77,12 @@ impl System {
     /// Bytes for bootstrap's stdin (from a file, so it can never block on a pipe).
     pub fn stdin(mut self, bytes: impl Into<Vec<u8>>) -> Self {
         self.stdin = Some(bytes.into());
+        self
+    }
+
+    /// One more bootstrap option (e.g. `--state`, then a path), placed before the description.
+    pub fn arg(mut self, arg: impl Into<std::ffi::OsString>) -> Self {
+        self.args.push(arg.into());
         self
     }
 
@@ -121,7 +130,8 @@ impl System {
         if let Some(ev) = &events {
             cmd.arg("--events").arg(ev);
         }
-        cmd.arg(&desc)
+        cmd.args(&self.args)
+            .arg(&desc)
             .current_dir(self.dir.path())
             .stdout(File::create(&stdout).expect("creating stdout.txt"))
             .stderr(File::create(&stderr).expect("creating stderr.txt"))

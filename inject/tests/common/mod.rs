@@ -1,0 +1,133 @@
+//! Running `s3res-inject` from a test: bounded in time, in a fresh folder, and checked to leave
+//! no process behind (every process it causes carries the harness's environment mark).
+
+#![allow(dead_code)] // each test file uses a part
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use s3res_tests::{bin_path, procs};
+
+pub use s3res_tests::system::MARK_ENV;
+
+/// What one `s3res-inject` invocation did.
+pub struct Finished {
+    pub success: bool,
+    pub stdout: String,
+    pub stderr: String,
+}
+
+/// Runs `s3res-inject ARGS` with `limit`; kills it and everything it started if it overruns,
+/// and fails if anything it started outlives it.
+pub fn inject(args: &[&str], limit: Duration) -> Finished {
+    static N: AtomicU64 = AtomicU64::new(0);
+    let mark = format!(
+        "inject-{}-{}",
+        std::process::id(),
+        N.fetch_add(1, Ordering::Relaxed)
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let out_path = dir.path().join("stdout");
+    let err_path = dir.path().join("stderr");
+    let mut child = Command::new(bin_path("s3res-inject"))
+        .args(args)
+        .env(MARK_ENV, &mark)
+        .stdin(Stdio::null())
+        .stdout(std::fs::File::create(&out_path).unwrap())
+        .stderr(std::fs::File::create(&err_path).unwrap())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + limit;
+    let status = loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            break Some(st);
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let left = kill_marked(&mark);
+    let stdout = std::fs::read_to_string(&out_path).unwrap_or_default();
+    let stderr = std::fs::read_to_string(&err_path).unwrap_or_default();
+    assert!(
+        status.is_some(),
+        "s3res-inject {args:?} overran {limit:?}; stderr:\n{stderr}"
+    );
+    assert!(
+        left.is_empty(),
+        "s3res-inject left processes behind: {left:?}\n{stderr}"
+    );
+    Finished {
+        success: status.is_some_and(|s| s.success()),
+        stdout,
+        stderr,
+    }
+}
+
+/// Kills every live process carrying `mark`; returns what was found.
+fn kill_marked(mark: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for _ in 0..50 {
+        let live: Vec<_> = procs::with_env(MARK_ENV, mark)
+            .into_iter()
+            .filter(|p| !p.is_zombie())
+            .collect();
+        if live.is_empty() {
+            break;
+        }
+        for p in live {
+            found.push(p.to_string());
+            let _ = s3res_tests::kill_pid(p.pid, libc::SIGKILL);
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    found
+}
+
+/// The echo pipeline (source → echo → sink) at `redundancy`, `count` frames at 500 Hz; the
+/// sink writes its verdict to `task.json` in the run's folder. The round deadline (50 ms) is
+/// loose enough that a loaded test machine does not produce hangs nobody injected, and tight
+/// enough that a spinning replica is replaced long before the next injection (2 Hz) comes.
+pub fn echo_system(dir: &Path, redundancy: &str, count: u64) -> PathBuf {
+    let timeout = if redundancy == "none" {
+        String::new()
+    } else {
+        r#", "timeout_us": 50000"#.to_owned()
+    };
+    let text = format!(
+        r#"{{
+  "name": "echo-{redundancy}",
+  "components": {{
+    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "500"] }},
+    "echo":   {{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "{redundancy}"{timeout} }},
+    "sink":   {{ "exec": "s3res-sink", "args": ["--stateful", "--expect", "{count}", "--summary", "task.json"] }}
+  }},
+  "channels": [
+    {{ "from": "source.out", "to": "echo.in" }},
+    {{ "from": "echo.out",   "to": "sink.in" }}
+  ]
+}}"#
+    );
+    let path = dir.join(format!("echo-{redundancy}.json"));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+pub fn read_json(path: &Path) -> serde_json::Value {
+    let text =
+        std::fs::read_to_string(path).unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+pub fn read_jsonl(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("reading {}: {e}", path.display()))
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
