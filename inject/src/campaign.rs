@@ -185,7 +185,11 @@ pub fn records(
                 replica: a.slot,
                 pid: a.pid,
                 outcome,
-                miss: a.miss.clone(),
+                miss: a.miss.clone().or_else(|| {
+                    mt.already_hit_by.map(|k| {
+                        format!("process already hit by injection {k} and not yet found faulty")
+                    })
+                }),
                 matched: mt,
                 injector: a.injector.clone(),
             }

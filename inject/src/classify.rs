@@ -278,7 +278,7 @@ pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
         c.out.join("classify.json"),
         serde_json::to_string_pretty(&summary)? + "\n",
     )?;
-    std::fs::write(c.out.join("classify.md"), markdown(&[summary.clone()]))?;
+    std::fs::write(c.out.join("classify.md"), markdown(std::slice::from_ref(&summary)))?;
     Ok(summary)
 }
 

@@ -21,7 +21,9 @@ pub enum Outcome {
     Undetected,
     /// No matching fault event, and the task succeeded.
     Benign,
-    /// Not delivered (the target was being replaced, or had gone); not counted as injected.
+    /// Not delivered (the target was being replaced, or had gone), or delivered into a
+    /// process an earlier injection had already hit before it was found faulty; not counted
+    /// as injected.
     Missed,
 }
 
@@ -59,6 +61,10 @@ pub struct Match {
     /// `fork` or `exec`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recovery_method: Option<String>,
+    /// This injection went into a process an earlier injection of the run (this index) had
+    /// already hit and that was not yet found faulty; it is counted as missed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub already_hit_by: Option<usize>,
 }
 
 /// The result of matching one run.
@@ -95,17 +101,24 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
 
     for e in events.iter().filter(|e| is_fault(e.kind)) {
         let in_window = |f: &Fired| e.ts_ns >= f.ts_ns && e.ts_ns - f.ts_ns <= window_ns;
-        // The most recent not yet matched injection this event can be about.
-        let candidate = fired.iter().enumerate().rposition(|(i, f)| {
+        let can_explain = |i: usize, f: &Fired| {
             detection[i].is_none()
                 && f.component == e.component
                 && in_window(f)
                 && match e.replica {
-                    Some(slot) => f.slot == Some(slot) && e.pid.map_or(true, |p| p == f.pid),
+                    Some(slot) => f.slot == Some(slot) && !matches!(e.pid, Some(p) if p != f.pid),
                     // "No majority": the component saw a fault it cannot attribute.
                     None => true,
                 }
-        });
+        };
+        // An event about a process goes to the earliest injection into it (a later one hit a
+        // process that was already failing); an unattributed event to the most recent
+        // injection into the component (a vote fails in the round right after the flip).
+        let candidate = if e.replica.is_some() {
+            fired.iter().enumerate().position(|(i, f)| can_explain(i, f))
+        } else {
+            fired.iter().enumerate().rposition(|(i, f)| can_explain(i, f))
+        };
         match candidate {
             Some(i) => detection[i] = Some(e),
             None if e.replica.is_some() => false_positives += 1,
@@ -119,6 +132,24 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
         .iter()
         .zip(&detection)
         .map(|(f, det)| {
+            // Into a process that an earlier injection had already hit, before that one was
+            // detected: it found a failing process, it did not make one.
+            let earlier = fired.iter().zip(&detection).position(|(g, d)| {
+                d.is_some_and(|d| {
+                    g.pid == f.pid
+                        && g.component == f.component
+                        && g.ts_ns <= f.ts_ns
+                        && f.ts_ns <= d.ts_ns
+                        && !std::ptr::eq(g, f)
+                })
+            });
+            if let (None, Some(k)) = (det, earlier) {
+                let m = Match {
+                    already_hit_by: Some(k),
+                    ..Match::default()
+                };
+                return (Outcome::Missed, m);
+            }
             let Some(det) = det else {
                 let outcome = if task_ok {
                     Outcome::Benign
@@ -137,7 +168,7 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
                     r.kind == EventKind::Recovery
                         && r.component == f.component
                         && r.replica == Some(slot)
-                        && r.pid.map_or(true, |p| p == f.pid)
+                        && !matches!(r.pid, Some(p) if p != f.pid)
                         && r.ts_ns >= det.ts_ns
                 })
             });
@@ -239,14 +270,12 @@ mod tests {
             false,
         );
         let outcomes: Vec<Outcome> = m.per_injection.iter().map(|x| x.0).collect();
+        // The second injection hit pid 101 after the first and before its detection.
         assert_eq!(
             outcomes,
-            vec![
-                Outcome::Undetected,
-                Outcome::Unrecovered,
-                Outcome::Unrecovered
-            ]
+            vec![Outcome::Unrecovered, Outcome::Missed, Outcome::Unrecovered]
         );
+        assert_eq!(m.per_injection[1].1.already_hit_by, Some(0));
         assert_eq!(m.false_positives, 0);
         assert!(Outcome::Undetected.is_error() && !Outcome::Benign.is_error());
     }
