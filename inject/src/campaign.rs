@@ -12,6 +12,7 @@ use crate::outcome::{match_run, Fired, Outcome};
 use crate::report::{self, CampaignInfo, CampaignOutput, InjectionRecord, RunRecord, Summary};
 use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_run, run_seed, ScheduleParams};
+use crate::stop::StopSignals;
 
 /// How to run a campaign, beyond what `campaign.json` records.
 #[derive(Debug, Clone)]
@@ -42,8 +43,9 @@ pub fn schedule_params(info: &CampaignInfo) -> ScheduleParams {
     }
 }
 
-/// Runs the campaign (or its shard) and writes its outputs into `c.out`.
-pub fn run(c: &CampaignRun) -> anyhow::Result<Summary> {
+/// Runs the campaign (or its shard) and writes its outputs into `c.out`. Returns the summary
+/// and, if a stop signal cut it short, that signal (the outputs then hold the completed runs).
+pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Option<i32>)> {
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
     for f in ["injections.jsonl", "runs.jsonl", "summary.json", "table.md"] {
@@ -85,7 +87,15 @@ pub fn run(c: &CampaignRun) -> anyhow::Result<Summary> {
             limit: Duration::from_millis(c.info.run_limit_ms),
             ready_limit: c.ready_limit,
         };
-        let result = run_once(&setup, &schedule);
+        let result = run_once(&setup, &schedule, &|| stop.requested().is_some());
+        if result.interrupted {
+            eprintln!(
+                "s3res-inject: stopped by signal during run {r}; that run is discarded, the {} \
+                 completed run(s) are kept",
+                all_runs.len()
+            );
+            break;
+        }
         let (run_rec, inj) = records(&c.info, r, &dir, &result);
         for rec in &inj {
             writeln!(inj_file, "{}", serde_json::to_string(rec)?)?;
@@ -103,10 +113,11 @@ pub fn run(c: &CampaignRun) -> anyhow::Result<Summary> {
         injections: all_inj,
     };
     let summaries = report::write_outputs(&c.out, &[out])?;
-    Ok(summaries
+    let summary = summaries
         .into_iter()
         .next()
-        .expect("one campaign, one summary"))
+        .expect("one campaign, one summary");
+    Ok((summary, stop.requested()))
 }
 
 /// The run's folder: under `OUT/runs/` if kept, else a temporary folder removed on drop.

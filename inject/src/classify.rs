@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::fault::{Action, RegOptions};
 use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_single, ScheduleParams};
+use crate::stop::StopSignals;
 use crate::target::Pick;
 
 /// The class of one run.
@@ -194,7 +195,8 @@ impl ClassifyRun {
 
 /// Runs the golden run and the N injected runs; writes `classify.jsonl`, `classify.json` and
 /// `classify.md` into `c.out`.
-pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
+pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> {
+    let stop = || stop.requested().is_some();
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
     if c.out.join("classify.jsonl").exists() {
@@ -207,7 +209,14 @@ pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
     let stamp = std::process::id();
 
     let golden_dir = tempfile::Builder::new().prefix("s3res-golden-").tempdir()?;
-    let golden = run_once(&c.setup(golden_dir.path(), format!("{stamp}-golden")), &[]);
+    let golden = run_once(
+        &c.setup(golden_dir.path(), format!("{stamp}-golden")),
+        &[],
+        &stop,
+    );
+    if golden.interrupted {
+        bail!("stopped by signal during the golden run");
+    }
     if !golden.status.is_some_and(|s| s.success()) || golden.timed_out {
         bail!(
             "the golden run (no injection) did not succeed ({:?}, timed out: {}); stderr:\n{}",
@@ -232,7 +241,12 @@ pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
         let result = run_once(
             &c.setup(dir.path(), format!("{stamp}-{}-{r}", c.seed)),
             std::slice::from_ref(&planned),
+            &stop,
         );
+        if result.interrupted {
+            eprintln!("s3res-inject: stopped by signal; the {r} completed run(s) are kept");
+            break;
+        }
         let out = c.output_of(dir.path());
         let attempt = result.attempts.first();
         let delivered = attempt.is_some_and(|a| a.ts_ns.is_some());
@@ -278,7 +292,10 @@ pub fn run(c: &ClassifyRun) -> anyhow::Result<ClassSummary> {
         c.out.join("classify.json"),
         serde_json::to_string_pretty(&summary)? + "\n",
     )?;
-    std::fs::write(c.out.join("classify.md"), markdown(std::slice::from_ref(&summary)))?;
+    std::fs::write(
+        c.out.join("classify.md"),
+        markdown(std::slice::from_ref(&summary)),
+    )?;
     Ok(summary)
 }
 
@@ -296,7 +313,7 @@ fn summarise(c: &ClassifyRun, recs: &[ClassRecord]) -> ClassSummary {
         system: c.system.clone(),
         fault: c.params.fault,
         seed: c.seed,
-        runs: c.runs,
+        runs: recs.len() as u64,
         classified,
         benign: n(Class::Benign),
         sdc: n(Class::Sdc),

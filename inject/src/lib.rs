@@ -9,7 +9,8 @@
 //! - [`runner`]: one bounded run of a system that leaves nothing behind;
 //! - [`outcome`]: matching injections with the voters' events;
 //! - [`report`]: records, summaries, tables, merging shards;
-//! - [`campaign`] and [`classify`]: the two experiments.
+//! - [`campaign`] and [`classify`]: the two experiments;
+//! - [`stop`]: SIGINT/SIGTERM end the current run cleanly.
 //!
 //! The command-line guide is docs/campaigns.md.
 
@@ -20,4 +21,5 @@ pub mod outcome;
 pub mod report;
 pub mod runner;
 pub mod schedule;
+pub mod stop;
 pub mod target;

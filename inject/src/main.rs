@@ -20,6 +20,7 @@ use s3res_inject::classify::{self, ClassifyRun};
 use s3res_inject::fault::{fire, FaultKind, RegOptions};
 use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
+use s3res_inject::stop::StopSignals;
 use s3res_inject::target::{resolve, Pick, Target};
 
 const BOOTSTRAP_BIN: &str = "s3res-bootstrap";
@@ -51,7 +52,8 @@ Subcommands:
 The guide, the matching rule and a Slurm example: docs/campaigns.md.";
 
 const AFTER_LONG_HELP: &str = "\
-Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage.
+Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage, 130/143 stopped by
+SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written).
 
 Environment:
   RUST_LOG         log filter (overrides -v/-q)
@@ -351,13 +353,28 @@ fn init_logging(cli: &Cli) {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Before any thread: SIGINT/SIGTERM are taken through a signalfd, so a long campaign
+    // stops its current run cleanly instead of leaving it running.
+    let stop = match StopSignals::install() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: cannot set up signal handling: {e}");
+            return ExitCode::from(1);
+        }
+    };
     init_logging(&cli);
     let res = match &cli.command {
         Command::Inject(a) => cmd_inject(a),
-        Command::Campaign(a) => cmd_campaign(a),
-        Command::Classify(a) => cmd_classify(a),
+        Command::Campaign(a) => cmd_campaign(a, &stop),
+        Command::Classify(a) => cmd_classify(a, &stop),
         Command::Merge(a) => cmd_merge(a),
     };
+    if let Some(sig) = stop.requested() {
+        if let Err(e) = &res {
+            eprintln!("error: {e:#}");
+        }
+        return ExitCode::from((128 + sig).clamp(0, 255) as u8);
+    }
     match res {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -505,7 +522,7 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn cmd_campaign(a: &CampaignArgs) -> anyhow::Result<()> {
+fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
     if !(a.rate.is_finite() && a.rate > 0.0) && a.fault != FaultKind::None {
         bail!(
             "--rate {} is not a rate: give injections per second, e.g. 2",
@@ -578,13 +595,13 @@ fn cmd_campaign(a: &CampaignArgs) -> anyhow::Result<()> {
             .map_or(String::new(), |(k, n)| format!(" (shard {k}/{n})")),
         a.seed
     );
-    let s = campaign::run(&run)?;
+    let (s, _interrupted) = campaign::run(&run, stop)?;
     print!("{}", report::markdown(&[s]));
     eprintln!("s3res-inject: outputs in {}", a.out.display());
     Ok(())
 }
 
-fn cmd_classify(a: &ClassifyArgs) -> anyhow::Result<()> {
+fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     if a.fault == FaultKind::None {
         bail!("--fault none injects nothing; choose exec, sdc, cfe, var or reg");
     }
@@ -612,7 +629,7 @@ fn cmd_classify(a: &ClassifyArgs) -> anyhow::Result<()> {
         limit: seconds("--run-timeout", a.run_timeout)?,
         ready_limit: Duration::from_secs(30),
     };
-    let s = classify::run(&c)?;
+    let s = classify::run(&c, stop)?;
     print!("{}", classify::markdown(&[s]));
     Ok(())
 }

@@ -115,9 +115,15 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
         // process that was already failing); an unattributed event to the most recent
         // injection into the component (a vote fails in the round right after the flip).
         let candidate = if e.replica.is_some() {
-            fired.iter().enumerate().position(|(i, f)| can_explain(i, f))
+            fired
+                .iter()
+                .enumerate()
+                .position(|(i, f)| can_explain(i, f))
         } else {
-            fired.iter().enumerate().rposition(|(i, f)| can_explain(i, f))
+            fired
+                .iter()
+                .enumerate()
+                .rposition(|(i, f)| can_explain(i, f))
         };
         match candidate {
             Some(i) => detection[i] = Some(e),

@@ -74,6 +74,8 @@ pub struct RunResult {
     pub leftovers: usize,
     /// Could not start bootstrap at all.
     pub error: Option<String>,
+    /// Cut short by a stop request (SIGINT/SIGTERM to the injector): not a result.
+    pub interrupted: bool,
 }
 
 impl RunResult {
@@ -82,8 +84,9 @@ impl RunResult {
     }
 }
 
-/// Runs the system once with `schedule`.
-pub fn run_once(setup: &RunSetup, schedule: &[Planned]) -> RunResult {
+/// Runs the system once with `schedule`. `stop` is asked now and then whether to cut the run
+/// short (it is then stopped like a run at its time limit, and marked interrupted).
+pub fn run_once(setup: &RunSetup, schedule: &[Planned], stop: &dyn Fn() -> bool) -> RunResult {
     let started = Instant::now();
     let events_path = setup.dir.join("events.jsonl");
     let state_path = setup.dir.join("state.json");
@@ -97,6 +100,7 @@ pub fn run_once(setup: &RunSetup, schedule: &[Planned]) -> RunResult {
         duration: Duration::ZERO,
         leftovers: 0,
         error: None,
+        interrupted: false,
     };
     let mut child = match spawn(setup, &events_path, &state_path) {
         Ok(c) => c,
@@ -116,6 +120,7 @@ pub fn run_once(setup: &RunSetup, schedule: &[Planned]) -> RunResult {
         &state_path,
         &setup.targets,
         started + setup.ready_limit.min(setup.limit),
+        stop,
     );
     let window_start = Instant::now();
     for p in schedule {
@@ -124,7 +129,7 @@ pub fn run_once(setup: &RunSetup, schedule: &[Planned]) -> RunResult {
             continue;
         }
         let due = window_start + Duration::from_nanos(p.at_ns);
-        if !sleep_until_or_exit(&mut child, due.min(deadline)) || Instant::now() >= deadline {
+        if !sleep_until_or_exit(&mut child, due.min(deadline), stop) || Instant::now() >= deadline {
             result
                 .attempts
                 .push(missed(p, "the system had ended (or hit the time limit)"));
@@ -133,9 +138,10 @@ pub fn run_once(setup: &RunSetup, schedule: &[Planned]) -> RunResult {
         result.attempts.push(inject_now(setup, &state_path, p));
     }
 
-    let (status, timed_out) = finish(&mut child, deadline);
+    let (status, timed_out) = finish(&mut child, deadline, stop);
+    result.interrupted = stop();
     result.status = status;
-    result.timed_out = timed_out;
+    result.timed_out = timed_out && !result.interrupted;
     result.leftovers = sweep(&setup.mark);
     result.duration = started.elapsed();
     let (events, bad) = read_events(&events_path);
@@ -210,14 +216,21 @@ pub fn inject_now(setup: &RunSetup, state_path: &Path, p: &Planned) -> Attempt {
 
 /// Waits until the live view shows every target running. `false` if bootstrap exited or the
 /// deadline passed first.
-fn wait_ready(child: &mut Child, state: &Path, targets: &[String], deadline: Instant) -> bool {
+fn wait_ready(
+    child: &mut Child,
+    state: &Path,
+    targets: &[String],
+    deadline: Instant,
+    stop: &dyn Fn() -> bool,
+) -> bool {
     loop {
         if let Ok(view) = LiveView::read(state) {
             if all_running(&view, targets) {
                 return true;
             }
         }
-        if Instant::now() >= deadline || matches!(child.try_wait(), Ok(Some(_)) | Err(_)) {
+        if Instant::now() >= deadline || stop() || matches!(child.try_wait(), Ok(Some(_)) | Err(_))
+        {
             return false;
         }
         std::thread::sleep(Duration::from_millis(5));
@@ -239,10 +252,11 @@ pub fn all_running(view: &LiveView, targets: &[String]) -> bool {
         })
 }
 
-/// Sleeps until `due`; `false` if bootstrap exited meanwhile (it is not reaped here).
-fn sleep_until_or_exit(child: &mut Child, due: Instant) -> bool {
+/// Sleeps until `due`; `false` if bootstrap exited meanwhile (it is not reaped here) or a stop
+/// was requested.
+fn sleep_until_or_exit(child: &mut Child, due: Instant, stop: &dyn Fn() -> bool) -> bool {
     loop {
-        if !matches!(child.try_wait(), Ok(None)) {
+        if !matches!(child.try_wait(), Ok(None)) || stop() {
             return false;
         }
         let now = Instant::now();
@@ -255,14 +269,18 @@ fn sleep_until_or_exit(child: &mut Child, due: Instant) -> bool {
 
 /// Waits for bootstrap until `deadline`; then SIGTERM, and after a grace SIGKILL to its whole
 /// process group. Returns its status and whether it had to be stopped.
-fn finish(child: &mut Child, deadline: Instant) -> (Option<ExitStatus>, bool) {
+fn finish(
+    child: &mut Child,
+    deadline: Instant,
+    stop: &dyn Fn() -> bool,
+) -> (Option<ExitStatus>, bool) {
     loop {
         match child.try_wait() {
             Ok(Some(st)) => return (Some(st), false),
             Ok(None) => {}
             Err(_) => break,
         }
-        if Instant::now() >= deadline {
+        if Instant::now() >= deadline || stop() {
             break;
         }
         std::thread::sleep(Duration::from_millis(10));

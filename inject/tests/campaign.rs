@@ -207,6 +207,45 @@ fn same_seed_same_schedule_and_shards_merge_into_the_whole() {
 }
 
 #[test]
+fn sigint_stops_the_run_in_progress_and_keeps_the_completed_ones() {
+    let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let system = echo_system(dir.path(), "tmr", 1000);
+    let out = dir.path().join("out");
+    let p = common::spawn(&[
+        "-q",
+        "campaign",
+        "--system",
+        system.to_str().unwrap(),
+        "--fault",
+        "exec",
+        "--runs",
+        "20",
+        "--seed",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let runs = out.join("runs.jsonl");
+    let deadline = std::time::Instant::now() + LIMIT;
+    while std::fs::read_to_string(&runs).map_or(0, |t| t.lines().count()) < 1 {
+        assert!(std::time::Instant::now() < deadline, "no run completed");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Into the next run.
+    std::thread::sleep(Duration::from_millis(700));
+    s3res_tests::kill_pid(p.child.id() as i32, libc::SIGINT).unwrap();
+    let f = p.wait(Duration::from_secs(60)); // fails if any process of the run is left
+    assert_eq!(f.code, Some(130), "{}", f.stderr);
+    let kept = read_jsonl(&runs).len();
+    assert!((1..20).contains(&kept), "{kept} runs kept");
+    assert_eq!(
+        read_json(&out.join("summary.json"))[0]["runs_done"],
+        kept as u64
+    );
+}
+
+#[test]
 fn bad_usage_gets_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let system = echo_system(dir.path(), "tmr", 10);

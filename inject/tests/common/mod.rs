@@ -15,13 +15,23 @@ pub use s3res_tests::system::MARK_ENV;
 /// What one `s3res-inject` invocation did.
 pub struct Finished {
     pub success: bool,
+    pub code: Option<i32>,
     pub stdout: String,
     pub stderr: String,
 }
 
-/// Runs `s3res-inject ARGS` with `limit`; kills it and everything it started if it overruns,
-/// and fails if anything it started outlives it.
-pub fn inject(args: &[&str], limit: Duration) -> Finished {
+/// A running `s3res-inject`.
+pub struct Spawned {
+    pub child: std::process::Child,
+    mark: String,
+    args: Vec<String>,
+    out_path: PathBuf,
+    err_path: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+/// Starts `s3res-inject ARGS` with the harness's environment mark.
+pub fn spawn(args: &[&str]) -> Spawned {
     static N: AtomicU64 = AtomicU64::new(0);
     let mark = format!(
         "inject-{}-{}",
@@ -31,7 +41,7 @@ pub fn inject(args: &[&str], limit: Duration) -> Finished {
     let dir = tempfile::tempdir().unwrap();
     let out_path = dir.path().join("stdout");
     let err_path = dir.path().join("stderr");
-    let mut child = Command::new(bin_path("s3res-inject"))
+    let child = Command::new(bin_path("s3res-inject"))
         .args(args)
         .env(MARK_ENV, &mark)
         .stdin(Stdio::null())
@@ -39,34 +49,56 @@ pub fn inject(args: &[&str], limit: Duration) -> Finished {
         .stderr(std::fs::File::create(&err_path).unwrap())
         .spawn()
         .unwrap();
-    let deadline = Instant::now() + limit;
-    let status = loop {
-        if let Some(st) = child.try_wait().unwrap() {
-            break Some(st);
-        }
-        if Instant::now() >= deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            break None;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    let left = kill_marked(&mark);
-    let stdout = std::fs::read_to_string(&out_path).unwrap_or_default();
-    let stderr = std::fs::read_to_string(&err_path).unwrap_or_default();
-    assert!(
-        status.is_some(),
-        "s3res-inject {args:?} overran {limit:?}; stderr:\n{stderr}"
-    );
-    assert!(
-        left.is_empty(),
-        "s3res-inject left processes behind: {left:?}\n{stderr}"
-    );
-    Finished {
-        success: status.is_some_and(|s| s.success()),
-        stdout,
-        stderr,
+    Spawned {
+        child,
+        mark,
+        args: args.iter().map(|a| a.to_string()).collect(),
+        out_path,
+        err_path,
+        _dir: dir,
     }
+}
+
+impl Spawned {
+    /// Waits up to `limit` (then kills it and everything it started, and fails), and fails if
+    /// anything it started outlives it.
+    pub fn wait(mut self, limit: Duration) -> Finished {
+        let deadline = Instant::now() + limit;
+        let status = loop {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                break Some(st);
+            }
+            if Instant::now() >= deadline {
+                let _ = self.child.kill();
+                let _ = self.child.wait();
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        let left = kill_marked(&self.mark);
+        let stdout = std::fs::read_to_string(&self.out_path).unwrap_or_default();
+        let stderr = std::fs::read_to_string(&self.err_path).unwrap_or_default();
+        let args = &self.args;
+        assert!(
+            status.is_some(),
+            "s3res-inject {args:?} overran {limit:?}; stderr:\n{stderr}"
+        );
+        assert!(
+            left.is_empty(),
+            "s3res-inject left processes behind: {left:?}\n{stderr}"
+        );
+        Finished {
+            success: status.is_some_and(|s| s.success()),
+            code: status.and_then(|s| s.code()),
+            stdout,
+            stderr,
+        }
+    }
+}
+
+/// Runs `s3res-inject ARGS` to the end, bounded by `limit` (see [`Spawned::wait`]).
+pub fn inject(args: &[&str], limit: Duration) -> Finished {
+    spawn(args).wait(limit)
 }
 
 /// Kills every live process carrying `mark`; returns what was found.
