@@ -1,13 +1,11 @@
 //! `s3res-bootstrap [--check] [--events FILE] [--state FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
 
-use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context as _;
 use clap::{ArgAction, Parser};
-use tracing_subscriber::EnvFilter;
 
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
@@ -101,25 +99,9 @@ struct Cli {
     system: PathBuf,
 }
 
-fn init_logging(cli: &Cli) {
-    let default = match (cli.quiet, cli.verbose) {
-        (true, _) => "warn",
-        (false, 0) => "info",
-        (false, 1) => "debug",
-        (false, _) => "trace",
-    };
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(filter)
-        .with_target(false)
-        .with_ansi(std::io::stderr().is_terminal())
-        .init();
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    init_logging(&cli);
+    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
     match run_cli(&cli) {
         Ok(code) => ExitCode::from(code),
         Err(e) => {

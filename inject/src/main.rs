@@ -1,7 +1,6 @@
 //! `s3res-inject`: fault injection into s3res systems. See `--help` and docs/campaigns.md.
 
 use std::collections::BTreeMap;
-use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
@@ -9,7 +8,6 @@ use std::time::Duration;
 use anyhow::{bail, Context as _};
 use clap::{ArgAction, Args, Parser, Subcommand};
 use rand::SeedableRng as _;
-use tracing_subscriber::EnvFilter;
 
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
@@ -335,22 +333,6 @@ fn seconds(what: &str, s: f64) -> anyhow::Result<Duration> {
         .map_err(|_| anyhow::anyhow!("{what} {s} is not a duration in seconds"))
 }
 
-fn init_logging(cli: &Cli) {
-    let default = match (cli.quiet, cli.verbose) {
-        (true, _) => "warn",
-        (false, 0) => "info",
-        (false, 1) => "debug",
-        (false, _) => "trace",
-    };
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(filter)
-        .with_target(false)
-        .with_ansi(std::io::stderr().is_terminal())
-        .init();
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
     // Before any thread: SIGINT/SIGTERM are taken through a signalfd, so a long campaign
@@ -362,7 +344,7 @@ fn main() -> ExitCode {
             return ExitCode::from(1);
         }
     };
-    init_logging(&cli);
+    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
     let res = match &cli.command {
         Command::Inject(a) => cmd_inject(a),
         Command::Campaign(a) => cmd_campaign(a, &stop),
@@ -453,11 +435,17 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     if let (Some(bit), s3res_inject::fault::Action::Sdc { value }) = (a.bit, &mut planned.action) {
         *value = bit;
     }
+    let c = view.components.get(&a.component).with_context(|| {
+        let names: Vec<&str> = view.components.keys().map(String::as_str).collect();
+        format!(
+            "no component `{}` in {} (it has: {})",
+            a.component,
+            a.state.display(),
+            names.join(", ")
+        )
+    })?;
     let target = match (a.replica, a.pid) {
         (Some(slot), _) => {
-            let c = view.components.get(&a.component).with_context(|| {
-                format!("no component `{}` in {}", a.component, a.state.display())
-            })?;
             let r = c.replicas.get(slot).with_context(|| {
                 format!(
                     "{} has {} replica slot(s); there is no slot {slot}",
@@ -477,9 +465,6 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
             }
         }
         (None, Some(pid)) => {
-            let c = view.components.get(&a.component).with_context(|| {
-                format!("no component `{}` in {}", a.component, a.state.display())
-            })?;
             let slot = c
                 .replicas
                 .iter()

@@ -159,17 +159,13 @@ fn same_seed_same_schedule_and_shards_merge_into_the_whole() {
     assert_eq!(runs(&a), vec![0, 2]);
     assert_eq!(runs(&b), vec![1]);
 
+    let merge = |out: &Path, inputs: &[&Path]| {
+        let mut args = vec!["merge", "--out", out.to_str().unwrap()];
+        args.extend(inputs.iter().map(|p| p.to_str().unwrap()));
+        inject(&args, Duration::from_secs(30))
+    };
     let merged = dir.path().join("merged");
-    let f = inject(
-        &[
-            "merge",
-            "--out",
-            merged.to_str().unwrap(),
-            b.to_str().unwrap(),
-            a.to_str().unwrap(),
-        ],
-        Duration::from_secs(30),
-    );
+    let f = merge(&merged, &[&b, &a]);
     assert!(f.success, "{}", f.stderr);
     assert!(f.stdout.contains("| tmr | sdc | 3 |"), "{}", f.stdout);
     let s_merged = read_json(&merged.join("summary.json"))[0].clone();
@@ -188,17 +184,7 @@ fn same_seed_same_schedule_and_shards_merge_into_the_whole() {
     assert_eq!(s_whole["injected"], s_merged["injected"]);
 
     // Merging a shard twice is refused.
-    let again = dir.path().join("again");
-    let f = inject(
-        &[
-            "merge",
-            "--out",
-            again.to_str().unwrap(),
-            a.to_str().unwrap(),
-            a.to_str().unwrap(),
-        ],
-        Duration::from_secs(30),
-    );
+    let f = merge(&dir.path().join("again"), &[&a, &a]);
     assert!(
         !f.success && f.stderr.contains("appears in two inputs"),
         "{}",
@@ -249,9 +235,11 @@ fn sigint_stops_the_run_in_progress_and_keeps_the_completed_ones() {
 fn bad_usage_gets_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let system = echo_system(dir.path(), "tmr", 10);
+    let broken = dir.path().join("broken.json");
+    std::fs::write(&broken, "{\n  \"name\": 3\n}").unwrap();
     let out = dir.path().join("o");
-    let f = inject(
-        &[
+    let fails_with = |system: &Path, extra: &[&str], expected: &str| {
+        let mut args = vec![
             "campaign",
             "--system",
             system.to_str().unwrap(),
@@ -263,56 +251,21 @@ fn bad_usage_gets_a_clear_error() {
             "1",
             "--out",
             out.to_str().unwrap(),
-            "--components",
-            "nope",
-        ],
-        Duration::from_secs(30),
+        ];
+        args.extend_from_slice(extra);
+        let f = inject(&args, Duration::from_secs(30));
+        assert!(
+            !f.success && f.stderr.contains(expected),
+            "{extra:?}: {}",
+            f.stderr
+        );
+    };
+    fails_with(&system, &["--components", "nope"], "no component `nope`");
+    fails_with(&system, &["--shard", "3/2"], "K must be in 1..=2");
+    fails_with(
+        &system,
+        &["--var-field", "sign", "--var-flips", "2"],
+        "does not fit field",
     );
-    assert!(!f.success);
-    assert!(f.stderr.contains("no component `nope`"), "{}", f.stderr);
-    let f = inject(
-        &[
-            "campaign",
-            "--system",
-            system.to_str().unwrap(),
-            "--fault",
-            "exec",
-            "--runs",
-            "1",
-            "--seed",
-            "1",
-            "--out",
-            out.to_str().unwrap(),
-            "--shard",
-            "3/2",
-        ],
-        Duration::from_secs(30),
-    );
-    assert!(
-        !f.success && f.stderr.contains("K must be in 1..=2"),
-        "{}",
-        f.stderr
-    );
-    std::fs::write(dir.path().join("broken.json"), "{\n  \"name\": 3\n}").unwrap();
-    let f = inject(
-        &[
-            "campaign",
-            "--system",
-            dir.path().join("broken.json").to_str().unwrap(),
-            "--fault",
-            "exec",
-            "--runs",
-            "1",
-            "--seed",
-            "1",
-            "--out",
-            out.to_str().unwrap(),
-        ],
-        Duration::from_secs(30),
-    );
-    assert!(
-        !f.success && f.stderr.contains("broken.json:2"),
-        "{}",
-        f.stderr
-    );
+    fails_with(&broken, &[], "broken.json:2");
 }
