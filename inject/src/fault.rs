@@ -119,6 +119,16 @@ pub enum FireError {
     RegNotBuilt,
 }
 
+/// Whether this build can deliver `kind` (checked before a campaign starts, so that a kind
+/// that cannot be delivered is one clear error, not N runs of missed injections).
+pub fn check_available(kind: FaultKind) -> Result<(), FireError> {
+    match kind {
+        // The register injector is the s3res-regflip crate; see the `Reg` arm of `fire`.
+        FaultKind::Reg => Err(FireError::RegNotBuilt),
+        _ => Ok(()),
+    }
+}
+
 /// Delivers `action` to `pid`. Returns what the injector itself reports (for `reg`), else
 /// `None`.
 pub fn fire(

@@ -15,7 +15,7 @@ use s3res_bootstrap::live::LiveView;
 use s3res_bootstrap::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyRun};
-use s3res_inject::fault::{fire, FaultKind, RegOptions};
+use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
 use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
@@ -345,6 +345,16 @@ fn main() -> ExitCode {
         }
     };
     s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    let kind = match &cli.command {
+        Command::Inject(a) => Some(a.fault),
+        Command::Campaign(a) => Some(a.fault),
+        Command::Classify(a) => Some(a.fault),
+        Command::Merge(_) => None,
+    };
+    if let Some(Err(e)) = kind.map(check_available) {
+        eprintln!("error: {e}");
+        return ExitCode::from(1);
+    }
     let res = match &cli.command {
         Command::Inject(a) => cmd_inject(a),
         Command::Campaign(a) => cmd_campaign(a, &stop),
