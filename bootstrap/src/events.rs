@@ -13,6 +13,8 @@ use std::time::Duration;
 
 use s3res_voter::event::{Event, EventKind};
 
+use crate::live::LiveState;
+
 /// Counts for one component.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct Counts {
@@ -31,18 +33,18 @@ pub struct EventSummary {
 }
 
 impl EventSummary {
-    /// Takes one line into account (and logs it).
-    pub fn record_line(&mut self, line: &str) {
+    /// Takes one line into account (and logs it); returns the event if the line was one.
+    pub fn record_line(&mut self, line: &str) -> Option<Event> {
         let line = line.trim_end();
         if line.is_empty() {
-            return;
+            return None;
         }
         let event: Event = match serde_json::from_str(line) {
             Ok(e) => e,
             Err(e) => {
                 self.unparsable += 1;
                 tracing::warn!("unreadable event line ({e}): {line}");
-                return;
+                return None;
             }
         };
         let counts = self
@@ -87,6 +89,7 @@ impl EventSummary {
                 );
             }
         }
+        Some(event)
     }
 
     /// The one-line summary printed at exit, e.g.
@@ -133,13 +136,17 @@ pub struct EventReader {
 
 impl EventReader {
     /// Starts reading `pipe` (the read end of the events pipe) until every writer has closed
-    /// it; each line is also appended to `log` if given.
-    pub fn spawn(pipe: OwnedFd, log: Option<File>) -> std::io::Result<Self> {
+    /// it; each line is also appended to `log` if given, and applied to the live view if given.
+    pub fn spawn(
+        pipe: OwnedFd,
+        log: Option<File>,
+        live: Option<LiveState>,
+    ) -> std::io::Result<Self> {
         let (tx, rx) = mpsc::channel();
         std::thread::Builder::new()
             .name("events".to_owned())
             .spawn(move || {
-                let summary = read_all(BufReader::new(File::from(pipe)), log);
+                let summary = read_all(BufReader::new(File::from(pipe)), log, live.as_ref());
                 // The receiver may have given up waiting; nothing more to do then.
                 let _ = tx.send(summary);
             })?;
@@ -153,8 +160,12 @@ impl EventReader {
     }
 }
 
-/// Reads lines to the end, copying each to `log`.
-pub fn read_all(mut input: impl BufRead, mut log: Option<File>) -> EventSummary {
+/// Reads lines to the end, copying each to `log` and applying each event to `live`.
+pub fn read_all(
+    mut input: impl BufRead,
+    mut log: Option<File>,
+    live: Option<&LiveState>,
+) -> EventSummary {
     let mut summary = EventSummary::default();
     let mut buf = Vec::with_capacity(4096);
     loop {
@@ -177,7 +188,10 @@ pub fn read_all(mut input: impl BufRead, mut log: Option<File>) -> EventSummary 
                 log = None;
             }
         }
-        summary.record_line(&String::from_utf8_lossy(&buf));
+        let event = summary.record_line(&String::from_utf8_lossy(&buf));
+        if let (Some(live), Some(event)) = (live, event) {
+            live.update(|v| v.apply(&event));
+        }
     }
     summary
 }
@@ -201,7 +215,7 @@ mod tests {
             "{\"half\":"
         );
         let mut log = tempfile::tempfile().unwrap();
-        let summary = read_all(input.as_bytes(), Some(log.try_clone().unwrap()));
+        let summary = read_all(input.as_bytes(), Some(log.try_clone().unwrap()), None);
         assert_eq!(summary.unparsable, 2);
         let echo = summary.per_component["echo"];
         assert_eq!((echo.faults, echo.recoveries), (1, 1));
@@ -217,7 +231,7 @@ mod tests {
     #[test]
     fn reader_thread_ends_at_eof() {
         let (r, w) = replica_rt::sys::pipe().unwrap();
-        let reader = EventReader::spawn(r, None).unwrap();
+        let reader = EventReader::spawn(r, None, None).unwrap();
         let line = Event::new("s", "c", EventKind::Hang).to_line();
         replica_rt::sys::write(std::os::fd::AsFd::as_fd(&w), line.as_bytes()).unwrap();
         drop(w);

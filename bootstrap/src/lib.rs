@@ -7,6 +7,8 @@
 pub mod description;
 pub mod events;
 pub mod exec;
+pub mod live;
+pub mod logging;
 pub mod plan;
 pub mod posindex;
 pub mod run;

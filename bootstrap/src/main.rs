@@ -1,13 +1,11 @@
-//! `s3res-bootstrap [--check] [--events FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
+//! `s3res-bootstrap [--check] [--events FILE] [--state FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
 
-use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context as _;
 use clap::{ArgAction, Parser};
-use tracing_subscriber::EnvFilter;
 
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
@@ -83,6 +81,13 @@ struct Cli {
     #[arg(long, value_name = "FILE")]
     events: Option<PathBuf>,
 
+    /// Keep a live view of the running system in FILE (JSON, rewritten atomically on every
+    /// replica start, fault and recovery): each component with its pid, or its voter's pid and
+    /// the current pid of every replica slot. Fault injectors read it to find their targets
+    /// (see docs/campaigns.md).
+    #[arg(long, value_name = "FILE")]
+    state: Option<PathBuf>,
+
     /// After SIGTERM to the components, wait this long before SIGKILL.
     #[arg(long, value_name = "N", default_value_t = 2000)]
     stop_timeout_ms: u64,
@@ -100,25 +105,9 @@ struct Cli {
     system: PathBuf,
 }
 
-fn init_logging(cli: &Cli) {
-    let default = match (cli.quiet, cli.verbose) {
-        (true, _) => "warn",
-        (false, 0) => "info",
-        (false, 1) => "debug",
-        (false, _) => "trace",
-    };
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
-    tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
-        .with_env_filter(filter)
-        .with_target(false)
-        .with_ansi(std::io::stderr().is_terminal())
-        .init();
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    init_logging(&cli);
+    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
     match run_cli(&cli) {
         Ok(code) => ExitCode::from(code),
         Err(e) => {
@@ -169,6 +158,7 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         voter,
         events_file: cli.events.clone(),
         stop_timeout: Duration::from_millis(cli.stop_timeout_ms),
+        state_file: cli.state.clone(),
     };
     let report =
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;

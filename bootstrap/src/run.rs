@@ -23,6 +23,7 @@ use replica_rt::sys::{self, ExitStatus};
 use s3res_voter::plan::{ExternalPort, VoterPlan};
 
 use crate::events::{EventReader, EventSummary};
+use crate::live::{LiveState, LiveView};
 use crate::plan::{ComponentPlan, Endpoint, SystemPlan};
 use crate::sched::SystemSched;
 use crate::sweep::SweepGuard;
@@ -43,6 +44,8 @@ pub struct RunOptions {
     pub events_file: Option<PathBuf>,
     /// After SIGTERM to the children, how long before SIGKILL.
     pub stop_timeout: Duration,
+    /// Where to keep the live view of the running system (see [`crate::live`]).
+    pub state_file: Option<PathBuf>,
 }
 
 /// Why a system could not be run.
@@ -73,6 +76,11 @@ pub enum RunError {
         index: usize,
         from: Endpoint,
         to: Endpoint,
+        source: std::io::Error,
+    },
+    #[error("cannot write the state file {path}: {source}")]
+    StateFile {
+        path: PathBuf,
         source: std::io::Error,
     },
     #[error("cannot set up the events pipe: {0}")]
@@ -193,10 +201,22 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     // Whether SCHED_RR can be had is found out once, here, and said once; the voters are told.
     let sched = SystemSched::for_system(plan);
     sched.warn_once();
+    let live = match &opts.state_file {
+        Some(path) => Some(
+            LiveState::create(LiveView::new(plan), path.clone()).map_err(|source| {
+                RunError::StateFile {
+                    path: path.clone(),
+                    source,
+                }
+            })?,
+        ),
+        None => None,
+    };
 
     let (events_reader, events_write) = if voter.is_some() {
         let (r, w) = sys::pipe().map_err(RunError::EventsPipe)?;
-        let reader = EventReader::spawn(r, events_log).map_err(RunError::EventsPipe)?;
+        let reader =
+            EventReader::spawn(r, events_log, live.clone()).map_err(RunError::EventsPipe)?;
         (Some(reader), Some(w))
     } else {
         (None, None)
@@ -241,6 +261,19 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 "directly".to_owned()
             }
         );
+        if let Some(live) = &live {
+            live.update(|v| match v.components.get_mut(&c.name) {
+                Some(lc) if lc.protected => {
+                    lc.voter_pid = Some(pid);
+                    true
+                }
+                Some(lc) => {
+                    lc.pid = Some(pid);
+                    true
+                }
+                None => false,
+            });
+        }
         children.push(Child {
             component: c.name.clone(),
             pid,
@@ -262,6 +295,12 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         }
         s
     });
+    if let Some(live) = &live {
+        live.update(|v| {
+            v.running = false;
+            true
+        });
+    }
 
     let failures = children
         .iter()

@@ -197,12 +197,153 @@ pub mod signals {
     pub fn inject_cfe() -> libc::c_int {
         libc::SIGRTMIN() + 2
     }
+
+    /// Injection at the variable level: XOR a byte mask into chosen bytes of the next outgoing
+    /// frame. Sent with `sigqueue` only (a real-time signal, so that several queue instead of
+    /// merging); the value is a [`VarRequest`] as [`VarRequest::to_value`] encodes it. One signal
+    /// names one byte; a flip that spans bytes (the exponent of an f64) is several signals, the
+    /// last one with `last` set, and only that one arms the flip. So the bytes of one request
+    /// always land in the same frame.
+    pub fn inject_var() -> libc::c_int {
+        libc::SIGRTMIN() + 3
+    }
+
+    /// One byte of a variable-level injection, as carried in the `sigqueue` value (an `i32`
+    /// that is never negative):
+    ///
+    /// | bits   | field                                                  |
+    /// |--------|--------------------------------------------------------|
+    /// | 0..8   | `mask`: the bits of the byte to flip (bit 0 = lowest)  |
+    /// | 8..30  | `offset`: byte offset in the payload (< 4 MiB)         |
+    /// | 30     | `last`: this is the request's last byte; arm it        |
+    /// | 31     | always 0                                               |
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct VarRequest {
+        pub offset: u32,
+        pub mask: u8,
+        pub last: bool,
+    }
+
+    impl VarRequest {
+        /// Largest byte offset a request can name.
+        pub const MAX_OFFSET: u32 = (1 << 22) - 1;
+        const LAST: i32 = 1 << 30;
+
+        /// The `sigqueue` value; `None` if the offset is too large or the mask is empty.
+        pub fn to_value(self) -> Option<i32> {
+            if self.offset > Self::MAX_OFFSET || self.mask == 0 {
+                return None;
+            }
+            let last = if self.last { Self::LAST } else { 0 };
+            Some(last | (self.offset as i32) << 8 | i32::from(self.mask))
+        }
+
+        /// Decodes a `sigqueue` value; `None` for a negative value or an empty mask.
+        pub fn from_value(value: i32) -> Option<Self> {
+            if value < 0 || value & 0xff == 0 {
+                return None;
+            }
+            Some(VarRequest {
+                offset: ((value >> 8) as u32) & Self::MAX_OFFSET,
+                mask: (value & 0xff) as u8,
+                last: value & Self::LAST != 0,
+            })
+        }
+
+        /// The requests that flip `bits` (bit 0 = lowest bit of byte `offset`; bit 63 of an
+        /// f64 at `offset` is its sign) of the payload starting at byte `offset`, one per touched
+        /// byte, in byte order, the last one marked `last`. Empty if `bits` is empty.
+        pub fn for_bits(offset: u32, bits: &[u32]) -> Vec<VarRequest> {
+            let mut masks: std::collections::BTreeMap<u32, u8> = Default::default();
+            for &b in bits {
+                *masks.entry(offset.saturating_add(b / 8)).or_default() ^= 1 << (b % 8);
+            }
+            masks.retain(|_, m| *m != 0);
+            let n = masks.len();
+            masks
+                .into_iter()
+                .enumerate()
+                .map(|(i, (offset, mask))| VarRequest {
+                    offset,
+                    mask,
+                    last: i + 1 == n,
+                })
+                .collect()
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::handshake::{Ready, READY_MAGIC};
+    use super::signals::VarRequest;
     use super::MAX_PORTS;
+
+    #[test]
+    fn var_request_round_trips() {
+        for r in [
+            VarRequest {
+                offset: 0,
+                mask: 1,
+                last: false,
+            },
+            VarRequest {
+                offset: VarRequest::MAX_OFFSET,
+                mask: 0xff,
+                last: true,
+            },
+            VarRequest {
+                offset: 15,
+                mask: 0x80,
+                last: true,
+            },
+        ] {
+            let v = r.to_value().unwrap();
+            assert!(v >= 0);
+            assert_eq!(VarRequest::from_value(v), Some(r));
+        }
+        assert_eq!(
+            VarRequest {
+                offset: 1 << 22,
+                mask: 1,
+                last: false
+            }
+            .to_value(),
+            None
+        );
+        assert_eq!(
+            VarRequest {
+                offset: 0,
+                mask: 0,
+                last: false
+            }
+            .to_value(),
+            None
+        );
+        assert_eq!(VarRequest::from_value(-1), None);
+    }
+
+    #[test]
+    fn f64_exponent_spans_two_bytes() {
+        // Bits 52..63 of an f64 at offset 8: bits 4..7 of byte 14, bits 0..6 of byte 15.
+        let reqs = VarRequest::for_bits(8, &[52, 62]);
+        assert_eq!(
+            reqs,
+            vec![
+                VarRequest {
+                    offset: 14,
+                    mask: 0x10,
+                    last: false
+                },
+                VarRequest {
+                    offset: 15,
+                    mask: 0x40,
+                    last: true
+                },
+            ]
+        );
+        assert!(VarRequest::for_bits(0, &[]).is_empty());
+    }
 
     #[test]
     fn ready_roundtrips_with_its_frame_counts() {

@@ -6,11 +6,14 @@
 //!   copy of the payload) before writing.
 //! - [`signals::inject_cfe`]: spin forever inside the handler, a control-flow error that never
 //!   answers. Only SIGKILL gets the process out.
+//! - [`signals::inject_var`]: variable-level injection (MAVFI): XOR byte masks into chosen bytes
+//!   of the next outgoing frame. Each signal stages one byte in a fixed table of atomics; the
+//!   request's last byte arms the table, and [`crate::OutPort::send`] applies and clears it.
 
 use std::io;
-use std::sync::atomic::{AtomicI64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 
-use crate::contract::signals;
+use crate::contract::signals::{self, VarRequest};
 use crate::sys;
 
 /// No injection pending.
@@ -20,11 +23,74 @@ const RANDOM: i64 = -1;
 
 static PENDING_SDC: AtomicI64 = AtomicI64::new(NONE);
 
+/// Most bytes one variable-level request may touch (an f64 is 8).
+const VAR_SLOTS: usize = 16;
+/// Marks a used slot (an offset of 0 with mask 0 would otherwise look empty).
+const SLOT_USED: u64 = 1 << 63;
+/// Staged bytes: `SLOT_USED | offset << 8 | mask`, or 0.
+static VAR_STAGED: [AtomicU64; VAR_SLOTS] = [const { AtomicU64::new(0) }; VAR_SLOTS];
+/// The last byte of a request arrived: apply the staged bytes to the next frame.
+static VAR_ARMED: AtomicBool = AtomicBool::new(false);
+/// Bytes that found no free slot since the last frame (reported when the frame is sent).
+static VAR_DROPPED: AtomicU64 = AtomicU64::new(0);
+
 pub(crate) fn install() -> io::Result<()> {
     sys::install_siginfo_handler(signals::INJECT_SDC, on_inject_sdc, libc::SA_RESTART)?;
     // No SA_RESTART needed: the handler never returns.
     sys::install_siginfo_handler(signals::inject_cfe(), on_inject_cfe, 0)?;
+    sys::install_siginfo_handler(signals::inject_var(), on_inject_var, libc::SA_RESTART)?;
     Ok(())
+}
+
+/// Async-signal-safe: decodes the value and updates fixed atomics; no allocation, no lock.
+/// A value that is not a valid [`VarRequest`] (or a plain `kill`) is ignored.
+extern "C" fn on_inject_var(
+    _sig: libc::c_int,
+    info: *mut libc::siginfo_t,
+    _ctx: *mut libc::c_void,
+) {
+    // SAFETY: the kernel passes a valid (or no) siginfo to an SA_SIGINFO handler.
+    let info = unsafe { info.as_ref() };
+    if let Some(req) = info
+        .and_then(crate::sys::queued_value)
+        .and_then(VarRequest::from_value)
+    {
+        stage_var(req);
+    }
+}
+
+/// Stages one byte (XORed into an existing slot for the same offset) and arms on `last`.
+/// Called only from the handler, which the kernel never re-enters for the same signal, and
+/// [`apply_pending`] blocks the signal while it empties the table, so plain loads and stores
+/// suffice.
+fn stage_var(req: VarRequest) {
+    let offset = u64::from(req.offset);
+    let mut free = None;
+    let mut placed = false;
+    for slot in &VAR_STAGED {
+        let v = slot.load(Ordering::SeqCst);
+        if v == 0 {
+            free = free.or(Some(slot));
+        } else if (v >> 8) & u64::from(VarRequest::MAX_OFFSET) == offset {
+            slot.store(v ^ u64::from(req.mask), Ordering::SeqCst);
+            placed = true;
+            break;
+        }
+    }
+    if !placed {
+        match free {
+            Some(slot) => slot.store(
+                SLOT_USED | offset << 8 | u64::from(req.mask),
+                Ordering::SeqCst,
+            ),
+            None => {
+                VAR_DROPPED.fetch_add(1, Ordering::SeqCst);
+            }
+        }
+    }
+    if req.last {
+        VAR_ARMED.store(true, Ordering::SeqCst);
+    }
 }
 
 /// Async-signal-safe: reads the siginfo, stores one atomic.
@@ -61,10 +127,53 @@ extern "C" fn on_inject_cfe(
 /// its donor's pid, not at it.
 pub(crate) fn clear_pending() {
     PENDING_SDC.store(NONE, Ordering::SeqCst);
+    for slot in &VAR_STAGED {
+        slot.store(0, Ordering::SeqCst);
+    }
+    VAR_ARMED.store(false, Ordering::SeqCst);
+    VAR_DROPPED.store(0, Ordering::SeqCst);
+}
+
+/// Applies an armed variable-level request to `payload` and empties the table.
+fn apply_var(port: &str, payload: &mut [u8]) {
+    if !VAR_ARMED.swap(false, Ordering::SeqCst) {
+        return;
+    }
+    // While the table is emptied, a new request must not be half taken: hold the signal.
+    let _held = sys::block_signal(signals::inject_var());
+    let mut applied = [(0u32, 0u8); VAR_SLOTS];
+    let mut n_applied = 0;
+    let mut outside = 0u32;
+    for slot in &VAR_STAGED {
+        let v = slot.swap(0, Ordering::SeqCst);
+        if v == 0 {
+            continue;
+        }
+        let offset = ((v >> 8) & u64::from(VarRequest::MAX_OFFSET)) as u32;
+        let mask = (v & 0xff) as u8;
+        match payload.get_mut(offset as usize) {
+            Some(byte) => {
+                *byte ^= mask;
+                applied[n_applied] = (offset, mask);
+                n_applied += 1;
+            }
+            None => outside += 1,
+        }
+    }
+    let dropped = VAR_DROPPED.swap(0, Ordering::SeqCst);
+    tracing::warn!(
+        port,
+        bytes = ?&applied[..n_applied],
+        outside_payload = outside,
+        dropped,
+        len = payload.len(),
+        "injected variable flip: (offset, mask) XORed into the outgoing frame"
+    );
 }
 
 /// Applies a pending SDC injection to `payload` (the outgoing copy), logging what was done.
 pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
+    apply_var(port, payload);
     let req = PENDING_SDC.swap(NONE, Ordering::SeqCst);
     if req == NONE {
         return;
@@ -152,6 +261,43 @@ mod tests {
         PENDING_SDC.store(RANDOM, Ordering::SeqCst);
         apply_pending("out", &mut []);
         assert_eq!(PENDING_SDC.load(Ordering::SeqCst), NONE);
+    }
+
+    /// The only test touching the process-wide variable-injection table.
+    #[test]
+    fn var_request_applies_all_its_bytes_to_one_frame_only_when_armed() {
+        let clean = [0u8; 16];
+        let reqs = VarRequest::for_bits(8, &[52, 62, 63]);
+        let (last, first) = reqs.split_last().unwrap();
+        for r in first {
+            stage_var(*r);
+        }
+        // Not armed yet: a frame sent now goes out clean.
+        let mut p = clean;
+        apply_var("out", &mut p);
+        assert_eq!(p, clean);
+        stage_var(*last);
+        apply_var("out", &mut p);
+        let bits = u64::from_le_bytes(p[8..16].try_into().unwrap());
+        assert_eq!(bits, (1 << 52) | (1 << 62) | (1 << 63));
+        assert_eq!(p[..8], clean[..8]);
+        let mut q = clean;
+        apply_var("out", &mut q);
+        assert_eq!(q, clean, "consumed by the first frame");
+        // A byte beyond the payload is skipped, the others still apply.
+        stage_var(VarRequest {
+            offset: 2,
+            mask: 1,
+            last: false,
+        });
+        stage_var(VarRequest {
+            offset: 100,
+            mask: 1,
+            last: true,
+        });
+        apply_var("out", &mut q);
+        assert_eq!(q[2], 1);
+        assert_eq!(q.iter().map(|b| b.count_ones()).sum::<u32>(), 1);
     }
 
     #[test]

@@ -47,6 +47,8 @@ pub struct System {
     stdin: Option<Vec<u8>>,
     events: bool,
     unprivileged: bool,
+    /// Extra bootstrap options, before the description.
+    args: Vec<std::ffi::OsString>,
 }
 
 impl Default for System {
@@ -67,6 +69,7 @@ impl System {
             stdin: None,
             events: true,
             unprivileged: std::env::var_os(UNPRIVILEGED_ENV).is_some_and(|v| v != "0"),
+            args: Vec::new(),
         }
     }
 
@@ -125,6 +128,12 @@ impl System {
         self
     }
 
+    /// One more bootstrap option (e.g. `--state`, then a path), placed before the description.
+    pub fn arg(mut self, arg: impl Into<std::ffi::OsString>) -> Self {
+        self.args.push(arg.into());
+        self
+    }
+
     /// Do not pass `--events` (the plain `s3res-bootstrap SYSTEM.json` command line).
     pub fn without_events(mut self) -> Self {
         self.events = false;
@@ -180,7 +189,8 @@ impl System {
         if let Some(ev) = &events {
             cmd.arg("--events").arg(ev);
         }
-        cmd.arg(&desc)
+        cmd.args(&self.args)
+            .arg(&desc)
             .current_dir(self.dir.path())
             .stdout(File::create(&stdout).expect("creating stdout.txt"))
             .stderr(File::create(&stderr).expect("creating stderr.txt"))

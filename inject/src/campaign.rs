@@ -1,0 +1,315 @@
+//! A campaign: run the system N times with a schedule of injections, match each run's
+//! injections with its voters' events, and write the records, the summary and the tables.
+
+use std::io::{IsTerminal as _, Write as _};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context as _};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::outcome::{match_run, Fired, Outcome};
+use crate::report::{self, CampaignInfo, CampaignOutput, InjectionRecord, RunRecord, Summary};
+use crate::runner::{run_once, RunResult, RunSetup};
+use crate::schedule::{plan_run, run_seed, ScheduleParams};
+use crate::stop::StopSignals;
+
+/// How to run a campaign, beyond what `campaign.json` records.
+#[derive(Debug, Clone)]
+pub struct CampaignRun {
+    pub info: CampaignInfo,
+    pub bootstrap: PathBuf,
+    pub out: PathBuf,
+    /// Keep every run's folder (events, state, stdout, stderr) under `OUT/runs/`.
+    pub keep_runs: bool,
+    pub ready_limit: Duration,
+}
+
+impl CampaignRun {
+    pub fn schedule_params(&self) -> ScheduleParams {
+        schedule_params(&self.info)
+    }
+}
+
+/// The schedule parameters recorded in `info`.
+pub fn schedule_params(info: &CampaignInfo) -> ScheduleParams {
+    ScheduleParams {
+        fault: info.fault,
+        rate_hz: info.rate_hz,
+        arrival: info.arrival,
+        window: Duration::from_millis(info.window_ms),
+        components: info.components.clone(),
+        var: info.var.clone(),
+    }
+}
+
+/// Runs the campaign (or its shard) and writes its outputs into `c.out`. Returns the summary
+/// and, if a stop signal cut it short, that signal (the outputs then hold the completed runs).
+pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Option<i32>)> {
+    std::fs::create_dir_all(&c.out)
+        .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
+    for f in ["injections.jsonl", "runs.jsonl", "summary.json", "table.md"] {
+        if c.out.join(f).exists() {
+            bail!(
+                "{} already holds a campaign ({f}); give an empty or new --out folder",
+                c.out.display()
+            );
+        }
+    }
+    if let Err(e) = replica_rt::sys::set_child_subreaper() {
+        tracing::warn!(
+            "cannot become a child subreaper ({e}): processes of a run whose parent died are \
+             still killed, but reaped by init instead of by this process"
+        );
+    }
+    let info_text = serde_json::to_string_pretty(&c.info)?;
+    std::fs::write(c.out.join("campaign.json"), info_text + "\n")?;
+    let mut inj_file = std::fs::File::create(c.out.join("injections.jsonl"))?;
+    let mut runs_file = std::fs::File::create(c.out.join("runs.jsonl"))?;
+
+    let params = c.schedule_params();
+    let indices: Vec<u64> = c.info.run_indices().collect();
+    let mut progress = Progress::new(indices.len() as u64, &c.info);
+    let mut all_runs = Vec::with_capacity(indices.len());
+    let mut all_inj = Vec::new();
+    let stamp = std::process::id();
+    for &r in &indices {
+        let schedule = plan_run(&params, c.info.seed, r);
+        let (dir, _tmp) = run_dir(c, r)?;
+        let setup = RunSetup {
+            bootstrap: c.bootstrap.clone(),
+            system: c.info.system.clone(),
+            dir: dir.clone(),
+            mark: format!("{stamp}-{}-{r}", c.info.seed),
+            targets: c.info.components.clone(),
+            pick: c.info.pick,
+            reg: c.info.reg.clone(),
+            limit: Duration::from_millis(c.info.run_limit_ms),
+            ready_limit: c.ready_limit,
+        };
+        let result = run_once(&setup, &schedule, &|| stop.requested().is_some());
+        if result.interrupted {
+            eprintln!(
+                "s3res-inject: stopped by signal during run {r}; that run is discarded, the {} \
+                 completed run(s) are kept",
+                all_runs.len()
+            );
+            break;
+        }
+        let (run_rec, inj) = records(&c.info, r, &dir, &result);
+        for rec in &inj {
+            writeln!(inj_file, "{}", serde_json::to_string(rec)?)?;
+        }
+        writeln!(runs_file, "{}", serde_json::to_string(&run_rec)?)?;
+        progress.run_done(&run_rec, &inj);
+        all_runs.push(run_rec);
+        all_inj.extend(inj);
+    }
+    progress.finish();
+    drop((inj_file, runs_file));
+    let out = CampaignOutput {
+        info: c.info.clone(),
+        runs: all_runs,
+        injections: all_inj,
+    };
+    let summaries = report::write_outputs(&c.out, &[out])?;
+    let summary = summaries
+        .into_iter()
+        .next()
+        .expect("one campaign, one summary");
+    Ok((summary, stop.requested()))
+}
+
+/// The run's folder: under `OUT/runs/` if kept, else a temporary folder removed on drop.
+fn run_dir(c: &CampaignRun, r: u64) -> anyhow::Result<(PathBuf, Option<tempfile::TempDir>)> {
+    if c.keep_runs {
+        let dir = c.out.join("runs").join(format!("run-{r:06}"));
+        std::fs::create_dir_all(&dir)?;
+        Ok((dir, None))
+    } else {
+        let tmp = tempfile::Builder::new()
+            .prefix("s3res-inject-")
+            .tempdir()
+            .context("cannot create a temporary folder for the run")?;
+        Ok((tmp.path().to_path_buf(), Some(tmp)))
+    }
+}
+
+/// Reads the task's verdict file; `Some(ok)` if asked for (missing or unreadable: `false`).
+pub fn task_summary_ok(dir: &Path, file: Option<&str>) -> Option<bool> {
+    let file = file?;
+    let ok = std::fs::read_to_string(dir.join(file))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v.get("ok").and_then(serde_json::Value::as_bool))
+        .unwrap_or(false);
+    Some(ok)
+}
+
+/// Turns one run's result into its records (matching injections with events).
+pub fn records(
+    info: &CampaignInfo,
+    r: u64,
+    dir: &Path,
+    result: &RunResult,
+) -> (RunRecord, Vec<InjectionRecord>) {
+    let summary_ok = task_summary_ok(dir, info.task_summary.as_deref());
+    let exit_ok = result.status.is_some_and(|s| s.success());
+    let task_ok = exit_ok && !result.timed_out && summary_ok != Some(false);
+    let fired: Vec<Fired> = result
+        .attempts
+        .iter()
+        .filter_map(|a| {
+            Some(Fired {
+                ts_ns: a.ts_ns?,
+                component: a.planned.component.clone(),
+                slot: a.slot,
+                pid: a.pid?,
+            })
+        })
+        .collect();
+    let m = match_run(
+        &fired,
+        &result.events,
+        info.match_window_ms * 1_000_000,
+        task_ok,
+    );
+    let mut matched = m.per_injection.into_iter();
+    let inj: Vec<InjectionRecord> = result
+        .attempts
+        .iter()
+        .map(|a| {
+            let (outcome, mt) = if a.ts_ns.is_some() && a.pid.is_some() {
+                matched.next().expect("one match per fired injection")
+            } else {
+                (Outcome::Missed, Default::default())
+            };
+            InjectionRecord {
+                config: info.config.clone(),
+                seed: info.seed,
+                run: r,
+                index: a.planned.index,
+                at_ns: a.planned.at_ns,
+                ts_ns: a.ts_ns,
+                action: a.planned.action.clone(),
+                component: a.planned.component.clone(),
+                replica: a.slot,
+                pid: a.pid,
+                outcome,
+                miss: a.miss.clone().or_else(|| {
+                    mt.already_hit_by.map(|k| {
+                        format!("process already hit by injection {k} and not yet found faulty")
+                    })
+                }),
+                matched: mt,
+                injector: a.injector.clone(),
+            }
+        })
+        .collect();
+    let status = result.status.map(|s| {
+        use std::os::unix::process::ExitStatusExt as _;
+        (s.code(), s.signal())
+    });
+    let run_rec = RunRecord {
+        config: info.config.clone(),
+        seed: info.seed,
+        run: r,
+        run_seed: run_seed(info.seed, r),
+        exit_code: status.and_then(|s| s.0),
+        exit_signal: status.and_then(|s| s.1),
+        timed_out: result.timed_out,
+        ready: result.ready,
+        task_summary_ok: summary_ok,
+        task_ok,
+        planned: result.attempts.len() as u64,
+        injected: fired.len() as u64,
+        false_positives: m.false_positives,
+        events: result.events.len() as u64,
+        duration_ms: result.duration.as_millis() as u64,
+        error: result.error.clone().or_else(|| {
+            (result.leftovers > 0).then(|| {
+                format!(
+                    "{} process(es) of the run outlived bootstrap and were killed",
+                    result.leftovers
+                )
+            })
+        }),
+    };
+    (run_rec, inj)
+}
+
+/// A progress bar with ETA on a terminal; otherwise a line at most every 10 s.
+pub struct Progress {
+    bar: Option<ProgressBar>,
+    total: u64,
+    done: u64,
+    injected: u64,
+    errors: u64,
+    fpos: u64,
+    started: Instant,
+    last_line: Instant,
+    label: String,
+}
+
+impl Progress {
+    pub fn new(total: u64, info: &CampaignInfo) -> Self {
+        let label = format!("{} {}", info.config, info.fault);
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let b = ProgressBar::new(total);
+            b.set_style(
+                ProgressStyle::with_template(
+                    "{prefix} [{bar:30}] {pos}/{len} runs, ETA {eta} {msg}",
+                )
+                .expect("a valid template")
+                .progress_chars("=> "),
+            );
+            b.set_prefix(label.clone());
+            b
+        });
+        Progress {
+            bar,
+            total,
+            done: 0,
+            injected: 0,
+            errors: 0,
+            fpos: 0,
+            started: Instant::now(),
+            last_line: Instant::now(),
+            label,
+        }
+    }
+
+    fn run_done(&mut self, run: &RunRecord, inj: &[InjectionRecord]) {
+        self.done += 1;
+        self.injected += run.injected;
+        self.errors += inj.iter().filter(|i| i.outcome.is_error()).count() as u64;
+        self.fpos += run.false_positives;
+        let msg = format!(
+            "| {} injected, {} errors, {} false positives",
+            self.injected, self.errors, self.fpos
+        );
+        match &self.bar {
+            Some(b) => {
+                b.set_message(msg);
+                b.inc(1);
+            }
+            None => {
+                if self.last_line.elapsed() >= Duration::from_secs(10) || self.done == self.total {
+                    let elapsed = self.started.elapsed().as_secs_f64();
+                    let eta = elapsed / self.done as f64 * (self.total - self.done) as f64;
+                    eprintln!(
+                        "s3res-inject: {}: run {}/{} {msg}, ETA {:.0}s",
+                        self.label, self.done, self.total, eta
+                    );
+                    self.last_line = Instant::now();
+                }
+            }
+        }
+    }
+
+    fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish();
+        }
+    }
+}

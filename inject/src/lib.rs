@@ -1,0 +1,25 @@
+//! # s3res-inject
+//!
+//! Fault injection for s3res systems, after S³RES (signal injection campaigns) and MAVFI
+//! (variable- and register-level flips, end-to-end outcome classification).
+//!
+//! - [`fault`]: the fault kinds and how one is delivered to one process;
+//! - [`target`]: finding the process, from bootstrap's live view (`--state`);
+//! - [`schedule`]: the seeded plan of instants, targets, bits;
+//! - [`runner`]: one bounded run of a system that leaves nothing behind;
+//! - [`outcome`]: matching injections with the voters' events;
+//! - [`report`]: records, summaries, tables, merging shards;
+//! - [`campaign`] and [`classify`]: the two experiments;
+//! - [`stop`]: SIGINT/SIGTERM end the current run cleanly.
+//!
+//! The command-line guide is docs/campaigns.md.
+
+pub mod campaign;
+pub mod classify;
+pub mod fault;
+pub mod outcome;
+pub mod report;
+pub mod runner;
+pub mod schedule;
+pub mod stop;
+pub mod target;

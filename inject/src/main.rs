@@ -1,0 +1,657 @@
+//! `s3res-inject`: fault injection into s3res systems. See `--help` and docs/campaigns.md.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{bail, Context as _};
+use clap::{ArgAction, Args, Parser, Subcommand};
+use rand::SeedableRng as _;
+
+use s3res_bootstrap::description::{self, HostContext};
+use s3res_bootstrap::exec::{self, SearchPath};
+use s3res_bootstrap::live::LiveView;
+use s3res_bootstrap::plan::SystemPlan;
+use s3res_inject::campaign::{self, CampaignRun};
+use s3res_inject::classify::{self, ClassifyRun};
+use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
+use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
+use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
+use s3res_inject::stop::StopSignals;
+use s3res_inject::target::{resolve, Pick, Target};
+
+const BOOTSTRAP_BIN: &str = "s3res-bootstrap";
+/// Overrides where s3res-bootstrap is taken from.
+const BOOTSTRAP_ENV: &str = "S3RES_BOOTSTRAP";
+
+const LONG_ABOUT: &str = "\
+Inject faults into s3res systems and measure what the voters make of them.
+
+Fault kinds (--fault):
+  exec  execution error: SIGKILL to the process
+  sdc   silent data corruption: replica-rt flips one bit of the next frame the process sends
+        (SIGUSR2, sigqueue value = the bit, reduced modulo the frame's bits)
+  cfe   control-flow error: replica-rt makes the process spin forever (SIGRTMIN+2)
+  var   variable-level flip: chosen bits at a chosen byte offset of the next frame
+        (--var-offset, --var-field, --var-flips, --var-bits; SIGRTMIN+3)
+  reg   register bit flip through ptrace (provided by the s3res-regflip crate)
+  none  nothing (campaign baseline: false positives and task success without faults)
+
+Targets are found in bootstrap's live view (s3res-bootstrap --state FILE), never by name
+matching: each component's pid, or its voter's pid and each replica slot's current pid.
+
+Subcommands:
+  inject    one injection into a running system
+  campaign  run a system N times with injections; tables of detection, recovery, errors
+  classify  run a system once clean and N times with one injection; benign/SDC/crash/hang
+  merge     combine the outputs of campaign shards (--shard K/N) or several campaigns
+
+The guide, the matching rule and a Slurm example: docs/campaigns.md.";
+
+const AFTER_LONG_HELP: &str = "\
+Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage, 130/143 stopped by
+SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written).
+
+Environment:
+  RUST_LOG         log filter (overrides -v/-q)
+  S3RES_BOOTSTRAP  path of s3res-bootstrap (default: beside s3res-inject, then PATH)";
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "s3res-inject",
+    version,
+    about = "Inject faults into s3res systems and measure what the voters make of them.",
+    long_about = LONG_ABOUT,
+    after_long_help = AFTER_LONG_HELP
+)]
+struct Cli {
+    /// More log output (-v debug, -vv trace).
+    #[arg(short, long, action = ArgAction::Count, global = true, conflicts_with = "quiet")]
+    verbose: u8,
+    /// Only warnings and errors.
+    #[arg(short, long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// One injection into a running system; prints one JSON line saying what was done.
+    ///
+    /// Start the system with `s3res-bootstrap --state state.json system.json`, then e.g.
+    ///
+    ///     s3res-inject inject --state state.json --component echo --fault sdc
+    ///     s3res-inject inject --state state.json --component echo --replica 2 --fault cfe
+    ///     s3res-inject inject --state state.json --component echo --fault var \
+    ///         --var-offset 8 --var-field exponent --var-flips 2
+    #[command(verbatim_doc_comment)]
+    Inject(InjectArgs),
+    /// Run a system N times with injections and tabulate what the voters made of them.
+    ///
+    /// Each run starts s3res-bootstrap on the description in a fresh folder (its working
+    /// directory: a sink's `--summary task.json` lands there), waits until every target
+    /// runs, injects on the seeded schedule for --duration, waits for the end (killing the
+    /// run at --run-timeout), then matches every injection with the voters' events.
+    ///
+    /// Writes into --out: campaign.json (parameters), injections.jsonl (one line per
+    /// injection: time, seed, kind, component, replica, pid, outcome, latencies),
+    /// runs.jsonl (one line per run: exit, task verdict, false positives), summary.json and
+    /// table.md (S³RES Tables 2 and 3 layout). The same seed gives the same schedule of
+    /// targets, bits and instants.
+    ///
+    ///     s3res-inject campaign --system echo-tmr.json --fault exec --rate 2 \
+    ///         --runs 100 --seed 1 --out out/tmr-exec --task-summary task.json
+    #[command(verbatim_doc_comment)]
+    Campaign(CampaignArgs),
+    /// Outcome classification without protection (MAVFI Fig. 5): benign / SDC / crash / hang.
+    ///
+    /// Runs the system once without injection (golden), then --runs times with one injection
+    /// at a uniform instant of --duration, and compares each run's output (bootstrap's stdout,
+    /// or --output FILE in the run's folder) with the golden one. Writes classify.jsonl (one
+    /// line per run, with how many frames and bits differ), classify.json and classify.md.
+    ///
+    ///     s3res-inject classify --system echo-none.json --components echo --fault sdc \
+    ///         --runs 100 --seed 1 --out out/classify-sdc
+    #[command(verbatim_doc_comment)]
+    Classify(ClassifyArgs),
+    /// Combine campaign outputs: shards of one campaign become the whole campaign; different
+    /// campaigns become rows of one table.
+    ///
+    ///     s3res-inject merge --out out/all out/shard-*
+    #[command(verbatim_doc_comment)]
+    Merge(MergeArgs),
+}
+
+#[derive(Debug, Args)]
+struct VarArgs {
+    /// var: byte offset of the value in the frame's payload.
+    #[arg(long, value_name = "BYTE", default_value_t = 0)]
+    var_offset: u32,
+    /// var: which bits of the little-endian 64-bit value at the offset may flip
+    /// (an f64: sign = bit 63, exponent = 52..63, mantissa = 0..52; byte = the byte only).
+    #[arg(long, value_enum, default_value_t = VarField::Whole)]
+    var_field: VarField,
+    /// var: how many distinct bits of the field each injection flips (chosen by the seed).
+    #[arg(long, value_name = "K", default_value_t = 1)]
+    var_flips: u32,
+    /// var: flip exactly these bits (relative to the offset), e.g. 52,62; overrides the field.
+    #[arg(long, value_name = "LIST", value_delimiter = ',')]
+    var_bits: Option<Vec<u32>>,
+}
+
+impl VarArgs {
+    fn spec(&self) -> anyhow::Result<VarSpec> {
+        let spec = VarSpec {
+            offset: self.var_offset,
+            field: self.var_field,
+            flips: self.var_flips,
+            bits: self.var_bits.clone(),
+        };
+        spec.validate().map_err(anyhow::Error::msg)?;
+        Ok(spec)
+    }
+}
+
+#[derive(Debug, Args)]
+struct RegArgs {
+    /// reg: which operand of the interrupted instruction: source, destination or any.
+    #[arg(long, value_name = "ROLE", default_value = "any")]
+    reg_role: String,
+    /// reg: bits flipped per injection.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    reg_bits: u32,
+    /// reg: part of a floating-point register: whole, sign, exponent, mantissa.
+    #[arg(long, value_name = "FIELD", default_value = "whole")]
+    reg_field: String,
+    /// reg: only these registers (comma-separated).
+    #[arg(long, value_name = "LIST", value_delimiter = ',')]
+    reg_registers: Option<Vec<String>>,
+}
+
+impl RegArgs {
+    fn options(&self) -> RegOptions {
+        RegOptions {
+            role: self.reg_role.clone(),
+            bits: self.reg_bits,
+            field: self.reg_field.clone(),
+            registers: self.reg_registers.clone(),
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+struct InjectArgs {
+    /// The live view written by `s3res-bootstrap --state FILE`.
+    #[arg(long, value_name = "FILE")]
+    state: PathBuf,
+    /// Component to inject into.
+    #[arg(long)]
+    component: String,
+    /// Replica slot (protected components); default: chosen with --pick.
+    #[arg(long, value_name = "SLOT", conflicts_with = "pid")]
+    replica: Option<usize>,
+    /// Inject into this pid instead (it must be in the live view).
+    #[arg(long)]
+    pid: Option<i32>,
+    #[arg(long, value_enum)]
+    fault: FaultKind,
+    /// sdc: the bit to flip (default: chosen by the seed).
+    #[arg(long)]
+    bit: Option<u32>,
+    /// Seed for every random choice (default: from the clock; printed in the record).
+    #[arg(long)]
+    seed: Option<u64>,
+    #[arg(long, value_enum, default_value_t = Pick::Uniform)]
+    pick: Pick,
+    #[command(flatten)]
+    var: VarArgs,
+    #[command(flatten)]
+    reg: RegArgs,
+}
+
+#[derive(Debug, Args)]
+struct CampaignArgs {
+    /// The system description to run.
+    #[arg(long, value_name = "S.json")]
+    system: PathBuf,
+    #[arg(long, value_enum)]
+    fault: FaultKind,
+    /// Injections per second during each run's window (S³RES used 2).
+    #[arg(long, value_name = "HZ", default_value_t = 2.0)]
+    rate: f64,
+    /// Inter-arrival times: exponential (Poisson process) or fixed.
+    #[arg(long, value_enum, default_value_t = Arrival::Exponential)]
+    arrival: Arrival,
+    /// Injection window of each run, from the moment every target runs, in seconds. Keep it
+    /// shorter than the system's own run.
+    #[arg(long, value_name = "SECS", default_value_t = 3.0)]
+    duration: f64,
+    /// Number of runs (of the whole campaign; a shard does its slice).
+    #[arg(long)]
+    runs: u64,
+    #[arg(long)]
+    seed: u64,
+    /// Output folder (new or empty).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Components to inject into, comma-separated (default: every protected component).
+    #[arg(long, value_name = "LIST", value_delimiter = ',')]
+    components: Option<Vec<String>>,
+    /// How a replica is chosen: uniform over the slots, or weighted by CPU time.
+    #[arg(long, value_enum, default_value_t = Pick::Uniform)]
+    pick: Pick,
+    /// Do runs r with r % N == K-1 only (K in 1..=N), for job arrays; `merge` joins shards.
+    #[arg(long, value_name = "K/N", value_parser = parse_shard)]
+    shard: Option<(u64, u64)>,
+    /// Row label in the tables (default: the targets' redundancy, e.g. tmr).
+    #[arg(long)]
+    label: Option<String>,
+    /// JSON file the task writes in its run folder with an `ok` field (e.g. the sink's
+    /// --summary task.json); a run succeeds only if it says ok (missing = failed).
+    #[arg(long, value_name = "FILE")]
+    task_summary: Option<String>,
+    /// A fault event counts as an injection's consequence only this long after it.
+    #[arg(long, value_name = "MS", default_value_t = 2000)]
+    match_window_ms: u64,
+    /// A run longer than this is killed and counts as failed.
+    #[arg(long, value_name = "SECS", default_value_t = 120.0)]
+    run_timeout: f64,
+    /// Keep each run's folder (events, state, stdout, stderr) under OUT/runs/.
+    #[arg(long)]
+    keep_runs: bool,
+    #[command(flatten)]
+    var: VarArgs,
+    #[command(flatten)]
+    reg: RegArgs,
+}
+
+#[derive(Debug, Args)]
+struct ClassifyArgs {
+    #[arg(long, value_name = "S.json")]
+    system: PathBuf,
+    #[arg(long, value_enum)]
+    fault: FaultKind,
+    #[arg(long)]
+    runs: u64,
+    #[arg(long)]
+    seed: u64,
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Components to inject into, comma-separated (default: every component).
+    #[arg(long, value_name = "LIST", value_delimiter = ',')]
+    components: Option<Vec<String>>,
+    /// The injection instant is uniform in this many seconds after every target runs.
+    #[arg(long, value_name = "SECS", default_value_t = 1.0)]
+    duration: f64,
+    /// What is compared with the golden run: `stdout` (bootstrap's) or a file the system
+    /// writes in its run folder.
+    #[arg(long, value_name = "FILE", default_value = "stdout")]
+    output: String,
+    /// A run longer than this is killed and classified as a hang.
+    #[arg(long, value_name = "SECS", default_value_t = 30.0)]
+    run_timeout: f64,
+    #[arg(long, value_enum, default_value_t = Pick::Uniform)]
+    pick: Pick,
+    #[command(flatten)]
+    var: VarArgs,
+    #[command(flatten)]
+    reg: RegArgs,
+}
+
+#[derive(Debug, Args)]
+struct MergeArgs {
+    /// Output folder (new or empty).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Campaign output folders (shards or whole campaigns).
+    #[arg(value_name = "DIR", required = true)]
+    inputs: Vec<PathBuf>,
+}
+
+fn parse_shard(s: &str) -> Result<(u64, u64), String> {
+    let (k, n) = s
+        .split_once('/')
+        .ok_or_else(|| format!("`{s}` is not K/N (e.g. 3/10)"))?;
+    let k: u64 = k
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{k}` is not a number"))?;
+    let n: u64 = n
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{n}` is not a number"))?;
+    if n == 0 || k == 0 || k > n {
+        return Err(format!("shard {k}/{n}: K must be in 1..={n}"));
+    }
+    Ok((k, n))
+}
+
+fn seconds(what: &str, s: f64) -> anyhow::Result<Duration> {
+    Duration::try_from_secs_f64(s)
+        .map_err(|_| anyhow::anyhow!("{what} {s} is not a duration in seconds"))
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    // Before any thread: SIGINT/SIGTERM are taken through a signalfd, so a long campaign
+    // stops its current run cleanly instead of leaving it running.
+    let stop = match StopSignals::install() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("error: cannot set up signal handling: {e}");
+            return ExitCode::from(1);
+        }
+    };
+    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    let kind = match &cli.command {
+        Command::Inject(a) => Some(a.fault),
+        Command::Campaign(a) => Some(a.fault),
+        Command::Classify(a) => Some(a.fault),
+        Command::Merge(_) => None,
+    };
+    if let Some(Err(e)) = kind.map(check_available) {
+        eprintln!("error: {e}");
+        return ExitCode::from(1);
+    }
+    let res = match &cli.command {
+        Command::Inject(a) => cmd_inject(a),
+        Command::Campaign(a) => cmd_campaign(a, &stop),
+        Command::Classify(a) => cmd_classify(a, &stop),
+        Command::Merge(a) => cmd_merge(a),
+    };
+    if let Some(sig) = stop.requested() {
+        if let Err(e) = &res {
+            eprintln!("error: {e:#}");
+        }
+        return ExitCode::from((128 + sig).clamp(0, 255) as u8);
+    }
+    match res {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+/// `$S3RES_BOOTSTRAP`, else s3res-bootstrap beside us, else on PATH.
+fn find_bootstrap() -> anyhow::Result<PathBuf> {
+    let search = SearchPath::from_environment();
+    match std::env::var(BOOTSTRAP_ENV) {
+        Ok(path) => {
+            let cwd = std::env::current_dir()?;
+            exec::resolve(&path, &cwd, &search).map_err(|e| anyhow::anyhow!("{BOOTSTRAP_ENV}: {e}"))
+        }
+        Err(_) => search
+            .find(BOOTSTRAP_BIN)
+            .map_err(|e| anyhow::anyhow!("cannot find {BOOTSTRAP_BIN}: {e}")),
+    }
+}
+
+fn load_system(path: &Path) -> anyhow::Result<(PathBuf, SystemPlan)> {
+    let abs = exec::absolute(path);
+    let plan = description::load(&abs, &HostContext::for_file(&abs))
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok((abs, plan))
+}
+
+/// The target components: as given (each must exist), else `default`.
+fn targets(
+    plan: &SystemPlan,
+    given: &Option<Vec<String>>,
+    default: impl Fn(&SystemPlan) -> Vec<String>,
+) -> anyhow::Result<Vec<String>> {
+    let list = match given {
+        Some(l) => l.clone(),
+        None => default(plan),
+    };
+    for c in &list {
+        if !plan.components.iter().any(|p| &p.name == c) {
+            let names: Vec<&str> = plan.components.iter().map(|p| p.name.as_str()).collect();
+            bail!(
+                "--components: system {} has no component `{c}` (it has: {})",
+                plan.name,
+                names.join(", ")
+            );
+        }
+    }
+    if list.is_empty() {
+        bail!(
+            "system {} has no protected component to inject into; name targets with --components",
+            plan.name
+        );
+    }
+    Ok(list)
+}
+
+fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
+    if a.fault == FaultKind::None {
+        bail!("--fault none injects nothing; choose exec, sdc, cfe, var or reg");
+    }
+    let seed = a.seed.unwrap_or_else(replica_rt::sys::monotonic_ns);
+    let view = LiveView::read(&a.state).map_err(anyhow::Error::msg)?;
+    let params = ScheduleParams {
+        fault: a.fault,
+        rate_hz: 1.0,
+        arrival: Arrival::Fixed,
+        window: Duration::ZERO,
+        components: vec![a.component.clone()],
+        var: a.var.spec()?,
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut planned = draw_injection(&params, &mut rng, 0, 0).context("nothing to inject")?;
+    if let (Some(bit), s3res_inject::fault::Action::Sdc { value }) = (a.bit, &mut planned.action) {
+        *value = bit;
+    }
+    let c = view.components.get(&a.component).with_context(|| {
+        let names: Vec<&str> = view.components.keys().map(String::as_str).collect();
+        format!(
+            "no component `{}` in {} (it has: {})",
+            a.component,
+            a.state.display(),
+            names.join(", ")
+        )
+    })?;
+    let target = match (a.replica, a.pid) {
+        (Some(slot), _) => {
+            let r = c.replicas.get(slot).with_context(|| {
+                format!(
+                    "{} has {} replica slot(s); there is no slot {slot}",
+                    a.component,
+                    c.replicas.len()
+                )
+            })?;
+            Target {
+                component: a.component.clone(),
+                slot: Some(slot),
+                pid: r.pid.with_context(|| {
+                    format!(
+                        "slot {slot} of {} has no process ({:?})",
+                        a.component, r.state
+                    )
+                })?,
+            }
+        }
+        (None, Some(pid)) => {
+            let slot = c
+                .replicas
+                .iter()
+                .find(|r| r.pid == Some(pid))
+                .map(|r| r.slot);
+            if slot.is_none() && c.pid != Some(pid) {
+                bail!(
+                    "pid {pid} is not a process of {} in {}",
+                    a.component,
+                    a.state.display()
+                );
+            }
+            Target {
+                component: a.component.clone(),
+                slot,
+                pid,
+            }
+        }
+        (None, None) => resolve(&view, &a.component, planned.draw, a.pick)?,
+    };
+    let ts_ns = replica_rt::sys::monotonic_ns();
+    let injector = fire(&planned.action, target.pid, &a.reg.options())?;
+    let mut line = serde_json::json!({
+        "ts_ns": ts_ns,
+        "seed": seed,
+        "system": view.system,
+        "component": target.component,
+        "replica": target.slot,
+        "pid": target.pid,
+    });
+    if let (Some(obj), serde_json::Value::Object(act)) =
+        (line.as_object_mut(), serde_json::to_value(&planned.action)?)
+    {
+        obj.extend(act);
+        if let Some(i) = injector {
+            obj.insert("injector".to_owned(), i);
+        }
+    }
+    println!("{line}");
+    Ok(())
+}
+
+fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    if !(a.rate.is_finite() && a.rate > 0.0) && a.fault != FaultKind::None {
+        bail!(
+            "--rate {} is not a rate: give injections per second, e.g. 2",
+            a.rate
+        );
+    }
+    if a.runs == 0 {
+        bail!("--runs 0: nothing to do");
+    }
+    let (system, plan) = load_system(&a.system)?;
+    let components = targets(&plan, &a.components, |p| {
+        p.components
+            .iter()
+            .filter(|c| c.is_protected())
+            .map(|c| c.name.clone())
+            .collect()
+    })?;
+    let redundancy: BTreeMap<String, String> = plan
+        .components
+        .iter()
+        .map(|c| (c.name.clone(), c.redundancy.to_string()))
+        .collect();
+    let config = a.label.clone().unwrap_or_else(|| {
+        let mut levels: Vec<&str> = components.iter().map(|c| redundancy[c].as_str()).collect();
+        levels.dedup();
+        if levels.len() == 1 {
+            levels[0].to_owned()
+        } else {
+            components
+                .iter()
+                .map(|c| format!("{c}={}", redundancy[c]))
+                .collect::<Vec<_>>()
+                .join(",")
+        }
+    });
+    let info = CampaignInfo {
+        config,
+        system,
+        system_name: plan.name.clone(),
+        fault: a.fault,
+        rate_hz: a.rate,
+        arrival: a.arrival,
+        window_ms: seconds("--duration", a.duration)?.as_millis() as u64,
+        runs: a.runs,
+        seed: a.seed,
+        shard: a.shard,
+        pick: a.pick,
+        components,
+        var: a.var.spec()?,
+        reg: a.reg.options(),
+        match_window_ms: a.match_window_ms,
+        run_limit_ms: seconds("--run-timeout", a.run_timeout)?.as_millis() as u64,
+        task_summary: a.task_summary.clone(),
+        redundancy,
+    };
+    let run = CampaignRun {
+        info,
+        bootstrap: find_bootstrap()?,
+        out: a.out.clone(),
+        keep_runs: a.keep_runs,
+        ready_limit: Duration::from_secs(30),
+    };
+    eprintln!(
+        "s3res-inject: campaign {} {} on {}: {} run(s){}, seed {}",
+        run.info.config,
+        run.info.fault,
+        run.info.system_name,
+        run.info.run_indices().count(),
+        a.shard
+            .map_or(String::new(), |(k, n)| format!(" (shard {k}/{n})")),
+        a.seed
+    );
+    let (s, _interrupted) = campaign::run(&run, stop)?;
+    print!("{}", report::markdown(&[s]));
+    eprintln!("s3res-inject: outputs in {}", a.out.display());
+    Ok(())
+}
+
+fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    if a.fault == FaultKind::None {
+        bail!("--fault none injects nothing; choose exec, sdc, cfe, var or reg");
+    }
+    let (system, plan) = load_system(&a.system)?;
+    let components = targets(&plan, &a.components, |p| {
+        p.components.iter().map(|c| c.name.clone()).collect()
+    })?;
+    let c = ClassifyRun {
+        system,
+        bootstrap: find_bootstrap()?,
+        out: a.out.clone(),
+        params: ScheduleParams {
+            fault: a.fault,
+            rate_hz: 1.0,
+            arrival: Arrival::Fixed,
+            window: seconds("--duration", a.duration)?,
+            components,
+            var: a.var.spec()?,
+        },
+        seed: a.seed,
+        runs: a.runs,
+        pick: a.pick,
+        reg: a.reg.options(),
+        output: a.output.clone(),
+        limit: seconds("--run-timeout", a.run_timeout)?,
+        ready_limit: Duration::from_secs(30),
+    };
+    let s = classify::run(&c, stop)?;
+    print!("{}", classify::markdown(&[s]));
+    Ok(())
+}
+
+fn cmd_merge(a: &MergeArgs) -> anyhow::Result<()> {
+    if a.out.join("summary.json").exists() {
+        bail!(
+            "{} already holds results; give a new --out folder",
+            a.out.display()
+        );
+    }
+    let parts = a
+        .inputs
+        .iter()
+        .map(|d| CampaignOutput::read(d).map_err(anyhow::Error::msg))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let merged = report::merge(parts).map_err(anyhow::Error::msg)?;
+    for m in &merged {
+        let have = m.runs.len() as u64;
+        if have != m.info.runs {
+            eprintln!(
+                "s3res-inject: warning: campaign {} {} has {have} of its {} runs (shards missing?)",
+                m.info.config, m.info.fault, m.info.runs
+            );
+        }
+    }
+    let summaries = report::write_outputs(&a.out, &merged)?;
+    print!("{}", report::markdown(&summaries));
+    Ok(())
+}

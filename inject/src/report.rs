@@ -1,0 +1,543 @@
+//! What a campaign writes, and how summaries and tables are computed from it. Everything here
+//! is a function of the records alone, so `merge` of shards computes exactly what one machine
+//! would have.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::fault::{Action, FaultKind, RegOptions};
+use crate::outcome::{Match, Outcome};
+use crate::schedule::{Arrival, VarSpec};
+use crate::target::Pick;
+
+/// `campaign.json`: the parameters of a campaign (or of one shard of it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CampaignInfo {
+    /// Row label in the tables ("tmr", or what `--label` said).
+    pub config: String,
+    /// The description as given, and the system's name.
+    pub system: PathBuf,
+    pub system_name: String,
+    pub fault: FaultKind,
+    pub rate_hz: f64,
+    pub arrival: Arrival,
+    pub window_ms: u64,
+    /// Runs of the whole campaign (all shards).
+    pub runs: u64,
+    pub seed: u64,
+    /// `(k, n)`: this output holds runs `r` with `r % n == k - 1`. `None`: all runs.
+    pub shard: Option<(u64, u64)>,
+    pub pick: Pick,
+    pub components: Vec<String>,
+    pub var: VarSpec,
+    pub reg: RegOptions,
+    pub match_window_ms: u64,
+    pub run_limit_ms: u64,
+    /// File (in each run's folder) the task writes its verdict to, if any.
+    pub task_summary: Option<String>,
+    /// Redundancy of every component of the system.
+    pub redundancy: BTreeMap<String, String>,
+}
+
+impl CampaignInfo {
+    /// The same campaign whatever the shard: what shards must agree on to be merged.
+    pub fn identity(&self) -> CampaignInfo {
+        CampaignInfo {
+            shard: None,
+            ..self.clone()
+        }
+    }
+
+    /// The runs this shard (or the whole campaign) does.
+    pub fn run_indices(&self) -> impl Iterator<Item = u64> + '_ {
+        (0..self.runs).filter(|r| match self.shard {
+            Some((k, n)) => r % n == k - 1,
+            None => true,
+        })
+    }
+}
+
+/// One line of `injections.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InjectionRecord {
+    pub config: String,
+    /// The campaign seed (the run's own seed is in `runs.jsonl`).
+    pub seed: u64,
+    pub run: u64,
+    pub index: usize,
+    /// Planned instant, from the opening of the run's injection window.
+    pub at_ns: u64,
+    /// CLOCK_MONOTONIC when the signal went out; absent if it did not.
+    #[serde(default)]
+    pub ts_ns: Option<u64>,
+    /// `kind` and its fields (`value`, `offset`, `bits`, `seed`).
+    #[serde(flatten)]
+    pub action: Action,
+    pub component: String,
+    /// Replica slot (absent for an unprotected component or a missed injection).
+    #[serde(default)]
+    pub replica: Option<usize>,
+    #[serde(default)]
+    pub pid: Option<i32>,
+    pub outcome: Outcome,
+    /// Why it was not delivered (outcome `missed`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub miss: Option<String>,
+    #[serde(flatten)]
+    pub matched: Match,
+    /// The injector's own record (register flips).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub injector: Option<serde_json::Value>,
+}
+
+/// One line of `runs.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunRecord {
+    pub config: String,
+    pub seed: u64,
+    pub run: u64,
+    pub run_seed: u64,
+    /// bootstrap's exit code, or the signal that ended it.
+    #[serde(default)]
+    pub exit_code: Option<i32>,
+    #[serde(default)]
+    pub exit_signal: Option<i32>,
+    pub timed_out: bool,
+    /// Every target ran before injection began.
+    pub ready: bool,
+    /// The task's verdict, from the task summary file (`ok`), if one was asked for.
+    #[serde(default)]
+    pub task_summary_ok: Option<bool>,
+    /// The verdict: exit status 0, not timed out, and the task summary (if any) says ok.
+    pub task_ok: bool,
+    pub planned: u64,
+    pub injected: u64,
+    pub false_positives: u64,
+    pub events: u64,
+    pub duration_ms: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// Distribution of a latency, microseconds.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stats {
+    pub n: u64,
+    pub mean: f64,
+    pub p50: u64,
+    pub p90: u64,
+    pub p99: u64,
+    pub max: u64,
+}
+
+impl Stats {
+    pub fn of(mut v: Vec<u64>) -> Stats {
+        if v.is_empty() {
+            return Stats::default();
+        }
+        v.sort_unstable();
+        let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+        Stats {
+            n: v.len() as u64,
+            mean: v.iter().sum::<u64>() as f64 / v.len() as f64,
+            p50: at(0.5),
+            p90: at(0.9),
+            p99: at(0.99),
+            max: *v.last().unwrap_or(&0),
+        }
+    }
+}
+
+/// One element of `summary.json` (a list: one per campaign, several after a `merge` of
+/// different campaigns).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub config: String,
+    pub fault: FaultKind,
+    pub system: String,
+    pub seed: u64,
+    /// Runs of the campaign, and how many of them are in these records.
+    pub runs: u64,
+    pub runs_done: u64,
+    pub successful_runs: u64,
+    pub timed_out_runs: u64,
+    pub planned: u64,
+    /// Delivered injections (planned minus missed).
+    pub injected: u64,
+    pub missed: u64,
+    pub recovered: u64,
+    pub unrecovered: u64,
+    pub undetected: u64,
+    pub benign: u64,
+    /// (unrecovered + undetected) / injected × 100; `null` when nothing was injected.
+    pub pct_error: Option<f64>,
+    pub false_positives: u64,
+    pub detection_latency_us: Stats,
+    pub recovery_us: Stats,
+    pub recovered_after_us: Stats,
+}
+
+/// Computes the summary of `info`'s campaign from its records.
+pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord]) -> Summary {
+    let count = |o: Outcome| inj.iter().filter(|r| r.outcome == o).count() as u64;
+    let missed = count(Outcome::Missed);
+    let injected = inj.len() as u64 - missed;
+    let (recovered, unrecovered, undetected, benign) = (
+        count(Outcome::Recovered),
+        count(Outcome::Unrecovered),
+        count(Outcome::Undetected),
+        count(Outcome::Benign),
+    );
+    let collect = |f: fn(&Match) -> Option<u64>| {
+        Stats::of(inj.iter().filter_map(|r| f(&r.matched)).collect())
+    };
+    Summary {
+        config: info.config.clone(),
+        fault: info.fault,
+        system: info.system_name.clone(),
+        seed: info.seed,
+        runs: info.runs,
+        runs_done: runs.len() as u64,
+        successful_runs: runs.iter().filter(|r| r.task_ok).count() as u64,
+        timed_out_runs: runs.iter().filter(|r| r.timed_out).count() as u64,
+        planned: inj.len() as u64,
+        injected,
+        missed,
+        recovered,
+        unrecovered,
+        undetected,
+        benign,
+        pct_error: (injected > 0)
+            .then(|| (unrecovered + undetected) as f64 * 100.0 / injected as f64),
+        false_positives: runs.iter().map(|r| r.false_positives).sum(),
+        detection_latency_us: collect(|m| m.detection_latency_us),
+        recovery_us: collect(|m| m.recovery_us),
+        recovered_after_us: collect(|m| m.recovered_after_us),
+    }
+}
+
+fn ms(us: u64) -> String {
+    format!("{:.1}", us as f64 / 1000.0)
+}
+
+/// The markdown tables, in the layout of the S³RES paper's Tables 2 and 3.
+pub fn markdown(summaries: &[Summary]) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "Injections (S³RES Table 2 layout): % error = injections not followed by a recovery of \
+         the injected replica (undetected in a failed run, or detected and not recovered), \
+         over delivered injections.\n"
+    );
+    let _ = writeln!(
+        s,
+        "| Config | Fault | Runs | Injected | % Error | F Pos. | Recovered | Unrecovered | Undetected | Benign | Missed | Detect p50 / p99 (ms) | Recovery p50 / p99 (ms) |"
+    );
+    let _ = writeln!(s, "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    for x in summaries {
+        let pct = x
+            .pct_error
+            .map_or_else(|| "NA".to_owned(), |p| format!("{p:.2}"));
+        let lat = |st: &Stats| {
+            if st.n == 0 {
+                "–".to_owned()
+            } else {
+                format!("{} / {}", ms(st.p50), ms(st.p99))
+            }
+        };
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            x.config,
+            x.fault,
+            x.runs_done,
+            x.injected,
+            pct,
+            x.false_positives,
+            x.recovered,
+            x.unrecovered,
+            x.undetected,
+            x.benign,
+            x.missed,
+            lat(&x.detection_latency_us),
+            lat(&x.recovery_us),
+        );
+    }
+    // Table 3: successful runs, fault × config.
+    let mut configs: Vec<&str> = summaries.iter().map(|x| x.config.as_str()).collect();
+    configs.sort_unstable();
+    configs.dedup();
+    let mut faults: Vec<FaultKind> = summaries.iter().map(|x| x.fault).collect();
+    faults.sort_unstable();
+    faults.dedup();
+    let _ = writeln!(
+        s,
+        "\nSuccessful runs (S³RES Table 3 layout): runs whose task succeeded / runs.\n"
+    );
+    let _ = writeln!(s, "| Fault | {} |", configs.join(" | "));
+    let _ = writeln!(s, "|---|{}", "--:|".repeat(configs.len()));
+    for f in faults {
+        let cells: Vec<String> = configs
+            .iter()
+            .map(|c| {
+                let rows: Vec<&Summary> = summaries
+                    .iter()
+                    .filter(|x| x.fault == f && x.config == *c)
+                    .collect();
+                if rows.is_empty() {
+                    "–".to_owned()
+                } else {
+                    let ok: u64 = rows.iter().map(|x| x.successful_runs).sum();
+                    let n: u64 = rows.iter().map(|x| x.runs_done).sum();
+                    format!("{ok}/{n}")
+                }
+            })
+            .collect();
+        let _ = writeln!(s, "| {f} | {} |", cells.join(" | "));
+    }
+    s
+}
+
+/// A campaign's output folder, read back.
+#[derive(Debug, Clone)]
+pub struct CampaignOutput {
+    pub info: CampaignInfo,
+    pub runs: Vec<RunRecord>,
+    pub injections: Vec<InjectionRecord>,
+}
+
+fn read_jsonl<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>, String> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(i, l)| {
+            serde_json::from_str(l)
+                .map_err(|e| format!("{}:{}: not a record: {e}", path.display(), i + 1))
+        })
+        .collect()
+}
+
+impl CampaignOutput {
+    pub fn read(dir: &Path) -> Result<Self, String> {
+        let info_path = dir.join("campaign.json");
+        let text = std::fs::read_to_string(&info_path)
+            .map_err(|e| format!("cannot read {}: {e}", info_path.display()))?;
+        let info = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: not a campaign description: {e}", info_path.display()))?;
+        Ok(CampaignOutput {
+            info,
+            runs: read_jsonl(&dir.join("runs.jsonl"))?,
+            injections: read_jsonl(&dir.join("injections.jsonl"))?,
+        })
+    }
+
+    pub fn summary(&self) -> Summary {
+        summarise(&self.info, &self.runs, &self.injections)
+    }
+}
+
+/// Merges campaign outputs: shards of the same campaign become one; different campaigns stay
+/// side by side (in the order first seen). Errors on a run present twice.
+pub fn merge(parts: Vec<CampaignOutput>) -> Result<Vec<CampaignOutput>, String> {
+    let mut merged: Vec<CampaignOutput> = Vec::new();
+    for p in parts {
+        let id = p.info.identity();
+        match merged.iter_mut().find(|m| m.info == id) {
+            Some(m) => {
+                for r in &p.runs {
+                    if m.runs.iter().any(|x| x.run == r.run) {
+                        return Err(format!(
+                            "run {} of campaign {} ({}) appears in two inputs",
+                            r.run, m.info.config, m.info.fault
+                        ));
+                    }
+                }
+                m.runs.extend(p.runs);
+                m.injections.extend(p.injections);
+            }
+            None => merged.push(CampaignOutput {
+                info: id,
+                runs: p.runs,
+                injections: p.injections,
+            }),
+        }
+    }
+    for m in &mut merged {
+        m.runs.sort_by_key(|r| r.run);
+        m.injections.sort_by_key(|r| (r.run, r.index));
+    }
+    Ok(merged)
+}
+
+/// Writes `injections.jsonl`, `runs.jsonl`, `summary.json`, `table.md` (and, for a single
+/// campaign, `campaign.json`) into `dir`.
+pub fn write_outputs(dir: &Path, outputs: &[CampaignOutput]) -> std::io::Result<Vec<Summary>> {
+    std::fs::create_dir_all(dir)?;
+    let mut inj = String::new();
+    let mut runs = String::new();
+    for o in outputs {
+        for r in &o.injections {
+            inj.push_str(&serde_json::to_string(r).map_err(std::io::Error::other)?);
+            inj.push('\n');
+        }
+        for r in &o.runs {
+            runs.push_str(&serde_json::to_string(r).map_err(std::io::Error::other)?);
+            runs.push('\n');
+        }
+    }
+    std::fs::write(dir.join("injections.jsonl"), inj)?;
+    std::fs::write(dir.join("runs.jsonl"), runs)?;
+    if let [one] = outputs {
+        let text = serde_json::to_string_pretty(&one.info).map_err(std::io::Error::other)?;
+        std::fs::write(dir.join("campaign.json"), text + "\n")?;
+    }
+    let summaries: Vec<Summary> = outputs.iter().map(CampaignOutput::summary).collect();
+    let text = serde_json::to_string_pretty(&summaries).map_err(std::io::Error::other)?;
+    std::fs::write(dir.join("summary.json"), text + "\n")?;
+    std::fs::write(dir.join("table.md"), markdown(&summaries))?;
+    Ok(summaries)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::schedule::VarField;
+
+    pub(crate) fn info(shard: Option<(u64, u64)>) -> CampaignInfo {
+        CampaignInfo {
+            config: "tmr".into(),
+            system: "s.json".into(),
+            system_name: "s".into(),
+            fault: FaultKind::Exec,
+            rate_hz: 2.0,
+            arrival: Arrival::Exponential,
+            window_ms: 1000,
+            runs: 4,
+            seed: 1,
+            shard,
+            pick: Pick::Uniform,
+            components: vec!["echo".into()],
+            var: VarSpec {
+                offset: 0,
+                field: VarField::Byte,
+                flips: 1,
+                bits: None,
+            },
+            reg: RegOptions::default(),
+            match_window_ms: 2000,
+            run_limit_ms: 60000,
+            task_summary: None,
+            redundancy: BTreeMap::new(),
+        }
+    }
+
+    fn run(r: u64, ok: bool, fp: u64) -> RunRecord {
+        RunRecord {
+            config: "tmr".into(),
+            seed: 1,
+            run: r,
+            run_seed: r,
+            exit_code: Some(if ok { 0 } else { 1 }),
+            exit_signal: None,
+            timed_out: false,
+            ready: true,
+            task_summary_ok: None,
+            task_ok: ok,
+            planned: 1,
+            injected: 1,
+            false_positives: fp,
+            events: 0,
+            duration_ms: 1,
+            error: None,
+        }
+    }
+
+    fn inj(r: u64, outcome: Outcome, lat: Option<u64>) -> InjectionRecord {
+        InjectionRecord {
+            config: "tmr".into(),
+            seed: 1,
+            run: r,
+            index: 0,
+            at_ns: 5,
+            ts_ns: Some(10),
+            action: Action::Exec,
+            component: "echo".into(),
+            replica: Some(0),
+            pid: Some(3),
+            outcome,
+            miss: None,
+            matched: Match {
+                detection_latency_us: lat,
+                ..Match::default()
+            },
+            injector: None,
+        }
+    }
+
+    #[test]
+    fn records_round_trip_through_json() {
+        let r = inj(0, Outcome::Recovered, Some(4));
+        let line = serde_json::to_string(&r).unwrap();
+        assert!(line.contains("\"kind\":\"exec\""), "{line}");
+        assert_eq!(serde_json::from_str::<InjectionRecord>(&line).unwrap(), r);
+    }
+
+    #[test]
+    fn summary_counts_and_error_rate() {
+        let runs = vec![run(0, true, 0), run(1, false, 2)];
+        let injs = vec![
+            inj(0, Outcome::Recovered, Some(1000)),
+            inj(0, Outcome::Benign, None),
+            inj(1, Outcome::Undetected, None),
+            inj(1, Outcome::Missed, None),
+        ];
+        let s = summarise(&info(None), &runs, &injs);
+        assert_eq!((s.injected, s.missed, s.false_positives), (3, 1, 2));
+        assert!((s.pct_error.unwrap() - 100.0 / 3.0).abs() < 1e-9);
+        assert_eq!(s.successful_runs, 1);
+        assert_eq!(s.detection_latency_us.p50, 1000);
+        let md = markdown(&[s]);
+        assert!(md.contains("| tmr | exec | 2 | 3 | 33.33 | 2 |"), "{md}");
+        assert!(md.contains("| exec | 1/2 |"), "{md}");
+    }
+
+    #[test]
+    fn shards_merge_into_the_whole_and_duplicates_are_refused() {
+        let whole = CampaignOutput {
+            info: info(None),
+            runs: (0..4).map(|r| run(r, r != 2, r)).collect(),
+            injections: (0..4)
+                .map(|r| inj(r, Outcome::Recovered, Some(r)))
+                .collect(),
+        };
+        let shard = |k: u64| {
+            let i = info(Some((k, 2)));
+            let runs: Vec<u64> = i.run_indices().collect();
+            CampaignOutput {
+                runs: whole
+                    .runs
+                    .iter()
+                    .filter(|r| runs.contains(&r.run))
+                    .cloned()
+                    .collect(),
+                injections: whole
+                    .injections
+                    .iter()
+                    .filter(|r| runs.contains(&r.run))
+                    .cloned()
+                    .collect(),
+                info: i,
+            }
+        };
+        let merged = merge(vec![shard(2), shard(1)]).unwrap();
+        assert_eq!(merged.len(), 1);
+        assert_eq!(merged[0].summary(), whole.summary());
+        assert_eq!(merged[0].runs, whole.runs);
+        assert!(merge(vec![shard(1), shard(1)]).is_err());
+    }
+}

@@ -1,0 +1,280 @@
+//! The schedule: for each run, when to inject, into which component, which replica draw, and
+//! exactly what (bit, bytes, seed) — all from the campaign seed, before the run starts.
+//!
+//! Run `r` of a campaign with seed `S` uses `ChaCha8Rng::seed_from_u64(run_seed(S, r))`, so a
+//! run's schedule does not depend on which other runs are done, in which order, or on which
+//! machine: that is what makes `--shard` slices add up to the whole campaign.
+
+use std::time::Duration;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::fault::{Action, FaultKind};
+
+/// How inter-arrival times are drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Arrival {
+    /// Exponential with mean 1/rate (a Poisson process).
+    Exponential,
+    /// Exactly 1/rate apart, the first one after 1/rate.
+    Fixed,
+}
+
+/// Which bits of the value at `--var-offset` a variable-level injection may flip. The value is
+/// read as a little-endian 64-bit word (an f64: bit 63 sign, 52..63 exponent, 0..52 mantissa).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum VarField {
+    /// Bit 63 of the f64 (only one bit to flip).
+    Sign,
+    /// Bits 52..63 of the f64.
+    Exponent,
+    /// Bits 0..52 of the f64.
+    Mantissa,
+    /// Any of the 64 bits.
+    Whole,
+    /// Any bit of the single byte at the offset.
+    Byte,
+}
+
+impl VarField {
+    /// The bit range, relative to the offset.
+    pub fn bits(self) -> std::ops::Range<u32> {
+        match self {
+            VarField::Sign => 63..64,
+            VarField::Exponent => 52..63,
+            VarField::Mantissa => 0..52,
+            VarField::Whole => 0..64,
+            VarField::Byte => 0..8,
+        }
+    }
+}
+
+/// What a variable-level injection flips.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct VarSpec {
+    /// Byte offset of the value in the payload.
+    pub offset: u32,
+    pub field: VarField,
+    /// How many distinct bits of the field each injection flips.
+    pub flips: u32,
+    /// Exactly these bits (relative to the offset) instead of a random choice.
+    pub bits: Option<Vec<u32>>,
+}
+
+impl VarSpec {
+    /// Checks that the request can be satisfied; the reason if not.
+    pub fn validate(&self) -> Result<(), String> {
+        let range = self.field.bits();
+        if self.bits.is_none() && (self.flips == 0 || self.flips > range.len() as u32) {
+            return Err(format!(
+                "--var-flips {} does not fit field {:?} ({} bits)",
+                self.flips,
+                self.field,
+                range.len()
+            ));
+        }
+        if let Some(bits) = &self.bits {
+            if bits.is_empty() {
+                return Err("--var-bits names no bit".to_owned());
+            }
+        }
+        Ok(())
+    }
+
+    fn choose(&self, rng: &mut ChaCha8Rng) -> Vec<u32> {
+        if let Some(bits) = &self.bits {
+            return bits.clone();
+        }
+        let range = self.field.bits();
+        let mut bits: Vec<u32> = rand::seq::index::sample(rng, range.len(), self.flips as usize)
+            .into_iter()
+            .map(|i| range.start + i as u32)
+            .collect();
+        bits.sort_unstable();
+        bits
+    }
+}
+
+/// Everything the schedule depends on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScheduleParams {
+    pub fault: FaultKind,
+    /// Injections per second while the window is open.
+    pub rate_hz: f64,
+    pub arrival: Arrival,
+    /// Length of the injection window of each run.
+    pub window: Duration,
+    /// Components to inject into, one chosen uniformly per injection.
+    pub components: Vec<String>,
+    pub var: VarSpec,
+}
+
+/// One planned injection.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Planned {
+    /// 0, 1, ... within the run.
+    pub index: usize,
+    /// When, from the opening of the injection window.
+    pub at_ns: u64,
+    pub component: String,
+    /// Uniform in [0, 1): picks the replica (uniformly over the slots, or by CPU time).
+    pub draw: f64,
+    pub action: Action,
+}
+
+/// splitmix64 of `seed + run`: well-spread, independent seeds per run.
+pub fn run_seed(seed: u64, run: u64) -> u64 {
+    let mut z = seed.wrapping_add(run.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// The injections of one run, in time order.
+pub fn plan_run(params: &ScheduleParams, seed: u64, run: u64) -> Vec<Planned> {
+    let mut rng = ChaCha8Rng::seed_from_u64(run_seed(seed, run));
+    let window_ns = params.window.as_nanos() as f64;
+    if params.fault == FaultKind::None
+        || params.components.is_empty()
+        || params.rate_hz.is_nan()
+        || params.rate_hz <= 0.0
+    {
+        return Vec::new();
+    }
+    let mean_ns = 1e9 / params.rate_hz;
+    let mut out = Vec::new();
+    let mut t = 0.0f64;
+    loop {
+        t += match params.arrival {
+            Arrival::Fixed => mean_ns,
+            // 1 - u is in (0, 1]: never ln(0).
+            Arrival::Exponential => -(1.0 - rng.gen::<f64>()).ln() * mean_ns,
+        };
+        if t >= window_ns {
+            break;
+        }
+        match draw_injection(params, &mut rng, out.len(), t as u64) {
+            Some(p) => out.push(p),
+            None => break,
+        }
+    }
+    out
+}
+
+/// The single injection of run `run` for `classify`: at a uniform instant of the window.
+pub fn plan_single(params: &ScheduleParams, seed: u64, run: u64) -> Option<Planned> {
+    let mut rng = ChaCha8Rng::seed_from_u64(run_seed(seed, run));
+    let at = rng.gen_range(0..params.window.as_nanos().max(1) as u64);
+    draw_injection(params, &mut rng, 0, at)
+}
+
+/// Target component, replica draw and action of one injection; `None` for fault `none` or
+/// no component.
+pub fn draw_injection(
+    params: &ScheduleParams,
+    rng: &mut ChaCha8Rng,
+    index: usize,
+    at_ns: u64,
+) -> Option<Planned> {
+    if params.components.is_empty() {
+        return None;
+    }
+    let component = params.components[rng.gen_range(0..params.components.len())].clone();
+    let draw = rng.gen::<f64>();
+    let action = match params.fault {
+        FaultKind::Exec => Action::Exec,
+        FaultKind::Cfe => Action::Cfe,
+        FaultKind::Sdc => Action::Sdc {
+            value: rng.gen_range(0..=i32::MAX as u32),
+        },
+        FaultKind::Var => Action::Var {
+            offset: params.var.offset,
+            bits: params.var.choose(rng),
+        },
+        FaultKind::Reg => Action::Reg { seed: rng.gen() },
+        FaultKind::None => return None,
+    };
+    Some(Planned {
+        index,
+        at_ns,
+        component,
+        draw,
+        action,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(fault: FaultKind) -> ScheduleParams {
+        ScheduleParams {
+            fault,
+            rate_hz: 20.0,
+            arrival: Arrival::Exponential,
+            window: Duration::from_secs(10),
+            components: vec!["a".into(), "b".into()],
+            var: VarSpec {
+                offset: 8,
+                field: VarField::Exponent,
+                flips: 2,
+                bits: None,
+            },
+        }
+    }
+
+    #[test]
+    fn same_seed_same_schedule_other_seed_other_schedule() {
+        let p = params(FaultKind::Var);
+        assert_eq!(plan_run(&p, 7, 3), plan_run(&p, 7, 3));
+        assert_ne!(plan_run(&p, 7, 3), plan_run(&p, 7, 4));
+        assert_ne!(plan_run(&p, 7, 3), plan_run(&p, 8, 3));
+    }
+
+    #[test]
+    fn exponential_rate_is_about_right_and_in_window() {
+        let p = params(FaultKind::Sdc);
+        let n: usize = (0..50).map(|r| plan_run(&p, 1, r).len()).sum();
+        // 50 runs × 10 s × 20 Hz = 10000 expected; Poisson sd = 100.
+        assert!((9500..10500).contains(&n), "{n}");
+        for pl in plan_run(&p, 1, 0) {
+            assert!(pl.at_ns < 10_000_000_000);
+            assert!((0.0..1.0).contains(&pl.draw));
+        }
+    }
+
+    #[test]
+    fn fixed_arrival_is_periodic_and_none_injects_nothing() {
+        let mut p = params(FaultKind::Exec);
+        p.arrival = Arrival::Fixed;
+        p.rate_hz = 2.0;
+        p.window = Duration::from_millis(2100);
+        let at: Vec<u64> = plan_run(&p, 0, 0).iter().map(|x| x.at_ns).collect();
+        assert_eq!(
+            at,
+            vec![500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000]
+        );
+        assert!(plan_run(&params(FaultKind::None), 0, 0).is_empty());
+    }
+
+    #[test]
+    fn var_bits_stay_in_the_field_and_are_distinct() {
+        let p = params(FaultKind::Var);
+        for pl in plan_run(&p, 5, 0) {
+            let Action::Var { offset, bits } = pl.action else {
+                panic!()
+            };
+            assert_eq!(offset, 8);
+            assert_eq!(bits.len(), 2);
+            assert!(bits[0] < bits[1]);
+            assert!(bits.iter().all(|b| (52..63).contains(b)));
+        }
+        let mut bad = p.var.clone();
+        bad.flips = 12;
+        assert!(bad.validate().is_err());
+    }
+}
