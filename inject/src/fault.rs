@@ -115,16 +115,56 @@ pub enum FireError {
     Signal { pid: i32, source: std::io::Error },
     #[error("variable flip at offset {offset} is beyond what the hook can address ({max})")]
     OffsetTooLarge { offset: u32, max: u32 },
-    #[error("register injection (--fault reg) is provided by the s3res-regflip crate, which this build does not include")]
-    RegNotBuilt,
+    #[error("register injection: {0}")]
+    Reg(#[from] s3res_regflip::RegFlipError),
+    #[error("register injection: {0}")]
+    RegOptions(String),
+    #[error(
+        "register injection: process {pid} stayed blocked in system calls for all {attempts} \
+         attempts (its registers were in kernel memory, not in the CPU)"
+    )]
+    RegAlwaysInSyscall { pid: i32, attempts: u32 },
+}
+
+/// How often a register flip is tried again when the target is blocked in a system call (a
+/// component waiting on its input spends most of its time there), and how long apart: the
+/// flip lands at the first instant within `REG_ATTEMPTS × REG_RETRY` at which it is running.
+const REG_ATTEMPTS: u32 = 200;
+const REG_RETRY: std::time::Duration = std::time::Duration::from_micros(500);
+
+impl RegOptions {
+    /// The injector's spec, or a clear error naming the bad option.
+    pub fn spec(&self) -> Result<s3res_regflip::RegFlipSpec, FireError> {
+        let role = match self.role.as_str() {
+            "" => s3res_regflip::OperandRole::Any,
+            r => r
+                .parse()
+                .map_err(|e| FireError::RegOptions(format!("--reg-role {r}: {e}")))?,
+        };
+        let field = match self.field.as_str() {
+            "" => s3res_regflip::FloatField::Whole,
+            f => f
+                .parse()
+                .map_err(|e| FireError::RegOptions(format!("--reg-field {f}: {e}")))?,
+        };
+        Ok(s3res_regflip::RegFlipSpec {
+            role,
+            bits: self.bits.max(1),
+            field,
+            registers: self.registers.clone(),
+            ..Default::default()
+        })
+    }
 }
 
 /// Whether this build can deliver `kind` (checked before a campaign starts, so that a kind
 /// that cannot be delivered is one clear error, not N runs of missed injections).
 pub fn check_available(kind: FaultKind) -> Result<(), FireError> {
     match kind {
-        // The register injector is the s3res-regflip crate; see the `Reg` arm of `fire`.
-        FaultKind::Reg => Err(FireError::RegNotBuilt),
+        // ptrace register access is implemented for x86-64 Linux only.
+        FaultKind::Reg if !cfg!(all(target_os = "linux", target_arch = "x86_64")) => {
+            Err(FireError::Reg(s3res_regflip::RegFlipError::Unsupported))
+        }
         _ => Ok(()),
     }
 }
@@ -158,14 +198,41 @@ pub fn fire(
                 check(replica_rt::sys::sigqueue(pid, signals::inject_var(), value))?;
             }
         }
-        Action::Reg { .. } => {
-            // Wired to s3res_regflip::inject(pid, &spec, &mut ChaCha8Rng::seed_from_u64(seed))
-            // once that crate is part of the workspace.
-            let _ = reg;
-            return Err(FireError::RegNotBuilt);
-        }
+        Action::Reg { seed } => return fire_reg(pid, *seed, reg).map(Some),
     }
     Ok(None)
+}
+
+/// One register flip into `pid` (s3res-regflip), the register and bits drawn from `seed`. A
+/// target blocked in a system call has its registers in kernel memory: the flip is tried again
+/// a moment later (up to [`REG_ATTEMPTS`] times), so it lands while the component computes.
+/// Returns the injector's record, with the seed and the number of attempts.
+fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, FireError> {
+    use rand::SeedableRng;
+    use s3res_regflip::RegFlipError;
+    let spec = reg.spec()?;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    for attempt in 1..=REG_ATTEMPTS {
+        match s3res_regflip::inject(pid, &spec, &mut rng) {
+            Ok(mut record) => {
+                record.seed = Some(seed);
+                let mut value = serde_json::to_value(&record).map_err(|e| {
+                    FireError::RegOptions(format!("cannot serialise the record: {e}"))
+                })?;
+                if let Some(obj) = value.as_object_mut() {
+                    obj.insert("attempts".to_owned(), attempt.into());
+                }
+                return Ok(value);
+            }
+            Err(RegFlipError::InSyscall { .. }) => std::thread::sleep(REG_RETRY),
+            Err(RegFlipError::Gone { .. }) => return Err(FireError::Gone(pid)),
+            Err(e) => return Err(e.into()),
+        }
+    }
+    Err(FireError::RegAlwaysInSyscall {
+        pid,
+        attempts: REG_ATTEMPTS,
+    })
 }
 
 #[cfg(test)]

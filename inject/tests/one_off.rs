@@ -157,3 +157,57 @@ fn the_live_view_follows_recoveries_and_each_kind_does_what_it_says() {
     assert!(!view.running, "the view says the system stopped");
     run.assert_nothing_left();
 }
+
+/// A register flip (`--fault reg`, the s3res-regflip injector) into a TMR replica: the printed
+/// line carries the injector's whole record — seed, instruction, register, the one bit, the
+/// value before and after — and whatever the flip does to that replica, the voter masks it and
+/// the slot is running again afterwards.
+#[test]
+fn a_register_flip_is_logged_whole_and_tmr_carries_on() {
+    let sys = System::new();
+    let state = sys.path("state.json");
+    let mut run = sys.arg("--state").arg(&state).start(DESCRIPTION);
+    let view = running_view(&mut run, &state);
+    let rec = one_off(&state, &["--replica", "2", "--fault", "reg", "--seed", "5"]);
+    assert_eq!(rec["kind"], "reg", "{rec}");
+    let pid = rec["pid"].as_i64().unwrap();
+    assert_eq!(
+        pid,
+        i64::from(view.components["echo"].replicas[2].pid.unwrap())
+    );
+    let flip = &rec["injector"];
+    assert_eq!(flip["pid"].as_i64(), Some(pid), "{rec}");
+    // The injection's own seed (drawn from --seed), the one that replays this flip.
+    assert_eq!(flip["seed"], rec["seed"], "{rec}");
+    assert!(flip["attempts"].as_u64().unwrap() >= 1, "{rec}");
+    assert!(!flip["instruction"].as_str().unwrap().is_empty(), "{rec}");
+    assert!(!flip["register"].as_str().unwrap().is_empty(), "{rec}");
+    let bits = flip["bits"].as_array().unwrap();
+    assert_eq!(bits.len(), 1, "one bit by default: {rec}");
+    // before XOR after is exactly that bit (values are hex, up to 128 bits for XMM).
+    let hex = |k: &str| {
+        let s = flip[k].as_str().unwrap();
+        u128::from_str_radix(s.trim_start_matches("0x"), 16)
+            .unwrap_or_else(|e| panic!("{k} = {s}: {e}"))
+    };
+    let bit = bits[0].as_u64().unwrap();
+    assert_eq!(hex("before") ^ hex("after"), 1u128 << bit, "{rec}");
+
+    // Crash, hang, corruption or nothing at all: the slot ends up running again.
+    let deadline = Instant::now() + LIMIT;
+    loop {
+        let v = running_view(&mut run, &state);
+        let now = v.components["echo"].replicas[2].pid.unwrap();
+        let faulted = run
+            .events()
+            .iter()
+            .any(|e| e.pid == Some(pid as i32) && e.kind == EventKind::Recovery);
+        if i64::from(now) == pid || faulted {
+            break;
+        }
+        assert!(Instant::now() < deadline, "slot 2 never ran again");
+    }
+    run.stop();
+    run.wait(LIMIT);
+    run.assert_nothing_left();
+}
