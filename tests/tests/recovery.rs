@@ -258,3 +258,48 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     assert!(sdc.len() <= 1, "{sdc:?}");
     assert_sink_whole(&summary, count);
 }
+
+/// Donor choice. Slot 0 dies while slots 1 and 2 are stopped: the fork from a stopped donor
+/// times out and slot 0 is started afresh by exec (state lost). Then slot 2 dies: the donor
+/// must be slot 1, which has answered and runs — not the fresh slot 0, whose lost state would
+/// be cloned over a healthy slot and then outvote the one replica that still has it. The sink
+/// sees no state break: the fresh slot 0 is outvoted at its first answer and rebuilt by fork.
+#[test]
+fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
+    // One frame a second: the stop → kill → exec → continue → kill sequence (a few hundred
+    // ms) falls between two rounds.
+    let count = 6;
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+                    "timeout_us": 400000, "restart_timeout_ms": 150 }"#;
+    let mut run = sys.start(&echo_pipeline(&summary, echo, count, 1));
+    run.wait_for_replicas("echo", 3);
+    std::thread::sleep(Duration::from_millis(1300));
+    let pids = run.replica_pids("echo");
+    for slot in [1, 2] {
+        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("stop");
+    }
+    s3res_tests::kill_pid(pids[&0], libc::SIGKILL).expect("kill slot 0");
+    let rec0 = run.wait_for_event(|e| is_recovery_of(e, 0, pids[&0]), Duration::from_secs(20));
+    assert_eq!(rec0.method, Some(RecoveryMethod::Exec), "{rec0:?}");
+    let fresh = rec0.new_pid.expect("new pid");
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while !s3res_tests::procs::handles_hooks(fresh) {
+        assert!(std::time::Instant::now() < deadline, "slot 0 never started");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    for slot in [1, 2] {
+        s3res_tests::kill_pid(pids[&slot], libc::SIGCONT).expect("continue");
+    }
+    s3res_tests::kill_pid(pids[&2], libc::SIGKILL).expect("kill slot 2");
+    let rec2 = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+    assert_eq!(rec2.method, Some(RecoveryMethod::Fork), "{rec2:?}");
+    assert_eq!(
+        rec2.donor,
+        Some(1),
+        "the healthy replica is the donor: {rec2:?}"
+    );
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+}

@@ -401,11 +401,17 @@ impl Voter {
                 let round = input.round;
                 let mut members = ReplicaSet::EMPTY;
                 let mut broken = Vec::new();
+                let mut stalled = Vec::new();
+                let limit = input_backlog_limit(self.plan.inputs[i].max_frame);
                 for (r, rep) in self.slots.iter_mut().enumerate() {
                     let Some(rep) = rep else { continue };
                     match rep.inputs[i].writer.send(frame) {
                         Ok(()) => members = members.with(r),
                         Err(e) => broken.push((r, e)),
+                    }
+                    let backlog = rep.inputs[i].writer.unwritten().len();
+                    if backlog > limit {
+                        stalled.push((r, backlog));
                     }
                 }
                 if let Some(expected) = round {
@@ -425,6 +431,15 @@ impl Voter {
                 for (r, e) in broken {
                     let detail = format!("input pipe `{}` broke: {e}", self.plan.inputs[i].name);
                     self.fault(r, EventKind::Protocol, detail);
+                }
+                // A replica that stopped reading an input no round waits on (stopped, spinning,
+                // stuck on another port) would make the voter queue for it without end.
+                for (r, backlog) in stalled {
+                    let detail = format!(
+                        "has not taken {backlog} bytes of input on `{}` (limit {limit})",
+                        self.plan.inputs[i].name
+                    );
+                    self.fault(r, EventKind::Hang, detail);
                 }
             }
         }
@@ -942,6 +957,14 @@ pub(crate) fn kill_replicas(slots: &[Option<Replica>], faults: &[Fault]) {
     }
 }
 
+/// How many bytes the voter queues for one replica input beyond what its pipe holds before
+/// the replica counts as not taking its input (a `hang`): 64 frames of the channel's maximum,
+/// and at least 4 MiB, so a burst of an upstream neighbour never trips it, while a replica
+/// that stopped reading cannot make the voter's memory grow without bound.
+fn input_backlog_limit(max_frame: usize) -> usize {
+    (64 * (max_frame + replica_rt::frame::HEADER_LEN)).max(4 << 20)
+}
+
 /// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,
 /// slot)` runs for each new process first (to apply scheduling settings).
 pub(crate) fn start_replicas(
@@ -950,17 +973,28 @@ pub(crate) fn start_replicas(
     mut on_spawn: impl FnMut(libc::pid_t, usize),
 ) -> Result<Vec<Option<Replica>>, VoterError> {
     let mut slots: Vec<Option<Replica>> = (0..plan.replicas).map(|_| None).collect();
-    for (slot, place) in slots.iter_mut().enumerate() {
-        let replica = Replica::spawn(plan, slot).map_err(io_err(format!(
-            "starting replica {slot} ({})",
-            plan.exec.display()
-        )))?;
+    for slot in 0..plan.replicas {
+        let replica = match Replica::spawn(plan, slot) {
+            Ok(r) => r,
+            Err(e) => {
+                // The ones already running must not outlive this failed start.
+                kill_replicas(&slots, &[]);
+                for rep in slots.iter().flatten() {
+                    rep.exited_within(DEATH_WAIT);
+                    let _ = sys::reap(rep.pid);
+                }
+                return Err(io_err(format!(
+                    "starting replica {slot} ({})",
+                    plan.exec.display()
+                ))(e));
+            }
+        };
         on_spawn(replica.pid, slot);
         let mut ev = Event::new(&plan.system, &plan.component, EventKind::Start);
         ev.replica = Some(slot);
         ev.pid = Some(replica.pid);
         write_event(events, &ev);
-        *place = Some(replica);
+        slots[slot] = Some(replica);
     }
     Ok(slots)
 }

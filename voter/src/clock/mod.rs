@@ -488,18 +488,21 @@ mod tests {
             assert!(t >= last, "counter went backwards: {last} then {t}");
             last = t;
         }
-        // Over 20 ms the counter and CLOCK_MONOTONIC agree to well within 1 % (generous: the
-        // test machine is shared, and preemption between the reads only adds to one side).
-        let (m0, t0) = (monotonic_ns(), c.ticks());
-        std::thread::sleep(Duration::from_millis(20));
-        let (t1, m1) = (c.ticks(), monotonic_ns());
-        let by_counter = c.duration_floor(t1 - t0).as_nanos() as f64;
-        let by_monotonic = (m1 - m0) as f64;
-        assert!(by_counter <= by_monotonic, "{by_counter} > {by_monotonic}");
-        assert!(
-            by_counter > by_monotonic * 0.99,
-            "{by_counter} vs {by_monotonic}"
-        );
+        // Over 20 ms the counter and CLOCK_MONOTONIC agree to well within 1 %. The monotonic
+        // reads bracket the counter's, so preemption between them only makes the monotonic
+        // span longer: the counter's never exceeds it, and the closest of a few tries (on a
+        // shared machine one may be preempted for longer than 1 % of 20 ms) is within 1 %.
+        let mut closest = 0.0f64;
+        for _ in 0..5 {
+            let (m0, t0) = (monotonic_ns(), c.ticks());
+            std::thread::sleep(Duration::from_millis(20));
+            let (t1, m1) = (c.ticks(), monotonic_ns());
+            let by_counter = c.duration_floor(t1 - t0).as_nanos() as f64;
+            let by_monotonic = (m1 - m0) as f64;
+            assert!(by_counter <= by_monotonic, "{by_counter} > {by_monotonic}");
+            closest = closest.max(by_counter / by_monotonic);
+        }
+        assert!(closest > 0.99, "counter/monotonic at best {closest}");
     }
 
     #[test]
