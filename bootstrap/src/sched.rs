@@ -169,7 +169,7 @@ impl SystemSched {
         for slot in 0..c.replicas {
             let turn = (c.schedule == Schedule::Sequential).then_some(slot);
             let prio = self.describe_priority(
-                c.priority.map(|p| sched::replica_priority(p, slot)),
+                c.priority.map(|p| sched::rest_priority(p, slot, c.mode)),
                 nice.map(|n| n.replicas),
                 turn.and(c.priority.map(sched::turn_priority)),
             );

@@ -414,3 +414,48 @@ fn sequential_rounds_raise_the_turn_above_a_sibling_spinning_after_its_answer() 
 fn unprivileged_sequential_rounds_survive_a_sibling_spinning_after_its_answer() {
     spin_after_answering(true);
 }
+
+/// Stream mode with every replica on one CPU under SCHED_RR: the replicas rest at one level
+/// (stream mode has no turns), so a replica that spins before anyone produced a frame cannot
+/// starve its siblings forever; they get the CPU round robin, get ahead, and the spinner's
+/// deadline names it. (At distinct levels the spinner above them would stall the component
+/// with no fault ever seen.)
+#[test]
+fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
+    let _turn = one_system_at_a_time();
+    let cpus = usable_cpus();
+    let (shared, voter_cpu) = (cpus[0], cpus[cpus.len() - 1]);
+    let sys = System::new();
+    if !sys.round_robin_allowed() {
+        eprintln!("SKIPPED: SCHED_RR is refused here; this test is about SCHED_RR levels");
+        return;
+    }
+    let count = 600;
+    let summary = sys.path("summary.json");
+    let batch = format!(
+        r#"{{ "exec": "s3res-batch", "args": ["--every", "3", "--stateful"], "redundancy": "tmr",
+             "mode": "stream", "timeout_us": {TIMEOUT_US}, "priority": 30, "cpus": [{shared}],
+             "voter_cpu": {voter_cpu} }}"#
+    );
+    let mut run = sys.start(&echo_pipeline(&summary, &batch, count, 200));
+    run.wait_for_replicas("echo", 3);
+    let pids = run.replica_pids("echo");
+    let levels: Vec<i32> = pids
+        .values()
+        .map(|&pid| procs::scheduling(pid).priority)
+        .collect();
+    assert!(
+        levels.iter().all(|&l| l == levels[0]),
+        "stream replicas rest at one SCHED_RR level: {levels:?}"
+    );
+    spin(pids[&0]);
+    let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(30));
+    assert_eq!(hang.replica, Some(0), "{hang:?}");
+    assert_eq!(hang.pid, Some(pids[&0]), "{hang:?}");
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.pid == Some(pids[&0]),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    run.wait_success(LIMIT);
+}

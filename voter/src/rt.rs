@@ -25,6 +25,8 @@ enum Mode {
 pub struct RealTime {
     mode: Mode,
     schedule: Schedule,
+    /// Reactive or stream: where replicas rest (see [`sched::rest_priority`]).
+    voting: crate::plan::Mode,
     cpus: Vec<usize>,
     voter_cpus: Vec<usize>,
     /// The CPUs the voter could use before it pinned itself: what an unpinned replica gets
@@ -46,6 +48,7 @@ impl RealTime {
         RealTime {
             mode,
             schedule: plan.schedule,
+            voting: plan.mode,
             cpus: plan.cpus.clone(),
             voter_cpus: sched::voter_cpus(&plan.cpus, plan.voter_cpu),
             start_cpus: sys::cpu_affinity(0).unwrap_or_default(),
@@ -85,7 +88,7 @@ impl RealTime {
         match self.mode {
             Mode::Untouched => {}
             Mode::RoundRobin(p) => {
-                let prio = sched::replica_priority(p, slot);
+                let prio = sched::rest_priority(p, slot, self.voting);
                 if let Err(e) = sys::set_round_robin(pid, prio.into()) {
                     if !gone(&e) {
                         self.refused(e);
@@ -116,7 +119,7 @@ impl RealTime {
     /// Puts replica `slot` (`pid`) back to its priority at rest.
     pub fn rest(&mut self, pid: libc::pid_t, slot: usize) {
         if let Mode::RoundRobin(p) = self.mode {
-            self.set_rt(pid, sched::replica_priority(p, slot));
+            self.set_rt(pid, sched::rest_priority(p, slot, self.voting));
         }
     }
 

@@ -60,6 +60,19 @@ pub fn replica_priority(priority: u8, slot: usize) -> u8 {
     priority.saturating_sub(below).max(1)
 }
 
+/// SCHED_RR priority of replica `slot` at rest in `mode`. Reactive replicas rest at distinct
+/// levels (a sequential turn raises one above the others). Stream replicas all rest at the top
+/// one: stream mode has no turns, and replicas sharing a CPU at distinct levels would let one
+/// that spins starve the others before any of them produced a frame — then nobody is ahead,
+/// no deadline runs, and the hang is never seen. At one level SCHED_RR shares the CPU round
+/// robin, the spinner falls behind, and the laggard's deadline names it.
+pub fn rest_priority(priority: u8, slot: usize, mode: crate::plan::Mode) -> u8 {
+    match mode {
+        crate::plan::Mode::Reactive => replica_priority(priority, slot),
+        crate::plan::Mode::Stream => replica_priority(priority, 0),
+    }
+}
+
 /// The CPU replica `slot` is pinned to, if the component lists CPUs.
 pub fn replica_cpu(cpus: &[usize], slot: usize) -> Option<usize> {
     (!cpus.is_empty()).then(|| cpus[slot % cpus.len()])
