@@ -139,7 +139,14 @@ impl StreamVoter {
 
     fn run_loop(&mut self) -> Result<(), VoterError> {
         loop {
+            let away = Instant::now();
+            let recovered = !self.faults.is_empty();
             self.recover_faulty()?;
+            if recovered {
+                // Recovery blocks the loop (waiting for a death, the fork, the child's page
+                // walk); the laggards' clocks stop meanwhile.
+                self.ledger.postpone(away.elapsed());
+            }
             if self.stop == Some(Stop::Requested) {
                 return Ok(());
             }

@@ -260,6 +260,19 @@ impl Ledger {
         }
     }
 
+    /// Moves every arrival time `by` later: the voter was away (recovering a replica, during
+    /// which it neither fed the replicas' inputs nor read their outputs), and that time must
+    /// not count against the laggards' deadlines.
+    pub fn postpone(&mut self, by: std::time::Duration) {
+        for out in &mut self.outputs {
+            for entry in &mut out.entries {
+                for seen in entry.seen.iter_mut().flatten() {
+                    *seen += by;
+                }
+            }
+        }
+    }
+
     /// `slot` is no longer trusted: its undecided copies and arrival times no longer count.
     pub fn forget(&mut self, slot: usize) {
         for out in &mut self.outputs {
@@ -427,6 +440,28 @@ mod tests {
             }]
         );
         assert_eq!(l.next(0), 2, "a withheld frame does not stall the output");
+    }
+
+    #[test]
+    fn time_the_voter_was_away_does_not_count_against_a_laggard() {
+        let mut l = Ledger::new(3, 1, 8);
+        let all = set(&[0, 1, 2]);
+        let t0 = Instant::now();
+        l.accept(0, 0, b"a", t0);
+        l.accept(1, 0, b"a", t0);
+        decide_all(&mut l, 0, all);
+        assert_eq!(l.next_deadline(all, T), Some(t0 + T));
+        assert!(
+            l.overdue(all, T, t0 + T).is_some(),
+            "replica 2 owes frame 0"
+        );
+        l.postpone(3 * T);
+        assert_eq!(l.next_deadline(all, T), Some(t0 + 4 * T));
+        assert!(
+            l.overdue(all, T, t0 + T).is_none(),
+            "the clock stopped while away"
+        );
+        assert!(l.overdue(all, T, t0 + 4 * T).is_some());
     }
 
     #[test]
