@@ -151,6 +151,8 @@ fn steady_state_rounds_do_not_allocate() {
         nice: None,
         mode: Default::default(),
         window: s3res_voter::plan::default_stream_window(),
+        monitors: Vec::new(),
+        captures: Vec::new(),
     };
     let (done_tx, done_rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
