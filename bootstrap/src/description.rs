@@ -1016,13 +1016,15 @@ impl Checker<'_> {
                     ),
                 ))
             }
-            (None, Some(_)) => return Err(self.err(
-                &member_path(&field("detector"), "threshold"),
-                format!(
+            (None, Some(_)) => {
+                return Err(self.err(
+                    &member_path(&field("detector"), "threshold"),
+                    format!(
                     "`threshold` is for an autoencoder model; {} is a {kind} model (use `sigma`)",
                     model_path.display()
                 ),
-            )),
+                ))
+            }
             (None, None) => None,
         };
         if let Some((name, t)) = threshold {
