@@ -15,7 +15,9 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use s3res_components::{Signal, SIGNAL_FRAME};
-use s3res_tests::{bin_path, signals, sigqueue, Event, EventKind, RecoveryMethod, Rng, System};
+use s3res_tests::{
+    bin_path, signals, sigqueue, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
+};
 
 const LIMIT: Duration = Duration::from_secs(120);
 const TRAIN_FRAMES: u32 = 4000;
@@ -158,6 +160,44 @@ fn exponent_bit(offset: usize, k: u64) -> i32 {
     (offset * 8 + 52 + k as usize) as i32
 }
 
+/// Starts `signal` with `replicas` at `redundancy` under `model`, at 200 frames per second,
+/// and waits until its replicas take injections.
+fn start_monitored(
+    redundancy: &str,
+    replicas: usize,
+    offset: u64,
+    count: u32,
+    model: &Path,
+) -> RunningSystem {
+    let mut run = System::new().start(&description(
+        &signal(redundancy, offset),
+        count,
+        200,
+        &detector(model),
+    ));
+    run.wait_for_replicas("signal", replicas);
+    run
+}
+
+/// Flips a random exponent bit of x or y in replica `slot`'s next frame and waits until the
+/// replica has been replaced. Returns the field, the bit, the replica's pid, and the recovery.
+fn flip_and_wait_for_recovery(
+    run: &mut RunningSystem,
+    rng: &mut Rng,
+    slot: usize,
+) -> (&'static str, i32, i32, Event) {
+    let (field, at) = *rng.pick(&FLIPPABLE);
+    let bit = exponent_bit(at, rng.below(11));
+    let pid = run.replica_pids("signal")[&slot];
+    sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue");
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.component == "signal" && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.replica, Some(slot), "{rec:?}");
+    (field, bit, pid, rec)
+}
+
 #[test]
 fn a_fault_free_run_raises_no_alarm() {
     let models = models();
@@ -193,26 +233,12 @@ fn dmr_attributes_the_flagged_replica_and_repairs_it_by_fork() {
     let models = models();
     let mut rng = Rng::from_env();
     let (offset, count, injections) = (20_000, 2400, 8);
-    let mut run = System::new().start(&description(
-        &signal("dmr", offset),
-        count,
-        200,
-        &detector(&models.autoencoder),
-    ));
-    run.wait_for_replicas("signal", 2);
+    let mut run = start_monitored("dmr", 2, offset, count, &models.autoencoder);
     let mut attributed = 0;
     for i in 0..injections {
         std::thread::sleep(Duration::from_millis(rng.range(100, 300)));
         let slot = rng.below(2) as usize;
-        let (field, offset_in_frame) = *rng.pick(&FLIPPABLE);
-        let bit = exponent_bit(offset_in_frame, rng.below(11));
-        let pid = run.replica_pids("signal")[&slot];
-        sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue");
-        let rec = run.wait_for_event(
-            |e| e.kind == EventKind::Recovery && e.component == "signal" && e.pid == Some(pid),
-            Duration::from_secs(20),
-        );
-        assert_eq!(rec.replica, Some(slot), "injection {i}: {rec:?}");
+        let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
         assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
         assert_eq!(rec.donor, Some(1 - slot), "{rec:?}");
         assert_eq!(rec.state_lost, Some(false), "{rec:?}");
@@ -251,22 +277,9 @@ fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
     let models = models();
     let mut rng = Rng::from_env();
     let (offset, count) = (30_000, 800);
-    let mut run = System::new().start(&description(
-        &signal("smr", offset),
-        count,
-        200,
-        &detector(&models.autoencoder),
-    ));
-    run.wait_for_replicas("signal", 1);
+    let mut run = start_monitored("smr", 1, offset, count, &models.autoencoder);
     std::thread::sleep(Duration::from_millis(500));
-    let (field, at) = *rng.pick(&FLIPPABLE);
-    let bit = exponent_bit(at, rng.below(11));
-    let pid = run.replica_pids("signal")[&0];
-    sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue");
-    let rec = run.wait_for_event(
-        |e| e.kind == EventKind::Recovery && e.pid == Some(pid),
-        Duration::from_secs(20),
-    );
+    let (field, bit, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
     assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
     assert_eq!(rec.state_lost, Some(true), "{rec:?}");
     run.wait_success(LIMIT);
@@ -311,23 +324,10 @@ fn tmr_logs_the_alarm_and_the_vote_decides() {
     let models = models();
     let mut rng = Rng::from_env();
     let (offset, count) = (40_000, 800);
-    let mut run = System::new().start(&description(
-        &signal("tmr", offset),
-        count,
-        200,
-        &detector(&models.gaussian),
-    ));
-    run.wait_for_replicas("signal", 3);
+    let mut run = start_monitored("tmr", 3, offset, count, &models.gaussian);
     std::thread::sleep(Duration::from_millis(500));
     let slot = rng.below(3) as usize;
-    let (field, at) = *rng.pick(&FLIPPABLE);
-    let bit = exponent_bit(at, rng.below(11));
-    let pid = run.replica_pids("signal")[&slot];
-    sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue");
-    let rec = run.wait_for_event(
-        |e| e.kind == EventKind::Recovery && e.pid == Some(pid),
-        Duration::from_secs(20),
-    );
+    let (field, _, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
     run.wait_success(LIMIT);
     let events = run.events();
