@@ -209,3 +209,36 @@ impl Captures {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plan(mode: &str, output: &str) -> VoterPlan {
+        let json = format!(
+            r#"{{"system":"s","component":"c","exec":"/bin/true","args":[],"replicas":2,
+            "timeout_us":1000,"inputs":[{{"name":"in","fd":3,"max_frame":64}}],
+            "outputs":[{{"name":"out","fd":4,"max_frame":64}}],"rounds":[],"events_fd":null,
+            "socket_path":"/tmp/x.sock","mode":"{mode}",
+            "monitors":[{{"output":"{output}","fields":[{{"name":"x","type":"f64","offset":0}}],
+                          "model":"/nonexistent/model.json"}}]}}"#
+        );
+        VoterPlan::from_json(&json).unwrap()
+    }
+
+    #[test]
+    fn bad_monitors_are_refused_before_anything_runs() {
+        let err = |p: &VoterPlan| Monitors::load(p).err().unwrap().to_string();
+        assert!(err(&plan("stream", "out")).contains("reactive mode only"));
+        assert!(err(&plan("reactive", "nope")).contains("`nope`: is not an output"));
+        let e = err(&plan("reactive", "out"));
+        assert!(
+            e.contains("cannot read model /nonexistent/model.json"),
+            "{e}"
+        );
+        let e = crate::voter::validate(&plan("stream", "out"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("reactive mode only"), "{e}");
+    }
+}
