@@ -165,6 +165,8 @@ impl System {
                 nice: None,
                 mode: Default::default(),
                 window: s3res_voter::plan::default_stream_window(),
+                monitors: Vec::new(),
+                captures: Vec::new(),
             };
             cmd = Command::new(voter);
             cmd.arg("--plan")

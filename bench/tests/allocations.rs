@@ -5,6 +5,8 @@
 //! A counting global allocator counts the allocations made *on the voter's thread* only, so
 //! the test's own work does not disturb the count. After warm-up rounds at every frame size
 //! (buffers grow to their working size once), further rounds must not allocate at all.
+//! The same holds with an anomaly detector on the output and its voted frames captured to a
+//! file.
 
 use std::alloc::{GlobalAlloc, Layout, System as SystemAlloc};
 use std::cell::Cell;
@@ -14,7 +16,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use s3res_voter::event::{Event, EventKind};
-use s3res_voter::plan::{ExternalPort, RoundTrigger, VoterPlan};
+use s3res_voter::plan::{CapturePlan, ExternalPort, MonitorPlan, RoundTrigger, VoterPlan};
 use s3res_voter::voter::Voter;
 
 struct Counting;
@@ -109,8 +111,43 @@ fn round_trip(input: &OwnedFd, output: &OwnedFd, payload: &[u8], answer: &mut Ve
     );
 }
 
+/// The counter is process-wide: one voter at a time.
+static ONE_VOTER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn steady_state_rounds_do_not_allocate() {
+    steady_state(false);
+}
+
+#[test]
+fn steady_state_rounds_with_a_detector_and_a_capture_do_not_allocate() {
+    steady_state(true);
+}
+
+/// Monitored field of the echoed frames: an f64 at byte 0 that moves smoothly from round to
+/// round (see [`stamp`]).
+const FIELDS: &str = r#"[{"name": "x", "type": "f64", "offset": 0}]"#;
+
+fn stamp(frame: &mut [u8], k: usize) {
+    frame[..8].copy_from_slice(&(10.0 * (k as f64 * 0.01).sin()).to_le_bytes());
+}
+
+/// A Gaussian model of [`stamp`]'s values, saved in `dir`.
+fn model(dir: &std::path::Path) -> std::path::PathBuf {
+    let layout: s3res_anomaly::FieldLayout = serde_json::from_str(FIELDS).unwrap();
+    let mut trainer = s3res_anomaly::Trainer::new(layout, Default::default());
+    let mut frame = vec![0u8; 8];
+    for k in 0..5000 {
+        stamp(&mut frame, k);
+        trainer.push(&frame).unwrap();
+    }
+    let path = dir.join("model.json");
+    trainer.gaussian(6.0, 1e-6).unwrap().save(&path).unwrap();
+    path
+}
+
+fn steady_state(monitored: bool) {
+    let _one = ONE_VOTER.lock().unwrap_or_else(|e| e.into_inner());
     let echo = s3res_tests::bin_path("s3res-echo");
     let dir = tempfile::tempdir().unwrap();
     let (in_r, in_w) = replica_rt::sys::pipe().unwrap();
@@ -151,7 +188,23 @@ fn steady_state_rounds_do_not_allocate() {
         nice: None,
         mode: Default::default(),
         window: s3res_voter::plan::default_stream_window(),
+        monitors: Vec::new(),
+        captures: Vec::new(),
     };
+    let mut plan = plan;
+    let capture = dir.path().join("capture.bin");
+    if monitored {
+        plan.monitors.push(MonitorPlan {
+            output: "out".into(),
+            fields: serde_json::from_str(FIELDS).unwrap(),
+            model: model(dir.path()),
+            threshold: None,
+        });
+        plan.captures.push(CapturePlan {
+            output: "out".into(),
+            path: capture.clone(),
+        });
+    }
     let (done_tx, done_rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
         ON_VOTER_THREAD.with(|c| c.set(true));
@@ -171,24 +224,30 @@ fn steady_state_rounds_do_not_allocate() {
     }
 
     let sizes = [65536usize, 4096, 8];
-    let frames: Vec<Vec<u8>> = sizes
+    let mut frames: Vec<Vec<u8>> = sizes
         .iter()
         .map(|&n| (0..n).map(|i| (i * 7) as u8).collect())
         .collect();
     let mut answer = Vec::new();
-    for f in &frames {
+    let mut k = 0;
+    for f in frames.iter_mut() {
         for _ in 0..50 {
+            stamp(f, k);
+            k += 1;
             round_trip(&in_w, &out_r, f, &mut answer);
         }
     }
     let before = VOTER_ALLOCS.load(Ordering::Relaxed);
     let rounds = 2000;
-    for k in 0..rounds {
-        round_trip(&in_w, &out_r, &frames[1 + k % 2], &mut answer);
+    for r in 0..rounds {
+        let f = &mut frames[1 + r % 2];
+        stamp(f, k);
+        k += 1;
+        round_trip(&in_w, &out_r, f, &mut answer);
     }
     let after = VOTER_ALLOCS.load(Ordering::Relaxed);
     eprintln!(
-        "voter thread: {} allocations in {rounds} steady-state rounds (8 B and 4 KiB frames)",
+        "voter thread (detector and capture: {monitored}): {} allocations in {rounds} steady-state rounds (8 B and 4 KiB frames)",
         after - before
     );
 
@@ -198,6 +257,14 @@ fn steady_state_rounds_do_not_allocate() {
         .recv_timeout(LIMIT)
         .expect("the voter did not finish after its input closed");
     assert_eq!(result, Ok(()));
+    if monitored {
+        // Every frame was scored; an alarm would have allocated its event (so none came).
+        // The capture holds every voted frame.
+        let captured = std::fs::read(&capture).unwrap();
+        let expected: usize = sizes.iter().map(|n| (4 + n) * 50).sum::<usize>()
+            + (0..rounds).map(|r| 4 + sizes[1 + r % 2]).sum::<usize>();
+        assert_eq!(captured.len(), expected, "capture size");
+    }
     assert_eq!(
         after - before,
         0,

@@ -12,8 +12,10 @@ use thiserror::Error;
 
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
+use s3res_anomaly::{Field, FieldLayout, Model};
 use s3res_voter::plan::{
-    default_restart_timeout_ms, default_start_timeout_ms, default_stream_window, Mode, RoundTrigger,
+    default_restart_timeout_ms, default_start_timeout_ms, default_stream_window, CapturePlan, Mode,
+    MonitorPlan, RoundTrigger,
 };
 use s3res_voter::sched::{self, Schedule};
 
@@ -258,6 +260,33 @@ struct ChannelDesc {
     from: String,
     to: String,
     max_frame: Option<u64>,
+    /// The numeric fields of the channel's frames worth watching.
+    fields: Option<Vec<Field>>,
+    /// The anomaly detector the writer's voter runs on them.
+    detector: Option<DetectorDesc>,
+    /// File (relative to the description) to write the voted frames to.
+    capture: Option<String>,
+}
+
+/// `detector` of a channel.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DetectorDesc {
+    /// Model file from `s3res-train`, relative to the description.
+    model: String,
+    /// If given, the model must be of this kind.
+    kind: Option<DetectorKind>,
+    /// Gaussian: alarm above this many σ (replaces the model's).
+    sigma: Option<f64>,
+    /// Autoencoder: alarm above this reconstruction error (replaces the model's).
+    threshold: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum DetectorKind {
+    Gaussian,
+    Autoencoder,
 }
 
 /// Per-component facts gathered before the ports are known.
@@ -337,6 +366,9 @@ impl Checker<'_> {
         let mut components = Vec::with_capacity(drafts.len());
         for d in drafts {
             components.push(self.check_ports(d, &channels, &inputs_used, &outputs_used)?);
+        }
+        for (i, ch) in desc.channels.iter().enumerate() {
+            self.check_monitoring(i, ch, &channels[i], &mut components)?;
         }
         Ok(SystemPlan {
             name: desc.name,
@@ -852,7 +884,179 @@ impl Checker<'_> {
             rounds,
             mode: d.desc.mode,
             window: d.window,
+            monitors: Vec::new(),
+            captures: Vec::new(),
         })
+    }
+
+    /// A channel's `fields`, `detector` and `capture`: the layout fits the channel's frames,
+    /// the model exists and was trained on exactly that layout, and the channel's writer is a
+    /// protected reactive component (its voter is what runs the detector and writes the
+    /// capture). The result goes into the writer's plan.
+    fn check_monitoring(
+        &self,
+        i: usize,
+        ch: &ChannelDesc,
+        plan: &ChannelPlan,
+        components: &mut [ComponentPlan],
+    ) -> Result<(), DescriptionError> {
+        let at = element_path("channels", i);
+        let field = |f: &str| member_path(&at, f);
+        if ch.fields.is_none() && ch.detector.is_none() && ch.capture.is_none() {
+            return Ok(());
+        }
+        let layout = match &ch.fields {
+            None => None,
+            Some(fields) => {
+                let layout = FieldLayout::new(fields.clone())
+                    .and_then(|l| l.within(plan.max_frame).map(|()| l))
+                    .map_err(|e| {
+                        self.err(
+                            &self.layout_path(&field("fields"), fields, &e),
+                            e.to_string(),
+                        )
+                    })?;
+                Some(layout)
+            }
+        };
+        let needs_voter = if ch.detector.is_some() {
+            Some("detector")
+        } else if ch.capture.is_some() {
+            Some("capture")
+        } else {
+            None
+        };
+        let Some(what) = needs_voter else {
+            // Fields alone document the layout (and are checked); nothing runs on them.
+            return Ok(());
+        };
+        let writer = match &plan.from {
+            Endpoint::Port { component, port } => components
+                .iter_mut()
+                .find(|c| &c.name == component)
+                .map(|c| (c, port.clone())),
+            _ => None,
+        };
+        let Some((writer, port)) = writer.filter(|(c, _)| c.is_protected()) else {
+            return Err(self.err(
+                &field(what),
+                format!(
+                    "`{what}` needs a channel written by a protected component (its voter runs it); `{}` is not one (give it a redundancy; smr is enough)",
+                    plan.from
+                ),
+            ));
+        };
+        if writer.mode == Mode::Stream {
+            return Err(self.err(
+                &field(what),
+                format!(
+                    "`{what}` is supported for reactive components only; `{}` is in stream mode",
+                    writer.name
+                ),
+            ));
+        }
+        if let Some(capture) = &ch.capture {
+            if capture.trim().is_empty() {
+                return Err(self.err(&field("capture"), "the capture file name is empty"));
+            }
+            writer.captures.push(CapturePlan {
+                output: port.clone(),
+                path: self.ctx.base_dir.join(capture),
+            });
+        }
+        let Some(det) = &ch.detector else {
+            return Ok(());
+        };
+        let Some(layout) = layout else {
+            return Err(self.err(
+                &field("detector"),
+                "a `detector` needs the channel's `fields` (the layout its model was trained on)",
+            ));
+        };
+        let model_path = self.ctx.base_dir.join(&det.model);
+        let model = Model::load(&model_path)
+            .map_err(|e| self.err(&member_path(&field("detector"), "model"), e.to_string()))?;
+        model.check_layout(&layout).map_err(|e| {
+            self.err(
+                &member_path(&field("detector"), "model"),
+                format!("model {}: {e}", model_path.display()),
+            )
+        })?;
+        let kind = model.kind();
+        if let Some(want) = det.kind {
+            let want = match want {
+                DetectorKind::Gaussian => "gaussian",
+                DetectorKind::Autoencoder => "autoencoder",
+            };
+            if want != kind {
+                return Err(self.err(
+                    &member_path(&field("detector"), "kind"),
+                    format!(
+                        "`kind` is {want} but the model {} is a {kind} model",
+                        model_path.display()
+                    ),
+                ));
+            }
+        }
+        let threshold = match (det.sigma, det.threshold) {
+            (Some(_), Some(_)) => {
+                return Err(self.err(
+                    &field("detector"),
+                    "give `sigma` (Gaussian) or `threshold` (autoencoder), not both",
+                ))
+            }
+            (Some(s), None) if kind == "gaussian" => Some(("sigma", s)),
+            (None, Some(t)) if kind == "autoencoder" => Some(("threshold", t)),
+            (Some(_), None) => {
+                return Err(self.err(
+                    &member_path(&field("detector"), "sigma"),
+                    format!(
+                        "`sigma` is for a Gaussian model; {} is a {kind} model (use `threshold`)",
+                        model_path.display()
+                    ),
+                ))
+            }
+            (None, Some(_)) => {
+                return Err(self.err(
+                    &member_path(&field("detector"), "threshold"),
+                    format!(
+                    "`threshold` is for an autoencoder model; {} is a {kind} model (use `sigma`)",
+                    model_path.display()
+                ),
+                ))
+            }
+            (None, None) => None,
+        };
+        if let Some((name, t)) = threshold {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(self.err(
+                    &member_path(&field("detector"), name),
+                    format!("`{name}` {t} must be a positive number"),
+                ));
+            }
+        }
+        writer.monitors.push(MonitorPlan {
+            output: port,
+            fields: layout,
+            model: model_path,
+            threshold: threshold.map(|(_, t)| t),
+        });
+        Ok(())
+    }
+
+    /// Where a layout error points: the field it names (`channels[0].fields[2]`), else the
+    /// whole list.
+    fn layout_path(&self, at: &str, fields: &[Field], e: &s3res_anomaly::LayoutError) -> String {
+        use s3res_anomaly::LayoutError as L;
+        let index = match e {
+            L::EmptyName { index } => Some(*index),
+            L::DuplicateName { second, .. } => Some(*second),
+            L::BeyondFrame { name, .. } | L::Overlap { name, .. } => {
+                fields.iter().position(|f| &f.name == name)
+            }
+            L::Empty | L::TooMany { .. } => None,
+        };
+        index.map_or_else(|| at.to_owned(), |k| element_path(at, k))
     }
 
     /// The inputs (or outputs) of a component: the declared list checked against the channels,

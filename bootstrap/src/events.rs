@@ -23,6 +23,8 @@ pub struct Counts {
     pub faults: u64,
     pub recoveries: u64,
     pub failed_recoveries: u64,
+    /// Anomaly detector alarms (whatever was done about them).
+    pub anomalies: u64,
 }
 
 /// Counts per component, and how many lines could not be read.
@@ -79,6 +81,19 @@ impl EventSummary {
                     "recovered"
                 );
             }
+            EventKind::Anomaly => {
+                counts.anomalies += 1;
+                tracing::warn!(
+                    component = %event.component,
+                    replica = ?event.replica,
+                    round = ?event.round,
+                    output = event.output.as_deref().unwrap_or(""),
+                    field = event.field.as_deref().unwrap_or(""),
+                    score = ?event.score,
+                    threshold = ?event.threshold,
+                    "anomaly"
+                );
+            }
             EventKind::RecoveryFailed => {
                 counts.failed_recoveries += 1;
                 tracing::error!(
@@ -99,10 +114,14 @@ impl EventSummary {
             .per_component
             .iter()
             .map(|(name, c)| {
-                format!(
+                let mut s = format!(
                     "{name} {} fault(s), {} recovery(ies), {} failed recovery(ies)",
                     c.faults, c.recoveries, c.failed_recoveries
-                )
+                );
+                if c.anomalies > 0 {
+                    s.push_str(&format!(", {} anomaly alarm(s)", c.anomalies));
+                }
+                s
             })
             .collect();
         if parts.is_empty() {
@@ -125,6 +144,7 @@ fn kind_name(kind: EventKind) -> &'static str {
         EventKind::Protocol => "protocol",
         EventKind::Recovery => "recovery",
         EventKind::RecoveryFailed => "recovery_failed",
+        EventKind::Anomaly => "anomaly",
     }
 }
 

@@ -4,7 +4,7 @@
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
-use s3res_voter::plan::{Mode, RoundTrigger};
+use s3res_voter::plan::{CapturePlan, Mode, MonitorPlan, RoundTrigger};
 use s3res_voter::sched::Schedule;
 use serde::Deserialize;
 
@@ -85,7 +85,7 @@ pub struct PortPlan {
 }
 
 /// How one component runs.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ComponentPlan {
     pub name: String,
     /// Absolute path of the component executable.
@@ -116,6 +116,10 @@ pub struct ComponentPlan {
     pub mode: Mode,
     /// Stream mode: frames a replica may run ahead of the slowest.
     pub window: usize,
+    /// Outputs watched by anomaly detectors (from the channels' `fields` and `detector`).
+    pub monitors: Vec<MonitorPlan>,
+    /// Outputs whose voted frames are captured to a file (the channels' `capture`).
+    pub captures: Vec<CapturePlan>,
 }
 
 impl ComponentPlan {
@@ -125,7 +129,7 @@ impl ComponentPlan {
 }
 
 /// The whole validated system.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SystemPlan {
     pub name: String,
     /// In the order of the description.
@@ -233,6 +237,24 @@ impl SystemPlan {
                 "  timeout   {} us {per}, {} ms per restart, {} ms for a fresh replica's first answer",
                 c.timeout_us, c.restart_timeout_ms, c.start_timeout_ms
             );
+            for m in &c.monitors {
+                let names: Vec<&str> = m.fields.fields().iter().map(|f| f.name.as_str()).collect();
+                let _ = writeln!(
+                    out,
+                    "  detector  on {}: fields [{}], model {}",
+                    m.output,
+                    names.join(", "),
+                    m.model.display()
+                );
+            }
+            for cap in &c.captures {
+                let _ = writeln!(
+                    out,
+                    "  capture   voted frames of {} -> {}",
+                    cap.output,
+                    cap.path.display()
+                );
+            }
         }
         match c.priority {
             Some(p) => {

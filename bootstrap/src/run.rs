@@ -548,6 +548,8 @@ fn spawn_voter(
         nice: sched.fallback(index),
         mode: c.mode,
         window: c.window,
+        monitors: c.monitors.clone(),
+        captures: c.captures.clone(),
     };
     let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
     cmd.arg("--plan").arg(voter_plan.to_json());

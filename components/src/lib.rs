@@ -458,3 +458,62 @@ mod tests {
         assert_eq!(v["expected"], 1);
     }
 }
+
+/// Size of a [`Signal`] frame.
+pub const SIGNAL_FRAME: usize = 40;
+
+/// The smooth telemetry `s3res-signal` answers each source frame with: a point moving on a
+/// Lissajous-like curve, its speed, and its odometer (the distance travelled so far, the
+/// component's state). Little-endian, [`SIGNAL_FRAME`] bytes:
+///
+/// | bytes    | field                 |
+/// |----------|-----------------------|
+/// | `0..8`   | `seq: u64` (+ offset) |
+/// | `8..16`  | `x: f64`              |
+/// | `16..24` | `y: f64`              |
+/// | `24..32` | `speed: f64`          |
+/// | `32..40` | `odometer: f64`       |
+///
+/// x stays in 30..70, y in 20..40: a flip of any exponent bit of either changes it by at least
+/// 10, far beyond its change from one frame to the next (below 0.5). Everything is a function
+/// of the sequence numbers seen, so two runs over the same input give the same bytes.
+#[derive(Debug, Clone, Default)]
+pub struct Signal {
+    offset: u64,
+    odometer: f64,
+}
+
+impl Signal {
+    /// `offset` is added to every sequence number (a run over other data than the training).
+    pub fn new(offset: u64) -> Self {
+        Signal {
+            offset,
+            odometer: 0.0,
+        }
+    }
+
+    /// The point at time `t`.
+    fn position(t: f64) -> (f64, f64) {
+        (
+            50.0 + 20.0 * (t * 0.02).sin(),
+            30.0 + 10.0 * (t * 0.013).cos(),
+        )
+    }
+
+    /// The answer to source frame number `seq`.
+    pub fn answer(&mut self, seq: u64) -> [u8; SIGNAL_FRAME] {
+        let t = (seq + self.offset) as f64;
+        let (x, y) = Signal::position(t);
+        // From the point one step earlier, also for the first frame: a speed that starts at 0
+        // would be a jump no later frame shows.
+        let (px, py) = Signal::position(t - 1.0);
+        let step = ((x - px).powi(2) + (y - py).powi(2)).sqrt();
+        self.odometer += step;
+        let mut out = [0u8; SIGNAL_FRAME];
+        out[0..8].copy_from_slice(&(seq + self.offset).to_le_bytes());
+        for (k, v) in [x, y, step, self.odometer].into_iter().enumerate() {
+            out[8 + 8 * k..16 + 8 * k].copy_from_slice(&v.to_le_bytes());
+        }
+        out
+    }
+}

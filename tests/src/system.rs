@@ -277,14 +277,16 @@ pub struct Outcome {
 }
 
 impl Outcome {
-    /// The fault events (everything but `start` and `recovery`).
+    /// The fault events (everything but `start`, `recovery` and `anomaly`: an alarm is an
+    /// opinion; what the voter concluded from it is a fault event of its own).
     pub fn faults(&self) -> Vec<&Event> {
+        use s3res_voter::event::EventKind;
         self.events
             .iter()
             .filter(|e| {
                 !matches!(
                     e.kind,
-                    s3res_voter::event::EventKind::Start | s3res_voter::event::EventKind::Recovery
+                    EventKind::Start | EventKind::Recovery | EventKind::Anomaly
                 )
             })
             .collect()

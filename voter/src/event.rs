@@ -21,6 +21,10 @@ pub enum EventKind {
     Recovery,
     /// A replacement could not be made; the component runs with fewer replicas.
     RecoveryFailed,
+    /// An anomaly detector flagged a replica's frame: `output`, `field`, `score`, `threshold`
+    /// say where and how much. What the voter did about it is a separate event (`sdc` with the
+    /// replica, when the alarm decided something); see `docs/anomaly-detection.md`.
+    Anomaly,
 }
 
 /// How a replacement replica was made.
@@ -33,7 +37,7 @@ pub enum RecoveryMethod {
     Exec,
 }
 
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Event {
     /// CLOCK_MONOTONIC, nanoseconds.
     pub ts_ns: u64,
@@ -63,6 +67,18 @@ pub struct Event {
     /// Fault detected → new replica ready, microseconds.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recovery_us: Option<u64>,
+    /// `anomaly`: the output port whose frame was flagged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub output: Option<String>,
+    /// `anomaly`: the most anomalous monitored field (absent for a frame too short to read).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
+    /// `anomaly`: the detector's score (absent when it is infinite: NaN/Inf or short frame).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub score: Option<f64>,
+    /// `anomaly`: what the score was compared with.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f64>,
 }
 
 impl Event {
@@ -81,6 +97,10 @@ impl Event {
             method: None,
             state_lost: None,
             recovery_us: None,
+            output: None,
+            field: None,
+            score: None,
+            threshold: None,
         }
     }
 

@@ -8,11 +8,12 @@
 //! loop of stream mode (its bookkeeping in [`stream::ledger`]); [`recovery`] the
 //! fork-and-hand-over sequence; [`replica`] the
 //! process handle; [`channel`] the non-blocking pipe ends; [`plan`] and [`event`] the contracts
-//! with bootstrap.
+//! with bootstrap; [`monitor`] the anomaly detectors on the outputs and frame capture.
 
 pub mod channel;
 pub mod clock;
 pub mod event;
+pub mod monitor;
 pub mod plan;
 pub mod recovery;
 pub mod replica;

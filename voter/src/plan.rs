@@ -4,6 +4,7 @@
 use std::os::fd::RawFd;
 use std::path::PathBuf;
 
+use s3res_anomaly::FieldLayout;
 use serde::{Deserialize, Serialize};
 
 use crate::sched::Schedule;
@@ -47,8 +48,32 @@ pub fn default_stream_window() -> usize {
     DEFAULT_STREAM_WINDOW
 }
 
-/// Everything a voter needs to run one protected component.
+/// An output whose frames an anomaly detector watches (see `docs/anomaly-detection.md`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MonitorPlan {
+    /// The output port (one of [`VoterPlan::outputs`]).
+    pub output: String,
+    /// The channel's declared fields; the model must have been trained on exactly these.
+    pub fields: FieldLayout,
+    /// Absolute path of the model file (`s3res-train`'s output).
+    pub model: PathBuf,
+    /// Replaces the model's own threshold: σ for a Gaussian model, the reconstruction-error
+    /// threshold for an autoencoder.
+    #[serde(default)]
+    pub threshold: Option<f64>,
+}
+
+/// An output whose voted frames are also written to a file, in the s3res framing (training
+/// data for `s3res-train`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CapturePlan {
+    pub output: String,
+    /// Absolute path; created (truncated) at start.
+    pub path: PathBuf,
+}
+
+/// Everything a voter needs to run one protected component.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VoterPlan {
     /// System name (goes into every event).
     pub system: String,
@@ -104,6 +129,12 @@ pub struct VoterPlan {
     /// before the voter stops reading it (back-pressure through its pipe).
     #[serde(default = "default_stream_window")]
     pub window: usize,
+    /// Outputs watched by anomaly detectors (reactive mode).
+    #[serde(default)]
+    pub monitors: Vec<MonitorPlan>,
+    /// Outputs whose voted frames are captured to a file.
+    #[serde(default)]
+    pub captures: Vec<CapturePlan>,
 }
 
 /// Nice values used instead of SCHED_RR priorities, chosen by bootstrap so that the order of
@@ -155,6 +186,7 @@ mod tests {
         assert!(plan.realtime);
         assert_eq!(plan.nice, None);
         assert_eq!(plan.voter_cpu, None);
+        assert!(plan.monitors.is_empty() && plan.captures.is_empty());
         assert_eq!(plan.priority, Some(30));
         assert_eq!(VoterPlan::from_json(&plan.to_json()).unwrap(), plan);
     }

@@ -26,6 +26,9 @@ pub struct Round {
     pub answered: [OutputSet; MAX_REPLICAS],
     /// Outputs whose winner has been forwarded.
     pub forwarded: OutputSet,
+    /// Outputs whose frame was held back: it stood on one replica's word and its anomaly
+    /// detector alarmed.
+    pub held: OutputSet,
 }
 
 impl Round {
@@ -45,6 +48,7 @@ impl Round {
             members,
             answered: [0; MAX_REPLICAS],
             forwarded: 0,
+            held: 0,
         }
     }
 

@@ -23,6 +23,7 @@ use thiserror::Error;
 use crate::channel::{Fill, FrameReader, FrameWriter};
 use crate::clock::{self, ClockError, Deadlines, Instant, Timer};
 use crate::event::{Event, EventKind, RecoveryMethod};
+use crate::monitor::{Captures, Monitors};
 use crate::plan::{Mode, VoterPlan};
 use crate::recovery;
 use crate::replica::Replica;
@@ -171,6 +172,11 @@ pub struct Voter {
     timers: Deadlines,
     /// Priorities, pinning and the raising of turns.
     rt: RealTime,
+    /// Anomaly detectors on the outputs (see [`Voter::try_forward`] and [`Voter::close_round`]
+    /// for what an alarm does).
+    monitors: Monitors,
+    /// Voted frames written to files (training data).
+    captures: Captures,
 }
 
 impl Voter {
@@ -179,6 +185,9 @@ impl Voter {
         validate(&plan)?;
         // Calibrated before the first round, so that it never eats into a deadline.
         clock::init()?;
+        // Models are checked before any replica starts: a bad one is an error, not a surprise.
+        let monitors = Monitors::load(&plan)?;
+        let captures = Captures::open(&plan)?;
         let Endpoints {
             signals,
             inputs,
@@ -198,6 +207,8 @@ impl Voter {
         })?;
         let voter = Voter {
             rt,
+            monitors,
+            captures,
             answers: vec![vec![Vec::new(); plan.outputs.len()]; n],
             slots,
             plan,
@@ -417,6 +428,7 @@ impl Voter {
                 if let Some(expected) = round {
                     self.rounds_started += 1;
                     let deadline = Instant::now() + self.allowance(members);
+                    self.monitors.clear_verdicts();
                     self.round = Some(Round::new(
                         self.rounds_started,
                         i,
@@ -459,6 +471,7 @@ impl Voter {
 
     fn forward(&mut self, o: usize, winner: usize) {
         self.outputs[o].send(&self.answers[winner][o]);
+        self.captures.record(o, &self.answers[winner][o]);
     }
 
     fn on_replica_output(&mut self, r: usize, o: usize) {
@@ -501,6 +514,13 @@ impl Voter {
             if let Some(problem) = problem {
                 let detail = format!("{problem} (output `{}`)", self.plan.outputs[o].name);
                 return self.fault(r, EventKind::Protocol, detail);
+            }
+            // Every answer is scored, also when all agree: each replica's stream of frames
+            // must be complete for the next delta to be meaningful.
+            if let Some(verdict) = self.monitors.observe(r, o, &self.answers[r][o]) {
+                if verdict.alarm {
+                    self.anomaly_event(r, o);
+                }
             }
             self.try_forward(o);
         }
@@ -580,13 +600,93 @@ impl Voter {
         let Some(round) = self.round.as_ref() else {
             return;
         };
-        if round.forwarded & (1 << o) != 0 {
+        if (round.forwarded | round.held) & (1 << o) != 0 {
             return;
         }
-        if let VoteOutcome::Majority { winner, .. } = self.vote_output(round, o) {
+        if let VoteOutcome::Majority { winner, agree, .. } = self.vote_output(round, o) {
+            if self.lone_alarm(agree, winner, o) {
+                return self.hold_back(winner, o);
+            }
             self.round.as_mut().unwrap().forwarded |= 1 << o;
             self.forward(o, winner);
         }
+    }
+
+    /// A frame that stands on the word of a single replica (SMR, or a pair or trio down to
+    /// one) and that its detector flags: no other replica can confirm or overrule it.
+    fn lone_alarm(&self, agree: ReplicaSet, winner: usize, o: usize) -> bool {
+        agree.len() == 1 && self.monitors.alarmed(winner, o)
+    }
+
+    /// Holds back replica `r`'s flagged frame on output `o` and treats `r` as faulty (`sdc`):
+    /// it is replaced after the round, by exec when no healthy replica is left (state lost,
+    /// and the recovery event says so).
+    fn hold_back(&mut self, r: usize, o: usize) {
+        if let Some(round) = self.round.as_mut() {
+            round.held |= 1 << o;
+        }
+        let detail = self.held_back_detail(r, o);
+        self.fault(r, EventKind::Sdc, detail);
+    }
+
+    fn held_back_detail(&self, r: usize, o: usize) -> String {
+        format!(
+            "anomaly detector flagged its frame on `{}` ({}) and no other replica confirms it; frame held back",
+            self.plan.outputs[o].name,
+            self.alarm_text(r, o)
+        )
+    }
+
+    /// DMR attribution: two trusted replicas answered output `o` with different frames and
+    /// exactly one of them was flagged by the detector. Returns `(culprit, healthy)`.
+    fn attribute(&self, round: &Round, o: usize) -> Option<(usize, usize)> {
+        let answered: Vec<usize> = self
+            .alive(round)
+            .iter()
+            .filter(|&r| round.has_answered(r, o))
+            .collect();
+        let [a, b] = answered[..] else {
+            return None;
+        };
+        if self.answers[a][o] == self.answers[b][o] {
+            return None;
+        }
+        match (self.monitors.alarmed(a, o), self.monitors.alarmed(b, o)) {
+            (true, false) => Some((a, b)),
+            (false, true) => Some((b, a)),
+            _ => None,
+        }
+    }
+
+    /// How a flagged frame looked to its detector, for an event's detail.
+    fn alarm_text(&self, r: usize, o: usize) -> String {
+        match self.monitors.alarm(r, o) {
+            Some(a) => format!(
+                "field `{}`, score {}, threshold {}: {}",
+                a.field.as_deref().unwrap_or("?"),
+                a.score.map_or("inf".to_owned(), |s| format!("{s:.3e}")),
+                a.threshold,
+                a.cause
+            ),
+            None => "no verdict".to_owned(),
+        }
+    }
+
+    /// Every alarm is an `anomaly` event, whatever the voter then does about it.
+    fn anomaly_event(&self, r: usize, o: usize) {
+        let Some(alarm) = self.monitors.alarm(r, o) else {
+            return;
+        };
+        let mut ev = self.event(EventKind::Anomaly);
+        ev.replica = Some(r);
+        ev.pid = self.slots[r].as_ref().map(|rep| rep.pid);
+        ev.round = self.round.as_ref().map(|rd| rd.number);
+        ev.output = Some(self.plan.outputs[o].name.clone());
+        ev.field = alarm.field;
+        ev.score = alarm.score;
+        ev.threshold = Some(alarm.threshold);
+        ev.detail = Some(alarm.cause.to_owned());
+        self.emit(ev);
     }
 
     /// Closes the round when everyone trusted has answered, or when its deadline has passed.
@@ -745,10 +845,37 @@ impl Voter {
                 self.rt.rest(pid, t);
             }
         }
+        let number = round.number;
+        // DMR attribution first: the flagged replica of a disagreeing pair leaves the quorum,
+        // so the vote below forwards the other's frame (on this and every other output).
+        if !self.monitors.is_empty() {
+            let blamed: Vec<(usize, usize, usize)> = round
+                .outputs()
+                .filter(|&o| (round.forwarded | round.held) & (1 << o) == 0)
+                .filter_map(|o| self.attribute(&round, o).map(|(c, h)| (o, c, h)))
+                .collect();
+            for (o, culprit, healthy) in blamed {
+                let detail = format!(
+                    "output `{}` differs from replica {healthy}'s and the anomaly detector flagged it ({}) but not replica {healthy}'s",
+                    self.plan.outputs[o].name,
+                    self.alarm_text(culprit, o)
+                );
+                self.fault_in_round(culprit, EventKind::Sdc, detail, Some(number));
+            }
+        }
         let mut dissenters = ReplicaSet::EMPTY;
         let mut withheld = Vec::new();
         for o in round.outputs() {
+            if round.held & (1 << o) != 0 {
+                continue;
+            }
             match self.vote_output(&round, o) {
+                VoteOutcome::Majority { winner, agree, .. }
+                    if round.forwarded & (1 << o) == 0 && self.lone_alarm(agree, winner, o) =>
+                {
+                    let detail = self.held_back_detail(winner, o);
+                    self.fault_in_round(winner, EventKind::Sdc, detail, Some(number));
+                }
                 VoteOutcome::Majority {
                     winner, dissent, ..
                 } => {
@@ -769,7 +896,6 @@ impl Voter {
                 }
             }
         }
-        let number = round.number;
         for (o, answered) in withheld {
             let name = &self.plan.outputs[o].name;
             if answered.is_empty() {
@@ -866,6 +992,8 @@ impl Voter {
                     ev.state_lost = Some(false);
                     self.emit(ev);
                     self.slots[slot] = Some(child);
+                    // The child's next frame continues the donor's stream.
+                    self.monitors.copy_stream(d, slot);
                     return Ok(());
                 }
                 Err(e) => {
@@ -873,14 +1001,18 @@ impl Voter {
                 }
             }
         }
-        replace_by_exec(
+        let replaced = replace_by_exec(
             &self.plan,
             self.events.as_ref(),
             &mut self.slots,
             (slot, old_pid, detected_ns),
             |pid, slot| self.rt.apply_to_replica(pid, slot),
-        )
-        .map(drop)
+        )?;
+        if replaced {
+            // A fresh process: its first frame is a warm-up.
+            self.monitors.reset_stream(slot);
+        }
+        Ok(())
     }
 
     // ----- events ------------------------------------------------------------------------
@@ -930,6 +1062,8 @@ impl Voter {
 
     /// Kills every replica and everything re-parented to us; removes the socket.
     fn shut_down(&mut self) {
+        self.captures.flush();
+        self.monitors.log_cost();
         shut_down(
             &self.plan,
             &mut self.outputs,
@@ -1186,6 +1320,11 @@ pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
                 return fail(format!("round output `{o}` is not an output"));
             }
         }
+    }
+    if plan.mode == Mode::Stream && !(plan.monitors.is_empty() && plan.captures.is_empty()) {
+        return fail(
+            "anomaly detectors and frame capture are supported in reactive mode only".into(),
+        );
     }
     match plan.mode {
         Mode::Reactive if plan.rounds.is_empty() => {

@@ -711,3 +711,153 @@ fn placement_errors() {
         "unknown variant `round-robin`",
     );
 }
+
+// ----- monitored fields, detectors, capture --------------------------------------------------
+
+const XY_FIELDS: &str =
+    r#"[{"name": "x", "type": "f64", "offset": 0}, {"name": "y", "type": "f64", "offset": 8}]"#;
+
+/// Trains a Gaussian model on smooth (x, y) frames and saves it as `name` in the fixture.
+fn xy_model(f: &Fixture, name: &str) {
+    let layout: FieldLayout = serde_json::from_str(XY_FIELDS).unwrap();
+    let mut t = s3res_anomaly::Trainer::new(layout, s3res_anomaly::Preprocess::default());
+    for k in 0..200 {
+        let mut frame = (k as f64).sin().to_le_bytes().to_vec();
+        frame.extend_from_slice(&(k as f64).cos().to_le_bytes());
+        t.push(&frame).unwrap();
+    }
+    t.gaussian(6.0, 1e-6)
+        .unwrap()
+        .save(&f.dir.path().join(name))
+        .unwrap();
+}
+
+/// `a` (protected with `redundancy`) writes channel 1; `extra` is added to that channel.
+fn monitored(redundancy: &str, extra: &str) -> String {
+    format!(
+        r#"{{
+  "name": "n",
+  "components": {{
+    "s": {{ "exec": "run.sh" }},
+    "a": {{ "exec": "run.sh", "redundancy": "{redundancy}", "timeout_us": 1000 }}
+  }},
+  "channels": [
+    {{ "from": "s.out", "to": "a.in" }},
+    {{ "from": "a.out", "to": "stdout", "max_frame": 16,
+      {extra} }}
+  ]
+}}"#
+    )
+}
+
+#[test]
+fn detector_and_capture_go_to_the_writers_voter() {
+    let f = fixture();
+    xy_model(&f, "xy.json");
+    let plan = f.ok(&monitored(
+        "dmr",
+        &format!(
+            r#""fields": {XY_FIELDS}, "detector": {{"model": "xy.json", "kind": "gaussian", "sigma": 8}}, "capture": "cap.bin""#
+        ),
+    ));
+    let a = &plan.components[1];
+    assert_eq!(a.monitors.len(), 1);
+    assert_eq!(a.monitors[0].output, "out");
+    assert_eq!(a.monitors[0].model, f.dir.path().join("xy.json"));
+    assert_eq!(a.monitors[0].threshold, Some(8.0));
+    assert_eq!(a.monitors[0].fields.len(), 2);
+    assert_eq!(a.captures[0].path, f.dir.path().join("cap.bin"));
+    let text = plan.describe(None, None);
+    assert!(text.contains("detector  on out: fields [x, y]"), "{text}");
+    assert!(text.contains("capture   voted frames of out"), "{text}");
+}
+
+#[test]
+fn monitoring_errors_name_the_field_and_line() {
+    let f = fixture();
+    xy_model(&f, "xy.json");
+    // A field beyond the channel's largest frame (16 bytes).
+    f.fails(
+        &monitored(
+            "dmr",
+            r#""fields": [{"name": "x", "type": "f64", "offset": 0},
+                          {"name": "far", "type": "f64", "offset": 12}]"#,
+        ),
+        11,
+        "channels[1].fields[1]",
+        "field `far` (f64, offset 12) ends at byte 20, beyond the channel's maximum frame of 16",
+    );
+    f.fails(
+        &monitored(
+            "dmr",
+            r#""fields": [{"name": "x", "type": "f65", "offset": 0}]"#,
+        ),
+        10,
+        "channels[1].fields[0].type",
+        "unknown variant `f65`",
+    );
+    // The model must exist and match the layout.
+    f.fails(
+        &monitored(
+            "dmr",
+            &format!(r#""fields": {XY_FIELDS}, "detector": {{"model": "none.json"}}"#),
+        ),
+        10,
+        "channels[1].detector.model",
+        "cannot read model",
+    );
+    f.fails(
+        &monitored(
+            "dmr",
+            r#""fields": [{"name": "x", "type": "f64", "offset": 0}], "detector": {"model": "xy.json"}"#,
+        ),
+        10,
+        "channels[1].detector.model",
+        "trained on fields [x:f64@0, y:f64@8] but the channel declares [x:f64@0]",
+    );
+    f.fails(
+        &monitored(
+            "dmr",
+            &format!(r#""fields": {XY_FIELDS}, "detector": {{"model": "xy.json", "kind": "autoencoder"}}"#),
+        ),
+        10,
+        "channels[1].detector.kind",
+        "is a gaussian model",
+    );
+    f.fails(
+        &monitored(
+            "dmr",
+            &format!(
+                r#""fields": {XY_FIELDS}, "detector": {{"model": "xy.json", "threshold": 2}}"#
+            ),
+        ),
+        10,
+        "channels[1].detector.threshold",
+        "use `sigma`",
+    );
+    f.fails(
+        &monitored(
+            "dmr",
+            &format!(r#""fields": {XY_FIELDS}, "detector": {{"model": "xy.json", "sigma": -1}}"#),
+        ),
+        10,
+        "channels[1].detector.sigma",
+        "must be a positive number",
+    );
+    f.fails(
+        &monitored("dmr", r#""detector": {"model": "xy.json"}"#),
+        10,
+        "channels[1].detector",
+        "needs the channel's `fields`",
+    );
+    // Only a voter can run a detector or write a capture.
+    f.fails(
+        &monitored(
+            "none",
+            &format!(r#""fields": {XY_FIELDS}, "detector": {{"model": "xy.json"}}"#),
+        ),
+        10,
+        "channels[1].detector",
+        "needs a channel written by a protected component",
+    );
+}

@@ -1,0 +1,346 @@
+//! Anomaly detectors in the voter, end to end: `source → signal (protected) → stdout`, where
+//! `s3res-signal` emits smooth telemetry (seq, x, y, speed, odometer).
+//!
+//! A fault-free run is captured through the channel's `capture` and models are trained on it
+//! with the real `s3res-train` (once per test process). Then, on other data (`--offset`):
+//! a fault-free run raises no alarm (the detectors see data, not timing, and the input is
+//! deterministic); under DMR an exponent-bit flip of x or y in one replica's frame is
+//! attributed by the detector and repaired by fork, and the output is exactly the fault-free
+//! output; under SMR the flagged frame is held back and the replica restarted by exec; under
+//! TMR the alarm is logged and the vote decides.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use s3res_components::{Signal, SIGNAL_FRAME};
+use s3res_tests::{
+    bin_path, signals, sigqueue, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
+};
+
+const LIMIT: Duration = Duration::from_secs(120);
+const TRAIN_FRAMES: u32 = 4000;
+
+/// The monitored fields of a signal frame.
+const FIELDS: &str = r#"[
+  {"name": "seq", "type": "u64", "offset": 0},
+  {"name": "x", "type": "f64", "offset": 8},
+  {"name": "y", "type": "f64", "offset": 16},
+  {"name": "speed", "type": "f64", "offset": 24},
+  {"name": "odometer", "type": "f64", "offset": 32}
+]"#;
+
+/// Byte offsets of x and y: their exponent flips are beyond the normal range by construction
+/// (x in 30..70, y in 20..40, changing by < 0.5 per frame; see `s3res_components::Signal`).
+const FLIPPABLE: [(&str, usize); 2] = [("x", 8), ("y", 16)];
+
+struct Models {
+    gaussian: PathBuf,
+    autoencoder: PathBuf,
+}
+
+/// A system description: the source sends `count` frames at `hz` to `signal`, whose voted
+/// output goes to bootstrap's stdout. `extra` is added to the signal → stdout channel.
+fn description(signal: &str, count: u32, hz: u32, extra: &str) -> String {
+    format!(
+        r#"{{
+  "name": "anomaly",
+  "components": {{
+    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "{hz}"] }},
+    "signal": {signal}
+  }},
+  "channels": [
+    {{ "from": "source.out", "to": "signal.in" }},
+    {{ "from": "signal.out", "to": "stdout", "max_frame": 64{extra} }}
+  ]
+}}"#
+    )
+}
+
+fn signal(redundancy: &str, offset: u64) -> String {
+    format!(
+        r#"{{ "exec": "s3res-signal", "args": ["--offset", "{offset}"], "redundancy": "{redundancy}", "timeout_us": 500000 }}"#
+    )
+}
+
+fn detector(model: &Path) -> String {
+    format!(
+        r#", "fields": {FIELDS}, "detector": {{ "model": "{}" }}"#,
+        model.display()
+    )
+}
+
+/// The payloads of a file of length-prefixed frames.
+fn frames(path: &Path) -> Vec<Vec<u8>> {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut out = Vec::new();
+    let mut at = 0;
+    while at + 4 <= bytes.len() {
+        let len = u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+        assert!(
+            at + 4 + len <= bytes.len(),
+            "truncated frame in {}",
+            path.display()
+        );
+        out.push(bytes[at + 4..at + 4 + len].to_vec());
+        at += 4 + len;
+    }
+    assert_eq!(at, bytes.len(), "trailing bytes in {}", path.display());
+    out
+}
+
+/// What a fault-free `s3res-signal --offset OFFSET` answers to source frames 0..count.
+fn expected(offset: u64, count: u32) -> Vec<Vec<u8>> {
+    let mut s = Signal::new(offset);
+    (0..count as u64)
+        .map(|seq| s.answer(seq).to_vec())
+        .collect()
+}
+
+fn train(kind: &str, layout: &Path, frames: &Path, out: &Path) {
+    let status = Command::new(bin_path("s3res-train"))
+        .args([kind, "--layout"])
+        .arg(layout)
+        .arg("--frames")
+        .arg(frames)
+        .arg("--out")
+        .arg(out)
+        .status()
+        .expect("running s3res-train");
+    assert!(status.success(), "s3res-train {kind} failed");
+}
+
+/// Captures a fault-free run (SMR, the channel's `capture`) and trains both models on it.
+/// Once per test process; the files live in cargo's temp dir for integration tests.
+fn models() -> &'static Models {
+    static MODELS: OnceLock<Models> = OnceLock::new();
+    MODELS.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR"))
+            .join(format!("anomaly-models-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let capture = dir.join("train.bin");
+        let sys = System::new();
+        let extra = format!(r#", "capture": "{}""#, capture.display());
+        let mut run = sys.start(&description(&signal("smr", 0), TRAIN_FRAMES, 0, &extra));
+        run.wait_success(LIMIT);
+        let captured = frames(&capture);
+        assert_eq!(
+            captured,
+            frames(&run.path("stdout.txt")),
+            "the capture is not what the voter forwarded"
+        );
+        assert_eq!(
+            captured,
+            expected(0, TRAIN_FRAMES),
+            "the capture run was not fault-free"
+        );
+
+        let layout = dir.join("layout.json");
+        std::fs::write(&layout, FIELDS).unwrap();
+        let models = Models {
+            gaussian: dir.join("gaussian.json"),
+            autoencoder: dir.join("autoencoder.json"),
+        };
+        train("gaussian", &layout, &capture, &models.gaussian);
+        train("autoencoder", &layout, &capture, &models.autoencoder);
+        models
+    })
+}
+
+fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
+    events
+        .iter()
+        .filter(|e| e.component == "signal" && e.kind == kind)
+        .collect()
+}
+
+/// Frame bit index of exponent bit `k` (0..11) of the f64 at byte `offset`.
+fn exponent_bit(offset: usize, k: u64) -> i32 {
+    (offset * 8 + 52 + k as usize) as i32
+}
+
+/// Starts `signal` with `replicas` at `redundancy` under `model`, at 200 frames per second,
+/// and waits until its replicas take injections.
+fn start_monitored(
+    redundancy: &str,
+    replicas: usize,
+    offset: u64,
+    count: u32,
+    model: &Path,
+) -> RunningSystem {
+    let mut run = System::new().start(&description(
+        &signal(redundancy, offset),
+        count,
+        200,
+        &detector(model),
+    ));
+    run.wait_for_replicas("signal", replicas);
+    run
+}
+
+/// Flips a random exponent bit of x or y in replica `slot`'s next frame and waits until the
+/// replica has been replaced. Returns the field, the bit, the replica's pid, and the recovery.
+fn flip_and_wait_for_recovery(
+    run: &mut RunningSystem,
+    rng: &mut Rng,
+    slot: usize,
+) -> (&'static str, i32, i32, Event) {
+    let (field, at) = *rng.pick(&FLIPPABLE);
+    let bit = exponent_bit(at, rng.below(11));
+    let pid = run.replica_pids("signal")[&slot];
+    sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue");
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.component == "signal" && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.replica, Some(slot), "{rec:?}");
+    (field, bit, pid, rec)
+}
+
+#[test]
+fn a_fault_free_run_raises_no_alarm() {
+    let models = models();
+    for (redundancy, model) in [("dmr", &models.autoencoder), ("tmr", &models.gaussian)] {
+        let (offset, count) = (50_000, 3000);
+        let mut run = System::new().start(&description(
+            &signal(redundancy, offset),
+            count,
+            0,
+            &detector(model),
+        ));
+        let outcome = run.wait_success(LIMIT);
+        let alarms = of_kind(&outcome.events, EventKind::Anomaly);
+        assert!(
+            alarms.is_empty(),
+            "{redundancy}: false alarms on fault-free data: {alarms:?}"
+        );
+        assert!(
+            outcome.faults().is_empty(),
+            "{redundancy}: {:?}",
+            outcome.faults()
+        );
+        assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
+        eprintln!(
+            "{redundancy} with {}: 0 alarms in {count} frames × replicas",
+            model.display()
+        );
+    }
+}
+
+#[test]
+fn dmr_attributes_the_flagged_replica_and_repairs_it_by_fork() {
+    let models = models();
+    let mut rng = Rng::from_env();
+    let (offset, count, injections) = (20_000, 2400, 8);
+    let mut run = start_monitored("dmr", 2, offset, count, &models.autoencoder);
+    let mut attributed = 0;
+    for i in 0..injections {
+        std::thread::sleep(Duration::from_millis(rng.range(100, 300)));
+        let slot = rng.below(2) as usize;
+        let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        assert_eq!(rec.donor, Some(1 - slot), "{rec:?}");
+        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+        let events = run.events();
+        let sdc = of_kind(&events, EventKind::Sdc)
+            .into_iter()
+            .find(|e| e.pid == Some(pid))
+            .unwrap_or_else(|| panic!("injection {i}: no sdc for pid {pid}"));
+        assert_eq!(sdc.replica, Some(slot), "{sdc:?}");
+        let alarm = of_kind(&events, EventKind::Anomaly)
+            .into_iter()
+            .find(|e| e.pid == Some(pid))
+            .unwrap_or_else(|| panic!("injection {i}: no anomaly for pid {pid}"));
+        assert_eq!(alarm.field.as_deref(), Some(field), "{alarm:?}");
+        assert_eq!(alarm.output.as_deref(), Some("out"), "{alarm:?}");
+        assert!(
+            alarm.score.unwrap_or(f64::INFINITY) > alarm.threshold.unwrap(),
+            "{alarm:?}"
+        );
+        attributed += 1;
+        eprintln!("injection {i}: replica {slot}, {field} bit {bit}: anomaly score {:?}, attributed, forked from {}", alarm.score, 1 - slot);
+    }
+    let outcome = run.wait_success(LIMIT);
+    let events = &outcome.events;
+    // Exactly the injections: no alarm on the healthy replica, no unattributed sdc.
+    assert_eq!(of_kind(events, EventKind::Anomaly).len(), injections);
+    assert_eq!(of_kind(events, EventKind::Sdc).len(), injections);
+    assert_eq!(outcome.faults().len(), injections, "{:?}", outcome.faults());
+    // The output is the fault-free output, frame for frame: state survived every repair.
+    assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
+    eprintln!("DMR: {attributed} of {injections} exponent flips attributed and repaired by fork");
+}
+
+#[test]
+fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
+    let models = models();
+    let mut rng = Rng::from_env();
+    let (offset, count) = (30_000, 800);
+    let mut run = start_monitored("smr", 1, offset, count, &models.autoencoder);
+    std::thread::sleep(Duration::from_millis(500));
+    let (field, bit, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
+    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
+    assert_eq!(rec.state_lost, Some(true), "{rec:?}");
+    run.wait_success(LIMIT);
+    let events = run.events();
+    let alarms = of_kind(&events, EventKind::Anomaly);
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    assert_eq!(alarms[0].field.as_deref(), Some(field), "{:?}", alarms[0]);
+    let sdc = of_kind(&events, EventKind::Sdc);
+    assert_eq!(sdc.len(), 1, "{sdc:?}");
+    assert_eq!(sdc[0].replica, Some(0));
+    assert!(
+        sdc[0].detail.as_deref().unwrap_or("").contains("held back"),
+        "{:?}",
+        sdc[0]
+    );
+
+    // One frame is missing; every frame that went out has its true position (the corrupted
+    // one never did). The odometer restarted with the fresh replica: that is the state lost.
+    let out = frames(&run.path("stdout.txt"));
+    assert_eq!(out.len(), count as usize - 1);
+    let want = expected(offset, count);
+    let mut missing = None;
+    let mut k = 0;
+    for (seq, w) in want.iter().enumerate() {
+        if k < out.len() && out[k][..8] == w[..8] {
+            assert_eq!(out[k].len(), SIGNAL_FRAME);
+            assert_eq!(out[k][..24], w[..24], "seq {seq}: x or y differs");
+            k += 1;
+        } else {
+            assert!(
+                missing.is_none(),
+                "two frames missing: {missing:?} and {seq}"
+            );
+            missing = Some(seq);
+        }
+    }
+    eprintln!("SMR: frame {missing:?} held back ({field} bit {bit}), replica restarted by exec");
+}
+
+#[test]
+fn tmr_logs_the_alarm_and_the_vote_decides() {
+    let models = models();
+    let mut rng = Rng::from_env();
+    let (offset, count) = (40_000, 800);
+    let mut run = start_monitored("tmr", 3, offset, count, &models.gaussian);
+    std::thread::sleep(Duration::from_millis(500));
+    let slot = rng.below(3) as usize;
+    let (field, _, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    run.wait_success(LIMIT);
+    let events = run.events();
+    let alarms = of_kind(&events, EventKind::Anomaly);
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    assert_eq!(alarms[0].replica, Some(slot));
+    assert_eq!(alarms[0].field.as_deref(), Some(field));
+    let sdc = of_kind(&events, EventKind::Sdc);
+    assert_eq!(sdc.len(), 1, "{sdc:?}");
+    assert!(
+        sdc[0].detail.as_deref().unwrap_or("").contains("majority"),
+        "the vote, not the detector, decides under TMR: {:?}",
+        sdc[0]
+    );
+    assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
+}
