@@ -97,8 +97,10 @@ fn inject_until_end<T>(
     done
 }
 
-/// Every kill in `killed` shows as a crash of that replica and a recovery by fork (the last
-/// one may race the end of the mission and is then allowed to be missing).
+/// Every kill in `killed` shows as a crash of that replica and a recovery by fork. The last one
+/// may race the end of the mission (the replica had finished, or the voter was ending, when a
+/// fault is recorded but not repaired) and is then excused: the injection loop waits for each
+/// recovery before the next kill, so no earlier one can.
 fn assert_kills_recovered_by_fork(events: &[Event], killed: &[Injection<()>]) {
     for (i, k) in killed.iter().enumerate() {
         let of = |kind: EventKind| {
@@ -110,7 +112,7 @@ fn assert_kills_recovered_by_fork(events: &[Event], killed: &[Injection<()>]) {
             })
         };
         let (c, slot, pid) = (k.component, k.slot, k.pid);
-        if i + 1 == killed.len() && of(EventKind::Crash).is_none() {
+        if i + 1 == killed.len() && of(EventKind::Recovery).is_none() {
             continue;
         }
         assert!(
@@ -132,7 +134,9 @@ fn assert_no_sdc(events: &[Event]) {
 
 /// Faults that timing alone can cause on a loaded machine (a replica late past its deadline:
 /// `hang`, or in stream mode `protocol` for a lone replica ahead of two late ones) are
-/// allowed, but each must be recovered; nothing else may show. Returns how many there were.
+/// allowed, but each must be recovered — unless it is its component's last event, found while
+/// the voter was ending (then it is recorded, not repaired); nothing else may show. Returns
+/// how many there were.
 fn assert_only_timing_faults_recovered(events: &[Event]) -> usize {
     let faults: Vec<_> = events
         .iter()
@@ -143,12 +147,15 @@ fn assert_only_timing_faults_recovered(events: &[Event]) -> usize {
             || (f.kind == EventKind::Protocol
                 && f.detail.as_deref().is_some_and(|d| d.contains("within")));
         assert!(timing, "a fault timing cannot explain: {f:?}");
-        assert!(
-            events.iter().any(|e| e.kind == EventKind::Recovery
-                && e.component == f.component
-                && e.pid == f.pid),
-            "not recovered: {f:?}"
-        );
+        let recovered = events
+            .iter()
+            .any(|e| e.kind == EventKind::Recovery && e.component == f.component && e.pid == f.pid);
+        let last = events
+            .iter()
+            .rev()
+            .find(|e| e.component == f.component)
+            .is_some_and(|e| std::ptr::eq(e, *f));
+        assert!(recovered || last, "not recovered: {f:?}");
     }
     faults.len()
 }
