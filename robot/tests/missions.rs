@@ -7,7 +7,7 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use s3res_tests::{procs, EventKind, RecoveryMethod, Rng, RunningSystem, System};
+use s3res_tests::{procs, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System};
 use serde_json::{json, Value};
 
 /// Wall-clock bound on one mission (the mission itself ends by 120 simulated s = 48 s at 50 Hz;
@@ -33,29 +33,45 @@ fn robot_system(sys: &System, level: &str, seed: u64, sim_extra: &[&str]) -> Val
     desc["components"]["sim"]["args"] = json!(args);
     desc["components"]["logger"]["args"] =
         json!(["--out", sys.path("poses.csv").display().to_string()]);
-    for c in ["filter", "navigator"] {
+    for (c, timeout_us) in [
+        ("filter", 200_000),
+        ("navigator", 200_000),
+        ("mapper", 200_000),
+        ("planner", 300_000),
+    ] {
         if desc["components"][c].get("timeout_us").is_some() {
-            desc["components"][c]["timeout_us"] = json!(200_000);
+            desc["components"][c]["timeout_us"] = json!(timeout_us);
         }
     }
     desc
 }
 
-/// Until the system finishes: every 0.3–0.7 s, picks a random navigator replica and calls
-/// `inject(rng, pid)` on it, then waits for that replica's recovery before the next one (the
-/// paper's single-fault assumption). `inject` returns `None` when the replica is already gone
-/// (the mission just ended). Returns `(slot, pid, what inject returned)` per injection.
+/// One injected fault: which component, which replica slot, which process, and what the
+/// injection returned.
+struct Injection<T> {
+    component: &'static str,
+    slot: usize,
+    pid: i32,
+    what: T,
+}
+
+/// Until the system finishes: every 0.3–0.7 s, picks a random replica of a random one of
+/// `components` and calls `inject(rng, pid)` on it, then waits for that replica's recovery
+/// before the next one (the paper's single-fault assumption). `inject` returns `None` when the
+/// replica is already gone (the mission just ended).
 fn inject_until_end<T>(
     run: &mut RunningSystem,
     rng: &mut Rng,
+    components: &[&'static str],
     mut inject: impl FnMut(&mut Rng, i32) -> Option<T>,
-) -> Vec<(usize, i32, T)> {
+) -> Vec<Injection<T>> {
     let mut done = Vec::new();
     let started = Instant::now();
     while run.try_status().is_none() && started.elapsed() < LIMIT {
         std::thread::sleep(Duration::from_millis(rng.range(300, 700)));
+        let component = components[rng.below(components.len() as u64) as usize];
         let slot = rng.below(3) as usize;
-        let Some(&pid) = run.replica_pids("navigator").get(&slot) else {
+        let Some(&pid) = run.replica_pids(component).get(&slot) else {
             continue;
         };
         let Some(what) = inject(rng, pid) else {
@@ -64,16 +80,84 @@ fn inject_until_end<T>(
         let deadline = Instant::now() + Duration::from_secs(10);
         loop {
             let recovered = run.events().iter().any(|e| {
-                e.kind == EventKind::Recovery && e.component == "navigator" && e.pid == Some(pid)
+                e.kind == EventKind::Recovery && e.component == component && e.pid == Some(pid)
             });
             if recovered || run.try_status().is_some() || Instant::now() > deadline {
                 break;
             }
             std::thread::sleep(Duration::from_millis(5));
         }
-        done.push((slot, pid, what));
+        done.push(Injection {
+            component,
+            slot,
+            pid,
+            what,
+        });
     }
     done
+}
+
+/// Every kill in `killed` shows as a crash of that replica and a recovery by fork. The last one
+/// may race the end of the mission (the replica had finished, or the voter was ending, when a
+/// fault is recorded but not repaired) and is then excused: the injection loop waits for each
+/// recovery before the next kill, so no earlier one can.
+fn assert_kills_recovered_by_fork(events: &[Event], killed: &[Injection<()>]) {
+    for (i, k) in killed.iter().enumerate() {
+        let of = |kind: EventKind| {
+            events.iter().find(|e| {
+                e.kind == kind
+                    && e.component == k.component
+                    && e.replica == Some(k.slot)
+                    && e.pid == Some(k.pid)
+            })
+        };
+        let (c, slot, pid) = (k.component, k.slot, k.pid);
+        if i + 1 == killed.len() && of(EventKind::Recovery).is_none() {
+            continue;
+        }
+        assert!(
+            of(EventKind::Crash).is_some(),
+            "kill of {c} {slot}/{pid} not seen as a crash"
+        );
+        let rec = of(EventKind::Recovery)
+            .unwrap_or_else(|| panic!("kill of {c} {slot}/{pid} not recovered"));
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    }
+}
+
+/// No replica disagreed with its siblings: every component's output depends on its inputs
+/// only, not on timing.
+fn assert_no_sdc(events: &[Event]) {
+    let sdc: Vec<_> = events.iter().filter(|e| e.kind == EventKind::Sdc).collect();
+    assert!(sdc.is_empty(), "replicas disagreed: {sdc:?}");
+}
+
+/// Faults that timing alone can cause on a loaded machine (a replica late past its deadline:
+/// `hang`, or in stream mode `protocol` for a lone replica ahead of two late ones) are
+/// allowed, but each must be recovered — unless it is its component's last event, found while
+/// the voter was ending (then it is recorded, not repaired); nothing else may show. Returns
+/// how many there were.
+fn assert_only_timing_faults_recovered(events: &[Event]) -> usize {
+    let faults: Vec<_> = events
+        .iter()
+        .filter(|e| !matches!(e.kind, EventKind::Start | EventKind::Recovery))
+        .collect();
+    for f in &faults {
+        let timing = f.kind == EventKind::Hang
+            || (f.kind == EventKind::Protocol
+                && f.detail.as_deref().is_some_and(|d| d.contains("within")));
+        assert!(timing, "a fault timing cannot explain: {f:?}");
+        let recovered = events
+            .iter()
+            .any(|e| e.kind == EventKind::Recovery && e.component == f.component && e.pid == f.pid);
+        let last = events
+            .iter()
+            .rev()
+            .find(|e| e.component == f.component)
+            .is_some_and(|e| std::ptr::eq(e, *f));
+        assert!(recovered || last, "not recovered: {f:?}");
+    }
+    faults.len()
 }
 
 fn mission(run: &RunningSystem) -> Value {
@@ -145,7 +229,7 @@ fn tmr_mission_survives_navigator_kills() {
     run.wait_for_replicas("navigator", 3);
     run.wait_for_replicas("filter", 3);
 
-    let killed = inject_until_end(&mut run, &mut rng, |_, pid| {
+    let killed = inject_until_end(&mut run, &mut rng, &["navigator"], |_, pid| {
         s3res_tests::kill_pid(pid, libc::SIGKILL).ok()
     });
     let out = run.wait_success(LIMIT);
@@ -156,45 +240,88 @@ fn tmr_mission_survives_navigator_kills() {
         "too few kills ({}) to mean anything",
         killed.len()
     );
-    for (slot, pid, ()) in &killed {
-        let of = |kind: EventKind| {
-            out.events.iter().any(|e| {
-                e.kind == kind
-                    && e.component == "navigator"
-                    && e.replica == Some(*slot)
-                    && e.pid == Some(*pid)
-            })
-        };
-        // A kill in the last moments may race the end of the mission; every other must show.
-        let last = Some(&(*slot, *pid, ())) == killed.last();
-        if last && !of(EventKind::Crash) {
-            continue;
-        }
-        assert!(
-            of(EventKind::Crash),
-            "kill of {slot}/{pid} not seen as a crash"
-        );
-        assert!(
-            of(EventKind::Recovery),
-            "kill of {slot}/{pid} not recovered"
-        );
-        let rec = out
-            .events
-            .iter()
-            .find(|e| e.kind == EventKind::Recovery && e.pid == Some(*pid))
-            .unwrap();
-        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
-    }
+    assert_kills_recovered_by_fork(&out.events, &killed);
     assert_eq!(m["success"], true, "{}", line(&m));
     assert_eq!(m["collisions"], 0);
-    // The replicas agreed on every frame they sent: the navigator's and the filter's outputs
-    // depend on their inputs only, not on timing.
-    let sdc: Vec<_> = out
-        .events
-        .iter()
-        .filter(|e| e.kind == EventKind::Sdc)
-        .collect();
-    assert!(sdc.is_empty(), "replicas disagreed: {sdc:?}");
+    assert_no_sdc(&out.events);
+}
+
+/// Everything of the control loop under TMR, mapper and planner in stream mode; a mapper or
+/// planner replica is SIGKILLed about twice a second (random component, slot and gap, seeded)
+/// for the whole mission. Every kill shows as a crash and a recovery by fork, the replicas
+/// never disagree, and the mission succeeds.
+#[test]
+fn tmr_mission_survives_mapper_and_planner_kills() {
+    let mut rng = Rng::from_env();
+    let sys = System::new();
+    let desc = robot_system(&sys, "tmr", 5, &[]);
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("mapper", 3);
+    run.wait_for_replicas("planner", 3);
+
+    let killed = inject_until_end(&mut run, &mut rng, &["mapper", "planner"], |_, pid| {
+        s3res_tests::kill_pid(pid, libc::SIGKILL).ok()
+    });
+    let out = run.wait_success(LIMIT);
+    let m = mission(&run);
+    let count = |c: &str| killed.iter().filter(|k| k.component == c).count();
+    eprintln!(
+        "tmr, seed 5, {} mapper and {} planner kills: {}",
+        count("mapper"),
+        count("planner"),
+        line(&m)
+    );
+    assert!(
+        count("mapper") >= 3 && count("planner") >= 3,
+        "too few kills to mean anything"
+    );
+    assert_kills_recovered_by_fork(&out.events, &killed);
+    assert_eq!(m["success"], true, "{}", line(&m));
+    assert_eq!(m["collisions"], 0);
+    assert_no_sdc(&out.events);
+}
+
+/// The golden TMR mission: nothing injected. The replicas agree on every frame; a fault can
+/// only be one that timing explains on a loaded machine, and must be recovered. (How many there
+/// were is printed, not asserted: tests do not depend on the machine's speed.)
+#[test]
+fn tmr_mission_without_injection_succeeds() {
+    let sys = System::new();
+    let desc = robot_system(&sys, "tmr", 2, &[]);
+    let mut run = sys.start_json(&desc);
+    let out = run.wait_success(LIMIT);
+    let m = mission(&run);
+    let faults = assert_only_timing_faults_recovered(&out.events);
+    eprintln!("tmr, seed 2, no injection, {faults} fault(s): {}", line(&m));
+    assert_eq!(m["success"], true, "{}", line(&m));
+    assert_eq!(m["collisions"], 0);
+}
+
+/// The repository's `system.json`, as README runs it: one mission of the TMR robot, the sim's
+/// verdict on stderr, everything finished and reaped.
+#[test]
+fn the_repository_system_json_flies_a_mission() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../system.json");
+    let description = std::fs::read_to_string(&path).expect("the repository's system.json");
+    let mut run = System::new().start(&description);
+    let out = run.wait_success(LIMIT);
+    let verdict = out
+        .stderr
+        .lines()
+        .find(|l| l.contains("s3res-sim: mission"))
+        .unwrap_or_else(|| panic!("no verdict: {}", s3res_tests::tail(&out.stderr, 20)));
+    eprintln!("{verdict}");
+    assert!(verdict.contains("mission succeeded"), "{verdict}");
+    let faults = assert_only_timing_faults_recovered(&out.events);
+    eprintln!("{faults} fault(s)");
+    for c in ["filter", "navigator", "mapper", "planner"] {
+        let starts = out
+            .events
+            .iter()
+            .filter(|e| e.component == c && e.kind == EventKind::Start)
+            .count();
+        assert!(starts >= 3, "{c}: {starts} replica(s) started");
+    }
 }
 
 /// Sensor filter and navigator under TMR; one bit of the next frame of a navigator replica is
@@ -210,7 +337,7 @@ fn tmr_mission_outvotes_corrupted_navigator_frames() {
     run.wait_for_replicas("navigator", 3);
 
     // A bit of the command (25 bytes) or of the request (38), whichever is sent next.
-    let flipped = inject_until_end(&mut run, &mut rng, |rng, pid| {
+    let flipped = inject_until_end(&mut run, &mut rng, &["navigator"], |rng, pid| {
         let bit = rng.below(25 * 8) as i32;
         s3res_tests::sigqueue(pid, s3res_tests::signals::INJECT_SDC, bit)
             .is_ok()
@@ -220,13 +347,14 @@ fn tmr_mission_outvotes_corrupted_navigator_frames() {
     let m = mission(&run);
     eprintln!("tmr, seed 4, {} bit flips: {}", flipped.len(), line(&m));
     assert!(flipped.len() >= 5, "too few flips ({})", flipped.len());
-    for (i, (slot, pid, bit)) in flipped.iter().enumerate() {
+    for (i, f) in flipped.iter().enumerate() {
+        let (slot, pid, bit) = (f.slot, f.pid, f.what);
         let seen = |kind: EventKind| {
             out.events.iter().any(|e| {
                 e.kind == kind
                     && e.component == "navigator"
-                    && e.replica == Some(*slot)
-                    && e.pid == Some(*pid)
+                    && e.replica == Some(slot)
+                    && e.pid == Some(pid)
             })
         };
         if i + 1 == flipped.len() && !seen(EventKind::Sdc) {

@@ -1,4 +1,4 @@
-//! The echo demo end to end: the repository's own `system.json`, exactly what README tells a
+//! The echo demo end to end: `examples/echo-demo.json`, exactly what README tells a
 //! user to run, runs clean. (Faults injected into the same system: `recovery.rs`.)
 
 use std::path::Path;
@@ -12,8 +12,8 @@ use s3res_tests::{EventKind, System};
 const LIMIT: Duration = Duration::from_secs(120);
 
 #[test]
-fn the_repository_system_json_runs_clean() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../system.json");
+fn the_echo_demo_runs_clean() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/echo-demo.json");
     let description = std::fs::read_to_string(&path).unwrap();
     let mut run = System::new().start(&description);
     let out = run.wait(LIMIT);

@@ -23,10 +23,11 @@ fn expected_refusals(sys: &System) -> usize {
     usize::from(!allowed)
 }
 
-/// The repository's `system.json` (which gives every component a priority), as README runs it.
+/// The echo demo (`examples/echo-demo.json`, which gives every component a priority), as README
+/// runs it.
 #[test]
 fn unprivileged_echo_demo_runs_clean_and_says_once_that_sched_rr_is_refused() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../system.json");
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/echo-demo.json");
     let description = std::fs::read_to_string(&path).unwrap();
     let sys = System::new().unprivileged();
     let refusals = expected_refusals(&sys);

@@ -457,10 +457,22 @@ impl Voter {
         }
     }
 
-    /// Every input is closed. (Called between rounds, after buffered frames were delivered,
-    /// so nothing whole is left; a partial frame left behind can never complete.)
+    /// Every input that starts a round is closed (every input, if none starts one). (Called
+    /// between rounds, after buffered frames were delivered, so nothing whole is left; a
+    /// partial frame left behind can never complete.) Replicas answer only in rounds, so once
+    /// no round can start their output is over, whatever their other inputs still carry.
+    /// Waiting for those too would deadlock a loop: the navigator's `waypoints` come from a
+    /// planner whose voter ends only when the navigator's `request` ends.
     fn all_inputs_done(&self) -> bool {
-        self.inputs.iter().all(|i| i.reader.is_closed())
+        let starts_round = |i: &&ExternalInput| i.round.is_some();
+        if self.inputs.iter().any(|i| i.round.is_some()) {
+            self.inputs
+                .iter()
+                .filter(starts_round)
+                .all(|i| i.reader.is_closed())
+        } else {
+            self.inputs.iter().all(|i| i.reader.is_closed())
+        }
     }
 
     // ----- output side ------------------------------------------------------------------

@@ -44,8 +44,8 @@ fn main() -> Result<()> {
         Err(e) => tracing::warn!(error = %e, "not a map update; skipped"),
     };
     loop {
-        // Watch the map too: its end must be seen while no request comes (the navigator's voter
-        // waits for `waypoints` to close before it closes `request`).
+        // Watch the map too: its end (the mission's) must be seen while no request comes, so
+        // that `waypoints` closes without waiting for `request` to end.
         let ready = if maps_open {
             wait_any(&[&requests, &maps], None)
         } else {
