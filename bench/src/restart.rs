@@ -44,6 +44,7 @@ pub fn run(
             timeout_us,
             max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
             voter: Some(voter.clone()),
+            setup: setup,
         };
         let (restart, extra) = restarts(&spec, setup, count, &bar)
             .with_context(|| format!("restart with {} of state", report::bytes_name(size)))?;

@@ -251,7 +251,21 @@ pub fn process_group(pid: libc::pid_t) -> Option<libc::pid_t> {
 
 /// Field `n` (1-based, as in proc(5)) of `/proc/PID/stat`, for the numeric fields after `comm`.
 fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    use std::io::Read;
+    // One `read` into a stack buffer (the line is ~300 bytes; comm is at most 16), not
+    // `read_to_string`'s statx and growing reads: this is on the restart path.
+    let mut buf = [0u8; 1024];
+    let mut file = std::fs::File::open(format!("/proc/{pid}/stat")).ok()?;
+    let mut len = 0;
+    while len < buf.len() {
+        match file.read(&mut buf[len..]) {
+            Ok(0) => break,
+            Ok(k) => len += k,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(_) => return None,
+        }
+    }
+    let stat = std::str::from_utf8(&buf[..len]).ok()?;
     // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
     let rest = &stat[stat.rfind(')')? + 1..];
     rest.split_whitespace().nth(n - 3)?.parse().ok()
