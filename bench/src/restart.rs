@@ -277,6 +277,9 @@ pub fn render(rows: &[Row]) -> String {
         .map(|r| {
             let extra = r.extra.as_ref();
             let get = |k: &str| extra.and_then(|e| e.get(k)).cloned();
+            let num = |k: &str| get(k).and_then(|v| v.as_f64());
+            let us = |k: &str| num(k).map(report::us).unwrap_or_default();
+            let times = |x: f64| format!("{x:.2}");
             vec![
                 report::bytes_name(r.size),
                 r.count.to_string(),
@@ -284,28 +287,16 @@ pub fn render(rows: &[Row]) -> String {
                 report::us(r.p99_us),
                 report::us(r.max_us),
                 r.floor_us.map(report::us).unwrap_or_default(),
-                r.ratio.map(|x| format!("{x:.2}")).unwrap_or_default(),
-                get("crash_detect_median_us")
-                    .and_then(|v| v.as_f64())
-                    .map(report::us)
-                    .unwrap_or_default(),
-                get("in_service_median_us")
-                    .and_then(|v| v.as_f64())
-                    .map(report::us)
-                    .unwrap_or_default(),
+                r.ratio.map(times).unwrap_or_default(),
+                us("crash_detect_median_us"),
+                us("in_service_median_us"),
                 r.floor_us
-                    .zip(get("in_service_median_us").and_then(|v| v.as_f64()))
-                    .map(|(f, s)| format!("{:.2}", s / f))
+                    .zip(num("in_service_median_us"))
+                    .map(|(f, s)| times(s / f))
                     .unwrap_or_default(),
                 get("by_exec").map(|v| v.to_string()).unwrap_or_default(),
-                get("floor_madvise_us")
-                    .and_then(|v| v.as_f64())
-                    .map(report::us)
-                    .unwrap_or_default(),
-                get("ratio_madvise")
-                    .and_then(|v| v.as_f64())
-                    .map(|x| format!("{x:.2}"))
-                    .unwrap_or_default(),
+                us("floor_madvise_us"),
+                num("ratio_madvise").map(times).unwrap_or_default(),
             ]
         })
         .collect();
