@@ -64,6 +64,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
         timeout_us,
         max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
         voter: Some(voter.clone()),
+        setup: o.setup,
     };
     let mut rng = Rng(o.seed);
     let total = o.timeouts_us.len() as u64 * o.count * 3 + o.rounds;

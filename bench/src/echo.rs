@@ -67,6 +67,7 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
             timeout_us: o.timeout_us,
             max_frame: size.max(replica_rt::frame::DEFAULT_MAX_FRAME),
             voter: voter.clone(),
+            setup,
         };
         let result = measure(&spec, setup, size, o, &bar);
         Setup::reset_bench();

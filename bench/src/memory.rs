@@ -53,6 +53,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
         timeout_us: 1_000_000,
         max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
         voter: Some(voter.clone()),
+        setup: crate::system::Setup::Plain,
     };
     let mut configs = vec![
         ("s3res-echo".to_string(), base(&echo, Vec::new(), 0), 0u64),

@@ -33,7 +33,7 @@ pub fn run(
 ) -> Result<Vec<Row>> {
     let ballast = common.bins.path("s3res-ballast")?;
     let voter = common.bins.path("s3res-voter")?;
-    let bar = common.progress(sizes.len() as u64 * count * 2, "restart");
+    let bar = common.progress(sizes.len() as u64 * count * 3, "restart");
     let mut rows = Vec::new();
     for &size in sizes {
         bar.set_message(report::bytes_name(size));
@@ -44,11 +44,14 @@ pub fn run(
             timeout_us,
             max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
             voter: Some(voter.clone()),
+            setup,
         };
         let (restart, extra) = restarts(&spec, setup, count, &bar)
             .with_context(|| format!("restart with {} of state", report::bytes_name(size)))?;
-        let floor = floor(size as usize, count, &bar)
+        let floor = floor(size as usize, count, Own::Touch, &bar)
             .with_context(|| format!("floor for {}", report::bytes_name(size)))?;
+        let floor_madvise = floor_madvise_or_none(size as usize, count, &bar)
+            .with_context(|| format!("madvise floor for {}", report::bytes_name(size)))?;
         Setup::reset_bench();
         let mut row = Row::new("restart", 3, size, restart);
         row.setup = setup.name();
@@ -56,6 +59,14 @@ pub fn run(
         row.floor_us = Some(floor.median_us);
         row.floor_p99_us = Some(floor.p99_us);
         row.ratio = Some(restart.median_us / floor.median_us);
+        let mut extra = extra;
+        if let (Some(f), Some(map)) = (floor_madvise, extra.as_object_mut()) {
+            map.insert("floor_madvise_us".into(), f.median_us.into());
+            map.insert(
+                "ratio_madvise".into(),
+                (restart.median_us / f.median_us).into(),
+            );
+        }
         row.extra = Some(extra);
         rows.push(row);
     }
@@ -187,8 +198,32 @@ fn check(reply: &[u8], frame: &[u8], seq: &mut u64) -> Result<()> {
     Ok(())
 }
 
-/// fork + write every page of `size` bytes of touched memory, `count` times, in the bench.
-fn floor(size: usize, count: u64, bar: &indicatif::ProgressBar) -> Result<Summary> {
+/// How the floor's child takes its own copy of the state's pages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Own {
+    /// Write one byte into every page: one write fault per page.
+    Touch,
+    /// One `madvise(MADV_POPULATE_WRITE)` over the state: the kernel write-faults every page in
+    /// one call, as the restart child does (Linux ≥ 5.14).
+    Populate,
+}
+
+/// The floor with [`Own::Populate`], or `None` where the kernel does not have it.
+fn floor_madvise_or_none(
+    size: usize,
+    count: u64,
+    bar: &indicatif::ProgressBar,
+) -> Result<Option<Summary>> {
+    if size > 0 && !sys::populate_write_supported() {
+        bar.inc(count);
+        return Ok(None);
+    }
+    floor(size, count, Own::Populate, bar).map(Some)
+}
+
+/// fork + take a private copy of every page of `size` bytes of touched memory, `count` times,
+/// in the bench.
+fn floor(size: usize, count: u64, own: Own, bar: &indicatif::ProgressBar) -> Result<Summary> {
     let page = replica_rt::cow::page_size();
     let mut state = vec![0u8; size];
     sys::touch_pages(&mut state, page);
@@ -199,7 +234,14 @@ fn floor(size: usize, count: u64, bar: &indicatif::ProgressBar) -> Result<Summar
         let pid = sys::fork().context("fork")?;
         if pid == 0 {
             // Child: async-signal-safe only (the bench has other threads).
-            sys::touch_pages(&mut state, page);
+            match own {
+                Own::Touch => sys::touch_pages(&mut state, page),
+                Own::Populate => {
+                    if sys::populate_write(&mut state).is_err() {
+                        sys::exit_now(1);
+                    }
+                }
+            }
             let _ = replica_rt::sys::write(w.as_fd(), &[1]);
             sys::exit_now(0);
         }
@@ -235,6 +277,9 @@ pub fn render(rows: &[Row]) -> String {
         .map(|r| {
             let extra = r.extra.as_ref();
             let get = |k: &str| extra.and_then(|e| e.get(k)).cloned();
+            let num = |k: &str| get(k).and_then(|v| v.as_f64());
+            let us = |k: &str| num(k).map(report::us).unwrap_or_default();
+            let times = |x: f64| format!("{x:.2}");
             vec![
                 report::bytes_name(r.size),
                 r.count.to_string(),
@@ -242,20 +287,16 @@ pub fn render(rows: &[Row]) -> String {
                 report::us(r.p99_us),
                 report::us(r.max_us),
                 r.floor_us.map(report::us).unwrap_or_default(),
-                r.ratio.map(|x| format!("{x:.2}")).unwrap_or_default(),
-                get("crash_detect_median_us")
-                    .and_then(|v| v.as_f64())
-                    .map(report::us)
-                    .unwrap_or_default(),
-                get("in_service_median_us")
-                    .and_then(|v| v.as_f64())
-                    .map(report::us)
-                    .unwrap_or_default(),
+                r.ratio.map(times).unwrap_or_default(),
+                us("crash_detect_median_us"),
+                us("in_service_median_us"),
                 r.floor_us
-                    .zip(get("in_service_median_us").and_then(|v| v.as_f64()))
-                    .map(|(f, s)| format!("{:.2}", s / f))
+                    .zip(num("in_service_median_us"))
+                    .map(|(f, s)| times(s / f))
                     .unwrap_or_default(),
                 get("by_exec").map(|v| v.to_string()).unwrap_or_default(),
+                us("floor_madvise_us"),
+                num("ratio_madvise").map(times).unwrap_or_default(),
             ]
         })
         .collect();
@@ -272,6 +313,8 @@ pub fn render(rows: &[Row]) -> String {
             "in service µs",
             "×floor",
             "by exec",
+            "floor (madvise) µs",
+            "×floor (madvise)",
         ],
         &cells,
     )

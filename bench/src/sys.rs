@@ -113,6 +113,34 @@ pub fn touch_pages(buf: &mut [u8], page: usize) {
     }
 }
 
+/// `madvise(MADV_POPULATE_WRITE)` over `buf`: write-faults every page of it in one call (a
+/// private copy of each copy-on-write page), without changing a byte. Async-signal-safe.
+pub fn populate_write(buf: &mut [u8]) -> std::io::Result<()> {
+    if buf.is_empty() {
+        return Ok(());
+    }
+    let page = replica_rt::cow::page_size();
+    let start = buf.as_mut_ptr() as usize;
+    // madvise wants a page-aligned start: round down to the start of `buf`'s first page.
+    let aligned = start / page * page;
+    let len = start + buf.len() - aligned;
+    // SAFETY: `[aligned, aligned + len)` is `buf` (which we borrow mutably) plus the start of
+    // its first page, which lies in the same mapping as `buf`'s first byte; MADV_POPULATE_WRITE
+    // only faults pages in writable and changes no memory contents.
+    let r = unsafe { libc::madvise(aligned as *mut libc::c_void, len, libc::MADV_POPULATE_WRITE) };
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+/// Whether this kernel has `MADV_POPULATE_WRITE` (Linux ≥ 5.14).
+pub fn populate_write_supported() -> bool {
+    let mut probe = vec![0u8; replica_rt::cow::page_size()];
+    populate_write(&mut probe).is_ok()
+}
+
 /// Leaves the process at once, without running destructors or atexit handlers (fork child).
 pub fn exit_now(code: libc::c_int) -> ! {
     // SAFETY: _exit never returns and is async-signal-safe.

@@ -75,6 +75,8 @@ pub struct Spec {
     pub max_frame: usize,
     /// Kept for the voter (required when `replicas > 0`).
     pub voter: Option<PathBuf>,
+    /// How the processes are scheduled: the voter's plan carries it (see [`Setup::plan_fields`]).
+    pub setup: Setup,
 }
 
 /// Name of the component in plans and events.
@@ -132,6 +134,7 @@ impl System {
                 .ok_or_else(|| anyhow!("no voter binary"))?;
             let (ev_r, ev_w) = rsys::pipe().context("events pipe")?;
             keep.push(ev_w);
+            let sched = spec.setup.plan_fields(spec.replicas);
             let plan = VoterPlan {
                 system: "s3res-bench".into(),
                 component: COMPONENT.into(),
@@ -156,11 +159,11 @@ impl System {
                 events_fd: Some(FIRST_PORT_FD + 2),
                 socket_path: workdir.path().join("v.sock"),
                 restart_timeout_ms: s3res_voter::plan::default_restart_timeout_ms(),
-                priority: None,
-                cpus: Vec::new(),
+                priority: sched.priority,
+                cpus: sched.cpus,
                 start_timeout_ms: s3res_voter::plan::default_start_timeout_ms(),
-                voter_cpu: None,
-                schedule: Default::default(),
+                voter_cpu: sched.voter_cpu,
+                schedule: sched.schedule,
                 realtime: true,
                 nice: None,
                 mode: Default::default(),
@@ -541,11 +544,17 @@ fn spawn_event_reader(fd: OwnedFd) -> Result<Receiver<Event>> {
 }
 
 /// How the processes of a configuration are scheduled (rows are labelled with it).
+///
+/// The voter and its replicas are scheduled by the voter itself, from its plan's `priority`,
+/// `cpus`, `voter_cpu` and `schedule` (as `s3res-bootstrap` writes them), so a replacement
+/// replica gets its slot's priority and CPU like the first ones. The bench sets only its own
+/// thread, and the lone component of a no-voter baseline (as bootstrap sets an unprotected
+/// component).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Setup {
     /// Default time-sharing, no pinning: what a user gets without privileges.
     Plain,
-    /// SCHED_RR: bench and voter at 60, replicas at 50 (set by the bench on the pids it started).
+    /// SCHED_RR: bench and voter at [`RR_PRIORITY`], replicas below (the voter's scheme).
     Rr,
     /// SCHED_RR as above, bench and voter on CPU 0, the component's processes on CPU 1.
     RrPinned,
@@ -554,6 +563,22 @@ pub enum Setup {
     OneCpu,
     /// SCHED_RR as `rr`, every process on CPU 0.
     RrOneCpu,
+}
+
+/// The voter's SCHED_RR priority in the `rr` setups (its replicas run at 58, 57, 56 at rest,
+/// 59 at their turn); the bench's thread runs at it too.
+pub const RR_PRIORITY: u8 = 60;
+
+/// Priority of the lone component of a no-voter baseline in the `rr` setups (below the bench).
+const RR_ALONE_PRIORITY: u8 = 50;
+
+/// The scheduling fields of a voter plan, as bootstrap would fill them in.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PlanSched {
+    pub priority: Option<u8>,
+    pub cpus: Vec<usize>,
+    pub voter_cpu: Option<usize>,
+    pub schedule: s3res_voter::sched::Schedule,
 }
 
 impl Setup {
@@ -580,43 +605,58 @@ impl Setup {
         }
     }
 
-    /// Applies the setup to the bench's calling thread and to `system`'s processes.
+    fn realtime(self) -> bool {
+        matches!(self, Setup::Rr | Setup::RrPinned | Setup::RrOneCpu)
+    }
+
+    /// (CPUs of the bench and the voter, CPUs of the component's processes); empty: not pinned.
+    fn cpus(self) -> (&'static [usize], &'static [usize]) {
+        match self {
+            Setup::Plain | Setup::Rr => (&[], &[]),
+            Setup::RrPinned => (&[0], &[1]),
+            Setup::OneCpu | Setup::RrOneCpu => (&[0], &[0]),
+        }
+    }
+
+    /// The plan's scheduling fields for a voter of `replicas` replicas. `schedule` is what
+    /// bootstrap's `auto` resolves to: sequential where two replicas share a CPU.
+    pub fn plan_fields(self, replicas: usize) -> PlanSched {
+        let (top, rest) = self.cpus();
+        PlanSched {
+            priority: self.realtime().then_some(RR_PRIORITY),
+            cpus: rest.to_vec(),
+            voter_cpu: top.first().copied(),
+            schedule: s3res_voter::sched::choose(replicas, rest),
+        }
+    }
+
+    /// Applies the setup to the bench's calling thread and, for a no-voter baseline, to the
+    /// component. A voter applies the plan's fields itself.
     pub fn apply(self, system: &System) -> Result<()> {
         let what = |who: &str, pid: i32| format!("SCHED_RR/affinity for {who} (pid {pid})");
-        // (SCHED_RR?, CPUs of the bench and voter, CPUs of the component's processes); an
-        // empty CPU list leaves the affinity alone.
-        let (rr, cpus_top, cpus_rest): (bool, &[usize], &[usize]) = match self {
-            Setup::Plain => return Ok(()),
-            Setup::Rr => (true, &[], &[]),
-            Setup::RrPinned => (true, &[0], &[1]),
-            Setup::OneCpu => (false, &[0], &[0]),
-            Setup::RrOneCpu => (true, &[0], &[0]),
-        };
+        let (cpus_top, cpus_rest) = self.cpus();
         let cpus = sys::online_cpus();
         if cpus_rest.contains(&1) && cpus < 2 {
             bail!("{} needs 2 CPUs, this machine has {cpus}", self.name());
         }
-        let high = sys::Policy::RoundRobin(60);
-        let low = sys::Policy::RoundRobin(50);
-        // The lone component (no voter) is "the rest", not the voter.
-        let alone = system.replicas.is_empty();
-        let apply = |pid: i32, who: &str, policy, cpus: &[usize]| -> Result<()> {
-            if rr {
-                sys::set_policy(pid, policy).with_context(|| what(who, pid))?;
+        let apply = |pid: i32, who: &str, priority: u8, cpus: &[usize]| -> Result<()> {
+            if self.realtime() {
+                sys::set_policy(pid, sys::Policy::RoundRobin(i32::from(priority)))
+                    .with_context(|| what(who, pid))?;
             }
             if !cpus.is_empty() {
                 sys::set_affinity(pid, cpus).with_context(|| what(who, pid))?;
             }
             Ok(())
         };
-        apply(0, "the bench", high, cpus_top)?;
-        if alone {
-            apply(system.top_pid, "the component", low, cpus_rest)?;
-        } else {
-            apply(system.top_pid, "the voter", high, cpus_top)?;
-        }
-        for &pid in &system.replicas {
-            apply(pid, "a replica", low, cpus_rest)?;
+        apply(0, "the bench", RR_PRIORITY, cpus_top)?;
+        if system.replicas.is_empty() {
+            apply(
+                system.top_pid,
+                "the component",
+                RR_ALONE_PRIORITY,
+                cpus_rest,
+            )?;
         }
         Ok(())
     }

@@ -5,11 +5,15 @@
 //! vote could not see it. [`break_cow_sharing`] writes once to every resident page of every
 //! private writable mapping, so the kernel gives the caller its own copy of each.
 //!
-//! It runs inside the restart signal handler, so it allocates nothing, takes no lock and calls
-//! only async-signal-safe syscalls (`open`, `read`, `close`, `mincore`); `/proc/self/maps` is
-//! parsed in place from a fixed stack buffer.
+//! Each run of resident pages is broken with one `madvise(MADV_POPULATE_WRITE)` (Linux ≥ 5.14):
+//! the kernel write-faults the run in one call instead of one trap per page. Older kernels answer
+//! EINVAL, and the walk then writes to the pages one by one.
+//!
+//! It runs inside the restart signal handler, so it allocates nothing, takes no lock and makes
+//! only system calls that touch no user-space state (`open`, `read`, `close`, `mincore`,
+//! `madvise`); `/proc/self/maps` is parsed in place from a fixed stack buffer.
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// Bytes of `/proc/self/maps` read per `read` call.
 const READ_BUF: usize = 4096;
@@ -164,7 +168,12 @@ fn contains(hay: &[u8], needle: &[u8]) -> bool {
     hay.windows(needle.len()).any(|w| w == needle)
 }
 
-/// Touches the resident pages of `[start, end)`; returns how many.
+/// Breaks the sharing of the resident pages of `[start, end)`; returns how many.
+///
+/// Each run of resident pages (from `mincore`) gets one `madvise(MADV_POPULATE_WRITE)`: the
+/// kernel write-faults the whole run in one call, as writing to each page would, without a trap
+/// per page. Where that is refused (a kernel before 5.14 answers EINVAL; it is then not tried
+/// again) or fails, the run's pages are written to one by one.
 fn touch_resident(start: usize, end: usize) -> usize {
     let page = page_size();
     let mut residency = [0u8; MINCORE_PAGES];
@@ -176,16 +185,48 @@ fn touch_resident(start: usize, end: usize) -> usize {
         // just skips the chunk: nothing of it can be touched safely.
         if mincore(chunk, len, &mut residency).is_ok() {
             let pages = len.div_ceil(page);
-            for (i, &r) in residency[..pages].iter().enumerate() {
-                if r & 1 != 0 {
-                    touch(chunk + i * page);
-                    touched += 1;
-                }
-            }
+            for_each_run(&residency[..pages], |first, count| {
+                populate_or_touch(chunk + first * page, count, page);
+                touched += count;
+            });
         }
         chunk += len;
     }
     touched
+}
+
+/// Calls `run(first, count)` for each run of pages whose `mincore` byte has bit 0 set.
+fn for_each_run(residency: &[u8], mut run: impl FnMut(usize, usize)) {
+    let mut i = 0;
+    while i < residency.len() {
+        if residency[i] & 1 == 0 {
+            i += 1;
+            continue;
+        }
+        let first = i;
+        while i < residency.len() && residency[i] & 1 != 0 {
+            i += 1;
+        }
+        run(first, i - first);
+    }
+}
+
+/// Set once `MADV_POPULATE_WRITE` answered EINVAL (kernel before 5.14): touch from then on.
+static NO_POPULATE_WRITE: AtomicBool = AtomicBool::new(false);
+
+/// Write-faults `count` resident pages from `addr`: one `madvise`, or page by page.
+fn populate_or_touch(addr: usize, count: usize, page: usize) {
+    if !NO_POPULATE_WRITE.load(Ordering::Relaxed) {
+        match populate_write(addr, count * page) {
+            Ok(()) => return,
+            Err(libc::EINVAL) => NO_POPULATE_WRITE.store(true, Ordering::Relaxed),
+            // Anything else (EFAULT, ENOMEM, EHWPOISON): do what we can page by page.
+            Err(_) => {}
+        }
+    }
+    for i in 0..count {
+        touch(addr + i * page);
+    }
 }
 
 fn open_maps() -> Result<libc::c_int, WalkError> {
@@ -229,6 +270,23 @@ fn mincore(addr: usize, len: usize, vec: &mut [u8; MINCORE_PAGES]) -> Result<(),
         Err(errno())
     } else {
         Ok(())
+    }
+}
+
+fn populate_write(addr: usize, len: usize) -> Result<(), i32> {
+    loop {
+        // SAFETY: `addr` is page-aligned and `[addr, addr + len)` lies in one private writable
+        // mapping whose pages mincore just reported resident. MADV_POPULATE_WRITE only faults
+        // those pages in writable (copying any page still shared copy-on-write); it changes no
+        // byte of their contents.
+        let r = unsafe { libc::madvise(addr as *mut libc::c_void, len, libc::MADV_POPULATE_WRITE) };
+        if r == 0 {
+            return Ok(());
+        }
+        match errno() {
+            libc::EINTR => continue,
+            e => return Err(e),
+        }
     }
 }
 
@@ -296,6 +354,18 @@ mod tests {
             assert_eq!(lines[1], vec![b'x'; LINE_MAX]);
             assert_eq!(lines[2], b"last-without-newline");
         }
+    }
+
+    #[test]
+    fn runs_of_resident_pages() {
+        let mut runs = Vec::new();
+        for_each_run(&[1, 1, 0, 3, 0, 0, 1], |a, n| runs.push((a, n)));
+        assert_eq!(runs, [(0, 2), (3, 1), (6, 1)]);
+        runs.clear();
+        for_each_run(&[0, 2, 0], |a, n| runs.push((a, n)));
+        assert!(runs.is_empty(), "only bit 0 means resident");
+        for_each_run(&[], |a, n| runs.push((a, n)));
+        assert!(runs.is_empty());
     }
 
     #[test]

@@ -22,18 +22,19 @@
 //! 2. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its
 //!    target number and close the received copy: the component's ports keep their numbers, now on
 //!    the new pipes;
-//! 3. answer [`Ready`] with its pid and the frames sent per port so far, and close the socket;
-//! 4. write to every resident private writable page ([`crate::cow`]) so no physical page is
-//!    shared with the donor, and `mlockall` again (locks are not inherited over fork). (Where
-//!    `mlockall` succeeds, populating writable private mappings also breaks COW; the walk is what
-//!    still does it where `mlockall` is refused.)
+//! 3. `mlockall` again, on fault (locks are not inherited over fork; see
+//!    [`sys::lock_memory_on_fault`] and the trade-off in `become_replacement`), and write-fault
+//!    every resident private writable page ([`crate::cow`]) so that the child has its own copy of
+//!    every page it shared with the donor. Both happen before `Ready`, so no physical page of
+//!    private writable memory is shared with the donor once the voter counts the child in;
+//! 4. answer [`Ready`] with its pid and the frames sent per port so far, and close the socket;
 //! 5. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
 //!    was interrupted is restarted (`SA_RESTART`), on the new fd with the same number.
 //!
 //! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
 //!
 //! Every call made is async-signal-safe: `_Fork`, `socket`, `connect`, `recvmsg`, `dup2`,
-//! `fcntl`, `close`, `send`, `getpid`, `open`, `read`, `mincore`, `mlockall`, `_exit`, plain
+//! `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `mincore`, `madvise`, `_exit`, plain
 //! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
 //!
@@ -178,11 +179,18 @@ fn become_replacement(nonce: u32) {
     // round from `Ready` on, and a page walk after it (milliseconds for a few MiB, tens of ms
     // for tens of MiB) would make us miss that round's deadline and be killed as hung, again
     // and again. It also makes the voter's recovery time the time to a replica that can answer.
+    //
+    // Locks are not inherited over fork, so lock again, on fault: a plain `mlockall(MCL_CURRENT)`
+    // would populate every mapping up front, ~4.5 MiB of library text and data for the smallest
+    // component, most of a small component's restart time. Locked on fault, the pages the donor
+    // had mapped are locked now and the others (text the child has not touched yet; fork does
+    // not copy those page tables) when first used: a minor fault each, never I/O, since the
+    // other replicas keep the same file pages locked. A failure cannot be logged here; the donor
+    // already logged it at init if it was refused.
+    let _ = sys::lock_memory_on_fault();
+    // Then break the sharing of every resident private writable page (locked as it is copied).
     // SAFETY: the fork child has a single thread.
     let _ = unsafe { crate::cow::break_cow_sharing() };
-    // Locks are not inherited over fork. A failure cannot be logged here; the donor already
-    // logged it at init if it was refused.
-    let _ = sys::lock_all_memory();
     // Whole frames the donor had sent per port at the fork (stream mode lines our output up
     // with the donor's from these).
     let mut frames_sent = [0u64; MAX_PORTS];

@@ -251,7 +251,21 @@ pub fn process_group(pid: libc::pid_t) -> Option<libc::pid_t> {
 
 /// Field `n` (1-based, as in proc(5)) of `/proc/PID/stat`, for the numeric fields after `comm`.
 fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    use std::io::Read;
+    // One `read` into a stack buffer (the line is ~300 bytes; comm is at most 16), not
+    // `read_to_string`'s statx and growing reads: this is on the restart path.
+    let mut buf = [0u8; 1024];
+    let mut file = std::fs::File::open(format!("/proc/{pid}/stat")).ok()?;
+    let mut len = 0;
+    while len < buf.len() {
+        match file.read(&mut buf[len..]) {
+            Ok(0) => break,
+            Ok(k) => len += k,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(_) => return None,
+        }
+    }
+    let stat = std::str::from_utf8(&buf[..len]).ok()?;
     // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
     let rest = &stat[stat.rfind(')')? + 1..];
     rest.split_whitespace().nth(n - 3)?.parse().ok()
@@ -301,6 +315,26 @@ pub fn map_fds_on_exec(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
 pub fn lock_all_memory() -> io::Result<()> {
     // SAFETY: flags only; locking memory has no memory-safety effect.
     cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) })?;
+    Ok(())
+}
+
+/// `MCL_ONFAULT` (Linux ≥ 4.4; the value is the same on every architecture Linux has, and glibc's
+/// `libc` crate does not export it for x86-64).
+const MCL_ONFAULT: libc::c_int = 4;
+
+/// Locks the pages of the current mappings as they are faulted in (`mlockall(MCL_CURRENT |
+/// MCL_ONFAULT)`: pages present now are locked at once, the others when first touched, nothing
+/// is populated up front), and every future mapping in full (`mlockall(MCL_FUTURE)`, which
+/// leaves the current mappings as they are). A kernel without `MCL_ONFAULT` (EINVAL) gets
+/// [`lock_all_memory`] instead. Async-signal-safe: two or three system calls, no allocation.
+pub fn lock_memory_on_fault() -> io::Result<()> {
+    // SAFETY: flags only; locking memory has no memory-safety effect.
+    match cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | MCL_ONFAULT) }) {
+        Err(e) if e.raw_os_error() == Some(libc::EINVAL) => return lock_all_memory(),
+        r => r?,
+    };
+    // SAFETY: as above. MCL_FUTURE alone only sets the flags for future mappings.
+    cvt(unsafe { libc::mlockall(libc::MCL_FUTURE) })?;
     Ok(())
 }
 
