@@ -22,7 +22,6 @@ use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
 use nix::sys::signalfd::SignalFd;
-use replica_rt::sys;
 
 use crate::channel::Fill;
 use crate::event::{Event, EventKind, RecoveryMethod};
@@ -30,6 +29,7 @@ use crate::plan::VoterPlan;
 use crate::recovery::{self, DonorState};
 use crate::replica::Replica;
 use crate::vote::ReplicaSet;
+use crate::voter::wait_until;
 use crate::voter::{
     closed_output_fault, kill_replicas, recovery_event, replace_by_exec, shut_down, start_replicas,
     stop_requested, validate, write_event, Endpoints, ExternalInput, ExternalOutput, Fault, Stop,
@@ -183,14 +183,8 @@ impl StreamVoter {
 
     fn wait_and_dispatch(&mut self) -> Result<(), VoterError> {
         self.build_poll_set();
-        let timeout = self
-            .next_wakeup()
-            .map(|t| t.saturating_duration_since(Instant::now()));
-        // Not `.map_err(io_err("ppoll"))`: that builds its String on every wake-up, error or not.
-        let ready = sys::ppoll(&mut self.poll_fds, timeout).map_err(|source| VoterError::Io {
-            what: "ppoll".into(),
-            source,
-        })?;
+        let wake = self.next_wakeup();
+        let ready = wait_until(&mut self.poll_fds, wake)?;
         if ready == 0 {
             return Ok(());
         }

@@ -261,14 +261,8 @@ impl Voter {
     /// One `ppoll` on everything that can make progress, bounded by the next deadline.
     fn wait_and_dispatch(&mut self) -> Result<(), VoterError> {
         self.build_poll_set();
-        let timeout = self
-            .next_wakeup()
-            .map(|t| t.saturating_duration_since(Instant::now()));
-        // Not `.map_err(io_err("ppoll"))`: that builds its String on every wake-up, error or not.
-        let ready = sys::ppoll(&mut self.poll_fds, timeout).map_err(|source| VoterError::Io {
-            what: "ppoll".into(),
-            source,
-        })?;
+        let wake = self.next_wakeup();
+        let ready = wait_until(&mut self.poll_fds, wake)?;
         if ready == 0 {
             return Ok(());
         }
@@ -1101,6 +1095,21 @@ pub(crate) fn kill_replicas(slots: &[Option<Replica>], faults: &[Fault]) {
     for fault in faults {
         fault.replica.kill();
     }
+}
+
+/// One `ppoll` on `fds` until something is ready or `deadline` (none: no limit) comes;
+/// returns how many fds are ready. The timeout is read off the deadline clock, so it never
+/// outlasts the deadline (see `clock`).
+pub(crate) fn wait_until(
+    fds: &mut [libc::pollfd],
+    deadline: Option<Instant>,
+) -> Result<usize, VoterError> {
+    let timeout = deadline.map(|t| t.saturating_duration_since(Instant::now()));
+    // Not `.map_err(io_err("ppoll"))`: that builds its String on every wake-up, error or not.
+    sys::ppoll(fds, timeout).map_err(|source| VoterError::Io {
+        what: "ppoll".into(),
+        source,
+    })
 }
 
 /// How many bytes the voter queues for one replica input beyond what its pipe holds before
