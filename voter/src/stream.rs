@@ -17,7 +17,7 @@
 pub mod boost;
 pub mod ledger;
 
-use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::os::fd::OwnedFd;
 use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
@@ -29,12 +29,12 @@ use crate::plan::VoterPlan;
 use crate::recovery::{self, DonorState};
 use crate::replica::Replica;
 use crate::vote::ReplicaSet;
-use crate::voter::wait_until;
 use crate::voter::{
     closed_output_fault, kill_replicas, recovery_event, replace_by_exec, shut_down, start_replicas,
     stop_requested, validate, write_event, Endpoints, ExternalInput, ExternalOutput, Fault, Stop,
     Token, VoterError, EXIT_AFTER_EOF, OUTPUT_DRAIN_LIMIT, SHUTDOWN_GRACE,
 };
+use crate::voter::{wait_until, PollSet};
 use boost::Boost;
 
 use crate::clock::{self, Instant};
@@ -77,8 +77,7 @@ pub struct StreamVoter {
     rt: RealTime,
     /// The laggard raised to the turn priority under SCHED_RR: `(pid, slot)`.
     boosted: Option<(libc::pid_t, usize)>,
-    poll_fds: Vec<libc::pollfd>,
-    poll_tokens: Vec<Token>,
+    poll: PollSet,
 }
 
 impl StreamVoter {
@@ -120,8 +119,7 @@ impl StreamVoter {
             delivered_all: true,
             ending: None,
             boost: Boost::default(),
-            poll_fds: Vec::new(),
-            poll_tokens: Vec::new(),
+            poll: PollSet::default(),
         })
     }
 
@@ -184,15 +182,15 @@ impl StreamVoter {
     fn wait_and_dispatch(&mut self) -> Result<(), VoterError> {
         self.build_poll_set();
         let wake = self.next_wakeup();
-        let ready = wait_until(&mut self.poll_fds, wake)?;
+        let ready = wait_until(&mut self.poll.fds, wake)?;
         if ready == 0 {
             return Ok(());
         }
-        for k in 0..self.poll_fds.len() {
-            if self.poll_fds[k].revents == 0 {
+        for k in 0..self.poll.fds.len() {
+            if self.poll.fds[k].revents == 0 {
                 continue;
             }
-            match self.poll_tokens[k] {
+            match self.poll.tokens[k] {
                 Token::Signal => {
                     if stop_requested(&self.signals) {
                         self.stop = Some(Stop::Requested);
@@ -216,62 +214,16 @@ impl StreamVoter {
     }
 
     fn build_poll_set(&mut self) {
-        self.poll_fds.clear();
-        self.poll_tokens.clear();
         let alive = self.alive();
         let take_input = !self.holding_input();
-        let (fds, toks) = (&mut self.poll_fds, &mut self.poll_tokens);
-        let mut add = |fd: RawFd, events, token| {
-            fds.push(libc::pollfd {
-                fd,
-                events,
-                revents: 0,
-            });
-            toks.push(token);
-        };
-        add(self.signals.as_raw_fd(), libc::POLLIN, Token::Signal);
-        for (i, input) in self.inputs.iter().enumerate() {
-            if take_input && !input.reader.is_closed() {
-                add(
-                    input.reader.as_fd().as_raw_fd(),
-                    libc::POLLIN,
-                    Token::Input(i),
-                );
-            }
-        }
-        for (o, output) in self.outputs.iter().enumerate() {
-            if output.writer.has_pending() {
-                add(
-                    output.writer.as_fd().as_raw_fd(),
-                    libc::POLLOUT,
-                    Token::OutputWritable(o),
-                );
-            }
-        }
+        self.poll
+            .reset(&self.signals, &self.inputs, take_input, &self.outputs);
         for (r, rep) in self.slots.iter().enumerate() {
             let Some(rep) = rep else { continue };
-            if !self.exited[r] {
-                add(rep.pidfd.as_raw_fd(), libc::POLLIN, Token::ReplicaExit(r));
-            }
-            for (o, out) in rep.outputs.iter().enumerate() {
-                // Back-pressure: a replica far ahead is not read, so its pipe fills.
-                if !out.is_closed() && self.ledger.may_read(r, o, alive) {
-                    add(
-                        out.as_fd().as_raw_fd(),
-                        libc::POLLIN,
-                        Token::ReplicaOutput(r, o),
-                    );
-                }
-            }
-            for (i, input) in rep.inputs.iter().enumerate() {
-                if input.writer.has_pending() {
-                    add(
-                        input.writer.as_fd().as_raw_fd(),
-                        libc::POLLOUT,
-                        Token::ReplicaInputWritable(r, i),
-                    );
-                }
-            }
+            // Back-pressure: a replica far ahead is not read, so its pipe fills.
+            let ledger = &self.ledger;
+            self.poll
+                .add_replica(r, rep, !self.exited[r], |o| ledger.may_read(r, o, alive));
         }
     }
 

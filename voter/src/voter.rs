@@ -166,8 +166,7 @@ pub struct Voter {
     signals: SignalFd,
     events: Option<OwnedFd>,
     stop: Option<Stop>,
-    poll_fds: Vec<libc::pollfd>,
-    poll_tokens: Vec<Token>,
+    poll: PollSet,
     /// Every deadline the loop waits for (refilled from the state before each wait).
     timers: Deadlines,
     /// Priorities, pinning and the raising of turns.
@@ -222,8 +221,7 @@ impl Voter {
             signals,
             events,
             stop: None,
-            poll_fds: Vec::new(),
-            poll_tokens: Vec::new(),
+            poll: PollSet::default(),
             timers: Deadlines::new(n_inputs, n),
         };
         Ok(voter)
@@ -262,15 +260,15 @@ impl Voter {
     fn wait_and_dispatch(&mut self) -> Result<(), VoterError> {
         self.build_poll_set();
         let wake = self.next_wakeup();
-        let ready = wait_until(&mut self.poll_fds, wake)?;
+        let ready = wait_until(&mut self.poll.fds, wake)?;
         if ready == 0 {
             return Ok(());
         }
-        for k in 0..self.poll_fds.len() {
-            if self.poll_fds[k].revents == 0 {
+        for k in 0..self.poll.fds.len() {
+            if self.poll.fds[k].revents == 0 {
                 continue;
             }
-            match self.poll_tokens[k] {
+            match self.poll.tokens[k] {
                 Token::Signal => self.on_signal(),
                 Token::Input(i) => self.on_input_readable(i),
                 Token::OutputWritable(o) => self.flush_output(o),
@@ -294,80 +292,15 @@ impl Voter {
     }
 
     fn build_poll_set(&mut self) {
-        self.poll_fds.clear();
-        self.poll_tokens.clear();
-        let add = |fds: &mut Vec<libc::pollfd>, toks: &mut Vec<Token>, fd: RawFd, ev, t| {
-            fds.push(libc::pollfd {
-                fd,
-                events: ev,
-                revents: 0,
-            });
-            toks.push(t);
-        };
-        let (fds, toks) = (&mut self.poll_fds, &mut self.poll_tokens);
-        add(
-            fds,
-            toks,
-            self.signals.as_raw_fd(),
-            libc::POLLIN,
-            Token::Signal,
-        );
         let backlog = self.outputs.iter().any(|o| o.writer.has_pending());
         // New input only between rounds and when downstream keeps up: back-pressure instead
         // of unbounded buffering.
         let take_input = self.round.is_none() && self.faults.is_empty() && !backlog;
-        for (i, input) in self.inputs.iter().enumerate() {
-            if take_input && !input.reader.is_closed() {
-                add(
-                    fds,
-                    toks,
-                    input.reader.as_fd().as_raw_fd(),
-                    libc::POLLIN,
-                    Token::Input(i),
-                );
-            }
-        }
-        for (o, output) in self.outputs.iter().enumerate() {
-            if output.writer.has_pending() {
-                add(
-                    fds,
-                    toks,
-                    output.writer.as_fd().as_raw_fd(),
-                    libc::POLLOUT,
-                    Token::OutputWritable(o),
-                );
-            }
-        }
+        self.poll
+            .reset(&self.signals, &self.inputs, take_input, &self.outputs);
         for (r, rep) in self.slots.iter().enumerate() {
-            let Some(rep) = rep else { continue };
-            add(
-                fds,
-                toks,
-                rep.pidfd.as_raw_fd(),
-                libc::POLLIN,
-                Token::ReplicaExit(r),
-            );
-            for (o, out) in rep.outputs.iter().enumerate() {
-                if !out.is_closed() {
-                    add(
-                        fds,
-                        toks,
-                        out.as_fd().as_raw_fd(),
-                        libc::POLLIN,
-                        Token::ReplicaOutput(r, o),
-                    );
-                }
-            }
-            for (i, input) in rep.inputs.iter().enumerate() {
-                if input.writer.has_pending() {
-                    add(
-                        fds,
-                        toks,
-                        input.writer.as_fd().as_raw_fd(),
-                        libc::POLLOUT,
-                        Token::ReplicaInputWritable(r, i),
-                    );
-                }
+            if let Some(rep) = rep {
+                self.poll.add_replica(r, rep, true, |_| true);
             }
         }
     }
@@ -1094,6 +1027,90 @@ pub(crate) fn kill_replicas(slots: &[Option<Replica>], faults: &[Fault]) {
     }
     for fault in faults {
         fault.replica.kill();
+    }
+}
+
+/// The fds one wait of an event loop watches, each with the [`Token`] saying what it stands
+/// for. Rebuilt before every wait from the loop's state; the vectors keep their capacity, so
+/// a steady-state round allocates nothing.
+#[derive(Debug, Default)]
+pub(crate) struct PollSet {
+    pub(crate) fds: Vec<libc::pollfd>,
+    pub(crate) tokens: Vec<Token>,
+}
+
+impl PollSet {
+    fn add(&mut self, fd: RawFd, events: libc::c_short, token: Token) {
+        self.fds.push(libc::pollfd {
+            fd,
+            events,
+            revents: 0,
+        });
+        self.tokens.push(token);
+    }
+
+    /// Starts a new set: the signalfd, the external inputs (if `take_input`) and the external
+    /// outputs with frames queued.
+    pub(crate) fn reset(
+        &mut self,
+        signals: &SignalFd,
+        inputs: &[ExternalInput],
+        take_input: bool,
+        outputs: &[ExternalOutput],
+    ) {
+        self.fds.clear();
+        self.tokens.clear();
+        self.add(signals.as_raw_fd(), libc::POLLIN, Token::Signal);
+        for (i, input) in inputs.iter().enumerate() {
+            if take_input && !input.reader.is_closed() {
+                self.add(
+                    input.reader.as_fd().as_raw_fd(),
+                    libc::POLLIN,
+                    Token::Input(i),
+                );
+            }
+        }
+        for (o, output) in outputs.iter().enumerate() {
+            if output.writer.has_pending() {
+                self.add(
+                    output.writer.as_fd().as_raw_fd(),
+                    libc::POLLOUT,
+                    Token::OutputWritable(o),
+                );
+            }
+        }
+    }
+
+    /// Replica `r`: its pidfd (if `watch_exit`), its open outputs that `may_read` allows, and
+    /// its inputs with bytes queued.
+    pub(crate) fn add_replica(
+        &mut self,
+        r: usize,
+        rep: &Replica,
+        watch_exit: bool,
+        may_read: impl Fn(usize) -> bool,
+    ) {
+        if watch_exit {
+            self.add(rep.pidfd.as_raw_fd(), libc::POLLIN, Token::ReplicaExit(r));
+        }
+        for (o, out) in rep.outputs.iter().enumerate() {
+            if !out.is_closed() && may_read(o) {
+                self.add(
+                    out.as_fd().as_raw_fd(),
+                    libc::POLLIN,
+                    Token::ReplicaOutput(r, o),
+                );
+            }
+        }
+        for (i, input) in rep.inputs.iter().enumerate() {
+            if input.writer.has_pending() {
+                self.add(
+                    input.writer.as_fd().as_raw_fd(),
+                    libc::POLLOUT,
+                    Token::ReplicaInputWritable(r, i),
+                );
+            }
+        }
     }
 }
 
