@@ -336,15 +336,9 @@ fn inject_watched(
     bail!("replica {slot} kept disappearing before the injection")
 }
 
-/// Whether `pid` exists and is not a zombie (`/proc/PID/stat`, the state after the name).
+/// Whether `pid` exists and is not a zombie (its state in `/proc/PID/stat`).
 fn running(pid: libc::pid_t) -> bool {
-    std::fs::read_to_string(format!("/proc/{pid}/stat"))
-        .ok()
-        .and_then(|s| {
-            s.rsplit_once(") ")
-                .map(|(_, rest)| !rest.starts_with('Z') && !rest.starts_with('X'))
-        })
-        .unwrap_or(false)
+    replica_rt::sys::process_state(pid).is_some_and(|state| state != 'Z' && state != 'X')
 }
 
 /// The first fault event about `slot` at or after `since` (CLOCK_MONOTONIC ns); `None` if none

@@ -251,6 +251,17 @@ pub fn process_group(pid: libc::pid_t) -> Option<libc::pid_t> {
 
 /// Field `n` (1-based, as in proc(5)) of `/proc/PID/stat`, for the numeric fields after `comm`.
 fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
+    with_proc_stat(pid, |rest| rest.split_whitespace().nth(n - 3)?.parse().ok())
+}
+
+/// The state letter of `pid` (field 3 of `/proc/PID/stat`: `R`, `S`, `D`, `T` stopped, `t`
+/// traced, `Z` zombie, ...); `None` if the process is gone.
+pub fn process_state(pid: libc::pid_t) -> Option<char> {
+    with_proc_stat(pid, |rest| rest.trim_start().chars().next())
+}
+
+/// Reads `/proc/PID/stat` and gives `f` what follows `comm` (from field 3 on).
+fn with_proc_stat<R>(pid: libc::pid_t, f: impl FnOnce(&str) -> Option<R>) -> Option<R> {
     use std::io::Read;
     // One `read` into a stack buffer (the line is ~300 bytes; comm is at most 16), not
     // `read_to_string`'s statx and growing reads: this is on the restart path.
@@ -267,8 +278,7 @@ fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
     }
     let stat = std::str::from_utf8(&buf[..len]).ok()?;
     // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
-    let rest = &stat[stat.rfind(')')? + 1..];
-    rest.split_whitespace().nth(n - 3)?.parse().ok()
+    f(&stat[stat.rfind(')')? + 1..])
 }
 
 /// Sends a whole buffer plus `fds` as SCM_RIGHTS in one `sendmsg`.

@@ -132,19 +132,12 @@ pub fn scheduling(pid: i32) -> Scheduling {
 /// that is gone handles nothing.
 pub fn handles_hooks(pid: i32) -> bool {
     use replica_rt::contract::signals;
-    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
-        return false;
-    };
-    let Some(mask) = status
-        .lines()
-        .find_map(|l| l.strip_prefix("SigCgt:"))
-        .and_then(|hex| u64::from_str_radix(hex.trim(), 16).ok())
-    else {
-        return false;
-    };
-    [signals::RESTART, signals::INJECT_SDC, signals::inject_cfe()]
-        .iter()
-        .all(|&sig| mask & (1u64 << (sig - 1)) != 0)
+    use s3res_voter::replica::{caught_signals, signal_bit};
+    caught_signals(pid).is_some_and(|mask| {
+        [signals::RESTART, signals::INJECT_SDC, signals::inject_cfe()]
+            .iter()
+            .all(|&sig| mask & signal_bit(sig) != 0)
+    })
 }
 
 #[cfg(test)]

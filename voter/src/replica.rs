@@ -218,29 +218,32 @@ pub fn best_donor(slots: &[Option<Replica>]) -> Option<usize> {
         .map(|(_, d)| d)
 }
 
-/// Whether `pid` is stopped or traced (state `T` or `t` in `/proc/PID/stat`).
+/// Whether `pid` is stopped or traced (state `T` or `t`).
 fn is_stopped(pid: libc::pid_t) -> bool {
-    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
-        return false;
-    };
-    // The state follows the last ')': the command name may itself contain parentheses.
-    stat.rsplit_once(')')
-        .and_then(|(_, rest)| rest.trim_start().chars().next())
-        .is_some_and(|state| state == 'T' || state == 't')
+    matches!(sys::process_state(pid), Some('T' | 't'))
 }
 
 /// Whether `pid` has a handler for the restart signal installed (`SigCgt` in
 /// `/proc/PID/status`): replica-rt's `init` has run (it installs this handler last, after the
 /// injection handlers), so a RESTART would fork it rather than kill it.
 pub fn catches_restart_signal(pid: libc::pid_t) -> bool {
-    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
-        return false;
-    };
+    caught_signals(pid)
+        .is_some_and(|mask| mask & signal_bit(replica_rt::contract::signals::RESTART) != 0)
+}
+
+/// The set of signals `pid` has a handler for (`SigCgt` in `/proc/PID/status`, bit `n - 1`
+/// for signal `n`; see [`signal_bit`]); `None` if the process is gone.
+pub fn caught_signals(pid: libc::pid_t) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     status
         .lines()
         .find_map(|l| l.strip_prefix("SigCgt:"))
         .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
-        .is_some_and(|mask| mask & (1 << (replica_rt::contract::signals::RESTART - 1)) != 0)
+}
+
+/// Signal `sig`'s bit in a [`caught_signals`] mask.
+pub fn signal_bit(sig: libc::c_int) -> u64 {
+    1u64 << (sig - 1)
 }
 
 #[cfg(test)]
