@@ -292,3 +292,73 @@ fn stream_tmr_child_joins_while_frames_are_undecided() {
     assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
     assert_sink_whole(&summary, count);
 }
+
+/// Two control-flow errors at once: replicas 1 and 2 spin. Replica 0 goes on producing, so at
+/// the deadline it is one producer against two laggards — but the laggards are running, not
+/// waiting for input: they are the `hang` suspects, and both are rebuilt from replica 0. (The
+/// rule "fewer producers are the suspects" alone blamed the healthy replica and, forking a
+/// spinner over it, stalled the component: a robot campaign found this.)
+#[test]
+fn stream_tmr_two_spinning_replicas_do_not_outvote_the_healthy_one() {
+    let count = 1500;
+    let args = ["--every", "3", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 500);
+    run.wait_for_replicas("echo", 3);
+
+    let pids = run.replica_pids("echo");
+    for slot in [1, 2] {
+        s3res_tests::kill_pid(pids[&slot], signals::inject_cfe()).expect("inject cfe");
+    }
+    for slot in [1, 2] {
+        let hang = run.wait_for_event(
+            |e| e.kind == EventKind::Hang && e.replica == Some(slot),
+            Duration::from_secs(20),
+        );
+        assert_eq!(hang.pid, Some(pids[&slot]), "{hang:?}");
+        let rec = run.wait_for_event(
+            |e| is_recovery_of(e, slot, pids[&slot]),
+            Duration::from_secs(20),
+        );
+        assert_eq!(
+            (rec.method, rec.donor),
+            (Some(RecoveryMethod::Fork), Some(0)),
+            "{rec:?}"
+        );
+    }
+
+    let out = run.wait_success(LIMIT);
+    assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// A control-flow error in replica 0 that nobody has caught yet (it spins, but has not been
+/// overdue long), then a crash of replica 1: the replacement is forked from replica 2, which
+/// waits for input, not from the spinning replica 0 (the lowest slot, and as far on as 2).
+/// Replica 0 is then caught as the `hang` it is, and the stream is whole.
+#[test]
+fn stream_recovery_does_not_fork_a_spinning_replica() {
+    let count = 1500;
+    let args = ["--every", "3", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 200);
+    run.wait_for_replicas("echo", 3);
+
+    let pids = run.replica_pids("echo");
+    s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
+    assert_eq!(
+        (rec.method, rec.donor),
+        (Some(RecoveryMethod::Fork), Some(2)),
+        "{rec:?}"
+    );
+    let hang = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.replica == Some(0),
+        Duration::from_secs(20),
+    );
+    assert_eq!(hang.pid, Some(pids[&0]), "{hang:?}");
+    run.wait_for_event(|e| is_recovery_of(e, 0, pids[&0]), Duration::from_secs(20));
+
+    let out = run.wait_success(LIMIT);
+    assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}

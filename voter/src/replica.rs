@@ -189,38 +189,73 @@ impl Replica {
         self.proven || catches_restart_signal(self.pid)
     }
 
-    /// How good a recovery donor this replica is, lower is better; `None`: it cannot donate.
-    /// A replica that has answered (and so was voted with) beats one that has not: a replica
-    /// just restarted by exec has lost its state, and cloning it over a healthy slot would
-    /// spread the loss. A stopped replica (SIGSTOP, a debugger, an injector's ptrace stop)
-    /// would only make the attempt time out, so a running one is preferred.
-    pub fn donor_rank(&self) -> Option<u8> {
+    /// How good a recovery donor this replica is; `None`: it cannot donate. See [`DonorRank`].
+    pub fn donor_rank(&self) -> Option<DonorRank> {
         if !self.may_donate() {
             return None;
         }
-        let stopped = is_stopped(self.pid);
-        Some(match (self.proven, stopped) {
-            (true, false) => 0,
-            (true, true) => 1,
-            (false, false) => 2,
-            (false, true) => 3,
+        let state = sys::process_state(self.pid);
+        Some(DonorRank {
+            unproven: !self.proven,
+            stopped: matches!(state, Some('T' | 't')),
+            busy: matches!(state, Some('R')),
         })
+    }
+
+    /// Whether the process sleeps in the kernel (`S`: waiting for input, or for its output
+    /// pipe to drain) rather than running, runnable, stopped or dead.
+    pub fn is_asleep(&self) -> bool {
+        sys::process_state(self.pid) == Some('S')
     }
 }
 
-/// The best donor among `slots` (lowest [`Replica::donor_rank`], then lowest slot).
-pub fn best_donor(slots: &[Option<Replica>]) -> Option<usize> {
-    slots
-        .iter()
-        .enumerate()
-        .filter_map(|(d, rep)| rep.as_ref()?.donor_rank().map(|rank| (rank, d)))
-        .min()
-        .map(|(_, d)| d)
+/// How good a recovery donor a replica is; the derived order is the preference (fields in
+/// order of weight, `false` first).
+///
+/// * A replica that has answered (and so was voted with) beats one that has not: a replica
+///   just restarted by exec has lost its state, and cloning it over a healthy slot would
+///   spread the loss.
+/// * A stopped replica (SIGSTOP, a debugger, an injector's ptrace stop) would only make the
+///   attempt time out.
+/// * A replica asleep in the kernel is at a clean point; one that is running may be
+///   computing, or may be spinning in a control-flow error that nobody has caught yet. Its
+///   fork child would inherit the spin (the restart handler returns into it), and two
+///   spinners can outvote the one healthy replica left. Stream mode forks at any moment, so
+///   this matters most there.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub struct DonorRank {
+    pub unproven: bool,
+    pub stopped: bool,
+    pub busy: bool,
 }
 
-/// Whether `pid` is stopped or traced (state `T` or `t`).
-fn is_stopped(pid: libc::pid_t) -> bool {
-    matches!(sys::process_state(pid), Some('T' | 't'))
+/// How many times [`best_donor`] looks again, [`BUSY_RESAMPLE`] apart, when every candidate is
+/// running: a healthy replica's burst of work is short, a spin is not.
+const BUSY_SAMPLES: u32 = 3;
+const BUSY_RESAMPLE: std::time::Duration = std::time::Duration::from_micros(200);
+
+/// The best donor among `slots`: lowest [`DonorRank`], then most `progress` (stream mode: the
+/// frames a slot has produced; a replica that has produced more has not stopped working),
+/// then lowest slot.
+pub fn best_donor(slots: &[Option<Replica>], progress: impl Fn(usize) -> u64) -> Option<usize> {
+    let mut best = None;
+    for sample in 1..=BUSY_SAMPLES {
+        best = slots
+            .iter()
+            .enumerate()
+            .filter_map(|(d, rep)| {
+                let rank = rep.as_ref()?.donor_rank()?;
+                Some((rank, std::cmp::Reverse(progress(d)), d))
+            })
+            .min();
+        match best {
+            Some((rank, ..)) if rank.busy && sample < BUSY_SAMPLES => {
+                std::thread::sleep(BUSY_RESAMPLE)
+            }
+            _ => break,
+        }
+    }
+    best.map(|(.., d)| d)
 }
 
 /// Whether `pid` has a handler for the restart signal installed (`SigCgt` in

@@ -8,7 +8,8 @@
 //! * while replicas are out of step, no new external input is read;
 //! * the replica furthest behind runs one step above its siblings ([`boost`]);
 //! * a frame some replicas produced and others did not within `timeout_us` makes the laggards
-//!   `hang` suspects (or, when the producers are fewer, the producers `protocol` suspects).
+//!   `hang` suspects (or, when the producers are fewer and every laggard sleeps waiting for
+//!   input, the producers `protocol` suspects).
 //!
 //! Faulty replicas are killed at once and replaced at the top of the loop, by fork of a trusted
 //! replica that may be in the middle of its work: the child tells how many frames its process
@@ -521,36 +522,61 @@ impl StreamVoter {
         };
         let name = self.plan.outputs[od.output].name.clone();
         if od.blames_laggards() {
-            for r in od.laggards.iter() {
-                let partial = self.slots[r]
-                    .as_ref()
-                    .and_then(|rep| rep.outputs.iter().position(|out| out.decoder.pending() > 0));
-                let (kind, detail) = match partial {
-                    Some(p) => (
-                        EventKind::Protocol,
-                        format!(
-                            "partial frame on `{}` when frame {} of `{name}` was overdue",
-                            self.plan.outputs[p].name, od.index
-                        ),
+            return self.blame_laggards(od.laggards, &od, &name, "furthest behind");
+        }
+        // Fewer producers than laggards: usually the producers made a frame nobody owes (an
+        // extra frame). But a laggard that is still running (or stopped) at the deadline has
+        // not finished its work and gone back to wait for input: it is hung — spinning in a
+        // control-flow error, say — and two hung replicas must not outvote the healthy one.
+        // So laggards that are not asleep are blamed; only when every laggard sleeps are the
+        // producers the suspects.
+        let stuck = od
+            .laggards
+            .iter()
+            .filter(|&r| !self.slots[r].as_ref().is_some_and(Replica::is_asleep))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+        if !stuck.is_empty() {
+            return self.blame_laggards(stuck, &od, &name, "behind and not waiting for input");
+        }
+        for r in od.producers.iter() {
+            let detail = format!(
+                "produced frame {} of `{name}`, which replicas {:?} did not produce within {} µs",
+                od.index, od.laggards, self.plan.timeout_us
+            );
+            self.fault(r, EventKind::Protocol, detail);
+        }
+    }
+
+    /// Blames `laggards` for overdue frame `od`: `protocol` if a laggard left a partial frame
+    /// in its pipe, else `hang` (`why` says how it was picked).
+    fn blame_laggards(
+        &mut self,
+        laggards: ReplicaSet,
+        od: &ledger::Overdue,
+        name: &str,
+        why: &str,
+    ) {
+        for r in laggards.iter() {
+            let partial = self.slots[r]
+                .as_ref()
+                .and_then(|rep| rep.outputs.iter().position(|out| out.decoder.pending() > 0));
+            let (kind, detail) = match partial {
+                Some(p) => (
+                    EventKind::Protocol,
+                    format!(
+                        "partial frame on `{}` when frame {} of `{name}` was overdue",
+                        self.plan.outputs[p].name, od.index
                     ),
-                    None => (
-                        EventKind::Hang,
-                        format!(
-                            "furthest behind: frame {} of `{name}` not produced within {} µs of replicas {:?}",
-                            od.index, self.plan.timeout_us, od.producers
-                        ),
+                ),
+                None => (
+                    EventKind::Hang,
+                    format!(
+                        "{why}: frame {} of `{name}` not produced within {} µs of replicas {:?}",
+                        od.index, self.plan.timeout_us, od.producers
                     ),
-                };
-                self.fault(r, kind, detail);
-            }
-        } else {
-            for r in od.producers.iter() {
-                let detail = format!(
-                    "produced frame {} of `{name}`, which replicas {:?} did not produce within {} µs",
-                    od.index, od.laggards, self.plan.timeout_us
-                );
-                self.fault(r, EventKind::Protocol, detail);
-            }
+                ),
+            };
+            self.fault(r, kind, detail);
         }
     }
 
@@ -593,7 +619,7 @@ impl StreamVoter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = crate::replica::best_donor(&self.slots);
+        let donor = crate::replica::best_donor(&self.slots, |d| self.ledger.progress(d));
         if let Some(d) = donor {
             match self.fork_into(slot, d) {
                 Ok(pid) => {

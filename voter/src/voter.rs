@@ -905,7 +905,8 @@ impl Voter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = crate::replica::best_donor(&self.slots);
+        // Every trusted replica has answered the last round: no progress to tell them apart.
+        let donor = crate::replica::best_donor(&self.slots, |_| 0);
         if let Some(d) = donor {
             let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
             self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);

@@ -98,7 +98,9 @@ pub struct Overdue {
 
 impl Overdue {
     /// The documented rule: the larger side is right; on a tie (DMR) the laggards are blamed,
-    /// as in S³RES, so that a hung replica can never stall the component.
+    /// as in S³RES, so that a hung replica can never stall the component. (When this says
+    /// no, the voter still blames laggards that are not asleep: see `StreamVoter`'s deadline
+    /// check.)
     pub fn blames_laggards(&self) -> bool {
         self.producers.len() >= self.laggards.len()
     }
@@ -179,9 +181,14 @@ impl Ledger {
         })
     }
 
+    /// How far `slot` has got: its frames over all outputs.
+    pub fn progress(&self, slot: usize) -> u64 {
+        self.pos[slot].iter().sum()
+    }
+
     /// The trusted slot furthest behind (fewest frames over all outputs), if they differ.
     pub fn laggard(&self, alive: ReplicaSet) -> Option<usize> {
-        let total = |s: usize| self.pos[s].iter().sum::<u64>();
+        let total = |s: usize| self.progress(s);
         let lowest = alive.iter().min_by_key(|&s| (total(s), s))?;
         let highest = alive.iter().map(total).max()?;
         (total(lowest) < highest).then_some(lowest)
