@@ -89,15 +89,7 @@ impl RunningSystem {
             let slot = rng.below(replicas as u64) as usize;
             let pid = self.replica_pids(component)[&slot];
             crate::kill_pid(pid, libc::SIGKILL).expect("kill replica");
-            let rec = self.wait_for_event(
-                |e| {
-                    e.kind == crate::EventKind::Recovery
-                        && e.component == component
-                        && e.replica == Some(slot)
-                        && e.pid == Some(pid)
-                },
-                Duration::from_secs(20),
-            );
+            let rec = self.wait_for_recovery(component, slot, pid);
             assert_eq!(rec.method, Some(crate::RecoveryMethod::Fork), "{rec:?}");
             assert_eq!(rec.state_lost, Some(false), "{rec:?}");
             assert_ne!(rec.new_pid, Some(pid));
@@ -131,6 +123,65 @@ impl RunningSystem {
             "{sdc:?}"
         );
         pids
+    }
+
+    /// Flips bit `bit` in the same frame of each listed replica `(slot, bit)` of `component`:
+    /// pauses the system's `s3res-source`, lets what it sent be answered, arms the flips, and
+    /// lets the source go on. Returns the pids at the injection.
+    pub fn flip_bits_in_one_frame(
+        &mut self,
+        component: &str,
+        hits: &[(usize, i32)],
+    ) -> std::collections::BTreeMap<usize, i32> {
+        let pids = self.replica_pids(component);
+        let source = self
+            .process_named("s3res-source")
+            .expect("the source's pid");
+        crate::kill_pid(source, libc::SIGSTOP).expect("SIGSTOP the source");
+        std::thread::sleep(Duration::from_millis(300));
+        for &(slot, bit) in hits {
+            crate::sigqueue(pids[&slot], crate::signals::INJECT_SDC, bit).expect("sigqueue");
+        }
+        crate::kill_pid(source, libc::SIGCONT).expect("SIGCONT the source");
+        pids
+    }
+
+    /// Waits for the `sdc` that names `slot` (process `pid`) of `component` as outvoted bit by
+    /// bit, and for its repair by fork; returns the recovery event.
+    pub fn wait_for_bitwise_repair(
+        &mut self,
+        component: &str,
+        slot: usize,
+        pid: i32,
+    ) -> crate::Event {
+        let limit = Duration::from_secs(20);
+        let fault = self.wait_for_event(
+            |e| {
+                e.kind == crate::EventKind::Sdc
+                    && e.component == component
+                    && e.replica == Some(slot)
+            },
+            limit,
+        );
+        let detail = fault.detail.as_deref().unwrap_or("");
+        assert!(detail.contains("bitwise majority"), "{fault:?}");
+        assert_eq!(fault.pid, Some(pid), "{fault:?}");
+        let rec = self.wait_for_recovery(component, slot, pid);
+        assert_eq!(rec.method, Some(crate::RecoveryMethod::Fork), "{rec:?}");
+        rec
+    }
+
+    /// Waits (20 s at most) for the recovery of `slot` of `component` whose old pid is `pid`.
+    pub fn wait_for_recovery(&mut self, component: &str, slot: usize, pid: i32) -> crate::Event {
+        self.wait_for_event(
+            |e| {
+                e.kind == crate::EventKind::Recovery
+                    && e.component == component
+                    && e.replica == Some(slot)
+                    && e.pid == Some(pid)
+            },
+            Duration::from_secs(20),
+        )
     }
 
     /// Waits until `replicas` replicas of `component` have started and each has installed

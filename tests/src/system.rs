@@ -407,6 +407,16 @@ impl RunningSystem {
         replica_pids(&self.events(), component)
     }
 
+    /// The pid of this system's process whose command name is `comm` (an unprotected
+    /// component, say `s3res-source`), if there is exactly one.
+    pub fn process_named(&self, comm: &str) -> Option<i32> {
+        let mut found = crate::procs::in_group(self.pgid())
+            .into_iter()
+            .filter(|p| p.comm == comm && !p.is_zombie());
+        let first = found.next()?;
+        found.next().is_none().then_some(first.pid)
+    }
+
     /// Asks bootstrap to stop the system (SIGTERM).
     pub fn stop(&mut self) {
         if self.try_status().is_none() {

@@ -303,3 +303,41 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }
+
+/// Two (or all three) TMR replicas hit by bit flips for the same round, each in a different
+/// bit: no whole frame has a majority, but every bit does. The voter forwards the bitwise
+/// majority (the sink sees every frame intact), blames the replicas whose frame differs, and
+/// rebuilds them by fork; with all three hit, the closest one is kept as the donor.
+fn tmr_rebuilds_bit_by_bit(hit: &[(usize, i32)]) {
+    let count = 400;
+    let sys = System::new();
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 50);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let pids = run.flip_bits_in_one_frame("echo", hit);
+    let blamed: Vec<usize> = if hit.len() == 3 {
+        vec![1, 2]
+    } else {
+        hit.iter().map(|&(s, _)| s).collect()
+    };
+    for &slot in &blamed {
+        run.wait_for_bitwise_repair("echo", slot, pids[&slot]);
+    }
+    let out = run.wait_success(LIMIT);
+    let sdc = of_kind(&out.events, EventKind::Sdc);
+    let kept_note = sdc.iter().filter(|e| e.replica.is_none()).count();
+    assert_eq!(sdc.len(), blamed.len() + kept_note, "{sdc:?}");
+    assert_eq!(kept_note, usize::from(hit.len() == 3), "{sdc:?}");
+    assert_sink_whole(&summary, count);
+}
+
+#[test]
+fn tmr_two_replicas_flipped_in_different_bits_are_outvoted_bit_by_bit() {
+    tmr_rebuilds_bit_by_bit(&[(0, 13), (2, 40)]);
+}
+
+#[test]
+fn tmr_all_three_flipped_in_different_bits_are_outvoted_bit_by_bit() {
+    tmr_rebuilds_bit_by_bit(&[(0, 13), (1, 40), (2, 3)]);
+}

@@ -344,6 +344,19 @@ fn stream_recovery_does_not_fork_a_spinning_replica() {
 
     let pids = run.replica_pids("echo");
     s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    // Until replica 0 has taken the signal and spins (on a loaded machine that may wait).
+    let spinning = std::time::Instant::now();
+    while s3res_tests::procs::all()
+        .iter()
+        .find(|p| p.pid == pids[&0])
+        .is_none_or(|p| p.state != 'R')
+    {
+        assert!(
+            spinning.elapsed() < Duration::from_secs(10),
+            "replica 0 never spun"
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
     s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
     let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
     assert_eq!(
@@ -361,4 +374,72 @@ fn stream_recovery_does_not_fork_a_spinning_replica() {
     let out = run.wait_success(LIMIT);
     assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
     assert_sink_whole(&summary, count);
+}
+
+/// Stream mode: two replicas' copies of one frame flipped in different bits. No whole frame
+/// has a majority, every bit does: the bitwise majority is forwarded (the sink's stream is
+/// whole), and both are blamed and rebuilt from the third.
+#[test]
+fn stream_tmr_two_frames_flipped_in_different_bits_are_outvoted_bit_by_bit() {
+    let count = 600;
+    let args = ["--every", "5", "--stateful"];
+    let (mut run, summary) = start_batch("tmr", &args, TIMEOUT_US, count, 100);
+    run.wait_for_replicas("echo", 3);
+    let pids = run.flip_bits_in_one_frame("echo", &[(0, 13), (1, 40)]);
+    for slot in [0, 1] {
+        run.wait_for_bitwise_repair("echo", slot, pids[&slot]);
+    }
+    let out = run.wait_success(LIMIT);
+    assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// Both replicas of a DMR pair hit by control-flow errors at once: nobody produces, so no
+/// frame is ever owed and no deadline runs. The voter's look at `/proc` every `timeout_us`
+/// finds both computing without producing or waiting: two `hang`s, both restarted (by exec:
+/// no healthy donor is left, state lost), and the stream goes on to the end instead of
+/// stalling.
+#[test]
+fn stream_dmr_both_replicas_spinning_are_found_without_a_deadline() {
+    let count = 1500;
+    let every = 10;
+    let args = ["--every", "10", "--stateful"];
+    let (mut run, summary) = start_batch("dmr", &args, TIMEOUT_US, count, 500);
+    run.wait_for_replicas("echo", 2);
+
+    let pids = run.replica_pids("echo");
+    for slot in [0, 1] {
+        s3res_tests::kill_pid(pids[&slot], signals::inject_cfe()).expect("inject cfe");
+    }
+    for slot in [0, 1] {
+        let hang = run.wait_for_event(
+            |e| e.kind == EventKind::Hang && e.replica == Some(slot),
+            Duration::from_secs(20),
+        );
+        assert_eq!(hang.pid, Some(pids[&slot]), "{hang:?}");
+        assert!(
+            hang.detail
+                .as_deref()
+                .unwrap_or("")
+                .contains("without producing a frame or waiting for input"),
+            "{hang:?}"
+        );
+        run.wait_for_event(
+            |e| is_recovery_of(e, slot, pids[&slot]),
+            Duration::from_secs(20),
+        );
+    }
+
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
+    let s = s3res_tests::sink_summary(&summary);
+    let missing = s["missing"].as_u64().unwrap();
+    // The input the spinners held and what was queued for them meanwhile (at most
+    // 2 × timeout at 500 Hz), rounded up to whole batches.
+    assert!(missing < 400 + 2 * every, "{s}");
+    assert_eq!(s["frames"].as_u64().unwrap(), count as u64 - missing, "{s}");
+    for field in ["duplicated", "reordered", "corrupt"] {
+        assert_eq!(s[field], 0, "{field}: {s}");
+    }
 }

@@ -17,6 +17,7 @@
 
 pub mod boost;
 pub mod ledger;
+pub mod liveness;
 
 use std::os::fd::OwnedFd;
 use std::os::unix::net::UnixListener;
@@ -41,6 +42,7 @@ use boost::Boost;
 use crate::clock::{self, Instant};
 use crate::rt::RealTime;
 use ledger::{Arrival, Decision, Ledger};
+use liveness::{Liveness, Sample};
 
 /// How far decoding of a replica's output may go.
 #[derive(Debug, Clone, Copy)]
@@ -79,6 +81,8 @@ pub struct StreamVoter {
     /// The laggard raised to the turn priority under SCHED_RR: `(pid, slot)`.
     boosted: Option<(libc::pid_t, usize)>,
     poll: PollSet,
+    /// Hangs no deadline sees: every replica stuck at once (see [`liveness`]).
+    liveness: Liveness,
 }
 
 impl StreamVoter {
@@ -106,6 +110,7 @@ impl StreamVoter {
             boosted: None,
             timeout: Duration::from_micros(plan.timeout_us),
             ledger: Ledger::new(n, plan.outputs.len(), plan.window),
+            liveness: Liveness::new(n, Duration::from_micros(plan.timeout_us)),
             slots,
             exited: vec![false; n],
             plan,
@@ -145,6 +150,7 @@ impl StreamVoter {
                 // Recovery blocks the loop (waiting for a death, the fork, the child's page
                 // walk); the laggards' clocks stop meanwhile.
                 self.ledger.postpone(away.elapsed());
+                self.liveness.restart(Instant::now());
             }
             if self.stop == Some(Stop::Requested) {
                 return Ok(());
@@ -168,6 +174,7 @@ impl StreamVoter {
             }
             self.check_deadlines();
             self.decode_all();
+            self.check_liveness();
         }
     }
 
@@ -235,11 +242,16 @@ impl StreamVoter {
             .iter()
             .flatten()
             .filter_map(|rep| rep.output_closed_at.map(|t| t + EXIT_AFTER_EOF));
+        let look = self
+            .ending
+            .is_none()
+            .then(|| self.liveness.next_look(Instant::now()));
         self.ledger
             .next_deadline(self.alive(), self.timeout)
             .into_iter()
             .chain(graces)
             .chain(self.ending)
+            .chain(look)
             .min()
     }
 
@@ -401,6 +413,25 @@ impl StreamVoter {
                         self.fault(r, EventKind::Sdc, detail);
                     }
                 }
+                Decision::Rebuild { index, rebuilt } => {
+                    self.outputs[o].send(&rebuilt.frame);
+                    let name = &self.plan.outputs[o].name;
+                    if let Some(k) = rebuilt.kept {
+                        // Every replica's frame was hit: one must stay to fork the others from.
+                        let mut ev = self.event(EventKind::Sdc);
+                        ev.detail = Some(format!(
+                            "no majority on frame {index} of `{name}`, every replica's differs from the bitwise majority (forwarded); replica {k}, the closest, kept as donor"
+                        ));
+                        self.emit(ev);
+                    }
+                    let detail = format!(
+                        "frame {index} of `{name}` had no majority and differs from the bitwise majority, which was forwarded (≤ {} bits apart)",
+                        rebuilt.max_bits
+                    );
+                    for r in rebuilt.dissent.iter() {
+                        self.fault(r, EventKind::Sdc, detail.clone());
+                    }
+                }
                 Decision::Withhold { index, answered } => {
                     // A fault is certain, its culprit is not: withhold the frame, blame
                     // nobody, go on with the next frame (never stall).
@@ -435,6 +466,7 @@ impl StreamVoter {
             self.boosted = None;
         }
         self.ledger.forget(r);
+        self.liveness.forget(r);
         let mut ev = self.event(kind);
         ev.replica = Some(r);
         ev.pid = Some(replica.pid);
@@ -577,6 +609,28 @@ impl StreamVoter {
                 ),
             };
             self.fault(r, kind, detail);
+        }
+    }
+
+    /// Every `timeout_us`: a replica that computed all that time without producing a frame or
+    /// waiting for anything is a `hang`, also when no frame is owed (see [`liveness`]).
+    fn check_liveness(&mut self) {
+        let now = Instant::now();
+        if self.ending.is_some() || !self.liveness.due(now) {
+            return;
+        }
+        self.liveness.looked(now);
+        for r in 0..self.slots.len() {
+            let sample = self.slots[r]
+                .as_ref()
+                .and_then(|rep| Sample::take(rep.pid, self.ledger.progress(r)));
+            if let Some(ms) = self.liveness.update(r, sample) {
+                let detail = format!(
+                    "on a CPU for {ms} ms of the last {} µs without producing a frame or waiting for input",
+                    self.plan.timeout_us
+                );
+                self.fault(r, EventKind::Hang, detail);
+            }
         }
     }
 

@@ -107,6 +107,103 @@ pub fn vote<A: AsRef<[u8]>>(answers: &[Option<A>], alive: ReplicaSet) -> VoteOut
     }
 }
 
+/// How far a replica's frame may be from the bitwise majority for [`bitwise_majority`] to be
+/// trusted: bit flips, not a different frame. Garbage (a replica that computed something else)
+/// differs in about half of its bits and makes the rule step back.
+pub const MAX_DIFFERING_BITS: u32 = 32;
+
+/// A frame rebuilt bit by bit when no whole frame had a majority.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BitMajority {
+    /// Each bit is the value most trusted replicas sent.
+    pub frame: Vec<u8>,
+    /// Replicas whose frame differs from it: the suspects.
+    pub dissent: ReplicaSet,
+    /// When every frame differed, the one replica not blamed, so that a donor is left to rebuild
+    /// the others from: the one with the fewest differing bits (then the lowest slot).
+    pub kept: Option<usize>,
+    /// The largest number of bits any replica's frame differs in.
+    pub max_bits: u32,
+}
+
+/// The second rule, for a [`VoteOutcome::NoMajority`] among three or more replicas: a hardware
+/// TMR voter votes each bit, not each word, so two replicas hit by bit flips in *different*
+/// bits are still outvoted bit by bit. This does the same, but only where it is safe:
+///
+/// * every trusted replica answered, with frames of one length;
+/// * every bit has a strict majority (odd counts always do; a tie in any bit: `None`);
+/// * no frame differs from the result in more than [`MAX_DIFFERING_BITS`] bits.
+///
+/// Otherwise `None`, and the caller withholds the frame as before. Allocates the rebuilt frame
+/// (this path runs only after a second fault).
+pub fn bitwise_majority<A: AsRef<[u8]>>(
+    answers: &[Option<A>],
+    alive: ReplicaSet,
+) -> Option<BitMajority> {
+    if alive.len() < 3 {
+        return None;
+    }
+    let mut frames = [&[][..]; MAX_REPLICAS];
+    for r in alive.iter() {
+        frames[r] = answers.get(r)?.as_ref()?.as_ref();
+    }
+    let len = frames[alive.iter().next()?].len();
+    if alive.iter().any(|r| frames[r].len() != len) {
+        return None;
+    }
+    let n = alive.len();
+    let mut frame = vec![0u8; len];
+    for (i, byte) in frame.iter_mut().enumerate() {
+        for bit in 0..8 {
+            let ones = alive
+                .iter()
+                .filter(|&r| frames[r][i] >> bit & 1 == 1)
+                .count();
+            if 2 * ones == n {
+                return None;
+            }
+            if 2 * ones > n {
+                *byte |= 1 << bit;
+            }
+        }
+    }
+    let differing = |r: usize| -> u32 {
+        frames[r]
+            .iter()
+            .zip(&frame)
+            .map(|(a, b)| (a ^ b).count_ones())
+            .sum()
+    };
+    let mut dissent = ReplicaSet::EMPTY;
+    let mut max_bits = 0;
+    let mut closest: Option<(u32, usize)> = None;
+    for r in alive.iter() {
+        let bits = differing(r);
+        if bits > MAX_DIFFERING_BITS {
+            return None;
+        }
+        max_bits = max_bits.max(bits);
+        if bits > 0 {
+            dissent = dissent.with(r);
+        }
+        if closest.is_none_or(|c| (bits, r) < c) {
+            closest = Some((bits, r));
+        }
+    }
+    let kept = (dissent.len() == n)
+        .then(|| closest.map(|(_, r)| r))
+        .flatten();
+    if let Some(k) = kept {
+        dissent = dissent.without(k);
+    }
+    Some(BitMajority {
+        frame,
+        dissent,
+        kept,
+        max_bits,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -199,6 +296,58 @@ mod tests {
                 agree: set(&[1, 3, 4]),
                 dissent: set(&[0, 2])
             }
+        );
+    }
+
+    #[test]
+    fn three_frames_flipped_in_different_bits_are_rebuilt() {
+        let good = vec![0b1010_1010u8, 0x55, 0x0f];
+        let mut one = good.clone();
+        one[0] ^= 0x01;
+        let mut two = good.clone();
+        two[2] ^= 0x80;
+        let answers = [Some(one.clone()), Some(good.clone()), Some(two)];
+        assert_eq!(vote(&answers, set(&[0, 1, 2])), VoteOutcome::NoMajority);
+        let rebuilt = bitwise_majority(&answers, set(&[0, 1, 2])).unwrap();
+        assert_eq!(rebuilt.frame, good);
+        assert_eq!(
+            (rebuilt.dissent, rebuilt.kept, rebuilt.max_bits),
+            (set(&[0, 2]), None, 1)
+        );
+        // All three hit: the frame is still rebuilt, and the closest one is kept as donor.
+        let mut three = good.clone();
+        three[1] ^= 0x30;
+        let answers = [Some(one), Some(three), Some(answers[2].clone().unwrap())];
+        let rebuilt = bitwise_majority(&answers, set(&[0, 1, 2])).unwrap();
+        assert_eq!(rebuilt.frame, good);
+        assert_eq!(
+            (rebuilt.dissent, rebuilt.kept, rebuilt.max_bits),
+            (set(&[1, 2]), Some(0), 2)
+        );
+    }
+
+    #[test]
+    fn bitwise_majority_steps_back_where_it_is_not_safe() {
+        let all = set(&[0, 1, 2]);
+        // Lengths differ.
+        assert_eq!(bitwise_majority(&[a("ab"), a("ac"), a("abc")], all), None);
+        // A replica has not answered.
+        assert_eq!(bitwise_majority(&[a("ab"), a("ac"), None], all), None);
+        // Two replicas: no majority per bit either.
+        assert_eq!(bitwise_majority(&[a("ab"), a("ac")], set(&[0, 1])), None);
+        // Four replicas tied 2:2 on a bit.
+        assert_eq!(
+            bitwise_majority(&[a("a"), a("a"), a("c"), a("c")], set(&[0, 1, 2, 3])),
+            None
+        );
+        // A frame that is something else altogether, not a few flipped bits.
+        let good = vec![0u8; 16];
+        let other = vec![0xffu8; 16];
+        let mut other2 = other.clone();
+        other2[0] = 0;
+        assert_eq!(
+            bitwise_majority(&[Some(good), Some(other), Some(other2)], all),
+            None
         );
     }
 

@@ -30,7 +30,7 @@ use crate::replica::Replica;
 use crate::round::{OutputSet, Round};
 use crate::rt::RealTime;
 use crate::sched::Schedule;
-use crate::vote::{vote, ReplicaSet, VoteOutcome, MAX_REPLICAS};
+use crate::vote::{bitwise_majority, vote, BitMajority, ReplicaSet, VoteOutcome, MAX_REPLICAS};
 
 /// How long a replica whose output pipe closed may take to show up as dead before we call it a
 /// protocol fault instead of a crash. The kernel closes a dying process's fds before it signals
@@ -525,13 +525,36 @@ impl Voter {
     }
 
     fn vote_output(&self, round: &Round, o: usize) -> VoteOutcome {
+        vote(
+            &self.round_answers(round, o)[..self.slots.len()],
+            self.alive(round),
+        )
+    }
+
+    /// The second rule when no whole frame of output `o` has a majority (see `vote.rs`).
+    fn rebuild_output(&self, round: &Round, o: usize) -> Option<BitMajority> {
+        bitwise_majority(
+            &self.round_answers(round, o)[..self.slots.len()],
+            self.alive(round),
+        )
+    }
+
+    /// The trusted replicas that answered output `o` of `round`.
+    fn answered(&self, round: &Round, o: usize) -> Vec<usize> {
+        self.alive(round)
+            .iter()
+            .filter(|&r| round.has_answered(r, o))
+            .collect()
+    }
+
+    fn round_answers(&self, round: &Round, o: usize) -> [Option<&[u8]>; MAX_REPLICAS] {
         let mut answers: [Option<&[u8]>; MAX_REPLICAS] = [None; MAX_REPLICAS];
         for r in round.members.iter() {
             if round.has_answered(r, o) {
                 answers[r] = Some(&self.answers[r][o]);
             }
         }
-        vote(&answers[..self.slots.len()], self.alive(round))
+        answers
     }
 
     /// Forwards output `o` of the current round as soon as some frame has a majority.
@@ -804,6 +827,7 @@ impl Voter {
         }
         let mut dissenters = ReplicaSet::EMPTY;
         let mut withheld = Vec::new();
+        let mut rebuilt_outputs = Vec::new();
         for o in round.outputs() {
             if round.held & (1 << o) != 0 {
                 continue;
@@ -825,13 +849,14 @@ impl Voter {
                         dissenters = dissenters.with(r);
                     }
                 }
+                VoteOutcome::NoMajority if round.forwarded & (1 << o) == 0 => {
+                    match self.rebuild_output(&round, o) {
+                        Some(rebuilt) => rebuilt_outputs.push((o, rebuilt)),
+                        None => withheld.push((o, self.answered(&round, o))),
+                    }
+                }
                 VoteOutcome::Pending | VoteOutcome::NoMajority => {
-                    let answered: Vec<usize> = self
-                        .alive(&round)
-                        .iter()
-                        .filter(|&r| round.has_answered(r, o))
-                        .collect();
-                    withheld.push((o, answered));
+                    withheld.push((o, self.answered(&round, o)));
                 }
             }
         }
@@ -850,8 +875,33 @@ impl Voter {
             ));
             self.emit(ev);
         }
+        let mut rebuilt_dissent = Vec::new();
+        for (o, rebuilt) in rebuilt_outputs {
+            // No whole frame had a majority, every bit did: forward the rebuilt frame.
+            self.outputs[o].send(&rebuilt.frame);
+            self.captures.record(o, &rebuilt.frame);
+            let name = &self.plan.outputs[o].name;
+            if let Some(k) = rebuilt.kept {
+                // Every replica's frame was hit: one must stay to fork the others from.
+                let mut ev = self.event(EventKind::Sdc);
+                ev.round = Some(number);
+                ev.detail = Some(format!(
+                    "no majority on `{name}`, every replica's output differs from the bitwise majority (forwarded); replica {k}, the closest, kept as donor"
+                ));
+                self.emit(ev);
+            }
+            for r in rebuilt.dissent.iter() {
+                rebuilt_dissent.push((r, format!(
+                    "output `{name}` had no majority in round {number} and differs from the bitwise majority, which was forwarded (≤ {} bits apart)",
+                    rebuilt.max_bits
+                )));
+            }
+        }
         for r in dissenters.iter() {
             let detail = format!("output differs from the majority in round {number}");
+            self.fault_in_round(r, EventKind::Sdc, detail, Some(number));
+        }
+        for (r, detail) in rebuilt_dissent {
             self.fault_in_round(r, EventKind::Sdc, detail, Some(number));
         }
     }

@@ -16,7 +16,7 @@ use std::time::Duration;
 
 use crate::clock::Instant;
 
-use crate::vote::{vote, ReplicaSet, VoteOutcome};
+use crate::vote::{bitwise_majority, vote, BitMajority, ReplicaSet, VoteOutcome};
 
 /// What became of a frame number.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -81,6 +81,9 @@ pub enum Decision {
         frame: Vec<u8>,
         dissent: ReplicaSet,
     },
+    /// No whole frame had a majority, but every bit did ([`bitwise_majority`]): the rebuilt
+    /// frame is forwarded and `rebuilt.dissent` are the suspects.
+    Rebuild { index: u64, rebuilt: BitMajority },
     /// No frame can reach a majority; `answered` sent frames that disagree.
     Withhold { index: u64, answered: ReplicaSet },
 }
@@ -241,14 +244,20 @@ impl Ledger {
                     dissent,
                 }
             }
-            VoteOutcome::NoMajority => {
-                let answered = alive
-                    .iter()
-                    .filter(|&s| entry.frames[s].is_some())
-                    .fold(ReplicaSet::EMPTY, ReplicaSet::with);
-                entry.verdict = Verdict::Withheld;
-                Decision::Withhold { index, answered }
-            }
+            VoteOutcome::NoMajority => match bitwise_majority(&entry.frames, alive) {
+                Some(rebuilt) => {
+                    entry.verdict = Verdict::Forwarded(rebuilt.frame.clone());
+                    Decision::Rebuild { index, rebuilt }
+                }
+                None => {
+                    let answered = alive
+                        .iter()
+                        .filter(|&s| entry.frames[s].is_some())
+                        .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+                    entry.verdict = Verdict::Withheld;
+                    Decision::Withhold { index, answered }
+                }
+            },
         };
         entry.frames.iter_mut().for_each(|f| *f = None);
         out.next += 1;
@@ -436,17 +445,31 @@ mod tests {
                 dissent: set(&[1])
             }]
         );
+        // No whole frame has a majority, every bit does ('p' 0x70, 'q' 0x71, 'r' 0x72).
         for (s, f) in [(0, "p"), (1, "q"), (2, "r")] {
+            l.accept(s, 0, f.as_bytes(), t);
+        }
+        match &decide_all(&mut l, 0, all)[..] {
+            [Decision::Rebuild { index: 1, rebuilt }] => {
+                assert_eq!(
+                    (&rebuilt.frame[..], rebuilt.dissent),
+                    (&b"p"[..], set(&[1, 2]))
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        // Not even that (lengths differ): withheld.
+        for (s, f) in [(0, "p"), (1, "qq"), (2, "r")] {
             l.accept(s, 0, f.as_bytes(), t);
         }
         assert_eq!(
             decide_all(&mut l, 0, all),
             [Decision::Withhold {
-                index: 1,
+                index: 2,
                 answered: all
             }]
         );
-        assert_eq!(l.next(0), 2, "a withheld frame does not stall the output");
+        assert_eq!(l.next(0), 3, "a withheld frame does not stall the output");
     }
 
     #[test]
