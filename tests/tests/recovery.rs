@@ -341,3 +341,56 @@ fn tmr_two_replicas_flipped_in_different_bits_are_outvoted_bit_by_bit() {
 fn tmr_all_three_flipped_in_different_bits_are_outvoted_bit_by_bit() {
     tmr_rebuilds_bit_by_bit(&[(0, 13), (1, 40), (2, 3)]);
 }
+
+/// DMR, replica 0 spins (a control-flow error) and, while the round waits for it, replica 1
+/// answers and then spins too. When the round closes replica 0 is the `hang`; the only donor
+/// left, replica 1, never once waits for input within `timeout_us`, so it is not cloned (its
+/// child would spin as well and be blamed next round) but found as the second `hang`. Both
+/// restarted with their state lost: no healthy replica is left to fork from.
+#[test]
+fn dmr_does_not_clone_a_donor_that_spins() {
+    let count = 600;
+    let sys = System::new();
+    let desc = echo_system(&sys, "dmr", "s3res-echo", &["--stateful"], count, 50);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 2);
+
+    let pids = run.replica_pids("echo");
+    s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    // Replica 1 answers the next round (at most 20 ms away) long before its 300 ms deadline.
+    std::thread::sleep(Duration::from_millis(100));
+    s3res_tests::kill_pid(pids[&1], signals::inject_cfe()).expect("inject cfe");
+
+    let first = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.replica == Some(0),
+        Duration::from_secs(20),
+    );
+    assert_eq!(first.pid, Some(pids[&0]), "{first:?}");
+    let donor = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.replica == Some(1),
+        Duration::from_secs(20),
+    );
+    assert_eq!(donor.pid, Some(pids[&1]), "{donor:?}");
+    assert!(
+        donor
+            .detail
+            .as_deref()
+            .unwrap_or("")
+            .contains("recovery donor"),
+        "{donor:?}"
+    );
+    for slot in [0, 1] {
+        // By exec, or by fork of the slot already restarted by exec: either way, state lost.
+        let rec = run.wait_for_recovery("echo", slot, pids[&slot]);
+        assert_eq!(rec.state_lost, Some(true), "{rec:?}");
+    }
+    let out = run.wait(LIMIT);
+    run.assert_nothing_left();
+    // No third fault: no spinning child was made.
+    assert_eq!(
+        of_kind(&out.events, EventKind::Hang).len(),
+        2,
+        "{:?}",
+        out.events
+    );
+}

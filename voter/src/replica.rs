@@ -4,6 +4,7 @@
 use std::io;
 use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
 use std::process::{Command, Stdio};
+use std::time::Duration;
 
 use replica_rt::contract::{
     Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET,
@@ -194,11 +195,9 @@ impl Replica {
         if !self.may_donate() {
             return None;
         }
-        let state = sys::process_state(self.pid);
         Some(DonorRank {
             unproven: !self.proven,
-            stopped: matches!(state, Some('T' | 't')),
-            busy: matches!(state, Some('R')),
+            stopped: matches!(sys::process_state(self.pid), Some('T' | 't')),
         })
     }
 
@@ -217,45 +216,106 @@ impl Replica {
 ///   spread the loss.
 /// * A stopped replica (SIGSTOP, a debugger, an injector's ptrace stop) would only make the
 ///   attempt time out.
-/// * A replica asleep in the kernel is at a clean point; one that is running may be
-///   computing, or may be spinning in a control-flow error that nobody has caught yet. Its
-///   fork child would inherit the spin (the restart handler returns into it), and two
-///   spinners can outvote the one healthy replica left. Stream mode forks at any moment, so
-///   this matters most there.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub struct DonorRank {
     pub unproven: bool,
     pub stopped: bool,
-    pub busy: bool,
 }
 
-/// How many times [`best_donor`] looks again, [`BUSY_RESAMPLE`] apart, when every candidate is
-/// running: a healthy replica's burst of work is short, a spin is not.
-const BUSY_SAMPLES: u32 = 3;
-const BUSY_RESAMPLE: std::time::Duration = std::time::Duration::from_micros(200);
+/// What [`best_donor`] found.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct DonorPick {
+    pub donor: Option<usize>,
+    /// Answered replicas that ran for the whole patience without once waiting for anything:
+    /// hung (a control-flow error nobody had caught yet). The caller blames them.
+    pub hung: Vec<usize>,
+}
+
+/// How often [`best_donor`] looks again while every candidate is running.
+const RESAMPLE: Duration = Duration::from_micros(200);
 
 /// The best donor among `slots`: lowest [`DonorRank`], then most `progress` (stream mode: the
-/// frames a slot has produced; a replica that has produced more has not stopped working),
-/// then lowest slot.
-pub fn best_donor(slots: &[Option<Replica>], progress: impl Fn(usize) -> u64) -> Option<usize> {
-    let mut best = None;
-    for sample in 1..=BUSY_SAMPLES {
-        best = slots
-            .iter()
-            .enumerate()
-            .filter_map(|(d, rep)| {
-                let rank = rep.as_ref()?.donor_rank()?;
-                Some((rank, std::cmp::Reverse(progress(d)), d))
-            })
-            .min();
-        match best {
-            Some((rank, ..)) if rank.busy && sample < BUSY_SAMPLES => {
-                std::thread::sleep(BUSY_RESAMPLE)
+/// frames a slot has produced), then lowest slot — **among those at a clean point**.
+///
+/// A replica that is running may be computing, or may be spinning in a control-flow error
+/// that nobody has caught yet; its fork child would spin too (the restart handler returns
+/// into the spin), and two spinners outvote the healthy replica (a robot campaign found both).
+/// So a candidate is taken only once it is seen asleep in the kernel (`S`), or has blocked
+/// (its voluntary context switches grew) since the first look: a healthy burst of work is
+/// short. The voter looks every 200 µs for at most `patience` (the component's `timeout_us`,
+/// the time any answer may take); a proven candidate that never waits in that time is
+/// returned in [`DonorPick::hung`]. A stopped candidate is the last resort, as before.
+pub fn best_donor(
+    slots: &[Option<Replica>],
+    progress: impl Fn(usize) -> u64,
+    patience: Duration,
+) -> DonorPick {
+    let mut ranked: Vec<(DonorRank, std::cmp::Reverse<u64>, usize, libc::pid_t)> = slots
+        .iter()
+        .enumerate()
+        .filter_map(|(d, rep)| {
+            let rep = rep.as_ref()?;
+            Some((
+                rep.donor_rank()?,
+                std::cmp::Reverse(progress(d)),
+                d,
+                rep.pid,
+            ))
+        })
+        .collect();
+    ranked.sort();
+    let best = DonorRank {
+        unproven: false,
+        stopped: false,
+    };
+    // (slot, pid, voluntary switches at the first look) of the proven, running candidates.
+    let clean: Vec<(usize, libc::pid_t, Option<u64>)> = ranked
+        .iter()
+        .filter(|c| c.0 == best)
+        .map(|&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+        .collect();
+    let started = std::time::Instant::now();
+    while !clean.is_empty() {
+        for &(d, pid, first_blocks) in &clean {
+            let asleep = sys::process_state(pid) == Some('S');
+            if asleep || voluntary_switches(pid) != first_blocks {
+                return DonorPick {
+                    donor: Some(d),
+                    hung: Vec::new(),
+                };
             }
-            _ => break,
         }
+        if started.elapsed() >= patience {
+            break;
+        }
+        std::thread::sleep(RESAMPLE);
     }
-    best.map(|(.., d)| d)
+    // None of them waited for anything in all that time: hung. The next best (stopped, or not
+    // yet proven) is the donor, if any.
+    let hung: Vec<usize> = clean
+        .iter()
+        .filter(|&&(_, pid, _)| sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X'))
+        .map(|&(d, ..)| d)
+        .collect();
+    DonorPick {
+        donor: ranked.iter().find(|c| c.0 != best).map(|c| c.2),
+        hung,
+    }
+}
+
+/// Voluntary context switches of `pid`, from `/proc/PID/status`.
+pub fn voluntary_switches(pid: libc::pid_t) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+/// Time `pid` has spent on a CPU, ns: the first field of `/proc/PID/schedstat`.
+pub fn cpu_time_ns(pid: libc::pid_t) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/schedstat")).ok()?;
+    stat.split_whitespace().next()?.parse().ok()
 }
 
 /// Whether `pid` has a handler for the restart signal installed (`SigCgt` in

@@ -673,8 +673,18 @@ impl StreamVoter {
     }
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
-        let donor = crate::replica::best_donor(&self.slots, |d| self.ledger.progress(d));
+        let pick =
+            crate::replica::best_donor(&self.slots, |d| self.ledger.progress(d), self.timeout);
+        for r in pick.hung {
+            let detail = format!(
+                "picked as recovery donor, it ran for {} µs without once producing a frame or waiting for input",
+                self.plan.timeout_us
+            );
+            self.fault(r, EventKind::Hang, detail);
+        }
+        let donor = pick.donor;
         if let Some(d) = donor {
+            let donor_proven = self.slots[d].as_ref().is_some_and(|r| r.proven);
             match self.fork_into(slot, d) {
                 Ok(pid) => {
                     // The child inherited the donor's priority and CPU; it takes the slot's.
@@ -682,7 +692,8 @@ impl StreamVoter {
                     let mut ev = recovery_event(&self.plan, slot, old_pid, pid, detected_ns);
                     ev.donor = Some(d);
                     ev.method = Some(RecoveryMethod::Fork);
-                    ev.state_lost = Some(false);
+                    // A donor that has not answered yet was itself just started by exec.
+                    ev.state_lost = Some(!donor_proven);
                     self.emit(ev);
                     self.decide_all();
                     return Ok(());

@@ -956,8 +956,18 @@ impl Voter {
 
     fn replace(&mut self, slot: usize, old_pid: i32, detected_ns: u64) -> Result<(), VoterError> {
         // Every trusted replica has answered the last round: no progress to tell them apart.
-        let donor = crate::replica::best_donor(&self.slots, |_| 0);
+        let patience = std::time::Duration::from_micros(self.plan.timeout_us);
+        let pick = crate::replica::best_donor(&self.slots, |_| 0, patience);
+        for r in pick.hung {
+            let detail = format!(
+                "picked as recovery donor, it ran for {} µs without once waiting for input",
+                self.plan.timeout_us
+            );
+            self.fault(r, EventKind::Hang, detail);
+        }
+        let donor = pick.donor;
         if let Some(d) = donor {
+            let donor_proven = self.slots[d].as_ref().is_some_and(|r| r.proven);
             let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
             self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
             let donor_rep = self.slots[d].as_mut().expect("donor slot is filled");
@@ -979,7 +989,8 @@ impl Voter {
                     let mut ev = recovery_event(&self.plan, slot, old_pid, child.pid, detected_ns);
                     ev.donor = Some(d);
                     ev.method = Some(RecoveryMethod::Fork);
-                    ev.state_lost = Some(false);
+                    // A donor that has not answered yet was itself just started by exec.
+                    ev.state_lost = Some(!donor_proven);
                     self.emit(ev);
                     self.slots[slot] = Some(child);
                     // The child's next frame continues the donor's stream.

@@ -19,6 +19,7 @@
 use std::time::Duration;
 
 use crate::clock::Instant;
+use crate::replica::{cpu_time_ns, voluntary_switches};
 
 /// What `/proc` said about one replica at one look.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -108,21 +109,6 @@ pub fn verdict(old: &Sample, new: &Sample, interval: Duration) -> Option<u64> {
         && !new.asleep
         && u128::from(ran) * 4 >= interval.as_nanos();
     hung.then_some(ran / 1_000_000)
-}
-
-/// Voluntary context switches of `pid`, from `/proc/PID/status`.
-fn voluntary_switches(pid: libc::pid_t) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
-        .and_then(|v| v.trim().parse().ok())
-}
-
-/// Time `pid` has spent on a CPU, ns: the first field of `/proc/PID/schedstat`.
-fn cpu_time_ns(pid: libc::pid_t) -> Option<u64> {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/schedstat")).ok()?;
-    stat.split_whitespace().next()?.parse().ok()
 }
 
 #[cfg(test)]
