@@ -32,6 +32,10 @@ pub struct NavParams {
     pub off_path: f64,
     /// Periods to wait for an answer before asking again.
     pub request_every: u32,
+    /// Periods after which a plan is asked for again even if the robot is on its path: a
+    /// planner restarted with its state lost no longer knows the path it sent, so it cannot
+    /// replan when the map blocks it; this bounds how long a stale plan is followed.
+    pub refresh_every: u32,
     /// The robot's radius, metres (for the room in front).
     pub radius: f64,
     /// Seconds the robot must be able to keep its command without reaching a wall ahead: a
@@ -50,6 +54,7 @@ impl Default for NavParams {
             k_rep: 0.04,
             off_path: 0.6,
             request_every: 10,
+            refresh_every: 100,
             radius: 0.15,
             stale_horizon: 0.8,
         }
@@ -62,6 +67,8 @@ pub struct Navigator {
     p: NavParams,
     path: Vec<(f64, f64)>,
     plan: u32,
+    /// The period the followed plan was made in.
+    plan_seq: Option<u32>,
     last_request: Option<u32>,
 }
 
@@ -71,6 +78,7 @@ impl Navigator {
             p,
             path: Vec::new(),
             plan: 0,
+            plan_seq: None,
             last_request: None,
         }
     }
@@ -84,6 +92,7 @@ impl Navigator {
     pub fn on_waypoints(&mut self, w: &Waypoints) {
         if w.plan > self.plan {
             self.plan = w.plan;
+            self.plan_seq = Some(w.seq);
             self.path.clear();
             self.path.extend(
                 w.points
@@ -121,9 +130,13 @@ impl Navigator {
         let near_end = self.path.len() <= 1 && self.path.first().is_some_and(|p| dist(p) < 0.2);
         let goal_dist = ((s.goal_x - x).powi(2) + (s.goal_y - y).powi(2)).sqrt();
 
-        // Ask for a plan when there is none, the robot strayed, or the path ran out short of
-        // the goal; not more often than every `request_every` periods.
-        let need = self.path.is_empty() || off_path || (near_end && goal_dist > 0.3);
+        // Ask for a plan when there is none, the robot strayed, the path ran out short of the
+        // goal, or the plan is `refresh_every` periods old; not more often than every
+        // `request_every` periods.
+        let stale = self
+            .plan_seq
+            .is_some_and(|made| s.seq.wrapping_sub(made) >= self.p.refresh_every);
+        let need = self.path.is_empty() || off_path || (near_end && goal_dist > 0.3) || stale;
         let due = match self.last_request {
             Some(r) => s.seq.wrapping_sub(r) >= self.p.request_every,
             None => true,
@@ -369,5 +382,24 @@ mod tests {
             }
         }
         assert_eq!(asked, vec![0, 10, 20]);
+    }
+
+    #[test]
+    fn a_plan_is_asked_for_again_when_it_gets_old() {
+        let p = NavParams::default();
+        let mut nav = Navigator::new(p);
+        nav.on_waypoints(&Waypoints {
+            plan: 7,
+            seq: 50,
+            points: vec![(0.1, 0.0), (0.5, 0.0), (1.0, 0.0), (3.0, 0.0)],
+        });
+        // On the path: no request until the plan is `refresh_every` periods old.
+        let at = |seq| Scan {
+            seq,
+            ..scan_at(0.1, 0.0, 0.0, [2.0; RANGES])
+        };
+        assert!(!nav.on_scan(&at(51)).1.want);
+        assert!(!nav.on_scan(&at(50 + p.refresh_every - 1)).1.want);
+        assert!(nav.on_scan(&at(50 + p.refresh_every)).1.want);
     }
 }

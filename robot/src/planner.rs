@@ -231,7 +231,7 @@ impl Planner {
         self.grid = Some((grid, m.block));
         self.goal = (m.goal_x, m.goal_y);
         if blocked {
-            self.plan(m.seq, m.x, m.y)
+            self.plan(m.seq, PlanCause::Map, m.x, m.y)
         } else {
             None
         }
@@ -243,10 +243,10 @@ impl Planner {
             return None;
         }
         self.goal = (r.goal_x, r.goal_y);
-        self.plan(r.seq, r.x, r.y)
+        self.plan(r.seq, PlanCause::Request, r.x, r.y)
     }
 
-    fn plan(&mut self, seq: u32, x: f64, y: f64) -> Option<Waypoints> {
+    fn plan(&mut self, seq: u32, cause: PlanCause, x: f64, y: f64) -> Option<Waypoints> {
         let (grid, block) = self.grid.as_ref()?;
         let cell = |px: f64, py: f64| -> Option<(usize, usize)> {
             let (cx, cy) = ((px / block).floor(), (py / block).floor());
@@ -269,10 +269,30 @@ impl Planner {
         self.plans += 1;
         self.last_path = path;
         Some(Waypoints {
-            plan: self.plans,
+            plan: plan_id(seq, cause),
             seq,
             points,
         })
+    }
+}
+
+/// What made the planner plan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum PlanCause {
+    Map,
+    Request,
+}
+
+/// A plan's id, from the period it was made in, not from a count: a planner restarted with
+/// its state lost must not number its plans from 1 again, or the navigator (which ignores
+/// plans older than the one it follows) would ignore every one of them. In one period the map
+/// update is taken before the request, so a request's plan gets the larger id. Never 0 ("no
+/// plan yet").
+fn plan_id(seq: u32, cause: PlanCause) -> u32 {
+    let base = seq.saturating_mul(2);
+    match cause {
+        PlanCause::Map => base.saturating_add(1),
+        PlanCause::Request => base.saturating_add(2),
     }
 }
 
@@ -359,6 +379,39 @@ mod tests {
     }
 
     #[test]
+    fn a_restarted_planner_numbers_its_plans_above_the_old_ones() {
+        let m = MapUpdate {
+            seq: 0,
+            next: 5,
+            w: 5,
+            h: 3,
+            block: 1.0,
+            x: 0.5,
+            y: 1.5,
+            goal_x: 4.5,
+            goal_y: 1.5,
+            cells: Grid::from_rows(&[".....", ".....", "....."]).cells,
+        };
+        let req = |seq| Request {
+            seq,
+            want: true,
+            x: 0.5,
+            y: 1.5,
+            goal_x: 4.5,
+            goal_y: 1.5,
+        };
+        let mut old = Planner::new();
+        old.on_map(&m);
+        let before = old.on_request(&req(3)).unwrap().plan;
+        // State lost: a fresh planner, later in the mission.
+        let mut fresh = Planner::new();
+        fresh.on_map(&m);
+        let after = fresh.on_request(&req(4)).unwrap().plan;
+        assert!(after > before, "{after} > {before}");
+        assert!(plan_id(0, PlanCause::Map) > 0);
+    }
+
+    #[test]
     fn planner_orders_inputs_and_replans_when_blocked() {
         let rows = [".....", ".....", "....."];
         let mut m = MapUpdate {
@@ -386,7 +439,10 @@ mod tests {
             goal_y: 1.5,
         };
         let w = p.on_request(&req).unwrap();
-        assert_eq!(w.plan, 1);
+        assert_eq!(
+            w.plan, 4,
+            "ids come from the period (1), a request's after a map's"
+        );
         assert_eq!(*w.points.last().unwrap(), (4.5, 1.5));
         assert_eq!(p.on_request(&Request { want: false, ..req }), None);
         // An update that does not touch the path: no replan. One that does: a new plan.
@@ -398,6 +454,6 @@ mod tests {
         m.next = 15;
         m.cells = Grid::from_rows(&["#....", "..#..", "....."]).cells;
         let w = p.on_map(&m).expect("blocked path is replanned");
-        assert_eq!((w.plan, w.seq), (2, 10));
+        assert_eq!((w.plan, w.seq), (21, 10));
     }
 }

@@ -404,3 +404,30 @@ fn unprotected_mission_fails_when_the_navigator_is_killed() {
     );
     run.assert_nothing_left();
 }
+
+/// DMR, and both planner replicas are killed at once shortly after the start: no healthy
+/// donor is left, so both are restarted by exec with their state lost (no map, no idea of the
+/// path they sent, plan count back at 0). The mission must still succeed: plan ids come from
+/// the period, so the navigator takes the fresh planner's plans, and the navigator asks again
+/// for a plan that has grown old, so a path the fresh planner cannot check is not followed
+/// into a wall for ever. (Before both, such a mission ran into its time limit.)
+#[test]
+fn dmr_mission_survives_the_planners_state_loss() {
+    let sys = System::new();
+    let desc = robot_system(&sys, "dmr", 1, &[]);
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("planner", 2);
+    std::thread::sleep(Duration::from_millis(500));
+    let pids = run.replica_pids("planner");
+    for pid in pids.values() {
+        s3res_tests::kill_pid(*pid, libc::SIGKILL).expect("kill a planner replica");
+    }
+    for (&slot, &pid) in &pids {
+        let rec = run.wait_for_recovery("planner", slot, pid);
+        assert_eq!(rec.state_lost, Some(true), "{rec:?}");
+    }
+    run.wait_success(LIMIT);
+    let m = mission(&run);
+    eprintln!("dmr, seed 1, planners restarted: {}", line(&m));
+    assert_eq!(m["success"], true, "{}", line(&m));
+}
