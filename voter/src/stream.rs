@@ -395,11 +395,12 @@ impl StreamVoter {
             let pid = rep.pid;
             // Every frame is scored, also when all agree and also late copies: each replica's
             // stream must be complete for the next delta to be meaningful.
+            let after_alarm = self.monitors.alarmed(r, o);
             let verdict = self.monitors.observe(r, o, frame);
             let arrival = self.ledger.accept(r, o, frame, Instant::now());
             if verdict.is_some_and(|v| v.alarm) {
                 self.ledger.flag_last(r, o);
-                self.anomaly_event(r, pid, o);
+                self.anomaly_event(r, pid, o, after_alarm);
             }
             match arrival {
                 Arrival::Fine => {}
@@ -492,8 +493,11 @@ impl StreamVoter {
     }
 
     /// Every alarm is an `anomaly` event (replica `r`'s latest frame on `o`), whatever the
-    /// ledger then does about it.
-    fn anomaly_event(&self, r: usize, pid: libc::pid_t, o: usize) {
+    /// ledger then does about it. `after_alarm`: the replica's previous frame on `o` alarmed
+    /// too. A replica that runs ahead has its frames scored before the vote on a corrupted
+    /// one removes it, and the frame after a corrupted one alarms on the way back (the
+    /// detector's reference is the corrupted frame); the detail says so.
+    fn anomaly_event(&self, r: usize, pid: libc::pid_t, o: usize, after_alarm: bool) {
         let Some(alarm) = self.monitors.alarm(r, o) else {
             return;
         };
@@ -505,7 +509,12 @@ impl StreamVoter {
         ev.field = alarm.field;
         ev.score = alarm.score;
         ev.threshold = Some(alarm.threshold);
-        ev.detail = Some(format!("{} (frame {frame})", alarm.cause));
+        let way_back = if after_alarm {
+            "; its previous frame alarmed too (this may be the way back from it)"
+        } else {
+            ""
+        };
+        ev.detail = Some(format!("{} (frame {frame}){way_back}", alarm.cause));
         self.emit(ev);
     }
 

@@ -699,7 +699,10 @@ mod tests {
         // A DMR pair down to one: the survivor's flagged frame stands on its word alone.
         let mut l = Ledger::new(2, 1, 8);
         scored(&mut l, 1, b"x", true, t);
-        assert!(decide_all(&mut l, 0, set(&[0, 1])).is_empty(), "waits for 0");
+        assert!(
+            decide_all(&mut l, 0, set(&[0, 1])).is_empty(),
+            "waits for 0"
+        );
         l.forget(0);
         assert_eq!(
             decide_all(&mut l, 0, set(&[1])),
