@@ -139,10 +139,12 @@ impl Monitors {
         }
     }
 
-    /// Slot `to` was replaced by a fork of `from`: its streams continue `from`'s.
+    /// Slot `to` was replaced by a fork of `from`: its streams continue `from`'s. The verdict
+    /// on the old process's last frame is forgotten.
     pub(crate) fn copy_stream(&mut self, from: usize, to: usize) {
         for m in self.by_output.iter_mut().flatten() {
             m.detector.copy_stream(from, to);
+            m.last[to] = None;
         }
     }
 
@@ -150,6 +152,7 @@ impl Monitors {
     pub(crate) fn reset_stream(&mut self, slot: usize) {
         for m in self.by_output.iter_mut().flatten() {
             m.detector.reset_stream(slot);
+            m.last[slot] = None;
         }
     }
 }
