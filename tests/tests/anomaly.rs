@@ -139,6 +139,47 @@ fn train(kind: &str, layout: &Path, frames: &Path, out: &Path) {
 
 /// Captures a fault-free run (SMR, the channel's `capture`) and trains both models on it.
 /// Once per test process; the files live in cargo's temp dir for integration tests.
+/// Runs `signal` (a component entry) over `count` source frames at offset 0 with a `capture`
+/// into `capture`, and checks that the capture is what went downstream and fault-free.
+fn capture_fault_free(signal: &str, count: u32, capture: &Path) {
+    let extra = format!(r#", "capture": "{}""#, capture.display());
+    let mut run = System::new().start(&description(signal, count, 0, &extra));
+    run.wait_success(LIMIT);
+    let captured = frames(capture);
+    assert_eq!(
+        captured,
+        frames(&run.path("stdout.txt")),
+        "the capture is not what the voter forwarded"
+    );
+    assert_eq!(
+        captured,
+        expected(0, count),
+        "the capture run was not fault-free"
+    );
+}
+
+/// Runs `signal` (a component entry at `offset`) under `model` on `count` frames as fast as
+/// they go, and checks: no alarm, no fault, the output exactly the fault-free output.
+fn assert_no_alarm(signal: &str, offset: u64, count: u32, model: &Path) {
+    let mut run = System::new().start(&description(signal, count, 0, &detector(model)));
+    let outcome = run.wait_success(LIMIT);
+    let alarms = of_kind(&outcome.events, EventKind::Anomaly);
+    assert!(
+        alarms.is_empty(),
+        "{signal}: false alarms on fault-free data: {alarms:?}"
+    );
+    assert!(
+        outcome.faults().is_empty(),
+        "{signal}: {:?}",
+        outcome.faults()
+    );
+    assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
+    eprintln!(
+        "{signal} with {}: 0 alarms in {count} frames × replicas",
+        model.display()
+    );
+}
+
 fn models() -> &'static Models {
     static MODELS: OnceLock<Models> = OnceLock::new();
     MODELS.get_or_init(|| {
@@ -146,21 +187,7 @@ fn models() -> &'static Models {
             .join(format!("anomaly-models-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let capture = dir.join("train.bin");
-        let sys = System::new();
-        let extra = format!(r#", "capture": "{}""#, capture.display());
-        let mut run = sys.start(&description(&signal("smr", 0), TRAIN_FRAMES, 0, &extra));
-        run.wait_success(LIMIT);
-        let captured = frames(&capture);
-        assert_eq!(
-            captured,
-            frames(&run.path("stdout.txt")),
-            "the capture is not what the voter forwarded"
-        );
-        assert_eq!(
-            captured,
-            expected(0, TRAIN_FRAMES),
-            "the capture run was not fault-free"
-        );
+        capture_fault_free(&signal("smr", 0), TRAIN_FRAMES, &capture);
 
         let layout = dir.join("layout.json");
         std::fs::write(&layout, FIELDS).unwrap();
@@ -242,29 +269,8 @@ fn flip_and_wait_for_recovery(
 fn a_fault_free_run_raises_no_alarm() {
     let models = models();
     for (redundancy, model) in [("dmr", &models.autoencoder), ("tmr", &models.gaussian)] {
-        let (offset, count) = (50_000, 3000);
-        let mut run = System::new().start(&description(
-            &signal(redundancy, offset),
-            count,
-            0,
-            &detector(model),
-        ));
-        let outcome = run.wait_success(LIMIT);
-        let alarms = of_kind(&outcome.events, EventKind::Anomaly);
-        assert!(
-            alarms.is_empty(),
-            "{redundancy}: false alarms on fault-free data: {alarms:?}"
-        );
-        assert!(
-            outcome.faults().is_empty(),
-            "{redundancy}: {:?}",
-            outcome.faults()
-        );
-        assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
-        eprintln!(
-            "{redundancy} with {}: 0 alarms in {count} frames × replicas",
-            model.display()
-        );
+        let offset = 50_000;
+        assert_no_alarm(&signal(redundancy, offset), offset, 3000, model);
     }
 }
 
@@ -326,30 +332,52 @@ fn dmr_attributes(mode: Mode) {
     );
 }
 
-#[test]
-fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
+/// SMR under the autoencoder: flips an exponent bit of x or y in the replica's next frame and
+/// checks what both modes share: exactly one `anomaly` naming the field, one `sdc` naming the
+/// replica with "held back", and a restart by exec with the state lost. Returns the ended run,
+/// the alarm, the field and the bit.
+fn smr_holds_back(
+    mode: Mode,
+    offset: u64,
+    count: u32,
+) -> (RunningSystem, Event, &'static str, i32) {
     let models = models();
     let mut rng = Rng::from_env();
-    let (offset, count) = (30_000, 800);
-    let mut run = start_monitored(&signal("smr", offset), 1, count, &models.autoencoder);
+    let mut run = start_monitored(&mode.signal("smr", offset), 1, count, &models.autoencoder);
     std::thread::sleep(Duration::from_millis(500));
-    let (field, bit, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
+    let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
     assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
     assert_eq!(rec.state_lost, Some(true), "{rec:?}");
     run.wait_success(LIMIT);
     let events = run.events();
     let alarms = of_kind(&events, EventKind::Anomaly);
     assert_eq!(alarms.len(), 1, "{alarms:?}");
-    assert_eq!(alarms[0].field.as_deref(), Some(field), "{:?}", alarms[0]);
+    let alarm = alarms[0].clone();
+    assert_eq!(
+        (
+            alarm.replica,
+            alarm.pid,
+            alarm.field.as_deref(),
+            alarm.output.as_deref()
+        ),
+        (Some(0), Some(pid), Some(field), Some("out")),
+        "{alarm:?}"
+    );
     let sdc = of_kind(&events, EventKind::Sdc);
     assert_eq!(sdc.len(), 1, "{sdc:?}");
-    assert_eq!(sdc[0].replica, Some(0));
+    assert_eq!((sdc[0].replica, sdc[0].pid), (Some(0), Some(pid)));
     assert!(
         sdc[0].detail.as_deref().unwrap_or("").contains("held back"),
         "{:?}",
         sdc[0]
     );
+    (run, alarm, field, bit)
+}
 
+#[test]
+fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
+    let (offset, count) = (30_000, 800);
+    let (run, _, field, bit) = smr_holds_back(Mode::Reactive, offset, count);
     // One frame is missing; every frame that went out has its true position (the corrupted
     // one never did). The odometer restarted with the fresh replica: that is the state lost.
     let out = frames(&run.path("stdout.txt"));
@@ -416,22 +444,8 @@ fn tmr_logs_the_alarm(mode: Mode) {
 #[test]
 fn stream_capture_train_and_a_fault_free_run_raise_no_alarm() {
     let dir = tempfile::tempdir().unwrap();
-    let count = 2000;
     let capture = dir.path().join("stream.bin");
-    let mut run = System::new().start(&description(
-        &stream_signal("smr", 0),
-        count,
-        0,
-        &format!(r#", "capture": "{}""#, capture.display()),
-    ));
-    run.wait_success(LIMIT);
-    let captured = frames(&capture);
-    assert_eq!(captured, frames(&run.path("stdout.txt")));
-    assert_eq!(
-        captured,
-        expected(0, count),
-        "the capture run was not fault-free"
-    );
+    capture_fault_free(&stream_signal("smr", 0), 2000, &capture);
     let layout = dir.path().join("layout.json");
     std::fs::write(&layout, FIELDS).unwrap();
     let gaussian = dir.path().join("gaussian.json");
@@ -439,29 +453,8 @@ fn stream_capture_train_and_a_fault_free_run_raise_no_alarm() {
 
     let models = models();
     for (redundancy, model) in [("dmr", &gaussian), ("tmr", &models.autoencoder)] {
-        let (offset, count) = (60_000, 2000);
-        let mut run = System::new().start(&description(
-            &stream_signal(redundancy, offset),
-            count,
-            0,
-            &detector(model),
-        ));
-        let outcome = run.wait_success(LIMIT);
-        let alarms = of_kind(&outcome.events, EventKind::Anomaly);
-        assert!(
-            alarms.is_empty(),
-            "stream {redundancy}: false alarms: {alarms:?}"
-        );
-        assert!(
-            outcome.faults().is_empty(),
-            "stream {redundancy}: {:?}",
-            outcome.faults()
-        );
-        assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
-        eprintln!(
-            "stream {redundancy} with {}: 0 alarms in {count} frames × replicas",
-            model.display()
-        );
+        let offset = 60_000;
+        assert_no_alarm(&stream_signal(redundancy, offset), offset, 2000, model);
     }
 }
 
@@ -471,33 +464,8 @@ fn stream_capture_train_and_a_fault_free_run_raise_no_alarm() {
 /// stream goes on to its last frame.
 #[test]
 fn stream_smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
-    let models = models();
-    let mut rng = Rng::from_env();
     let (offset, count) = (30_000, 800);
-    let mut run = start_monitored(&stream_signal("smr", offset), 1, count, &models.autoencoder);
-    std::thread::sleep(Duration::from_millis(500));
-    let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
-    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
-    assert_eq!(rec.state_lost, Some(true), "{rec:?}");
-    run.wait_success(LIMIT);
-    let events = run.events();
-    let alarms = of_kind(&events, EventKind::Anomaly);
-    assert_eq!(alarms.len(), 1, "{alarms:?}");
-    let alarm = alarms[0];
-    assert_eq!(alarm.replica, Some(0));
-    assert_eq!(
-        (alarm.field.as_deref(), alarm.pid, alarm.output.as_deref()),
-        (Some(field), Some(pid), Some("out")),
-        "{alarm:?}"
-    );
-    let sdc = of_kind(&events, EventKind::Sdc);
-    assert_eq!(sdc.len(), 1, "{sdc:?}");
-    assert_eq!((sdc[0].replica, sdc[0].pid), (Some(0), Some(pid)));
-    assert!(
-        sdc[0].detail.as_deref().unwrap_or("").contains("held back"),
-        "{:?}",
-        sdc[0]
-    );
+    let (run, alarm, field, bit) = smr_holds_back(Mode::Stream, offset, count);
     // The alarm names the frame's number on the output: everything before it went out as
     // it should, the flagged frame did not.
     let detail = alarm.detail.as_deref().unwrap_or("");
