@@ -946,15 +946,6 @@ impl Checker<'_> {
                 ),
             ));
         };
-        if writer.mode == Mode::Stream {
-            return Err(self.err(
-                &field(what),
-                format!(
-                    "`{what}` is supported for reactive components only; `{}` is in stream mode",
-                    writer.name
-                ),
-            ));
-        }
         if let Some(capture) = &ch.capture {
             if capture.trim().is_empty() {
                 return Err(self.err(&field("capture"), "the capture file name is empty"));

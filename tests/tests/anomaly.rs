@@ -8,6 +8,9 @@
 //! attributed by the detector and repaired by fork, and the output is exactly the fault-free
 //! output; under SMR the flagged frame is held back and the replica restarted by exec; under
 //! TMR the alarm is logged and the vote decides.
+//!
+//! The same in stream mode (`stream_*`): `s3res-signal --every 8` answers in bursts of eight
+//! frames every eighth input, and the voter scores every frame it takes into its ledger.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -64,6 +67,29 @@ fn signal(redundancy: &str, offset: u64) -> String {
     )
 }
 
+/// `s3res-signal` in stream mode: bursts of eight frames, one every eighth input.
+fn stream_signal(redundancy: &str, offset: u64) -> String {
+    format!(
+        r#"{{ "exec": "s3res-signal", "args": ["--offset", "{offset}", "--every", "8"], "redundancy": "{redundancy}", "mode": "stream", "timeout_us": 500000 }}"#
+    )
+}
+
+/// The voter's mode for `signal`.
+#[derive(Debug, Clone, Copy)]
+enum Mode {
+    Reactive,
+    Stream,
+}
+
+impl Mode {
+    fn signal(self, redundancy: &str, offset: u64) -> String {
+        match self {
+            Mode::Reactive => signal(redundancy, offset),
+            Mode::Stream => stream_signal(redundancy, offset),
+        }
+    }
+}
+
 fn detector(model: &Path) -> String {
     format!(
         r#", "fields": {FIELDS}, "detector": {{ "model": "{}" }}"#,
@@ -113,6 +139,47 @@ fn train(kind: &str, layout: &Path, frames: &Path, out: &Path) {
 
 /// Captures a fault-free run (SMR, the channel's `capture`) and trains both models on it.
 /// Once per test process; the files live in cargo's temp dir for integration tests.
+/// Runs `signal` (a component entry) over `count` source frames at offset 0 with a `capture`
+/// into `capture`, and checks that the capture is what went downstream and fault-free.
+fn capture_fault_free(signal: &str, count: u32, capture: &Path) {
+    let extra = format!(r#", "capture": "{}""#, capture.display());
+    let mut run = System::new().start(&description(signal, count, 0, &extra));
+    run.wait_success(LIMIT);
+    let captured = frames(capture);
+    assert_eq!(
+        captured,
+        frames(&run.path("stdout.txt")),
+        "the capture is not what the voter forwarded"
+    );
+    assert_eq!(
+        captured,
+        expected(0, count),
+        "the capture run was not fault-free"
+    );
+}
+
+/// Runs `signal` (a component entry at `offset`) under `model` on `count` frames as fast as
+/// they go, and checks: no alarm, no fault, the output exactly the fault-free output.
+fn assert_no_alarm(signal: &str, offset: u64, count: u32, model: &Path) {
+    let mut run = System::new().start(&description(signal, count, 0, &detector(model)));
+    let outcome = run.wait_success(LIMIT);
+    let alarms = of_kind(&outcome.events, EventKind::Anomaly);
+    assert!(
+        alarms.is_empty(),
+        "{signal}: false alarms on fault-free data: {alarms:?}"
+    );
+    assert!(
+        outcome.faults().is_empty(),
+        "{signal}: {:?}",
+        outcome.faults()
+    );
+    assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
+    eprintln!(
+        "{signal} with {}: 0 alarms in {count} frames × replicas",
+        model.display()
+    );
+}
+
 fn models() -> &'static Models {
     static MODELS: OnceLock<Models> = OnceLock::new();
     MODELS.get_or_init(|| {
@@ -120,21 +187,7 @@ fn models() -> &'static Models {
             .join(format!("anomaly-models-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let capture = dir.join("train.bin");
-        let sys = System::new();
-        let extra = format!(r#", "capture": "{}""#, capture.display());
-        let mut run = sys.start(&description(&signal("smr", 0), TRAIN_FRAMES, 0, &extra));
-        run.wait_success(LIMIT);
-        let captured = frames(&capture);
-        assert_eq!(
-            captured,
-            frames(&run.path("stdout.txt")),
-            "the capture is not what the voter forwarded"
-        );
-        assert_eq!(
-            captured,
-            expected(0, TRAIN_FRAMES),
-            "the capture run was not fault-free"
-        );
+        capture_fault_free(&signal("smr", 0), TRAIN_FRAMES, &capture);
 
         let layout = dir.join("layout.json");
         std::fs::write(&layout, FIELDS).unwrap();
@@ -155,26 +208,40 @@ fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
         .collect()
 }
 
+/// The `anomaly` events of corrupted frames, leaving out the alarm on the frame after one
+/// (stream mode: a replica running ahead has its next frame scored against the corrupted one
+/// before the vote removes it; the voter's detail says so).
+fn first_alarms(events: &[Event]) -> Vec<&Event> {
+    of_kind(events, EventKind::Anomaly)
+        .into_iter()
+        .filter(|e| {
+            !e.detail
+                .as_deref()
+                .unwrap_or("")
+                .contains("previous frame alarmed too")
+        })
+        .collect()
+}
+
+/// Every alarm was raised by one of `culprits` (pids): none on a healthy replica.
+fn assert_alarms_only_on(events: &[Event], culprits: &[i32]) {
+    for alarm in of_kind(events, EventKind::Anomaly) {
+        assert!(
+            alarm.pid.is_some_and(|p| culprits.contains(&p)),
+            "alarm on a healthy replica: {alarm:?}"
+        );
+    }
+}
+
 /// Frame bit index of exponent bit `k` (0..11) of the f64 at byte `offset`.
 fn exponent_bit(offset: usize, k: u64) -> i32 {
     (offset * 8 + 52 + k as usize) as i32
 }
 
-/// Starts `signal` with `replicas` at `redundancy` under `model`, at 200 frames per second,
-/// and waits until its replicas take injections.
-fn start_monitored(
-    redundancy: &str,
-    replicas: usize,
-    offset: u64,
-    count: u32,
-    model: &Path,
-) -> RunningSystem {
-    let mut run = System::new().start(&description(
-        &signal(redundancy, offset),
-        count,
-        200,
-        &detector(model),
-    ));
+/// Starts `signal` (a component entry: [`Mode::signal`]) with `replicas` under `model`, at
+/// 200 frames per second, and waits until its replicas take injections.
+fn start_monitored(signal: &str, replicas: usize, count: u32, model: &Path) -> RunningSystem {
+    let mut run = System::new().start(&description(signal, count, 200, &detector(model)));
     run.wait_for_replicas("signal", replicas);
     run
 }
@@ -202,43 +269,33 @@ fn flip_and_wait_for_recovery(
 fn a_fault_free_run_raises_no_alarm() {
     let models = models();
     for (redundancy, model) in [("dmr", &models.autoencoder), ("tmr", &models.gaussian)] {
-        let (offset, count) = (50_000, 3000);
-        let mut run = System::new().start(&description(
-            &signal(redundancy, offset),
-            count,
-            0,
-            &detector(model),
-        ));
-        let outcome = run.wait_success(LIMIT);
-        let alarms = of_kind(&outcome.events, EventKind::Anomaly);
-        assert!(
-            alarms.is_empty(),
-            "{redundancy}: false alarms on fault-free data: {alarms:?}"
-        );
-        assert!(
-            outcome.faults().is_empty(),
-            "{redundancy}: {:?}",
-            outcome.faults()
-        );
-        assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
-        eprintln!(
-            "{redundancy} with {}: 0 alarms in {count} frames × replicas",
-            model.display()
-        );
+        let offset = 50_000;
+        assert_no_alarm(&signal(redundancy, offset), offset, 3000, model);
     }
 }
 
 #[test]
 fn dmr_attributes_the_flagged_replica_and_repairs_it_by_fork() {
+    dmr_attributes(Mode::Reactive);
+}
+
+#[test]
+fn stream_dmr_attributes_the_flagged_replica_and_repairs_it_by_fork() {
+    dmr_attributes(Mode::Stream);
+}
+
+fn dmr_attributes(mode: Mode) {
     let models = models();
     let mut rng = Rng::from_env();
     let (offset, count, injections) = (20_000, 2400, 8);
-    let mut run = start_monitored("dmr", 2, offset, count, &models.autoencoder);
+    let mut run = start_monitored(&mode.signal("dmr", offset), 2, count, &models.autoencoder);
     let mut attributed = 0;
+    let mut culprits = Vec::new();
     for i in 0..injections {
         std::thread::sleep(Duration::from_millis(rng.range(100, 300)));
         let slot = rng.below(2) as usize;
         let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
+        culprits.push(pid);
         assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
         assert_eq!(rec.donor, Some(1 - slot), "{rec:?}");
         assert_eq!(rec.state_lost, Some(false), "{rec:?}");
@@ -264,38 +321,63 @@ fn dmr_attributes_the_flagged_replica_and_repairs_it_by_fork() {
     let outcome = run.wait_success(LIMIT);
     let events = &outcome.events;
     // Exactly the injections: no alarm on the healthy replica, no unattributed sdc.
-    assert_eq!(of_kind(events, EventKind::Anomaly).len(), injections);
+    assert_eq!(first_alarms(events).len(), injections);
+    assert_alarms_only_on(events, &culprits);
     assert_eq!(of_kind(events, EventKind::Sdc).len(), injections);
     assert_eq!(outcome.faults().len(), injections, "{:?}", outcome.faults());
     // The output is the fault-free output, frame for frame: state survived every repair.
     assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
-    eprintln!("DMR: {attributed} of {injections} exponent flips attributed and repaired by fork");
+    eprintln!(
+        "{mode:?} DMR: {attributed} of {injections} exponent flips attributed and repaired by fork"
+    );
 }
 
-#[test]
-fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
+/// SMR under the autoencoder: flips an exponent bit of x or y in the replica's next frame and
+/// checks what both modes share: exactly one `anomaly` naming the field, one `sdc` naming the
+/// replica with "held back", and a restart by exec with the state lost. Returns the ended run,
+/// the alarm, the field and the bit.
+fn smr_holds_back(
+    mode: Mode,
+    offset: u64,
+    count: u32,
+) -> (RunningSystem, Event, &'static str, i32) {
     let models = models();
     let mut rng = Rng::from_env();
-    let (offset, count) = (30_000, 800);
-    let mut run = start_monitored("smr", 1, offset, count, &models.autoencoder);
+    let mut run = start_monitored(&mode.signal("smr", offset), 1, count, &models.autoencoder);
     std::thread::sleep(Duration::from_millis(500));
-    let (field, bit, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
+    let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
     assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
     assert_eq!(rec.state_lost, Some(true), "{rec:?}");
     run.wait_success(LIMIT);
     let events = run.events();
     let alarms = of_kind(&events, EventKind::Anomaly);
     assert_eq!(alarms.len(), 1, "{alarms:?}");
-    assert_eq!(alarms[0].field.as_deref(), Some(field), "{:?}", alarms[0]);
+    let alarm = alarms[0].clone();
+    assert_eq!(
+        (
+            alarm.replica,
+            alarm.pid,
+            alarm.field.as_deref(),
+            alarm.output.as_deref()
+        ),
+        (Some(0), Some(pid), Some(field), Some("out")),
+        "{alarm:?}"
+    );
     let sdc = of_kind(&events, EventKind::Sdc);
     assert_eq!(sdc.len(), 1, "{sdc:?}");
-    assert_eq!(sdc[0].replica, Some(0));
+    assert_eq!((sdc[0].replica, sdc[0].pid), (Some(0), Some(pid)));
     assert!(
         sdc[0].detail.as_deref().unwrap_or("").contains("held back"),
         "{:?}",
         sdc[0]
     );
+    (run, alarm, field, bit)
+}
 
+#[test]
+fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
+    let (offset, count) = (30_000, 800);
+    let (run, _, field, bit) = smr_holds_back(Mode::Reactive, offset, count);
     // One frame is missing; every frame that went out has its true position (the corrupted
     // one never did). The odometer restarted with the fresh replica: that is the state lost.
     let out = frames(&run.path("stdout.txt"));
@@ -321,17 +403,27 @@ fn smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
 
 #[test]
 fn tmr_logs_the_alarm_and_the_vote_decides() {
+    tmr_logs_the_alarm(Mode::Reactive);
+}
+
+#[test]
+fn stream_tmr_logs_the_alarm_and_the_vote_decides() {
+    tmr_logs_the_alarm(Mode::Stream);
+}
+
+fn tmr_logs_the_alarm(mode: Mode) {
     let models = models();
     let mut rng = Rng::from_env();
     let (offset, count) = (40_000, 800);
-    let mut run = start_monitored("tmr", 3, offset, count, &models.gaussian);
+    let mut run = start_monitored(&mode.signal("tmr", offset), 3, count, &models.gaussian);
     std::thread::sleep(Duration::from_millis(500));
     let slot = rng.below(3) as usize;
-    let (field, _, _, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
+    let (field, _, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
     run.wait_success(LIMIT);
     let events = run.events();
-    let alarms = of_kind(&events, EventKind::Anomaly);
+    assert_alarms_only_on(&events, &[pid]);
+    let alarms = first_alarms(&events);
     assert_eq!(alarms.len(), 1, "{alarms:?}");
     assert_eq!(alarms[0].replica, Some(slot));
     assert_eq!(alarms[0].field.as_deref(), Some(field));
@@ -343,4 +435,59 @@ fn tmr_logs_the_alarm_and_the_vote_decides() {
         sdc[0]
     );
     assert_eq!(frames(&run.path("stdout.txt")), expected(offset, count));
+}
+
+/// Stream mode, capture to alarm: a fault-free stream SMR run is captured (the capture is what
+/// went downstream), a Gaussian model is trained on it, and fault-free stream runs on other
+/// data raise no alarm: DMR under that model, TMR under the autoencoder trained on the
+/// reactive capture (the frames are the same whatever the mode).
+#[test]
+fn stream_capture_train_and_a_fault_free_run_raise_no_alarm() {
+    let dir = tempfile::tempdir().unwrap();
+    let capture = dir.path().join("stream.bin");
+    capture_fault_free(&stream_signal("smr", 0), 2000, &capture);
+    let layout = dir.path().join("layout.json");
+    std::fs::write(&layout, FIELDS).unwrap();
+    let gaussian = dir.path().join("gaussian.json");
+    train("gaussian", &layout, &capture, &gaussian);
+
+    let models = models();
+    for (redundancy, model) in [("dmr", &gaussian), ("tmr", &models.autoencoder)] {
+        let offset = 60_000;
+        assert_no_alarm(&stream_signal(redundancy, offset), offset, 2000, model);
+    }
+}
+
+/// Stream SMR: the flagged frame is held back and the replica restarted by exec. The frames
+/// before it went out whole; the restarted replica lost the inputs it held (its burst), so a
+/// few frames are missing after it, but every frame that went out is true (x, y) and the
+/// stream goes on to its last frame.
+#[test]
+fn stream_smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
+    let (offset, count) = (30_000, 800);
+    let (run, alarm, field, bit) = smr_holds_back(Mode::Stream, offset, count);
+    // The alarm names the frame's number on the output: everything before it went out as
+    // it should, the flagged frame did not.
+    let detail = alarm.detail.as_deref().unwrap_or("");
+    let held: usize = detail
+        .split_once("(frame ")
+        .and_then(|(_, k)| k.split(')').next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no frame number in {detail:?}"));
+    let out = frames(&run.path("stdout.txt"));
+    let want = expected(offset, count);
+    assert_eq!(out[..held], want[..held], "frames before the held-back one");
+    let seq = |f: &[u8]| u64::from_le_bytes(f[..8].try_into().unwrap());
+    assert!(seq(&out[held]) > seq(&want[held]), "frame {held} went out");
+    for pair in out.windows(2) {
+        assert!(seq(&pair[0]) < seq(&pair[1]), "out of order");
+    }
+    for f in &out {
+        let k = (seq(f) - offset) as usize;
+        assert_eq!(f[..24], want[k][..24], "seq {}: x or y differs", seq(f));
+    }
+    assert_eq!(out.last().map(|f| seq(f)), Some(offset + count as u64 - 1));
+    eprintln!(
+        "stream SMR: frame {held} held back ({field} bit {bit}), {} frames lost with the replica's state, restarted by exec",
+        count as usize - out.len()
+    );
 }

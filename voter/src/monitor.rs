@@ -13,7 +13,7 @@ use s3res_anomaly::model::DetectorModel;
 use s3res_anomaly::{Cause, Detector, Model, Verdict};
 
 use crate::clock::Instant;
-use crate::plan::{Mode, VoterPlan};
+use crate::plan::VoterPlan;
 use crate::voter::VoterError;
 
 /// A detector on one output.
@@ -44,11 +44,6 @@ impl Monitors {
     /// Loads every monitored output's model and checks it against the declared fields.
     pub(crate) fn load(plan: &VoterPlan) -> Result<Monitors, VoterError> {
         let mut by_output: Vec<Option<Monitor>> = plan.outputs.iter().map(|_| None).collect();
-        if !plan.monitors.is_empty() && plan.mode == Mode::Stream {
-            return Err(VoterError::Plan(
-                "anomaly detectors are supported in reactive mode only".into(),
-            ));
-        }
         for m in &plan.monitors {
             let plan_err =
                 |what: String| VoterError::Plan(format!("output `{}`: {what}", m.output));
@@ -144,10 +139,12 @@ impl Monitors {
         }
     }
 
-    /// Slot `to` was replaced by a fork of `from`: its streams continue `from`'s.
+    /// Slot `to` was replaced by a fork of `from`: its streams continue `from`'s. The verdict
+    /// on the old process's last frame is forgotten.
     pub(crate) fn copy_stream(&mut self, from: usize, to: usize) {
         for m in self.by_output.iter_mut().flatten() {
             m.detector.copy_stream(from, to);
+            m.last[to] = None;
         }
     }
 
@@ -155,6 +152,7 @@ impl Monitors {
     pub(crate) fn reset_stream(&mut self, slot: usize) {
         for m in self.by_output.iter_mut().flatten() {
             m.detector.reset_stream(slot);
+            m.last[slot] = None;
         }
     }
 }
@@ -229,16 +227,16 @@ mod tests {
     #[test]
     fn bad_monitors_are_refused_before_anything_runs() {
         let err = |p: &VoterPlan| Monitors::load(p).err().unwrap().to_string();
-        assert!(err(&plan("stream", "out")).contains("reactive mode only"));
+        assert!(err(&plan("stream", "nope")).contains("`nope`: is not an output"));
         assert!(err(&plan("reactive", "nope")).contains("`nope`: is not an output"));
         let e = err(&plan("reactive", "out"));
         assert!(
             e.contains("cannot read model /nonexistent/model.json"),
             "{e}"
         );
-        let e = crate::voter::validate(&plan("stream", "out"))
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("reactive mode only"), "{e}");
+        // Stream mode runs detectors too: the plan is valid, only the model is missing.
+        crate::voter::validate(&plan("stream", "out")).unwrap();
+        let e = err(&plan("stream", "out"));
+        assert!(e.contains("cannot read model"), "{e}");
     }
 }

@@ -27,6 +27,7 @@ use nix::sys::signalfd::SignalFd;
 
 use crate::channel::Fill;
 use crate::event::{Event, EventKind, RecoveryMethod};
+use crate::monitor::{Captures, Monitors};
 use crate::plan::VoterPlan;
 use crate::recovery::{self, DonorState};
 use crate::replica::Replica;
@@ -83,6 +84,10 @@ pub struct StreamVoter {
     poll: PollSet,
     /// Hangs no deadline sees: every replica stuck at once (see [`liveness`]).
     liveness: Liveness,
+    /// Anomaly detectors on monitored outputs: every frame taken into the ledger is scored.
+    monitors: Monitors,
+    /// Forwarded frames of captured outputs, for training detectors.
+    captures: Captures,
 }
 
 impl StreamVoter {
@@ -91,6 +96,9 @@ impl StreamVoter {
         validate(&plan)?;
         // Calibrated before the first frame, so that it never eats into a deadline.
         clock::init()?;
+        // Models are loaded and capture files made before any replica runs.
+        let monitors = Monitors::load(&plan)?;
+        let captures = Captures::open(&plan)?;
         let Endpoints {
             signals,
             inputs,
@@ -126,12 +134,16 @@ impl StreamVoter {
             ending: None,
             boost: Boost::default(),
             poll: PollSet::default(),
+            monitors,
+            captures,
         })
     }
 
     /// Runs until the inputs close and the replicas have finished, or a stop is requested.
     pub fn run(mut self) -> Result<(), VoterError> {
         let result = self.run_loop();
+        self.captures.flush();
+        self.monitors.log_cost();
         shut_down(
             &self.plan,
             &mut self.outputs,
@@ -380,7 +392,17 @@ impl StreamVoter {
                 }
             };
             rep.proven = true;
-            match self.ledger.accept(r, o, frame, Instant::now()) {
+            let pid = rep.pid;
+            // Every frame is scored, also when all agree and also late copies: each replica's
+            // stream must be complete for the next delta to be meaningful.
+            let after_alarm = self.monitors.alarmed(r, o);
+            let verdict = self.monitors.observe(r, o, frame);
+            let arrival = self.ledger.accept(r, o, frame, Instant::now());
+            if verdict.is_some_and(|v| v.alarm) {
+                self.ledger.flag_last(r, o);
+                self.anomaly_event(r, pid, o, after_alarm);
+            }
+            match arrival {
                 Arrival::Fine => {}
                 Arrival::DiffersFromForwarded(index) => {
                     let detail = format!(
@@ -405,6 +427,7 @@ impl StreamVoter {
                     dissent,
                 } => {
                     self.outputs[o].send(&frame);
+                    self.captures.record(o, &frame);
                     for r in dissent.iter() {
                         let detail = format!(
                             "frame {index} of `{}` differs from the majority's",
@@ -415,6 +438,7 @@ impl StreamVoter {
                 }
                 Decision::Rebuild { index, rebuilt } => {
                     self.outputs[o].send(&rebuilt.frame);
+                    self.captures.record(o, &rebuilt.frame);
                     let name = &self.plan.outputs[o].name;
                     if let Some(k) = rebuilt.kept {
                         // Every replica's frame was hit: one must stay to fork the others from.
@@ -442,9 +466,56 @@ impl StreamVoter {
                     ));
                     self.emit(ev);
                 }
+                Decision::HoldBack { index, replica } => {
+                    let detail = format!(
+                        "anomaly detector flagged frame {index} of `{}` (see its `anomaly` event) and no other replica confirms it; frame held back",
+                        self.plan.outputs[o].name
+                    );
+                    self.fault(replica, EventKind::Sdc, detail);
+                }
+                Decision::Attribute {
+                    index,
+                    frame,
+                    culprit,
+                    healthy,
+                } => {
+                    self.outputs[o].send(&frame);
+                    self.captures.record(o, &frame);
+                    let detail = format!(
+                        "frame {index} of `{}` differs from replica {healthy}'s and the anomaly detector flagged it (see its `anomaly` event) but not replica {healthy}'s, which was forwarded",
+                        self.plan.outputs[o].name
+                    );
+                    self.fault(culprit, EventKind::Sdc, detail);
+                }
             }
         }
         self.ledger.trim(self.alive());
+    }
+
+    /// Every alarm is an `anomaly` event (replica `r`'s latest frame on `o`), whatever the
+    /// ledger then does about it. `after_alarm`: the replica's previous frame on `o` alarmed
+    /// too. A replica that runs ahead has its frames scored before the vote on a corrupted
+    /// one removes it, and the frame after a corrupted one alarms on the way back (the
+    /// detector's reference is the corrupted frame); the detail says so.
+    fn anomaly_event(&self, r: usize, pid: libc::pid_t, o: usize, after_alarm: bool) {
+        let Some(alarm) = self.monitors.alarm(r, o) else {
+            return;
+        };
+        let frame = self.ledger.pos(r, o).saturating_sub(1);
+        let mut ev = self.event(EventKind::Anomaly);
+        ev.replica = Some(r);
+        ev.pid = Some(pid);
+        ev.output = Some(self.plan.outputs[o].name.clone());
+        ev.field = alarm.field;
+        ev.score = alarm.score;
+        ev.threshold = Some(alarm.threshold);
+        let way_back = if after_alarm {
+            "; its previous frame alarmed too (this may be the way back from it)"
+        } else {
+            ""
+        };
+        ev.detail = Some(format!("{} (frame {frame}){way_back}", alarm.cause));
+        self.emit(ev);
     }
 
     fn decide_all(&mut self) {
@@ -687,6 +758,8 @@ impl StreamVoter {
             let donor_proven = self.slots[d].as_ref().is_some_and(|r| r.proven);
             match self.fork_into(slot, d) {
                 Ok(pid) => {
+                    // The child continues the donor's frames, so its detector stream too.
+                    self.monitors.copy_stream(d, slot);
                     // The child inherited the donor's priority and CPU; it takes the slot's.
                     self.rt.apply_to_replica(pid, slot);
                     let mut ev = recovery_event(&self.plan, slot, old_pid, pid, detected_ns);
@@ -712,6 +785,7 @@ impl StreamVoter {
         )?;
         if started {
             self.ledger.start_fresh(slot);
+            self.monitors.reset_stream(slot);
             self.exited[slot] = false;
         }
         Ok(())

@@ -1421,11 +1421,6 @@ pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
             }
         }
     }
-    if plan.mode == Mode::Stream && !(plan.monitors.is_empty() && plan.captures.is_empty()) {
-        return fail(
-            "anomaly detectors and frame capture are supported in reactive mode only".into(),
-        );
-    }
     match plan.mode {
         Mode::Reactive if plan.rounds.is_empty() => {
             fail("reactive mode needs at least one input that starts rounds".into())

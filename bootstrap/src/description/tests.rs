@@ -773,6 +773,32 @@ fn detector_and_capture_go_to_the_writers_voter() {
 }
 
 #[test]
+fn a_stream_writer_runs_detectors_and_captures_too() {
+    let f = fixture();
+    xy_model(&f, "xy.json");
+    let stream = |extra: &str| {
+        monitored("tmr", extra).replace(
+            r#""redundancy": "tmr","#,
+            r#""redundancy": "tmr", "mode": "stream","#,
+        )
+    };
+    let plan = f.ok(&stream(&format!(
+        r#""fields": {XY_FIELDS}, "detector": {{"model": "xy.json"}}, "capture": "cap.bin""#
+    )));
+    let a = &plan.components[1];
+    assert_eq!(a.mode, Mode::Stream);
+    assert_eq!(a.monitors.len(), 1);
+    assert_eq!(a.captures[0].path, f.dir.path().join("cap.bin"));
+    // The other checks still apply in stream mode.
+    f.fails(
+        &stream(r#""detector": {"model": "xy.json"}"#),
+        10,
+        "channels[1].detector",
+        "needs the channel's `fields`",
+    );
+}
+
+#[test]
 fn monitoring_errors_name_the_field_and_line() {
     let f = fixture();
     xy_model(&f, "xy.json");

@@ -34,6 +34,8 @@ struct Entry {
     frames: Vec<Option<Vec<u8>>>,
     /// When each slot's copy arrived (kept after the decision: it starts the laggards' clock).
     seen: Vec<Option<Instant>>,
+    /// The slots whose copy the output's anomaly detector flagged ([`Ledger::flag_last`]).
+    alarmed: ReplicaSet,
     verdict: Verdict,
 }
 
@@ -42,6 +44,7 @@ impl Entry {
         Entry {
             frames: vec![None; n],
             seen: vec![None; n],
+            alarmed: ReplicaSet::EMPTY,
             verdict: Verdict::Open,
         }
     }
@@ -86,6 +89,17 @@ pub enum Decision {
     Rebuild { index: u64, rebuilt: BitMajority },
     /// No frame can reach a majority; `answered` sent frames that disagree.
     Withhold { index: u64, answered: ReplicaSet },
+    /// The frame stands on one replica's word (SMR, or down to one) and the anomaly detector
+    /// flagged it: nothing is forwarded, `replica` is the suspect.
+    HoldBack { index: u64, replica: usize },
+    /// Two copies that differ, exactly one of them flagged by the anomaly detector: the other
+    /// one, `frame` from `healthy`, is forwarded and `culprit` is the suspect.
+    Attribute {
+        index: u64,
+        frame: Vec<u8>,
+        culprit: usize,
+        healthy: usize,
+    },
 }
 
 /// A frame some replicas produced and others did not within the timeout.
@@ -225,7 +239,28 @@ impl Ledger {
         }
     }
 
+    /// Marks `slot`'s latest frame on `o` as flagged by the anomaly detector. A flagged copy
+    /// of an undecided frame changes how it is decided (see [`Decision::HoldBack`] and
+    /// [`Decision::Attribute`]); on a decided frame the mark changes nothing.
+    pub fn flag_last(&mut self, slot: usize, o: usize) {
+        let Some(index) = self.pos[slot][o].checked_sub(1) else {
+            return;
+        };
+        let out = &mut self.outputs[o];
+        if let Some(e) = index
+            .checked_sub(out.base)
+            .and_then(|k| out.entries.get_mut(k as usize))
+        {
+            e.alarmed = e.alarmed.with(slot);
+        }
+    }
+
     /// Decides the next frame of `o` if it can be decided now (call until `None`).
+    ///
+    /// The anomaly detector's marks count where the vote cannot decide alone, as in reactive
+    /// mode: a majority of one whose copy is flagged is held back, and two differing copies of
+    /// which exactly one is flagged forward the other. With three or more copies the vote (and
+    /// the bitwise majority) decides; marks are only logged.
     pub fn decide(&mut self, o: usize, alive: ReplicaSet) -> Option<Decision> {
         let out = &mut self.outputs[o];
         let k = out.next.checked_sub(out.base)? as usize;
@@ -233,6 +268,15 @@ impl Ledger {
         let index = out.next;
         let decision = match vote(&entry.frames, alive) {
             VoteOutcome::Pending => return None,
+            VoteOutcome::Majority { winner, agree, .. }
+                if agree.len() == 1 && entry.alarmed.contains(winner) =>
+            {
+                entry.verdict = Verdict::Withheld;
+                Decision::HoldBack {
+                    index,
+                    replica: winner,
+                }
+            }
             VoteOutcome::Majority {
                 winner, dissent, ..
             } => {
@@ -254,8 +298,28 @@ impl Ledger {
                         .iter()
                         .filter(|&s| entry.frames[s].is_some())
                         .fold(ReplicaSet::EMPTY, ReplicaSet::with);
-                    entry.verdict = Verdict::Withheld;
-                    Decision::Withhold { index, answered }
+                    let flagged = answered
+                        .iter()
+                        .filter(|&s| entry.alarmed.contains(s))
+                        .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+                    let culprit = flagged.iter().next();
+                    let healthy = answered.minus(flagged).iter().next();
+                    match (answered.len(), flagged.len(), culprit, healthy) {
+                        (2, 1, Some(culprit), Some(healthy)) => {
+                            let frame = entry.frames[healthy].take().unwrap_or_default();
+                            entry.verdict = Verdict::Forwarded(frame.clone());
+                            Decision::Attribute {
+                                index,
+                                frame,
+                                culprit,
+                                healthy,
+                            }
+                        }
+                        _ => {
+                            entry.verdict = Verdict::Withheld;
+                            Decision::Withhold { index, answered }
+                        }
+                    }
                 }
             },
         };
@@ -295,6 +359,7 @@ impl Ledger {
             for e in &mut out.entries {
                 e.frames[slot] = None;
                 e.seen[slot] = None;
+                e.alarmed = e.alarmed.without(slot);
             }
         }
     }
@@ -317,6 +382,9 @@ impl Ledger {
                 };
                 e.frames[slot] = e.frames[donor].clone();
                 e.seen[slot] = e.seen[donor];
+                if e.alarmed.contains(donor) {
+                    e.alarmed = e.alarmed.with(slot);
+                }
             }
         }
     }
@@ -600,5 +668,131 @@ mod tests {
         assert_eq!(l.pos(0, 0), 1);
         l.accept(0, 0, b"b", t);
         assert_eq!(decide_all(&mut l, 0, one).len(), 1);
+    }
+
+    /// Accepts `frame` from `slot` and, if `alarm`, marks it flagged by the detector.
+    fn scored(l: &mut Ledger, slot: usize, frame: &[u8], alarm: bool, t: Instant) {
+        l.accept(slot, 0, frame, t);
+        if alarm {
+            l.flag_last(slot, 0);
+        }
+    }
+
+    #[test]
+    fn a_lone_flagged_frame_is_held_back_and_an_unflagged_one_forwarded() {
+        let mut l = Ledger::new(1, 1, 8);
+        let one = set(&[0]);
+        let t = Instant::now();
+        scored(&mut l, 0, b"a", false, t);
+        scored(&mut l, 0, b"b", true, t);
+        scored(&mut l, 0, b"c", false, t);
+        let d = decide_all(&mut l, 0, one);
+        assert!(matches!(&d[0], Decision::Forward { index: 0, .. }), "{d:?}");
+        assert_eq!(
+            d[1],
+            Decision::HoldBack {
+                index: 1,
+                replica: 0
+            }
+        );
+        assert!(matches!(&d[2], Decision::Forward { index: 2, frame, .. } if frame == b"c"));
+        // A DMR pair down to one: the survivor's flagged frame stands on its word alone.
+        let mut l = Ledger::new(2, 1, 8);
+        scored(&mut l, 1, b"x", true, t);
+        assert!(
+            decide_all(&mut l, 0, set(&[0, 1])).is_empty(),
+            "waits for 0"
+        );
+        l.forget(0);
+        assert_eq!(
+            decide_all(&mut l, 0, set(&[1])),
+            [Decision::HoldBack {
+                index: 0,
+                replica: 1
+            }]
+        );
+    }
+
+    #[test]
+    fn dmr_forwards_the_unflagged_copy_of_two_that_differ() {
+        let pair = set(&[0, 1]);
+        let t = Instant::now();
+        for culprit in [0, 1] {
+            let mut l = Ledger::new(2, 1, 8);
+            scored(&mut l, culprit, b"bad", true, t);
+            scored(&mut l, 1 - culprit, b"good", false, t);
+            assert_eq!(
+                decide_all(&mut l, 0, pair),
+                [Decision::Attribute {
+                    index: 0,
+                    frame: b"good".to_vec(),
+                    culprit,
+                    healthy: 1 - culprit
+                }]
+            );
+            // A late copy is checked against the forwarded frame.
+            assert_eq!(l.next(0), 1);
+        }
+        // Both or neither flagged: no attribution, withheld as before.
+        for flags in [(true, true), (false, false)] {
+            let mut l = Ledger::new(2, 1, 8);
+            scored(&mut l, 0, b"p", flags.0, t);
+            scored(&mut l, 1, b"q", flags.1, t);
+            assert!(
+                matches!(
+                    &decide_all(&mut l, 0, pair)[..],
+                    [Decision::Withhold { index: 0, .. }]
+                ),
+                "{flags:?}"
+            );
+        }
+        // Copies that agree are forwarded whatever the detector says.
+        let mut l = Ledger::new(2, 1, 8);
+        scored(&mut l, 0, b"same", true, t);
+        scored(&mut l, 1, b"same", false, t);
+        assert!(matches!(
+            &decide_all(&mut l, 0, pair)[..],
+            [Decision::Forward { index: 0, .. }]
+        ));
+    }
+
+    #[test]
+    fn tmr_votes_whatever_the_detector_says() {
+        let all = set(&[0, 1, 2]);
+        let t = Instant::now();
+        let mut l = Ledger::new(3, 1, 8);
+        // The flagged copy is the majority's: forwarded. A lone flagged dissent is outvoted.
+        scored(&mut l, 0, b"a", true, t);
+        scored(&mut l, 1, b"a", true, t);
+        scored(&mut l, 2, b"b", false, t);
+        assert_eq!(
+            decide_all(&mut l, 0, all),
+            [Decision::Forward {
+                index: 0,
+                frame: b"a".to_vec(),
+                dissent: set(&[2])
+            }]
+        );
+        // Two of three copies that differ and one flagged: the third may still confirm one.
+        scored(&mut l, 0, b"c", true, t);
+        scored(&mut l, 1, b"d", false, t);
+        assert!(decide_all(&mut l, 0, all).is_empty());
+    }
+
+    #[test]
+    fn a_flag_on_a_decided_or_unsent_frame_changes_nothing() {
+        let t = Instant::now();
+        let mut l = Ledger::new(1, 1, 8);
+        scored(&mut l, 0, b"a", false, t);
+        assert_eq!(decide_all(&mut l, 0, set(&[0])).len(), 1);
+        l.flag_last(0, 0);
+        scored(&mut l, 0, b"b", false, t);
+        assert!(matches!(
+            &decide_all(&mut l, 0, set(&[0]))[..],
+            [Decision::Forward { index: 1, .. }]
+        ));
+        let mut fresh = Ledger::new(1, 1, 8);
+        fresh.flag_last(0, 0);
+        assert!(decide_all(&mut fresh, 0, set(&[0])).is_empty());
     }
 }
