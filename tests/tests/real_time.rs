@@ -444,9 +444,12 @@ fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
         .values()
         .map(|&pid| procs::scheduling(pid).priority)
         .collect();
+    // At rest all at one level; the laggard of the moment may be raised one step, to the turn.
+    let rest = *levels.iter().min().unwrap();
+    let raised = levels.iter().filter(|&&l| l == rest + 1).count();
     assert!(
-        levels.iter().all(|&l| l == levels[0]),
-        "stream replicas rest at one SCHED_RR level: {levels:?}"
+        levels.iter().all(|&l| l == rest || l == rest + 1) && raised <= 1,
+        "stream replicas rest at one SCHED_RR level (one may be at the turn): {levels:?}"
     );
     spin(pids[&0]);
     let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(30));
