@@ -378,9 +378,9 @@ mod tests {
         assert!(p.iter().all(|&(_, y)| y == 2), "{p:?}");
     }
 
-    #[test]
-    fn a_restarted_planner_numbers_its_plans_above_the_old_ones() {
-        let m = MapUpdate {
+    /// An open 5 × 3 map (robot at the west end, goal at the east end) as update `seq 0`.
+    fn open_map() -> MapUpdate {
+        MapUpdate {
             seq: 0,
             next: 5,
             w: 5,
@@ -391,15 +391,25 @@ mod tests {
             goal_x: 4.5,
             goal_y: 1.5,
             cells: Grid::from_rows(&[".....", ".....", "....."]).cells,
-        };
-        let req = |seq| Request {
+        }
+    }
+
+    /// A request for a plan in period `seq`, from the robot's place on [`open_map`].
+    fn request(seq: u32) -> Request {
+        Request {
             seq,
             want: true,
             x: 0.5,
             y: 1.5,
             goal_x: 4.5,
             goal_y: 1.5,
-        };
+        }
+    }
+
+    #[test]
+    fn a_restarted_planner_numbers_its_plans_above_the_old_ones() {
+        let m = open_map();
+        let req = request;
         let mut old = Planner::new();
         old.on_map(&m);
         let before = old.on_request(&req(3)).unwrap().plan;
@@ -413,31 +423,12 @@ mod tests {
 
     #[test]
     fn planner_orders_inputs_and_replans_when_blocked() {
-        let rows = [".....", ".....", "....."];
-        let mut m = MapUpdate {
-            seq: 0,
-            next: 5,
-            w: 5,
-            h: 3,
-            block: 1.0,
-            x: 0.5,
-            y: 1.5,
-            goal_x: 4.5,
-            goal_y: 1.5,
-            cells: Grid::from_rows(&rows).cells,
-        };
+        let mut m = open_map();
         let mut p = Planner::new();
         assert!(p.needs_map_before(0));
         assert_eq!(p.on_map(&m), None);
         assert!(!p.needs_map_before(4) && p.needs_map_before(5));
-        let req = Request {
-            seq: 1,
-            want: true,
-            x: 0.5,
-            y: 1.5,
-            goal_x: 4.5,
-            goal_y: 1.5,
-        };
+        let req = request(1);
         let w = p.on_request(&req).unwrap();
         assert_eq!(
             w.plan, 4,

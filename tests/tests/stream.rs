@@ -346,11 +346,7 @@ fn stream_recovery_does_not_fork_a_spinning_replica() {
     s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
     // Until replica 0 has taken the signal and spins (on a loaded machine that may wait).
     let spinning = std::time::Instant::now();
-    while s3res_tests::procs::all()
-        .iter()
-        .find(|p| p.pid == pids[&0])
-        .is_none_or(|p| p.state != 'R')
-    {
+    while replica_rt::sys::process_state(pids[&0]) != Some('R') {
         assert!(
             spinning.elapsed() < Duration::from_secs(10),
             "replica 0 never spun"

@@ -204,7 +204,7 @@ impl Replica {
     /// Whether the process sleeps in the kernel (`S`: waiting for input, or for its output
     /// pipe to drain) rather than running, runnable, stopped or dead.
     pub fn is_asleep(&self) -> bool {
-        sys::process_state(self.pid) == Some('S')
+        is_asleep(self.pid)
     }
 }
 
@@ -277,8 +277,7 @@ pub fn best_donor(
     let started = std::time::Instant::now();
     while !clean.is_empty() {
         for &(d, pid, first_blocks) in &clean {
-            let asleep = sys::process_state(pid) == Some('S');
-            if asleep || voluntary_switches(pid) != first_blocks {
+            if is_asleep(pid) || voluntary_switches(pid) != first_blocks {
                 return DonorPick {
                     donor: Some(d),
                     hung: Vec::new(),
@@ -301,6 +300,11 @@ pub fn best_donor(
         donor: ranked.iter().find(|c| c.0 != best).map(|c| c.2),
         hung,
     }
+}
+
+/// Whether `pid` sleeps in the kernel (`S`): waiting for input, or for its output pipe.
+pub fn is_asleep(pid: libc::pid_t) -> bool {
+    sys::process_state(pid) == Some('S')
 }
 
 /// Voluntary context switches of `pid`, from `/proc/PID/status`.

@@ -19,7 +19,7 @@
 use std::time::Duration;
 
 use crate::clock::Instant;
-use crate::replica::{cpu_time_ns, voluntary_switches};
+use crate::replica::{cpu_time_ns, is_asleep, voluntary_switches};
 
 /// What `/proc` said about one replica at one look.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -43,7 +43,7 @@ impl Sample {
             progress,
             blocked: voluntary_switches(pid)?,
             cpu_ns: cpu_time_ns(pid)?,
-            asleep: replica_rt::sys::process_state(pid)? == 'S',
+            asleep: is_asleep(pid),
         })
     }
 }
