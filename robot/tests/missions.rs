@@ -419,8 +419,11 @@ fn dmr_mission_survives_the_planners_state_loss() {
     run.wait_for_replicas("planner", 2);
     std::thread::sleep(Duration::from_millis(500));
     let pids = run.replica_pids("planner");
-    for pid in pids.values() {
-        s3res_tests::kill_pid(*pid, libc::SIGKILL).expect("kill a planner replica");
+    // Both stopped first, so that neither can be the other's donor between the two kills.
+    for sig in [libc::SIGSTOP, libc::SIGKILL] {
+        for pid in pids.values() {
+            s3res_tests::kill_pid(*pid, sig).expect("signal a planner replica");
+        }
     }
     for (&slot, &pid) in &pids {
         let rec = run.wait_for_recovery("planner", slot, pid);
