@@ -27,6 +27,83 @@ pub enum EventKind {
     Anomaly,
 }
 
+/// Why the voter raised an event: the observation behind a fault, or why a frame was
+/// withheld. Every fault event carries one; tools and tests match on it, not on `detail`
+/// (the human-readable text, which may change). Each cause belongs to one [`EventKind`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Cause {
+    // ----- crash
+    /// The replica process died (its pidfd, or its output closed and the pidfd followed).
+    Died,
+    // ----- hang
+    /// No (complete) answer within `timeout_us` of the round, or of its turn (reactive).
+    Deadline,
+    /// A replica started by exec gave no first answer within the start-up allowance.
+    StartDeadline,
+    /// It did not take the input queued for it (beyond the backlog limit).
+    InputBacklog,
+    /// Stream mode: furthest behind on a frame the others produced `timeout_us` ago.
+    Behind,
+    /// Stream mode: behind on an overdue frame and not asleep waiting for input.
+    BehindNotWaiting,
+    /// Stream mode: on a CPU for a whole `timeout_us` without producing or waiting.
+    Spinning,
+    /// Picked as recovery donor, it never once waited within `timeout_us`.
+    DonorSpinning,
+    // ----- protocol
+    /// An output frame that cannot be decoded (length above the channel's maximum).
+    BadFrame,
+    /// A partial frame: at the deadline, or left behind when the output closed.
+    PartialFrame,
+    /// It closed an output while it lives.
+    ClosedOutput,
+    /// A frame no round asked for: outside any round, after the inputs closed, on an output
+    /// the round does not expect, or from a replica that joined after the round began.
+    UnexpectedFrame,
+    /// A second frame on one output in one round; in stream mode, a frame the others did not
+    /// produce while all of them sleep waiting for input.
+    ExtraFrame,
+    /// Writing its input, or reading its output, failed.
+    PipeError,
+    // ----- sdc
+    /// Its frame differs from the majority's.
+    Minority,
+    /// No whole frame had a majority; its frame differs from the bitwise majority, which was
+    /// forwarded.
+    BitwiseMinority,
+    /// Unattributed (no `replica`): every frame differs from the bitwise majority (forwarded);
+    /// the closest was kept as donor.
+    AllDiffer,
+    /// Unattributed (no `replica`): no frame has a majority; the frame is withheld.
+    NoMajority,
+    /// The anomaly detector flagged a frame that stands on this replica's word alone; held back.
+    AnomalyHeldBack,
+    /// Two copies differ and the anomaly detector flagged only this replica's.
+    AnomalyAttributed,
+    // ----- anomaly
+    /// An anomaly detector's score passed its threshold (the `anomaly` event).
+    Alarm,
+}
+
+impl Cause {
+    /// The kind of event this cause raises.
+    pub fn kind(self) -> EventKind {
+        use Cause::*;
+        match self {
+            Died => EventKind::Crash,
+            Deadline | StartDeadline | InputBacklog | Behind | BehindNotWaiting | Spinning
+            | DonorSpinning => EventKind::Hang,
+            BadFrame | PartialFrame | ClosedOutput | UnexpectedFrame | ExtraFrame | PipeError => {
+                EventKind::Protocol
+            }
+            Minority | BitwiseMinority | AllDiffer | NoMajority | AnomalyHeldBack
+            | AnomalyAttributed => EventKind::Sdc,
+            Alarm => EventKind::Anomaly,
+        }
+    }
+}
+
 /// How a replacement replica was made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -53,6 +130,9 @@ pub struct Event {
     /// Round number the fault was seen in.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub round: Option<u64>,
+    /// Why (faults, unattributed `sdc`, `anomaly`): match on this, not on `detail`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cause: Option<Cause>,
     /// Human-readable specifics.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub detail: Option<String>,
@@ -91,6 +171,7 @@ impl Event {
             replica: None,
             pid: None,
             round: None,
+            cause: None,
             detail: None,
             new_pid: None,
             donor: None,
@@ -102,6 +183,13 @@ impl Event {
             score: None,
             threshold: None,
         }
+    }
+
+    /// An event raised for `cause` (its kind is the cause's).
+    pub fn caused(system: &str, component: &str, cause: Cause) -> Self {
+        let mut ev = Event::new(system, component, cause.kind());
+        ev.cause = Some(cause);
+        ev
     }
 
     /// The event as one line of JSON, newline included.
