@@ -387,3 +387,55 @@ fn dmr_does_not_clone_a_donor_that_spins() {
         out.events
     );
 }
+
+/// Issue 13's sequence, 100 times in one run: replica 1 is killed, then — while the voter may
+/// be forking its replacement from replica 0 — replica 0 too, `delay` after it, swept over
+/// 0–1485 µs. A donor that dies during the fork is passed over for the next replica that kept
+/// the state (never a fresh one started by exec), and a fresh replica never outvotes a kept
+/// one: every recovery keeps the state, and the sink sees every frame once, in order, with
+/// the running state continuous.
+#[test]
+fn a_donor_killed_during_the_fork_never_lets_lost_state_win() {
+    let mut rng = Rng::from_env();
+    let count = 12000;
+    let sys = System::new();
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+
+    for cycle in 0..100u64 {
+        let delay = Duration::from_micros(cycle * 15);
+        let pids = run.replica_pids("echo");
+        let (first, donor) = (pids[&1], pids[&0]);
+        s3res_tests::kill_pid(first, libc::SIGKILL).expect("kill replica 1");
+        let start = std::time::Instant::now();
+        while start.elapsed() < delay {
+            std::hint::spin_loop();
+        }
+        s3res_tests::kill_pid(donor, libc::SIGKILL).expect("kill replica 0");
+        for (slot, pid) in [(1, first), (0, donor)] {
+            let rec = run.wait_for_recovery("echo", slot, pid);
+            assert_eq!(
+                (rec.method, rec.state_lost),
+                (Some(RecoveryMethod::Fork), Some(false)),
+                "cycle {cycle} ({delay:?}): {rec:?}"
+            );
+        }
+        // Both back: wait until their handlers are in place before the next cycle.
+        run.wait_for_replicas("echo", 3);
+        std::thread::sleep(Duration::from_millis(rng.range(5, 30)));
+    }
+    assert!(
+        run.try_status().is_none(),
+        "the system finished before the 100 cycles were done; make the source longer"
+    );
+    let out = run.wait_success(LIMIT);
+    let lost: Vec<&Event> = out
+        .events
+        .iter()
+        .filter(|e| e.state_lost == Some(true) || e.cause == Some(Cause::NoMajority))
+        .collect();
+    assert!(lost.is_empty(), "state lost or a frame withheld: {lost:#?}");
+    assert_sink_whole(&summary, count);
+}

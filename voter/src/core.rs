@@ -210,6 +210,13 @@ impl Core {
         })
     }
 
+    /// The trusted replicas whose state is lost (see `decision.rs`).
+    pub(crate) fn fresh(&self) -> ReplicaSet {
+        (0..self.slots.len())
+            .filter(|&r| self.slots[r].as_ref().is_some_and(|rep| rep.state_lost))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with)
+    }
+
     /// The trusted replicas: every filled slot.
     pub(crate) fn alive(&self) -> ReplicaSet {
         (0..self.slots.len())
@@ -284,6 +291,13 @@ impl Core {
     ) -> Option<libc::pid_t> {
         let replica = self.slots[r].take()?;
         replica.kill();
+        if self.slots.iter().flatten().all(|rep| rep.state_lost) {
+            // The last replica that kept the component's state is gone: what the others hold
+            // is the only state there is now.
+            for rep in self.slots.iter_mut().flatten() {
+                rep.state_lost = false;
+            }
+        }
         let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
         ev.replica = Some(r);
         ev.pid = Some(replica.pid);
@@ -504,6 +518,9 @@ impl Core {
                 ev.method = Some(RecoveryMethod::Exec);
                 ev.state_lost = Some(true);
                 self.emit(ev);
+                let mut fresh = fresh;
+                // Its state is lost, unless no replica kept any: then it is as good as any.
+                fresh.state_lost = self.slots.iter().flatten().any(|r| !r.state_lost);
                 self.slots[slot] = Some(fresh);
                 // A fresh process: its first frame is a warm-up for the detectors.
                 self.monitors.reset_stream(slot);
@@ -691,8 +708,11 @@ pub(crate) fn recover_faulty(m: &mut impl Mode, replace_them: bool) -> Result<()
     Ok(())
 }
 
-/// Fills `slot` by fork of the best donor (state kept), else by exec (state lost). A candidate
-/// donor that never waits within `timeout_us` is a hang itself (its child would spin too).
+/// Fills `slot` by fork of the best donor, else by exec (state lost). A candidate donor that
+/// never waits within `timeout_us` is a hang itself (its child would spin too). A donor that
+/// fails during the fork (it died, or stopped) is passed over for the next best before the
+/// voter falls back to exec: a fresh replica must not replace one that could still have been
+/// rebuilt with the component's state.
 fn replace(
     m: &mut impl Mode,
     slot: usize,
@@ -700,20 +720,25 @@ fn replace(
     detected_ns: u64,
 ) -> Result<(), VoterError> {
     let patience = Duration::from_micros(m.core().plan.timeout_us);
-    let progress = m.progress();
-    let pick = crate::replica::best_donor(&m.core().slots, |d| progress[d], patience);
-    for r in pick.hung {
-        let detail = format!(
-            "picked as recovery donor, it ran for {} µs without once waiting for input or producing a frame",
-            m.core().plan.timeout_us
-        );
-        m.fault(r, Cause::DonorSpinning, detail);
-    }
-    if let Some(d) = pick.donor {
-        let donor_proven = m.core().slots[d].as_ref().is_some_and(|r| r.proven);
+    let mut failed = ReplicaSet::EMPTY;
+    loop {
+        let progress = m.progress();
+        let pick = crate::replica::best_donor(&m.core().slots, |d| progress[d], patience, failed);
+        for r in pick.hung {
+            let detail = format!(
+                "picked as recovery donor, it ran for {} µs without once waiting for input or producing a frame",
+                m.core().plan.timeout_us
+            );
+            m.fault(r, Cause::DonorSpinning, detail);
+        }
+        let Some(d) = pick.donor else { break };
+        let state_lost = m.core().slots[d].as_ref().is_some_and(|r| r.state_lost);
         match m.fork_into(slot, d) {
             Ok(pid) => {
                 let core = m.core();
+                if let Some(child) = core.slots[slot].as_mut() {
+                    child.state_lost = state_lost;
+                }
                 // The child inherited the donor's priority and CPU; it takes the slot's.
                 core.rt.apply_to_replica(pid, slot);
                 // The child continues the donor's frames, so its detector stream too.
@@ -721,14 +746,14 @@ fn replace(
                 let mut ev = core.recovery_event(slot, old_pid, pid, detected_ns);
                 ev.donor = Some(d);
                 ev.method = Some(RecoveryMethod::Fork);
-                // A donor that has not answered yet was itself just started by exec.
-                ev.state_lost = Some(!donor_proven);
+                ev.state_lost = Some(state_lost);
                 core.emit(ev);
                 m.forked(slot);
                 return Ok(());
             }
             Err(e) => {
-                tracing::warn!(replica = slot, donor = d, error = %e, "recovery by fork failed; starting a fresh replica");
+                tracing::warn!(replica = slot, donor = d, error = %e, "recovery by fork failed; trying the next donor");
+                failed = failed.with(d);
             }
         }
     }

@@ -20,6 +20,13 @@
 //!    forwarded, the flagged one is the suspect (`anomaly_attributed`).
 //! 4. Otherwise the frame is withheld and nobody is blamed (`no_majority`): a fault is certain,
 //!    its culprit is not, and we do not guess.
+//!
+//! Over all of them: **lost state never outvotes kept state.** A replica whose state is lost
+//! (started by exec after a fault, or forked from one that was) may confirm the frame of a
+//! replica that kept the component's state, but a frame that only fresh replicas sent never
+//! wins over a kept replica's: then the kept replicas decide among themselves, and every fresh
+//! replica whose frame differs from the result is `sdc` (and is rebuilt by fork from a kept
+//! one). A frame waits for the kept replicas' copies while only fresh ones could decide it.
 
 use replica_rt::contract::MAX_PORTS;
 
@@ -73,9 +80,59 @@ impl Decision {
 }
 
 /// Decides one frame from each trusted replica's copy (`frames[r]`, `None` where `r` has not
-/// sent it), the trusted replicas `alive` and those whose copy its anomaly detector flagged.
-/// `None` while the missing copies could still decide it.
+/// sent it), the trusted replicas `alive`, those whose copy its anomaly detector flagged, and
+/// those whose state is lost (`fresh`). `None` while the missing copies could still decide it.
 pub fn decide<A: AsRef<[u8]>>(
+    frames: &[Option<A>],
+    alive: ReplicaSet,
+    alarmed: ReplicaSet,
+    fresh: ReplicaSet,
+) -> Option<Decision> {
+    let kept = alive.minus(fresh);
+    let decision = decide_among(frames, alive, alarmed)?;
+    if kept.is_empty() || kept == alive {
+        return Some(decision);
+    }
+    let frame_of = |r: usize| frames.get(r).and_then(|f| f.as_ref()).map(AsRef::as_ref);
+    let lost_state_decided = match &decision {
+        // Only fresh replicas sent the frame that would go out.
+        Decision::Forward { .. } | Decision::Rebuild(_) => {
+            let won = decision.frame(frame_of);
+            won.is_some_and(|w| !kept.iter().any(|r| frame_of(r) == Some(w)))
+        }
+        // A fresh replica's disagreement kept a kept replica's frame from winning.
+        Decision::Withhold { answered } => !answered.minus(kept).is_empty(),
+        Decision::HoldBack { .. } | Decision::Attribute { .. } => false,
+    };
+    if !lost_state_decided {
+        return Some(decision);
+    }
+    // The kept replicas decide alone.
+    let decision = decide_among(frames, kept, alarmed)?;
+    let won = decision.frame(frame_of).map(<[u8]>::to_vec);
+    let Some(won) = won else {
+        return Some(decision);
+    };
+    let differing = alive
+        .minus(kept)
+        .iter()
+        .filter(|&r| frame_of(r).is_some_and(|f| f != won.as_slice()))
+        .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+    Some(match decision {
+        Decision::Forward { winner, dissent } => Decision::Forward {
+            winner,
+            dissent: differing.iter().fold(dissent, ReplicaSet::with),
+        },
+        Decision::Rebuild(mut rebuilt) => {
+            rebuilt.dissent = differing.iter().fold(rebuilt.dissent, ReplicaSet::with);
+            Decision::Rebuild(rebuilt)
+        }
+        other => other,
+    })
+}
+
+/// [`decide`] among `alive`, all of whom count alike.
+fn decide_among<A: AsRef<[u8]>>(
     frames: &[Option<A>],
     alive: ReplicaSet,
     alarmed: ReplicaSet,
@@ -131,6 +188,8 @@ pub struct RoundBallot<'a> {
     pub answers: &'a [Vec<Vec<u8>>],
     /// `alarmed[r]`: the outputs on which replica `r`'s frame alarmed its detector.
     pub alarmed: &'a [OutputSet],
+    /// Replicas whose state is lost (see the module's rules).
+    pub fresh: ReplicaSet,
 }
 
 /// One decision of a closing round.
@@ -181,7 +240,7 @@ impl RoundBallot<'_> {
         if (self.forwarded | self.held) & (1 << o) != 0 {
             return None;
         }
-        match decide(&self.frames(o), self.alive, self.alarmed_on(o)) {
+        match decide(&self.frames(o), self.alive, self.alarmed_on(o), self.fresh) {
             d @ Some(Decision::Forward { .. } | Decision::HoldBack { .. }) => d,
             _ => None,
         }
@@ -214,9 +273,12 @@ pub fn decide_round(ballot: &RoundBallot, close: &mut RoundClose) {
     let mut culprits = ReplicaSet::EMPTY;
     let mut attributed: OutputSet = 0;
     for o in on_time.outputs().filter(|&o| open(o)) {
-        if let Some(d @ Decision::Attribute { culprit, .. }) =
-            decide(&on_time.frames(o), on_time.alive, on_time.alarmed_on(o))
-        {
+        if let Some(d @ Decision::Attribute { culprit, .. }) = decide(
+            &on_time.frames(o),
+            on_time.alive,
+            on_time.alarmed_on(o),
+            on_time.fresh,
+        ) {
             culprits = culprits.with(culprit);
             attributed |= 1 << o;
             close.decisions.push(RoundDecision {
@@ -240,7 +302,12 @@ pub fn decide_round(ballot: &RoundBallot, close: &mut RoundClose) {
             .iter()
             .filter(|&r| trusted.answered[r] & (1 << o) != 0)
             .fold(ReplicaSet::EMPTY, ReplicaSet::with);
-        let decision = match decide(&trusted.frames(o), trusted.alive, trusted.alarmed_on(o)) {
+        let decision = match decide(
+            &trusted.frames(o),
+            trusted.alive,
+            trusted.alarmed_on(o),
+            trusted.fresh,
+        ) {
             // Sent already: what is left is to blame the replicas that disagree with it.
             Some(d @ Decision::Forward { .. }) if sent => d,
             _ if sent => continue,
@@ -264,6 +331,11 @@ mod tests {
         ids.iter().fold(ReplicaSet::EMPTY, |s, &i| s.with(i))
     }
 
+    /// [`decide`] where every replica kept its state.
+    fn d(frames: &[Option<Vec<u8>>], alive: ReplicaSet, alarmed: ReplicaSet) -> Option<Decision> {
+        decide(frames, alive, alarmed, ReplicaSet::EMPTY)
+    }
+
     fn f(s: &str) -> Option<Vec<u8>> {
         Some(s.as_bytes().to_vec())
     }
@@ -272,7 +344,7 @@ mod tests {
 
     #[test]
     fn all_agree_forwards_and_blames_nobody() {
-        let d = decide(
+        let d = d(
             &[f("x"), f("x"), f("x")],
             set(&[0, 1, 2]),
             ReplicaSet::EMPTY,
@@ -289,7 +361,7 @@ mod tests {
 
     #[test]
     fn one_differs_is_outvoted_as_minority() {
-        let d = decide(
+        let d = d(
             &[f("x"), f("y"), f("x")],
             set(&[0, 1, 2]),
             ReplicaSet::EMPTY,
@@ -307,14 +379,14 @@ mod tests {
 
     #[test]
     fn two_agree_before_the_third_answers() {
-        let d = decide(&[f("x"), None, f("x")], set(&[0, 1, 2]), ReplicaSet::EMPTY);
+        let d = d(&[f("x"), None, f("x")], set(&[0, 1, 2]), ReplicaSet::EMPTY);
         assert!(matches!(d, Some(Decision::Forward { winner: 0, .. })));
     }
 
     #[test]
     fn a_split_waits_for_the_missing_replica() {
         assert_eq!(
-            decide(&[f("x"), f("y"), None], set(&[0, 1, 2]), ReplicaSet::EMPTY),
+            d(&[f("x"), f("y"), None], set(&[0, 1, 2]), ReplicaSet::EMPTY),
             None
         );
     }
@@ -322,7 +394,7 @@ mod tests {
     #[test]
     fn two_differ_in_different_bits_are_rebuilt_bit_by_bit() {
         // 'a' = 0x61; 0x60 and 0x63 differ from it in different bits.
-        let d = decide(
+        let d = d(
             &[f("a"), f("`"), f("c")],
             set(&[0, 1, 2]),
             ReplicaSet::EMPTY,
@@ -338,7 +410,7 @@ mod tests {
 
     #[test]
     fn no_majority_is_withheld_and_blames_nobody() {
-        let d = decide(
+        let d = d(
             &[f("first answer"), f("something else"), f("a third thing")],
             set(&[0, 1, 2]),
             ReplicaSet::EMPTY,
@@ -356,7 +428,7 @@ mod tests {
 
     #[test]
     fn dmr_mismatch_without_an_alarm_is_withheld() {
-        let d = decide(&[f("x"), f("y")], set(&[0, 1]), ReplicaSet::EMPTY).unwrap();
+        let d = d(&[f("x"), f("y")], set(&[0, 1]), ReplicaSet::EMPTY).unwrap();
         assert_eq!(
             d,
             Decision::Withhold {
@@ -368,7 +440,7 @@ mod tests {
     #[test]
     fn dmr_mismatch_with_one_alarm_blames_the_flagged_copy() {
         let frames = [f("x"), f("y")];
-        let d = decide(&frames, set(&[0, 1]), set(&[1])).unwrap();
+        let d = d(&frames, set(&[0, 1]), set(&[1])).unwrap();
         assert_eq!(
             d,
             Decision::Attribute {
@@ -382,13 +454,13 @@ mod tests {
 
     #[test]
     fn dmr_mismatch_with_both_alarmed_is_withheld() {
-        let d = decide(&[f("x"), f("y")], set(&[0, 1]), set(&[0, 1])).unwrap();
+        let d = d(&[f("x"), f("y")], set(&[0, 1]), set(&[0, 1])).unwrap();
         assert!(matches!(d, Decision::Withhold { .. }));
     }
 
     #[test]
     fn smr_alarm_holds_the_frame_back() {
-        let d = decide(&[f("x")], set(&[0]), set(&[0])).unwrap();
+        let d = d(&[f("x")], set(&[0]), set(&[0])).unwrap();
         assert_eq!(d, Decision::HoldBack { suspect: 0 });
         assert_eq!(d.blame(), (set(&[0]), Cause::AnomalyHeldBack));
         assert_eq!(d.frame(|_| Some(b"x")), None);
@@ -396,15 +468,92 @@ mod tests {
 
     #[test]
     fn smr_without_alarm_forwards() {
-        let d = decide(&[f("x")], set(&[0]), ReplicaSet::EMPTY).unwrap();
+        let d = d(&[f("x")], set(&[0]), ReplicaSet::EMPTY).unwrap();
         assert!(matches!(d, Decision::Forward { winner: 0, .. }));
     }
 
     #[test]
     fn an_alarm_on_a_confirmed_frame_changes_nothing() {
         // TMR logs alarms: two replicas confirm the flagged frame.
-        let d = decide(&[f("x"), f("x"), f("x")], set(&[0, 1, 2]), set(&[0])).unwrap();
+        let d = d(&[f("x"), f("x"), f("x")], set(&[0, 1, 2]), set(&[0])).unwrap();
         assert!(matches!(d, Decision::Forward { winner: 0, .. }));
+    }
+
+    // ----- lost state -----------------------------------------------------------------
+
+    #[test]
+    fn two_fresh_replicas_never_outvote_the_one_that_kept_its_state() {
+        // Replicas 0 and 1 were restarted by exec (their state is lost) and agree with each
+        // other; replica 2 kept the component's state. Its frame goes out; the fresh ones are
+        // the suspects (and are rebuilt from it by fork).
+        let frames = [f("reset"), f("reset"), f("kept")];
+        let dec = decide(&frames, set(&[0, 1, 2]), ReplicaSet::EMPTY, set(&[0, 1])).unwrap();
+        assert_eq!(
+            dec,
+            Decision::Forward {
+                winner: 2,
+                dissent: set(&[0, 1])
+            }
+        );
+        assert_eq!(dec.frame(|r| frames[r].as_deref()), Some(&b"kept"[..]));
+    }
+
+    #[test]
+    fn fresh_copies_wait_for_the_kept_replica() {
+        let frames = [f("reset"), f("reset"), None];
+        assert_eq!(
+            decide(&frames, set(&[0, 1, 2]), ReplicaSet::EMPTY, set(&[0, 1])),
+            None
+        );
+    }
+
+    #[test]
+    fn a_fresh_replica_may_confirm_a_kept_one() {
+        // Kept 0 and 1 disagree; fresh 2 sends what 0 sent: two independent copies of one
+        // frame, and 0's frame wins.
+        let frames = [f("a"), f("b"), f("a")];
+        let dec = decide(&frames, set(&[0, 1, 2]), ReplicaSet::EMPTY, set(&[2])).unwrap();
+        assert_eq!(
+            dec,
+            Decision::Forward {
+                winner: 0,
+                dissent: set(&[1])
+            }
+        );
+    }
+
+    #[test]
+    fn a_fresh_replica_that_agrees_is_not_blamed() {
+        let frames = [f("a"), f("a"), f("a")];
+        let dec = decide(&frames, set(&[0, 1, 2]), ReplicaSet::EMPTY, set(&[1, 2])).unwrap();
+        assert!(dec.blame().0.is_empty(), "{dec:?}");
+    }
+
+    #[test]
+    fn with_only_fresh_replicas_left_they_vote_as_usual() {
+        let frames = [f("a"), f("a"), f("b")];
+        let dec = decide(&frames, set(&[0, 1, 2]), ReplicaSet::EMPTY, set(&[0, 1, 2])).unwrap();
+        assert_eq!(
+            dec,
+            Decision::Forward {
+                winner: 0,
+                dissent: set(&[2])
+            }
+        );
+    }
+
+    #[test]
+    fn dmr_kept_and_fresh_that_differ_forward_the_kept_frame() {
+        // The sequence of issue 13: a DMR pair where one was rebuilt by exec.
+        let frames = [f("reset"), f("kept")];
+        let dec = decide(&frames, set(&[0, 1]), ReplicaSet::EMPTY, set(&[0])).unwrap();
+        assert_eq!(
+            dec,
+            Decision::Forward {
+                winner: 1,
+                dissent: set(&[0])
+            }
+        );
     }
 
     // ----- a reactive round -------------------------------------------------------------
@@ -445,6 +594,7 @@ mod tests {
                 answered: &self.answered,
                 answers: &self.answers,
                 alarmed: &self.alarmed,
+                fresh: ReplicaSet::EMPTY,
             }
         }
 

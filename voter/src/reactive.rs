@@ -148,6 +148,7 @@ impl ReactiveVoter {
             answered: &round.answered[..self.core.slots.len()],
             answers: &self.answers,
             alarmed,
+            fresh: self.core.fresh(),
         }
     }
 

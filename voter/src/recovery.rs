@@ -367,6 +367,8 @@ fn hand_over_pipes(
         our_child: false,
         // A fork of a replica that has answered: its handler is in place.
         proven: true,
+        // The voter sets it from the donor's.
+        state_lost: false,
         output_closed_at: None,
     };
     Ok((replica, ready))

@@ -257,7 +257,7 @@ impl StreamVoter {
             index,
             decision,
             frame,
-        }) = self.ledger.decide(o, self.core.alive())
+        }) = self.ledger.decide(o, self.core.alive(), self.core.fresh())
         {
             if let Some(blame) = self
                 .core
@@ -639,6 +639,13 @@ impl Mode for StreamVoter {
         }
         if self.core.slots[r].is_some() {
             self.fault(r, Cause::Died, core::DIED.into());
+        }
+    }
+
+    /// After the end began, closing is finishing.
+    fn on_output_closed(&mut self, r: usize) {
+        if self.ending.is_none() {
+            core::output_closed(self, r);
         }
     }
 

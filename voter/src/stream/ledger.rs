@@ -245,11 +245,11 @@ impl Ledger {
     /// mode: a majority of one whose copy is flagged is held back, and two differing copies of
     /// which exactly one is flagged forward the other. With three or more copies the vote (and
     /// the bitwise majority) decides; marks are only logged.
-    pub fn decide(&mut self, o: usize, alive: ReplicaSet) -> Option<Decided> {
+    pub fn decide(&mut self, o: usize, alive: ReplicaSet, fresh: ReplicaSet) -> Option<Decided> {
         let out = &mut self.outputs[o];
         let k = out.next.checked_sub(out.base)? as usize;
         let entry = out.entries.get_mut(k)?;
-        let decision = decide(&entry.frames, alive, entry.alarmed)?;
+        let decision = decide(&entry.frames, alive, entry.alarmed, fresh)?;
         let frame = decision
             .frame(|r| entry.frames.get(r).and_then(|f| f.as_deref()))
             .map(<[u8]>::to_vec);
@@ -402,7 +402,7 @@ mod tests {
     }
 
     fn decide_all(l: &mut Ledger, o: usize, alive: ReplicaSet) -> Vec<Decided> {
-        std::iter::from_fn(|| l.decide(o, alive)).collect()
+        std::iter::from_fn(|| l.decide(o, alive, ReplicaSet::EMPTY)).collect()
     }
 
     fn forward(index: u64, frame: &[u8], winner: usize, dissent: ReplicaSet) -> Decided {
