@@ -439,3 +439,68 @@ fn a_donor_killed_during_the_fork_never_lets_lost_state_win() {
     assert!(lost.is_empty(), "state lost or a frame withheld: {lost:#?}");
     assert_sink_whole(&summary, count);
 }
+
+/// The voter's socket path, from a replica's environment.
+fn voter_socket(replica: i32) -> std::path::PathBuf {
+    let environ = std::fs::read(format!("/proc/{replica}/environ")).expect("replica environ");
+    environ
+        .split(|&b| b == 0)
+        .find_map(|kv| kv.strip_prefix(b"S3RES_VOTER_SOCKET="))
+        .map(|v| std::path::PathBuf::from(String::from_utf8_lossy(v).into_owned()))
+        .expect("S3RES_VOTER_SOCKET in the replica's environment")
+}
+
+/// A flood of connections to the recovery socket (the same user, as an attacker on the machine
+/// would be) while replicas are killed: every recovery is still a fork with state kept (the
+/// accept loop holds `restart_timeout_ms`), and the sink sees every frame once, in order.
+#[test]
+fn a_connection_flood_on_the_recovery_socket_does_not_stop_a_fork() {
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::Arc;
+
+    let count = 6000;
+    let sys = System::new();
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let socket = voter_socket(run.replica_pids("echo")[&0]);
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let connects = Arc::new(AtomicU64::new(0));
+    let flooders: Vec<_> = (0..2)
+        .map(|_| {
+            let (stop, connects, socket) = (stop.clone(), connects.clone(), socket.clone());
+            std::thread::spawn(move || {
+                let until = std::time::Instant::now() + Duration::from_secs(30);
+                while !stop.load(Ordering::Relaxed) && std::time::Instant::now() < until {
+                    if std::os::unix::net::UnixStream::connect(&socket).is_ok() {
+                        connects.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            })
+        })
+        .collect();
+    // Let the flood fill the socket's backlog first.
+    while connects.load(Ordering::Relaxed) < 500 {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    for slot in [1, 2, 0, 1] {
+        let pid = run.replica_pids("echo")[&slot];
+        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+        let rec = run.wait_for_recovery("echo", slot, pid);
+        assert_eq!(
+            (rec.method, rec.state_lost),
+            (Some(RecoveryMethod::Fork), Some(false)),
+            "{rec:?}"
+        );
+        run.wait_for_replicas("echo", 3);
+    }
+    stop.store(true, Ordering::Relaxed);
+    for f in flooders {
+        f.join().expect("flooder");
+    }
+    eprintln!("flood: {} connections", connects.load(Ordering::Relaxed));
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+}
