@@ -5,8 +5,8 @@
 use std::time::Duration;
 
 use s3res_tests::{
-    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
-    sink_summary, Cause, Event, EventKind, RecoveryMethod, Rng, System,
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, procs,
+    signals, sink_summary, Cause, Event, EventKind, RecoveryMethod, Rng, System,
 };
 
 /// Generous, so that a loaded CI machine running tests in parallel does not see false hangs;
@@ -501,6 +501,64 @@ fn a_connection_flood_on_the_recovery_socket_does_not_stop_a_fork() {
         f.join().expect("flooder");
     }
     eprintln!("flood: {} connections", connects.load(Ordering::Relaxed));
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+}
+
+/// A process-limit squeeze makes a recovery fail (fork and exec both refused) for two seconds:
+/// the component runs degraded (`recovery_failed`), the voter keeps trying with backoff, and
+/// once the squeeze ends the slot is filled by fork from a replica that kept the state. The
+/// sink sees every frame once, in order. The system runs as an unprivileged user (the kernel
+/// does not apply `RLIMIT_NPROC` to root).
+#[test]
+fn redundancy_is_restored_after_a_recovery_failed() {
+    let count = 8000;
+    let sys = System::new().unprivileged();
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US}, "restart_timeout_ms": 200 }}"#
+    );
+    let desc = echo_pipeline(&sys.path("summary.json"), &echo, count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let voter = run.process_named("s3res-voter").expect("the echo's voter");
+    let pids = run.replica_pids("echo");
+    let squeezed: Vec<i32> = std::iter::once(voter)
+        .chain(pids.values().copied())
+        .collect();
+    let before: Vec<Option<u64>> = squeezed.iter().map(|&p| procs::nproc_soft(p)).collect();
+    for &p in &squeezed {
+        procs::set_nproc_soft(p, Some(1));
+    }
+
+    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("kill replica 1");
+    let failed = run.wait_for_event(
+        |e| e.kind == EventKind::RecoveryFailed && e.replica == Some(1),
+        Duration::from_secs(20),
+    );
+    assert_eq!(failed.pid, Some(pids[&1]), "{failed:?}");
+    // The squeeze lasts two seconds; the component runs on two replicas meanwhile.
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(
+        run.events()
+            .iter()
+            .filter(|e| e.kind == EventKind::Recovery && e.replica == Some(1))
+            .count(),
+        0,
+        "filled during the squeeze"
+    );
+    for (&p, &soft) in squeezed.iter().zip(&before) {
+        if p != pids[&1] {
+            procs::set_nproc_soft(p, soft);
+        }
+    }
+    let rec = run.wait_for_recovery("echo", 1, pids[&1]);
+    assert_eq!(
+        (rec.method, rec.state_lost),
+        (Some(RecoveryMethod::Fork), Some(false)),
+        "{rec:?}"
+    );
+    run.wait_for_replicas("echo", 3);
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }

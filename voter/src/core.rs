@@ -66,6 +66,20 @@ pub(crate) fn io_err(what: impl Into<String>) -> impl FnOnce(std::io::Error) -> 
     move |source| VoterError::Io { what, source }
 }
 
+/// A slot whose replacement could not be made (fork and exec both failed: a process limit, a
+/// full memory): the component runs degraded, and the voter tries again, with backoff.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Vacancy {
+    pub(crate) slot: usize,
+    old_pid: i32,
+    detected_ns: u64,
+    next_try: Instant,
+    backoff: Duration,
+}
+
+/// First and longest wait between two tries to fill a vacant slot.
+const VACANCY_BACKOFF: (Duration, Duration) = (Duration::from_millis(10), Duration::from_secs(1));
+
 /// A replica that was found faulty and killed, waiting to be replaced.
 pub(crate) struct Fault {
     pub(crate) slot: usize,
@@ -154,6 +168,8 @@ pub(crate) struct Core {
     /// One per replica slot; `None` while the slot's replica is faulty and not yet replaced.
     pub(crate) slots: Vec<Option<Replica>>,
     pub(crate) faults: Vec<Fault>,
+    /// Slots whose replacement failed, tried again with backoff.
+    pub(crate) vacant: Vec<Vacancy>,
     /// Names the current fork attempt; a child of an older attempt is refused.
     restart_nonce: u32,
     listener: UnixListener,
@@ -198,6 +214,7 @@ impl Core {
             outputs,
             slots,
             faults: Vec::new(),
+            vacant: Vec::new(),
             restart_nonce: 0,
             listener,
             signals,
@@ -510,6 +527,7 @@ impl Core {
         slot: usize,
         old_pid: i32,
         detected_ns: u64,
+        retry: bool,
     ) -> Result<bool, VoterError> {
         match Replica::spawn(&self.plan, slot) {
             Ok(fresh) => {
@@ -526,11 +544,18 @@ impl Core {
                 self.monitors.reset_stream(slot);
                 Ok(true)
             }
+            Err(e) if retry => {
+                tracing::debug!(replica = slot, error = %e, "still cannot start a replica");
+                Ok(false)
+            }
             Err(e) => {
                 let mut ev = self.event(EventKind::RecoveryFailed);
                 ev.replica = Some(slot);
                 ev.pid = Some(old_pid);
-                ev.detail = Some(format!("could not start {}: {e}", self.plan.exec.display()));
+                ev.detail = Some(format!(
+                    "could not start {}: {e}; the component runs degraded and the voter tries again",
+                    self.plan.exec.display()
+                ));
                 self.emit(ev);
                 if self.slots.iter().all(Option::is_none) {
                     return Err(VoterError::Unrecoverable(format!(
@@ -628,7 +653,11 @@ pub(crate) fn run(mut m: impl Mode) -> Result<(), VoterError> {
 /// each ready fd to the core or the mode.
 pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     m.build_poll_set();
-    let wake = m.next_wakeup();
+    let retry = m.core().vacant.iter().map(|v| v.next_try).min();
+    let wake = match (m.next_wakeup(), retry) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    };
     let ready = wait_until(&mut m.core().poll.fds, wake)?;
     if ready == 0 {
         return Ok(());
@@ -695,17 +724,56 @@ pub(crate) fn fault_closed_outputs(m: &mut impl Mode) {
     }
 }
 
-/// Replaces every faulty replica (see [`replace`]); with `replace` false (the voter is
-/// stopping or ending) the faults stay recorded and nothing is started.
-pub(crate) fn recover_faulty(m: &mut impl Mode, replace_them: bool) -> Result<(), VoterError> {
+/// Replaces every faulty replica (see [`replace`]), and tries again to fill the slots whose
+/// replacement failed before, once their backoff has passed; with `replace_them` false (the
+/// voter is stopping or ending) the faults stay recorded and nothing is started. Returns
+/// whether it did anything (the loop was away meanwhile).
+pub(crate) fn recover_faulty(m: &mut impl Mode, replace_them: bool) -> Result<bool, VoterError> {
+    let mut worked = false;
     while let Some(fault) = m.core().faults.pop() {
+        worked = true;
         if !replace_them {
             continue;
         }
         let (slot, old_pid, detected_ns) = fault.retire();
-        replace(m, slot, old_pid, detected_ns)?;
+        if !replace(m, slot, old_pid, detected_ns, false)? {
+            m.core().vacant.push(Vacancy {
+                slot,
+                old_pid,
+                detected_ns,
+                next_try: Instant::now() + VACANCY_BACKOFF.0,
+                backoff: VACANCY_BACKOFF.0,
+            });
+        }
     }
-    Ok(())
+    if !replace_them {
+        return Ok(worked);
+    }
+    let now = Instant::now();
+    let due: Vec<Vacancy> = m
+        .core()
+        .vacant
+        .iter()
+        .filter(|v| v.next_try <= now)
+        .copied()
+        .collect();
+    for v in due {
+        worked = true;
+        let filled = replace(m, v.slot, v.old_pid, v.detected_ns, true)?;
+        let vacant = &mut m.core().vacant;
+        let Some(k) = vacant.iter().position(|w| w.slot == v.slot) else {
+            continue;
+        };
+        if filled {
+            vacant.remove(k);
+            tracing::info!(replica = v.slot, "redundancy restored");
+        } else {
+            let backoff = (v.backoff * 2).min(VACANCY_BACKOFF.1);
+            vacant[k].backoff = backoff;
+            vacant[k].next_try = Instant::now() + backoff;
+        }
+    }
+    Ok(worked)
 }
 
 /// Fills `slot` by fork of the best donor, else by exec (state lost). A candidate donor that
@@ -718,7 +786,8 @@ fn replace(
     slot: usize,
     old_pid: i32,
     detected_ns: u64,
-) -> Result<(), VoterError> {
+    retry: bool,
+) -> Result<bool, VoterError> {
     let patience = Duration::from_micros(m.core().plan.timeout_us);
     let mut failed = ReplicaSet::EMPTY;
     loop {
@@ -749,7 +818,7 @@ fn replace(
                 ev.state_lost = Some(state_lost);
                 core.emit(ev);
                 m.forked(slot);
-                return Ok(());
+                return Ok(true);
             }
             Err(e) => {
                 tracing::warn!(replica = slot, donor = d, error = %e, "recovery by fork failed; trying the next donor");
@@ -757,10 +826,13 @@ fn replace(
             }
         }
     }
-    if m.core().replace_by_exec(slot, old_pid, detected_ns)? {
+    let started = m
+        .core()
+        .replace_by_exec(slot, old_pid, detected_ns, retry)?;
+    if started {
         m.started_fresh(slot);
     }
-    Ok(())
+    Ok(started)
 }
 
 impl Fault {

@@ -570,10 +570,9 @@ impl Mode for StreamVoter {
     fn run_loop(&mut self) -> Result<(), VoterError> {
         loop {
             let away = Instant::now();
-            let recovered = !self.core.faults.is_empty();
             // At the end a replacement would only be closed again; the fault is recorded.
             let replace = self.core.stop.is_none() && self.ending.is_none();
-            core::recover_faulty(self, replace)?;
+            let recovered = core::recover_faulty(self, replace)?;
             if recovered {
                 // Recovery blocks the loop (waiting for a death, the fork, the child's page
                 // walk); the laggards' clocks stop meanwhile.
