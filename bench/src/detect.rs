@@ -17,7 +17,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use hdrhistogram::Histogram;
-use s3res_voter::event::{Event, EventKind};
+use s3res_protocol::event::{Event, EventKind};
 
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};

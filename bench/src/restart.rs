@@ -8,7 +8,7 @@ use std::os::fd::AsFd;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use s3res_voter::event::{EventKind, RecoveryMethod};
+use s3res_protocol::event::{EventKind, RecoveryMethod};
 
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};

@@ -20,10 +20,10 @@ use replica_rt::contract::{
     FIRST_PORT_FD,
 };
 use replica_rt::sys::{self, ExitStatus};
-use s3res_voter::plan::{ExternalPort, VoterPlan};
+use s3res_protocol::plan::{ExternalPort, VoterPlan};
 
 use crate::events::{EventReader, EventSummary};
-use crate::live::{LiveState, LiveView};
+use crate::live::LiveState;
 use crate::plan::{ComponentPlan, Endpoint, SystemPlan};
 use crate::sched::SystemSched;
 use crate::sweep::SweepGuard;
@@ -203,7 +203,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     sched.warn_once();
     let live = match &opts.state_file {
         Some(path) => Some(
-            LiveState::create(LiveView::new(plan), path.clone()).map_err(|source| {
+            LiveState::create(crate::live::initial_view(plan), path.clone()).map_err(|source| {
                 RunError::StateFile {
                     path: path.clone(),
                     source,

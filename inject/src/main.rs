@@ -11,7 +11,6 @@ use rand::SeedableRng as _;
 
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
-use s3res_bootstrap::live::LiveView;
 use s3res_bootstrap::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyRun};
@@ -20,6 +19,7 @@ use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
 use s3res_inject::target::{resolve, Pick, Target};
+use s3res_protocol::live::LiveView;
 
 const BOOTSTRAP_BIN: &str = "s3res-bootstrap";
 /// Overrides where s3res-bootstrap is taken from.

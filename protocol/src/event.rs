@@ -200,4 +200,4 @@ impl Event {
     }
 }
 
-pub use replica_rt::sys::monotonic_ns;
+pub use crate::clock::monotonic_ns;

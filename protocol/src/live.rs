@@ -7,19 +7,17 @@
 //! start, fault, recovery and failed recovery (from the voters' events), and once more at the
 //! end with `running: false`. A reader therefore always sees one whole, consistent version.
 //!
-//! The type lives here, with its writer: its reader (`s3res-inject`) depends on bootstrap
-//! anyway, for the system description.
+//! The types, the reader and the atomic write live here, so that injectors read the view without
+//! depending on bootstrap; bootstrap's writer (the view shared by its threads) is
+//! `s3res_bootstrap::live`.
 
 use std::collections::BTreeMap;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
 
-use s3res_voter::event::{Event, EventKind};
-
-use crate::plan::SystemPlan;
+use crate::event::{Event, EventKind};
 
 /// What the state file holds.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -79,47 +77,26 @@ pub enum ReplicaState {
 }
 
 impl LiveView {
-    /// Every component of `plan`, nothing spawned yet.
-    pub fn new(plan: &SystemPlan) -> Self {
-        let components = plan
-            .components
-            .iter()
-            .map(|c| {
-                let replicas = (0..c.replicas)
-                    .map(|slot| LiveReplica {
-                        slot,
-                        pid: None,
-                        state: ReplicaState::Starting,
-                        since_ns: 0,
-                    })
-                    .collect();
-                (
-                    c.name.clone(),
-                    LiveComponent {
-                        redundancy: c.redundancy.to_string(),
-                        protected: c.is_protected(),
-                        pid: None,
-                        voter_pid: None,
-                        replicas,
-                    },
-                )
-            })
-            .collect();
-        LiveView {
-            system: plan.name.clone(),
-            bootstrap_pid: std::process::id() as i32,
-            updated_ns: replica_rt::sys::monotonic_ns(),
-            running: true,
-            components,
-        }
-    }
-
     /// Reads a state file. `Err` with a readable reason if it is missing or not a view.
     pub fn read(path: &Path) -> Result<Self, String> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| format!("cannot read the state file {}: {e}", path.display()))?;
         serde_json::from_str(&text)
             .map_err(|e| format!("{} is not an s3res state file: {e}", path.display()))
+    }
+
+    /// Writes the view to `path` atomically (`path.tmp`, then `rename`): readers see the old
+    /// or the new file, never half of one.
+    pub fn write(&self, path: &Path) -> std::io::Result<()> {
+        let mut tmp = path.as_os_str().to_owned();
+        tmp.push(".tmp");
+        let tmp = PathBuf::from(tmp);
+        let mut f = std::fs::File::create(&tmp)?;
+        let mut text = serde_json::to_vec_pretty(self).map_err(std::io::Error::other)?;
+        text.push(b'\n');
+        f.write_all(&text)?;
+        drop(f);
+        std::fs::rename(&tmp, path)
     }
 
     /// Takes one voter event into account; `true` if the view changed.
@@ -149,74 +126,6 @@ impl LiveView {
         r.since_ns = e.ts_ns;
         true
     }
-}
-
-/// The view shared by bootstrap's main thread and its events reader, and the file it goes to.
-#[derive(Debug, Clone)]
-pub struct LiveState {
-    inner: Arc<Mutex<Inner>>,
-}
-
-#[derive(Debug)]
-struct Inner {
-    view: LiveView,
-    path: PathBuf,
-    /// A write failed once; said so, and stopped trying.
-    broken: bool,
-}
-
-impl LiveState {
-    /// Writes the first version of the view to `path`.
-    pub fn create(view: LiveView, path: PathBuf) -> std::io::Result<Self> {
-        write_atomically(&path, &view)?;
-        tracing::info!(path = %path.display(), "live view (state file)");
-        Ok(LiveState {
-            inner: Arc::new(Mutex::new(Inner {
-                view,
-                path,
-                broken: false,
-            })),
-        })
-    }
-
-    /// Changes the view with `f`; rewrites the file if `f` returns `true`.
-    pub fn update(&self, f: impl FnOnce(&mut LiveView) -> bool) {
-        // A panic elsewhere while holding the lock leaves a usable view; keep going.
-        let mut inner = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-        if !f(&mut inner.view) || inner.broken {
-            return;
-        }
-        inner.view.updated_ns = replica_rt::sys::monotonic_ns();
-        if let Err(e) = write_atomically(&inner.path, &inner.view) {
-            tracing::warn!(
-                path = %inner.path.display(),
-                "cannot update the state file ({e}); it is no longer kept current"
-            );
-            inner.broken = true;
-        }
-    }
-
-    /// A copy of the current view.
-    pub fn snapshot(&self) -> LiveView {
-        self.inner
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .view
-            .clone()
-    }
-}
-
-/// `path.tmp` then `rename`: readers see the old or the new file, never half of one.
-fn write_atomically(path: &Path, view: &LiveView) -> std::io::Result<()> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = PathBuf::from(tmp);
-    let mut f = std::fs::File::create(&tmp)?;
-    let mut text = serde_json::to_vec_pretty(view).map_err(std::io::Error::other)?;
-    text.push(b'\n');
-    f.write_all(&text)?;
-    drop(f);
-    std::fs::rename(&tmp, path)
 }
 
 #[cfg(test)]
@@ -286,11 +195,13 @@ mod tests {
     fn the_file_is_always_whole_and_reads_back() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("state.json");
-        let live = LiveState::create(view(), path.clone()).unwrap();
-        live.update(|v| v.apply(&event(EventKind::Start, 0, 7)));
+        let mut v = view();
+        v.write(&path).unwrap();
+        assert!(v.apply(&event(EventKind::Start, 0, 7)));
+        v.write(&path).unwrap();
         let back = LiveView::read(&path).unwrap();
         assert_eq!(back.components["echo"].replicas[0].pid, Some(7));
-        assert_eq!(back, live.snapshot());
+        assert_eq!(back, v);
         assert!(!dir.path().join("state.json.tmp").exists());
         std::fs::write(&path, "{").unwrap();
         assert!(LiveView::read(&path)

@@ -40,15 +40,17 @@
 //!   (terminate). A voter should restart-by-fork only from replicas that have answered at least
 //!   once.
 
-pub mod contract;
 pub mod cow;
-pub mod frame;
 pub mod inject;
 mod logging;
 mod port;
 pub mod restart;
 pub mod select;
 pub mod sys;
+
+/// The contract and the framing are the protocol's (`s3res-protocol`), re-exported so that
+/// components keep writing `replica_rt::contract` and `replica_rt::frame`.
+pub use s3res_protocol::{contract, frame};
 
 use std::sync::atomic::{AtomicBool, Ordering};
 

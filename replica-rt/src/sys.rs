@@ -254,6 +254,21 @@ fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
     with_proc_stat(pid, |rest| rest.split_whitespace().nth(n - 3)?.parse().ok())
 }
 
+/// The set of signals `pid` has a handler for (`SigCgt` in `/proc/PID/status`, bit `n - 1`
+/// for signal `n`; see [`signal_bit`]); `None` if the process is gone.
+pub fn caught_signals(pid: libc::pid_t) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigCgt:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+}
+
+/// Signal `sig`'s bit in a [`caught_signals`] mask.
+pub fn signal_bit(sig: libc::c_int) -> u64 {
+    1u64 << (sig - 1)
+}
+
 /// The state letter of `pid` (field 3 of `/proc/PID/stat`: `R`, `S`, `D`, `T` stopped, `t`
 /// traced, `Z` zombie, ...); `None` if the process is gone.
 pub fn process_state(pid: libc::pid_t) -> Option<char> {
@@ -353,16 +368,8 @@ pub fn cstring(s: &str) -> io::Result<CString> {
     CString::new(s).map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "NUL in path"))
 }
 
-/// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share).
-pub fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `ts` is a valid out-pointer; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
-}
+/// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share; the protocol's).
+pub use s3res_protocol::clock::monotonic_ns;
 
 /// Takes ownership of an fd this process inherited from its parent (a port or the events pipe)
 /// and marks it close-on-exec, so it does not leak into processes we start.

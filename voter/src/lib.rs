@@ -12,14 +12,15 @@
 
 pub mod channel;
 pub mod clock;
-pub mod event;
 pub mod monitor;
-pub mod plan;
 pub mod recovery;
 pub mod replica;
 pub mod round;
 pub mod rt;
-pub mod sched;
 pub mod stream;
 pub mod vote;
 pub mod voter;
+
+/// The plan, its priority scheme and the events are the protocol's (`s3res-protocol`); the old
+/// paths stay.
+pub use s3res_protocol::{event, plan, sched};
