@@ -26,11 +26,8 @@ pub const PREFIX_LEN: usize = 8;
 
 /// Filler byte `i` (counted from the end of the seq) of source frame `seq`.
 pub fn filler(seq: u64, i: usize) -> u8 {
-    // splitmix64's finaliser spreads every bit of seq over all 64 bits of the hash.
-    let mut h = seq.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    h ^= h >> 31;
+    // SplitMix64's first output for seed `seq`: every bit of seq spread over all 64 bits.
+    let h = s3res_protocol::rng::SplitMix64::new(seq).next_u64();
     ((h >> (8 * (i % 8))) as u8)
         .wrapping_add(i as u8)
         .wrapping_mul(31)

@@ -344,7 +344,7 @@ fn main() -> ExitCode {
             return ExitCode::from(1);
         }
     };
-    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    replica_rt::init_cli_logging(cli.quiet, cli.verbose);
     let kind = match &cli.command {
         Command::Inject(a) => Some(a.fault),
         Command::Campaign(a) => Some(a.fault),

@@ -12,6 +12,8 @@
 //!   match against.
 //! - [`live`]: bootstrap's live view (`--state FILE`), which injectors read.
 //! - [`clock`]: the clock of every timestamp in them.
+//! - [`rng`]: the seeded generator (SplitMix64) that makes a mission, a campaign or a test
+//!   replayable from one number.
 
 pub mod clock;
 pub mod contract;
@@ -20,4 +22,5 @@ pub mod frame;
 pub mod layout;
 pub mod live;
 pub mod plan;
+pub mod rng;
 pub mod sched;

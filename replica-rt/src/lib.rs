@@ -57,7 +57,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use thiserror::Error;
 
 use contract::{Direction, PortMap, PortSpec};
-pub use logging::init_logging;
+pub use logging::{init_cli_logging, init_logging};
 pub use port::{InPort, OutPort, RecvError, SendError};
 pub use select::{wait_any, Ready, TryRecv};
 

@@ -392,6 +392,63 @@ pub fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
         .collect()
 }
 
+/// What [`sweep_children`] did.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct SweepReport {
+    /// Processes that got SIGKILL (each counted once).
+    pub killed: usize,
+    /// Children still present when the time limit ran out (stuck in the kernel).
+    pub resisted: Vec<libc::pid_t>,
+}
+
+/// The child sweep: SIGKILLs every child of this process and reaps, again and again, until no
+/// child is left or `limit` has passed. In a child subreaper (bootstrap, the voter) every
+/// descendant whose parent dies is re-parented to us, so this reaches the whole subtree,
+/// including processes forked after the first pass. Reaps *every* child: call it only where no
+/// other code waits for a child of its own.
+pub fn sweep_children(limit: Duration) -> SweepReport {
+    let me = std::process::id() as libc::pid_t;
+    let deadline = std::time::Instant::now() + limit;
+    let mut report = SweepReport::default();
+    let mut signalled: Vec<libc::pid_t> = Vec::new();
+    loop {
+        while let Ok(Some(_)) = reap_any() {}
+        let children = children_of(me);
+        if children.is_empty() {
+            return report;
+        }
+        for &pid in &children {
+            // The pid cannot be reused under us: it is our child until we reap it.
+            if kill(pid, libc::SIGKILL).is_ok() && !signalled.contains(&pid) {
+                signalled.push(pid);
+                report.killed += 1;
+            }
+        }
+        while let Ok(Some(_)) = reap_any() {}
+        if std::time::Instant::now() >= deadline {
+            report.resisted = children_of(me);
+            return report;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+/// Takes `signals` through a file descriptor instead of handlers: blocks them in the calling
+/// thread (call it before any thread exists, so that every thread inherits the mask; children
+/// started by `std::process::Command` get a clean mask) and returns a non-blocking,
+/// close-on-exec signalfd that reads them.
+pub fn signal_fd(
+    signals: &[nix::sys::signal::Signal],
+) -> nix::Result<nix::sys::signalfd::SignalFd> {
+    use nix::sys::signalfd::{SfdFlags, SignalFd};
+    let mut mask = nix::sys::signal::SigSet::empty();
+    for &s in signals {
+        mask.add(s);
+    }
+    mask.thread_block()?;
+    SignalFd::with_flags(&mask, SfdFlags::SFD_CLOEXEC | SfdFlags::SFD_NONBLOCK)
+}
+
 /// Takes ownership of an fd this process inherited at exec (a port), after checking it is open.
 ///
 /// Crate-private: only [`crate::init`] calls it, once per port, guarded by the init-once flag, so

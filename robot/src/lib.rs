@@ -26,7 +26,6 @@ pub mod mission;
 pub mod msg;
 pub mod navigator;
 pub mod planner;
-pub mod rng;
 pub mod sim;
 pub mod svg;
 pub mod world;
