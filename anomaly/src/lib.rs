@@ -18,6 +18,8 @@
 //!
 //! See `docs/anomaly-detection.md`.
 
+#![forbid(unsafe_code)]
+
 pub mod capture;
 pub mod detector;
 /// The layout is part of the plan a voter receives, so it is the protocol's (`s3res-protocol`).

@@ -641,8 +641,7 @@ impl Setup {
         }
         let apply = |pid: i32, who: &str, priority: u8, cpus: &[usize]| -> Result<()> {
             if self.realtime() {
-                sys::set_policy(pid, sys::Policy::RoundRobin(i32::from(priority)))
-                    .with_context(|| what(who, pid))?;
+                sys::set_round_robin(pid, i32::from(priority)).with_context(|| what(who, pid))?;
             }
             if !cpus.is_empty() {
                 sys::set_affinity(pid, cpus).with_context(|| what(who, pid))?;
@@ -663,7 +662,7 @@ impl Setup {
 
     /// Puts the bench's calling thread back to the default.
     pub fn reset_bench() {
-        let _ = sys::set_policy(0, sys::Policy::Other);
+        let _ = sys::set_normal_policy(0);
         let _ = sys::set_affinity(0, &[]);
     }
 }

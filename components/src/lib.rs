@@ -17,6 +17,8 @@
 //! counter is the echo's state: a replica restarted by exec starts again at 0 (the sink sees a
 //! state break), one restarted by fork carries on.
 
+#![forbid(unsafe_code)]
+
 use serde::Serialize;
 
 /// Bytes of the sequence number at the start of a source frame (and its minimum size).

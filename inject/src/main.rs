@@ -1,5 +1,7 @@
 //! `s3res-inject`: fault injection into s3res systems. See `--help` and docs/campaigns.md.
 
+#![forbid(unsafe_code)]
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;

@@ -15,6 +15,8 @@
 //! - [`rng`]: the seeded generator (SplitMix64) that makes a mission, a campaign or a test
 //!   replayable from one number.
 
+#![deny(unsafe_code)]
+
 pub mod clock;
 pub mod contract;
 pub mod event;

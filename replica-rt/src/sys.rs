@@ -373,13 +373,38 @@ pub use s3res_protocol::clock::monotonic_ns;
 
 /// Takes ownership of an fd this process inherited from its parent (a port or the events pipe)
 /// and marks it close-on-exec, so it does not leak into processes we start.
+///
+/// Panics unless `fd` is an inherited fd nobody owns yet; see [`try_adopt_inherited_fd`].
 pub fn adopt_inherited_fd(fd: RawFd) -> OwnedFd {
-    // SAFETY: the plan we were started with says `fd` was opened for us by our parent and
-    // nothing else in this process owns it; F_SETFD touches no memory.
-    unsafe {
-        libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC);
-        OwnedFd::from_raw_fd(fd)
+    try_adopt_inherited_fd(fd).unwrap_or_else(|e| panic!("cannot adopt inherited fd {fd}: {e}"))
+}
+
+/// Takes ownership of an fd this process inherited from its parent, after checking that it
+/// is one: above the standard streams, open, and *not* close-on-exec. Everything the standard
+/// library and this crate open is close-on-exec, and adopting marks the fd close-on-exec, so
+/// an fd that an `OwnedFd`, a `File` or an earlier adoption owns is refused (`EBADF` if
+/// closed, `EEXIST` if owned), never owned twice. (Only an fd opened without `O_CLOEXEC` by
+/// some other unsafe code in the process could slip through; this project opens none.)
+pub fn try_adopt_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
+    // Check and mark in one step with respect to other adoptions.
+    static ADOPTING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one_at_a_time = ADOPTING.lock().unwrap_or_else(|p| p.into_inner());
+    if fd <= libc::STDERR_FILENO {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "the standard streams are not adopted",
+        ));
     }
+    // SAFETY: F_GETFD on any integer only reads the fd table; EBADF if it is not open.
+    let flags = cvt(unsafe { libc::fcntl(fd, libc::F_GETFD) })?;
+    if flags & libc::FD_CLOEXEC != 0 {
+        return Err(io::Error::from_raw_os_error(libc::EEXIST));
+    }
+    // SAFETY: F_SETFD with an integer flag touches no memory; the fd is open (checked above).
+    cvt(unsafe { libc::fcntl(fd, libc::F_SETFD, flags | libc::FD_CLOEXEC) })?;
+    // SAFETY: the fd is open and was not close-on-exec, so nothing in this process owns it
+    // (see above); from here on it is close-on-exec, so no later adoption can take it again.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
 }
 
 /// Pids of the living children of `parent` (scans `/proc`; zombies included).
@@ -473,7 +498,15 @@ pub type SigInfoHandler = extern "C" fn(libc::c_int, *mut libc::siginfo_t, *mut 
 
 /// Installs `handler` for `sig` with `SA_SIGINFO | extra_flags` and an empty extra mask (the
 /// signal itself is blocked while its handler runs, as usual).
-pub fn install_siginfo_handler(
+///
+/// # Safety
+///
+/// `handler` runs at any instruction of the thread the signal interrupts, so it must be
+/// async-signal-safe: no allocation, no locks, no `std` I/O or formatting, and it may touch
+/// shared state only through atomics (or through state the interrupted code cannot be using,
+/// as the restart handler's own statics). Otherwise it can deadlock or race with the code it
+/// interrupted.
+pub unsafe fn install_siginfo_handler(
     sig: libc::c_int,
     handler: SigInfoHandler,
     extra_flags: libc::c_int,
@@ -485,7 +518,7 @@ pub fn install_siginfo_handler(
     // SAFETY: `sa.sa_mask` is a valid sigset_t to initialise.
     unsafe { libc::sigemptyset(&mut sa.sa_mask) };
     // SAFETY: `sa` is fully initialised and outlives the call; a null old-action is allowed.
-    // Whether `handler` is async-signal-safe is the caller's business, not memory safety here.
+    // That `handler` is async-signal-safe is this function's precondition.
     cvt(unsafe { libc::sigaction(sig, &sa, std::ptr::null_mut()) })?;
     Ok(())
 }
@@ -680,7 +713,43 @@ pub fn cpu_affinity(pid: libc::pid_t) -> io::Result<Vec<usize>> {
         .collect())
 }
 
+/// Number of online CPUs (at least 1).
+pub fn online_cpus() -> usize {
+    // SAFETY: sysconf takes an integer and returns one.
+    let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) };
+    n.max(1) as usize
+}
+
 /// This process's effective user id.
 pub fn effective_uid() -> u32 {
     nix::unistd::geteuid().as_raw()
+}
+
+#[cfg(test)]
+mod tests {
+    use std::os::fd::IntoRawFd;
+
+    use super::*;
+
+    #[test]
+    fn only_an_unowned_inherited_fd_is_adopted_and_only_once() {
+        // nix's pipe is not close-on-exec, like an fd inherited at exec.
+        let (r, w) = nix::unistd::pipe().unwrap();
+        let raw = r.into_raw_fd();
+        let owned = try_adopt_inherited_fd(raw).unwrap();
+        assert_eq!(
+            try_adopt_inherited_fd(raw).unwrap_err().raw_os_error(),
+            Some(libc::EEXIST)
+        );
+        // Owned by a File (close-on-exec): refused.
+        let f = std::fs::File::open("/proc/self/stat").unwrap();
+        assert!(try_adopt_inherited_fd(f.as_raw_fd()).is_err());
+        drop((owned, w));
+        // Closed now: refused.
+        assert_eq!(
+            try_adopt_inherited_fd(raw).unwrap_err().raw_os_error(),
+            Some(libc::EBADF)
+        );
+        assert!(try_adopt_inherited_fd(1).is_err());
+    }
 }

@@ -24,6 +24,8 @@
 //! # let _ = (summary, first);
 //! ```
 
+#![forbid(unsafe_code)]
+
 pub mod bins;
 pub mod events;
 pub mod procs;

@@ -1,5 +1,7 @@
 //! `s3res-train`: learns an anomaly-detection model from fault-free frames.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use s3res_anomaly::capture::{for_each_frame, write_frames};
