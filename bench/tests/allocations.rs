@@ -1,7 +1,7 @@
 //! The voter allocates nothing per round in steady state.
 //!
 //! The voter library runs in-process on its own thread (started exactly as `s3res-voter`'s
-//! `main` starts it: `Voter::start(plan)` then `run`), with three real `s3res-echo` replicas.
+//! `main` starts it: `ReactiveVoter::start(plan)` then `run`), with three real `s3res-echo` replicas.
 //! A counting global allocator counts the allocations made *on the voter's thread* only, so
 //! the test's own work does not disturb the count. After warm-up rounds at every frame size
 //! (buffers grow to their working size once), further rounds must not allocate at all.
@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use s3res_protocol::event::{Event, EventKind};
 use s3res_protocol::plan::{CapturePlan, ExternalPort, MonitorPlan, RoundTrigger, VoterPlan};
-use s3res_voter::voter::Voter;
+use s3res_voter::ReactiveVoter;
 
 struct Counting;
 
@@ -208,7 +208,7 @@ fn steady_state(monitored: bool) {
     let (done_tx, done_rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
         ON_VOTER_THREAD.with(|c| c.set(true));
-        let result = Voter::start(plan).and_then(Voter::run);
+        let result = ReactiveVoter::start(plan).and_then(ReactiveVoter::run);
         ON_VOTER_THREAD.with(|c| c.set(false));
         let _ = done_tx.send(result.map_err(|e| e.to_string()));
     });

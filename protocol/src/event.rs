@@ -39,6 +39,8 @@ pub enum Cause {
     // ----- hang
     /// No (complete) answer within `timeout_us` of the round, or of its turn (reactive).
     Deadline,
+    /// Sequential schedule: no (complete) answer within `timeout_us` of its own turn.
+    TurnDeadline,
     /// A replica started by exec gave no first answer within the start-up allowance.
     StartDeadline,
     /// It did not take the input queued for it (beyond the backlog limit).
@@ -84,6 +86,9 @@ pub enum Cause {
     // ----- anomaly
     /// An anomaly detector's score passed its threshold (the `anomaly` event).
     Alarm,
+    /// An alarm on the frame right after an alarmed one of the same replica: often the way
+    /// back from a corrupted frame (the detector's reference was the corrupted one).
+    AlarmAgain,
 }
 
 impl Cause {
@@ -92,14 +97,14 @@ impl Cause {
         use Cause::*;
         match self {
             Died => EventKind::Crash,
-            Deadline | StartDeadline | InputBacklog | Behind | BehindNotWaiting | Spinning
-            | DonorSpinning => EventKind::Hang,
+            Deadline | TurnDeadline | StartDeadline | InputBacklog | Behind | BehindNotWaiting
+            | Spinning | DonorSpinning => EventKind::Hang,
             BadFrame | PartialFrame | ClosedOutput | UnexpectedFrame | ExtraFrame | PipeError => {
                 EventKind::Protocol
             }
             Minority | BitwiseMinority | AllDiffer | NoMajority | AnomalyHeldBack
             | AnomalyAttributed => EventKind::Sdc,
-            Alarm => EventKind::Anomaly,
+            Alarm | AlarmAgain => EventKind::Anomaly,
         }
     }
 }
@@ -127,9 +132,12 @@ pub struct Event {
     /// Pid of the replica the event is about.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pid: Option<i32>,
-    /// Round number the fault was seen in.
+    /// Round number the fault was seen in (reactive mode).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub round: Option<u64>,
+    /// The frame's number on its output (stream mode: decisions and alarms).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<u64>,
     /// Why (faults, unattributed `sdc`, `anomaly`): match on this, not on `detail`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cause: Option<Cause>,
@@ -171,6 +179,7 @@ impl Event {
             replica: None,
             pid: None,
             round: None,
+            frame: None,
             cause: None,
             detail: None,
             new_pid: None,
@@ -200,4 +209,91 @@ impl Event {
     }
 }
 
+/// One line for logs: `sdc replica 1 pid 4242 (minority): detail`, only the fields present.
+impl std::fmt::Display for Event {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let kind = serde_json::to_value(self.kind).ok();
+        write!(
+            f,
+            "{}",
+            kind.as_ref().and_then(|k| k.as_str()).unwrap_or("?")
+        )?;
+        if let Some(r) = self.replica {
+            write!(f, " replica {r}")?;
+        }
+        if let Some(pid) = self.pid {
+            write!(f, " pid {pid}")?;
+        }
+        if let Some(new_pid) = self.new_pid {
+            write!(f, " → pid {new_pid}")?;
+        }
+        if let Some(method) = self.method {
+            let how = match method {
+                RecoveryMethod::Fork => "fork",
+                RecoveryMethod::Exec => "exec",
+            };
+            write!(f, " by {how}")?;
+        }
+        if let Some(d) = self.donor {
+            write!(f, " of replica {d}")?;
+        }
+        if let Some(us) = self.recovery_us {
+            write!(f, " in {us} µs")?;
+        }
+        if self.state_lost == Some(true) {
+            write!(f, ", state lost")?;
+        }
+        if let Some(cause) = self.cause {
+            let c = serde_json::to_value(cause).ok();
+            write!(
+                f,
+                " ({})",
+                c.as_ref().and_then(|c| c.as_str()).unwrap_or("?")
+            )?;
+        }
+        if let Some(detail) = &self.detail {
+            write!(f, ": {detail}")?;
+        }
+        Ok(())
+    }
+}
+
 pub use crate::clock::monotonic_ns;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_fault_reads_as_one_line_of_values() {
+        let mut ev = Event::caused("sys", "echo", Cause::Minority);
+        ev.replica = Some(1);
+        ev.pid = Some(4242);
+        ev.detail = Some("`out` differs from the majority in round 7".into());
+        assert_eq!(
+            ev.to_string(),
+            "sdc replica 1 pid 4242 (minority): `out` differs from the majority in round 7"
+        );
+        let mut rec = Event::new("sys", "echo", EventKind::Recovery);
+        rec.replica = Some(1);
+        rec.pid = Some(4242);
+        rec.new_pid = Some(4300);
+        rec.method = Some(RecoveryMethod::Exec);
+        rec.recovery_us = Some(812);
+        rec.state_lost = Some(true);
+        assert_eq!(
+            rec.to_string(),
+            "recovery replica 1 pid 4242 → pid 4300 by exec in 812 µs, state lost"
+        );
+    }
+
+    #[test]
+    fn every_cause_round_trips_and_names_its_kind() {
+        let mut ev = Event::caused("s", "c", Cause::Spinning);
+        ev.replica = Some(0);
+        let back: Event = serde_json::from_str(ev.to_line().trim()).unwrap();
+        assert_eq!(back.cause, Some(Cause::Spinning));
+        assert_eq!(back.kind, EventKind::Hang);
+        assert!(ev.to_line().contains(r#""cause":"spinning""#));
+    }
+}

@@ -149,7 +149,7 @@ impl Replica {
     }
 
     /// An output pipe of this replica was seen closed: `true` if the process is already gone
-    /// (a crash); else the time is noted, and [`crate::voter::closed_output_fault`] decides once
+    /// (a crash); else the time is noted, and `core::Core::closed_output_fault` decides once
     /// the grace is over (the kernel closes a dying process's fds just before it reports the
     /// exit).
     pub fn note_output_closed(&mut self) -> bool {
