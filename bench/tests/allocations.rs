@@ -15,8 +15,8 @@ use std::os::fd::{AsFd, IntoRawFd, OwnedFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use s3res_voter::event::{Event, EventKind};
-use s3res_voter::plan::{CapturePlan, ExternalPort, MonitorPlan, RoundTrigger, VoterPlan};
+use s3res_protocol::event::{Event, EventKind};
+use s3res_protocol::plan::{CapturePlan, ExternalPort, MonitorPlan, RoundTrigger, VoterPlan};
 use s3res_voter::ReactiveVoter;
 
 struct Counting;
@@ -181,13 +181,13 @@ fn steady_state(monitored: bool) {
         restart_timeout_ms: 1000,
         priority: None,
         cpus: Vec::new(),
-        start_timeout_ms: s3res_voter::plan::default_start_timeout_ms(),
+        start_timeout_ms: s3res_protocol::plan::default_start_timeout_ms(),
         voter_cpu: None,
         schedule: Default::default(),
         realtime: true,
         nice: None,
         mode: Default::default(),
-        window: s3res_voter::plan::default_stream_window(),
+        window: s3res_protocol::plan::default_stream_window(),
         monitors: Vec::new(),
         captures: Vec::new(),
     };

@@ -13,11 +13,11 @@ use thiserror::Error;
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
 use s3res_anomaly::{Field, FieldLayout, Model};
-use s3res_voter::plan::{
+use s3res_protocol::plan::{
     default_restart_timeout_ms, default_start_timeout_ms, default_stream_window, CapturePlan, Mode,
     MonitorPlan, RoundTrigger,
 };
-use s3res_voter::sched::{self, Schedule};
+use s3res_protocol::sched::{self, Schedule};
 
 use crate::exec::{self, SearchPath};
 use crate::plan::{ChannelPlan, ComponentPlan, Endpoint, PortPlan, Redundancy, SystemPlan};

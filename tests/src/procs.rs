@@ -132,7 +132,7 @@ pub fn scheduling(pid: i32) -> Scheduling {
 /// that is gone handles nothing.
 pub fn handles_hooks(pid: i32) -> bool {
     use replica_rt::contract::signals;
-    use s3res_voter::replica::{caught_signals, signal_bit};
+    use replica_rt::sys::{caught_signals, signal_bit};
     caught_signals(pid).is_some_and(|mask| {
         [signals::RESTART, signals::INJECT_SDC, signals::inject_cfe()]
             .iter()

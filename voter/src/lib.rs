@@ -17,18 +17,19 @@ pub mod channel;
 pub mod clock;
 mod core;
 pub mod decision;
-pub mod event;
 pub mod monitor;
-pub mod plan;
 mod ports;
 pub mod reactive;
 pub mod recovery;
 pub mod replica;
 pub mod round;
 pub mod rt;
-pub mod sched;
 pub mod stream;
 pub mod vote;
+
+/// The plan, its priority scheme and the events are the protocol's (`s3res-protocol`); the old
+/// paths stay.
+pub use s3res_protocol::{event, plan, sched};
 
 pub use crate::core::VoterError;
 pub use reactive::ReactiveVoter;

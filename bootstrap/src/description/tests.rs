@@ -5,7 +5,7 @@ use std::fs;
 use std::os::unix::fs::PermissionsExt;
 
 use super::*;
-use s3res_voter::sched::Schedule;
+use s3res_protocol::sched::Schedule;
 
 /// A folder with an executable `run.sh` and a non-executable `notes.txt`; CPUs 0 and 1.
 struct Fixture {
@@ -273,7 +273,7 @@ fn stream_mode_is_passed_to_the_voter_without_rounds() {
     assert!(planner.rounds.is_empty());
     let mapper = &plan.components[1];
     assert!(mapper.outputs.is_empty(), "outputs may be none");
-    assert_eq!(mapper.window, s3res_voter::plan::DEFAULT_STREAM_WINDOW);
+    assert_eq!(mapper.window, s3res_protocol::plan::DEFAULT_STREAM_WINDOW);
 }
 
 #[test]

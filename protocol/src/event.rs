@@ -258,7 +258,7 @@ impl std::fmt::Display for Event {
     }
 }
 
-pub use replica_rt::sys::monotonic_ns;
+pub use crate::clock::monotonic_ns;
 
 #[cfg(test)]
 mod tests {
