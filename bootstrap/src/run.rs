@@ -155,8 +155,16 @@ struct ChannelEnds {
 pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> {
     // Before any thread: every thread inherits this mask, so the signals reach only the
     // signalfd. (std::process::Command clears the mask in children.)
-    let signals = sys::signal_fd(&[Signal::SIGINT, Signal::SIGTERM, Signal::SIGCHLD])
-        .map_err(RunError::Signals)?;
+    // SIGHUP (a closed terminal, a dropped ssh connection) and SIGQUIT stop the system like
+    // SIGTERM: nothing bootstrap started may outlive it.
+    let signals = sys::signal_fd(&[
+        Signal::SIGINT,
+        Signal::SIGTERM,
+        Signal::SIGHUP,
+        Signal::SIGQUIT,
+        Signal::SIGCHLD,
+    ])
+    .map_err(RunError::Signals)?;
 
     let voter = if plan.has_protected() {
         match &opts.voter {
@@ -319,6 +327,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
 fn make_socket_dir() -> Result<PathBuf, RunError> {
     let tmp = std::env::temp_dir();
     let pid = std::process::id();
+    remove_stale_socket_dirs(&tmp);
     for n in 0..1000 {
         let dir = tmp.join(format!("s3res-{pid}-{n}"));
         match std::fs::DirBuilder::new().mode(0o700).create(&dir) {
@@ -334,6 +343,42 @@ fn make_socket_dir() -> Result<PathBuf, RunError> {
             "1000 candidate names are taken",
         ),
     })
+}
+
+/// Removes the runtime folders (`s3res-PID-N`) of bootstraps that died without cleaning up
+/// (SIGKILL, a power cut): the pid is gone, or is no longer an `s3res-bootstrap`. Only folders
+/// of our own user are touched.
+fn remove_stale_socket_dirs(tmp: &Path) {
+    use std::os::unix::fs::MetadataExt;
+    let Ok(entries) = std::fs::read_dir(tmp) else {
+        return;
+    };
+    let me = std::fs::metadata("/proc/self").map(|m| m.uid()).ok();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix("s3res-"))
+            .and_then(|rest| rest.split_once('-'))
+            .and_then(|(pid, n)| n.parse::<u32>().ok().and(pid.parse::<libc::pid_t>().ok()))
+        else {
+            continue;
+        };
+        let ours = entry
+            .metadata()
+            .is_ok_and(|m| m.is_dir() && Some(m.uid()) == me);
+        let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default();
+        if ours && comm.trim_end() != "s3res-bootstra" && comm.trim_end() != "s3res-bootstrap" {
+            match std::fs::remove_dir_all(entry.path()) {
+                Ok(()) => {
+                    tracing::debug!(dir = %entry.path().display(), "removed the runtime folder of a dead bootstrap")
+                }
+                Err(e) => {
+                    tracing::debug!(dir = %entry.path().display(), error = %e, "cannot remove a stale runtime folder")
+                }
+            }
+        }
+    }
 }
 
 /// One pipe per channel; `stdin`/`stdout` endpoints get a duplicate of bootstrap's fd 0/1.
@@ -477,6 +522,8 @@ fn spawn_direct(
             .collect(),
     };
     let mut cmd = base_command(&c.exec, &c.name, stdout_to_stderr).map_err(spawn_err)?;
+    // If bootstrap dies (even by SIGKILL), an unprotected component dies with it.
+    sys::die_with_parent(&mut cmd, libc::SIGKILL);
     cmd.args(&c.args).env(ENV_PORTS, ports.to_env());
     sys::map_fds_on_exec(&mut cmd, mapping);
     let child = cmd.spawn().map_err(spawn_err)?;
@@ -547,6 +594,9 @@ fn spawn_voter(
         captures: c.captures.clone(),
     };
     let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
+    // If bootstrap dies (even by SIGKILL), the voter is asked to stop: it kills its replicas
+    // and everything re-parented to it, then exits.
+    sys::die_with_parent(&mut cmd, libc::SIGTERM);
     cmd.arg("--plan").arg(voter_plan.to_json());
     sys::map_fds_on_exec(&mut cmd, mapping);
     let child = cmd.spawn().map_err(spawn_err)?;
@@ -596,7 +646,7 @@ fn supervise(
             match signals.read_signal() {
                 Ok(Some(info)) => {
                     let sig = info.ssi_signo as i32;
-                    if sig == libc::SIGINT || sig == libc::SIGTERM {
+                    if STOP_SIGNALS.contains(&sig) {
                         match stop {
                             None => {
                                 tracing::info!(
@@ -666,10 +716,15 @@ fn signal_live(children: &[Child], sig: i32) {
     }
 }
 
+/// The signals that stop the system.
+const STOP_SIGNALS: [i32; 4] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP, libc::SIGQUIT];
+
 fn signal_name(sig: i32) -> &'static str {
     match sig {
         libc::SIGINT => "SIGINT",
         libc::SIGTERM => "SIGTERM",
+        libc::SIGHUP => "SIGHUP",
+        libc::SIGQUIT => "SIGQUIT",
         _ => "signal",
     }
 }

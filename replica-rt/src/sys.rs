@@ -336,6 +336,33 @@ pub fn map_fds_on_exec(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
     }
 }
 
+/// Makes the child of `cmd` receive `sig` when this process dies (`PR_SET_PDEATHSIG`), so that
+/// nothing a supervisor started outlives it, however it dies (SIGKILL included). If this
+/// process is already gone when the child sets it up, the child sends itself `sig` at once.
+/// The parent is the thread that forks: spawn from a thread that lives as long as the process
+/// (the kernel sends the signal when the forking *thread* exits).
+pub fn die_with_parent(cmd: &mut Command, sig: libc::c_int) {
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: the closure runs in the forked child before exec and only calls prctl, getppid
+    // and raise, which are async-signal-safe; it neither allocates nor takes locks.
+    unsafe {
+        cmd.pre_exec(move || {
+            cvt(libc::prctl(
+                libc::PR_SET_PDEATHSIG,
+                sig as libc::c_ulong,
+                0,
+                0,
+                0,
+            ))?;
+            // The parent may have died between fork and prctl: then no signal would come.
+            if libc::getppid() != parent {
+                libc::raise(sig);
+            }
+            Ok(())
+        });
+    }
+}
+
 /// `mlockall(MCL_CURRENT | MCL_FUTURE)`.
 pub fn lock_all_memory() -> io::Result<()> {
     // SAFETY: flags only; locking memory has no memory-safety effect.
