@@ -111,7 +111,10 @@ fn main() -> ExitCode {
     match run_cli(&cli) {
         Ok(code) => ExitCode::from(code),
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!(
+                "error: {}",
+                s3res_bootstrap::logging::error_chain(e.as_ref())
+            );
             ExitCode::from(1)
         }
     }

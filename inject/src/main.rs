@@ -16,7 +16,7 @@ use s3res_bootstrap::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyRun};
 use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
-use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
+use s3res_inject::report::{self, CampaignInfo, CampaignOutput, MachineInfo};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
 use s3res_inject::target::{resolve, Pick, Target};
@@ -363,14 +363,20 @@ fn main() -> ExitCode {
     };
     if let Some(sig) = stop.requested() {
         if let Err(e) = &res {
-            eprintln!("error: {e:#}");
+            eprintln!(
+                "error: {}",
+                s3res_bootstrap::logging::error_chain(e.as_ref())
+            );
         }
         return ExitCode::from((128 + sig).clamp(0, 255) as u8);
     }
     match res {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!(
+                "error: {}",
+                s3res_bootstrap::logging::error_chain(e.as_ref())
+            );
             ExitCode::from(1)
         }
     }
@@ -572,14 +578,18 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         run_limit_ms: seconds("--run-timeout", a.run_timeout)?.as_millis() as u64,
         task_summary: a.task_summary.clone(),
         redundancy,
+        machine: None,
     };
-    let run = CampaignRun {
+    let bootstrap = find_bootstrap()?;
+    let mut run = CampaignRun {
         info,
-        bootstrap: find_bootstrap()?,
-        out: a.out.clone(),
+        bootstrap,
+        // Absolute: each run's bootstrap works in its own folder and is given paths inside OUT.
+        out: exec::absolute(&a.out),
         keep_runs: a.keep_runs,
         ready_limit: Duration::from_secs(30),
     };
+    run.info.machine = Some(MachineInfo::probe(&run.bootstrap));
     eprintln!(
         "s3res-inject: campaign {} {} on {}: {} run(s){}, seed {}",
         run.info.config,
@@ -592,7 +602,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
     );
     let (s, _interrupted) = campaign::run(&run, stop)?;
     print!("{}", report::markdown(&[s]));
-    eprintln!("s3res-inject: outputs in {}", a.out.display());
+    eprintln!("s3res-inject: outputs in {}", run.out.display());
     Ok(())
 }
 
@@ -607,7 +617,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     let c = ClassifyRun {
         system,
         bootstrap: find_bootstrap()?,
-        out: a.out.clone(),
+        out: exec::absolute(&a.out),
         params: ScheduleParams {
             fault: a.fault,
             rate_hz: 1.0,

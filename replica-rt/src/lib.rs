@@ -45,6 +45,7 @@ pub mod cow;
 pub mod frame;
 pub mod inject;
 mod logging;
+pub mod machine;
 mod port;
 pub mod restart;
 pub mod select;

@@ -32,6 +32,11 @@ pub struct Spawned {
 
 /// Starts `s3res-inject ARGS` with the harness's environment mark.
 pub fn spawn(args: &[&str]) -> Spawned {
+    spawn_with(None, &[], args)
+}
+
+/// Starts `s3res-inject ARGS` in `cwd` (default: the test's) with `env` added.
+pub fn spawn_with(cwd: Option<&Path>, env: &[(&str, &str)], args: &[&str]) -> Spawned {
     static N: AtomicU64 = AtomicU64::new(0);
     let mark = format!(
         "inject-{}-{}",
@@ -41,8 +46,13 @@ pub fn spawn(args: &[&str]) -> Spawned {
     let dir = tempfile::tempdir().unwrap();
     let out_path = dir.path().join("stdout");
     let err_path = dir.path().join("stderr");
-    let child = Command::new(bin_path("s3res-inject"))
+    let mut cmd = Command::new(bin_path("s3res-inject"));
+    if let Some(cwd) = cwd {
+        cmd.current_dir(cwd);
+    }
+    let child = cmd
         .args(args)
+        .envs(env.iter().copied())
         .env(MARK_ENV, &mark)
         .stdin(Stdio::null())
         .stdout(std::fs::File::create(&out_path).unwrap())
