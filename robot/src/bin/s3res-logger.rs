@@ -13,7 +13,7 @@ use s3res_robot::msg::{LoadSum, Telemetry};
 /// input `telemetry` as a CSV line `seq,x,y,theta,v,w` to --out, and counts the load's
 /// checksums on input `load` (if connected). Ends when its inputs end.
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-logger", version, verbatim_doc_comment)]
 struct Cli {
     /// The CSV file to write (nothing is written without it; frames are still counted).
     #[arg(long)]

@@ -32,7 +32,12 @@ use s3res_robot::svg;
 ///     s3res-sim golden --seed 3 --summary golden.json    # the mission in one process, ideal timing
 ///     s3res-sim render golden.json --overlay faulted.json --out maze.svg
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment, args_conflicts_with_subcommands = true)]
+#[command(
+    name = "s3res-sim",
+    version,
+    verbatim_doc_comment,
+    args_conflicts_with_subcommands = true
+)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
