@@ -15,7 +15,8 @@ pub fn init_cli_logging(quiet: bool, verbose: u8) {
     };
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
     tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
+        // Above the status line, when one is shown.
+        .with_writer(crate::status::StatusAwareStderr)
         .with_env_filter(filter)
         .with_target(false)
         .with_ansi(std::io::stderr().is_terminal())

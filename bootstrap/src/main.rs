@@ -1,5 +1,6 @@
 //! `s3res-bootstrap [--check] [--events FILE] [--state FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
 
+use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -11,9 +12,13 @@ use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
 use s3res_bootstrap::run::{self, Ending, RunOptions, VOTER_BIN};
 use s3res_bootstrap::sched::SystemSched;
+use s3res_bootstrap::status::{read_outcome, ConsoleMode, Verdict};
 
 /// Overrides where the voter binary is taken from (tests, unusual installs).
 const VOTER_ENV: &str = "S3RES_VOTER";
+/// The injector a description's `inject` runs, and the variable that overrides where it is.
+const INJECT_BIN: &str = "s3res-inject";
+const INJECT_ENV: &str = "S3RES_INJECT";
 
 const ABOUT: &str = "Start an s3res system from its description, supervise it, stop it cleanly.";
 
@@ -60,8 +65,9 @@ Exit status:
   143  stopped by SIGTERM
 
 Environment:
-  RUST_LOG     log filter (overrides -v/-q), e.g. RUST_LOG=debug
-  S3RES_VOTER  path of the voter binary to use instead of s3res-voter beside bootstrap or on PATH";
+  RUST_LOG      log filter (overrides -v/-q), e.g. RUST_LOG=debug; every process inherits it
+  S3RES_VOTER   path of the voter binary to use instead of s3res-voter beside bootstrap or on PATH
+  S3RES_INJECT  path of the injector (`inject` in the description) instead of s3res-inject";
 
 #[derive(Debug, Parser)]
 #[command(
@@ -77,26 +83,33 @@ struct Cli {
     #[arg(long)]
     check: bool,
 
-    /// Append every voter event (one JSON object per line) to FILE, created or truncated at start.
+    /// Write every voter event to FILE, one JSON object per line; FILE is created, or emptied
+    /// if it exists, at start. Default: the description's `events`, if it names one.
     #[arg(long, value_name = "FILE")]
     events: Option<PathBuf>,
 
     /// Keep a live view of the running system in FILE (JSON, rewritten atomically on every
     /// replica start, fault and recovery): each component with its pid, or its voter's pid and
     /// the current pid of every replica slot. Fault injectors read it to find their targets
-    /// (see docs/campaigns.md).
+    /// (see docs/campaigns.md). Default: the description's `state`, if it names one.
     #[arg(long, value_name = "FILE")]
     state: Option<PathBuf>,
+
+    /// Run without the description's injector (`inject`): the same system, fault-free.
+    #[arg(long)]
+    no_inject: bool,
 
     /// After SIGTERM to the components, wait this long before SIGKILL.
     #[arg(long, value_name = "N", default_value_t = 2000)]
     stop_timeout_ms: u64,
 
-    /// More log output (-v debug, -vv trace). RUST_LOG, when set, takes precedence.
+    /// More log output (-v debug, -vv trace), from bootstrap and every process it starts.
+    /// RUST_LOG, when set, takes precedence.
     #[arg(short, long, action = ArgAction::Count, conflicts_with = "quiet")]
     verbose: u8,
 
-    /// Only warnings and errors.
+    /// Only warnings and errors, from bootstrap and every process it starts; no live status
+    /// and no verdict.
     #[arg(short, long)]
     quiet: bool,
 
@@ -132,6 +145,32 @@ fn find_voter() -> Result<PathBuf, String> {
     }
 }
 
+/// The injector: `$S3RES_INJECT` if set, else `s3res-inject` beside us or on PATH.
+fn find_injector() -> Result<PathBuf, String> {
+    let search = SearchPath::from_environment();
+    match std::env::var(INJECT_ENV) {
+        Ok(path) => {
+            let cwd = std::env::current_dir().map_err(|e| format!("no current folder: {e}"))?;
+            exec::resolve(&path, &cwd, &search).map_err(|e| format!("{INJECT_ENV}: {e}"))
+        }
+        Err(_) => search.find(INJECT_BIN),
+    }
+}
+
+/// `RUST_LOG` for the processes bootstrap starts: its own level, unless `RUST_LOG` is set
+/// (then they inherit it) or the level is the default.
+fn child_log(quiet: bool, verbose: u8) -> Option<String> {
+    if std::env::var_os("RUST_LOG").is_some() {
+        return None;
+    }
+    match (quiet, verbose) {
+        (true, _) => Some("warn".to_owned()),
+        (false, 0) => None,
+        (false, 1) => Some("debug".to_owned()),
+        (false, _) => Some("trace".to_owned()),
+    }
+}
+
 /// Exit code on success paths; `Err` is a failure to start (exit 1).
 fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
     let ctx = HostContext::for_file(&cli.system);
@@ -157,11 +196,30 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         return Ok(0);
     }
 
+    let injector = match &plan.inject {
+        Some(_) if !cli.no_inject => Some(find_injector().map_err(|e| {
+            anyhow::anyhow!(
+                "the description injects faults (`inject`) but `{INJECT_BIN}` was not found \
+                 ({e}); build it, or run without faults: --no-inject"
+            )
+        })?),
+        _ => None,
+    };
+    let console = if cli.quiet {
+        ConsoleMode::Off
+    } else if std::io::stderr().is_terminal() {
+        ConsoleMode::Terminal
+    } else {
+        ConsoleMode::Plain
+    };
     let opts = RunOptions {
         voter,
-        events_file: cli.events.clone(),
+        events_file: cli.events.clone().or_else(|| plan.events.clone()),
         stop_timeout: Duration::from_millis(cli.stop_timeout_ms),
-        state_file: cli.state.clone(),
+        state_file: cli.state.clone().or_else(|| plan.state.clone()),
+        injector,
+        console,
+        child_log: child_log(cli.quiet, cli.verbose),
     };
     let report =
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;
@@ -172,13 +230,34 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
             f.component, f.status
         );
     }
-    if let Some(events) = &report.events {
-        if !cli.quiet {
-            eprintln!("s3res-bootstrap: {}", events.line());
-        }
+    if let Some(events) = report.events.as_ref().filter(|e| e.unparsable > 0) {
+        tracing::warn!("{} event line(s) could not be read", events.unparsable);
     }
     if let Ending::Stopped(sig) = report.ending {
         tracing::info!("stopped by signal {sig}");
+    }
+    if !cli.quiet {
+        let verdict = Verdict {
+            system: plan.name.clone(),
+            elapsed: report.elapsed,
+            exit_code: report.exit_code(),
+            failures: report
+                .failures
+                .iter()
+                .map(|f| format!("{}: {}", f.component, f.status))
+                .collect(),
+            outcome: plan.outcome.as_deref().map(read_outcome),
+            tally: report.tally.clone(),
+            injections: report.injections.clone(),
+            files: report.files.clone(),
+            protected: plan
+                .components
+                .iter()
+                .filter(|c| c.is_protected())
+                .map(|c| (c.name.clone(), c.replicas))
+                .collect(),
+        };
+        eprint!("{}", verdict.render());
     }
     Ok(report.exit_code())
 }

@@ -19,6 +19,7 @@ use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
 use s3res_inject::report::{self, CampaignInfo, CampaignOutput, MachineInfo};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
+use s3res_inject::storm::{self, StormOptions};
 use s3res_inject::target::{resolve, Pick, Target};
 
 const BOOTSTRAP_BIN: &str = "s3res-bootstrap";
@@ -46,6 +47,8 @@ Subcommands:
   campaign  run a system N times with injections; tables of detection, recovery, errors
   classify  run a system once clean and N times with one injection; benign/SDC/crash/hang
   merge     combine the outputs of campaign shards (--shard K/N) or several campaigns
+  storm     faults into a running system for as long as it runs (what a description's
+            `inject` starts)
 
 The guide, the matching rule and a Slurm example: docs/campaigns.md.";
 
@@ -122,6 +125,55 @@ enum Command {
     ///     s3res-inject merge --out out/all out/shard-*
     #[command(verbatim_doc_comment)]
     Merge(MergeArgs),
+    /// Inject a seeded mix of faults into a running system until it stops (or SIGTERM).
+    ///
+    /// Waits until every target runs, then injects at --rate (Poisson arrivals), each time a
+    /// kind drawn from --faults and a target drawn from --components, one fault at a time per
+    /// component (a component with a replica still being replaced is skipped: missed). Each
+    /// injection is one JSON line in --log (as `inject` prints it, with `index`, and `miss`
+    /// when not delivered). bootstrap starts it for a description with `inject`:
+    ///
+    ///     s3res-inject storm --state state.json --faults exec,sdc,cfe --rate 2 --seed 1 \
+    ///         --log injections.jsonl
+    #[command(verbatim_doc_comment)]
+    Storm(StormArgs),
+}
+
+#[derive(Debug, Args)]
+struct StormArgs {
+    /// The live view written by `s3res-bootstrap --state FILE`.
+    #[arg(long, value_name = "FILE")]
+    state: PathBuf,
+    /// Fault kinds to mix, comma-separated, each equally likely.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "exec,sdc,cfe"
+    )]
+    faults: Vec<FaultKind>,
+    /// Injections per second (Poisson arrivals).
+    #[arg(long, value_name = "HZ", default_value_t = 2.0)]
+    rate: f64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Components to inject into, comma-separated (default: every protected component).
+    #[arg(long, value_name = "LIST", value_delimiter = ',')]
+    components: Option<Vec<String>>,
+    /// Seconds to wait after every target runs before the first injection.
+    #[arg(long, value_name = "SECS", default_value_t = 1.0)]
+    after: f64,
+    /// Seconds after an injection into a component before the next one into it (a fault not
+    /// yet detected does not show in the live view; two at once are beyond what TMR masks).
+    #[arg(long, value_name = "SECS", default_value_t = 0.5)]
+    settle: f64,
+    /// Write the injections here (JSON lines) instead of stdout.
+    #[arg(long, value_name = "FILE")]
+    log: Option<PathBuf>,
+    #[command(flatten)]
+    var: VarArgs,
+    #[command(flatten)]
+    reg: RegArgs,
 }
 
 #[derive(Debug, Args)]
@@ -344,12 +396,22 @@ fn main() -> ExitCode {
             return ExitCode::from(1);
         }
     };
-    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    if matches!(cli.command, Command::Storm(_)) {
+        // Started beside the components: its lines carry a prefix as theirs do.
+        replica_rt::init_logging("injector");
+    } else {
+        s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    }
     let kind = match &cli.command {
         Command::Inject(a) => Some(a.fault),
         Command::Campaign(a) => Some(a.fault),
         Command::Classify(a) => Some(a.fault),
         Command::Merge(_) => None,
+        Command::Storm(a) => a
+            .faults
+            .iter()
+            .copied()
+            .find(|f| check_available(*f).is_err()),
     };
     if let Some(Err(e)) = kind.map(check_available) {
         eprintln!("error: {e}");
@@ -360,7 +422,12 @@ fn main() -> ExitCode {
         Command::Campaign(a) => cmd_campaign(a, &stop),
         Command::Classify(a) => cmd_classify(a, &stop),
         Command::Merge(a) => cmd_merge(a),
+        Command::Storm(a) => cmd_storm(a, &stop),
     };
+    // A storm ends when it is told to: that is its normal end.
+    if matches!(cli.command, Command::Storm(_)) && stop.requested().is_some() && res.is_ok() {
+        return ExitCode::SUCCESS;
+    }
     if let Some(sig) = stop.requested() {
         if let Err(e) = &res {
             eprintln!(
@@ -636,6 +703,24 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     };
     let s = classify::run(&c, stop)?;
     print!("{}", classify::markdown(&[s]));
+    Ok(())
+}
+
+fn cmd_storm(a: &StormArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    let o = StormOptions {
+        state: a.state.clone(),
+        faults: a.faults.clone(),
+        rate_hz: a.rate,
+        seed: a.seed,
+        components: a.components.clone().unwrap_or_default(),
+        after: seconds("--after", a.after)?,
+        settle: seconds("--settle", a.settle)?,
+        log: a.log.clone(),
+        var: a.var.spec()?,
+        reg: a.reg.options(),
+    };
+    let delivered = storm::run(&o, &|| stop.requested().is_some())?;
+    tracing::debug!("storm over: {delivered} injection(s) delivered");
     Ok(())
 }
 

@@ -28,6 +28,10 @@ fn main() -> Result<()> {
     let mut load = optional_input(&mut rt, "load")?;
     let mut out = match &cli.out {
         Some(p) => {
+            if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("creating the folder {}", dir.display()))?;
+            }
             let f =
                 std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
             let mut w = std::io::BufWriter::new(f);
@@ -92,6 +96,10 @@ fn main() -> Result<()> {
     if let Some(mut w) = out {
         w.flush().context("writing the log")?;
     }
-    tracing::info!(poses, load_sums = sums, bad_frames = bad, last_sum = ?last_sum, "end of input");
+    let last_sum = last_sum.map_or_else(
+        || "-".to_owned(),
+        |s| format!("{} (period {})", s.sum, s.seq),
+    );
+    tracing::info!(poses, load_sums = sums, bad_frames = bad, %last_sum, "end of input");
     Ok(())
 }

@@ -146,6 +146,10 @@ fn write_summary(path: Option<&Path>, summary: &Summary) -> Result<()> {
     eprintln!("s3res-sim: {}", summary.line());
     if let Some(path) = path {
         let json = serde_json::to_string(summary).context("encoding the summary")?;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("creating the folder {}", dir.display()))?;
+        }
         std::fs::write(path, json + "\n")
             .with_context(|| format!("writing the summary to {}", path.display()))?;
     }
