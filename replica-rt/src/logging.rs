@@ -13,7 +13,8 @@ use tracing_subscriber::EnvFilter;
 use crate::contract::{ENV_COMPONENT, ENV_REPLICA};
 
 /// Installs a `tracing` subscriber that writes to stderr, filtered by `RUST_LOG` (default
-/// `info`), each line prefixed with `[component#replica pid N]`.
+/// `info`; bootstrap passes its `-q`/`-v` on through it), each line prefixed with
+/// `[component#replica pid N]`, and a panic hook that prefixes a panic's lines the same way.
 ///
 /// The component name is `S3RES_COMPONENT`, or `component_default` when the process was not
 /// started by s3res (by hand, in a shell pipeline). The replica index is `S3RES_REPLICA`, read
@@ -26,6 +27,7 @@ pub fn init_logging(component_default: &str) {
         Err(_) => component,
     };
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    install_panic_hook(prefix.clone());
     let layer = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_ansi(std::io::stderr().is_terminal())
@@ -38,6 +40,46 @@ pub fn init_logging(component_default: &str) {
         .with(filter)
         .with(layer)
         .try_init();
+}
+
+/// A panic is reported like a log line: every line of the message (and of the backtrace, with
+/// `RUST_BACKTRACE` set) carries the `[name pid N]` prefix, and the whole report goes out in
+/// one `write`, so lines of a dying replica are neither run together nor interleaved.
+fn install_panic_hook(prefix: String) {
+    std::panic::set_hook(Box::new(move |info| {
+        let head = format!("[{prefix} pid {}] ", std::process::id());
+        let mut text = info.to_string();
+        let trace = std::backtrace::Backtrace::capture();
+        if trace.status() == std::backtrace::BacktraceStatus::Captured {
+            text.push_str(&format!("\nbacktrace:\n{trace}"));
+        }
+        let report = prefix_lines(&head, &text);
+        let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), report.as_bytes());
+    }));
+}
+
+/// `text` with `head` before every line, each line ending in a newline.
+fn prefix_lines(head: &str, text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + head.len() * 4);
+    for line in text.lines() {
+        out.push_str(head);
+        out.push_str(line);
+        out.push('\n');
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::prefix_lines;
+
+    #[test]
+    fn every_line_is_prefixed_and_ends() {
+        assert_eq!(
+            prefix_lines("[echo#1 pid 7] ", "panicked: boom\n  at x.rs:1"),
+            "[echo#1 pid 7] panicked: boom\n[echo#1 pid 7]   at x.rs:1\n"
+        );
+    }
 }
 
 /// The default full format, after a `[name pid N]` prefix.
