@@ -69,19 +69,6 @@ fn prefix_lines(head: &str, text: &str) -> String {
     out
 }
 
-#[cfg(test)]
-mod tests {
-    use super::prefix_lines;
-
-    #[test]
-    fn every_line_is_prefixed_and_ends() {
-        assert_eq!(
-            prefix_lines("[echo#1 pid 7] ", "panicked: boom\n  at x.rs:1"),
-            "[echo#1 pid 7] panicked: boom\n[echo#1 pid 7]   at x.rs:1\n"
-        );
-    }
-}
-
 /// The default full format, after a `[name pid N]` prefix.
 struct Prefixed {
     prefix: String,
@@ -102,5 +89,18 @@ where
         // The pid is read per line, not cached: after a restart by fork it is the child's.
         write!(writer, "[{} pid {}] ", self.prefix, std::process::id())?;
         self.inner.format_event(ctx, writer, event)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::prefix_lines;
+
+    #[test]
+    fn every_line_is_prefixed_and_ends() {
+        assert_eq!(
+            prefix_lines("[echo#1 pid 7] ", "panicked: boom\n  at x.rs:1"),
+            "[echo#1 pid 7] panicked: boom\n[echo#1 pid 7]   at x.rs:1\n"
+        );
     }
 }
