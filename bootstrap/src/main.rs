@@ -9,7 +9,7 @@ use anyhow::Context as _;
 use clap::{ArgAction, Parser};
 
 use s3res_bootstrap::description::{self, HostContext};
-use s3res_bootstrap::exec::{self, SearchPath};
+use s3res_bootstrap::exec;
 use s3res_bootstrap::run::{self, Ending, RunOptions, VOTER_BIN};
 use s3res_bootstrap::sched::SystemSched;
 use s3res_bootstrap::status::{read_outcome, ConsoleMode, Verdict};
@@ -133,30 +133,6 @@ fn main() -> ExitCode {
     }
 }
 
-/// The voter binary: `$S3RES_VOTER` if set, else `s3res-voter` beside us or on PATH.
-fn find_voter() -> Result<PathBuf, String> {
-    let search = SearchPath::from_environment();
-    match std::env::var(VOTER_ENV) {
-        Ok(path) => {
-            let cwd = std::env::current_dir().map_err(|e| format!("no current folder: {e}"))?;
-            exec::resolve(&path, &cwd, &search).map_err(|e| format!("{VOTER_ENV}: {e}"))
-        }
-        Err(_) => search.find(VOTER_BIN),
-    }
-}
-
-/// The injector: `$S3RES_INJECT` if set, else `s3res-inject` beside us or on PATH.
-fn find_injector() -> Result<PathBuf, String> {
-    let search = SearchPath::from_environment();
-    match std::env::var(INJECT_ENV) {
-        Ok(path) => {
-            let cwd = std::env::current_dir().map_err(|e| format!("no current folder: {e}"))?;
-            exec::resolve(&path, &cwd, &search).map_err(|e| format!("{INJECT_ENV}: {e}"))
-        }
-        Err(_) => search.find(INJECT_BIN),
-    }
-}
-
 /// `RUST_LOG` for the processes bootstrap starts: its own level, unless `RUST_LOG` is set
 /// (then they inherit it) or the level is the default.
 fn child_log(quiet: bool, verbose: u8) -> Option<String> {
@@ -185,7 +161,7 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         tracing::warn!("{w}");
     }
     let voter = if plan.has_protected() {
-        Some(find_voter().map_err(run::RunError::VoterMissing)?)
+        Some(exec::find_tool(VOTER_BIN, VOTER_ENV).map_err(run::RunError::VoterMissing)?)
     } else {
         None
     };
@@ -197,12 +173,14 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
     }
 
     let injector = match &plan.inject {
-        Some(_) if !cli.no_inject => Some(find_injector().map_err(|e| {
-            anyhow::anyhow!(
-                "the description injects faults (`inject`) but `{INJECT_BIN}` was not found \
+        Some(_) if !cli.no_inject => {
+            Some(exec::find_tool(INJECT_BIN, INJECT_ENV).map_err(|e| {
+                anyhow::anyhow!(
+                    "the description injects faults (`inject`) but `{INJECT_BIN}` was not found \
                  ({e}); build it, or run without faults: --no-inject"
-            )
-        })?),
+                )
+            })?)
+        }
         _ => None,
     };
     let console = if cli.quiet {

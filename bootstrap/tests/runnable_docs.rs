@@ -125,21 +125,7 @@ fn run_block(file: &str, line: usize, block: &str) -> Result<(), String> {
         }
         std::thread::sleep(Duration::from_millis(50));
     };
-    let mut left = Vec::new();
-    for _ in 0..50 {
-        let live: Vec<_> = s3res_tests::procs::with_env(MARK, &mark)
-            .into_iter()
-            .filter(|p| !p.is_zombie())
-            .collect();
-        if live.is_empty() {
-            break;
-        }
-        for p in live {
-            left.push(p.to_string());
-            let _ = s3res_tests::kill_pid(p.pid, libc::SIGKILL);
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let left = s3res_tests::procs::kill_with_env(MARK, &mark);
     let stderr = std::fs::read_to_string(dir.path().join("stderr.txt")).unwrap_or_default();
     let tail = s3res_tests::tail(&stderr, 30);
     match status {

@@ -10,7 +10,7 @@ use clap::{ArgAction, Args, Parser, Subcommand};
 use rand::SeedableRng as _;
 
 use s3res_bootstrap::description::{self, HostContext};
-use s3res_bootstrap::exec::{self, SearchPath};
+use s3res_bootstrap::exec;
 use s3res_bootstrap::live::LiveView;
 use s3res_bootstrap::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
@@ -451,16 +451,8 @@ fn main() -> ExitCode {
 
 /// `$S3RES_BOOTSTRAP`, else s3res-bootstrap beside us, else on PATH.
 fn find_bootstrap() -> anyhow::Result<PathBuf> {
-    let search = SearchPath::from_environment();
-    match std::env::var(BOOTSTRAP_ENV) {
-        Ok(path) => {
-            let cwd = std::env::current_dir()?;
-            exec::resolve(&path, &cwd, &search).map_err(|e| anyhow::anyhow!("{BOOTSTRAP_ENV}: {e}"))
-        }
-        Err(_) => search
-            .find(BOOTSTRAP_BIN)
-            .map_err(|e| anyhow::anyhow!("cannot find {BOOTSTRAP_BIN}: {e}")),
-    }
+    exec::find_tool(BOOTSTRAP_BIN, BOOTSTRAP_ENV)
+        .map_err(|e| anyhow::anyhow!("cannot find {BOOTSTRAP_BIN}: {e}"))
 }
 
 fn load_system(path: &Path) -> anyhow::Result<(PathBuf, SystemPlan)> {

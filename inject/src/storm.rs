@@ -225,7 +225,7 @@ fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json:
         Err(e) => return (miss_line(o, index, &view.system, planned, &e), false),
     };
     let ts = replica_rt::sys::monotonic_ns();
-    match fire(&planned.action, target.pid, &o.reg) {
+    let (ts, miss) = match fire(&planned.action, target.pid, &o.reg) {
         Ok(_) => {
             tracing::info!(
                 "injected {} into {}#{} (pid {})",
@@ -234,30 +234,20 @@ fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json:
                 target.slot.map_or("-".to_owned(), |s| s.to_string()),
                 target.pid
             );
-            let line = record_line(
-                index,
-                o.seed,
-                &view.system,
-                planned,
-                Some(&target),
-                Some(ts),
-                None,
-            );
-            (line, true)
+            (Some(ts), None)
         }
-        Err(e) => {
-            let line = record_line(
-                index,
-                o.seed,
-                &view.system,
-                planned,
-                Some(&target),
-                None,
-                Some(&e.to_string()),
-            );
-            (line, false)
-        }
-    }
+        Err(e) => (None, Some(e.to_string())),
+    };
+    let line = record_line(
+        index,
+        o.seed,
+        &view.system,
+        planned,
+        Some(&target),
+        ts,
+        miss.as_deref(),
+    );
+    (line, ts.is_some())
 }
 
 fn miss_line(

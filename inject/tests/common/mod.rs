@@ -113,22 +113,7 @@ pub fn inject(args: &[&str], limit: Duration) -> Finished {
 
 /// Kills every live process carrying `mark`; returns what was found.
 fn kill_marked(mark: &str) -> Vec<String> {
-    let mut found = Vec::new();
-    for _ in 0..50 {
-        let live: Vec<_> = procs::with_env(MARK_ENV, mark)
-            .into_iter()
-            .filter(|p| !p.is_zombie())
-            .collect();
-        if live.is_empty() {
-            break;
-        }
-        for p in live {
-            found.push(p.to_string());
-            let _ = s3res_tests::kill_pid(p.pid, libc::SIGKILL);
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    found
+    procs::kill_with_env(MARK_ENV, mark)
 }
 
 /// The echo pipeline (source → echo → sink) at `redundancy`, `count` frames at 500 Hz; the
