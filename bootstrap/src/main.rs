@@ -53,6 +53,15 @@ place each process; --check prints the priority and CPU every process will get. 
 privilege for SCHED_RR (root or CAP_SYS_NICE), bootstrap says so once and keeps the order with
 nice values. See docs/real-time.md.
 
+`inject` (faults while the system runs: exec, sdc, cfe at rate_hz, seeded) starts s3res-inject
+beside the components; --no-inject leaves it out. `events`, `state` and `outcome` name the
+events file, the live view and the file a component writes its verdict to.
+
+While the system runs, a status line (on a terminal; otherwise a line every 5 s) shows the
+time, faults/recoveries per protected component and degraded components; at the end a verdict
+block shows the outcome, faults by kind, recoveries by method, withheld frames, what the
+injector did, false positives and where the files are (-q: neither).
+
 Everything is checked before anything starts. On SIGINT/SIGTERM every component gets SIGTERM,
 then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started outlives it.";
 
