@@ -11,7 +11,7 @@ use std::os::fd::OwnedFd;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use s3res_voter::event::{Event, EventKind};
+use s3res_protocol::event::{Event, EventKind};
 
 use crate::live::LiveState;
 use crate::status::{kind_name, Tally};
@@ -83,8 +83,8 @@ impl EventSummary {
                     replica = %shown(event.replica),
                     new_pid = %shown(event.new_pid),
                     method = %shown(event.method.map(|m| match m {
-                        s3res_voter::event::RecoveryMethod::Fork => "fork",
-                        s3res_voter::event::RecoveryMethod::Exec => "exec",
+                        s3res_protocol::event::RecoveryMethod::Fork => "fork",
+                        s3res_protocol::event::RecoveryMethod::Exec => "exec",
                     })),
                     recovery_us = %shown(event.recovery_us),
                     "recovered"

@@ -1,26 +1,11 @@
-//! Logging set-up shared by the s3res command-line tools (bootstrap, the injector).
+//! Logging set-up of the command-line tools: one function for the whole project, in replica-rt.
 
-use std::io::IsTerminal as _;
+pub use replica_rt::init_cli_logging;
 
-use tracing_subscriber::EnvFilter;
-
-/// Logs to stderr at `info` (`-q`: `warn`; `-v`: `debug`; `-vv`: `trace`); `RUST_LOG`, when
-/// set, takes precedence. Colours only on a terminal.
-pub fn init_cli_logging(quiet: bool, verbose: u8) {
-    let default = match (quiet, verbose) {
-        (true, _) => "warn",
-        (false, 0) => "info",
-        (false, 1) => "debug",
-        (false, _) => "trace",
-    };
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
-    tracing_subscriber::fmt()
-        // Above the status line, when one is shown.
-        .with_writer(crate::status::StatusAwareStderr)
-        .with_env_filter(filter)
-        .with_target(false)
-        .with_ansi(std::io::stderr().is_terminal())
-        .init();
+/// bootstrap's own logging: [`init_cli_logging`], its lines printed above the status line when
+/// one is shown.
+pub fn init_status_logging(quiet: bool, verbose: u8) {
+    replica_rt::init_cli_logging_to(quiet, verbose, crate::status::StatusAwareStderr);
 }
 
 /// An error and its causes on one line, `what: why: because`, leaving out a cause whose text

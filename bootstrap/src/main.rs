@@ -1,5 +1,7 @@
 //! `s3res-bootstrap [--check] [--events FILE] [--state FILE] [--stop-timeout-ms N] [-v|-q] SYSTEM.json`
 
+#![forbid(unsafe_code)]
+
 use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -129,7 +131,7 @@ struct Cli {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    s3res_bootstrap::logging::init_status_logging(cli.quiet, cli.verbose);
     match run_cli(&cli) {
         Ok(code) => ExitCode::from(code),
         Err(e) => {

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Deserialize;
 
-use s3res_voter::event::{Event, EventKind, RecoveryMethod};
+use s3res_protocol::event::{Event, EventKind, RecoveryMethod};
 
 use crate::outcome::{match_run, Fired, Outcome};
 use crate::plan::SystemPlan;

@@ -3,8 +3,7 @@
 use anyhow::Context;
 use clap::Parser;
 use s3res_voter::plan::{Mode, VoterPlan};
-use s3res_voter::stream::StreamVoter;
-use s3res_voter::voter::{Voter, VoterError};
+use s3res_voter::{ReactiveVoter, StreamVoter, VoterError};
 
 /// The voter of one protected s3res component.
 ///
@@ -28,7 +27,7 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    init_logging();
+    replica_rt::init_cli_logging(false, 0);
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
@@ -47,19 +46,8 @@ fn run() -> anyhow::Result<()> {
     let span = tracing::info_span!("voter", component = %plan.component);
     let _enter = span.enter();
     match plan.mode {
-        Mode::Reactive => Voter::start(plan)?.run()?,
+        Mode::Reactive => ReactiveVoter::start(plan)?.run()?,
         Mode::Stream => StreamVoter::start(plan)?.run()?,
     }
     Ok(())
-}
-
-fn init_logging() {
-    use tracing_subscriber::EnvFilter;
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
 }

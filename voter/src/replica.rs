@@ -37,6 +37,10 @@ pub struct Replica {
     /// Has answered at least once, so replica-rt is initialised and the restart handler is in
     /// place: only such a replica may be a donor (before `init`, SIGUSR1 would kill it).
     pub proven: bool,
+    /// Its state is lost: started by exec after a fault, or forked from a replica whose state
+    /// was. Such a replica never outvotes, and is never cloned over, one that kept the
+    /// component's state (see `decision.rs`). The replicas started with the component kept it.
+    pub state_lost: bool,
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.
     pub output_closed_at: Option<crate::clock::Instant>,
@@ -144,12 +148,13 @@ impl Replica {
             outputs: pipes.outputs,
             our_child: true,
             proven: false,
+            state_lost: false,
             output_closed_at: None,
         })
     }
 
     /// An output pipe of this replica was seen closed: `true` if the process is already gone
-    /// (a crash); else the time is noted, and [`crate::voter::closed_output_fault`] decides once
+    /// (a crash); else the time is noted, and `core::Core::closed_output_fault` decides once
     /// the grace is over (the kernel closes a dying process's fds just before it reports the
     /// exit).
     pub fn note_output_closed(&mut self) -> bool {
@@ -196,6 +201,7 @@ impl Replica {
             return None;
         }
         Some(DonorRank {
+            state_lost: self.state_lost,
             unproven: !self.proven,
             stopped: matches!(sys::process_state(self.pid), Some('T' | 't')),
         })
@@ -211,6 +217,8 @@ impl Replica {
 /// How good a recovery donor a replica is; the derived order is the preference (fields in
 /// order of weight, `false` first).
 ///
+/// * A replica that kept the component's state beats one whose state is lost: cloning a
+///   fresh replica over a kept slot would spread the loss.
 /// * A replica that has answered (and so was voted with) beats one that has not: a replica
 ///   just restarted by exec has lost its state, and cloning it over a healthy slot would
 ///   spread the loss.
@@ -218,6 +226,7 @@ impl Replica {
 ///   attempt time out.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub struct DonorRank {
+    pub state_lost: bool,
     pub unproven: bool,
     pub stopped: bool,
 }
@@ -245,14 +254,18 @@ const RESAMPLE: Duration = Duration::from_micros(200);
 /// short. The voter looks every 200 µs for at most `patience` (the component's `timeout_us`,
 /// the time any answer may take); a proven candidate that never waits in that time is
 /// returned in [`DonorPick::hung`]. A stopped candidate is the last resort, as before.
+/// Replicas that kept their state are looked at first; only when none of them can donate
+/// are the fresh ones. Slots in `exclude` are passed over (a donor that already failed).
 pub fn best_donor(
     slots: &[Option<Replica>],
     progress: impl Fn(usize) -> u64,
     patience: Duration,
+    exclude: crate::vote::ReplicaSet,
 ) -> DonorPick {
     let mut ranked: Vec<(DonorRank, std::cmp::Reverse<u64>, usize, libc::pid_t)> = slots
         .iter()
         .enumerate()
+        .filter(|&(d, _)| !exclude.contains(d))
         .filter_map(|(d, rep)| {
             let rep = rep.as_ref()?;
             Some((
@@ -264,24 +277,63 @@ pub fn best_donor(
         })
         .collect();
     ranked.sort();
-    let best = DonorRank {
-        unproven: false,
-        stopped: false,
-    };
-    // (slot, pid, voluntary switches at the first look) of the proven, running candidates.
-    let clean: Vec<(usize, libc::pid_t, Option<u64>)> = ranked
-        .iter()
-        .filter(|c| c.0 == best)
-        .map(|&(.., d, pid)| (d, pid, voluntary_switches(pid)))
-        .collect();
+    let mut hung = Vec::new();
+    let mut looked = Vec::new();
+    for state_lost in [false, true] {
+        // (slot, pid, voluntary switches at the first look) of the proven, running candidates.
+        let clean: Vec<(usize, libc::pid_t, Option<u64>)> = ranked
+            .iter()
+            .filter(|c| {
+                c.0 == DonorRank {
+                    state_lost,
+                    unproven: false,
+                    stopped: false,
+                }
+            })
+            .map(|&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+            .collect();
+        looked.extend(clean.iter().map(|c| c.0));
+        if let Some(d) = first_to_wait(&clean, patience) {
+            return DonorPick {
+                donor: Some(d),
+                hung,
+            };
+        }
+        // None of them waited for anything in all that time: hung.
+        hung.extend(
+            clean
+                .iter()
+                .filter(|&&(_, pid, _)| {
+                    sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X')
+                })
+                .map(|&(d, ..)| d),
+        );
+        if ranked
+            .iter()
+            .any(|c| !c.0.state_lost && !hung.contains(&c.2))
+        {
+            // A kept candidate that is stopped or not yet proven still beats every fresh one.
+            break;
+        }
+    }
+    // The next best (stopped, or not yet proven, kept first) is the donor, if any.
+    DonorPick {
+        donor: ranked.iter().map(|c| c.2).find(|d| !looked.contains(d)),
+        hung,
+    }
+}
+
+/// The first of `candidates` seen asleep or having blocked since the first look, within
+/// `patience` (looking every [`RESAMPLE`]).
+fn first_to_wait(
+    candidates: &[(usize, libc::pid_t, Option<u64>)],
+    patience: Duration,
+) -> Option<usize> {
     let started = std::time::Instant::now();
-    while !clean.is_empty() {
-        for &(d, pid, first_blocks) in &clean {
+    while !candidates.is_empty() {
+        for &(d, pid, first_blocks) in candidates {
             if is_asleep(pid) || voluntary_switches(pid) != first_blocks {
-                return DonorPick {
-                    donor: Some(d),
-                    hung: Vec::new(),
-                };
+                return Some(d);
             }
         }
         if started.elapsed() >= patience {
@@ -289,17 +341,7 @@ pub fn best_donor(
         }
         std::thread::sleep(RESAMPLE);
     }
-    // None of them waited for anything in all that time: hung. The next best (stopped, or not
-    // yet proven) is the donor, if any.
-    let hung: Vec<usize> = clean
-        .iter()
-        .filter(|&&(_, pid, _)| sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X'))
-        .map(|&(d, ..)| d)
-        .collect();
-    DonorPick {
-        donor: ranked.iter().find(|c| c.0 != best).map(|c| c.2),
-        hung,
-    }
+    None
 }
 
 /// Whether `pid` sleeps in the kernel (`S`): waiting for input, or for its output pipe.
@@ -330,20 +372,7 @@ pub fn catches_restart_signal(pid: libc::pid_t) -> bool {
         .is_some_and(|mask| mask & signal_bit(replica_rt::contract::signals::RESTART) != 0)
 }
 
-/// The set of signals `pid` has a handler for (`SigCgt` in `/proc/PID/status`, bit `n - 1`
-/// for signal `n`; see [`signal_bit`]); `None` if the process is gone.
-pub fn caught_signals(pid: libc::pid_t) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("SigCgt:"))
-        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
-}
-
-/// Signal `sig`'s bit in a [`caught_signals`] mask.
-pub fn signal_bit(sig: libc::c_int) -> u64 {
-    1u64 << (sig - 1)
-}
+pub use replica_rt::sys::{caught_signals, signal_bit};
 
 #[cfg(test)]
 mod tests {
