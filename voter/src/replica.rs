@@ -240,11 +240,16 @@ const RESAMPLE: Duration = Duration::from_micros(200);
 /// A replica that is running may be computing, or may be spinning in a control-flow error
 /// that nobody has caught yet; its fork child would spin too (the restart handler returns
 /// into the spin), and two spinners outvote the healthy replica (a robot campaign found both).
-/// So a candidate is taken only once it is seen asleep in the kernel (`S`), or has blocked
-/// (its voluntary context switches grew) since the first look: a healthy burst of work is
-/// short. The voter looks every 200 µs for at most `patience` (the component's `timeout_us`,
-/// the time any answer may take); a proven candidate that never waits in that time is
-/// returned in [`DonorPick::hung`]. A stopped candidate is the last resort, as before.
+/// So a candidate that is not stopped is taken only once it is seen asleep in the kernel
+/// (`S`), or has blocked (its voluntary context switches grew) since the first look: a healthy
+/// burst of work is short. The voter looks every 200 µs for at most `patience` (the
+/// component's `timeout_us`, the time any answer may take), rank by rank: first the proven
+/// candidates; a proven candidate that never waits in that time is returned in
+/// [`DonorPick::hung`]. Then, as before, a stopped proven one (the last resort); then the
+/// unproven ones (they may donate, having installed the restart handler, but have not sent a
+/// frame yet), again only at a clean point — one that never waits is passed over but not
+/// blamed here (it may still be in its own start-up; the deadlines and the liveness look judge
+/// it) — and last the stopped unproven ones.
 pub fn best_donor(
     slots: &[Option<Replica>],
     progress: impl Fn(usize) -> u64,
@@ -264,41 +269,59 @@ pub fn best_donor(
         })
         .collect();
     ranked.sort();
-    let best = DonorRank {
-        unproven: false,
-        stopped: false,
-    };
-    // (slot, pid, voluntary switches at the first look) of the proven, running candidates.
-    let clean: Vec<(usize, libc::pid_t, Option<u64>)> = ranked
+    let mut ranks: Vec<DonorRank> = ranked.iter().map(|c| c.0).collect();
+    ranks.dedup();
+    let mut hung = Vec::new();
+    for rank in ranks {
+        // (slot, pid) of this rank's candidates, best first.
+        let group: Vec<(usize, libc::pid_t)> = ranked
+            .iter()
+            .filter(|c| c.0 == rank)
+            .map(|&(.., d, pid)| (d, pid))
+            .collect();
+        if rank.stopped {
+            // A stopped process runs nothing: it is taken as it is (the attempt may time out).
+            return DonorPick {
+                donor: Some(group[0].0),
+                hung,
+            };
+        }
+        if let Some(d) = first_at_clean_point(&group, patience) {
+            return DonorPick {
+                donor: Some(d),
+                hung,
+            };
+        }
+        if !rank.unproven {
+            // Answered replicas that never waited for anything in all that time: hung.
+            hung = group
+                .iter()
+                .filter(|&&(_, pid)| sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X'))
+                .map(|&(d, _)| d)
+                .collect();
+        }
+    }
+    DonorPick { donor: None, hung }
+}
+
+/// The first of `candidates` (best first) seen at a clean point — asleep in the kernel, or
+/// having blocked since the first look — looking every [`RESAMPLE`] for at most `patience`.
+fn first_at_clean_point(candidates: &[(usize, libc::pid_t)], patience: Duration) -> Option<usize> {
+    let first_blocks: Vec<Option<u64>> = candidates
         .iter()
-        .filter(|c| c.0 == best)
-        .map(|&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+        .map(|&(_, pid)| voluntary_switches(pid))
         .collect();
     let started = std::time::Instant::now();
-    while !clean.is_empty() {
-        for &(d, pid, first_blocks) in &clean {
-            if is_asleep(pid) || voluntary_switches(pid) != first_blocks {
-                return DonorPick {
-                    donor: Some(d),
-                    hung: Vec::new(),
-                };
+    loop {
+        for (&(d, pid), &blocks) in candidates.iter().zip(&first_blocks) {
+            if is_asleep(pid) || voluntary_switches(pid) != blocks {
+                return Some(d);
             }
         }
         if started.elapsed() >= patience {
-            break;
+            return None;
         }
         std::thread::sleep(RESAMPLE);
-    }
-    // None of them waited for anything in all that time: hung. The next best (stopped, or not
-    // yet proven) is the donor, if any.
-    let hung: Vec<usize> = clean
-        .iter()
-        .filter(|&&(_, pid, _)| sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X'))
-        .map(|&(d, ..)| d)
-        .collect();
-    DonorPick {
-        donor: ranked.iter().find(|c| c.0 != best).map(|c| c.2),
-        hung,
     }
 }
 
