@@ -30,6 +30,7 @@ pub mod procs;
 pub mod rng;
 pub mod scenario;
 pub mod system;
+pub mod wait;
 
 pub use bins::{bin_dir, bin_path};
 pub use events::{parse_events, replica_pids};
@@ -38,6 +39,7 @@ pub use scenario::{
     assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,
 };
 pub use system::{is_root, Outcome, RunningSystem, System};
+pub use wait::{wait_spinning, wait_state, wait_until};
 
 use std::path::Path;
 
