@@ -143,9 +143,20 @@ fn orphaned_fork_child_stays_under_control() {
     }
     assert_only_current_replicas(&run);
 
-    // 3. The orphan still takes part in the vote: rounds go on and it is never blamed.
+    // 3. The orphan still takes part in the vote: rounds go on (it reads input and answers
+    //    100 more times, and frames reach the sink) and it is never blamed.
     let seen = run.events().len();
-    std::thread::sleep(Duration::from_millis(500));
+    let sink = run.sink_mark();
+    let before = procs::io(child).expect("the orphan's io");
+    s3res_tests::wait_until(
+        "the orphan to take part in 100 more rounds",
+        Duration::from_secs(20),
+        || {
+            let now = procs::io(child)?;
+            (now.syscr >= before.syscr + 100 && now.syscw >= before.syscw + 100).then_some(())
+        },
+    );
+    run.assert_sink_progressed(sink, "the orphan's rounds");
     let blamed: Vec<_> = run.events()[seen..]
         .iter()
         .filter(|e| e.pid == Some(child))

@@ -245,11 +245,26 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
     let pids = run.replica_pids("echo");
-    s3res_tests::kill_pid(pids[&0], libc::SIGSTOP).unwrap();
+    // Between rounds (the source paused, everything answered), stop both possible donors and
+    // kill the third: recovery starts at once, and the best donor left is the stopped slot 0.
+    let source = run.pause_source("echo");
+    for slot in [0, 1] {
+        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).unwrap();
+        s3res_tests::wait_state(pids[&slot], "T", Duration::from_secs(20));
+    }
     s3res_tests::kill_pid(pids[&2], libc::SIGKILL).unwrap();
-    std::thread::sleep(Duration::from_millis(450));
-    s3res_tests::kill_pid(pids[&0], libc::SIGCONT).unwrap();
-    run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+    // The attempt times out (restart_timeout_ms) and the slot is filled by exec.
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+    assert_eq!(
+        (rec.method, rec.state_lost),
+        (Some(RecoveryMethod::Exec), Some(true)),
+        "the fork from the stopped donor must have timed out: {rec:?}"
+    );
+    // Slot 0 now forks for the abandoned attempt; its late child connects to the voter.
+    for slot in [0, 1] {
+        s3res_tests::kill_pid(pids[&slot], libc::SIGCONT).unwrap();
+    }
+    s3res_tests::kill_pid(source, libc::SIGCONT).unwrap();
 
     let out = run.wait_success(LIMIT);
     // At most one SDC: the exec'd replacement starts with a fresh count and is then rebuilt by
@@ -266,16 +281,21 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
 /// sees no state break: the fresh slot 0 is outvoted at its first answer and rebuilt by fork.
 #[test]
 fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
-    // One frame a second: the stop → kill → exec → continue → kill sequence (a few hundred
-    // ms) falls between two rounds.
-    let count = 6;
+    // The stop → kill → exec → continue → kill sequence happens between two rounds: the
+    // source is paused once frames have come through (every replica has answered).
+    let count = 60;
     let sys = System::new();
     let summary = sys.path("summary.json");
     let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
                     "timeout_us": 400000, "restart_timeout_ms": 150 }"#;
-    let mut run = sys.start(&echo_pipeline(&summary, echo, count, 1));
+    let mut run = sys.start(&echo_pipeline(&summary, echo, count, 20));
     run.wait_for_replicas("echo", 3);
-    std::thread::sleep(Duration::from_millis(1300));
+    let mark = run.sink_mark();
+    s3res_tests::wait_until("a frame at the sink", Duration::from_secs(20), || {
+        let sink = run.pid_of("s3res-sink");
+        s3res_tests::procs::io(sink).filter(|io| io.rchar > mark)
+    });
+    let source = run.pause_source("echo");
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
         s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("stop");
@@ -284,11 +304,9 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
     let rec0 = run.wait_for_event(|e| is_recovery_of(e, 0, pids[&0]), Duration::from_secs(20));
     assert_eq!(rec0.method, Some(RecoveryMethod::Exec), "{rec0:?}");
     let fresh = rec0.new_pid.expect("new pid");
-    let deadline = std::time::Instant::now() + Duration::from_secs(20);
-    while !s3res_tests::procs::handles_hooks(fresh) {
-        assert!(std::time::Instant::now() < deadline, "slot 0 never started");
-        std::thread::sleep(Duration::from_millis(2));
-    }
+    s3res_tests::wait_until("slot 0 to start", Duration::from_secs(20), || {
+        s3res_tests::procs::handles_hooks(fresh).then_some(())
+    });
     for slot in [1, 2] {
         s3res_tests::kill_pid(pids[&slot], libc::SIGCONT).expect("continue");
     }
@@ -300,6 +318,7 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
         Some(1),
         "the healthy replica is the donor: {rec2:?}"
     );
+    s3res_tests::kill_pid(source, libc::SIGCONT).expect("continue the source");
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }
@@ -356,9 +375,25 @@ fn dmr_does_not_clone_a_donor_that_spins() {
     run.wait_for_replicas("echo", 2);
 
     let pids = run.replica_pids("echo");
+    // Between rounds (the source paused, everything answered), replica 0 starts to spin; the
+    // next round, once the source goes on, is the one it never answers.
+    let source = run.pause_source("echo");
     s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
-    // Replica 1 answers the next round (at most 20 ms away) long before its 300 ms deadline.
-    std::thread::sleep(Duration::from_millis(100));
+    s3res_tests::wait_spinning(pids[&0], Duration::from_secs(20));
+    let answered = s3res_tests::procs::io(pids[&1])
+        .expect("replica 1's io")
+        .wchar;
+    s3res_tests::kill_pid(source, libc::SIGCONT).expect("continue the source");
+    // Replica 1 answers that round (it wrote, and waits for input again) long before its
+    // 300 ms deadline; then it spins too.
+    s3res_tests::wait_until(
+        "replica 1 to answer the round",
+        Duration::from_secs(20),
+        || {
+            let io = s3res_tests::procs::io(pids[&1])?;
+            (io.wchar > answered && s3res_tests::procs::waits_on_pipe_read(pids[&1])).then_some(())
+        },
+    );
     s3res_tests::kill_pid(pids[&1], signals::inject_cfe()).expect("inject cfe");
 
     let first = run.wait_for_event(

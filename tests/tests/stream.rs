@@ -271,8 +271,23 @@ fn stream_tmr_child_joins_while_frames_are_undecided() {
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
         s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("SIGSTOP");
+        s3res_tests::wait_state(pids[&slot], "T", Duration::from_secs(20));
     }
-    std::thread::sleep(Duration::from_millis(100));
+    // Replica 0 writes the frames it can from the input it already has, which nobody can
+    // confirm now, and waits for more input (held while the replicas are out of step).
+    let mut looks = 0;
+    s3res_tests::wait_until(
+        "replica 0 to use up its input",
+        Duration::from_secs(20),
+        || {
+            looks = if s3res_tests::procs::waits_on_pipe_read(pids[&0]) {
+                looks + 1
+            } else {
+                0
+            };
+            (looks >= 3).then_some(())
+        },
+    );
     s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
     let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
     assert_eq!(
