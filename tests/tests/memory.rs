@@ -2,8 +2,8 @@
 //!
 //! - After a recovery by fork, the donor and the new replica share no physical page of private
 //!   writable memory (replica-rt's copy-on-write break). Checked by comparing page frame numbers
-//!   from `/proc/PID/pagemap`, which shows them only to CAP_SYS_ADMIN: without it the test says
-//!   why and skips.
+//!   from `/proc/PID/pagemap`, which shows them only to CAP_SYS_ADMIN: without it the test is
+//!   listed as ignored, with the reason (see `build.rs`).
 //! - A refused `mlockall` is reported once per replica process and the system runs on.
 
 use std::collections::HashSet;
@@ -129,14 +129,17 @@ impl Drop for Stopped {
 /// the child may be one of the donor's. The executable's code pages, which both map from the
 /// page cache, must be seen shared — the check that the comparison can see sharing at all.
 #[test]
+#[cfg_attr(
+    not(s3res_pagemap_pfns),
+    ignore = "needs CAP_SYS_ADMIN (root): /proc/PID/pagemap shows page frame numbers only to it"
+)]
 fn donor_and_fork_child_share_no_private_page() {
-    if !pfns_visible() {
-        eprintln!(
-            "SKIPPED donor_and_fork_child_share_no_private_page: /proc/PID/pagemap shows page \
-             frame numbers only to CAP_SYS_ADMIN (run as root); here they read as 0"
-        );
-        return;
-    }
+    assert!(
+        pfns_visible(),
+        "/proc/PID/pagemap shows page frame numbers only to CAP_SYS_ADMIN, and here they read \
+         as 0, but the test crate was built where they did not: rebuild it \
+         (cargo clean -p s3res-tests) to have this test listed as ignored"
+    );
     let count = 2500;
     let sys = System::new();
     let echo = format!(
@@ -218,6 +221,10 @@ fn donor_and_fork_child_share_no_private_page() {
 /// (fork children, which lock again inside the restart handler, stay quiet), a crash is still
 /// recovered by fork, and every frame gets through.
 #[test]
+#[cfg_attr(
+    not(s3res_prlimit),
+    ignore = "needs `prlimit` (and, as root, `setpriv`) from util-linux"
+)]
 fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
     let root = euid_is_root();
     let tools: &[&str] = if root {
@@ -226,13 +233,11 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
         &["prlimit"]
     };
     for tool in tools {
-        if which(tool).is_none() {
-            eprintln!(
-                "SKIPPED refused_mlockall_is_reported_once_and_the_system_runs_on: `{tool}` \
-                 (util-linux) is not installed"
-            );
-            return;
-        }
+        assert!(
+            which(tool).is_some(),
+            "`{tool}` (util-linux) is not installed, but the test crate was built where it \
+             was: rebuild it (cargo clean -p s3res-tests) to have this test listed as ignored"
+        );
     }
     let count = 1500;
     let sys = System::new();

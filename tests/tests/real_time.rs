@@ -74,12 +74,12 @@ fn assert_placed(s: &Scheduling, rr: bool, priority: i32, cpus: &[usize], who: &
 fn priorities_and_cpus(unprivileged: bool) {
     let _turn = one_system_at_a_time();
     let cpus = usable_cpus();
-    if cpus.len() < 2 {
-        eprintln!(
-            "SKIPPED: this test places two replicas on two distinct CPUs; only {cpus:?} usable"
-        );
-        return;
-    }
+    assert!(
+        cpus.len() >= 2,
+        "this test places two replicas on two distinct CPUs; only {cpus:?} usable, but the test \
+         crate was built where two were: rebuild it (cargo clean -p s3res-tests) to have this \
+         test listed as ignored"
+    );
     let (a, b) = (cpus[0], cpus[1]);
     let count = 3000;
     let mut sys = System::new();
@@ -164,11 +164,13 @@ fn priorities_and_cpus(unprivileged: bool) {
 }
 
 #[test]
+#[cfg_attr(not(s3res_two_cpus), ignore = "needs two usable CPUs")]
 fn priorities_and_cpus_are_applied_to_every_process_and_a_forked_replacement() {
     priorities_and_cpus(false);
 }
 
 #[test]
+#[cfg_attr(not(s3res_two_cpus), ignore = "needs two usable CPUs")]
 fn unprivileged_priorities_fall_back_to_nice_values_in_the_same_order() {
     priorities_and_cpus(true);
 }
@@ -421,15 +423,21 @@ fn unprivileged_sequential_rounds_survive_a_sibling_spinning_after_its_answer() 
 /// deadline names it. (At distinct levels the spinner above them would stall the component
 /// with no fault ever seen.)
 #[test]
+#[cfg_attr(
+    not(s3res_sched_rr),
+    ignore = "needs SCHED_RR (root or CAP_SYS_NICE; not with S3RES_TEST_UNPRIVILEGED)"
+)]
 fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
     let _turn = one_system_at_a_time();
     let cpus = usable_cpus();
     let (shared, voter_cpu) = (cpus[0], cpus[cpus.len() - 1]);
     let sys = System::new();
-    if !sys.round_robin_allowed() {
-        eprintln!("SKIPPED: SCHED_RR is refused here; this test is about SCHED_RR levels");
-        return;
-    }
+    assert!(
+        sys.round_robin_allowed(),
+        "SCHED_RR is refused here (this test is about SCHED_RR levels), but the test crate was \
+         built where it was allowed: rebuild it (cargo clean -p s3res-tests) to have this test \
+         listed as ignored"
+    );
     let count = 600;
     let summary = sys.path("summary.json");
     let batch = format!(
