@@ -12,7 +12,7 @@
 //!
 //! ```no_run
 //! use std::time::Duration;
-//! use s3res_tests::System;
+//! use s3res_testkit::System;
 //!
 //! let sys = System::new();
 //! let summary = sys.path("summary.json"); // a file in the system's temp dir

@@ -3,7 +3,7 @@
 //! test` lists it as ignored with the reason (and counts it in the summary) instead of passing
 //! it silently; where it can (CI runs as root), it runs by default. Each test also checks its
 //! condition when it runs and fails, naming it, if the machine disagrees with the build (built
-//! as root, run as a user: rebuild, or `cargo clean -p s3res-tests`).
+//! as root, run as a user: rebuild, or `cargo clean -p s3res-testkit`).
 //!
 //! | cfg                 | set when                                                         |
 //! |---------------------|------------------------------------------------------------------|

@@ -12,7 +12,9 @@ use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use s3res_tests::{assert_sink_whole, bin_path, echo_pipeline, EventKind, RecoveryMethod, System};
+use s3res_testkit::{
+    assert_sink_whole, bin_path, echo_pipeline, EventKind, RecoveryMethod, System,
+};
 
 const LIMIT: Duration = Duration::from_secs(120);
 /// Private heap each replica holds, filled.
@@ -112,14 +114,14 @@ struct Stopped(i32);
 
 impl Stopped {
     fn new(pid: i32) -> Stopped {
-        s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP donor");
+        s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP donor");
         Stopped(pid)
     }
 }
 
 impl Drop for Stopped {
     fn drop(&mut self) {
-        let _ = s3res_tests::kill_pid(self.0, libc::SIGCONT);
+        let _ = s3res_testkit::kill_pid(self.0, libc::SIGCONT);
     }
 }
 
@@ -138,7 +140,7 @@ fn donor_and_fork_child_share_no_private_page() {
         pfns_visible(),
         "/proc/PID/pagemap shows page frame numbers only to CAP_SYS_ADMIN, and here they read \
          as 0, but the test crate was built where they did not: rebuild it \
-         (cargo clean -p s3res-tests) to have this test listed as ignored"
+         (cargo clean -p s3res-testkit) to have this test listed as ignored"
     );
     let count = 2500;
     let sys = System::new();
@@ -151,7 +153,7 @@ fn donor_and_fork_child_share_no_private_page() {
     run.wait_for_replicas("echo", 3);
     let first = run.replica_pids("echo");
 
-    s3res_tests::kill_pid(first[&2], libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(first[&2], libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
         |e| e.kind == EventKind::Recovery && e.pid == Some(first[&2]),
         Duration::from_secs(20),
@@ -236,7 +238,7 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
         assert!(
             which(tool).is_some(),
             "`{tool}` (util-linux) is not installed, but the test crate was built where it \
-             was: rebuild it (cargo clean -p s3res-tests) to have this test listed as ignored"
+             was: rebuild it (cargo clean -p s3res-testkit) to have this test listed as ignored"
         );
     }
     let count = 1500;
@@ -261,7 +263,7 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
     let mut run = sys.start_with(&wrapper, &desc);
     run.wait_for_replicas("echo", 3);
     let first = run.replica_pids("echo");
-    s3res_tests::kill_pid(first[&1], libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(first[&1], libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
         |e| e.kind == EventKind::Recovery && e.pid == Some(first[&1]),
         Duration::from_secs(20),
@@ -281,7 +283,7 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
         reports,
         3,
         "one report per replica started, none from the fork child; stderr:\n{}",
-        s3res_tests::tail(&out.stderr, 40)
+        s3res_testkit::tail(&out.stderr, 40)
     );
     assert_sink_whole(&run.path("summary.json"), count);
 }

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use s3res_tests::{
+use s3res_testkit::{
     assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
     Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
 };
@@ -118,7 +118,7 @@ fn tmr_single_fault(batch_args: &[&str], inject: impl FnOnce(i32), kind: EventKi
 fn stream_tmr_outvotes_a_corrupted_frame() {
     tmr_single_fault(
         &["--every", "5", "--stateful"],
-        |pid| s3res_tests::sigqueue(pid, signals::INJECT_SDC, 77).expect("sigqueue"),
+        |pid| s3res_testkit::sigqueue(pid, signals::INJECT_SDC, 77).expect("sigqueue"),
         EventKind::Sdc,
         "differs from the majority",
     );
@@ -129,7 +129,7 @@ fn stream_tmr_outvotes_a_corrupted_frame() {
 fn stream_tmr_replaces_a_stopped_laggard() {
     tmr_single_fault(
         &["--every", "4", "--vary", "--stateful"],
-        |pid| s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP"),
+        |pid| s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP"),
         EventKind::Hang,
         "furthest behind",
     );
@@ -237,7 +237,7 @@ fn stream_smr_restarts_by_exec_and_goes_on() {
     run.wait_for_replicas("echo", 1);
 
     let pid = run.replica_pids("echo")[&0];
-    s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
+    s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill");
     let rec = run.wait_for_event(|e| is_recovery_of(e, 0, pid), Duration::from_secs(20));
     assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
     assert_eq!(rec.state_lost, Some(true), "{rec:?}");
@@ -245,7 +245,7 @@ fn stream_smr_restarts_by_exec_and_goes_on() {
     let out = run.wait(LIMIT);
     run.assert_nothing_left();
     assert_eq!(faults(&out.events).len(), 1, "{:?}", faults(&out.events));
-    let s = s3res_tests::sink_summary(&summary);
+    let s = s3res_testkit::sink_summary(&summary);
     assert_eq!(s["state_breaks"], 1, "{s}");
     let missing = s["missing"].as_u64().unwrap();
     // What the dead replica held (under one batch) and what was in its input pipe.
@@ -270,17 +270,17 @@ fn stream_tmr_child_joins_while_frames_are_undecided() {
 
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("SIGSTOP");
-        s3res_tests::wait_state(pids[&slot], "T", Duration::from_secs(20));
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGSTOP).expect("SIGSTOP");
+        s3res_testkit::wait_state(pids[&slot], "T", Duration::from_secs(20));
     }
     // Replica 0 writes the frames it can from the input it already has, which nobody can
     // confirm now, and waits for more input (held while the replicas are out of step).
     let mut looks = 0;
-    s3res_tests::wait_until(
+    s3res_testkit::wait_until(
         "replica 0 to use up its input",
         Duration::from_secs(20),
         || {
-            looks = if s3res_tests::procs::waits_on_pipe_read(pids[&0]) {
+            looks = if s3res_testkit::procs::waits_on_pipe_read(pids[&0]) {
                 looks + 1
             } else {
                 0
@@ -288,7 +288,7 @@ fn stream_tmr_child_joins_while_frames_are_undecided() {
             (looks >= 3).then_some(())
         },
     );
-    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
+    s3res_testkit::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
     let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
     assert_eq!(
         (rec.method, rec.donor),
@@ -322,7 +322,7 @@ fn stream_tmr_two_spinning_replicas_do_not_outvote_the_healthy_one() {
 
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
-        s3res_tests::kill_pid(pids[&slot], signals::inject_cfe()).expect("inject cfe");
+        s3res_testkit::kill_pid(pids[&slot], signals::inject_cfe()).expect("inject cfe");
     }
     for slot in [1, 2] {
         let hang = run.wait_for_event(
@@ -358,10 +358,10 @@ fn stream_recovery_does_not_fork_a_spinning_replica() {
     run.wait_for_replicas("echo", 3);
 
     let pids = run.replica_pids("echo");
-    s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    s3res_testkit::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
     // Until replica 0 has taken the signal and spins (on a loaded machine that may wait).
-    s3res_tests::wait_spinning(pids[&0], Duration::from_secs(20));
-    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
+    s3res_testkit::wait_spinning(pids[&0], Duration::from_secs(20));
+    s3res_testkit::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
     let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
     assert_eq!(
         (rec.method, rec.donor),
@@ -396,14 +396,14 @@ fn stream_recovery_does_not_fork_a_spinning_replica_that_never_answered() {
     run.wait_for_replicas("echo", 2);
 
     let pids = run.replica_pids("echo");
-    s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
-    s3res_tests::wait_spinning(pids[&0], Duration::from_secs(20));
+    s3res_testkit::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    s3res_testkit::wait_spinning(pids[&0], Duration::from_secs(20));
     assert!(
         run.events().iter().all(|e| e.kind == EventKind::Start),
         "replica 0 was blamed before the kill: {:?}",
         run.events()
     );
-    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
+    s3res_testkit::kill_pid(pids[&1], libc::SIGKILL).expect("SIGKILL");
     let rec = run.wait_for_event(|e| is_recovery_of(e, 1, pids[&1]), Duration::from_secs(20));
     assert_ne!(
         rec.donor,
@@ -432,7 +432,7 @@ fn stream_recovery_does_not_fork_a_spinning_replica_that_never_answered() {
     );
     // Input taken by the replicas before the exec is lost with them (state lost); nothing is
     // doubled or corrupted, and the stream reached the sink's end.
-    let s = s3res_tests::sink_summary(&summary);
+    let s = s3res_testkit::sink_summary(&summary);
     for field in ["duplicated", "reordered", "corrupt"] {
         assert_eq!(s[field], 0, "{field}: {s}");
     }
@@ -477,7 +477,7 @@ fn stream_dmr_both_replicas_spinning_are_found_without_a_deadline() {
 
     let pids = run.replica_pids("echo");
     for slot in [0, 1] {
-        s3res_tests::kill_pid(pids[&slot], signals::inject_cfe()).expect("inject cfe");
+        s3res_testkit::kill_pid(pids[&slot], signals::inject_cfe()).expect("inject cfe");
     }
     let mut found_by_looking = 0;
     let mut replaced_ns = 0;
@@ -509,7 +509,7 @@ fn stream_dmr_both_replicas_spinning_are_found_without_a_deadline() {
     let out = run.wait(LIMIT);
     run.assert_nothing_left();
     assert_eq!(faults(&out.events).len(), 2, "{:?}", faults(&out.events));
-    let s = s3res_tests::sink_summary(&summary);
+    let s = s3res_testkit::sink_summary(&summary);
     let missing = s["missing"].as_u64().unwrap();
     // Lost: the input the spinners held and what was queued for them until both were
     // replaced — how much depends on how soon a loaded machine lets them be seen spinning (a

@@ -18,7 +18,7 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use s3res_components::{Signal, SIGNAL_FRAME};
-use s3res_tests::{
+use s3res_testkit::{
     bin_path, signals, sigqueue, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
 };
 

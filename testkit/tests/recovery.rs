@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use s3res_tests::{
+use s3res_testkit::{
     assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
     sink_summary, Event, EventKind, RecoveryMethod, Rng, System,
 };
@@ -93,7 +93,7 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
 #[test]
 fn tmr_outvotes_a_corrupted_frame() {
     tmr_single_fault(
-        |pid| s3res_tests::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue"),
+        |pid| s3res_testkit::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue"),
         EventKind::Sdc,
     );
 }
@@ -101,7 +101,7 @@ fn tmr_outvotes_a_corrupted_frame() {
 #[test]
 fn tmr_detects_a_control_flow_error_as_a_hang() {
     tmr_single_fault(
-        |pid| s3res_tests::kill_pid(pid, signals::inject_cfe()).expect("kill"),
+        |pid| s3res_testkit::kill_pid(pid, signals::inject_cfe()).expect("kill"),
         EventKind::Hang,
     );
 }
@@ -109,7 +109,7 @@ fn tmr_detects_a_control_flow_error_as_a_hang() {
 #[test]
 fn tmr_detects_a_stopped_replica_as_a_hang() {
     tmr_single_fault(
-        |pid| s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("kill"),
+        |pid| s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("kill"),
         EventKind::Hang,
     );
 }
@@ -151,7 +151,7 @@ fn smr_restarts_by_exec_and_says_state_was_lost() {
     run.wait_for_replicas("echo", 1);
 
     let pid = run.replica_pids("echo")[&0];
-    s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
+    s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill");
     run.wait_for_event(
         |e| e.kind == EventKind::Crash && e.pid == Some(pid),
         Duration::from_secs(20),
@@ -249,10 +249,10 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     // kill the third: recovery starts at once, and the best donor left is the stopped slot 0.
     let source = run.pause_source("echo");
     for slot in [0, 1] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).unwrap();
-        s3res_tests::wait_state(pids[&slot], "T", Duration::from_secs(20));
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGSTOP).unwrap();
+        s3res_testkit::wait_state(pids[&slot], "T", Duration::from_secs(20));
     }
-    s3res_tests::kill_pid(pids[&2], libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).unwrap();
     // The attempt times out (restart_timeout_ms) and the slot is filled by exec.
     let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
     assert_eq!(
@@ -262,9 +262,9 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     );
     // Slot 0 now forks for the abandoned attempt; its late child connects to the voter.
     for slot in [0, 1] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGCONT).unwrap();
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGCONT).unwrap();
     }
-    s3res_tests::kill_pid(source, libc::SIGCONT).unwrap();
+    s3res_testkit::kill_pid(source, libc::SIGCONT).unwrap();
 
     let out = run.wait_success(LIMIT);
     // At most one SDC: the exec'd replacement starts with a fresh count and is then rebuilt by
@@ -291,26 +291,26 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
     let mut run = sys.start(&echo_pipeline(&summary, echo, count, 20));
     run.wait_for_replicas("echo", 3);
     let mark = run.sink_mark();
-    s3res_tests::wait_until("a frame at the sink", Duration::from_secs(20), || {
+    s3res_testkit::wait_until("a frame at the sink", Duration::from_secs(20), || {
         let sink = run.pid_of("s3res-sink");
-        s3res_tests::procs::io(sink).filter(|io| io.rchar > mark)
+        s3res_testkit::procs::io(sink).filter(|io| io.rchar > mark)
     });
     let source = run.pause_source("echo");
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("stop");
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGSTOP).expect("stop");
     }
-    s3res_tests::kill_pid(pids[&0], libc::SIGKILL).expect("kill slot 0");
+    s3res_testkit::kill_pid(pids[&0], libc::SIGKILL).expect("kill slot 0");
     let rec0 = run.wait_for_event(|e| is_recovery_of(e, 0, pids[&0]), Duration::from_secs(20));
     assert_eq!(rec0.method, Some(RecoveryMethod::Exec), "{rec0:?}");
     let fresh = rec0.new_pid.expect("new pid");
-    s3res_tests::wait_until("slot 0 to start", Duration::from_secs(20), || {
-        s3res_tests::procs::handles_hooks(fresh).then_some(())
+    s3res_testkit::wait_until("slot 0 to start", Duration::from_secs(20), || {
+        s3res_testkit::procs::handles_hooks(fresh).then_some(())
     });
     for slot in [1, 2] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGCONT).expect("continue");
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGCONT).expect("continue");
     }
-    s3res_tests::kill_pid(pids[&2], libc::SIGKILL).expect("kill slot 2");
+    s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill slot 2");
     let rec2 = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
     assert_eq!(rec2.method, Some(RecoveryMethod::Fork), "{rec2:?}");
     assert_eq!(
@@ -318,7 +318,7 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
         Some(1),
         "the healthy replica is the donor: {rec2:?}"
     );
-    s3res_tests::kill_pid(source, libc::SIGCONT).expect("continue the source");
+    s3res_testkit::kill_pid(source, libc::SIGCONT).expect("continue the source");
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }
@@ -378,23 +378,24 @@ fn dmr_does_not_clone_a_donor_that_spins() {
     // Between rounds (the source paused, everything answered), replica 0 starts to spin; the
     // next round, once the source goes on, is the one it never answers.
     let source = run.pause_source("echo");
-    s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
-    s3res_tests::wait_spinning(pids[&0], Duration::from_secs(20));
-    let answered = s3res_tests::procs::io(pids[&1])
+    s3res_testkit::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    s3res_testkit::wait_spinning(pids[&0], Duration::from_secs(20));
+    let answered = s3res_testkit::procs::io(pids[&1])
         .expect("replica 1's io")
         .wchar;
-    s3res_tests::kill_pid(source, libc::SIGCONT).expect("continue the source");
+    s3res_testkit::kill_pid(source, libc::SIGCONT).expect("continue the source");
     // Replica 1 answers that round (it wrote, and waits for input again) long before its
     // 300 ms deadline; then it spins too.
-    s3res_tests::wait_until(
+    s3res_testkit::wait_until(
         "replica 1 to answer the round",
         Duration::from_secs(20),
         || {
-            let io = s3res_tests::procs::io(pids[&1])?;
-            (io.wchar > answered && s3res_tests::procs::waits_on_pipe_read(pids[&1])).then_some(())
+            let io = s3res_testkit::procs::io(pids[&1])?;
+            (io.wchar > answered && s3res_testkit::procs::waits_on_pipe_read(pids[&1]))
+                .then_some(())
         },
     );
-    s3res_tests::kill_pid(pids[&1], signals::inject_cfe()).expect("inject cfe");
+    s3res_testkit::kill_pid(pids[&1], signals::inject_cfe()).expect("inject cfe");
 
     let first = run.wait_for_event(
         |e| e.kind == EventKind::Hang && e.replica == Some(0),

@@ -10,8 +10,8 @@ use std::process::Command;
 use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
-use s3res_tests::procs::{self, Scheduling};
-use s3res_tests::{
+use s3res_testkit::procs::{self, Scheduling};
+use s3res_testkit::{
     assert_sink_whole, bin_path, echo_pipeline, signals, EventKind, RecoveryMethod, RunningSystem,
     System,
 };
@@ -77,7 +77,7 @@ fn priorities_and_cpus(unprivileged: bool) {
     assert!(
         cpus.len() >= 2,
         "this test places two replicas on two distinct CPUs; only {cpus:?} usable, but the test \
-         crate was built where two were: rebuild it (cargo clean -p s3res-tests) to have this \
+         crate was built where two were: rebuild it (cargo clean -p s3res-testkit) to have this \
          test listed as ignored"
     );
     let (a, b) = (cpus[0], cpus[1]);
@@ -435,7 +435,7 @@ fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
     assert!(
         sys.round_robin_allowed(),
         "SCHED_RR is refused here (this test is about SCHED_RR levels), but the test crate was \
-         built where it was allowed: rebuild it (cargo clean -p s3res-tests) to have this test \
+         built where it was allowed: rebuild it (cargo clean -p s3res-testkit) to have this test \
          listed as ignored"
     );
     let count = 600;
