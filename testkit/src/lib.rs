@@ -69,6 +69,17 @@ pub fn sink_summary(path: impl AsRef<Path>) -> serde_json::Value {
         .unwrap_or_else(|e| panic!("sink summary {} is not JSON ({e}): {text}", path.display()))
 }
 
+/// The run-time half of the skip mechanism (see `build.rs`): a test that `build.rs` let run
+/// here checks that the machine still gives it what it needs, and fails naming `missing` if
+/// not (the crate was built elsewhere, say as root, and run as a user).
+pub fn require(available: bool, missing: &str) {
+    assert!(
+        available,
+        "{missing}, but this test crate was built where it was not missing: rebuild it \
+         (cargo clean -p s3res-testkit) to have this test listed as ignored"
+    );
+}
+
 /// The last `max_lines` lines of `text` (for failure messages).
 pub fn tail(text: &str, max_lines: usize) -> String {
     let lines: Vec<&str> = text.lines().collect();

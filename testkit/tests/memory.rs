@@ -136,11 +136,9 @@ impl Drop for Stopped {
     ignore = "needs CAP_SYS_ADMIN (root): /proc/PID/pagemap shows page frame numbers only to it"
 )]
 fn donor_and_fork_child_share_no_private_page() {
-    assert!(
+    s3res_testkit::require(
         pfns_visible(),
-        "/proc/PID/pagemap shows page frame numbers only to CAP_SYS_ADMIN, and here they read \
-         as 0, but the test crate was built where they did not: rebuild it \
-         (cargo clean -p s3res-testkit) to have this test listed as ignored"
+        "/proc/PID/pagemap shows page frame numbers only to CAP_SYS_ADMIN; here they read as 0",
     );
     let count = 2500;
     let sys = System::new();
@@ -228,17 +226,16 @@ fn donor_and_fork_child_share_no_private_page() {
     ignore = "needs `prlimit` (and, as root, `setpriv`) from util-linux"
 )]
 fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
-    let root = euid_is_root();
+    let root = s3res_testkit::is_root();
     let tools: &[&str] = if root {
         &["setpriv", "prlimit"]
     } else {
         &["prlimit"]
     };
     for tool in tools {
-        assert!(
+        s3res_testkit::require(
             which(tool).is_some(),
-            "`{tool}` (util-linux) is not installed, but the test crate was built where it \
-             was: rebuild it (cargo clean -p s3res-testkit) to have this test listed as ignored"
+            &format!("`{tool}` (util-linux) is not installed"),
         );
     }
     let count = 1500;
@@ -286,18 +283,6 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
         s3res_testkit::tail(&out.stderr, 40)
     );
     assert_sink_whole(&run.path("summary.json"), count);
-}
-
-/// Effective uid 0, from `/proc/self/status` (`Uid: real effective saved fs`).
-fn euid_is_root() -> bool {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("Uid:"))
-                .and_then(|v| v.split_whitespace().nth(1).map(|e| e == "0"))
-        })
-        .unwrap_or(false)
 }
 
 fn which(tool: &str) -> Option<std::path::PathBuf> {

@@ -74,11 +74,9 @@ fn assert_placed(s: &Scheduling, rr: bool, priority: i32, cpus: &[usize], who: &
 fn priorities_and_cpus(unprivileged: bool) {
     let _turn = one_system_at_a_time();
     let cpus = usable_cpus();
-    assert!(
+    s3res_testkit::require(
         cpus.len() >= 2,
-        "this test places two replicas on two distinct CPUs; only {cpus:?} usable, but the test \
-         crate was built where two were: rebuild it (cargo clean -p s3res-testkit) to have this \
-         test listed as ignored"
+        &format!("this test places two replicas on two distinct CPUs; only {cpus:?} usable"),
     );
     let (a, b) = (cpus[0], cpus[1]);
     let count = 3000;
@@ -432,11 +430,9 @@ fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
     let cpus = usable_cpus();
     let (shared, voter_cpu) = (cpus[0], cpus[cpus.len() - 1]);
     let sys = System::new();
-    assert!(
+    s3res_testkit::require(
         sys.round_robin_allowed(),
-        "SCHED_RR is refused here (this test is about SCHED_RR levels), but the test crate was \
-         built where it was allowed: rebuild it (cargo clean -p s3res-testkit) to have this test \
-         listed as ignored"
+        "SCHED_RR is refused here (this test is about SCHED_RR levels)",
     );
     let count = 600;
     let summary = sys.path("summary.json");
