@@ -84,6 +84,9 @@ impl RunningSystem {
         kills: usize,
         pause_ms: (u64, u64),
     ) -> Vec<(usize, i32)> {
+        // Every kill must be repaired by fork with the state kept: the donors must have
+        // answered (a donor that has not is reported as a fresh start, state lost).
+        self.wait_for_answers(component);
         let mut killed = Vec::new();
         for _ in 0..kills {
             let slot = rng.below(replicas as u64) as usize;
@@ -141,6 +144,20 @@ impl RunningSystem {
         }
         crate::kill_pid(source, libc::SIGCONT).expect("SIGCONT the source");
         pids
+    }
+
+    /// Waits until every replica of `component` has answered at least once: a frame reached
+    /// the sink, then, with the source paused ([`RunningSystem::pause_source`]), everything in
+    /// flight was handled (replicas are deterministic: each made the frames the others did),
+    /// and the source goes on.
+    pub fn wait_for_answers(&mut self, component: &str) {
+        let mark = self.sink_mark();
+        let sink = self.pid_of("s3res-sink");
+        crate::wait::wait_until("a frame at the sink", Duration::from_secs(20), || {
+            crate::procs::io(sink).filter(|io| io.rchar > mark)
+        });
+        let source = self.pause_source(component);
+        crate::kill_pid(source, libc::SIGCONT).expect("SIGCONT the source");
     }
 
     /// The pid of this system's one living process named `comm`; panics if there is none or

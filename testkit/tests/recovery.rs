@@ -290,11 +290,7 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
                     "timeout_us": 400000, "restart_timeout_ms": 150 }"#;
     let mut run = sys.start(&echo_pipeline(&summary, echo, count, 20));
     run.wait_for_replicas("echo", 3);
-    let mark = run.sink_mark();
-    s3res_testkit::wait_until("a frame at the sink", Duration::from_secs(20), || {
-        let sink = run.pid_of("s3res-sink");
-        s3res_testkit::procs::io(sink).filter(|io| io.rchar > mark)
-    });
+    run.wait_for_answers("echo");
     let source = run.pause_source("echo");
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
