@@ -18,9 +18,12 @@
 //!
 //! See `docs/anomaly-detection.md`.
 
+#![forbid(unsafe_code)]
+
 pub mod capture;
 pub mod detector;
-pub mod layout;
+/// The layout is part of the plan a voter receives, so it is the protocol's (`s3res-protocol`).
+pub use s3res_protocol::layout;
 pub mod model;
 pub mod network;
 pub mod preprocess;

@@ -17,7 +17,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use hdrhistogram::Histogram;
-use s3res_voter::event::{Event, EventKind};
+use s3res_protocol::event::{Event, EventKind};
 
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};
@@ -37,22 +37,8 @@ pub struct DetectOptions {
     pub seed: u64,
 }
 
-/// splitmix64: small, seeded, good enough to pick victims.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n
-    }
-}
+/// Picks victims; seeded by `--seed`.
+type Rng = s3res_protocol::rng::SplitMix64;
 
 pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     let echo = common.bins.path("s3res-echo")?;
@@ -66,7 +52,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
         voter: Some(voter.clone()),
         setup: o.setup,
     };
-    let mut rng = Rng(o.seed);
+    let mut rng = Rng::new(o.seed);
     let total = o.timeouts_us.len() as u64 * o.count * 3 + o.rounds;
     let bar = common.progress(total, "detect");
     let mut rows = Vec::new();

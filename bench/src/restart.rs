@@ -8,7 +8,7 @@ use std::os::fd::AsFd;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use s3res_voter::event::{EventKind, RecoveryMethod};
+use s3res_protocol::event::{EventKind, RecoveryMethod};
 
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};
@@ -231,7 +231,9 @@ fn floor(size: usize, count: u64, own: Own, bar: &indicatif::ProgressBar) -> Res
     for _ in 0..count {
         let (r, w) = replica_rt::sys::pipe().context("pipe")?;
         let t0 = replica_rt::sys::monotonic_ns();
-        let pid = sys::fork().context("fork")?;
+        // SAFETY: the child below only writes its own copy of `state` (touch or one madvise),
+        // writes one byte to a pipe and leaves by _exit: async-signal-safe only.
+        let pid = unsafe { sys::fork() }.context("fork")?;
         if pid == 0 {
             // Child: async-signal-safe only (the bench has other threads).
             match own {

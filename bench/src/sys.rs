@@ -1,5 +1,6 @@
-//! The bench's syscall boundary: what `replica_rt::sys` does not already wrap. Each function is
-//! small and says why its `unsafe` block is sound.
+//! The bench's syscall boundary: only what `replica_rt::sys` (the project's boundary) does not
+//! wrap, and the bench's Ctrl-C policy built on it. Each function is small and says why its
+//! `unsafe` block is sound.
 
 use std::io;
 use std::os::unix::process::CommandExt;
@@ -35,68 +36,32 @@ pub fn kill_child_with_parent(cmd: &mut Command) {
 
 /// `kill(-pgid, sig)`: the whole process group.
 pub fn kill_group(pgid: libc::pid_t, sig: libc::c_int) -> io::Result<()> {
-    // SAFETY: killpg takes two integers and touches no memory of ours.
-    cvt(unsafe { libc::killpg(pgid, sig) }).map(|_| ())
+    replica_rt::sys::kill(-pgid, sig)
 }
 
-/// Scheduling of one process (or of the calling thread with pid 0).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Policy {
-    /// SCHED_OTHER, the default time-sharing class.
-    Other,
-    /// SCHED_RR at this priority (1..=99).
-    RoundRobin(i32),
-}
-
-/// `sched_setscheduler(pid, policy)`; pid 0 is the calling thread.
-pub fn set_policy(pid: libc::pid_t, policy: Policy) -> io::Result<()> {
-    let (pol, prio) = match policy {
-        Policy::Other => (libc::SCHED_OTHER, 0),
-        Policy::RoundRobin(p) => (libc::SCHED_RR, p),
-    };
-    let param = libc::sched_param {
-        sched_priority: prio,
-    };
-    // SAFETY: `param` is a valid sched_param that the kernel only reads during the call.
-    cvt(unsafe { libc::sched_setscheduler(pid, pol, &param) }).map(|_| ())
-}
+/// Scheduling policy and the CPU count: replica-rt's.
+pub use replica_rt::sys::{online_cpus, set_normal_policy, set_round_robin};
 
 /// `sched_setaffinity(pid, cpus)`; an empty list means every CPU the machine has.
 pub fn set_affinity(pid: libc::pid_t, cpus: &[usize]) -> io::Result<()> {
-    // SAFETY: cpu_set_t is plain bits; all-zero is the empty set.
-    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
-    let all: Vec<usize> = if cpus.is_empty() {
-        (0..online_cpus()).collect()
-    } else {
-        cpus.to_vec()
-    };
-    for &c in &all {
-        if c >= libc::CPU_SETSIZE as usize {
-            return Err(io::Error::new(
-                io::ErrorKind::InvalidInput,
-                format!("CPU {c} is beyond CPU_SETSIZE"),
-            ));
-        }
-        // SAFETY: `c` is below CPU_SETSIZE, so CPU_SET stays inside `set`.
-        unsafe { libc::CPU_SET(c, &mut set) };
+    if cpus.is_empty() {
+        let all: Vec<usize> = (0..online_cpus()).collect();
+        return replica_rt::sys::set_cpu_affinity(pid, &all);
     }
-    // SAFETY: `set` is a valid cpu_set_t of the size we pass; the kernel only reads it.
-    cvt(unsafe { libc::sched_setaffinity(pid, std::mem::size_of::<libc::cpu_set_t>(), &set) })
-        .map(|_| ())
+    replica_rt::sys::set_cpu_affinity(pid, cpus)
 }
 
-/// Number of online CPUs (at least 1).
-pub fn online_cpus() -> usize {
-    // SAFETY: sysconf takes an integer and returns one.
-    let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) };
-    n.max(1) as usize
-}
-
-/// `fork()`. The child must do only async-signal-safe work (the bench has other threads, whose
-/// locks are copied held) and leave by `_exit`.
-pub fn fork() -> io::Result<libc::pid_t> {
-    // SAFETY: every caller's child side only writes its own memory, calls write(2) and _exit,
-    // all async-signal-safe (documented contract above).
+/// `fork()`.
+///
+/// # Safety
+///
+/// The bench has other threads, whose locks the child inherits held and whose memory it
+/// inherits mid-update. In the child, the caller must do only async-signal-safe work (write
+/// its own memory, raw system calls; no allocation, no lock, no `std` I/O) and leave by
+/// [`exit_now`], never by returning or unwinding.
+pub unsafe fn fork() -> io::Result<libc::pid_t> {
+    // SAFETY: fork itself touches no memory of ours; what the child may do afterwards is this
+    // function's precondition.
     cvt(unsafe { libc::fork() })
 }
 
@@ -141,11 +106,8 @@ pub fn populate_write_supported() -> bool {
     populate_write(&mut probe).is_ok()
 }
 
-/// Leaves the process at once, without running destructors or atexit handlers (fork child).
-pub fn exit_now(code: libc::c_int) -> ! {
-    // SAFETY: _exit never returns and is async-signal-safe.
-    unsafe { libc::_exit(code) }
-}
+/// Leaves the process at once, without destructors or atexit handlers (fork child).
+pub use replica_rt::sys::exit_now;
 
 // ----- Ctrl-C --------------------------------------------------------------------------------
 
@@ -170,14 +132,14 @@ pub fn interrupted() -> bool {
     INTERRUPTED.load(Ordering::SeqCst)
 }
 
-/// Async-signal-safe: one store and a few killpg.
-extern "C" fn on_interrupt(_sig: libc::c_int) {
+/// Async-signal-safe: one store and a few kill(2) (`replica_rt::sys::kill` neither allocates
+/// nor locks).
+extern "C" fn on_interrupt(_sig: libc::c_int, _info: *mut libc::siginfo_t, _: *mut libc::c_void) {
     INTERRUPTED.store(true, Ordering::SeqCst);
     for g in &GROUPS {
         let pgid = g.load(Ordering::SeqCst);
         if pgid > 0 {
-            // SAFETY: killpg is async-signal-safe and takes integers only.
-            unsafe { libc::killpg(pgid, libc::SIGKILL) };
+            let _ = replica_rt::sys::kill(-pgid, libc::SIGKILL);
         }
     }
 }
@@ -187,13 +149,8 @@ extern "C" fn on_interrupt(_sig: libc::c_int) {
 /// returns EINTR.
 pub fn install_interrupt_handler() -> io::Result<()> {
     for sig in [libc::SIGINT, libc::SIGTERM] {
-        // SAFETY: an all-zero sigaction is valid; we fill in the handler and an empty mask.
-        let mut sa: libc::sigaction = unsafe { std::mem::zeroed() };
-        sa.sa_sigaction = on_interrupt as extern "C" fn(libc::c_int) as usize;
-        // SAFETY: `sa.sa_mask` is a valid sigset_t to initialise.
-        unsafe { libc::sigemptyset(&mut sa.sa_mask) };
-        // SAFETY: `sa` is fully initialised; the old action is not wanted.
-        cvt(unsafe { libc::sigaction(sig, &sa, std::ptr::null_mut()) })?;
+        // SAFETY: on_interrupt is async-signal-safe (atomics and kill(2) only).
+        unsafe { replica_rt::sys::install_siginfo_handler(sig, on_interrupt, 0)? };
     }
     Ok(())
 }
@@ -201,6 +158,5 @@ pub fn install_interrupt_handler() -> io::Result<()> {
 /// Whether the process runs as root (SCHED_RR and pinning of other processes need it, or
 /// CAP_SYS_NICE).
 pub fn is_root() -> bool {
-    // SAFETY: geteuid cannot fail.
-    unsafe { libc::geteuid() == 0 }
+    replica_rt::sys::effective_uid() == 0
 }

@@ -24,8 +24,8 @@ use replica_rt::contract::{
     FIRST_PORT_FD,
 };
 use replica_rt::sys as rsys;
-use s3res_voter::event::{Event, EventKind};
-use s3res_voter::plan::{ExternalPort, RoundTrigger, VoterPlan};
+use s3res_protocol::event::{Event, EventKind};
+use s3res_protocol::plan::{ExternalPort, RoundTrigger, VoterPlan};
 
 use crate::frames::{FrameIn, FrameIoError, FrameOut};
 use crate::sys;
@@ -158,16 +158,16 @@ impl System {
                 }],
                 events_fd: Some(FIRST_PORT_FD + 2),
                 socket_path: workdir.path().join("v.sock"),
-                restart_timeout_ms: s3res_voter::plan::default_restart_timeout_ms(),
+                restart_timeout_ms: s3res_protocol::plan::default_restart_timeout_ms(),
                 priority: sched.priority,
                 cpus: sched.cpus,
-                start_timeout_ms: s3res_voter::plan::default_start_timeout_ms(),
+                start_timeout_ms: s3res_protocol::plan::default_start_timeout_ms(),
                 voter_cpu: sched.voter_cpu,
                 schedule: sched.schedule,
                 realtime: true,
                 nice: None,
                 mode: Default::default(),
-                window: s3res_voter::plan::default_stream_window(),
+                window: s3res_protocol::plan::default_stream_window(),
                 monitors: Vec::new(),
                 captures: Vec::new(),
             };
@@ -578,7 +578,7 @@ pub struct PlanSched {
     pub priority: Option<u8>,
     pub cpus: Vec<usize>,
     pub voter_cpu: Option<usize>,
-    pub schedule: s3res_voter::sched::Schedule,
+    pub schedule: s3res_protocol::sched::Schedule,
 }
 
 impl Setup {
@@ -626,7 +626,7 @@ impl Setup {
             priority: self.realtime().then_some(RR_PRIORITY),
             cpus: rest.to_vec(),
             voter_cpu: top.first().copied(),
-            schedule: s3res_voter::sched::choose(replicas, rest),
+            schedule: s3res_protocol::sched::choose(replicas, rest),
         }
     }
 
@@ -641,8 +641,7 @@ impl Setup {
         }
         let apply = |pid: i32, who: &str, priority: u8, cpus: &[usize]| -> Result<()> {
             if self.realtime() {
-                sys::set_policy(pid, sys::Policy::RoundRobin(i32::from(priority)))
-                    .with_context(|| what(who, pid))?;
+                sys::set_round_robin(pid, i32::from(priority)).with_context(|| what(who, pid))?;
             }
             if !cpus.is_empty() {
                 sys::set_affinity(pid, cpus).with_context(|| what(who, pid))?;
@@ -663,7 +662,7 @@ impl Setup {
 
     /// Puts the bench's calling thread back to the default.
     pub fn reset_bench() {
-        let _ = sys::set_policy(0, sys::Policy::Other);
+        let _ = sys::set_normal_policy(0);
         let _ = sys::set_affinity(0, &[]);
     }
 }

@@ -1,7 +1,7 @@
 //! The voter allocates nothing per round in steady state.
 //!
 //! The voter library runs in-process on its own thread (started exactly as `s3res-voter`'s
-//! `main` starts it: `Voter::start(plan)` then `run`), with three real `s3res-echo` replicas.
+//! `main` starts it: `ReactiveVoter::start(plan)` then `run`), with three real `s3res-echo` replicas.
 //! A counting global allocator counts the allocations made *on the voter's thread* only, so
 //! the test's own work does not disturb the count. After warm-up rounds at every frame size
 //! (buffers grow to their working size once), further rounds must not allocate at all.
@@ -15,9 +15,9 @@ use std::os::fd::{AsFd, IntoRawFd, OwnedFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use s3res_voter::event::{Event, EventKind};
-use s3res_voter::plan::{CapturePlan, ExternalPort, MonitorPlan, RoundTrigger, VoterPlan};
-use s3res_voter::voter::Voter;
+use s3res_protocol::event::{Event, EventKind};
+use s3res_protocol::plan::{CapturePlan, ExternalPort, MonitorPlan, RoundTrigger, VoterPlan};
+use s3res_voter::ReactiveVoter;
 
 struct Counting;
 
@@ -181,13 +181,13 @@ fn steady_state(monitored: bool) {
         restart_timeout_ms: 1000,
         priority: None,
         cpus: Vec::new(),
-        start_timeout_ms: s3res_voter::plan::default_start_timeout_ms(),
+        start_timeout_ms: s3res_protocol::plan::default_start_timeout_ms(),
         voter_cpu: None,
         schedule: Default::default(),
         realtime: true,
         nice: None,
         mode: Default::default(),
-        window: s3res_voter::plan::default_stream_window(),
+        window: s3res_protocol::plan::default_stream_window(),
         monitors: Vec::new(),
         captures: Vec::new(),
     };
@@ -208,7 +208,7 @@ fn steady_state(monitored: bool) {
     let (done_tx, done_rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
         ON_VOTER_THREAD.with(|c| c.set(true));
-        let result = Voter::start(plan).and_then(Voter::run);
+        let result = ReactiveVoter::start(plan).and_then(ReactiveVoter::run);
         ON_VOTER_THREAD.with(|c| c.set(false));
         let _ = done_tx.send(result.map_err(|e| e.to_string()));
     });

@@ -13,11 +13,11 @@ use thiserror::Error;
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
 use s3res_anomaly::{Field, FieldLayout, Model};
-use s3res_voter::plan::{
+use s3res_protocol::plan::{
     default_restart_timeout_ms, default_start_timeout_ms, default_stream_window, CapturePlan, Mode,
     MonitorPlan, RoundTrigger,
 };
-use s3res_voter::sched::{self, Schedule};
+use s3res_protocol::sched::{self, Schedule};
 
 use crate::exec::{self, SearchPath};
 use crate::plan::{ChannelPlan, ComponentPlan, Endpoint, PortPlan, Redundancy, SystemPlan};
@@ -27,6 +27,36 @@ use crate::posindex::{element_path, member_path, IndexError, PositionIndex};
 pub const MAX_FRAME_LIMIT: usize = 16 * 1024 * 1024;
 /// Largest replica count (`replicas`).
 pub const MAX_REPLICAS: u64 = 9;
+/// Longest name of a component or a port, in characters.
+pub const MAX_NAME_LEN: usize = 64;
+/// Longest system name, in characters.
+pub const MAX_SYSTEM_NAME_LEN: usize = 128;
+/// Longest any duration in a description may be: one minute. A deadline longer than that
+/// detects nothing a user would wait for (and 2^64−1 µs would never detect a spin at all).
+pub const MAX_DURATION_MS: u64 = 60_000;
+/// Longest `exec` or single argument, in bytes.
+pub const MAX_ARG_LEN: usize = 4096;
+/// Most arguments a component may have.
+pub const MAX_ARGS: usize = 256;
+
+/// Why `name` cannot name a component or a port, if it cannot: names use ASCII letters,
+/// digits, `_` and `-` (they appear in endpoints `component.port`, paths, the environment and
+/// logs), at most [`MAX_NAME_LEN`] of them.
+pub fn name_problem(name: &str) -> Option<String> {
+    if name.is_empty() {
+        return Some("is empty".into());
+    }
+    if name.chars().count() > MAX_NAME_LEN {
+        return Some(format!("is longer than {MAX_NAME_LEN} characters"));
+    }
+    let bad = name
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || *c == '_' || *c == '-'))?;
+    Some(format!(
+        "contains {bad:?}; names use ASCII letters, digits, `_` and `-`"
+    ))
+}
+
 /// SCHED_RR priorities from here up compete with the kernel's interrupt threads, which run at
 /// 50 by default (PREEMPT_RT).
 pub const INTERRUPT_THREAD_PRIORITY: u8 = 50;
@@ -336,6 +366,18 @@ impl Checker<'_> {
         if desc.name.trim().is_empty() {
             return Err(self.err("name", "the system name is empty"));
         }
+        if desc.name.chars().count() > MAX_SYSTEM_NAME_LEN {
+            return Err(self.err(
+                "name",
+                format!("the system name is longer than {MAX_SYSTEM_NAME_LEN} characters"),
+            ));
+        }
+        if let Some(c) = desc.name.chars().find(|c| c.is_control()) {
+            return Err(self.err(
+                "name",
+                format!("the system name contains the control character {c:?}"),
+            ));
+        }
         if desc.components.is_empty() {
             return Err(self.err("components", "a system needs at least one component"));
         }
@@ -370,12 +412,100 @@ impl Checker<'_> {
         for (i, ch) in desc.channels.iter().enumerate() {
             self.check_monitoring(i, ch, &channels[i], &mut components)?;
         }
+        self.check_rounds_can_start(&components, &channels)?;
         Ok(SystemPlan {
             name: desc.name,
             components,
             channels,
             warnings,
         })
+    }
+
+    /// Every reactive protected component can be given a round. Its replicas answer only in
+    /// rounds, so it sends nothing until a frame arrives on an input that starts one; a loop of
+    /// such components that nothing outside feeds would wait for each other forever. A
+    /// component sends on its own when it is unprotected or in stream mode, or once one of its
+    /// round inputs is fed by stdin or by a component that sends.
+    fn check_rounds_can_start(
+        &self,
+        components: &[ComponentPlan],
+        channels: &[ChannelPlan],
+    ) -> Result<(), DescriptionError> {
+        let waits =
+            |c: &ComponentPlan| c.redundancy != Redundancy::None && c.mode == Mode::Reactive;
+        let mut sends: HashSet<&str> = components
+            .iter()
+            .filter(|c| !waits(c))
+            .map(|c| c.name.as_str())
+            .collect();
+        loop {
+            let before = sends.len();
+            for c in components.iter().filter(|c| waits(c)) {
+                let fed = c.rounds.iter().any(|r| {
+                    channels.iter().any(|ch| {
+                        matches!(&ch.to, Endpoint::Port { component, port } if *component == c.name && *port == r.input)
+                            && match &ch.from {
+                                Endpoint::Stdin => true,
+                                Endpoint::Port { component, .. } => sends.contains(component.as_str()),
+                                Endpoint::Stdout => false,
+                            }
+                    })
+                });
+                if fed {
+                    sends.insert(&c.name);
+                }
+            }
+            if sends.len() == before {
+                break;
+            }
+        }
+        let stuck: Vec<&str> = components
+            .iter()
+            .map(|c| c.name.as_str())
+            .filter(|n| !sends.contains(n))
+            .collect();
+        let Some(first) = stuck.first() else {
+            return Ok(());
+        };
+        Err(self.err(
+            &member_path("components", first),
+            format!(
+                "reactive component{} {} can never start a round: {} fed only by reactive components that wait for {} in turn; a loop needs a component that sends on its own (unprotected, \"mode\": \"stream\", or fed from stdin)",
+                if stuck.len() > 1 { "s" } else { "" },
+                stuck.iter().map(|n| format!("`{n}`")).collect::<Vec<_>>().join(", "),
+                if stuck.len() > 1 { "their round inputs are" } else { "its round inputs are" },
+                if stuck.len() > 1 { "them" } else { "it" },
+            ),
+        ))
+    }
+
+    /// `exec` and `args`: no NUL byte (it cannot be passed to a program), bounded lengths.
+    fn check_command(&self, at: &str, desc: &ComponentDesc) -> Result<(), DescriptionError> {
+        let field = |f: &str| member_path(at, f);
+        if desc.args.len() > MAX_ARGS {
+            return Err(self.err(
+                &field("args"),
+                format!("{} arguments; at most {MAX_ARGS}", desc.args.len()),
+            ));
+        }
+        let strings = std::iter::once((field("exec"), &desc.exec)).chain(
+            desc.args
+                .iter()
+                .enumerate()
+                .map(|(i, a)| (element_path(&field("args"), i), a)),
+        );
+        for (path, s) in strings {
+            if s.contains('\0') {
+                return Err(self.err(&path, "contains a NUL byte, which no program can be given"));
+            }
+            if s.len() > MAX_ARG_LEN {
+                return Err(self.err(
+                    &path,
+                    format!("is {} bytes long; at most {MAX_ARG_LEN}", s.len()),
+                ));
+            }
+        }
+        Ok(())
     }
 
     fn check_component(
@@ -389,12 +519,10 @@ impl Checker<'_> {
         if name.is_empty() {
             return Err(self.err(&at, "a component name is empty"));
         }
-        if name.contains('.') || name.chars().any(char::is_whitespace) {
-            return Err(self.err(
-                &at,
-                format!("component name `{name}` may not contain `.` or spaces (endpoints are written `component.port`)"),
-            ));
+        if let Some(problem) = name_problem(&name) {
+            return Err(self.err(&at, format!("component name {name:?} {problem}")));
         }
+        self.check_command(&at, &desc)?;
         if name == "stdin" || name == "stdout" {
             return Err(self.err(
                 &at,
@@ -434,6 +562,15 @@ impl Checker<'_> {
                 Some(0) => {
                     return Err(self.err(&field("timeout_us"), "timeout_us must be more than 0"))
                 }
+                Some(t) if t > MAX_DURATION_MS * 1000 => {
+                    return Err(self.err(
+                        &field("timeout_us"),
+                        format!(
+                            "timeout_us {t} is above {} (one minute, the longest deadline)",
+                            MAX_DURATION_MS * 1000
+                        ),
+                    ))
+                }
                 Some(t) => t,
             }
         } else {
@@ -462,6 +599,17 @@ impl Checker<'_> {
                 &field("start_timeout_ms"),
                 "start_timeout_ms must be more than 0",
             ));
+        }
+        for (value, what) in [
+            (desc.restart_timeout_ms, "restart_timeout_ms"),
+            (desc.start_timeout_ms, "start_timeout_ms"),
+        ] {
+            if let Some(ms) = value.filter(|&ms| ms > MAX_DURATION_MS) {
+                return Err(self.err(
+                    &field(what),
+                    format!("{what} {ms} is above {MAX_DURATION_MS} (one minute)"),
+                ));
+            }
         }
         let window = self.stream_window(&name, &desc, protected, warnings)?;
 
@@ -764,10 +912,10 @@ impl Checker<'_> {
                 format!("unknown component `{component}` in endpoint `{text}`"),
             ));
         }
-        if port.is_empty() || port.chars().any(char::is_whitespace) {
+        if let Some(problem) = name_problem(port) {
             return Err(self.err(
                 path,
-                format!("endpoint `{text}` has an empty or blank port name"),
+                format!("the port name in endpoint {text:?} {problem}"),
             ));
         }
         Ok(Endpoint::Port {
@@ -1074,11 +1222,8 @@ impl Checker<'_> {
         };
         for (k, name) in declared.iter().enumerate() {
             let path = element_path(&at, k);
-            if name.is_empty() || name.contains('.') || name.chars().any(char::is_whitespace) {
-                return Err(self.err(
-                    &path,
-                    format!("port name `{name}` must be non-empty, without `.` or spaces"),
-                ));
+            if let Some(problem) = name_problem(name) {
+                return Err(self.err(&path, format!("port name {name:?} {problem}")));
             }
             if declared[..k].contains(name) {
                 return Err(self.err(&path, format!("port `{name}` is declared twice")));

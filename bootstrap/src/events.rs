@@ -11,7 +11,7 @@ use std::os::fd::OwnedFd;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use s3res_voter::event::{Event, EventKind};
+use s3res_protocol::event::{Event, EventKind};
 
 use crate::live::LiveState;
 

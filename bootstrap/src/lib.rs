@@ -4,6 +4,8 @@
 //! protected ones under one `s3res-voter` each), supervises them, gathers the voters' events,
 //! and on exit — however it exits — makes sure nothing it started is left running.
 
+#![forbid(unsafe_code)]
+
 pub mod description;
 pub mod events;
 pub mod exec;

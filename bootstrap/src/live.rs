@@ -1,153 +1,47 @@
-//! The live view: a machine-readable picture of the running system — every component, its
-//! voter's pid, each replica's *current* pid — kept in a JSON file (`--state FILE`) so that fault
-//! injectors find their targets without `ps | grep`.
-//!
-//! The file is rewritten atomically (write `FILE.tmp`, then `rename`) whenever something in it
-//! changes: at start, when each unprotected component or voter is spawned, on every replica
-//! start, fault, recovery and failed recovery (from the voters' events), and once more at the
-//! end with `running: false`. A reader therefore always sees one whole, consistent version.
-//!
-//! The type lives here, with its writer: its reader (`s3res-inject`) depends on bootstrap
-//! anyway, for the system description.
+//! Bootstrap's side of the live view (`--state FILE`): the view of its system before anything
+//! is spawned, and the writer shared by its main thread and its events reader. The view itself,
+//! its reader and its atomic write are the protocol's ([`s3res_protocol::live`]), so that
+//! injectors read it without depending on bootstrap.
 
-use std::collections::BTreeMap;
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use serde::{Deserialize, Serialize};
-
-use s3res_voter::event::{Event, EventKind};
+pub use s3res_protocol::live::{LiveComponent, LiveReplica, LiveView, ReplicaState};
 
 use crate::plan::SystemPlan;
 
-/// What the state file holds.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct LiveView {
-    /// The system's `name`.
-    pub system: String,
-    pub bootstrap_pid: i32,
-    /// CLOCK_MONOTONIC (ns) of the last change.
-    pub updated_ns: u64,
-    /// `false` once bootstrap has stopped everything.
-    pub running: bool,
-    /// By component name.
-    pub components: BTreeMap<String, LiveComponent>,
-}
-
-/// One component.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct LiveComponent {
-    /// `none`, `smr`, `dmr`, `tmr` (or what the description said).
-    pub redundancy: String,
-    /// Runs under a voter.
-    pub protected: bool,
-    /// The component's own pid (unprotected components only; `null` until spawned).
-    #[serde(default)]
-    pub pid: Option<i32>,
-    /// The voter's pid (protected components only; `null` until spawned).
-    #[serde(default)]
-    pub voter_pid: Option<i32>,
-    /// One entry per slot (protected components only), in slot order.
-    #[serde(default)]
-    pub replicas: Vec<LiveReplica>,
-}
-
-/// One replica slot of a protected component.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct LiveReplica {
-    pub slot: usize,
-    /// The process now in this slot; `null` before its start event or after a failed recovery.
-    pub pid: Option<i32>,
-    pub state: ReplicaState,
-    /// CLOCK_MONOTONIC (ns) of the event that set `pid` and `state`.
-    pub since_ns: u64,
-}
-
-/// Where a slot stands, as far as the voter's events tell.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ReplicaState {
-    /// No start event yet.
-    Starting,
-    /// Started or recovered: a valid target.
-    Running,
-    /// Found faulty; being replaced (the pid is the faulty, killed process).
-    Faulty,
-    /// Replacement failed: the slot is empty.
-    Lost,
-}
-
-impl LiveView {
-    /// Every component of `plan`, nothing spawned yet.
-    pub fn new(plan: &SystemPlan) -> Self {
-        let components = plan
-            .components
-            .iter()
-            .map(|c| {
-                let replicas = (0..c.replicas)
-                    .map(|slot| LiveReplica {
-                        slot,
-                        pid: None,
-                        state: ReplicaState::Starting,
-                        since_ns: 0,
-                    })
-                    .collect();
-                (
-                    c.name.clone(),
-                    LiveComponent {
-                        redundancy: c.redundancy.to_string(),
-                        protected: c.is_protected(),
-                        pid: None,
-                        voter_pid: None,
-                        replicas,
-                    },
-                )
-            })
-            .collect();
-        LiveView {
-            system: plan.name.clone(),
-            bootstrap_pid: std::process::id() as i32,
-            updated_ns: replica_rt::sys::monotonic_ns(),
-            running: true,
-            components,
-        }
-    }
-
-    /// Reads a state file. `Err` with a readable reason if it is missing or not a view.
-    pub fn read(path: &Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| format!("cannot read the state file {}: {e}", path.display()))?;
-        serde_json::from_str(&text)
-            .map_err(|e| format!("{} is not an s3res state file: {e}", path.display()))
-    }
-
-    /// Takes one voter event into account; `true` if the view changed.
-    pub fn apply(&mut self, e: &Event) -> bool {
-        let Some(c) = self.components.get_mut(&e.component) else {
-            return false;
-        };
-        let Some(r) = e.replica.and_then(|slot| c.replicas.get_mut(slot)) else {
-            return false;
-        };
-        let (pid, state) = match e.kind {
-            EventKind::Start => (e.pid, ReplicaState::Running),
-            EventKind::Recovery => (e.new_pid, ReplicaState::Running),
-            EventKind::RecoveryFailed => (None, ReplicaState::Lost),
-            // An alarm alone changes no replica's state (a fault it leads to is its own event).
-            EventKind::Anomaly => return false,
-            EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
-                // An event about an older process of this slot changes nothing.
-                if e.pid.is_some() && e.pid != r.pid {
-                    return false;
-                }
-                (r.pid, ReplicaState::Faulty)
-            }
-        };
-        r.pid = pid;
-        r.state = state;
-        r.since_ns = e.ts_ns;
-        true
+/// Every component of `plan`, nothing spawned yet.
+pub fn initial_view(plan: &SystemPlan) -> LiveView {
+    let components = plan
+        .components
+        .iter()
+        .map(|c| {
+            let replicas = (0..c.replicas)
+                .map(|slot| LiveReplica {
+                    slot,
+                    pid: None,
+                    state: ReplicaState::Starting,
+                    since_ns: 0,
+                })
+                .collect();
+            (
+                c.name.clone(),
+                LiveComponent {
+                    redundancy: c.redundancy.to_string(),
+                    protected: c.is_protected(),
+                    pid: None,
+                    voter_pid: None,
+                    replicas,
+                },
+            )
+        })
+        .collect();
+    LiveView {
+        system: plan.name.clone(),
+        bootstrap_pid: std::process::id() as i32,
+        updated_ns: replica_rt::sys::monotonic_ns(),
+        running: true,
+        components,
     }
 }
 
@@ -168,7 +62,7 @@ struct Inner {
 impl LiveState {
     /// Writes the first version of the view to `path`.
     pub fn create(view: LiveView, path: PathBuf) -> std::io::Result<Self> {
-        write_atomically(&path, &view)?;
+        view.write(&path)?;
         tracing::info!(path = %path.display(), "live view (state file)");
         Ok(LiveState {
             inner: Arc::new(Mutex::new(Inner {
@@ -187,7 +81,7 @@ impl LiveState {
             return;
         }
         inner.view.updated_ns = replica_rt::sys::monotonic_ns();
-        if let Err(e) = write_atomically(&inner.path, &inner.view) {
+        if let Err(e) = inner.view.write(&inner.path) {
             tracing::warn!(
                 path = %inner.path.display(),
                 "cannot update the state file ({e}); it is no longer kept current"
@@ -206,95 +100,45 @@ impl LiveState {
     }
 }
 
-/// `path.tmp` then `rename`: readers see the old or the new file, never half of one.
-fn write_atomically(path: &Path, view: &LiveView) -> std::io::Result<()> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = PathBuf::from(tmp);
-    let mut f = std::fs::File::create(&tmp)?;
-    let mut text = serde_json::to_vec_pretty(view).map_err(std::io::Error::other)?;
-    text.push(b'\n');
-    f.write_all(&text)?;
-    drop(f);
-    std::fs::rename(&tmp, path)
-}
-
 #[cfg(test)]
 mod tests {
+    use s3res_protocol::event::{Event, EventKind};
+
     use super::*;
 
-    fn view() -> LiveView {
-        let mut components = BTreeMap::new();
-        components.insert(
-            "echo".to_owned(),
-            LiveComponent {
-                redundancy: "dmr".to_owned(),
-                protected: true,
-                pid: None,
-                voter_pid: Some(10),
-                replicas: (0..2)
-                    .map(|slot| LiveReplica {
-                        slot,
-                        pid: None,
-                        state: ReplicaState::Starting,
-                        since_ns: 0,
-                    })
-                    .collect(),
-            },
-        );
-        LiveView {
+    #[test]
+    fn updates_reach_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("state.json");
+        let mut view = LiveView {
             system: "s".to_owned(),
             bootstrap_pid: 1,
             updated_ns: 0,
             running: true,
-            components,
-        }
-    }
-
-    fn event(kind: EventKind, slot: usize, pid: i32) -> Event {
-        let mut e = Event::new("s", "echo", kind);
-        e.replica = Some(slot);
-        e.pid = Some(pid);
-        e
-    }
-
-    #[test]
-    fn follows_starts_faults_and_recoveries() {
-        let mut v = view();
-        assert!(v.apply(&event(EventKind::Start, 0, 100)));
-        assert!(v.apply(&event(EventKind::Start, 1, 101)));
-        assert!(v.apply(&event(EventKind::Crash, 1, 101)));
-        let r = &v.components["echo"].replicas[1];
-        assert_eq!((r.pid, r.state), (Some(101), ReplicaState::Faulty));
-        let mut rec = event(EventKind::Recovery, 1, 101);
-        rec.new_pid = Some(102);
-        assert!(v.apply(&rec));
-        let r = &v.components["echo"].replicas[1];
-        assert_eq!((r.pid, r.state), (Some(102), ReplicaState::Running));
-        // A late event about the old pid does not mark the new one faulty.
-        assert!(!v.apply(&event(EventKind::Hang, 1, 101)));
-        assert!(v.apply(&event(EventKind::RecoveryFailed, 0, 100)));
-        assert_eq!(v.components["echo"].replicas[0].state, ReplicaState::Lost);
-        // Unknown component or slot: ignored.
-        let mut other = event(EventKind::Start, 5, 1);
-        assert!(!v.apply(&other));
-        other.component = "nope".to_owned();
-        assert!(!v.apply(&other));
-    }
-
-    #[test]
-    fn the_file_is_always_whole_and_reads_back() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("state.json");
-        let live = LiveState::create(view(), path.clone()).unwrap();
-        live.update(|v| v.apply(&event(EventKind::Start, 0, 7)));
+            components: Default::default(),
+        };
+        view.components.insert(
+            "echo".to_owned(),
+            LiveComponent {
+                redundancy: "smr".to_owned(),
+                protected: true,
+                pid: None,
+                voter_pid: Some(10),
+                replicas: vec![LiveReplica {
+                    slot: 0,
+                    pid: None,
+                    state: ReplicaState::Starting,
+                    since_ns: 0,
+                }],
+            },
+        );
+        let live = LiveState::create(view, path.clone()).unwrap();
+        let mut start = Event::new("s", "echo", EventKind::Start);
+        start.replica = Some(0);
+        start.pid = Some(7);
+        live.update(|v| v.apply(&start));
         let back = LiveView::read(&path).unwrap();
         assert_eq!(back.components["echo"].replicas[0].pid, Some(7));
         assert_eq!(back, live.snapshot());
-        assert!(!dir.path().join("state.json.tmp").exists());
-        std::fs::write(&path, "{").unwrap();
-        assert!(LiveView::read(&path)
-            .unwrap_err()
-            .contains("not an s3res state file"));
     }
 }

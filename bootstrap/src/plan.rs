@@ -4,8 +4,8 @@
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
-use s3res_voter::plan::{CapturePlan, Mode, MonitorPlan, RoundTrigger};
-use s3res_voter::sched::Schedule;
+use s3res_protocol::plan::{CapturePlan, Mode, MonitorPlan, RoundTrigger};
+use s3res_protocol::sched::Schedule;
 use serde::Deserialize;
 
 /// Replication level of a component, as written in the description.

@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use nix::sys::signal::{SigSet, Signal};
-use nix::sys::signalfd::{SfdFlags, SignalFd};
+use nix::sys::signal::Signal;
+use nix::sys::signalfd::SignalFd;
 use thiserror::Error;
 
 use replica_rt::contract::{
@@ -20,10 +20,10 @@ use replica_rt::contract::{
     FIRST_PORT_FD,
 };
 use replica_rt::sys::{self, ExitStatus};
-use s3res_voter::plan::{ExternalPort, VoterPlan};
+use s3res_protocol::plan::{ExternalPort, VoterPlan};
 
 use crate::events::{EventReader, EventSummary};
-use crate::live::{LiveState, LiveView};
+use crate::live::LiveState;
 use crate::plan::{ComponentPlan, Endpoint, SystemPlan};
 use crate::sched::SystemSched;
 use crate::sweep::SweepGuard;
@@ -155,12 +155,7 @@ struct ChannelEnds {
 pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> {
     // Before any thread: every thread inherits this mask, so the signals reach only the
     // signalfd. (std::process::Command clears the mask in children.)
-    let mut mask = SigSet::empty();
-    for s in [Signal::SIGINT, Signal::SIGTERM, Signal::SIGCHLD] {
-        mask.add(s);
-    }
-    mask.thread_block().map_err(RunError::Signals)?;
-    let signals = SignalFd::with_flags(&mask, SfdFlags::SFD_CLOEXEC | SfdFlags::SFD_NONBLOCK)
+    let signals = sys::signal_fd(&[Signal::SIGINT, Signal::SIGTERM, Signal::SIGCHLD])
         .map_err(RunError::Signals)?;
 
     let voter = if plan.has_protected() {
@@ -203,7 +198,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     sched.warn_once();
     let live = match &opts.state_file {
         Some(path) => Some(
-            LiveState::create(LiveView::new(plan), path.clone()).map_err(|source| {
+            LiveState::create(crate::live::initial_view(plan), path.clone()).map_err(|source| {
                 RunError::StateFile {
                     path: path.clone(),
                     source,

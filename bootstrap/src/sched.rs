@@ -1,13 +1,13 @@
 //! The system's priorities and placement as a whole: whether SCHED_RR can be had (found by
 //! trying), the nice values that stand in for it when not, what every process will run at
 //! (for `--check`), and applying it to the unprotected components. The voters apply the same
-//! scheme ([`s3res_voter::sched`]) to themselves and their replicas.
+//! scheme ([`s3res_protocol::sched`]) to themselves and their replicas.
 
 use std::fmt::Write as _;
 
 use replica_rt::sys;
-use s3res_voter::plan::NiceFallback;
-use s3res_voter::sched::{self, Schedule};
+use s3res_protocol::plan::NiceFallback;
+use s3res_protocol::sched::{self, Schedule};
 
 use crate::plan::{ComponentPlan, SystemPlan};
 

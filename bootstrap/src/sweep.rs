@@ -5,9 +5,7 @@
 //! the whole tree, including processes that were forked after the first pass.
 
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
-
-use replica_rt::sys;
+use std::time::Duration;
 
 /// Upper bound of one sweep; a process that survives SIGKILL this long is stuck in the kernel
 /// and waiting longer would not help.
@@ -15,42 +13,7 @@ pub const SWEEP_LIMIT: Duration = Duration::from_secs(5);
 
 pub use replica_rt::sys::children_of;
 
-/// What a sweep did.
-#[derive(Debug, Default, Clone, PartialEq, Eq)]
-pub struct SweepReport {
-    /// Processes that got SIGKILL (each counted once).
-    pub killed: usize,
-    /// Children still present when the time limit ran out.
-    pub resisted: Vec<libc::pid_t>,
-}
-
-/// SIGKILLs every child and reaps, until no child is left or `limit` has passed.
-pub fn sweep(limit: Duration) -> SweepReport {
-    let me = std::process::id() as libc::pid_t;
-    let deadline = Instant::now() + limit;
-    let mut report = SweepReport::default();
-    let mut signalled: Vec<libc::pid_t> = Vec::new();
-    loop {
-        while let Ok(Some(_)) = sys::reap_any() {}
-        let children = children_of(me);
-        if children.is_empty() {
-            return report;
-        }
-        for &pid in &children {
-            // The pid cannot be reused under us: it is our child until we reap it.
-            if sys::kill(pid, libc::SIGKILL).is_ok() && !signalled.contains(&pid) {
-                signalled.push(pid);
-                report.killed += 1;
-            }
-        }
-        while let Ok(Some(_)) = sys::reap_any() {}
-        if Instant::now() >= deadline {
-            report.resisted = children_of(me);
-            return report;
-        }
-        std::thread::sleep(Duration::from_millis(2));
-    }
-}
+pub use replica_rt::sys::{sweep_children as sweep, SweepReport};
 
 /// Sweeps when dropped, so that every way out of [`crate::run`] — including an early `?` —
 /// leaves nothing behind; also removes the socket folder.
@@ -110,6 +73,7 @@ impl Drop for SweepGuard {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use replica_rt::sys;
     use std::process::Command;
 
     // Only this test in the crate's unit tests starts processes, so sweeping every child of

@@ -119,14 +119,6 @@ fn group_members(pgid: i32) -> Vec<i32> {
         .collect()
 }
 
-fn children_of(pid: i32) -> Vec<i32> {
-    std::fs::read_dir("/proc")
-        .unwrap()
-        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<i32>().ok())
-        .filter(|&p| replica_rt::sys::parent_pid(p) == Some(pid))
-        .collect()
-}
-
 fn wait_until(what: &str, mut cond: impl FnMut() -> bool) {
     let deadline = Instant::now() + LIMIT;
     while !cond() {
@@ -310,7 +302,7 @@ fn sigterm_stops_everything_with_143() {
     let pid = b.pgid;
     // Both components (now `sleep`) are running.
     wait_until("both components to start", || {
-        children_of(pid)
+        replica_rt::sys::children_of(pid)
             .iter()
             .filter(|&&c| {
                 std::fs::read_to_string(format!("/proc/{c}/comm"))

@@ -17,6 +17,8 @@
 //! counter is the echo's state: a replica restarted by exec starts again at 0 (the sink sees a
 //! state break), one restarted by fork carries on.
 
+#![forbid(unsafe_code)]
+
 use serde::Serialize;
 
 /// Bytes of the sequence number at the start of a source frame (and its minimum size).
@@ -26,11 +28,8 @@ pub const PREFIX_LEN: usize = 8;
 
 /// Filler byte `i` (counted from the end of the seq) of source frame `seq`.
 pub fn filler(seq: u64, i: usize) -> u8 {
-    // splitmix64's finaliser spreads every bit of seq over all 64 bits of the hash.
-    let mut h = seq.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    h ^= h >> 31;
+    // SplitMix64's first output for seed `seq`: every bit of seq spread over all 64 bits.
+    let h = s3res_protocol::rng::SplitMix64::new(seq).next_u64();
     ((h >> (8 * (i % 8))) as u8)
         .wrapping_add(i as u8)
         .wrapping_mul(31)

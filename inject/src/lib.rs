@@ -14,6 +14,8 @@
 //!
 //! The command-line guide is docs/campaigns.md.
 
+#![forbid(unsafe_code)]
+
 pub mod campaign;
 pub mod classify;
 pub mod fault;

@@ -1,5 +1,7 @@
 //! `s3res-inject`: fault injection into s3res systems. See `--help` and docs/campaigns.md.
 
+#![forbid(unsafe_code)]
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -11,7 +13,6 @@ use rand::SeedableRng as _;
 
 use s3res_bootstrap::description::{self, HostContext};
 use s3res_bootstrap::exec::{self, SearchPath};
-use s3res_bootstrap::live::LiveView;
 use s3res_bootstrap::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyRun};
@@ -20,6 +21,7 @@ use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
 use s3res_inject::target::{resolve, Pick, Target};
+use s3res_protocol::live::LiveView;
 
 const BOOTSTRAP_BIN: &str = "s3res-bootstrap";
 /// Overrides where s3res-bootstrap is taken from.
@@ -344,7 +346,7 @@ fn main() -> ExitCode {
             return ExitCode::from(1);
         }
     };
-    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    replica_rt::init_cli_logging(cli.quiet, cli.verbose);
     let kind = match &cli.command {
         Command::Inject(a) => Some(a.fault),
         Command::Campaign(a) => Some(a.fault),

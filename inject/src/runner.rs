@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
-use s3res_bootstrap::live::{LiveView, ReplicaState};
-use s3res_voter::event::Event;
+use s3res_protocol::event::Event;
+use s3res_protocol::live::{LiveView, ReplicaState};
 
 use crate::fault::{fire, FireError, RegOptions};
 use crate::schedule::Planned;

@@ -126,12 +126,9 @@ pub struct Planned {
     pub action: Action,
 }
 
-/// splitmix64 of `seed + run`: well-spread, independent seeds per run.
+/// SplitMix64 of `seed + run`: well-spread, independent seeds per run.
 pub fn run_seed(seed: u64, run: u64) -> u64 {
-    let mut z = seed.wrapping_add(run.wrapping_mul(0x9e37_79b9_7f4a_7c15));
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
+    s3res_protocol::rng::derive(seed, run)
 }
 
 /// The injections of one run, in time order.

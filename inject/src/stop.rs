@@ -4,8 +4,8 @@
 
 use std::cell::Cell;
 
-use nix::sys::signal::{SigSet, Signal};
-use nix::sys::signalfd::{SfdFlags, SignalFd};
+use nix::sys::signal::Signal;
+use nix::sys::signalfd::SignalFd;
 
 /// The stop signals, taken through a signalfd instead of a handler.
 pub struct StopSignals {
@@ -17,11 +17,7 @@ impl StopSignals {
     /// Blocks SIGINT and SIGTERM in the calling thread (call it before any thread exists, so
     /// all inherit the mask; children get a clean mask from `Command`) and opens a signalfd.
     pub fn install() -> nix::Result<Self> {
-        let mut mask = SigSet::empty();
-        mask.add(Signal::SIGINT);
-        mask.add(Signal::SIGTERM);
-        mask.thread_block()?;
-        let fd = SignalFd::with_flags(&mask, SfdFlags::SFD_CLOEXEC | SfdFlags::SFD_NONBLOCK)?;
+        let fd = replica_rt::sys::signal_fd(&[Signal::SIGINT, Signal::SIGTERM])?;
         Ok(StopSignals {
             fd,
             got: Cell::new(None),

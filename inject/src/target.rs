@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use s3res_bootstrap::live::{LiveView, ReplicaState};
+use s3res_protocol::live::{LiveView, ReplicaState};
 
 /// How the replica of a protected component is chosen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -63,7 +63,7 @@ pub fn resolve(view: &LiveView, component: &str, draw: f64, pick: Pick) -> Resul
             pid,
         });
     }
-    let running = |r: &&s3res_bootstrap::live::LiveReplica| {
+    let running = |r: &&s3res_protocol::live::LiveReplica| {
         r.state == ReplicaState::Running && r.pid.is_some()
     };
     let chosen = match pick {
@@ -137,7 +137,7 @@ fn parse_cpu_ticks(stat: &str) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use s3res_bootstrap::live::{LiveComponent, LiveReplica};
+    use s3res_protocol::live::{LiveComponent, LiveReplica};
     use std::collections::BTreeMap;
 
     fn view(states: &[ReplicaState]) -> LiveView {

@@ -7,7 +7,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::inject;
-use s3res_bootstrap::live::{LiveView, ReplicaState};
+use s3res_protocol::live::{LiveView, ReplicaState};
 use s3res_testkit::{Event, EventKind, RunningSystem, System};
 
 const LIMIT: Duration = Duration::from_secs(60);

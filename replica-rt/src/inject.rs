@@ -35,10 +35,14 @@ static VAR_ARMED: AtomicBool = AtomicBool::new(false);
 static VAR_DROPPED: AtomicU64 = AtomicU64::new(0);
 
 pub(crate) fn install() -> io::Result<()> {
-    sys::install_siginfo_handler(signals::INJECT_SDC, on_inject_sdc, libc::SA_RESTART)?;
-    // No SA_RESTART needed: the handler never returns.
-    sys::install_siginfo_handler(signals::inject_cfe(), on_inject_cfe, 0)?;
-    sys::install_siginfo_handler(signals::inject_var(), on_inject_var, libc::SA_RESTART)?;
+    // SAFETY: the three handlers below are async-signal-safe: each decodes its value and
+    // updates fixed atomics (or spins forever), with no allocation, lock or formatting.
+    unsafe {
+        sys::install_siginfo_handler(signals::INJECT_SDC, on_inject_sdc, libc::SA_RESTART)?;
+        // No SA_RESTART needed: the handler never returns.
+        sys::install_siginfo_handler(signals::inject_cfe(), on_inject_cfe, 0)?;
+        sys::install_siginfo_handler(signals::inject_var(), on_inject_var, libc::SA_RESTART)?;
+    }
     Ok(())
 }
 

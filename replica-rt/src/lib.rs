@@ -40,9 +40,7 @@
 //!   (terminate). A voter should restart-by-fork only from replicas that have answered at least
 //!   once.
 
-pub mod contract;
 pub mod cow;
-pub mod frame;
 pub mod inject;
 mod logging;
 mod port;
@@ -50,12 +48,16 @@ pub mod restart;
 pub mod select;
 pub mod sys;
 
+/// The contract and the framing are the protocol's (`s3res-protocol`), re-exported so that
+/// components keep writing `replica_rt::contract` and `replica_rt::frame`.
+pub use s3res_protocol::{contract, frame};
+
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use thiserror::Error;
 
 use contract::{Direction, PortMap, PortSpec};
-pub use logging::init_logging;
+pub use logging::{init_cli_logging, init_logging};
 pub use port::{InPort, OutPort, RecvError, SendError};
 pub use select::{wait_any, Ready, TryRecv};
 

@@ -1,4 +1,6 @@
-//! Logging for components: `tracing` to stderr, each line prefixed with who wrote it.
+//! Logging set-up, the one place of the project that installs a `tracing` subscriber: for
+//! components ([`init_logging`]: each line prefixed with who wrote it) and for the command-line
+//! tools and the voter ([`init_cli_logging`]: verbosity from `-q`/`-v`).
 
 use std::fmt;
 use std::io::IsTerminal;
@@ -37,6 +39,27 @@ pub fn init_logging(component_default: &str) {
     let _ = tracing_subscriber::registry()
         .with(filter)
         .with(layer)
+        .try_init();
+}
+
+/// Logs to stderr at `info` (`-q`: `warn`; `-v`: `debug`; `-vv`: `trace`); `RUST_LOG`, when
+/// set, takes precedence. Colours only on a terminal. For the command-line tools (bootstrap,
+/// the injector, the trainer) and the voter; `init_cli_logging(false, 0)` is plain `info`.
+/// Calling it again is harmless (the first subscriber stays).
+pub fn init_cli_logging(quiet: bool, verbose: u8) {
+    let default = match (quiet, verbose) {
+        (true, _) => "warn",
+        (false, 0) => "info",
+        (false, 1) => "debug",
+        (false, _) => "trace",
+    };
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
+    // Err only if a subscriber is already set, which is what "harmless" above means.
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(filter)
+        .with_target(false)
+        .with_ansi(std::io::stderr().is_terminal())
         .try_init();
 }
 

@@ -127,7 +127,9 @@ pub(crate) fn prepare(path: &str) -> Result<(), PathTooLong> {
 
 /// Installs the RESTART handler. `prepare` must have run.
 pub(crate) fn install() -> std::io::Result<()> {
-    sys::install_siginfo_handler(signals::RESTART, on_restart, libc::SA_RESTART)
+    // SAFETY: on_restart is async-signal-safe by construction (module docs): raw syscalls,
+    // `_Fork`, fixed statics and atomics; no allocation, no lock, no formatting.
+    unsafe { sys::install_siginfo_handler(signals::RESTART, on_restart, libc::SA_RESTART) }
 }
 
 /// The donor pid if this process was forked by the restart handler and nobody asked yet.

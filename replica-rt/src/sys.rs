@@ -254,6 +254,21 @@ fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
     with_proc_stat(pid, |rest| rest.split_whitespace().nth(n - 3)?.parse().ok())
 }
 
+/// The set of signals `pid` has a handler for (`SigCgt` in `/proc/PID/status`, bit `n - 1`
+/// for signal `n`; see [`signal_bit`]); `None` if the process is gone.
+pub fn caught_signals(pid: libc::pid_t) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigCgt:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+}
+
+/// Signal `sig`'s bit in a [`caught_signals`] mask.
+pub fn signal_bit(sig: libc::c_int) -> u64 {
+    1u64 << (sig - 1)
+}
+
 /// The state letter of `pid` (field 3 of `/proc/PID/stat`: `R`, `S`, `D`, `T` stopped, `t`
 /// traced, `Z` zombie, ...); `None` if the process is gone.
 pub fn process_state(pid: libc::pid_t) -> Option<char> {
@@ -353,26 +368,36 @@ pub fn cstring(s: &str) -> io::Result<CString> {
     CString::new(s).map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "NUL in path"))
 }
 
-/// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share).
-pub fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `ts` is a valid out-pointer; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
-}
+/// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share; the protocol's).
+pub use s3res_protocol::clock::monotonic_ns;
 
 /// Takes ownership of an fd this process inherited from its parent (a port or the events pipe)
 /// and marks it close-on-exec, so it does not leak into processes we start.
+///
+/// Panics unless `fd` is open and not a standard stream; see [`try_adopt_inherited_fd`].
 pub fn adopt_inherited_fd(fd: RawFd) -> OwnedFd {
-    // SAFETY: the plan we were started with says `fd` was opened for us by our parent and
-    // nothing else in this process owns it; F_SETFD touches no memory.
-    unsafe {
-        libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC);
-        OwnedFd::from_raw_fd(fd)
+    try_adopt_inherited_fd(fd).unwrap_or_else(|e| panic!("cannot adopt inherited fd {fd}: {e}"))
+}
+
+/// Takes ownership of an fd this process inherited from its parent (or that its owner gave up
+/// with `into_raw_fd`), after checking what the number allows: it is above the standard
+/// streams and open (`EBADF` otherwise). That nothing else owns it cannot be told from the
+/// number (a registry of adopted numbers fails when a closed number is reused): the fd must
+/// come from the plan the process was started with, which is this function's contract.
+pub fn try_adopt_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
+    if fd <= libc::STDERR_FILENO {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "the standard streams are not adopted",
+        ));
     }
+    // SAFETY: F_GETFD on any integer only reads the fd table; EBADF if it is not open.
+    let flags = cvt(unsafe { libc::fcntl(fd, libc::F_GETFD) })?;
+    // SAFETY: F_SETFD with an integer flag touches no memory; the fd is open (checked above).
+    cvt(unsafe { libc::fcntl(fd, libc::F_SETFD, flags | libc::FD_CLOEXEC) })?;
+    // SAFETY: the fd is open (checked above); that nothing else owns it is this function's
+    // documented contract with the plan the process was started with.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
 }
 
 /// Pids of the living children of `parent` (scans `/proc`; zombies included).
@@ -383,6 +408,63 @@ pub fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
     dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<libc::pid_t>().ok())
         .filter(|&pid| parent_pid(pid) == Some(parent))
         .collect()
+}
+
+/// What [`sweep_children`] did.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct SweepReport {
+    /// Processes that got SIGKILL (each counted once).
+    pub killed: usize,
+    /// Children still present when the time limit ran out (stuck in the kernel).
+    pub resisted: Vec<libc::pid_t>,
+}
+
+/// The child sweep: SIGKILLs every child of this process and reaps, again and again, until no
+/// child is left or `limit` has passed. In a child subreaper (bootstrap, the voter) every
+/// descendant whose parent dies is re-parented to us, so this reaches the whole subtree,
+/// including processes forked after the first pass. Reaps *every* child: call it only where no
+/// other code waits for a child of its own.
+pub fn sweep_children(limit: Duration) -> SweepReport {
+    let me = std::process::id() as libc::pid_t;
+    let deadline = std::time::Instant::now() + limit;
+    let mut report = SweepReport::default();
+    let mut signalled: Vec<libc::pid_t> = Vec::new();
+    loop {
+        while let Ok(Some(_)) = reap_any() {}
+        let children = children_of(me);
+        if children.is_empty() {
+            return report;
+        }
+        for &pid in &children {
+            // The pid cannot be reused under us: it is our child until we reap it.
+            if kill(pid, libc::SIGKILL).is_ok() && !signalled.contains(&pid) {
+                signalled.push(pid);
+                report.killed += 1;
+            }
+        }
+        while let Ok(Some(_)) = reap_any() {}
+        if std::time::Instant::now() >= deadline {
+            report.resisted = children_of(me);
+            return report;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+/// Takes `signals` through a file descriptor instead of handlers: blocks them in the calling
+/// thread (call it before any thread exists, so that every thread inherits the mask; children
+/// started by `std::process::Command` get a clean mask) and returns a non-blocking,
+/// close-on-exec signalfd that reads them.
+pub fn signal_fd(
+    signals: &[nix::sys::signal::Signal],
+) -> nix::Result<nix::sys::signalfd::SignalFd> {
+    use nix::sys::signalfd::{SfdFlags, SignalFd};
+    let mut mask = nix::sys::signal::SigSet::empty();
+    for &s in signals {
+        mask.add(s);
+    }
+    mask.thread_block()?;
+    SignalFd::with_flags(&mask, SfdFlags::SFD_CLOEXEC | SfdFlags::SFD_NONBLOCK)
 }
 
 /// Takes ownership of an fd this process inherited at exec (a port), after checking it is open.
@@ -409,7 +491,15 @@ pub type SigInfoHandler = extern "C" fn(libc::c_int, *mut libc::siginfo_t, *mut 
 
 /// Installs `handler` for `sig` with `SA_SIGINFO | extra_flags` and an empty extra mask (the
 /// signal itself is blocked while its handler runs, as usual).
-pub fn install_siginfo_handler(
+///
+/// # Safety
+///
+/// `handler` runs at any instruction of the thread the signal interrupts, so it must be
+/// async-signal-safe: no allocation, no locks, no `std` I/O or formatting, and it may touch
+/// shared state only through atomics (or through state the interrupted code cannot be using,
+/// as the restart handler's own statics). Otherwise it can deadlock or race with the code it
+/// interrupted.
+pub unsafe fn install_siginfo_handler(
     sig: libc::c_int,
     handler: SigInfoHandler,
     extra_flags: libc::c_int,
@@ -421,7 +511,7 @@ pub fn install_siginfo_handler(
     // SAFETY: `sa.sa_mask` is a valid sigset_t to initialise.
     unsafe { libc::sigemptyset(&mut sa.sa_mask) };
     // SAFETY: `sa` is fully initialised and outlives the call; a null old-action is allowed.
-    // Whether `handler` is async-signal-safe is the caller's business, not memory safety here.
+    // That `handler` is async-signal-safe is this function's precondition.
     cvt(unsafe { libc::sigaction(sig, &sa, std::ptr::null_mut()) })?;
     Ok(())
 }
@@ -616,7 +706,36 @@ pub fn cpu_affinity(pid: libc::pid_t) -> io::Result<Vec<usize>> {
         .collect())
 }
 
+/// Number of online CPUs (at least 1).
+pub fn online_cpus() -> usize {
+    // SAFETY: sysconf takes an integer and returns one.
+    let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) };
+    n.max(1) as usize
+}
+
 /// This process's effective user id.
 pub fn effective_uid() -> u32 {
     nix::unistd::geteuid().as_raw()
+}
+
+#[cfg(test)]
+mod tests {
+    use std::os::fd::IntoRawFd;
+
+    use super::*;
+
+    #[test]
+    fn an_fd_is_adopted_only_if_open() {
+        // nix's pipe is not close-on-exec, like an fd inherited at exec.
+        let (r, w) = nix::unistd::pipe().unwrap();
+        let raw = r.into_raw_fd();
+        let owned = try_adopt_inherited_fd(raw).unwrap();
+        drop((owned, w));
+        // A number that is not open (beyond any fd limit): refused.
+        assert_eq!(
+            try_adopt_inherited_fd(1 << 30).unwrap_err().raw_os_error(),
+            Some(libc::EBADF)
+        );
+        assert!(try_adopt_inherited_fd(1).is_err());
+    }
 }

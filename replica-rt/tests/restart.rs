@@ -83,30 +83,8 @@ impl Drop for Guard {
         let _ = self.donor.wait();
         // Forks of the donor that were never accepted (a failure mid-test) are orphans now, and
         // ours, since the test is a child subreaper: kill and reap them too, within a bound.
-        let me = std::process::id() as libc::pid_t;
-        let deadline = Instant::now() + STEP;
-        while Instant::now() < deadline {
-            let orphans = children_of(me);
-            if orphans.is_empty() {
-                break;
-            }
-            for pid in orphans {
-                let _ = sys::kill(pid, libc::SIGKILL);
-            }
-            while let Ok(Some(_)) = sys::reap_any() {}
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        sys::sweep_children(STEP);
     }
-}
-
-/// Pids whose parent is `parent`, from /proc.
-fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
-    let Ok(dir) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse().ok())
-        .filter(|&pid| sys::parent_pid(pid) == Some(parent))
-        .collect()
 }
 
 struct Pipes {

@@ -18,6 +18,8 @@
 //! clock, no randomness outside the simulator's seeded world, no hash-map order — so replicas
 //! produce byte-identical frames. See `docs/maze-robot.md`.
 
+#![forbid(unsafe_code)]
+
 pub mod component;
 pub mod filter;
 pub mod load;
@@ -26,7 +28,6 @@ pub mod mission;
 pub mod msg;
 pub mod navigator;
 pub mod planner;
-pub mod rng;
 pub mod sim;
 pub mod svg;
 pub mod world;

@@ -12,8 +12,8 @@ use crate::filter::MedianFilter;
 use crate::mapper::Mapper;
 use crate::navigator::{NavParams, Navigator};
 use crate::planner::Planner;
-use crate::rng::SplitMix64;
 use crate::sim::{Sim, SimConfig, Summary};
+use s3res_protocol::rng::SplitMix64;
 
 /// Settings of the control components (as their command lines set them).
 #[derive(Debug, Clone, Copy, PartialEq)]

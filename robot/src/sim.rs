@@ -10,8 +10,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::msg::{Cmd, Scan, Telemetry, RANGES};
-use crate::rng::SplitMix64;
 use crate::world::{MazeSpec, World};
+use s3res_protocol::rng::SplitMix64;
 
 /// Everything that fixes a mission besides the commands.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -11,7 +11,7 @@
 //! remaining inner walls is removed ("braiding"), which makes loops, so that a blocked route
 //! has an alternative and the planner has something to replan.
 
-use crate::rng::SplitMix64;
+use s3res_protocol::rng::SplitMix64;
 
 /// Parameters that, with the seed, fix the world.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]

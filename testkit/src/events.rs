@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use s3res_voter::event::{Event, EventKind};
+use s3res_protocol::event::{Event, EventKind};
 
 /// Parses every *complete* line of an event log (a last line without its newline is still
 /// being written and is left for the next read). Blank lines are skipped. A complete line that
@@ -52,7 +52,7 @@ pub fn replica_pids(events: &[Event], component: &str) -> BTreeMap<usize, i32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use s3res_voter::event::RecoveryMethod;
+    use s3res_protocol::event::RecoveryMethod;
 
     fn ev(component: &str, kind: EventKind, replica: usize, pid: i32) -> Event {
         let mut e = Event::new("sys", component, kind);

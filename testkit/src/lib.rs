@@ -24,6 +24,8 @@
 //! # let _ = (summary, first);
 //! ```
 
+#![forbid(unsafe_code)]
+
 pub mod bins;
 pub mod events;
 pub mod procs;
@@ -43,7 +45,7 @@ pub use wait::{wait_spinning, wait_state, wait_until};
 
 use std::path::Path;
 
-pub use s3res_voter::event::{Event, EventKind, RecoveryMethod};
+pub use s3res_protocol::event::{Cause, Event, EventKind, RecoveryMethod};
 
 /// Sends `sig` to `pid` (`kill(2)`).
 pub fn kill_pid(pid: i32, sig: i32) -> std::io::Result<()> {

@@ -132,7 +132,7 @@ pub fn scheduling(pid: i32) -> Scheduling {
 /// that is gone handles nothing.
 pub fn handles_hooks(pid: i32) -> bool {
     use replica_rt::contract::signals;
-    use s3res_voter::replica::{caught_signals, signal_bit};
+    use replica_rt::sys::{caught_signals, signal_bit};
     caught_signals(pid).is_some_and(|mask| {
         [signals::RESTART, signals::INJECT_SDC, signals::inject_cfe()]
             .iter()
@@ -169,6 +169,23 @@ pub fn io(pid: i32) -> Option<Io> {
     })
 }
 
+/// Voluntary context switches of `pid` (`voluntary_ctxt_switches` in `/proc/PID/status`: how
+/// often it blocked); `None` if it is gone.
+pub fn voluntary_switches(pid: i32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+/// Time `pid` has spent on a CPU, ns (the first field of `/proc/PID/schedstat`); `None` if it
+/// is gone.
+pub fn cpu_time_ns(pid: i32) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/schedstat")).ok()?;
+    stat.split_whitespace().next()?.parse().ok()
+}
+
 /// Where in the kernel `pid` sleeps (`/proc/PID/wchan`, e.g. `pipe_read`, `anon_pipe_read`,
 /// `do_sys_poll`); `None` if it is gone, `Some("0")` while it runs.
 pub fn wchan(pid: i32) -> Option<String> {
@@ -179,6 +196,65 @@ pub fn wchan(pid: i32) -> Option<String> {
 pub fn waits_on_pipe_read(pid: i32) -> bool {
     replica_rt::sys::process_state(pid) == Some('S')
         && wchan(pid).is_some_and(|w| w.contains("pipe_read"))
+}
+
+/// The real uid and gid of `pid` (`Uid:`/`Gid:` in `/proc/PID/status`).
+pub fn owner(pid: i32) -> Option<(u32, u32)> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let first = |key: &str| -> Option<u32> {
+        let line = status.lines().find(|l| l.starts_with(key))?;
+        line.split_whitespace().nth(1)?.parse().ok()
+    };
+    Some((first("Uid:")?, first("Gid:")?))
+}
+
+/// The soft limit on processes (`RLIMIT_NPROC`) of `pid`, from `/proc/PID/limits` (`None`:
+/// unlimited).
+pub fn nproc_soft(pid: i32) -> Option<u64> {
+    let limits = std::fs::read_to_string(format!("/proc/{pid}/limits"))
+        .unwrap_or_else(|e| panic!("reading the limits of {pid}: {e}"));
+    let line = limits
+        .lines()
+        .find(|l| l.starts_with("Max processes"))
+        .unwrap_or_else(|| panic!("no `Max processes` in /proc/{pid}/limits"));
+    line["Max processes".len()..]
+        .split_whitespace()
+        .next()
+        .and_then(|v| v.parse().ok())
+}
+
+/// Sets the soft limit on processes (`RLIMIT_NPROC`) of `pid` to `soft` (`None`: unlimited),
+/// with util-linux `prlimit` run as the process's own user (through `setpriv` when the tests
+/// run as root: changing another user's limits takes CAP_SYS_RESOURCE, which a container's
+/// root may lack). Panics with prlimit's words if it fails.
+pub fn set_nproc_soft(pid: i32, soft: Option<u64>) {
+    let (uid, gid) = owner(pid).unwrap_or_else(|| panic!("process {pid} is gone"));
+    let limit = format!(
+        "--nproc={}:",
+        soft.map_or("unlimited".into(), |n| n.to_string())
+    );
+    let me = std::fs::metadata("/proc/self").map(|m| std::os::unix::fs::MetadataExt::uid(&m));
+    let mut cmd = if me.ok() == Some(uid) {
+        std::process::Command::new("prlimit")
+    } else {
+        let mut cmd = std::process::Command::new("setpriv");
+        cmd.arg(format!("--reuid={uid}"))
+            .arg(format!("--regid={gid}"))
+            .arg("--clear-groups")
+            .arg("--")
+            .arg("prlimit");
+        cmd
+    };
+    let out = cmd
+        .arg(format!("--pid={pid}"))
+        .arg(limit)
+        .output()
+        .unwrap_or_else(|e| panic!("running prlimit (util-linux): {e}"));
+    assert!(
+        out.status.success(),
+        "prlimit on {pid}: {}",
+        String::from_utf8_lossy(&out.stderr).trim()
+    );
 }
 
 #[cfg(test)]

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use std::os::unix::process::CommandExt;
 
-use s3res_voter::event::Event;
+use s3res_protocol::event::Event;
 use tempfile::TempDir;
 
 use crate::bins::bin_path;
@@ -280,7 +280,7 @@ impl Outcome {
     /// The fault events (everything but `start`, `recovery` and `anomaly`: an alarm is an
     /// opinion; what the voter concluded from it is a fault event of its own).
     pub fn faults(&self) -> Vec<&Event> {
-        use s3res_voter::event::EventKind;
+        use s3res_protocol::event::EventKind;
         self.events
             .iter()
             .filter(|e| {

@@ -37,8 +37,8 @@ impl RunSample {
     /// `None` if the process is gone.
     pub fn take(pid: i32) -> Option<RunSample> {
         Some(RunSample {
-            cpu_ns: s3res_voter::replica::cpu_time_ns(pid)?,
-            blocked: s3res_voter::replica::voluntary_switches(pid)?,
+            cpu_ns: crate::procs::cpu_time_ns(pid)?,
+            blocked: crate::procs::voluntary_switches(pid)?,
             state: replica_rt::sys::process_state(pid)?,
         })
     }

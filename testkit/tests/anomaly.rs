@@ -19,7 +19,8 @@ use std::time::Duration;
 
 use s3res_components::{Signal, SIGNAL_FRAME};
 use s3res_testkit::{
-    bin_path, signals, sigqueue, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
+    bin_path, signals, sigqueue, Cause, Event, EventKind, RecoveryMethod, Rng, RunningSystem,
+    System,
 };
 
 const LIMIT: Duration = Duration::from_secs(120);
@@ -210,16 +211,11 @@ fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
 
 /// The `anomaly` events of corrupted frames, leaving out the alarm on the frame after one
 /// (stream mode: a replica running ahead has its next frame scored against the corrupted one
-/// before the vote removes it; the voter's detail says so).
+/// before the vote removes it; the voter's cause says so: `alarm_again`).
 fn first_alarms(events: &[Event]) -> Vec<&Event> {
     of_kind(events, EventKind::Anomaly)
         .into_iter()
-        .filter(|e| {
-            !e.detail
-                .as_deref()
-                .unwrap_or("")
-                .contains("previous frame alarmed too")
-        })
+        .filter(|e| e.cause == Some(Cause::Alarm))
         .collect()
 }
 
@@ -367,11 +363,7 @@ fn smr_holds_back(
     let sdc = of_kind(&events, EventKind::Sdc);
     assert_eq!(sdc.len(), 1, "{sdc:?}");
     assert_eq!((sdc[0].replica, sdc[0].pid), (Some(0), Some(pid)));
-    assert!(
-        sdc[0].detail.as_deref().unwrap_or("").contains("held back"),
-        "{:?}",
-        sdc[0]
-    );
+    assert_eq!(sdc[0].cause, Some(Cause::AnomalyHeldBack), "{:?}", sdc[0]);
     (run, alarm, field, bit)
 }
 
@@ -431,8 +423,9 @@ fn tmr_logs_the_alarm(mode: Mode) {
     assert_eq!(alarms[0].field.as_deref(), Some(field));
     let sdc = of_kind(&events, EventKind::Sdc);
     assert_eq!(sdc.len(), 1, "{sdc:?}");
-    assert!(
-        sdc[0].detail.as_deref().unwrap_or("").contains("majority"),
+    assert_eq!(
+        sdc[0].cause,
+        Some(Cause::Minority),
         "the vote, not the detector, decides under TMR: {:?}",
         sdc[0]
     );
@@ -470,11 +463,9 @@ fn stream_smr_holds_the_flagged_frame_back_and_restarts_by_exec() {
     let (run, alarm, field, bit) = smr_holds_back(Mode::Stream, offset, count);
     // The alarm names the frame's number on the output: everything before it went out as
     // it should, the flagged frame did not.
-    let detail = alarm.detail.as_deref().unwrap_or("");
-    let held: usize = detail
-        .split_once("(frame ")
-        .and_then(|(_, k)| k.split(')').next()?.parse().ok())
-        .unwrap_or_else(|| panic!("no frame number in {detail:?}"));
+    let held = alarm
+        .frame
+        .unwrap_or_else(|| panic!("no frame number in {alarm:?}")) as usize;
     let out = frames(&run.path("stdout.txt"));
     let want = expected(offset, count);
     assert_eq!(out[..held], want[..held], "frames before the held-back one");

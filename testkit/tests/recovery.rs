@@ -5,8 +5,8 @@
 use std::time::Duration;
 
 use s3res_testkit::{
-    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
-    sink_summary, Event, EventKind, RecoveryMethod, Rng, System,
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, procs,
+    signals, sink_summary, Cause, Event, EventKind, RecoveryMethod, Rng, System,
 };
 
 /// Generous, so that a loaded CI machine running tests in parallel does not see false hangs;
@@ -403,14 +403,7 @@ fn dmr_does_not_clone_a_donor_that_spins() {
         Duration::from_secs(20),
     );
     assert_eq!(donor.pid, Some(pids[&1]), "{donor:?}");
-    assert!(
-        donor
-            .detail
-            .as_deref()
-            .unwrap_or("")
-            .contains("recovery donor"),
-        "{donor:?}"
-    );
+    assert_eq!(donor.cause, Some(Cause::DonorSpinning), "{donor:?}");
     for slot in [0, 1] {
         // By exec, or by fork of the slot already restarted by exec: either way, state lost.
         let rec = run.wait_for_recovery("echo", slot, pids[&slot]);
@@ -425,4 +418,179 @@ fn dmr_does_not_clone_a_donor_that_spins() {
         "{:?}",
         out.events
     );
+}
+
+/// Issue 13's sequence, 100 times in one run: replica 1 is killed, then — while the voter may
+/// be forking its replacement from replica 0 — replica 0 too, `delay` after it, swept over
+/// 0–1485 µs. A donor that dies during the fork is passed over for the next replica that kept
+/// the state (never a fresh one started by exec), and a fresh replica never outvotes a kept
+/// one: every recovery keeps the state, and the sink sees every frame once, in order, with
+/// the running state continuous.
+#[test]
+fn a_donor_killed_during_the_fork_never_lets_lost_state_win() {
+    let mut rng = Rng::from_env();
+    let count = 12000;
+    let sys = System::new();
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+
+    for cycle in 0..100u64 {
+        let delay = Duration::from_micros(cycle * 15);
+        let pids = run.replica_pids("echo");
+        let (first, donor) = (pids[&1], pids[&0]);
+        s3res_testkit::kill_pid(first, libc::SIGKILL).expect("kill replica 1");
+        let start = std::time::Instant::now();
+        while start.elapsed() < delay {
+            std::hint::spin_loop();
+        }
+        s3res_testkit::kill_pid(donor, libc::SIGKILL).expect("kill replica 0");
+        for (slot, pid) in [(1, first), (0, donor)] {
+            let rec = run.wait_for_recovery("echo", slot, pid);
+            assert_eq!(
+                (rec.method, rec.state_lost),
+                (Some(RecoveryMethod::Fork), Some(false)),
+                "cycle {cycle} ({delay:?}): {rec:?}"
+            );
+        }
+        // Both back: wait until their handlers are in place before the next cycle.
+        run.wait_for_replicas("echo", 3);
+        std::thread::sleep(Duration::from_millis(rng.range(5, 30)));
+    }
+    assert!(
+        run.try_status().is_none(),
+        "the system finished before the 100 cycles were done; make the source longer"
+    );
+    let out = run.wait_success(LIMIT);
+    let lost: Vec<&Event> = out
+        .events
+        .iter()
+        .filter(|e| e.state_lost == Some(true) || e.cause == Some(Cause::NoMajority))
+        .collect();
+    assert!(lost.is_empty(), "state lost or a frame withheld: {lost:#?}");
+    assert_sink_whole(&summary, count);
+}
+
+/// The voter's socket path, from a replica's environment.
+fn voter_socket(replica: i32) -> std::path::PathBuf {
+    let environ = std::fs::read(format!("/proc/{replica}/environ")).expect("replica environ");
+    environ
+        .split(|&b| b == 0)
+        .find_map(|kv| kv.strip_prefix(b"S3RES_VOTER_SOCKET="))
+        .map(|v| std::path::PathBuf::from(String::from_utf8_lossy(v).into_owned()))
+        .expect("S3RES_VOTER_SOCKET in the replica's environment")
+}
+
+/// A flood of connections to the recovery socket (the same user, as an attacker on the machine
+/// would be) while replicas are killed: every recovery is still a fork with state kept (the
+/// accept loop holds `restart_timeout_ms`), and the sink sees every frame once, in order.
+#[test]
+fn a_connection_flood_on_the_recovery_socket_does_not_stop_a_fork() {
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::Arc;
+
+    let count = 6000;
+    let sys = System::new();
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let socket = voter_socket(run.replica_pids("echo")[&0]);
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let connects = Arc::new(AtomicU64::new(0));
+    let flooders: Vec<_> = (0..2)
+        .map(|_| {
+            let (stop, connects, socket) = (stop.clone(), connects.clone(), socket.clone());
+            std::thread::spawn(move || {
+                let until = std::time::Instant::now() + Duration::from_secs(30);
+                while !stop.load(Ordering::Relaxed) && std::time::Instant::now() < until {
+                    if std::os::unix::net::UnixStream::connect(&socket).is_ok() {
+                        connects.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            })
+        })
+        .collect();
+    // Let the flood fill the socket's backlog first.
+    while connects.load(Ordering::Relaxed) < 500 {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    for slot in [1, 2, 0, 1] {
+        let pid = run.replica_pids("echo")[&slot];
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+        let rec = run.wait_for_recovery("echo", slot, pid);
+        assert_eq!(
+            (rec.method, rec.state_lost),
+            (Some(RecoveryMethod::Fork), Some(false)),
+            "{rec:?}"
+        );
+        run.wait_for_replicas("echo", 3);
+    }
+    stop.store(true, Ordering::Relaxed);
+    for f in flooders {
+        f.join().expect("flooder");
+    }
+    eprintln!("flood: {} connections", connects.load(Ordering::Relaxed));
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+}
+
+/// A process-limit squeeze makes a recovery fail (fork and exec both refused) for two seconds:
+/// the component runs degraded (`recovery_failed`), the voter keeps trying with backoff, and
+/// once the squeeze ends the slot is filled by fork from a replica that kept the state. The
+/// sink sees every frame once, in order. The system runs as an unprivileged user (the kernel
+/// does not apply `RLIMIT_NPROC` to root).
+#[test]
+fn redundancy_is_restored_after_a_recovery_failed() {
+    let count = 8000;
+    let sys = System::new().unprivileged();
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US}, "restart_timeout_ms": 200 }}"#
+    );
+    let desc = echo_pipeline(&sys.path("summary.json"), &echo, count, 1000);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let voter = run.process_named("s3res-voter").expect("the echo's voter");
+    let pids = run.replica_pids("echo");
+    let squeezed: Vec<i32> = std::iter::once(voter)
+        .chain(pids.values().copied())
+        .collect();
+    let before: Vec<Option<u64>> = squeezed.iter().map(|&p| procs::nproc_soft(p)).collect();
+    for &p in &squeezed {
+        procs::set_nproc_soft(p, Some(1));
+    }
+
+    s3res_testkit::kill_pid(pids[&1], libc::SIGKILL).expect("kill replica 1");
+    let failed = run.wait_for_event(
+        |e| e.kind == EventKind::RecoveryFailed && e.replica == Some(1),
+        Duration::from_secs(20),
+    );
+    assert_eq!(failed.pid, Some(pids[&1]), "{failed:?}");
+    // The squeeze lasts two seconds; the component runs on two replicas meanwhile.
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(
+        run.events()
+            .iter()
+            .filter(|e| e.kind == EventKind::Recovery && e.replica == Some(1))
+            .count(),
+        0,
+        "filled during the squeeze"
+    );
+    for (&p, &soft) in squeezed.iter().zip(&before) {
+        if p != pids[&1] {
+            procs::set_nproc_soft(p, soft);
+        }
+    }
+    let rec = run.wait_for_recovery("echo", 1, pids[&1]);
+    assert_eq!(
+        (rec.method, rec.state_lost),
+        (Some(RecoveryMethod::Fork), Some(false)),
+        "{rec:?}"
+    );
+    run.wait_for_replicas("echo", 3);
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
 }

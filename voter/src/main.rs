@@ -3,8 +3,7 @@
 use anyhow::Context;
 use clap::Parser;
 use s3res_voter::plan::{Mode, VoterPlan};
-use s3res_voter::stream::StreamVoter;
-use s3res_voter::voter::{Voter, VoterError};
+use s3res_voter::{ReactiveVoter, StreamVoter, VoterError};
 
 /// The voter of one protected s3res component.
 ///
@@ -47,7 +46,7 @@ fn run() -> anyhow::Result<()> {
     let span = tracing::info_span!("voter", component = %plan.component);
     let _enter = span.enter();
     match plan.mode {
-        Mode::Reactive => Voter::start(plan)?.run()?,
+        Mode::Reactive => ReactiveVoter::start(plan)?.run()?,
         Mode::Stream => StreamVoter::start(plan)?.run()?,
     }
     Ok(())

@@ -3,7 +3,7 @@
 //! One [`s3res_anomaly::Detector`] per monitored output, made at start-up (every buffer is
 //! allocated then); every replica's answer frame on that output is observed once, as it
 //! arrives, without allocating. What an alarm *does* is the voter's business (see
-//! [`crate::voter`] and `docs/anomaly-detection.md`): this module keeps the detectors, their
+//! [`crate::reactive`], [`crate::stream`] and `docs/anomaly-detection.md`): this module keeps the detectors, their
 //! last verdicts, and the streams in step with recoveries.
 
 use std::fs::File;
@@ -13,8 +13,8 @@ use s3res_anomaly::model::DetectorModel;
 use s3res_anomaly::{Cause, Detector, Model, Verdict};
 
 use crate::clock::Instant;
+use crate::core::VoterError;
 use crate::plan::VoterPlan;
-use crate::voter::VoterError;
 
 /// A detector on one output.
 struct Monitor {
@@ -173,7 +173,7 @@ impl Captures {
                     c.output
                 )));
             };
-            let file = File::create(&c.path).map_err(crate::voter::io_err(format!(
+            let file = File::create(&c.path).map_err(crate::core::io_err(format!(
                 "creating capture file {}",
                 c.path.display()
             )))?;
@@ -235,7 +235,7 @@ mod tests {
             "{e}"
         );
         // Stream mode runs detectors too: the plan is valid, only the model is missing.
-        crate::voter::validate(&plan("stream", "out")).unwrap();
+        crate::core::validate(&plan("stream", "out")).unwrap();
         let e = err(&plan("stream", "out"));
         assert!(e.contains("cannot read model"), "{e}");
     }

@@ -140,10 +140,21 @@ pub fn fork(
 
     // 2.–5. The donor's input pipes stay empty until the fork is done: input it read between
     // a give-back and the fork would reach the child twice (in its memory and in its pipe).
-    refuse_backlog(listener, family);
+    let mut refused = Refusals::default();
+    refuse_backlog(listener, family, deadline, &mut refused);
     let joined = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
         .map_err(io_err("signalling the donor"))
-        .and_then(|()| accept_child(listener, donor, nonce, family, deadline, timeout, state));
+        .and_then(|()| {
+            let attempt = Attempt {
+                nonce,
+                family,
+                deadline,
+                timeout,
+                state,
+            };
+            accept_child(listener, donor, &attempt, &mut refused)
+        });
+    refused.report();
     give_back(donor, &taken_back);
     let joined = joined?;
     let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
@@ -181,19 +192,69 @@ fn give_back(donor: &mut Replica, taken_back: &[Vec<u8>]) {
     }
 }
 
-/// Refuses every process waiting on the socket: children of abandoned attempts (a donor that
-/// was stopped when we gave up forks once it is continued), or strangers.
-fn refuse_backlog(listener: &UnixListener, family: &[libc::pid_t]) {
-    while let Ok((conn, _)) = listener.accept() {
-        refuse(conn, family, "left over from an earlier attempt");
+/// At most this many connections are cleared from the socket before an attempt: a flood of
+/// connections from the same user must not keep the voter from asking the donor to fork.
+const BACKLOG_CLEAR_LIMIT: usize = 256;
+
+/// One fork attempt, as the accept loop needs it.
+struct Attempt<'a> {
+    nonce: u32,
+    family: &'a [libc::pid_t],
+    deadline: Instant,
+    timeout: Duration,
+    state: DonorState,
+}
+
+/// Connections refused during one attempt. The first is logged with its reason; the rest are
+/// counted and reported once at the end, so that a flood of connections costs a counter, not
+/// a log line each (a flood once wrote 21 MB of warnings and stretched a recovery to 6 s).
+#[derive(Default)]
+struct Refusals {
+    count: u64,
+    killed: u64,
+}
+
+impl Refusals {
+    fn report(&self) {
+        if self.count > 1 {
+            tracing::warn!(
+                refused = self.count,
+                killed = self.killed,
+                "refused connections on the voter socket during one recovery"
+            );
+        }
+    }
+}
+
+/// Refuses the processes waiting on the socket (at most [`BACKLOG_CLEAR_LIMIT`], and not past
+/// `deadline`): children of abandoned attempts (a donor that was stopped when we gave up forks
+/// once it is continued), or strangers.
+fn refuse_backlog(
+    listener: &UnixListener,
+    family: &[libc::pid_t],
+    deadline: Instant,
+    refused: &mut Refusals,
+) {
+    for _ in 0..BACKLOG_CLEAR_LIMIT {
+        if Instant::now() >= deadline {
+            return;
+        }
+        let Ok((conn, _)) = listener.accept() else {
+            return;
+        };
+        refuse(conn, family, "left over from an earlier attempt", refused);
     }
 }
 
 /// Disconnects a peer; kills it too if it is one of ours (a fork child of one of our replicas,
 /// or an orphan re-parented to the voter), through a pidfd so a reused pid is never hit.
-fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str) {
+fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str, refused: &mut Refusals) {
+    refused.count += 1;
+    let first = refused.count == 1;
     let Ok(pid) = sys::peer_pid(conn.as_fd()) else {
-        tracing::warn!(why, "refused a connection on the voter socket");
+        if first {
+            tracing::warn!(why, "refused a connection on the voter socket");
+        }
         return;
     };
     let Ok(pidfd) = sys::pidfd_open(pid) else {
@@ -201,8 +262,11 @@ fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str) {
     };
     let me = std::process::id() as libc::pid_t;
     let ours = sys::parent_pid(pid).is_some_and(|parent| parent == me || family.contains(&parent));
-    tracing::warn!(pid, ours, why, "refused a connection on the voter socket");
+    if first || ours {
+        tracing::warn!(pid, ours, why, "refused a connection on the voter socket");
+    }
     if ours {
+        refused.killed += 1;
         let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
     }
 }
@@ -213,12 +277,16 @@ fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str) {
 fn accept_child(
     listener: &UnixListener,
     donor: &mut Replica,
-    nonce: u32,
-    family: &[libc::pid_t],
-    deadline: Instant,
-    timeout: Duration,
-    state: DonorState,
+    attempt: &Attempt,
+    refused: &mut Refusals,
 ) -> Result<Joined, RecoveryError> {
+    let &Attempt {
+        nonce,
+        family,
+        deadline,
+        timeout,
+        state,
+    } = attempt;
     let mut fds = Vec::with_capacity(2 + donor.outputs.len());
     loop {
         let now = Instant::now();
@@ -262,7 +330,7 @@ fn accept_child(
         };
         match check_child(conn, donor, nonce, deadline) {
             Ok(joined) => return Ok(joined),
-            Err((conn, why)) => refuse(conn, family, &why),
+            Err((conn, why)) => refuse(conn, family, &why, refused),
         }
     }
 }
@@ -367,6 +435,8 @@ fn hand_over_pipes(
         our_child: false,
         // A fork of a replica that has answered: its handler is in place.
         proven: true,
+        // The voter sets it from the donor's.
+        state_lost: false,
         output_closed_at: None,
     };
     Ok((replica, ready))

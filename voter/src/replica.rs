@@ -37,6 +37,10 @@ pub struct Replica {
     /// Has answered at least once, so replica-rt is initialised and the restart handler is in
     /// place: only such a replica may be a donor (before `init`, SIGUSR1 would kill it).
     pub proven: bool,
+    /// Its state is lost: started by exec after a fault, or forked from a replica whose state
+    /// was. Such a replica never outvotes, and is never cloned over, one that kept the
+    /// component's state (see `decision.rs`). The replicas started with the component kept it.
+    pub state_lost: bool,
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.
     pub output_closed_at: Option<crate::clock::Instant>,
@@ -144,12 +148,13 @@ impl Replica {
             outputs: pipes.outputs,
             our_child: true,
             proven: false,
+            state_lost: false,
             output_closed_at: None,
         })
     }
 
     /// An output pipe of this replica was seen closed: `true` if the process is already gone
-    /// (a crash); else the time is noted, and [`crate::voter::closed_output_fault`] decides once
+    /// (a crash); else the time is noted, and `core::Core::closed_output_fault` decides once
     /// the grace is over (the kernel closes a dying process's fds just before it reports the
     /// exit).
     pub fn note_output_closed(&mut self) -> bool {
@@ -196,6 +201,7 @@ impl Replica {
             return None;
         }
         Some(DonorRank {
+            state_lost: self.state_lost,
             unproven: !self.proven,
             stopped: matches!(sys::process_state(self.pid), Some('T' | 't')),
         })
@@ -211,6 +217,8 @@ impl Replica {
 /// How good a recovery donor a replica is; the derived order is the preference (fields in
 /// order of weight, `false` first).
 ///
+/// * A replica that kept the component's state beats one whose state is lost: cloning a
+///   fresh replica over a kept slot would spread the loss.
 /// * A replica that has answered (and so was voted with) beats one that has not: a replica
 ///   just restarted by exec has lost its state, and cloning it over a healthy slot would
 ///   spread the loss.
@@ -218,6 +226,7 @@ impl Replica {
 ///   attempt time out.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub struct DonorRank {
+    pub state_lost: bool,
     pub unproven: bool,
     pub stopped: bool,
 }
@@ -240,24 +249,25 @@ const RESAMPLE: Duration = Duration::from_micros(200);
 /// A replica that is running may be computing, or may be spinning in a control-flow error
 /// that nobody has caught yet; its fork child would spin too (the restart handler returns
 /// into the spin), and two spinners outvote the healthy replica (a robot campaign found both).
-/// So a candidate that is not stopped is taken only once it is seen asleep in the kernel
-/// (`S`), or has blocked (its voluntary context switches grew) since the first look: a healthy
-/// burst of work is short. The voter looks every 200 µs for at most `patience` (the
-/// component's `timeout_us`, the time any answer may take), rank by rank: first the proven
-/// candidates; a proven candidate that never waits in that time is returned in
-/// [`DonorPick::hung`]. Then, as before, a stopped proven one (the last resort); then the
-/// unproven ones (they may donate, having installed the restart handler, but have not sent a
-/// frame yet), again only at a clean point — one that never waits is passed over but not
-/// blamed here (it may still be in its own start-up; the deadlines and the liveness look judge
-/// it) — and last the stopped unproven ones.
+/// So a candidate is taken only once it is seen asleep in the kernel (`S`), or has blocked
+/// (its voluntary context switches grew) since the first look: a healthy burst of work is
+/// short. The voter looks every 200 µs for at most `patience` (the component's `timeout_us`,
+/// the time any answer may take); a proven candidate that never waits in that time is
+/// returned in [`DonorPick::hung`]. A stopped candidate is the last resort, as before; a
+/// running one that has not answered yet is taken only at a clean point as well (passed over,
+/// not blamed, if it never waits).
+/// Replicas that kept their state are looked at first; only when none of them can donate
+/// are the fresh ones. Slots in `exclude` are passed over (a donor that already failed).
 pub fn best_donor(
     slots: &[Option<Replica>],
     progress: impl Fn(usize) -> u64,
     patience: Duration,
+    exclude: crate::vote::ReplicaSet,
 ) -> DonorPick {
     let mut ranked: Vec<(DonorRank, std::cmp::Reverse<u64>, usize, libc::pid_t)> = slots
         .iter()
         .enumerate()
+        .filter(|&(d, _)| !exclude.contains(d))
         .filter_map(|(d, rep)| {
             let rep = rep.as_ref()?;
             Some((
@@ -269,60 +279,90 @@ pub fn best_donor(
         })
         .collect();
     ranked.sort();
-    let mut ranks: Vec<DonorRank> = ranked.iter().map(|c| c.0).collect();
-    ranks.dedup();
     let mut hung = Vec::new();
-    for rank in ranks {
-        // (slot, pid) of this rank's candidates, best first.
-        let group: Vec<(usize, libc::pid_t)> = ranked
+    let mut looked = Vec::new();
+    for state_lost in [false, true] {
+        // (slot, pid, voluntary switches at the first look) of the proven, running candidates.
+        let clean: Vec<(usize, libc::pid_t, Option<u64>)> = ranked
             .iter()
-            .filter(|c| c.0 == rank)
-            .map(|&(.., d, pid)| (d, pid))
+            .filter(|c| {
+                c.0 == DonorRank {
+                    state_lost,
+                    unproven: false,
+                    stopped: false,
+                }
+            })
+            .map(|&(.., d, pid)| (d, pid, voluntary_switches(pid)))
             .collect();
-        if rank.stopped {
-            // A stopped process runs nothing: it is taken as it is (the attempt may time out).
-            return DonorPick {
-                donor: Some(group[0].0),
-                hung,
-            };
-        }
-        if let Some(d) = first_at_clean_point(&group, patience) {
+        looked.extend(clean.iter().map(|c| c.0));
+        if let Some(d) = first_to_wait(&clean, patience) {
             return DonorPick {
                 donor: Some(d),
                 hung,
             };
         }
-        if !rank.unproven {
-            // Answered replicas that never waited for anything in all that time: hung.
-            hung = group
+        // None of them waited for anything in all that time: hung.
+        hung.extend(
+            clean
                 .iter()
-                .filter(|&&(_, pid)| sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X'))
-                .map(|&(d, _)| d)
-                .collect();
+                .filter(|&&(_, pid, _)| {
+                    sys::process_state(pid).is_some_and(|s| s != 'Z' && s != 'X')
+                })
+                .map(|&(d, ..)| d),
+        );
+        if ranked
+            .iter()
+            .any(|c| !c.0.state_lost && !hung.contains(&c.2))
+        {
+            // A kept candidate that is stopped or not yet proven still beats every fresh one.
+            break;
+        }
+    }
+    // The next best (stopped, or not yet proven, kept first) is the donor, if any. A stopped
+    // one runs nothing and is taken as it is; one that runs but has not answered yet is taken
+    // only at a clean point too: it may already spin (a control-flow error injected before its
+    // first frame), and its child would spin as well. One that never waits is passed over,
+    // not blamed: it may still be starting; the deadlines and the liveness look judge it.
+    let rest: Vec<_> = ranked.iter().filter(|c| !looked.contains(&c.2)).collect();
+    let mut ranks: Vec<DonorRank> = rest.iter().map(|c| c.0).collect();
+    ranks.dedup();
+    for rank in ranks {
+        let group: Vec<(usize, libc::pid_t, Option<u64>)> = rest
+            .iter()
+            .filter(|c| c.0 == rank)
+            .map(|&&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+            .collect();
+        let donor = if rank.stopped {
+            group.first().map(|c| c.0)
+        } else {
+            first_to_wait(&group, patience)
+        };
+        if donor.is_some() {
+            return DonorPick { donor, hung };
         }
     }
     DonorPick { donor: None, hung }
 }
 
-/// The first of `candidates` (best first) seen at a clean point — asleep in the kernel, or
-/// having blocked since the first look — looking every [`RESAMPLE`] for at most `patience`.
-fn first_at_clean_point(candidates: &[(usize, libc::pid_t)], patience: Duration) -> Option<usize> {
-    let first_blocks: Vec<Option<u64>> = candidates
-        .iter()
-        .map(|&(_, pid)| voluntary_switches(pid))
-        .collect();
+/// The first of `candidates` seen asleep or having blocked since the first look, within
+/// `patience` (looking every [`RESAMPLE`]).
+fn first_to_wait(
+    candidates: &[(usize, libc::pid_t, Option<u64>)],
+    patience: Duration,
+) -> Option<usize> {
     let started = std::time::Instant::now();
-    loop {
-        for (&(d, pid), &blocks) in candidates.iter().zip(&first_blocks) {
-            if is_asleep(pid) || voluntary_switches(pid) != blocks {
+    while !candidates.is_empty() {
+        for &(d, pid, first_blocks) in candidates {
+            if is_asleep(pid) || voluntary_switches(pid) != first_blocks {
                 return Some(d);
             }
         }
         if started.elapsed() >= patience {
-            return None;
+            break;
         }
         std::thread::sleep(RESAMPLE);
     }
+    None
 }
 
 /// Whether `pid` sleeps in the kernel (`S`): waiting for input, or for its output pipe.

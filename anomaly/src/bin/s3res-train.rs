@@ -1,5 +1,7 @@
 //! `s3res-train`: learns an anomaly-detection model from fault-free frames.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use s3res_anomaly::capture::{for_each_frame, write_frames};
@@ -126,12 +128,7 @@ enum Floats {
 }
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    replica_rt::init_cli_logging(false, 0);
     if let Err(e) = run(Cli::parse()) {
         eprintln!("s3res-train: {e:#}");
         std::process::exit(1);

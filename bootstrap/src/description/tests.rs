@@ -5,7 +5,7 @@ use std::fs;
 use std::os::unix::fs::PermissionsExt;
 
 use super::*;
-use s3res_voter::sched::Schedule;
+use s3res_protocol::sched::Schedule;
 
 /// A folder with an executable `run.sh` and a non-executable `notes.txt`; CPUs 0 and 1.
 struct Fixture {
@@ -273,7 +273,7 @@ fn stream_mode_is_passed_to_the_voter_without_rounds() {
     assert!(planner.rounds.is_empty());
     let mapper = &plan.components[1];
     assert!(mapper.outputs.is_empty(), "outputs may be none");
-    assert_eq!(mapper.window, s3res_voter::plan::DEFAULT_STREAM_WINDOW);
+    assert_eq!(mapper.window, s3res_protocol::plan::DEFAULT_STREAM_WINDOW);
 }
 
 #[test]
@@ -584,7 +584,7 @@ fn component_names_must_fit_endpoints() {
         "{\"name\": \"x\", \"components\": {\n \"a.b\": {\"exec\": \"run.sh\"}}}",
         2,
         "components.a.b",
-        "may not contain `.`",
+        "contains '.'; names use ASCII letters, digits, `_` and `-`",
     );
     f.fails(
         "{\"name\": \"\",\n \"components\": {\"a\": {\"exec\": \"run.sh\"}}}",
@@ -592,6 +592,106 @@ fn component_names_must_fit_endpoints() {
         "name",
         "the system name is empty",
     );
+}
+
+#[test]
+fn names_are_bounded_and_printable() {
+    let f = fixture();
+    // A NUL in a component name passed `--check` and failed at start.
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\\u0000b\": {\"exec\": \"run.sh\"}}}",
+        2,
+        "components.a\u{0}b",
+        "contains '\\0'",
+    );
+    let long = "c".repeat(MAX_NAME_LEN + 1);
+    f.fails(
+        &format!(
+            "{{\"name\": \"x\", \"components\": {{\n \"{long}\": {{\"exec\": \"run.sh\"}}}}}}"
+        ),
+        2,
+        &format!("components.{long}"),
+        "is longer than 64 characters",
+    );
+    f.fails(
+        "{\"name\": \"x\\u0007y\",\n \"components\": {\"a\": {\"exec\": \"run.sh\"}}}",
+        1,
+        "name",
+        "control character",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\"}},\n \"channels\": [{\"from\": \"a.oüt\", \"to\": \"stdout\"}]}",
+        2,
+        "channels[0].from",
+        "names use ASCII letters",
+    );
+}
+
+#[test]
+fn durations_are_bounded_to_a_minute() {
+    let f = fixture();
+    // 2^64 - 1 passed, and a spinning replica was then never found.
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\", \"redundancy\": \"tmr\",\n \"timeout_us\": 18446744073709551615}}}",
+        2,
+        "components.a.timeout_us",
+        "is above 60000000 (one minute",
+    );
+    for field in ["restart_timeout_ms", "start_timeout_ms"] {
+        f.fails(
+            &format!("{{\"name\": \"x\", \"components\": {{\"a\": {{\"exec\": \"run.sh\", \"redundancy\": \"tmr\", \"timeout_us\": 1000,\n \"{field}\": 60001}}}}}}"),
+            2,
+            &format!("components.a.{field}"),
+            "is above 60000 (one minute)",
+        );
+    }
+}
+
+#[test]
+fn commands_are_bounded_and_free_of_nul() {
+    let f = fixture();
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\"a\": {\"exec\": \"run.sh\",\n \"args\": [\"ok\", \"a\\u0000b\"]}}}",
+        2,
+        "components.a.args[1]",
+        "NUL byte",
+    );
+    let long = "y".repeat(MAX_ARG_LEN + 1);
+    f.fails(
+        &format!("{{\"name\": \"x\", \"components\": {{\"a\": {{\"exec\": \"run.sh\",\n \"args\": [\"{long}\"]}}}}}}"),
+        2,
+        "components.a.args[0]",
+        "bytes long; at most 4096",
+    );
+    let many = vec!["\"z\""; MAX_ARGS + 1].join(", ");
+    f.fails(
+        &format!("{{\"name\": \"x\", \"components\": {{\"a\": {{\"exec\": \"run.sh\",\n \"args\": [{many}]}}}}}}"),
+        2,
+        "components.a.args",
+        "arguments; at most 256",
+    );
+}
+
+#[test]
+fn a_loop_of_reactive_components_that_nothing_feeds_is_refused() {
+    let f = fixture();
+    let looped = |a_redundancy: &str| {
+        format!(
+            r#"{{"name": "x", "components": {{
+  "a": {{"exec": "run.sh", "redundancy": "{a_redundancy}", "timeout_us": 1000}},
+  "b": {{"exec": "run.sh", "redundancy": "tmr", "timeout_us": 1000}}
+}},
+ "channels": [{{"from": "a.out", "to": "b.in"}}, {{"from": "b.out", "to": "a.in"}}]}}"#
+        )
+    };
+    f.fails(
+        &looped("dmr"),
+        2,
+        "components.a",
+        "reactive components `a`, `b` can never start a round",
+    );
+    // An unprotected component in the loop sends on its own (the robot's simulator does).
+    assert!(parse("sys.json", &looped("none"), &f.ctx).is_ok());
 }
 
 #[test]

@@ -1,5 +1,7 @@
 //! `s3res-ballast`: a stateful echo that carries a given amount of private memory. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use s3res_components::Echo;

@@ -1,5 +1,7 @@
 //! `s3res-batch`: a stream component; outputs are not one per input. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_components::{Batcher, Echo};

@@ -1,5 +1,7 @@
 //! `s3res-echo`: answers every frame with itself. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_components::Echo;

@@ -1,5 +1,7 @@
 //! `s3res-misbehave`: an echo that breaks the frame protocol once, on purpose. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::{Parser, ValueEnum};
 use replica_rt::frame::header;

@@ -1,6 +1,8 @@
 //! `s3res-signal`: smooth numeric telemetry, one frame per input frame (or in bursts). See
 //! `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_components::{check_source_frame, Signal, SIGNAL_FRAME};

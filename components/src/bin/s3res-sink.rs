@@ -1,5 +1,7 @@
 //! `s3res-sink`: checks the frames of `s3res-source` (through any echoes). See `--help`.
 
+#![forbid(unsafe_code)]
+
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};

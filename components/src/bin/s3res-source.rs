@@ -1,5 +1,7 @@
 //! `s3res-source`: a load generator. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};

@@ -6,6 +6,8 @@
 //! Single-threaded on purpose: a replica is restarted by `fork`, and fork copies only the thread
 //! that takes the restart signal. Any other thread would be missing in the new replica.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{bail, Context, Result};
 
 fn main() -> Result<()> {

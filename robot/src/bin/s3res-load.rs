@@ -1,5 +1,7 @@
 //! `s3res-load`: steady background CPU load. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_robot::component::Downstream;

@@ -1,5 +1,7 @@
 //! `s3res-logger`: records the robot's pose and speed. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use std::io::Write;
 use std::path::PathBuf;
 

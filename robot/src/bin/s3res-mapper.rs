@@ -1,5 +1,7 @@
 //! `s3res-mapper`: builds the occupancy grid. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_robot::component::Downstream;

@@ -1,5 +1,7 @@
 //! `s3res-navigator`: local navigation by potential fields. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use replica_rt::{wait_any, TryRecv};

@@ -1,5 +1,7 @@
 //! `s3res-planner`: A* on the occupancy grid. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use std::collections::VecDeque;
 
 use anyhow::{Context, Result};

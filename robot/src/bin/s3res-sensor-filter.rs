@@ -1,5 +1,7 @@
 //! `s3res-sensor-filter`: cleans the robot's range readings. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_robot::component::{optional_output, Downstream};

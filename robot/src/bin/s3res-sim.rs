@@ -1,5 +1,7 @@
 //! `s3res-sim`: the maze-robot simulator and benchmarker. See `--help`.
 
+#![forbid(unsafe_code)]
+
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 

@@ -8,9 +8,9 @@
 //! voter carries on without it. Like in S³RES this is best effort, never relied on for
 //! correctness: on two cores three replicas still share the CPU with everything else.
 //!
-//! The system calls sit in [`sys`] below, each a small function with its safety argument
-//! (`replica-rt/src/sys.rs` gets scheduling wrappers of its own in a parallel change; these can
-//! move there).
+//! The system calls are replica-rt's ([`replica_rt::sys`], the project's syscall boundary).
+
+use replica_rt::sys::{self, SchedPolicy};
 
 /// How many nice levels a laggard running SCHED_OTHER is raised (about 3× the CPU weight).
 pub const NICE_STEP: i32 = 5;
@@ -64,13 +64,12 @@ impl Boost {
 }
 
 fn raise(pid: libc::pid_t) -> std::io::Result<Base> {
-    let policy = sys::scheduler(pid)?;
+    let SchedPolicy { policy, priority } = sys::sched_policy(pid)?;
     if policy == libc::SCHED_RR || policy == libc::SCHED_FIFO {
-        let priority = sys::rt_priority(pid)?;
         sys::set_rt_priority(pid, (priority + 1).min(99))?;
         Ok(Base::RealTime { policy, priority })
     } else {
-        let nice = sys::nice(pid)?;
+        let nice = sys::nice_of(pid)?;
         sys::set_nice(pid, (nice - NICE_STEP).max(-20))?;
         Ok(Base::Nice(nice))
     }
@@ -83,62 +82,6 @@ fn restore(pid: libc::pid_t, base: Base) -> std::io::Result<()> {
     }
 }
 
-/// The scheduling system calls boosting needs.
-mod sys {
-    use std::io;
-
-    fn cvt(ret: libc::c_int) -> io::Result<libc::c_int> {
-        if ret < 0 {
-            Err(io::Error::last_os_error())
-        } else {
-            Ok(ret)
-        }
-    }
-
-    /// The scheduling policy of `pid`.
-    pub fn scheduler(pid: libc::pid_t) -> io::Result<i32> {
-        // SAFETY: integer argument only; touches no memory of ours.
-        cvt(unsafe { libc::sched_getscheduler(pid) })
-    }
-
-    /// The real-time priority of `pid` (0 under SCHED_OTHER).
-    pub fn rt_priority(pid: libc::pid_t) -> io::Result<i32> {
-        let mut param = libc::sched_param { sched_priority: 0 };
-        // SAFETY: `param` is a valid, writable sched_param for the duration of the call.
-        cvt(unsafe { libc::sched_getparam(pid, &mut param) })?;
-        Ok(param.sched_priority)
-    }
-
-    /// Sets the real-time priority of `pid`, keeping its policy.
-    pub fn set_rt_priority(pid: libc::pid_t, priority: i32) -> io::Result<()> {
-        let param = libc::sched_param {
-            sched_priority: priority,
-        };
-        // SAFETY: `param` is a valid sched_param, only read by the kernel.
-        cvt(unsafe { libc::sched_setparam(pid, &param) }).map(drop)
-    }
-
-    /// The nice value of `pid`.
-    pub fn nice(pid: libc::pid_t) -> io::Result<i32> {
-        // getpriority may legitimately return -1, so errno is cleared first and checked after.
-        // SAFETY: __errno_location returns this thread's errno slot, always valid.
-        unsafe { *libc::__errno_location() = 0 };
-        // SAFETY: integer arguments only.
-        let nice = unsafe { libc::getpriority(libc::PRIO_PROCESS, pid as libc::id_t) };
-        // SAFETY: as above.
-        if nice == -1 && unsafe { *libc::__errno_location() } != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        Ok(nice)
-    }
-
-    /// Sets the nice value of `pid`.
-    pub fn set_nice(pid: libc::pid_t, nice: i32) -> io::Result<()> {
-        // SAFETY: integer arguments only.
-        cvt(unsafe { libc::setpriority(libc::PRIO_PROCESS, pid as libc::id_t, nice) }).map(drop)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -148,13 +91,13 @@ mod tests {
     #[test]
     fn boost_and_restore_round_trip() {
         let me = std::process::id() as libc::pid_t;
-        let before = sys::nice(me).unwrap();
+        let before = sys::nice_of(me).unwrap();
         let mut b = Boost::default();
         b.set(Some(me));
         if !b.disabled {
-            assert_eq!(sys::nice(me).unwrap(), (before - NICE_STEP).max(-20));
+            assert_eq!(sys::nice_of(me).unwrap(), (before - NICE_STEP).max(-20));
         }
         b.set(None);
-        assert_eq!(sys::nice(me).unwrap(), before);
+        assert_eq!(sys::nice_of(me).unwrap(), before);
     }
 }

@@ -16,7 +16,8 @@ use std::time::Duration;
 
 use crate::clock::Instant;
 
-use crate::vote::{bitwise_majority, vote, BitMajority, ReplicaSet, VoteOutcome};
+use crate::decision::{decide, Decision};
+use crate::vote::ReplicaSet;
 
 /// What became of a frame number.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -75,31 +76,14 @@ pub enum Arrival {
     DiffersFromForwarded(u64),
 }
 
-/// One decision on one output.
+/// One frame of an output, decided.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Decision {
-    /// `frame` had a majority; `dissent` sent something else.
-    Forward {
-        index: u64,
-        frame: Vec<u8>,
-        dissent: ReplicaSet,
-    },
-    /// No whole frame had a majority, but every bit did ([`bitwise_majority`]): the rebuilt
-    /// frame is forwarded and `rebuilt.dissent` are the suspects.
-    Rebuild { index: u64, rebuilt: BitMajority },
-    /// No frame can reach a majority; `answered` sent frames that disagree.
-    Withhold { index: u64, answered: ReplicaSet },
-    /// The frame stands on one replica's word (SMR, or down to one) and the anomaly detector
-    /// flagged it: nothing is forwarded, `replica` is the suspect.
-    HoldBack { index: u64, replica: usize },
-    /// Two copies that differ, exactly one of them flagged by the anomaly detector: the other
-    /// one, `frame` from `healthy`, is forwarded and `culprit` is the suspect.
-    Attribute {
-        index: u64,
-        frame: Vec<u8>,
-        culprit: usize,
-        healthy: usize,
-    },
+pub struct Decided {
+    /// The frame's number on its output.
+    pub index: u64,
+    pub decision: Decision,
+    /// The frame that goes out, if one does.
+    pub frame: Option<Vec<u8>>,
 }
 
 /// A frame some replicas produced and others did not within the timeout.
@@ -261,71 +245,26 @@ impl Ledger {
     /// mode: a majority of one whose copy is flagged is held back, and two differing copies of
     /// which exactly one is flagged forward the other. With three or more copies the vote (and
     /// the bitwise majority) decides; marks are only logged.
-    pub fn decide(&mut self, o: usize, alive: ReplicaSet) -> Option<Decision> {
+    pub fn decide(&mut self, o: usize, alive: ReplicaSet, fresh: ReplicaSet) -> Option<Decided> {
         let out = &mut self.outputs[o];
         let k = out.next.checked_sub(out.base)? as usize;
         let entry = out.entries.get_mut(k)?;
-        let index = out.next;
-        let decision = match vote(&entry.frames, alive) {
-            VoteOutcome::Pending => return None,
-            VoteOutcome::Majority { winner, agree, .. }
-                if agree.len() == 1 && entry.alarmed.contains(winner) =>
-            {
-                entry.verdict = Verdict::Withheld;
-                Decision::HoldBack {
-                    index,
-                    replica: winner,
-                }
-            }
-            VoteOutcome::Majority {
-                winner, dissent, ..
-            } => {
-                let frame = entry.frames[winner].take().unwrap_or_default();
-                entry.verdict = Verdict::Forwarded(frame.clone());
-                Decision::Forward {
-                    index,
-                    frame,
-                    dissent,
-                }
-            }
-            VoteOutcome::NoMajority => match bitwise_majority(&entry.frames, alive) {
-                Some(rebuilt) => {
-                    entry.verdict = Verdict::Forwarded(rebuilt.frame.clone());
-                    Decision::Rebuild { index, rebuilt }
-                }
-                None => {
-                    let answered = alive
-                        .iter()
-                        .filter(|&s| entry.frames[s].is_some())
-                        .fold(ReplicaSet::EMPTY, ReplicaSet::with);
-                    let flagged = answered
-                        .iter()
-                        .filter(|&s| entry.alarmed.contains(s))
-                        .fold(ReplicaSet::EMPTY, ReplicaSet::with);
-                    let culprit = flagged.iter().next();
-                    let healthy = answered.minus(flagged).iter().next();
-                    match (answered.len(), flagged.len(), culprit, healthy) {
-                        (2, 1, Some(culprit), Some(healthy)) => {
-                            let frame = entry.frames[healthy].take().unwrap_or_default();
-                            entry.verdict = Verdict::Forwarded(frame.clone());
-                            Decision::Attribute {
-                                index,
-                                frame,
-                                culprit,
-                                healthy,
-                            }
-                        }
-                        _ => {
-                            entry.verdict = Verdict::Withheld;
-                            Decision::Withhold { index, answered }
-                        }
-                    }
-                }
-            },
+        let decision = decide(&entry.frames, alive, entry.alarmed, fresh)?;
+        let frame = decision
+            .frame(|r| entry.frames.get(r).and_then(|f| f.as_deref()))
+            .map(<[u8]>::to_vec);
+        entry.verdict = match &frame {
+            Some(f) => Verdict::Forwarded(f.clone()),
+            None => Verdict::Withheld,
         };
         entry.frames.iter_mut().for_each(|f| *f = None);
+        let index = out.next;
         out.next += 1;
-        Some(decision)
+        Some(Decided {
+            index,
+            decision,
+            frame,
+        })
     }
 
     /// Drops decided entries every trusted slot is past.
@@ -462,8 +401,32 @@ mod tests {
         ids.iter().fold(ReplicaSet::EMPTY, |s, &i| s.with(i))
     }
 
-    fn decide_all(l: &mut Ledger, o: usize, alive: ReplicaSet) -> Vec<Decision> {
-        std::iter::from_fn(|| l.decide(o, alive)).collect()
+    fn decide_all(l: &mut Ledger, o: usize, alive: ReplicaSet) -> Vec<Decided> {
+        std::iter::from_fn(|| l.decide(o, alive, ReplicaSet::EMPTY)).collect()
+    }
+
+    fn forward(index: u64, frame: &[u8], winner: usize, dissent: ReplicaSet) -> Decided {
+        Decided {
+            index,
+            decision: Decision::Forward { winner, dissent },
+            frame: Some(frame.to_vec()),
+        }
+    }
+
+    fn withheld(index: u64, answered: ReplicaSet) -> Decided {
+        Decided {
+            index,
+            decision: Decision::Withhold { answered },
+            frame: None,
+        }
+    }
+
+    fn held_back(index: u64, suspect: usize) -> Decided {
+        Decided {
+            index,
+            decision: Decision::HoldBack { suspect },
+            frame: None,
+        }
     }
 
     const T: Duration = Duration::from_millis(100);
@@ -481,14 +444,7 @@ mod tests {
         );
         l.accept(1, 0, b"a", t);
         let d = decide_all(&mut l, 0, all);
-        assert_eq!(
-            d,
-            [Decision::Forward {
-                index: 0,
-                frame: b"a".to_vec(),
-                dissent: ReplicaSet::EMPTY
-            }]
-        );
+        assert_eq!(d, [forward(0, b"a", 0, ReplicaSet::EMPTY)]);
         l.accept(1, 0, b"b", t);
         assert_eq!(decide_all(&mut l, 0, all).len(), 1);
         assert_eq!(l.next(0), 2);
@@ -505,20 +461,17 @@ mod tests {
         for (s, f) in [(0, "x"), (1, "y"), (2, "x")] {
             l.accept(s, 0, f.as_bytes(), t);
         }
-        assert_eq!(
-            decide_all(&mut l, 0, all),
-            [Decision::Forward {
-                index: 0,
-                frame: b"x".to_vec(),
-                dissent: set(&[1])
-            }]
-        );
+        assert_eq!(decide_all(&mut l, 0, all), [forward(0, b"x", 0, set(&[1]))]);
         // No whole frame has a majority, every bit does ('p' 0x70, 'q' 0x71, 'r' 0x72).
         for (s, f) in [(0, "p"), (1, "q"), (2, "r")] {
             l.accept(s, 0, f.as_bytes(), t);
         }
         match &decide_all(&mut l, 0, all)[..] {
-            [Decision::Rebuild { index: 1, rebuilt }] => {
+            [Decided {
+                index: 1,
+                decision: Decision::Rebuild(rebuilt),
+                ..
+            }] => {
                 assert_eq!(
                     (&rebuilt.frame[..], rebuilt.dissent),
                     (&b"p"[..], set(&[1, 2]))
@@ -530,13 +483,7 @@ mod tests {
         for (s, f) in [(0, "p"), (1, "qq"), (2, "r")] {
             l.accept(s, 0, f.as_bytes(), t);
         }
-        assert_eq!(
-            decide_all(&mut l, 0, all),
-            [Decision::Withhold {
-                index: 2,
-                answered: all
-            }]
-        );
+        assert_eq!(decide_all(&mut l, 0, all), [withheld(2, all)]);
         assert_eq!(l.next(0), 3, "a withheld frame does not stall the output");
     }
 
@@ -573,8 +520,10 @@ mod tests {
         l.accept(0, 0, b"z", t);
         l.accept(1, 0, b"z", t);
         let d = decide_all(&mut l, 0, both);
-        assert!(matches!(d[0], Decision::Withhold { index: 0, .. }), "{d:?}");
-        assert!(matches!(d[1], Decision::Forward { index: 1, .. }), "{d:?}");
+        assert_eq!(
+            d,
+            [withheld(0, both), forward(1, b"z", 0, ReplicaSet::EMPTY)]
+        );
     }
 
     #[test]
@@ -650,7 +599,7 @@ mod tests {
         l.accept(1, 0, b"b", t);
         let d = decide_all(&mut l, 0, all);
         assert_eq!(d.len(), 1);
-        assert!(matches!(&d[0], Decision::Forward { index: 1, frame, .. } if frame == b"b"));
+        assert_eq!(d[0], forward(1, b"b", 0, ReplicaSet::EMPTY));
         l.accept(2, 0, b"c", t);
         assert_eq!(decide_all(&mut l, 0, all).len(), 1);
         assert_eq!(l.next(0), 3);
@@ -687,15 +636,14 @@ mod tests {
         scored(&mut l, 0, b"b", true, t);
         scored(&mut l, 0, b"c", false, t);
         let d = decide_all(&mut l, 0, one);
-        assert!(matches!(&d[0], Decision::Forward { index: 0, .. }), "{d:?}");
         assert_eq!(
-            d[1],
-            Decision::HoldBack {
-                index: 1,
-                replica: 0
-            }
+            d,
+            [
+                forward(0, b"a", 0, ReplicaSet::EMPTY),
+                held_back(1, 0),
+                forward(2, b"c", 0, ReplicaSet::EMPTY)
+            ]
         );
-        assert!(matches!(&d[2], Decision::Forward { index: 2, frame, .. } if frame == b"c"));
         // A DMR pair down to one: the survivor's flagged frame stands on its word alone.
         let mut l = Ledger::new(2, 1, 8);
         scored(&mut l, 1, b"x", true, t);
@@ -704,13 +652,7 @@ mod tests {
             "waits for 0"
         );
         l.forget(0);
-        assert_eq!(
-            decide_all(&mut l, 0, set(&[1])),
-            [Decision::HoldBack {
-                index: 0,
-                replica: 1
-            }]
-        );
+        assert_eq!(decide_all(&mut l, 0, set(&[1])), [held_back(0, 1)]);
     }
 
     #[test]
@@ -723,11 +665,13 @@ mod tests {
             scored(&mut l, 1 - culprit, b"good", false, t);
             assert_eq!(
                 decide_all(&mut l, 0, pair),
-                [Decision::Attribute {
+                [Decided {
                     index: 0,
-                    frame: b"good".to_vec(),
-                    culprit,
-                    healthy: 1 - culprit
+                    decision: Decision::Attribute {
+                        culprit,
+                        healthy: 1 - culprit
+                    },
+                    frame: Some(b"good".to_vec()),
                 }]
             );
             // A late copy is checked against the forwarded frame.
@@ -741,7 +685,11 @@ mod tests {
             assert!(
                 matches!(
                     &decide_all(&mut l, 0, pair)[..],
-                    [Decision::Withhold { index: 0, .. }]
+                    [Decided {
+                        index: 0,
+                        decision: Decision::Withhold { .. },
+                        ..
+                    }]
                 ),
                 "{flags:?}"
             );
@@ -752,7 +700,11 @@ mod tests {
         scored(&mut l, 1, b"same", false, t);
         assert!(matches!(
             &decide_all(&mut l, 0, pair)[..],
-            [Decision::Forward { index: 0, .. }]
+            [Decided {
+                index: 0,
+                decision: Decision::Forward { .. },
+                ..
+            }]
         ));
     }
 
@@ -765,14 +717,7 @@ mod tests {
         scored(&mut l, 0, b"a", true, t);
         scored(&mut l, 1, b"a", true, t);
         scored(&mut l, 2, b"b", false, t);
-        assert_eq!(
-            decide_all(&mut l, 0, all),
-            [Decision::Forward {
-                index: 0,
-                frame: b"a".to_vec(),
-                dissent: set(&[2])
-            }]
-        );
+        assert_eq!(decide_all(&mut l, 0, all), [forward(0, b"a", 0, set(&[2]))]);
         // Two of three copies that differ and one flagged: the third may still confirm one.
         scored(&mut l, 0, b"c", true, t);
         scored(&mut l, 1, b"d", false, t);
@@ -789,7 +734,11 @@ mod tests {
         scored(&mut l, 0, b"b", false, t);
         assert!(matches!(
             &decide_all(&mut l, 0, set(&[0]))[..],
-            [Decision::Forward { index: 1, .. }]
+            [Decided {
+                index: 1,
+                decision: Decision::Forward { .. },
+                ..
+            }]
         ));
         let mut fresh = Ledger::new(1, 1, 8);
         fresh.flag_last(0, 0);

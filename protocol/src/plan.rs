@@ -4,9 +4,9 @@
 use std::os::fd::RawFd;
 use std::path::PathBuf;
 
-use s3res_anomaly::FieldLayout;
 use serde::{Deserialize, Serialize};
 
+use crate::layout::FieldLayout;
 use crate::sched::Schedule;
 
 /// One external port of the protected component: the fd the voter inherited for it.

@@ -142,6 +142,10 @@ pub mod handshake {
     }
 
     impl FdTransfer {
+        /// The message as the bytes it is sent as (the crate's one `unsafe`: a view of the
+        /// struct's own memory, which a byte copy would not give without an allocation in
+        /// the signal handler's path).
+        #[allow(unsafe_code)]
         pub fn as_bytes(&self) -> &[u8] {
             // SAFETY: repr(C) struct of integers only, no padding (4-byte fields), so every
             // byte is initialised and the slice covers exactly the struct.

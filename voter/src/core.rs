@@ -1,0 +1,936 @@
+//! The voter's core: what it does whatever its mode. It owns the component's external ports,
+//! the replicas (one slot each), the faults waiting for their replacement, the recovery
+//! socket, the event writer, the real-time settings and the anomaly monitors.
+//!
+//! A mode ([`crate::reactive`], [`crate::stream`]) wraps a [`Core`] and implements [`Mode`]:
+//! how it reads replicas' outputs, what it decides about them (through
+//! [`crate::decision`]), and what a fault changes in its own bookkeeping. The loop's shared
+//! steps are generic over the mode: [`wait_and_dispatch`] (one `ppoll`, then each ready fd),
+//! [`fault_closed_outputs`], [`recover_faulty`] (fork from the best donor, else exec).
+//! [`Core::apply`] turns a decision into the frame sent and the events written, the same way
+//! for both modes.
+
+use std::os::fd::OwnedFd;
+use std::os::unix::net::UnixListener;
+use std::time::Duration;
+
+use nix::sys::signalfd::SignalFd;
+use replica_rt::frame::FrameError;
+use replica_rt::sys;
+use thiserror::Error;
+
+use crate::channel::Fill;
+use crate::clock::{self, ClockError, Instant};
+use crate::decision::Decision;
+use crate::event::{Cause, Event, EventKind, RecoveryMethod};
+use crate::monitor::{Captures, Monitors};
+use crate::plan::{Mode as PlanMode, VoterPlan};
+use crate::ports::{
+    kill_all_children, reap_children, stop_requested, wait_until, write_event, Endpoints,
+    ExternalInput, ExternalOutput, PollSet, Token,
+};
+use crate::recovery::{self, DonorState, Forked, RecoveryError};
+use crate::replica::Replica;
+use crate::rt::RealTime;
+use crate::vote::{ReplicaSet, MAX_REPLICAS};
+
+/// How long a replica whose output pipe closed may take to show up as dead before we call it a
+/// protocol fault instead of a crash. The kernel closes a dying process's fds before it signals
+/// the exit, so the two are seen a moment apart.
+pub(crate) const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
+/// How long replicas get to exit by themselves after their input is closed at the end.
+pub(crate) const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
+/// How long downstream gets to take the last voted frames at the end.
+pub(crate) const OUTPUT_DRAIN_LIMIT: Duration = Duration::from_secs(10);
+/// How long to wait for a killed replica to be gone before recovering its slot anyway.
+pub(crate) const DEATH_WAIT: Duration = Duration::from_secs(1);
+
+#[derive(Debug, Error)]
+pub enum VoterError {
+    #[error("invalid plan: {0}")]
+    Plan(String),
+    #[error("{what}: {source}")]
+    Io {
+        what: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("component failed beyond recovery: {0}")]
+    Unrecoverable(String),
+    #[error(transparent)]
+    Clock(#[from] ClockError),
+}
+
+pub(crate) fn io_err(what: impl Into<String>) -> impl FnOnce(std::io::Error) -> VoterError {
+    let what = what.into();
+    move |source| VoterError::Io { what, source }
+}
+
+/// A slot whose replacement could not be made (fork and exec both failed: a process limit, a
+/// full memory): the component runs degraded, and the voter tries again, with backoff.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Vacancy {
+    pub(crate) slot: usize,
+    old_pid: i32,
+    detected_ns: u64,
+    next_try: Instant,
+    backoff: Duration,
+}
+
+/// First and longest wait between two tries to fill a vacant slot.
+const VACANCY_BACKOFF: (Duration, Duration) = (Duration::from_millis(10), Duration::from_secs(1));
+
+/// A replica that was found faulty and killed, waiting to be replaced.
+pub(crate) struct Fault {
+    pub(crate) slot: usize,
+    pub(crate) replica: Replica,
+    pub(crate) detected_ns: u64,
+}
+
+/// Why the loop ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Stop {
+    /// Every input closed: let replicas finish, then exit cleanly.
+    InputsClosed,
+    /// SIGTERM/SIGINT.
+    Requested,
+}
+
+/// Where a decision was made, for events: a reactive round, or a frame of a stream output.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum At {
+    Round(u64),
+    Frame(u64),
+}
+
+impl std::fmt::Display for At {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            At::Round(n) => write!(f, "round {n}"),
+            At::Frame(k) => write!(f, "frame {k}"),
+        }
+    }
+}
+
+impl At {
+    /// Fills the event's `round` or `frame`.
+    fn mark(self, ev: &mut Event) {
+        match self {
+            At::Round(n) => ev.round = Some(n),
+            At::Frame(k) => ev.frame = Some(k),
+        }
+    }
+}
+
+/// The replicas a decision found faulty, with the cause and the text for their events.
+pub(crate) struct Blame {
+    pub(crate) suspects: ReplicaSet,
+    pub(crate) cause: Cause,
+    pub(crate) detail: String,
+}
+
+/// What a mode adds to the core. The core calls these from the steps it shares.
+pub(crate) trait Mode: Sized {
+    fn core(&mut self) -> &mut Core;
+    /// The mode's event loop: until the inputs close and the replicas finish, or a stop.
+    fn run_loop(&mut self) -> Result<(), VoterError>;
+    /// Replica `r` is faulty: [`Core::record_fault`], then the mode's own bookkeeping (a
+    /// smaller quorum may decide a pending vote).
+    fn fault(&mut self, r: usize, cause: Cause, detail: String);
+    /// Fills the core's poll set for the next wait.
+    fn build_poll_set(&mut self);
+    /// When the loop must wake up at the latest.
+    fn next_wakeup(&mut self) -> Option<Instant>;
+    fn on_input_readable(&mut self, i: usize);
+    fn on_replica_output(&mut self, r: usize, o: usize);
+    fn on_replica_exit(&mut self, r: usize);
+    /// How far each replica has got (frames taken from it): the donor choice prefers the
+    /// furthest.
+    fn progress(&self) -> [u64; MAX_REPLICAS];
+    /// Replica `r` closed an output (see [`output_closed`]).
+    fn on_output_closed(&mut self, r: usize) {
+        output_closed(self, r);
+    }
+    /// Forks donor `d` into `slot`: on success the child holds the slot and the donor's place
+    /// in the mode's bookkeeping. Returns the child's pid.
+    fn fork_into(&mut self, slot: usize, d: usize) -> Result<libc::pid_t, String>;
+    /// After the recovery event of a fork into `slot`.
+    fn forked(&mut self, _slot: usize) {}
+    /// A fresh replica started by exec holds `slot` now.
+    fn started_fresh(&mut self, slot: usize);
+}
+
+/// The mode-independent state of a voter.
+pub(crate) struct Core {
+    pub(crate) plan: VoterPlan,
+    pub(crate) inputs: Vec<ExternalInput>,
+    pub(crate) outputs: Vec<ExternalOutput>,
+    /// One per replica slot; `None` while the slot's replica is faulty and not yet replaced.
+    pub(crate) slots: Vec<Option<Replica>>,
+    pub(crate) faults: Vec<Fault>,
+    /// Slots whose replacement failed, tried again with backoff.
+    pub(crate) vacant: Vec<Vacancy>,
+    /// Names the current fork attempt; a child of an older attempt is refused.
+    restart_nonce: u32,
+    listener: UnixListener,
+    signals: SignalFd,
+    events: Option<OwnedFd>,
+    pub(crate) stop: Option<Stop>,
+    pub(crate) poll: PollSet,
+    /// Priorities, pinning and the raising of turns.
+    pub(crate) rt: RealTime,
+    /// Anomaly detectors on the outputs.
+    pub(crate) monitors: Monitors,
+    /// Voted frames written to files (training data).
+    pub(crate) captures: Captures,
+}
+
+impl Core {
+    /// Checks the plan, calibrates the clock, loads the detectors, takes over the fds named in
+    /// `plan`, binds the socket, and starts the replicas.
+    pub(crate) fn start(plan: VoterPlan) -> Result<Core, VoterError> {
+        validate(&plan)?;
+        // Calibrated before the first round, so that it never eats into a deadline.
+        clock::init()?;
+        // Models are checked before any replica starts: a bad one is an error, not a surprise.
+        let monitors = Monitors::load(&plan)?;
+        let captures = Captures::open(&plan)?;
+        let Endpoints {
+            signals,
+            inputs,
+            outputs,
+            events,
+            listener,
+        } = Endpoints::open(&plan)?;
+        // Before the first replica: replicas start from the voter's settings.
+        let mut rt = RealTime::new(&plan);
+        rt.apply_to_voter();
+        let slots = start_replicas(&plan, events.as_ref(), |pid, slot| {
+            rt.apply_to_replica(pid, slot)
+        })?;
+        Ok(Core {
+            plan,
+            inputs,
+            outputs,
+            slots,
+            faults: Vec::new(),
+            vacant: Vec::new(),
+            restart_nonce: 0,
+            listener,
+            signals,
+            events,
+            stop: None,
+            poll: PollSet::default(),
+            rt,
+            monitors,
+            captures,
+        })
+    }
+
+    /// The trusted replicas whose state is lost (see `decision.rs`).
+    pub(crate) fn fresh(&self) -> ReplicaSet {
+        (0..self.slots.len())
+            .filter(|&r| self.slots[r].as_ref().is_some_and(|rep| rep.state_lost))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with)
+    }
+
+    /// The trusted replicas: every filled slot.
+    pub(crate) fn alive(&self) -> ReplicaSet {
+        (0..self.slots.len())
+            .filter(|&r| self.slots[r].is_some())
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with)
+    }
+
+    pub(crate) fn output_name(&self, o: usize) -> &str {
+        &self.plan.outputs[o].name
+    }
+
+    pub(crate) fn input_name(&self, i: usize) -> &str {
+        &self.plan.inputs[i].name
+    }
+
+    /// Starts the wait set: the signalfd, the external inputs (if `take_input`) and the
+    /// outputs with frames queued.
+    pub(crate) fn reset_poll(&mut self, take_input: bool) {
+        self.poll
+            .reset(&self.signals, &self.inputs, take_input, &self.outputs);
+    }
+
+    // ----- events ------------------------------------------------------------------------
+
+    pub(crate) fn event(&self, kind: EventKind) -> Event {
+        Event::new(&self.plan.system, &self.plan.component, kind)
+    }
+
+    pub(crate) fn emit(&self, ev: Event) {
+        write_event(self.events.as_ref(), &ev);
+    }
+
+    /// Every alarm is an `anomaly` event, whatever the voter then does about it. `again`: the
+    /// replica's previous frame on `o` alarmed too.
+    pub(crate) fn anomaly_event(&self, r: usize, pid: libc::pid_t, o: usize, at: At, again: bool) {
+        let Some(alarm) = self.monitors.alarm(r, o) else {
+            return;
+        };
+        let (cause, note) = if again {
+            (
+                Cause::AlarmAgain,
+                "; its previous frame alarmed too (this may be the way back from it)",
+            )
+        } else {
+            (Cause::Alarm, "")
+        };
+        let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
+        ev.replica = Some(r);
+        ev.pid = Some(pid);
+        at.mark(&mut ev);
+        ev.output = Some(self.output_name(o).to_owned());
+        ev.field = alarm.field;
+        ev.score = alarm.score;
+        ev.threshold = Some(alarm.threshold);
+        ev.detail = Some(match at {
+            At::Round(_) => format!("{}{note}", alarm.cause),
+            At::Frame(k) => format!("{} (frame {k}){note}", alarm.cause),
+        });
+        self.emit(ev);
+    }
+
+    // ----- faults ------------------------------------------------------------------------
+
+    /// Records a fault of replica `r`: kills it at once, writes the event, and queues its slot
+    /// for recovery. Returns its pid, or `None` if the slot was already faulty.
+    pub(crate) fn record_fault(
+        &mut self,
+        r: usize,
+        cause: Cause,
+        detail: String,
+        round: Option<u64>,
+    ) -> Option<libc::pid_t> {
+        let replica = self.slots[r].take()?;
+        replica.kill();
+        if self.slots.iter().flatten().all(|rep| rep.state_lost) {
+            // The last replica that kept the component's state is gone: what the others hold
+            // is the only state there is now.
+            for rep in self.slots.iter_mut().flatten() {
+                rep.state_lost = false;
+            }
+        }
+        let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
+        ev.replica = Some(r);
+        ev.pid = Some(replica.pid);
+        ev.round = round;
+        ev.detail = Some(detail);
+        let detected_ns = ev.ts_ns;
+        self.emit(ev);
+        let pid = replica.pid;
+        self.faults.push(Fault {
+            slot: r,
+            replica,
+            detected_ns,
+        });
+        Some(pid)
+    }
+
+    /// What a replica whose output pipe closed turns out to be once [`EXIT_AFTER_EOF`] has
+    /// passed: a crash if it is gone, a protocol fault if it lives. `None` while the grace
+    /// runs, or if no output of it closed.
+    fn closed_output_fault(&self, r: usize) -> Option<(Cause, String)> {
+        let rep = self.slots[r].as_ref()?;
+        let since = rep.output_closed_at?;
+        // On the counter, exactly as the wake-up was set (a duration read off the counter is
+        // rounded down, and could keep the loop spinning a few µs past it).
+        if Instant::now() < since + EXIT_AFTER_EOF {
+            return None;
+        }
+        if rep.exited_within(Duration::ZERO) {
+            return Some((Cause::Died, DIED.into()));
+        }
+        let closed = rep
+            .outputs
+            .iter()
+            .position(|out| out.is_closed())
+            .unwrap_or(0);
+        let name = self.output_name(closed);
+        Some(match rep.outputs[closed].decoder.finish() {
+            Err(e @ FrameError::Truncated { .. }) => {
+                (Cause::PartialFrame, format!("output `{name}`: {e}"))
+            }
+            _ => (Cause::ClosedOutput, format!("closed its output `{name}`")),
+        })
+    }
+
+    /// Why replica `r` missed a frame it owed, seen at a deadline: a partial frame in its pipe
+    /// is a protocol fault, nothing at all a hang (`hang` is the cause the mode names).
+    pub(crate) fn late_cause(&self, r: usize, hang: Cause) -> (Cause, Option<usize>) {
+        let partial = self.slots[r]
+            .as_ref()
+            .and_then(|rep| rep.outputs.iter().position(|out| out.decoder.pending() > 0));
+        match partial {
+            Some(o) => (Cause::PartialFrame, Some(o)),
+            None => (hang, None),
+        }
+    }
+
+    // ----- decisions ---------------------------------------------------------------------
+
+    /// Carries out `decision` on output `o`: sends `frame` (what the decision forwards, unless
+    /// it was sent already), records it for capture, writes the events of an unattributed
+    /// fault, and returns whom the mode must fault.
+    pub(crate) fn apply(
+        &mut self,
+        o: usize,
+        at: At,
+        decision: &Decision,
+        frame: Option<&[u8]>,
+    ) -> Option<Blame> {
+        if let Some(frame) = frame {
+            self.outputs[o].send(frame);
+            self.captures.record(o, frame);
+        }
+        let name = self.output_name(o);
+        let unattributed = match decision {
+            Decision::Withhold { answered } if answered.is_empty() => {
+                tracing::warn!(%at, output = %name, "no replica answered; nothing forwarded");
+                None
+            }
+            Decision::Withhold { answered } => Some((
+                Cause::NoMajority,
+                format!("no majority on `{name}` in {at}: replicas {answered:?} disagree; withheld"),
+            )),
+            Decision::Rebuild(rebuilt) => rebuilt.kept.map(|k| {
+                (
+                    Cause::AllDiffer,
+                    format!(
+                        "no majority on `{name}` in {at}, every replica's frame differs from the bitwise majority (forwarded); replica {k}, the closest, kept as donor"
+                    ),
+                )
+            }),
+            _ => None,
+        };
+        if let Some((cause, detail)) = unattributed {
+            let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
+            at.mark(&mut ev);
+            ev.detail = Some(detail);
+            self.emit(ev);
+        }
+        let (suspects, cause) = decision.blame();
+        if suspects.is_empty() {
+            return None;
+        }
+        let detail = match decision {
+            Decision::Forward { .. } => format!("`{name}` differs from the majority in {at}"),
+            Decision::Rebuild(rebuilt) => format!(
+                "`{name}` had no majority in {at} and differs from the bitwise majority, which was forwarded (≤ {} bits apart)",
+                rebuilt.max_bits
+            ),
+            Decision::HoldBack { .. } => format!(
+                "the anomaly detector flagged `{name}` in {at} (see its `anomaly` event) and no other replica confirms it; held back"
+            ),
+            Decision::Attribute { healthy, .. } => format!(
+                "`{name}` in {at} differs from replica {healthy}'s and only its copy alarmed the anomaly detector (see its `anomaly` event); replica {healthy}'s was forwarded"
+            ),
+            Decision::Withhold { .. } => unreachable!("a withheld frame blames nobody"),
+        };
+        Some(Blame {
+            suspects,
+            cause,
+            detail,
+        })
+    }
+
+    // ----- input -------------------------------------------------------------------------
+
+    /// Copies the next whole frame buffered on input `i` to every trusted replica. `None` when
+    /// no whole frame is buffered (or upstream broke the framing: the input is closed, since
+    /// we cannot resynchronise). Replicas whose pipe broke, or that have not taken more than
+    /// `backlog_limit` bytes of it, are returned for the mode to fault.
+    pub(crate) fn deliver_next(
+        &mut self,
+        i: usize,
+        backlog_limit: Option<usize>,
+    ) -> Option<Delivery> {
+        let input = &mut self.inputs[i];
+        let frame = match input.reader.decoder.next_frame() {
+            Ok(Some(f)) => f,
+            Ok(None) => return None,
+            Err(e) => {
+                tracing::error!(input = %input.name, error = %e, "bad frame from upstream; dropping the rest of this input");
+                input.reader.close();
+                return None;
+            }
+        };
+        let mut delivery = Delivery::default();
+        for (r, rep) in self.slots.iter_mut().enumerate() {
+            let Some(rep) = rep else { continue };
+            match rep.inputs[i].writer.send(frame) {
+                Ok(()) => delivery.members = delivery.members.with(r),
+                Err(e) => delivery.faulty.push((
+                    r,
+                    Cause::PipeError,
+                    format!("input pipe `{}` broke: {e}", input.name),
+                )),
+            }
+            let backlog = rep.inputs[i].writer.unwritten().len();
+            if let Some(limit) = backlog_limit.filter(|&l| backlog > l) {
+                // A replica that stopped reading an input no round waits on (stopped, spinning,
+                // stuck on another port) would make the voter queue for it without end.
+                delivery.faulty.push((
+                    r,
+                    Cause::InputBacklog,
+                    format!(
+                        "has not taken {backlog} bytes of input on `{}` (limit {limit})",
+                        input.name
+                    ),
+                ));
+            }
+        }
+        Some(delivery)
+    }
+
+    // ----- recovery ----------------------------------------------------------------------
+
+    /// Forks `d` for a new replica: the donor runs above its siblings while it forks (S³RES
+    /// §4.4), and goes back to rest after.
+    pub(crate) fn fork(&mut self, d: usize, state: DonorState) -> Result<Forked, RecoveryError> {
+        let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
+        self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
+        let donor = self.slots[d].as_mut().expect("donor slot is filled");
+        let donor_pid = donor.pid;
+        self.rt.raise(donor_pid);
+        let forked = recovery::fork(
+            &self.plan,
+            &self.listener,
+            donor,
+            self.restart_nonce,
+            &family,
+            state,
+        );
+        self.rt.rest(donor_pid, d);
+        forked
+    }
+
+    /// A `recovery` event: `slot` went from `old_pid` to `new_pid`, `detected_ns` after the
+    /// fault.
+    fn recovery_event(&self, slot: usize, old_pid: i32, new_pid: i32, detected_ns: u64) -> Event {
+        let mut ev = self.event(EventKind::Recovery);
+        ev.replica = Some(slot);
+        ev.pid = Some(old_pid);
+        ev.new_pid = Some(new_pid);
+        ev.recovery_us = Some(ev.ts_ns.saturating_sub(detected_ns) / 1000);
+        ev
+    }
+
+    /// Fills `slot` with a fresh replica started by exec (state lost, and the event says so).
+    /// `Ok(false)` if it could not be started but other replicas remain; an error if none does.
+    fn replace_by_exec(
+        &mut self,
+        slot: usize,
+        old_pid: i32,
+        detected_ns: u64,
+        retry: bool,
+    ) -> Result<bool, VoterError> {
+        match Replica::spawn(&self.plan, slot) {
+            Ok(fresh) => {
+                self.rt.apply_to_replica(fresh.pid, slot);
+                let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
+                ev.method = Some(RecoveryMethod::Exec);
+                ev.state_lost = Some(true);
+                self.emit(ev);
+                let mut fresh = fresh;
+                // Its state is lost, unless no replica kept any: then it is as good as any.
+                fresh.state_lost = self.slots.iter().flatten().any(|r| !r.state_lost);
+                self.slots[slot] = Some(fresh);
+                // A fresh process: its first frame is a warm-up for the detectors.
+                self.monitors.reset_stream(slot);
+                Ok(true)
+            }
+            Err(e) if retry => {
+                tracing::debug!(replica = slot, error = %e, "still cannot start a replica");
+                Ok(false)
+            }
+            Err(e) => {
+                let mut ev = self.event(EventKind::RecoveryFailed);
+                ev.replica = Some(slot);
+                ev.pid = Some(old_pid);
+                ev.detail = Some(format!(
+                    "could not start {}: {e}; the component runs degraded and the voter tries again",
+                    self.plan.exec.display()
+                ));
+                self.emit(ev);
+                if self.slots.iter().all(Option::is_none) {
+                    return Err(VoterError::Unrecoverable(format!(
+                        "no replica left and {} cannot be started: {e}",
+                        self.plan.exec.display()
+                    )));
+                }
+                Ok(false)
+            }
+        }
+    }
+
+    // ----- the end -----------------------------------------------------------------------
+
+    /// Writes out what is still queued for downstream (blocking up to [`OUTPUT_DRAIN_LIMIT`]),
+    /// then gives the replicas [`SHUTDOWN_GRACE`] to exit by themselves.
+    pub(crate) fn drain_and_let_finish(&mut self) {
+        let drain_deadline = Instant::now() + OUTPUT_DRAIN_LIMIT;
+        for out in &mut self.outputs {
+            out.drain(drain_deadline);
+        }
+        let deadline = Instant::now() + SHUTDOWN_GRACE;
+        for rep in self.slots.iter().flatten() {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if !rep.exited_within(left) {
+                tracing::warn!(
+                    pid = rep.pid,
+                    "replica did not finish after its input closed; killing it"
+                );
+            }
+        }
+    }
+
+    /// Kills every replica (trusted or faulty) and everything re-parented to us, after giving
+    /// downstream whatever it takes at once; removes the socket.
+    pub(crate) fn shut_down(&mut self) {
+        self.captures.flush();
+        self.monitors.log_cost();
+        // On a requested stop, whatever downstream can take right now still goes out.
+        for out in self.outputs.iter_mut() {
+            if out.writer.has_pending() && !out.broken {
+                out.flush();
+            }
+        }
+        self.kill_replicas();
+        for rep in self.slots.iter().flatten() {
+            rep.exited_within(DEATH_WAIT);
+        }
+        kill_all_children(Duration::from_secs(3));
+        let _ = std::fs::remove_file(&self.plan.socket_path);
+    }
+
+    /// Kills every replica, trusted or faulty.
+    fn kill_replicas(&self) {
+        for rep in self.slots.iter().flatten() {
+            rep.kill();
+        }
+        for fault in &self.faults {
+            fault.replica.kill();
+        }
+    }
+}
+
+/// Also on a panic: no replica outlives its voter (bootstrap's sweep would catch them, but the
+/// voter should not depend on it).
+impl Drop for Core {
+    fn drop(&mut self) {
+        self.kill_replicas();
+    }
+}
+
+/// The text of every `crash` event.
+pub(crate) const DIED: &str = "the replica process died";
+
+/// What copying one input frame to the replicas found.
+#[derive(Debug, Default)]
+pub(crate) struct Delivery {
+    /// The replicas it was written (or queued) to.
+    pub(crate) members: ReplicaSet,
+    /// Replicas to fault: a broken pipe, or a backlog beyond the limit.
+    pub(crate) faulty: Vec<(usize, Cause, String)>,
+}
+
+// ----- the loop's shared steps, generic over the mode ---------------------------------------
+
+/// Runs the mode's loop, then stops everything: every replica and everything re-parented to
+/// the voter is killed, also after an error.
+pub(crate) fn run(mut m: impl Mode) -> Result<(), VoterError> {
+    let result = m.run_loop();
+    m.core().shut_down();
+    result
+}
+
+/// One `ppoll` on everything that can make progress, bounded by the mode's next wake-up, then
+/// each ready fd to the core or the mode.
+pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
+    m.build_poll_set();
+    let retry = m.core().vacant.iter().map(|v| v.next_try).min();
+    let wake = match (m.next_wakeup(), retry) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    };
+    let ready = wait_until(&mut m.core().poll.fds, wake)?;
+    if ready == 0 {
+        return Ok(());
+    }
+    for k in 0..m.core().poll.fds.len() {
+        let core = m.core();
+        if core.poll.fds[k].revents == 0 {
+            continue;
+        }
+        match core.poll.tokens[k] {
+            Token::Signal => {
+                if stop_requested(&core.signals) {
+                    core.stop = Some(Stop::Requested);
+                }
+            }
+            Token::Input(i) => m.on_input_readable(i),
+            Token::OutputWritable(o) => core.outputs[o].flush(),
+            Token::ReplicaExit(r) => m.on_replica_exit(r),
+            Token::ReplicaOutput(r, o) => m.on_replica_output(r, o),
+            Token::ReplicaInputWritable(r, i) => {
+                let flushed = core.slots[r].as_mut().map(|rep| rep.flush_input(i));
+                if let Some(Err(e)) = flushed {
+                    let detail = format!("input pipe `{}` broke: {e}", core.input_name(i));
+                    m.fault(r, Cause::PipeError, detail);
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A replica closed an output. The kernel closes a dying process's fds just before it
+/// reports the exit, so this is a crash if the pidfd follows within [`EXIT_AFTER_EOF`] (the
+/// event loop watches it, without blocking), else a protocol fault.
+pub(crate) fn output_closed(m: &mut impl Mode, r: usize) {
+    if m.core().slots[r]
+        .as_mut()
+        .is_some_and(Replica::note_output_closed)
+    {
+        m.fault(r, Cause::Died, DIED.into());
+    }
+}
+
+/// What a read of replica `r`'s output `o` found besides frames: the end of the pipe (see
+/// [`output_closed`]) or an error, a protocol fault.
+pub(crate) fn after_read(m: &mut impl Mode, r: usize, o: usize, fill: std::io::Result<Fill>) {
+    match fill {
+        Ok(Fill::Open) => {}
+        Ok(Fill::Closed) => m.on_output_closed(r),
+        Err(e) => {
+            let detail = format!("reading output `{}`: {e}", m.core().output_name(o));
+            m.fault(r, Cause::PipeError, detail);
+        }
+    }
+}
+
+/// Faults the replicas whose output closed more than [`EXIT_AFTER_EOF`] ago: crashed, or
+/// (still alive) broke the protocol.
+pub(crate) fn fault_closed_outputs(m: &mut impl Mode) {
+    for r in 0..m.core().slots.len() {
+        if let Some((cause, detail)) = m.core().closed_output_fault(r) {
+            m.fault(r, cause, detail);
+        }
+    }
+}
+
+/// Replaces every faulty replica (see [`replace`]), and tries again to fill the slots whose
+/// replacement failed before, once their backoff has passed; with `replace_them` false (the
+/// voter is stopping or ending) the faults stay recorded and nothing is started. Returns
+/// whether it did anything (the loop was away meanwhile).
+pub(crate) fn recover_faulty(m: &mut impl Mode, replace_them: bool) -> Result<bool, VoterError> {
+    let mut worked = false;
+    while let Some(fault) = m.core().faults.pop() {
+        worked = true;
+        if !replace_them {
+            continue;
+        }
+        let (slot, old_pid, detected_ns) = fault.retire();
+        if !replace(m, slot, old_pid, detected_ns, false)? {
+            m.core().vacant.push(Vacancy {
+                slot,
+                old_pid,
+                detected_ns,
+                next_try: Instant::now() + VACANCY_BACKOFF.0,
+                backoff: VACANCY_BACKOFF.0,
+            });
+        }
+    }
+    if !replace_them {
+        return Ok(worked);
+    }
+    let now = Instant::now();
+    let due: Vec<Vacancy> = m
+        .core()
+        .vacant
+        .iter()
+        .filter(|v| v.next_try <= now)
+        .copied()
+        .collect();
+    for v in due {
+        worked = true;
+        let filled = replace(m, v.slot, v.old_pid, v.detected_ns, true)?;
+        let vacant = &mut m.core().vacant;
+        let Some(k) = vacant.iter().position(|w| w.slot == v.slot) else {
+            continue;
+        };
+        if filled {
+            vacant.remove(k);
+            tracing::info!(replica = v.slot, "redundancy restored");
+        } else {
+            let backoff = (v.backoff * 2).min(VACANCY_BACKOFF.1);
+            vacant[k].backoff = backoff;
+            vacant[k].next_try = Instant::now() + backoff;
+        }
+    }
+    Ok(worked)
+}
+
+/// Fills `slot` by fork of the best donor, else by exec (state lost). A candidate donor that
+/// never waits within `timeout_us` is a hang itself (its child would spin too). A donor that
+/// fails during the fork (it died, or stopped) is passed over for the next best before the
+/// voter falls back to exec: a fresh replica must not replace one that could still have been
+/// rebuilt with the component's state.
+fn replace(
+    m: &mut impl Mode,
+    slot: usize,
+    old_pid: i32,
+    detected_ns: u64,
+    retry: bool,
+) -> Result<bool, VoterError> {
+    let patience = Duration::from_micros(m.core().plan.timeout_us);
+    let mut failed = ReplicaSet::EMPTY;
+    loop {
+        let progress = m.progress();
+        let pick = crate::replica::best_donor(&m.core().slots, |d| progress[d], patience, failed);
+        for r in pick.hung {
+            let detail = format!(
+                "picked as recovery donor, it ran for {} µs without once waiting for input or producing a frame",
+                m.core().plan.timeout_us
+            );
+            m.fault(r, Cause::DonorSpinning, detail);
+        }
+        let Some(d) = pick.donor else { break };
+        let state_lost = m.core().slots[d].as_ref().is_some_and(|r| r.state_lost);
+        match m.fork_into(slot, d) {
+            Ok(pid) => {
+                let core = m.core();
+                if let Some(child) = core.slots[slot].as_mut() {
+                    child.state_lost = state_lost;
+                }
+                // The child inherited the donor's priority and CPU; it takes the slot's.
+                core.rt.apply_to_replica(pid, slot);
+                // The child continues the donor's frames, so its detector stream too.
+                core.monitors.copy_stream(d, slot);
+                let mut ev = core.recovery_event(slot, old_pid, pid, detected_ns);
+                ev.donor = Some(d);
+                ev.method = Some(RecoveryMethod::Fork);
+                ev.state_lost = Some(state_lost);
+                core.emit(ev);
+                m.forked(slot);
+                return Ok(true);
+            }
+            Err(e) => {
+                tracing::warn!(replica = slot, donor = d, error = %e, "recovery by fork failed; trying the next donor");
+                failed = failed.with(d);
+            }
+        }
+    }
+    let started = m
+        .core()
+        .replace_by_exec(slot, old_pid, detected_ns, retry)?;
+    if started {
+        m.started_fresh(slot);
+    }
+    Ok(started)
+}
+
+impl Fault {
+    /// Makes sure the killed replica is gone (bounded) and reaped; returns its slot, pid and
+    /// when it was found faulty.
+    pub(crate) fn retire(self) -> (usize, i32, u64) {
+        let Fault {
+            slot,
+            replica: old,
+            detected_ns,
+        } = self;
+        if !old.exited_within(DEATH_WAIT) {
+            tracing::warn!(pid = old.pid, "killed replica has not exited yet");
+        }
+        if old.our_child {
+            let _ = sys::reap(old.pid);
+        }
+        drop(old.pidfd);
+        reap_children();
+        (slot, old.pid, detected_ns)
+    }
+}
+
+/// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,
+/// slot)` runs for each new process first (to apply scheduling settings).
+fn start_replicas(
+    plan: &VoterPlan,
+    events: Option<&OwnedFd>,
+    mut on_spawn: impl FnMut(libc::pid_t, usize),
+) -> Result<Vec<Option<Replica>>, VoterError> {
+    let mut slots: Vec<Option<Replica>> = (0..plan.replicas).map(|_| None).collect();
+    for slot in 0..plan.replicas {
+        let replica = match Replica::spawn(plan, slot) {
+            Ok(r) => r,
+            Err(e) => {
+                // The ones already running must not outlive this failed start.
+                for rep in slots.iter().flatten() {
+                    rep.kill();
+                }
+                for rep in slots.iter().flatten() {
+                    rep.exited_within(DEATH_WAIT);
+                    let _ = sys::reap(rep.pid);
+                }
+                return Err(io_err(format!(
+                    "starting replica {slot} ({})",
+                    plan.exec.display()
+                ))(e));
+            }
+        };
+        on_spawn(replica.pid, slot);
+        let mut ev = Event::new(&plan.system, &plan.component, EventKind::Start);
+        ev.replica = Some(slot);
+        ev.pid = Some(replica.pid);
+        write_event(events, &ev);
+        slots[slot] = Some(replica);
+    }
+    Ok(slots)
+}
+
+/// Checks what a plan must hold before anything starts.
+pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
+    let fail = |m: String| Err(VoterError::Plan(m));
+    if plan.replicas == 0 || plan.replicas > MAX_REPLICAS {
+        return fail(format!(
+            "replicas must be 1..={MAX_REPLICAS}, got {}",
+            plan.replicas
+        ));
+    }
+    if plan.timeout_us == 0 {
+        return fail("timeout_us must be above 0".into());
+    }
+    if plan.inputs.len() + plan.outputs.len() > replica_rt::contract::MAX_PORTS {
+        return fail(format!(
+            "more than {} ports",
+            replica_rt::contract::MAX_PORTS
+        ));
+    }
+    for r in &plan.rounds {
+        if !plan.inputs.iter().any(|p| p.name == r.input) {
+            return fail(format!("round input `{}` is not an input", r.input));
+        }
+        for o in &r.outputs {
+            if !plan.outputs.iter().any(|p| &p.name == o) {
+                return fail(format!("round output `{o}` is not an output"));
+            }
+        }
+    }
+    match plan.mode {
+        PlanMode::Reactive if plan.rounds.is_empty() => {
+            fail("reactive mode needs at least one input that starts rounds".into())
+        }
+        PlanMode::Stream if !plan.rounds.is_empty() => {
+            fail("stream mode has no rounds; the plan lists some".into())
+        }
+        PlanMode::Stream if plan.window == 0 => fail("the stream window must be above 0".into()),
+        PlanMode::Stream if plan.inputs.is_empty() => {
+            fail("stream mode needs an input (its end ends the component)".into())
+        }
+        _ => Ok(()),
+    }
+}

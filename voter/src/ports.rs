@@ -1,0 +1,355 @@
+//! The voter's ends of the world: the component's external inputs and outputs (non-blocking,
+//! with queues), the fds it inherits from bootstrap, the signalfd, the poll set one wait of
+//! the event loop watches, the event writer, and the sweep of children at the end.
+
+use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::os::unix::fs::PermissionsExt;
+use std::os::unix::net::UnixListener;
+use std::time::Duration;
+
+use nix::sys::signal::{SigSet, Signal};
+use nix::sys::signalfd::{SfdFlags, SignalFd};
+use replica_rt::sys;
+
+use crate::channel::{Fill, FrameReader, FrameWriter};
+use crate::clock::Instant;
+use crate::core::{io_err, VoterError};
+use crate::event::Event;
+use crate::plan::VoterPlan;
+use crate::replica::Replica;
+use crate::round::OutputSet;
+
+/// An input of the protected component: read by the voter, copied to every replica.
+pub(crate) struct ExternalInput {
+    pub(crate) name: String,
+    pub(crate) reader: FrameReader,
+    /// The outputs a frame on this input expects (its round), or `None` if it starts none.
+    pub(crate) round: Option<OutputSet>,
+}
+
+/// An output of the protected component: the voter writes the winners here.
+pub(crate) struct ExternalOutput {
+    pub(crate) name: String,
+    pub(crate) writer: FrameWriter,
+    /// The reader went away; later frames are dropped (said once).
+    pub(crate) broken: bool,
+}
+
+impl ExternalOutput {
+    /// Queues `frame` for downstream and writes what the pipe takes now.
+    pub(crate) fn send(&mut self, frame: &[u8]) {
+        if self.broken {
+            return;
+        }
+        if let Err(e) = self.writer.send(frame) {
+            tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+            self.broken = true;
+            self.writer.discard();
+        }
+    }
+
+    /// Writes what is queued, as far as the pipe takes it now.
+    pub(crate) fn flush(&mut self) {
+        if let Err(e) = self.writer.flush() {
+            if !self.broken {
+                tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+                self.broken = true;
+            }
+            // Nothing queued for a reader that will never come.
+            self.writer.discard();
+        }
+    }
+
+    /// Writes out what is still queued, blocking up to `deadline`.
+    pub(crate) fn drain(&mut self, deadline: Instant) {
+        while self.writer.has_pending() && !self.broken {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let mut pfd = [libc::pollfd {
+                fd: self.writer.as_fd().as_raw_fd(),
+                events: libc::POLLOUT,
+                revents: 0,
+            }];
+            if left.is_zero() || sys::ppoll(&mut pfd, Some(left)).unwrap_or(0) == 0 {
+                tracing::warn!(output = %self.name, "downstream did not take the last frames");
+                return;
+            }
+            self.flush();
+        }
+    }
+}
+
+/// What a slot of the poll set stands for.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Token {
+    Signal,
+    Input(usize),
+    OutputWritable(usize),
+    ReplicaExit(usize),
+    ReplicaOutput(usize, usize),
+    ReplicaInputWritable(usize, usize),
+}
+
+/// The fds one wait of an event loop watches, each with the [`Token`] saying what it stands
+/// for. Rebuilt before every wait from the loop's state; the vectors keep their capacity, so
+/// a steady-state round allocates nothing.
+#[derive(Debug, Default)]
+pub(crate) struct PollSet {
+    pub(crate) fds: Vec<libc::pollfd>,
+    pub(crate) tokens: Vec<Token>,
+}
+
+impl PollSet {
+    fn add(&mut self, fd: RawFd, events: libc::c_short, token: Token) {
+        self.fds.push(libc::pollfd {
+            fd,
+            events,
+            revents: 0,
+        });
+        self.tokens.push(token);
+    }
+
+    /// Starts a new set: the signalfd, the external inputs (if `take_input`) and the external
+    /// outputs with frames queued.
+    pub(crate) fn reset(
+        &mut self,
+        signals: &SignalFd,
+        inputs: &[ExternalInput],
+        take_input: bool,
+        outputs: &[ExternalOutput],
+    ) {
+        self.fds.clear();
+        self.tokens.clear();
+        self.add(signals.as_raw_fd(), libc::POLLIN, Token::Signal);
+        for (i, input) in inputs.iter().enumerate() {
+            if take_input && !input.reader.is_closed() {
+                self.add(
+                    input.reader.as_fd().as_raw_fd(),
+                    libc::POLLIN,
+                    Token::Input(i),
+                );
+            }
+        }
+        for (o, output) in outputs.iter().enumerate() {
+            if output.writer.has_pending() {
+                self.add(
+                    output.writer.as_fd().as_raw_fd(),
+                    libc::POLLOUT,
+                    Token::OutputWritable(o),
+                );
+            }
+        }
+    }
+
+    /// Replica `r`: its pidfd (if `watch_exit`), its open outputs that `may_read` allows, and
+    /// its inputs with bytes queued.
+    pub(crate) fn add_replica(
+        &mut self,
+        r: usize,
+        rep: &Replica,
+        watch_exit: bool,
+        may_read: impl Fn(usize) -> bool,
+    ) {
+        if watch_exit {
+            self.add(rep.pidfd.as_raw_fd(), libc::POLLIN, Token::ReplicaExit(r));
+        }
+        for (o, out) in rep.outputs.iter().enumerate() {
+            if !out.is_closed() && may_read(o) {
+                self.add(
+                    out.as_fd().as_raw_fd(),
+                    libc::POLLIN,
+                    Token::ReplicaOutput(r, o),
+                );
+            }
+        }
+        for (i, input) in rep.inputs.iter().enumerate() {
+            if input.writer.has_pending() {
+                self.add(
+                    input.writer.as_fd().as_raw_fd(),
+                    libc::POLLOUT,
+                    Token::ReplicaInputWritable(r, i),
+                );
+            }
+        }
+    }
+}
+
+/// One `ppoll` on `fds` until something is ready or `deadline` (none: no limit) comes;
+/// returns how many fds are ready. The timeout is read off the deadline clock, so it never
+/// outlasts the deadline (see `clock`).
+pub(crate) fn wait_until(
+    fds: &mut [libc::pollfd],
+    deadline: Option<Instant>,
+) -> Result<usize, VoterError> {
+    let timeout = deadline.map(|t| t.saturating_duration_since(Instant::now()));
+    // Not `.map_err(io_err("ppoll"))`: that builds its String on every wake-up, error or not.
+    sys::ppoll(fds, timeout).map_err(|source| VoterError::Io {
+        what: "ppoll".into(),
+        source,
+    })
+}
+
+impl ExternalInput {
+    /// One read from upstream into the decoder; an end or an error closes the input (logged).
+    pub(crate) fn read(&mut self) {
+        match self.reader.fill() {
+            Ok(Fill::Open) => {}
+            Ok(Fill::Closed) => {
+                if let Err(e) = self.reader.decoder.finish() {
+                    tracing::warn!(input = %self.name, error = %e, "input closed mid-frame");
+                }
+                tracing::debug!(input = %self.name, "input closed");
+            }
+            Err(e) => {
+                tracing::error!(input = %self.name, error = %e, "reading input failed; treating it as closed");
+                self.reader.close();
+            }
+        }
+    }
+}
+
+/// Reads the signalfd: reaps on SIGCHLD; `true` if SIGTERM/SIGINT came.
+pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
+    let mut stop = false;
+    while let Ok(Some(info)) = signals.read_signal() {
+        match info.ssi_signo as i32 {
+            libc::SIGCHLD => reap_children(),
+            sig => {
+                tracing::info!(signal = sig, "stop requested");
+                stop = true;
+            }
+        }
+    }
+    stop
+}
+
+/// What a voter opens before it starts replicas, whatever its mode.
+pub(crate) struct Endpoints {
+    pub(crate) signals: SignalFd,
+    pub(crate) inputs: Vec<ExternalInput>,
+    pub(crate) outputs: Vec<ExternalOutput>,
+    pub(crate) events: Option<OwnedFd>,
+    pub(crate) listener: UnixListener,
+}
+
+impl Endpoints {
+    /// Becomes a subreaper, takes the signals, adopts the fds named in `plan`, binds the socket.
+    pub(crate) fn open(plan: &VoterPlan) -> Result<Endpoints, VoterError> {
+        // Orphans (children of a donor that died) come to us, so they are reaped and killed.
+        sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
+        let signals = block_signals()?;
+
+        let inputs = plan
+            .inputs
+            .iter()
+            .map(|p| {
+                let round = plan.rounds.iter().find(|r| r.input == p.name).map(|r| {
+                    r.outputs.iter().fold(0, |set, name| {
+                        set | 1 << plan.outputs.iter().position(|o| &o.name == name).unwrap()
+                    })
+                });
+                Ok(ExternalInput {
+                    name: p.name.clone(),
+                    reader: FrameReader::new(inherited(p.fd), p.max_frame)
+                        .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
+                    round,
+                })
+            })
+            .collect::<Result<Vec<_>, VoterError>>()?;
+        let outputs = plan
+            .outputs
+            .iter()
+            .map(|p| {
+                Ok(ExternalOutput {
+                    name: p.name.clone(),
+                    writer: FrameWriter::new(inherited(p.fd))
+                        .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
+                    broken: false,
+                })
+            })
+            .collect::<Result<Vec<_>, VoterError>>()?;
+        let events = plan.events_fd.map(inherited);
+
+        let _ = std::fs::remove_file(&plan.socket_path);
+        let listener = UnixListener::bind(&plan.socket_path)
+            .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
+        // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
+        let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
+        listener.set_nonblocking(true).map_err(io_err("socket"))?;
+        Ok(Endpoints {
+            signals,
+            inputs,
+            outputs,
+            events,
+            listener,
+        })
+    }
+}
+
+/// Writes one event line to the events fd (and traces it).
+pub(crate) fn write_event(events: Option<&OwnedFd>, ev: &Event) {
+    // Bootstrap logs every event it gathers; here they are only traced, so that a run
+    // shows each event once. Without an events fd, the voter's own log is all there is.
+    if events.is_some() {
+        tracing::debug!("event: {ev}");
+    } else {
+        tracing::warn!("event: {ev}");
+    }
+    let Some(fd) = events else { return };
+    let line = ev.to_line();
+    let mut bytes = line.as_bytes();
+    // One write per line: below PIPE_BUF it is atomic, so lines of several voters never mix.
+    while !bytes.is_empty() {
+        match sys::write(fd.as_fd(), bytes) {
+            Ok(n) => bytes = &bytes[n..],
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot write events");
+                return;
+            }
+        }
+    }
+}
+
+/// Takes ownership of an fd this process inherited.
+fn inherited(fd: RawFd) -> OwnedFd {
+    sys::adopt_inherited_fd(fd)
+}
+
+/// SIGTERM/SIGINT/SIGCHLD arrive through a signalfd, read in the event loop.
+pub(crate) fn block_signals() -> Result<SignalFd, VoterError> {
+    let mut mask = SigSet::empty();
+    for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD] {
+        mask.add(s);
+    }
+    mask.thread_block()
+        .map_err(|e| io_err("blocking signals")(e.into()))?;
+    SignalFd::with_flags(&mask, SfdFlags::SFD_NONBLOCK | SfdFlags::SFD_CLOEXEC)
+        .map_err(|e| io_err("signalfd")(e.into()))
+}
+
+/// Reaps every child that has exited (replicas we started, orphans re-parented to us).
+pub(crate) fn reap_children() {
+    while let Ok(Some((pid, status))) = sys::reap_any() {
+        tracing::trace!(pid, %status, "reaped");
+    }
+}
+
+/// Kills every child of ours until none is left (or `limit` passes). As a subreaper we inherit
+/// the children of dying children, so this converges on the whole subtree.
+pub(crate) fn kill_all_children(limit: Duration) {
+    let end = Instant::now() + limit;
+    let me = std::process::id() as i32;
+    loop {
+        reap_children();
+        let children = sys::children_of(me);
+        if children.is_empty() || Instant::now() >= end {
+            if !children.is_empty() {
+                tracing::error!(?children, "children survived SIGKILL");
+            }
+            return;
+        }
+        for pid in children {
+            let _ = sys::kill(pid, libc::SIGKILL);
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}

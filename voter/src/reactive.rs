@@ -1,0 +1,561 @@
+//! Reactive mode (S³RES VoterM): a round per input frame, one answer per output.
+//!
+//! Between rounds the voter reads its external inputs. A frame on a round-starting input is
+//! copied to every replica and opens a [`Round`]; other inputs are copied without one. During a
+//! round, answers are collected; an output goes out as soon as [`RoundBallot::early`] says it
+//! has a majority. A round closes when every trusted replica has answered, or at its deadline;
+//! [`decide_round`] then says who was late, what goes out and whom to blame, and
+//! [`Core::apply`] carries it out. Faults are recorded the moment they are seen (a dead
+//! replica through its pidfd, not at the deadline) and the faulty replica is killed at once;
+//! it is *replaced* after the round closes, when the healthy replicas are idle, so that a
+//! donor is forked at a quiet point.
+
+use std::time::Duration;
+
+use crate::clock::{Deadlines, Instant, Timer};
+use crate::core::{self, At, Core, Mode, Stop, VoterError, EXIT_AFTER_EOF};
+use crate::decision::{decide_round, Decision, RoundBallot, RoundClose};
+use crate::event::Cause;
+use crate::plan::VoterPlan;
+use crate::recovery::DonorState;
+use crate::round::{OutputSet, Round};
+use crate::sched::Schedule;
+use crate::vote::{ReplicaSet, MAX_REPLICAS};
+use replica_rt::contract::MAX_PORTS;
+
+pub struct ReactiveVoter {
+    core: Core,
+    /// `answers[slot][output]`: buffers reused from round to round.
+    answers: Vec<Vec<Vec<u8>>>,
+    round: Option<Round>,
+    rounds_started: u64,
+    /// Every deadline the loop waits for (refilled from the state before each wait).
+    timers: Deadlines,
+    /// The decisions of the last round closed (kept for its capacity).
+    close: RoundClose,
+    /// The number of the round being closed (taken out of `round`: no early forwarding).
+    closing: Option<u64>,
+}
+
+impl ReactiveVoter {
+    /// Takes over the fds named in `plan`, binds the socket, and starts the replicas.
+    pub fn start(plan: VoterPlan) -> Result<ReactiveVoter, VoterError> {
+        let core = Core::start(plan)?;
+        let n = core.plan.replicas;
+        Ok(ReactiveVoter {
+            answers: vec![vec![Vec::new(); core.plan.outputs.len()]; n],
+            timers: Deadlines::new(core.plan.inputs.len(), n),
+            core,
+            round: None,
+            rounds_started: 0,
+            close: RoundClose::default(),
+            closing: None,
+        })
+    }
+
+    /// Runs until the inputs close (and the replicas have finished) or a stop is requested.
+    pub fn run(self) -> Result<(), VoterError> {
+        core::run(self)
+    }
+
+    // ----- input side -------------------------------------------------------------------
+
+    /// Delivers buffered input frames to the replicas until one of them opens a round.
+    fn start_rounds_from_buffered_input(&mut self) {
+        if !self.core.faults.is_empty() {
+            return;
+        }
+        for i in 0..self.core.inputs.len() {
+            while self.round.is_none() {
+                let limit = input_backlog_limit(self.core.plan.inputs[i].max_frame);
+                let Some(delivery) = self.core.deliver_next(i, Some(limit)) else {
+                    break;
+                };
+                if let Some(expected) = self.core.inputs[i].round {
+                    self.open_round(i, expected, delivery.members);
+                }
+                for (r, cause, detail) in delivery.faulty {
+                    self.fault(r, cause, detail);
+                }
+            }
+        }
+    }
+
+    fn open_round(&mut self, pair: usize, expected: OutputSet, members: ReplicaSet) {
+        self.rounds_started += 1;
+        let deadline = Instant::now() + self.allowance(members);
+        self.core.monitors.clear_verdicts();
+        self.round = Some(Round::new(
+            self.rounds_started,
+            pair,
+            expected,
+            deadline,
+            members,
+        ));
+        if self.core.plan.schedule == Schedule::Sequential {
+            self.next_turn();
+        }
+    }
+
+    /// Every input that starts a round is closed (every input, if none starts one). (Called
+    /// between rounds, after buffered frames were delivered, so nothing whole is left; a
+    /// partial frame left behind can never complete.) Replicas answer only in rounds, so once
+    /// no round can start their output is over, whatever their other inputs still carry.
+    /// Waiting for those too would deadlock a loop: the navigator's `waypoints` come from a
+    /// planner whose voter ends only when the navigator's `request` ends.
+    fn all_inputs_done(&self) -> bool {
+        let inputs = &self.core.inputs;
+        let any_starts_round = inputs.iter().any(|i| i.round.is_some());
+        inputs
+            .iter()
+            .filter(|i| !any_starts_round || i.round.is_some())
+            .all(|i| i.reader.is_closed())
+    }
+
+    // ----- output side ------------------------------------------------------------------
+
+    /// Why a frame of replica `r` on output `o` cannot be taken, if it cannot.
+    fn unexpected(&self, r: usize, o: usize) -> Option<(Cause, &'static str)> {
+        let unexpected = |why| Some((Cause::UnexpectedFrame, why));
+        match self.round.as_ref() {
+            _ if self.core.stop.is_some() => unexpected("frame after the inputs closed"),
+            None => unexpected("frame outside any round"),
+            Some(round) if !round.expects(o) => {
+                unexpected("frame on an output this round does not expect")
+            }
+            Some(round) if round.has_answered(r, o) => {
+                Some((Cause::ExtraFrame, "extra frame in one round"))
+            }
+            Some(round) if !round.members.contains(r) => {
+                unexpected("frame from a replica that joined after the round began")
+            }
+            Some(_) => None,
+        }
+    }
+
+    /// A ballot of the current round, as far as it got.
+    fn ballot<'a>(&'a self, round: &'a Round, alarmed: &'a [OutputSet]) -> RoundBallot<'a> {
+        let alive = round
+            .members
+            .iter()
+            .filter(|&r| self.core.slots[r].is_some())
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+        RoundBallot {
+            expected: round.expected,
+            forwarded: round.forwarded,
+            held: round.held,
+            alive,
+            answered: &round.answered[..self.core.slots.len()],
+            answers: &self.answers,
+            alarmed,
+            fresh: self.core.fresh(),
+        }
+    }
+
+    /// Per replica, the outputs on which its frame alarmed its detector (no detectors: none).
+    fn alarmed(&self, round: &Round) -> [OutputSet; MAX_REPLICAS] {
+        let mut alarmed = [0; MAX_REPLICAS];
+        if !self.core.monitors.is_empty() {
+            for (r, set) in alarmed.iter_mut().enumerate().take(self.core.slots.len()) {
+                *set = round
+                    .outputs()
+                    .filter(|&o| self.core.monitors.alarmed(r, o))
+                    .fold(0, |s, o| s | 1 << o);
+            }
+        }
+        alarmed
+    }
+
+    /// Forwards output `o` of the current round as soon as some frame has a majority (or holds
+    /// it back when it stands on one flagged replica's word).
+    fn try_forward(&mut self, o: usize) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let alarmed = self.alarmed(round);
+        let Some(decision) = self.ballot(round, &alarmed).early(o) else {
+            return;
+        };
+        let number = round.number;
+        let round = self.round.as_mut().expect("checked above");
+        match decision {
+            Decision::HoldBack { .. } => round.held |= 1 << o,
+            _ => round.forwarded |= 1 << o,
+        }
+        self.apply(o, number, &decision);
+    }
+
+    /// Carries out one decision on output `o` of round `number` and faults its suspects.
+    fn apply(&mut self, o: usize, number: u64, decision: &Decision) {
+        self.apply_sent(o, number, decision, false);
+    }
+
+    fn apply_sent(&mut self, o: usize, number: u64, decision: &Decision, sent: bool) {
+        let answers = &self.answers;
+        let frame = decision
+            .frame(|r| Some(answers[r][o].as_slice()))
+            .filter(|_| !sent);
+        let blame = self.core.apply(o, At::Round(number), decision, frame);
+        if let Some(blame) = blame {
+            for r in blame.suspects.iter() {
+                self.fault(r, blame.cause, blame.detail.clone());
+            }
+        }
+    }
+
+    /// When the event loop must wake up at the latest: the nearest of the open round's
+    /// deadline and the graces of replicas whose output closed. The timers are refilled from
+    /// that state before every wait, so none can be left behind stale.
+    fn wakeup(&mut self) -> Option<Instant> {
+        self.timers.cancel_all();
+        if let Some(round) = &self.round {
+            self.timers.set(Timer::Round(round.pair), round.deadline);
+        }
+        for (r, rep) in self.core.slots.iter().enumerate() {
+            if let Some(since) = rep.as_ref().and_then(|rep| rep.output_closed_at) {
+                self.timers.set(Timer::Grace(r), since + EXIT_AFTER_EOF);
+            }
+        }
+        self.timers.nearest().map(|(_, at)| at)
+    }
+
+    // ----- rounds -----------------------------------------------------------------------
+
+    /// Closes the round when everyone trusted has answered, or when its deadline has passed.
+    /// In a sequential round, moves the turn on instead (see [`ReactiveVoter::advance_turn`]).
+    fn advance_round(&mut self) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let all_done = round
+            .members
+            .iter()
+            .filter(|&r| self.core.slots[r].is_some())
+            .all(|r| round.is_done_by(r));
+        if all_done {
+            return self.close_round();
+        }
+        if self.core.plan.schedule == Schedule::Sequential {
+            return self.advance_turn();
+        }
+        if Instant::now() < round.deadline {
+            return;
+        }
+        self.close_round();
+    }
+
+    /// Sequential schedule: the replica whose turn it is keeps it until it has answered every
+    /// expected output, leaves the quorum (faulty), or misses its own deadline, which makes
+    /// it, and only it, the hung one. Then the next replica that has not answered yet gets
+    /// the turn with a fresh deadline; when none is left, the round closes.
+    fn advance_turn(&mut self) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        if let Some(t) = round.turn {
+            if self.core.slots[t].is_some() && !round.is_done_by(t) {
+                if Instant::now() < round.deadline {
+                    return;
+                }
+                self.last_look(t);
+                if let Some(round) = self.round.as_ref().filter(|rd| !rd.is_done_by(t)) {
+                    let number = round.number;
+                    self.blame_late(t, number, true);
+                }
+            }
+        }
+        if !self.next_turn() {
+            self.close_round();
+        }
+    }
+
+    /// Gives the turn to the lowest-numbered member that is still trusted and has not
+    /// answered yet: raises it above its siblings (puts the previous one back to rest) and
+    /// starts its deadline. Returns `false` when no such replica is left.
+    fn next_turn(&mut self) -> bool {
+        let Some(round) = self.round.as_ref() else {
+            return false;
+        };
+        let previous = round.turn;
+        let next = round
+            .members
+            .iter()
+            .filter(|&r| self.core.slots[r].is_some())
+            .find(|&r| !round.is_done_by(r) && Some(r) != previous);
+        if let Some(prev) = previous {
+            if let Some(pid) = self.core.slots[prev].as_ref().map(|rep| rep.pid) {
+                self.core.rt.rest(pid, prev);
+            }
+        }
+        let Some(next) = next else {
+            return false;
+        };
+        if let Some(pid) = self.core.slots[next].as_ref().map(|r| r.pid) {
+            self.core.rt.raise(pid);
+        }
+        let allowance = self.allowance(ReplicaSet::EMPTY.with(next));
+        let round = self.round.as_mut().expect("checked above");
+        round.turn = Some(next);
+        round.deadline = Instant::now() + allowance;
+        true
+    }
+
+    /// How long `replicas` get to answer a round: `timeout_us`, or the start-up allowance
+    /// (`start_timeout_ms`, if longer) while one of them has never answered. A replica started
+    /// by exec is still being loaded, linked and locked into memory when its first input
+    /// arrives; that is start-up, not a hang. A fork child is proven from the start.
+    fn allowance(&self, replicas: ReplicaSet) -> Duration {
+        let timeout = Duration::from_micros(self.core.plan.timeout_us);
+        let starting = replicas
+            .iter()
+            .any(|r| self.core.slots[r].as_ref().is_some_and(|rep| !rep.proven));
+        if starting {
+            timeout.max(Duration::from_millis(self.core.plan.start_timeout_ms))
+        } else {
+            timeout
+        }
+    }
+
+    /// At a deadline: one last look at replica `r`'s pipes (an answer may have arrived while
+    /// the voter itself was busy, and the voter's lateness is not the replica's fault).
+    fn last_look(&mut self, r: usize) {
+        for o in 0..self.core.outputs.len() {
+            self.on_output(r, o);
+        }
+    }
+
+    /// Blames replica `r`, late in round `number` (`on_turn`: at the deadline of its own
+    /// turn): `protocol` with a partial frame in its pipe, else `hang`.
+    fn blame_late(&mut self, r: usize, number: u64, on_turn: bool) {
+        let Some(rep) = self.core.slots[r].as_ref() else {
+            return;
+        };
+        let proven = rep.proven;
+        let turn = if on_turn { " of its turn" } else { "" };
+        let plan = &self.core.plan;
+        let hang = match (proven, on_turn) {
+            (false, _) => Cause::StartDeadline,
+            (true, true) => Cause::TurnDeadline,
+            (true, false) => Cause::Deadline,
+        };
+        let (cause, partial) = self.core.late_cause(r, hang);
+        let detail = match (cause, partial) {
+            (_, Some(o)) => format!(
+                "partial frame on `{}` at the deadline{turn} in round {number}",
+                plan.outputs[o].name
+            ),
+            (Cause::Deadline | Cause::TurnDeadline, None) => {
+                format!(
+                    "no answer within {} µs{turn} in round {number}",
+                    plan.timeout_us
+                )
+            }
+            _ => format!(
+                "no first answer within {} ms of start-up{turn} in round {number}",
+                plan.start_timeout_ms.max(plan.timeout_us / 1000)
+            ),
+        };
+        self.fault(r, cause, detail);
+    }
+
+    /// Closes the round: the last look at every late replica, then [`decide_round`], then
+    /// the late are blamed and every decision applied.
+    fn close_round(&mut self) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let late: Vec<usize> = round
+            .members
+            .iter()
+            .filter(|&r| self.core.slots[r].is_some() && !round.is_done_by(r))
+            .collect();
+        for &r in &late {
+            self.last_look(r);
+        }
+        let Some(round) = self.round.take() else {
+            return;
+        };
+        if let Some(t) = round.turn {
+            if let Some(pid) = self.core.slots[t].as_ref().map(|r| r.pid) {
+                self.core.rt.rest(pid, t);
+            }
+        }
+        let alarmed = self.alarmed(&round);
+        let mut close = std::mem::take(&mut self.close);
+        decide_round(&self.ballot(&round, &alarmed), &mut close);
+        // Faults from here on name this round, and forward nothing early: the decisions
+        // below already count them.
+        self.closing = Some(round.number);
+        for r in close.late.iter() {
+            self.blame_late(r, round.number, round.turn == Some(r));
+        }
+        for d in &close.decisions {
+            self.apply_sent(d.output, round.number, &d.decision, d.sent);
+        }
+        self.closing = None;
+        self.close = close;
+    }
+
+    // ----- the end ---------------------------------------------------------------------
+
+    /// Inputs closed: close the replicas' inputs, let them finish, flush what was voted.
+    fn finish(&mut self) -> Result<(), VoterError> {
+        tracing::debug!("inputs closed; flushing output and letting the replicas finish");
+        // Voted output first: it is what the rest of the system is waiting for.
+        let drain_deadline = Instant::now() + core::OUTPUT_DRAIN_LIMIT;
+        for out in &mut self.core.outputs {
+            out.drain(drain_deadline);
+        }
+        for rep in self.core.slots.iter_mut().flatten() {
+            for input in &mut rep.inputs {
+                let _ = input.writer.flush();
+            }
+            // Closing our write ends (and the read ends we kept) gives the replica EOF.
+            rep.inputs.clear();
+        }
+        self.core.drain_and_let_finish();
+        Ok(())
+    }
+
+    /// Decodes every whole frame replica `r` sent on output `o` and takes it into the round.
+    fn on_output(&mut self, r: usize, o: usize) {
+        let Some(rep) = self.core.slots[r].as_mut() else {
+            return;
+        };
+        let fill = rep.outputs[o].fill();
+        loop {
+            let problem = self.unexpected(r, o);
+            let Some(rep) = self.core.slots[r].as_mut() else {
+                return;
+            };
+            let frame = match rep.outputs[o].decoder.next_frame() {
+                Ok(Some(f)) => f,
+                Ok(None) => break,
+                Err(e) => {
+                    let detail = format!("output `{}`: {e}", self.core.plan.outputs[o].name);
+                    return self.fault(r, Cause::BadFrame, detail);
+                }
+            };
+            if let Some((cause, problem)) = problem {
+                let detail = format!("{problem} (output `{}`)", self.core.plan.outputs[o].name);
+                return self.fault(r, cause, detail);
+            }
+            rep.proven = true;
+            let pid = rep.pid;
+            let buf = &mut self.answers[r][o];
+            buf.clear();
+            buf.extend_from_slice(frame);
+            let round = self.round.as_mut().expect("unexpected() checked the round");
+            round.answered[r] |= 1 << o;
+            let number = round.number;
+            // Every answer is scored, also when all agree: each replica's stream of frames
+            // must be complete for the next delta to be meaningful.
+            if let Some(verdict) = self.core.monitors.observe(r, o, &self.answers[r][o]) {
+                if verdict.alarm {
+                    self.core.anomaly_event(r, pid, o, At::Round(number), false);
+                }
+            }
+            self.try_forward(o);
+        }
+        core::after_read(self, r, o, fill);
+    }
+}
+
+impl Mode for ReactiveVoter {
+    fn core(&mut self) -> &mut Core {
+        &mut self.core
+    }
+
+    fn run_loop(&mut self) -> Result<(), VoterError> {
+        loop {
+            if self.round.is_none() {
+                let replace = self.core.stop.is_none();
+                core::recover_faulty(self, replace)?;
+                if self.core.stop == Some(Stop::Requested) {
+                    return Ok(());
+                }
+                self.start_rounds_from_buffered_input();
+                if self.round.is_none() && self.core.stop.is_none() && self.all_inputs_done() {
+                    self.core.stop = Some(Stop::InputsClosed);
+                    return self.finish();
+                }
+            }
+            core::wait_and_dispatch(self)?;
+            if self.core.stop == Some(Stop::Requested) {
+                return Ok(());
+            }
+            core::fault_closed_outputs(self);
+            self.advance_round();
+        }
+    }
+
+    /// Records the fault; a smaller quorum may decide a pending vote.
+    fn fault(&mut self, r: usize, cause: Cause, detail: String) {
+        let number = self.round.as_ref().map(|rd| rd.number).or(self.closing);
+        if self.core.record_fault(r, cause, detail, number).is_none() {
+            return;
+        }
+        let expected = self.round.as_ref().map_or(0, |rd| rd.expected);
+        for o in (0..MAX_PORTS).filter(|o| expected & (1 << o) != 0) {
+            self.try_forward(o);
+        }
+    }
+
+    fn build_poll_set(&mut self) {
+        let backlog = self.core.outputs.iter().any(|o| o.writer.has_pending());
+        // New input only between rounds and when downstream keeps up: back-pressure instead
+        // of unbounded buffering.
+        let take_input = self.round.is_none() && self.core.faults.is_empty() && !backlog;
+        self.core.reset_poll(take_input);
+        let core = &mut self.core;
+        for (r, rep) in core.slots.iter().enumerate() {
+            if let Some(rep) = rep {
+                core.poll.add_replica(r, rep, true, |_| true);
+            }
+        }
+    }
+
+    fn next_wakeup(&mut self) -> Option<Instant> {
+        self.wakeup()
+    }
+
+    fn on_input_readable(&mut self, i: usize) {
+        self.core.inputs[i].read();
+        self.start_rounds_from_buffered_input();
+    }
+
+    fn on_replica_output(&mut self, r: usize, o: usize) {
+        self.on_output(r, o);
+    }
+
+    fn on_replica_exit(&mut self, r: usize) {
+        if self.core.slots[r].is_some() {
+            self.fault(r, Cause::Died, core::DIED.into());
+        }
+    }
+
+    /// Every trusted replica has answered the last round: no progress to tell them apart.
+    fn progress(&self) -> [u64; MAX_REPLICAS] {
+        [0; MAX_REPLICAS]
+    }
+
+    fn fork_into(&mut self, slot: usize, d: usize) -> Result<libc::pid_t, String> {
+        let forked = self
+            .core
+            .fork(d, DonorState::Quiet)
+            .map_err(|e| e.to_string())?;
+        let pid = forked.replica.pid;
+        self.core.slots[slot] = Some(forked.replica);
+        Ok(pid)
+    }
+
+    fn started_fresh(&mut self, _slot: usize) {}
+}
+
+/// How many bytes the voter queues for one replica input beyond what its pipe holds before
+/// the replica counts as not taking its input (a `hang`): 64 frames of the channel's maximum,
+/// and at least 4 MiB, so a burst of an upstream neighbour never trips it, while a replica
+/// that stopped reading cannot make the voter's memory grow without bound.
+fn input_backlog_limit(max_frame: usize) -> usize {
+    (64 * (max_frame + replica_rt::frame::HEADER_LEN)).max(4 << 20)
+}
