@@ -209,6 +209,9 @@ fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i3
     let (mut run, summary) =
         start_tmr_on_one_cpu(unprivileged, "s3res-echo", &["--stateful"], count, 500);
     run.wait_for_replicas("echo", 3);
+    // After every replica's first answer: before it, a turn runs on the start-up allowance
+    // and a replica that misses it is a `StartDeadline`.
+    run.wait_for_answers("echo");
     let pid = run.replica_pids("echo")[&slot];
     inject(pid);
     let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
