@@ -210,6 +210,14 @@ fn run() -> Result<()> {
         quiet: cli.common.quiet,
     };
     let json = cli.common.json;
+    // Taken before measuring: the load then is what the measurement competed with.
+    let machine = replica_rt::machine::Machine::probe().one_line();
+    let stamp = |mut rows: Vec<report::Row>| {
+        for r in &mut rows {
+            r.machine = Some(machine.clone());
+        }
+        rows
+    };
     let plot_dir = cli.common.plot.clone();
     if let Some(dir) = &plot_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -241,7 +249,7 @@ fn run() -> Result<()> {
                 timeout_us,
                 setups: setup,
             };
-            let rows = echo::run(&common, &opts)?;
+            let rows = stamp(echo::run(&common, &opts)?);
             report::emit(&rows, json, echo::render);
             write_plot(plot_dir, "fig3-round-trip.svg", |p| {
                 plot::round_trip(&rows, p)
@@ -256,7 +264,7 @@ fn run() -> Result<()> {
             if count == 0 {
                 bail!("--count must be at least 1");
             }
-            let rows = restart::run(&common, &size, count, timeout_us, setup)?;
+            let rows = stamp(restart::run(&common, &size, count, timeout_us, setup)?);
             report::emit(&rows, json, restart::render);
             write_plot(plot_dir, "fig4-restart.svg", |p| plot::restart(&rows, p))?;
         }
@@ -276,7 +284,7 @@ fn run() -> Result<()> {
                 rounds,
                 seed,
             };
-            let rows = detect::run(&common, &opts)?;
+            let rows = stamp(detect::run(&common, &opts)?);
             report::emit(&rows, json, detect::render);
         }
         Command::Plot { files } => {

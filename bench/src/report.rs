@@ -71,6 +71,10 @@ pub struct Row {
     /// Free-form figures of the bench (memory sizes, counts).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub extra: Option<serde_json::Value>,
+    /// The machine it ran on, one line (`replica_rt::machine::Machine::one_line`, load at the
+    /// bench's start); figures print it in their subtitle.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub machine: Option<String>,
 }
 
 impl Row {
@@ -92,6 +96,7 @@ impl Row {
             ratio: None,
             faults: None,
             extra: None,
+            machine: None,
         }
     }
 
@@ -128,6 +133,7 @@ impl Row {
         row.setup = setup;
         row.floor_us = num("floor_us");
         row.ratio = num("ratio");
+        row.machine = v.get("machine").and_then(|m| m.as_str()).map(str::to_owned);
         Some(row)
     }
 }

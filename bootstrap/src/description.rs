@@ -20,9 +20,13 @@ use s3res_protocol::plan::{
 use s3res_protocol::sched::{self, Schedule};
 
 use crate::exec::{self, SearchPath};
-use crate::plan::{ChannelPlan, ComponentPlan, Endpoint, PortPlan, Redundancy, SystemPlan};
+use crate::plan::{
+    ChannelPlan, ComponentPlan, Endpoint, InjectPlan, PortPlan, Redundancy, SystemPlan,
+};
 use crate::posindex::{element_path, member_path, IndexError, PositionIndex};
 
+/// Fault kinds a description's `inject` may mix (the signal-based ones: they need no options).
+pub const INJECT_FAULTS: [&str; 3] = ["exec", "sdc", "cfe"];
 /// Largest `max_frame` a channel may ask for.
 pub const MAX_FRAME_LIMIT: usize = 16 * 1024 * 1024;
 /// Largest replica count (`replicas`).
@@ -239,6 +243,31 @@ struct SystemDesc {
     components: BTreeMap<String, ComponentDesc>,
     #[serde(default)]
     channels: Vec<ChannelDesc>,
+    /// Faults injected while the system runs (an `s3res-inject storm` beside the components).
+    inject: Option<InjectDesc>,
+    /// Default `--events` file, relative to the current directory.
+    events: Option<String>,
+    /// Default `--state` file, relative to the current directory.
+    state: Option<String>,
+    /// The file a component writes its task's verdict to (JSON with `ok` or `success`),
+    /// relative to the current directory; bootstrap's verdict shows it.
+    outcome: Option<String>,
+}
+
+/// `inject`: what the injector started beside the components does.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct InjectDesc {
+    /// Kinds mixed, each equally likely (default exec, sdc, cfe).
+    faults: Option<Vec<String>>,
+    /// Injections per second (default 2).
+    rate_hz: Option<f64>,
+    /// Seed of every random choice (default 1).
+    seed: Option<u64>,
+    /// Targets (default: every protected component).
+    components: Option<Vec<String>>,
+    /// Seconds of quiet after every target runs (default 1).
+    after_s: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -413,11 +442,101 @@ impl Checker<'_> {
             self.check_monitoring(i, ch, &channels[i], &mut components)?;
         }
         self.check_rounds_can_start(&components, &channels)?;
+        let inject = match &desc.inject {
+            Some(i) => Some(self.check_inject(i, &components)?),
+            None => None,
+        };
+        let path_of = |field: &str, v: &Option<String>| match v.as_deref() {
+            Some("") => Err(self.err(field, "an empty path")),
+            Some(p) => Ok(Some(PathBuf::from(p))),
+            None => Ok(None),
+        };
         Ok(SystemPlan {
             name: desc.name,
             components,
             channels,
             warnings,
+            inject,
+            events: path_of("events", &desc.events)?,
+            state: path_of("state", &desc.state)?,
+            outcome: path_of("outcome", &desc.outcome)?,
+        })
+    }
+
+    fn check_inject(
+        &self,
+        i: &InjectDesc,
+        components: &[ComponentPlan],
+    ) -> Result<InjectPlan, DescriptionError> {
+        let faults = i
+            .faults
+            .clone()
+            .unwrap_or_else(|| INJECT_FAULTS.iter().map(|f| f.to_string()).collect());
+        if faults.is_empty() {
+            return Err(self.err(
+                "inject.faults",
+                "no fault kind (give e.g. [\"exec\", \"sdc\"])",
+            ));
+        }
+        for (k, f) in faults.iter().enumerate() {
+            if !INJECT_FAULTS.contains(&f.as_str()) {
+                return Err(self.err(
+                    &format!("inject.faults[{k}]"),
+                    format!(
+                        "unknown fault kind `{f}` (known: {})",
+                        INJECT_FAULTS.join(", ")
+                    ),
+                ));
+            }
+        }
+        let rate_hz = i.rate_hz.unwrap_or(2.0);
+        if !(rate_hz.is_finite() && rate_hz > 0.0 && rate_hz <= 1000.0) {
+            return Err(self.err(
+                "inject.rate_hz",
+                format!("{rate_hz} is not a rate (injections per second, above 0, at most 1000)"),
+            ));
+        }
+        let after_s = i.after_s.unwrap_or(1.0);
+        if !(after_s.is_finite() && after_s >= 0.0) {
+            return Err(self.err(
+                "inject.after_s",
+                format!("{after_s} is not a number of seconds"),
+            ));
+        }
+        let protected: Vec<&str> = components
+            .iter()
+            .filter(|c| c.is_protected())
+            .map(|c| c.name.as_str())
+            .collect();
+        let targets = match &i.components {
+            Some(list) => {
+                for (k, c) in list.iter().enumerate() {
+                    if !protected.contains(&c.as_str()) {
+                        return Err(self.err(
+                            &format!("inject.components[{k}]"),
+                            format!(
+                                "`{c}` is not a protected component (protected: {})",
+                                protected.join(", ")
+                            ),
+                        ));
+                    }
+                }
+                list.clone()
+            }
+            None => protected.iter().map(|c| c.to_string()).collect(),
+        };
+        if targets.is_empty() {
+            return Err(self.err(
+                "inject",
+                "the system has no protected component to inject into",
+            ));
+        }
+        Ok(InjectPlan {
+            faults,
+            rate_hz,
+            seed: i.seed.unwrap_or(1),
+            components: targets,
+            after_s,
         })
     }
 

@@ -14,6 +14,12 @@ use std::time::Duration;
 use s3res_protocol::event::{Event, EventKind};
 
 use crate::live::LiveState;
+use crate::status::{kind_name, Tally};
+
+/// An optional value for a log field: the value, or `-`.
+fn shown<T: std::fmt::Display>(v: Option<T>) -> String {
+    v.map_or_else(|| "-".to_owned(), |v| v.to_string())
+}
 
 /// Counts for one component.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
@@ -56,15 +62,15 @@ impl EventSummary {
         match event.kind {
             EventKind::Start => {
                 counts.starts += 1;
-                tracing::debug!(component = %event.component, replica = ?event.replica, pid = ?event.pid, "replica started");
+                tracing::debug!(component = %event.component, replica = %shown(event.replica), pid = %shown(event.pid), "replica started");
             }
             EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
                 counts.faults += 1;
                 tracing::warn!(
                     component = %event.component,
-                    replica = ?event.replica,
-                    pid = ?event.pid,
-                    round = ?event.round,
+                    replica = %shown(event.replica),
+                    pid = %shown(event.pid),
+                    round = %shown(event.round),
                     detail = event.detail.as_deref().unwrap_or(""),
                     "fault: {}",
                     kind_name(event.kind)
@@ -74,10 +80,13 @@ impl EventSummary {
                 counts.recoveries += 1;
                 tracing::info!(
                     component = %event.component,
-                    replica = ?event.replica,
-                    new_pid = ?event.new_pid,
-                    method = ?event.method,
-                    recovery_us = ?event.recovery_us,
+                    replica = %shown(event.replica),
+                    new_pid = %shown(event.new_pid),
+                    method = %shown(event.method.map(|m| match m {
+                        s3res_protocol::event::RecoveryMethod::Fork => "fork",
+                        s3res_protocol::event::RecoveryMethod::Exec => "exec",
+                    })),
+                    recovery_us = %shown(event.recovery_us),
                     "recovered"
                 );
             }
@@ -85,12 +94,12 @@ impl EventSummary {
                 counts.anomalies += 1;
                 tracing::warn!(
                     component = %event.component,
-                    replica = ?event.replica,
-                    round = ?event.round,
+                    replica = %shown(event.replica),
+                    round = %shown(event.round),
                     output = event.output.as_deref().unwrap_or(""),
                     field = event.field.as_deref().unwrap_or(""),
-                    score = ?event.score,
-                    threshold = ?event.threshold,
+                    score = %shown(event.score),
+                    threshold = %shown(event.threshold),
                     "anomaly"
                 );
             }
@@ -98,7 +107,7 @@ impl EventSummary {
                 counts.failed_recoveries += 1;
                 tracing::error!(
                     component = %event.component,
-                    replica = ?event.replica,
+                    replica = %shown(event.replica),
                     detail = event.detail.as_deref().unwrap_or(""),
                     "recovery failed; the component runs with fewer replicas"
                 );
@@ -135,19 +144,6 @@ impl EventSummary {
     }
 }
 
-fn kind_name(kind: EventKind) -> &'static str {
-    match kind {
-        EventKind::Start => "start",
-        EventKind::Sdc => "sdc",
-        EventKind::Crash => "crash",
-        EventKind::Hang => "hang",
-        EventKind::Protocol => "protocol",
-        EventKind::Recovery => "recovery",
-        EventKind::RecoveryFailed => "recovery_failed",
-        EventKind::Anomaly => "anomaly",
-    }
-}
-
 /// The running reader thread.
 #[derive(Debug)]
 pub struct EventReader {
@@ -161,12 +157,18 @@ impl EventReader {
         pipe: OwnedFd,
         log: Option<File>,
         live: Option<LiveState>,
+        tally: Option<Tally>,
     ) -> std::io::Result<Self> {
         let (tx, rx) = mpsc::channel();
         std::thread::Builder::new()
             .name("events".to_owned())
             .spawn(move || {
-                let summary = read_all(BufReader::new(File::from(pipe)), log, live.as_ref());
+                let summary = read_all(
+                    BufReader::new(File::from(pipe)),
+                    log,
+                    live.as_ref(),
+                    tally.as_ref(),
+                );
                 // The receiver may have given up waiting; nothing more to do then.
                 let _ = tx.send(summary);
             })?;
@@ -180,11 +182,13 @@ impl EventReader {
     }
 }
 
-/// Reads lines to the end, copying each to `log` and applying each event to `live`.
+/// Reads lines to the end, copying each to `log` and applying each event to `live` and
+/// `tally`.
 pub fn read_all(
     mut input: impl BufRead,
     mut log: Option<File>,
     live: Option<&LiveState>,
+    tally: Option<&Tally>,
 ) -> EventSummary {
     let mut summary = EventSummary::default();
     let mut buf = Vec::with_capacity(4096);
@@ -209,8 +213,13 @@ pub fn read_all(
             }
         }
         let event = summary.record_line(&String::from_utf8_lossy(&buf));
-        if let (Some(live), Some(event)) = (live, event) {
-            live.update(|v| v.apply(&event));
+        if let Some(event) = event {
+            if let Some(live) = live {
+                live.update(|v| v.apply(&event));
+            }
+            if let Some(t) = tally {
+                t.apply(&event);
+            }
         }
     }
     summary
@@ -235,7 +244,7 @@ mod tests {
             "{\"half\":"
         );
         let mut log = tempfile::tempfile().unwrap();
-        let summary = read_all(input.as_bytes(), Some(log.try_clone().unwrap()), None);
+        let summary = read_all(input.as_bytes(), Some(log.try_clone().unwrap()), None, None);
         assert_eq!(summary.unparsable, 2);
         let echo = summary.per_component["echo"];
         assert_eq!((echo.faults, echo.recoveries), (1, 1));
@@ -251,7 +260,7 @@ mod tests {
     #[test]
     fn reader_thread_ends_at_eof() {
         let (r, w) = replica_rt::sys::pipe().unwrap();
-        let reader = EventReader::spawn(r, None, None).unwrap();
+        let reader = EventReader::spawn(r, None, None, None).unwrap();
         let line = Event::new("s", "c", EventKind::Hang).to_line();
         replica_rt::sys::write(std::os::fd::AsFd::as_fd(&w), line.as_bytes()).unwrap();
         drop(w);

@@ -66,6 +66,20 @@ fn split_path(p: &OsStr) -> Vec<PathBuf> {
         .collect()
 }
 
+/// One of s3res's own programs: the path in environment variable `env` if set (relative to
+/// the current folder, or a bare name looked up like `exec`), else `name` beside the running
+/// program or on `PATH`.
+pub fn find_tool(name: &str, env: &str) -> Result<PathBuf, String> {
+    let search = SearchPath::from_environment();
+    match std::env::var(env) {
+        Ok(path) => {
+            let cwd = std::env::current_dir().map_err(|e| format!("no current folder: {e}"))?;
+            resolve(&path, &cwd, &search).map_err(|e| format!("{env}: {e}"))
+        }
+        Err(_) => search.find(name),
+    }
+}
+
 /// Resolves a component's `exec` value to an absolute path of an executable file.
 pub fn resolve(value: &str, base_dir: &Path, search: &SearchPath) -> Result<PathBuf, String> {
     if value.is_empty() {

@@ -2,6 +2,7 @@
 
 #![forbid(unsafe_code)]
 
+use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
@@ -10,12 +11,16 @@ use anyhow::Context as _;
 use clap::{ArgAction, Parser};
 
 use s3res_bootstrap::description::{self, HostContext};
-use s3res_bootstrap::exec::{self, SearchPath};
+use s3res_bootstrap::exec;
 use s3res_bootstrap::run::{self, Ending, RunOptions, VOTER_BIN};
 use s3res_bootstrap::sched::SystemSched;
+use s3res_bootstrap::status::{read_outcome, ConsoleMode, Verdict};
 
 /// Overrides where the voter binary is taken from (tests, unusual installs).
 const VOTER_ENV: &str = "S3RES_VOTER";
+/// The injector a description's `inject` runs, and the variable that overrides where it is.
+const INJECT_BIN: &str = "s3res-inject";
+const INJECT_ENV: &str = "S3RES_INJECT";
 
 const ABOUT: &str = "Start an s3res system from its description, supervise it, stop it cleanly.";
 
@@ -50,6 +55,15 @@ place each process; --check prints the priority and CPU every process will get. 
 privilege for SCHED_RR (root or CAP_SYS_NICE), bootstrap says so once and keeps the order with
 nice values. See docs/real-time.md.
 
+`inject` (faults while the system runs: exec, sdc, cfe at rate_hz, seeded) starts s3res-inject
+beside the components; --no-inject leaves it out. `events`, `state` and `outcome` name the
+events file, the live view and the file a component writes its verdict to.
+
+While the system runs, a status line (on a terminal; otherwise a line every 5 s) shows the
+time, faults/recoveries per protected component and degraded components; at the end a verdict
+block shows the outcome, faults by kind, recoveries by method, withheld frames, what the
+injector did, false positives and where the files are (-q: neither).
+
 Everything is checked before anything starts. On SIGINT/SIGTERM every component gets SIGTERM,
 then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started outlives it.";
 
@@ -62,8 +76,9 @@ Exit status:
   143  stopped by SIGTERM
 
 Environment:
-  RUST_LOG     log filter (overrides -v/-q), e.g. RUST_LOG=debug
-  S3RES_VOTER  path of the voter binary to use instead of s3res-voter beside bootstrap or on PATH";
+  RUST_LOG      log filter (overrides -v/-q), e.g. RUST_LOG=debug; every process inherits it
+  S3RES_VOTER   path of the voter binary to use instead of s3res-voter beside bootstrap or on PATH
+  S3RES_INJECT  path of the injector (`inject` in the description) instead of s3res-inject";
 
 #[derive(Debug, Parser)]
 #[command(
@@ -79,26 +94,33 @@ struct Cli {
     #[arg(long)]
     check: bool,
 
-    /// Append every voter event (one JSON object per line) to FILE, created or truncated at start.
+    /// Write every voter event to FILE, one JSON object per line; FILE is created, or emptied
+    /// if it exists, at start. Default: the description's `events`, if it names one.
     #[arg(long, value_name = "FILE")]
     events: Option<PathBuf>,
 
     /// Keep a live view of the running system in FILE (JSON, rewritten atomically on every
     /// replica start, fault and recovery): each component with its pid, or its voter's pid and
     /// the current pid of every replica slot. Fault injectors read it to find their targets
-    /// (see docs/campaigns.md).
+    /// (see docs/campaigns.md). Default: the description's `state`, if it names one.
     #[arg(long, value_name = "FILE")]
     state: Option<PathBuf>,
+
+    /// Run without the description's injector (`inject`): the same system, fault-free.
+    #[arg(long)]
+    no_inject: bool,
 
     /// After SIGTERM to the components, wait this long before SIGKILL.
     #[arg(long, value_name = "N", default_value_t = 2000)]
     stop_timeout_ms: u64,
 
-    /// More log output (-v debug, -vv trace). RUST_LOG, when set, takes precedence.
+    /// More log output (-v debug, -vv trace), from bootstrap and every process it starts.
+    /// RUST_LOG, when set, takes precedence.
     #[arg(short, long, action = ArgAction::Count, conflicts_with = "quiet")]
     verbose: u8,
 
-    /// Only warnings and errors.
+    /// Only warnings and errors, from bootstrap and every process it starts; no live status
+    /// and no verdict.
     #[arg(short, long)]
     quiet: bool,
 
@@ -109,25 +131,30 @@ struct Cli {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    s3res_bootstrap::logging::init_cli_logging(cli.quiet, cli.verbose);
+    s3res_bootstrap::logging::init_status_logging(cli.quiet, cli.verbose);
     match run_cli(&cli) {
         Ok(code) => ExitCode::from(code),
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!(
+                "error: {}",
+                s3res_bootstrap::logging::error_chain(e.as_ref())
+            );
             ExitCode::from(1)
         }
     }
 }
 
-/// The voter binary: `$S3RES_VOTER` if set, else `s3res-voter` beside us or on PATH.
-fn find_voter() -> Result<PathBuf, String> {
-    let search = SearchPath::from_environment();
-    match std::env::var(VOTER_ENV) {
-        Ok(path) => {
-            let cwd = std::env::current_dir().map_err(|e| format!("no current folder: {e}"))?;
-            exec::resolve(&path, &cwd, &search).map_err(|e| format!("{VOTER_ENV}: {e}"))
-        }
-        Err(_) => search.find(VOTER_BIN),
+/// `RUST_LOG` for the processes bootstrap starts: its own level, unless `RUST_LOG` is set
+/// (then they inherit it) or the level is the default.
+fn child_log(quiet: bool, verbose: u8) -> Option<String> {
+    if std::env::var_os("RUST_LOG").is_some() {
+        return None;
+    }
+    match (quiet, verbose) {
+        (true, _) => Some("warn".to_owned()),
+        (false, 0) => None,
+        (false, 1) => Some("debug".to_owned()),
+        (false, _) => Some("trace".to_owned()),
     }
 }
 
@@ -145,7 +172,7 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         tracing::warn!("{w}");
     }
     let voter = if plan.has_protected() {
-        Some(find_voter().map_err(run::RunError::VoterMissing)?)
+        Some(exec::find_tool(VOTER_BIN, VOTER_ENV).map_err(run::RunError::VoterMissing)?)
     } else {
         None
     };
@@ -156,11 +183,32 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         return Ok(0);
     }
 
+    let injector = match &plan.inject {
+        Some(_) if !cli.no_inject => {
+            Some(exec::find_tool(INJECT_BIN, INJECT_ENV).map_err(|e| {
+                anyhow::anyhow!(
+                    "the description injects faults (`inject`) but `{INJECT_BIN}` was not found \
+                 ({e}); build it, or run without faults: --no-inject"
+                )
+            })?)
+        }
+        _ => None,
+    };
+    let console = if cli.quiet {
+        ConsoleMode::Off
+    } else if std::io::stderr().is_terminal() {
+        ConsoleMode::Terminal
+    } else {
+        ConsoleMode::Plain
+    };
     let opts = RunOptions {
         voter,
-        events_file: cli.events.clone(),
+        events_file: cli.events.clone().or_else(|| plan.events.clone()),
         stop_timeout: Duration::from_millis(cli.stop_timeout_ms),
-        state_file: cli.state.clone(),
+        state_file: cli.state.clone().or_else(|| plan.state.clone()),
+        injector,
+        console,
+        child_log: child_log(cli.quiet, cli.verbose),
     };
     let report =
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;
@@ -171,13 +219,34 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
             f.component, f.status
         );
     }
-    if let Some(events) = &report.events {
-        if !cli.quiet {
-            eprintln!("s3res-bootstrap: {}", events.line());
-        }
+    if let Some(events) = report.events.as_ref().filter(|e| e.unparsable > 0) {
+        tracing::warn!("{} event line(s) could not be read", events.unparsable);
     }
     if let Ending::Stopped(sig) = report.ending {
         tracing::info!("stopped by signal {sig}");
+    }
+    if !cli.quiet {
+        let verdict = Verdict {
+            system: plan.name.clone(),
+            elapsed: report.elapsed,
+            exit_code: report.exit_code(),
+            failures: report
+                .failures
+                .iter()
+                .map(|f| format!("{}: {}", f.component, f.status))
+                .collect(),
+            outcome: plan.outcome.as_deref().map(read_outcome),
+            tally: report.tally.clone(),
+            injections: report.injections.clone(),
+            files: report.files.clone(),
+            protected: plan
+                .components
+                .iter()
+                .filter(|c| c.is_protected())
+                .map(|c| (c.name.clone(), c.replicas))
+                .collect(),
+        };
+        eprint!("{}", verdict.render());
     }
     Ok(report.exit_code())
 }

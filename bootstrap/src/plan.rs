@@ -137,6 +137,27 @@ pub struct SystemPlan {
     pub channels: Vec<ChannelPlan>,
     /// Things accepted but ignored (e.g. `timeout_us` on an unprotected component).
     pub warnings: Vec<String>,
+    /// Faults injected while the system runs, if the description asks for them.
+    pub inject: Option<InjectPlan>,
+    /// Default events and state files (`--events`, `--state` override), relative to the
+    /// current directory.
+    pub events: Option<PathBuf>,
+    pub state: Option<PathBuf>,
+    /// File holding the task's verdict (JSON with `ok` or `success`), written by a component.
+    pub outcome: Option<PathBuf>,
+}
+
+/// `inject` of a description: an `s3res-inject storm` started beside the components.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InjectPlan {
+    /// `exec`, `sdc`, `cfe`.
+    pub faults: Vec<String>,
+    pub rate_hz: f64,
+    pub seed: u64,
+    /// Protected components to inject into.
+    pub components: Vec<String>,
+    /// Quiet seconds after every target runs.
+    pub after_s: f64,
 }
 
 impl SystemPlan {
@@ -174,6 +195,18 @@ impl SystemPlan {
             if let Some(s) = sched {
                 s.describe(index, c, &mut out);
             }
+        }
+        if let Some(i) = &self.inject {
+            let _ = writeln!(
+                out,
+                "\ninjector: s3res-inject storm, {} at {} Hz into {}, seed {}, from {} s after \
+                 every target runs (--no-inject: none)",
+                i.faults.join("/"),
+                i.rate_hz,
+                i.components.join(", "),
+                i.seed,
+                i.after_s
+            );
         }
         out
     }

@@ -24,8 +24,12 @@ use s3res_protocol::plan::{ExternalPort, VoterPlan};
 
 use crate::events::{EventReader, EventSummary};
 use crate::live::LiveState;
-use crate::plan::{ComponentPlan, Endpoint, SystemPlan};
+use crate::plan::{ComponentPlan, Endpoint, InjectPlan, SystemPlan};
 use crate::sched::SystemSched;
+use crate::status::{
+    forward_stderr, read_injections, status_line, Console, ConsoleMode, Files, Injected, Tally,
+    TallyData,
+};
 use crate::sweep::SweepGuard;
 
 /// Name of the voter binary.
@@ -46,6 +50,13 @@ pub struct RunOptions {
     pub stop_timeout: Duration,
     /// Where to keep the live view of the running system (see [`crate::live`]).
     pub state_file: Option<PathBuf>,
+    /// `s3res-inject`, to run the description's `inject` (`None`: no injector runs).
+    pub injector: Option<PathBuf>,
+    /// How the live status is shown.
+    pub console: ConsoleMode,
+    /// `RUST_LOG` for every process started (voters, replicas, components, injector), when
+    /// bootstrap's own verbosity was chosen by `-q`/`-v` rather than by `RUST_LOG`.
+    pub child_log: Option<String>,
 }
 
 /// Why a system could not be run.
@@ -85,6 +96,14 @@ pub enum RunError {
     },
     #[error("cannot set up the events pipe: {0}")]
     EventsPipe(std::io::Error),
+    #[error("cannot set up the pipe that carries the processes' stderr: {0}")]
+    StderrPipe(std::io::Error),
+    #[error("cannot create the folder {dir} for {what}: {source}")]
+    OutputDir {
+        what: &'static str,
+        dir: PathBuf,
+        source: std::io::Error,
+    },
     #[error("cannot start component {component} ({exec}): {source}")]
     Spawn {
         component: String,
@@ -121,6 +140,13 @@ pub struct RunReport {
     pub failures: Vec<Failure>,
     /// Counts from the voters' events (`None` if there were no voters or the stream did not end).
     pub events: Option<EventSummary>,
+    /// What the live status showed, at the end.
+    pub tally: TallyData,
+    /// The injector's log, if an injector ran.
+    pub injections: Option<Vec<Injected>>,
+    /// Where the events, state and injection files are (`None`: not kept).
+    pub files: Files,
+    pub elapsed: Duration,
 }
 
 impl RunReport {
@@ -142,6 +168,10 @@ struct Child {
     status: Option<ExitStatus>,
     /// Exited after the stop began (its status is then our doing, not a failure).
     after_stop: bool,
+    /// Not part of the system (the injector): stopped once every component has ended.
+    helper: bool,
+    /// Was sent SIGTERM because the components had ended.
+    told_to_stop: bool,
 }
 
 /// Both ends of a channel until they are handed to the components.
@@ -155,8 +185,16 @@ struct ChannelEnds {
 pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> {
     // Before any thread: every thread inherits this mask, so the signals reach only the
     // signalfd. (std::process::Command clears the mask in children.)
-    let signals = sys::signal_fd(&[Signal::SIGINT, Signal::SIGTERM, Signal::SIGCHLD])
-        .map_err(RunError::Signals)?;
+    // SIGHUP (a closed terminal, a dropped ssh connection) and SIGQUIT stop the system like
+    // SIGTERM: nothing bootstrap started may outlive it.
+    let signals = sys::signal_fd(&[
+        Signal::SIGINT,
+        Signal::SIGTERM,
+        Signal::SIGHUP,
+        Signal::SIGQUIT,
+        Signal::SIGCHLD,
+    ])
+    .map_err(RunError::Signals)?;
 
     let voter = if plan.has_protected() {
         match &opts.voter {
@@ -175,11 +213,15 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     // From here on, whatever happens, the guard sweeps.
     let mut guard = SweepGuard::new();
 
+    let started = Instant::now();
     let events_log = match &opts.events_file {
-        Some(path) => Some(File::create(path).map_err(|source| RunError::EventsFile {
-            path: path.clone(),
-            source,
-        })?),
+        Some(path) => {
+            make_parent(path, "the events file")?;
+            Some(File::create(path).map_err(|source| RunError::EventsFile {
+                path: path.clone(),
+                source,
+            })?)
+        }
         None => None,
     };
 
@@ -196,29 +238,63 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     // Whether SCHED_RR can be had is found out once, here, and said once; the voters are told.
     let sched = SystemSched::for_system(plan);
     sched.warn_once();
-    let live = match &opts.state_file {
-        Some(path) => Some(
-            LiveState::create(crate::live::initial_view(plan), path.clone()).map_err(|source| {
-                RunError::StateFile {
-                    path: path.clone(),
-                    source,
-                }
-            })?,
-        ),
+    // An injector needs the live view; without a file named for it, one in the private folder.
+    let injector = match (&opts.injector, &plan.inject, &socket_dir) {
+        (Some(bin), Some(inject), Some(dir)) => Some((bin, inject, dir)),
+        _ => None,
+    };
+    let state_file = match (&opts.state_file, &injector) {
+        (Some(p), _) => Some(p.clone()),
+        (None, Some((_, _, dir))) => Some(dir.join("state.json")),
+        (None, None) => None,
+    };
+    let live = match &state_file {
+        Some(path) => {
+            make_parent(path, "the state file")?;
+            Some(
+                LiveState::create(crate::live::initial_view(plan), path.clone()).map_err(
+                    |source| RunError::StateFile {
+                        path: path.clone(),
+                        source,
+                    },
+                )?,
+            )
+        }
         None => None,
     };
+    // The injector's log goes beside the events file, or into the private folder.
+    let injections_file = injector.map(|(_, _, dir)| match &opts.events_file {
+        Some(ev) => ev.with_file_name("injections.jsonl"),
+        None => dir.join("injections.jsonl"),
+    });
 
+    let tally = Tally::default();
     let (events_reader, events_write) = if voter.is_some() {
         let (r, w) = sys::pipe().map_err(RunError::EventsPipe)?;
-        let reader =
-            EventReader::spawn(r, events_log, live.clone()).map_err(RunError::EventsPipe)?;
+        let reader = EventReader::spawn(r, events_log, live.clone(), Some(tally.clone()))
+            .map_err(RunError::EventsPipe)?;
         (Some(reader), Some(w))
     } else {
         (None, None)
     };
 
-    // Each component's stdout: inherited, unless fd 1 carries frames.
-    let stdout_to_stderr = plan.uses_stdout();
+    // On a terminal every process's stderr comes through bootstrap, printed whole above the
+    // status line.
+    let mut console = Console::start(opts.console);
+    let (stderr_done, stderr_write) = if opts.console == ConsoleMode::Terminal {
+        let (r, w) = sys::pipe().map_err(RunError::StderrPipe)?;
+        (
+            Some(forward_stderr(r).map_err(RunError::StderrPipe)?),
+            Some(w),
+        )
+    } else {
+        (None, None)
+    };
+    let out = Outputs {
+        stdout_to_stderr: plan.uses_stdout(),
+        stderr: stderr_write.as_ref().map(|w| w.as_fd()),
+        log: opts.child_log.as_deref(),
+    };
 
     let mut children: Vec<Child> = Vec::with_capacity(plan.components.len());
     for (index, c) in plan.components.iter().enumerate() {
@@ -232,7 +308,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 dir,
                 ev.as_raw_fd(),
                 &mut channels,
-                stdout_to_stderr,
+                &out,
             )?,
             _ if c.is_protected() => {
                 return Err(RunError::Internal(format!(
@@ -241,7 +317,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 )))
             }
             _ => {
-                let pid = spawn_direct(c, &mut channels, stdout_to_stderr)?;
+                let pid = spawn_direct(c, &mut channels, &out)?;
                 sched.apply_direct(index, c, pid);
                 pid
             }
@@ -274,13 +350,71 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             pid,
             status: None,
             after_stop: false,
+            helper: false,
+            told_to_stop: false,
+        });
+    }
+    if let (Some((bin, inject, _)), Some(state), Some(log)) =
+        (injector, &state_file, &injections_file)
+    {
+        let pid = spawn_injector(bin, inject, state, log, &out)?;
+        tracing::info!(
+            pid,
+            "started the injector: {} at {} Hz into {} (seed {})",
+            inject.faults.join("/"),
+            inject.rate_hz,
+            inject.components.join(", "),
+            inject.seed
+        );
+        children.push(Child {
+            component: "injector".to_owned(),
+            pid,
+            status: None,
+            after_stop: false,
+            helper: true,
+            told_to_stop: false,
         });
     }
     // Our copies of every pipe end must go, or readers never see end of stream.
     drop(channels);
     drop(events_write);
+    drop(stderr_write);
 
-    let ending = supervise(&signals, &mut children, opts.stop_timeout)?;
+    let injected = |path: &Option<PathBuf>| {
+        path.as_ref().map_or(0, |p| {
+            read_injections(p)
+                .0
+                .iter()
+                .filter(|i| i.ts_ns.is_some())
+                .count()
+        })
+    };
+    let mut last_count = (Instant::now(), 0u64);
+    let ending = supervise(
+        &signals,
+        &mut children,
+        opts.stop_timeout,
+        console.period(),
+        &mut || {
+            // The injector's log is read at most once a second for the count.
+            if last_count.0.elapsed() >= Duration::from_secs(1) {
+                last_count = (Instant::now(), injected(&injections_file) as u64);
+            }
+            let snapshot = tally.snapshot();
+            console.tick(|elapsed| status_line(plan, &snapshot, elapsed, last_count.1));
+        },
+    )?;
+    // Read before the private folder (which may hold it) goes.
+    let injections = injections_file.as_ref().map(|p| {
+        let (list, bad) = read_injections(p);
+        if bad > 0 {
+            tracing::warn!(
+                "{bad} unreadable line(s) in the injection log {}",
+                p.display()
+            );
+        }
+        list
+    });
 
     guard.finish();
     let events = events_reader.and_then(|r| {
@@ -296,7 +430,22 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             true
         });
     }
+    if let Some(done) = stderr_done {
+        // Every writer is gone after the sweep; the last lines are on their way.
+        let _ = done.recv_timeout(EVENTS_DRAIN);
+    }
+    console.finish();
 
+    let in_private = |p: &Option<PathBuf>| {
+        p.clone()
+            .filter(|p| socket_dir.as_ref().is_none_or(|d| !p.starts_with(d)))
+    };
+    let files = Files {
+        events: opts.events_file.clone(),
+        state: in_private(&state_file),
+        injections: in_private(&injections_file),
+        outcome: plan.outcome.clone(),
+    };
     let failures = children
         .iter()
         .filter(|c| !c.after_stop)
@@ -312,13 +461,73 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         ending,
         failures,
         events,
+        tally: tally.snapshot(),
+        injections,
+        files,
+        elapsed: started.elapsed(),
     })
+}
+
+/// Creates the folder `path` goes into, if it has one and it is missing.
+fn make_parent(path: &Path, what: &'static str) -> Result<(), RunError> {
+    match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) => std::fs::create_dir_all(dir).map_err(|source| RunError::OutputDir {
+            what,
+            dir: dir.to_path_buf(),
+            source,
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Where the processes' output goes.
+struct Outputs<'a> {
+    /// fd 1 carries frames: every process's stdout goes to its stderr.
+    stdout_to_stderr: bool,
+    /// The pipe bootstrap reads stderr from (terminal mode); `None`: inherited.
+    stderr: Option<std::os::fd::BorrowedFd<'a>>,
+    /// `RUST_LOG` to set.
+    log: Option<&'a str>,
+}
+
+/// `s3res-inject storm` with the description's `inject`, the live view and the log file.
+fn spawn_injector(
+    bin: &Path,
+    inject: &InjectPlan,
+    state: &Path,
+    log: &Path,
+    out: &Outputs,
+) -> Result<libc::pid_t, RunError> {
+    let spawn_err = |source| RunError::Spawn {
+        component: "injector".to_owned(),
+        exec: bin.to_path_buf(),
+        source,
+    };
+    let mut cmd = base_command(bin, "injector", out).map_err(spawn_err)?;
+    cmd.arg("storm")
+        .arg("--state")
+        .arg(state)
+        .arg("--log")
+        .arg(log)
+        .arg("--faults")
+        .arg(inject.faults.join(","))
+        .arg("--rate")
+        .arg(inject.rate_hz.to_string())
+        .arg("--seed")
+        .arg(inject.seed.to_string())
+        .arg("--components")
+        .arg(inject.components.join(","))
+        .arg("--after")
+        .arg(inject.after_s.to_string());
+    let child = cmd.spawn().map_err(spawn_err)?;
+    Ok(child.id() as libc::pid_t)
 }
 
 /// `<tmp>/s3res-<pid>-<n>`, mode 0700.
 fn make_socket_dir() -> Result<PathBuf, RunError> {
     let tmp = std::env::temp_dir();
     let pid = std::process::id();
+    remove_stale_socket_dirs(&tmp);
     for n in 0..1000 {
         let dir = tmp.join(format!("s3res-{pid}-{n}"));
         match std::fs::DirBuilder::new().mode(0o700).create(&dir) {
@@ -334,6 +543,42 @@ fn make_socket_dir() -> Result<PathBuf, RunError> {
             "1000 candidate names are taken",
         ),
     })
+}
+
+/// Removes the runtime folders (`s3res-PID-N`) of bootstraps that died without cleaning up
+/// (SIGKILL, a power cut): the pid is gone, or is no longer an `s3res-bootstrap`. Only folders
+/// of our own user are touched.
+fn remove_stale_socket_dirs(tmp: &Path) {
+    use std::os::unix::fs::MetadataExt;
+    let Ok(entries) = std::fs::read_dir(tmp) else {
+        return;
+    };
+    let me = std::fs::metadata("/proc/self").map(|m| m.uid()).ok();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix("s3res-"))
+            .and_then(|rest| rest.split_once('-'))
+            .and_then(|(pid, n)| n.parse::<u32>().ok().and(pid.parse::<libc::pid_t>().ok()))
+        else {
+            continue;
+        };
+        let ours = entry
+            .metadata()
+            .is_ok_and(|m| m.is_dir() && Some(m.uid()) == me);
+        let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default();
+        if ours && comm.trim_end() != "s3res-bootstra" && comm.trim_end() != "s3res-bootstrap" {
+            match std::fs::remove_dir_all(entry.path()) {
+                Ok(()) => {
+                    tracing::debug!(dir = %entry.path().display(), "removed the runtime folder of a dead bootstrap")
+                }
+                Err(e) => {
+                    tracing::debug!(dir = %entry.path().display(), error = %e, "cannot remove a stale runtime folder")
+                }
+            }
+        }
+    }
 }
 
 /// One pipe per channel; `stdin`/`stdout` endpoints get a duplicate of bootstrap's fd 0/1.
@@ -432,15 +677,21 @@ fn fd_mapping(fds: &[OwnedFd]) -> Vec<(RawFd, RawFd)> {
         .collect()
 }
 
-fn base_command(
-    exec: &Path,
-    component: &str,
-    stdout_to_stderr: bool,
-) -> Result<Command, std::io::Error> {
+fn base_command(exec: &Path, component: &str, out: &Outputs) -> Result<Command, std::io::Error> {
     let mut cmd = Command::new(exec);
     cmd.stdin(Stdio::null());
-    if stdout_to_stderr {
-        cmd.stdout(Stdio::from(std::io::stderr().as_fd().try_clone_to_owned()?));
+    let stderr = match out.stderr {
+        Some(fd) => fd.try_clone_to_owned()?,
+        None => std::io::stderr().as_fd().try_clone_to_owned()?,
+    };
+    if out.stdout_to_stderr {
+        cmd.stdout(Stdio::from(stderr.try_clone()?));
+    }
+    if out.stderr.is_some() {
+        cmd.stderr(Stdio::from(stderr));
+    }
+    if let Some(filter) = out.log {
+        cmd.env("RUST_LOG", filter);
     }
     // Whatever bootstrap inherited must not make a component believe it is a replica.
     cmd.env_remove(ENV_VOTER_SOCKET)
@@ -452,7 +703,7 @@ fn base_command(
 fn spawn_direct(
     c: &ComponentPlan,
     channels: &mut [ChannelEnds],
-    stdout_to_stderr: bool,
+    out: &Outputs,
 ) -> Result<libc::pid_t, RunError> {
     let spawn_err = |source| RunError::Spawn {
         component: c.name.clone(),
@@ -476,7 +727,9 @@ fn spawn_direct(
             })
             .collect(),
     };
-    let mut cmd = base_command(&c.exec, &c.name, stdout_to_stderr).map_err(spawn_err)?;
+    let mut cmd = base_command(&c.exec, &c.name, out).map_err(spawn_err)?;
+    // If bootstrap dies (even by SIGKILL), an unprotected component dies with it.
+    sys::die_with_parent(&mut cmd, libc::SIGKILL);
     cmd.args(&c.args).env(ENV_PORTS, ports.to_env());
     sys::map_fds_on_exec(&mut cmd, mapping);
     let child = cmd.spawn().map_err(spawn_err)?;
@@ -495,7 +748,7 @@ fn spawn_voter(
     socket_dir: &Path,
     events_fd: RawFd,
     channels: &mut [ChannelEnds],
-    stdout_to_stderr: bool,
+    out: &Outputs,
 ) -> Result<libc::pid_t, RunError> {
     let spawn_err = |source| RunError::Spawn {
         component: c.name.clone(),
@@ -546,7 +799,10 @@ fn spawn_voter(
         monitors: c.monitors.clone(),
         captures: c.captures.clone(),
     };
-    let mut cmd = base_command(voter, &c.name, stdout_to_stderr).map_err(spawn_err)?;
+    let mut cmd = base_command(voter, &c.name, out).map_err(spawn_err)?;
+    // If bootstrap dies (even by SIGKILL), the voter is asked to stop: it kills its replicas
+    // and everything re-parented to it, then exits.
+    sys::die_with_parent(&mut cmd, libc::SIGTERM);
     cmd.arg("--plan").arg(voter_plan.to_json());
     sys::map_fds_on_exec(&mut cmd, mapping);
     let child = cmd.spawn().map_err(spawn_err)?;
@@ -555,20 +811,52 @@ fn spawn_voter(
 }
 
 /// Waits for every child, reaping as SIGCHLD arrives; on SIGINT/SIGTERM stops them: SIGTERM,
-/// then SIGKILL after `stop_timeout`. A second stop signal kills at once.
+/// then SIGKILL after `stop_timeout`. A second stop signal kills at once. Helpers (the
+/// injector) get SIGTERM once every component has ended, SIGKILL `stop_timeout` later.
+/// `tick` runs after every wake-up, and at least every `period`.
 fn supervise(
     signals: &SignalFd,
     children: &mut [Child],
     stop_timeout: Duration,
+    period: Option<Duration>,
+    tick: &mut dyn FnMut(),
 ) -> Result<Ending, RunError> {
     let mut stop: Option<(i32, Instant)> = None;
     let mut killed = false;
+    let mut helpers_deadline: Option<Instant> = None;
     loop {
         reap_all(children, stop.is_some());
+        tick();
         if children.iter().all(|c| c.status.is_some()) {
             break;
         }
         let now = Instant::now();
+        let system_done = children
+            .iter()
+            .filter(|c| !c.helper)
+            .all(|c| c.status.is_some());
+        if system_done && stop.is_none() {
+            match helpers_deadline {
+                None => {
+                    for c in children
+                        .iter_mut()
+                        .filter(|c| c.helper && c.status.is_none())
+                    {
+                        c.told_to_stop = true;
+                        let _ = sys::kill(c.pid, libc::SIGTERM);
+                    }
+                    helpers_deadline = Some(now + stop_timeout);
+                }
+                Some(d) if now >= d => {
+                    for c in children.iter().filter(|c| c.helper && c.status.is_none()) {
+                        tracing::warn!(component = %c.component, "did not stop on SIGTERM; killing it");
+                        let _ = sys::kill(c.pid, libc::SIGKILL);
+                    }
+                    helpers_deadline = Some(now + Duration::from_millis(50));
+                }
+                Some(_) => {}
+            }
+        }
         if let Some((_, deadline)) = stop {
             if now >= deadline && !killed {
                 tracing::warn!(
@@ -584,7 +872,11 @@ fn supervise(
             // and leave the rest to the sweep if one is stuck in the kernel.
             Some(_) if killed => Some(Duration::from_millis(50)),
             Some((_, deadline)) => Some(deadline.saturating_duration_since(now)),
-            None => None,
+            None => helpers_deadline.map(|d| d.saturating_duration_since(now)),
+        };
+        let timeout = match (timeout, period) {
+            (Some(t), Some(p)) => Some(t.min(p)),
+            (t, p) => t.or(p),
         };
         let mut pfd = [libc::pollfd {
             fd: signals.as_fd().as_raw_fd(),
@@ -596,7 +888,7 @@ fn supervise(
             match signals.read_signal() {
                 Ok(Some(info)) => {
                     let sig = info.ssi_signo as i32;
-                    if sig == libc::SIGINT || sig == libc::SIGTERM {
+                    if STOP_SIGNALS.contains(&sig) {
                         match stop {
                             None => {
                                 tracing::info!(
@@ -636,7 +928,7 @@ fn reap_all(children: &mut [Child], stopping: bool) {
             Ok(Some((pid, status))) => match children.iter_mut().find(|c| c.pid == pid) {
                 Some(c) => {
                     c.status = Some(status);
-                    c.after_stop = stopping;
+                    c.after_stop = stopping || c.told_to_stop;
                     if status.success() {
                         tracing::info!(component = %c.component, pid, "exited cleanly");
                     } else if stopping {
@@ -666,10 +958,15 @@ fn signal_live(children: &[Child], sig: i32) {
     }
 }
 
+/// The signals that stop the system.
+const STOP_SIGNALS: [i32; 4] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP, libc::SIGQUIT];
+
 fn signal_name(sig: i32) -> &'static str {
     match sig {
         libc::SIGINT => "SIGINT",
         libc::SIGTERM => "SIGTERM",
+        libc::SIGHUP => "SIGHUP",
+        libc::SIGQUIT => "SIGQUIT",
         _ => "signal",
     }
 }

@@ -387,7 +387,8 @@ fn protected_component_runs_under_the_voter_and_events_are_saved() {
         out.stderr
     );
     assert!(
-        out.stderr.contains("events: a 0 fault(s)"),
+        out.stderr.contains("  faults       0")
+            && out.stderr.contains("event line(s) could not be read"),
         "{}",
         out.stderr
     );

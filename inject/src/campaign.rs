@@ -8,6 +8,8 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context as _};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use replica_rt::machine::LoadAverage;
+
 use crate::outcome::{match_run, Fired, Outcome};
 use crate::report::{self, CampaignInfo, CampaignOutput, InjectionRecord, RunRecord, Summary};
 use crate::runner::{run_once, RunResult, RunSetup};
@@ -87,7 +89,9 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
             limit: Duration::from_millis(c.info.run_limit_ms),
             ready_limit: c.ready_limit,
         };
+        let load_before = LoadAverage::now();
         let result = run_once(&setup, &schedule, &|| stop.requested().is_some());
+        let load_after = LoadAverage::now();
         if result.interrupted {
             eprintln!(
                 "s3res-inject: stopped by signal during run {r}; that run is discarded, the {} \
@@ -96,7 +100,13 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
             );
             break;
         }
-        let (run_rec, inj) = records(&c.info, r, &dir, &result);
+        let (mut run_rec, inj) = records(&c.info, r, &dir, &result);
+        run_rec.load_before = load_before;
+        run_rec.load_after = load_after;
+        let never_started = never_started(&result, &dir);
+        if run_rec.error.is_none() {
+            run_rec.error.clone_from(&never_started);
+        }
         for rec in &inj {
             writeln!(inj_file, "{}", serde_json::to_string(rec)?)?;
         }
@@ -104,20 +114,70 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
         progress.run_done(&run_rec, &inj);
         all_runs.push(run_rec);
         all_inj.extend(inj);
+        if let Some(why) = never_started {
+            progress.finish();
+            drop((inj_file, runs_file));
+            let done = all_runs.len();
+            write(c, all_runs, all_inj)?;
+            bail!(
+                "run {r} never started its system, so the campaign stopped ({done} run(s) \
+                 written to {}): {why}",
+                c.out.display()
+            );
+        }
     }
     progress.finish();
     drop((inj_file, runs_file));
+    let summary = write(c, all_runs, all_inj)?;
+    Ok((summary, stop.requested()))
+}
+
+/// Writes the campaign's outputs (with the load at its end) and returns its summary.
+fn write(
+    c: &CampaignRun,
+    runs: Vec<RunRecord>,
+    injections: Vec<InjectionRecord>,
+) -> anyhow::Result<Summary> {
+    let mut info = c.info.clone();
+    if let Some(m) = &mut info.machine {
+        m.load_at_end = LoadAverage::now();
+    }
     let out = CampaignOutput {
-        info: c.info.clone(),
-        runs: all_runs,
-        injections: all_inj,
+        info,
+        runs,
+        injections,
     };
     let summaries = report::write_outputs(&c.out, &[out])?;
-    let summary = summaries
+    summaries
         .into_iter()
         .next()
-        .expect("one campaign, one summary");
-    Ok((summary, stop.requested()))
+        .context("one campaign gives one summary")
+}
+
+/// Why a run never started its system (bootstrap could not be started, or ended with an error
+/// before every target ran, or they never all ran): the reason, with the end of bootstrap's
+/// stderr. `None` if the system did start (or ended on its own successfully).
+pub fn never_started(result: &RunResult, dir: &Path) -> Option<String> {
+    if result.ready || result.status.is_some_and(|s| s.success()) {
+        return None;
+    }
+    if let Some(e) = &result.error {
+        return Some(e.clone());
+    }
+    let stderr = std::fs::read_to_string(dir.join("stderr")).unwrap_or_default();
+    let tail: Vec<&str> = stderr.lines().rev().take(5).collect();
+    let tail: Vec<&str> = tail.into_iter().rev().collect();
+    let how = match result.status {
+        Some(s) if !result.timed_out => {
+            format!("s3res-bootstrap ended ({s}) before every target ran")
+        }
+        _ => "the targets did not all run before the start-up limit".to_owned(),
+    };
+    Some(if tail.is_empty() {
+        how
+    } else {
+        format!("{how}; its stderr ends:\n{}", tail.join("\n"))
+    })
 }
 
 /// The run's folder: under `OUT/runs/` if kept, else a temporary folder removed on drop.
@@ -234,6 +294,8 @@ pub fn records(
                 )
             })
         }),
+        load_before: None,
+        load_after: None,
     };
     (run_rec, inj)
 }
@@ -281,7 +343,8 @@ impl Progress {
 
     fn run_done(&mut self, run: &RunRecord, inj: &[InjectionRecord]) {
         self.done += 1;
-        self.injected += run.injected;
+        // Counted as the table counts: delivered, matched injections (not `missed`).
+        self.injected += inj.iter().filter(|i| i.outcome != Outcome::Missed).count() as u64;
         self.errors += inj.iter().filter(|i| i.outcome.is_error()).count() as u64;
         self.fpos += run.false_positives;
         let msg = format!(

@@ -10,7 +10,8 @@
 //! - [`outcome`]: matching injections with the voters' events;
 //! - [`report`]: records, summaries, tables, merging shards;
 //! - [`campaign`] and [`classify`]: the two experiments;
-//! - [`stop`]: SIGINT/SIGTERM end the current run cleanly.
+//! - [`stop`]: SIGINT/SIGTERM end the current run cleanly;
+//! - [`storm`]: faults into a running system for as long as it runs (a description's `inject`).
 //!
 //! The command-line guide is docs/campaigns.md.
 
@@ -19,9 +20,12 @@
 pub mod campaign;
 pub mod classify;
 pub mod fault;
-pub mod outcome;
+/// Matching injections with events lives in bootstrap, which shows the verdict of a run with an
+/// injector; re-exported here under its old name.
+pub use s3res_bootstrap::outcome;
 pub mod report;
 pub mod runner;
 pub mod schedule;
 pub mod stop;
+pub mod storm;
 pub mod target;

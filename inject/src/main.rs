@@ -12,14 +12,15 @@ use clap::{ArgAction, Args, Parser, Subcommand};
 use rand::SeedableRng as _;
 
 use s3res_bootstrap::description::{self, HostContext};
-use s3res_bootstrap::exec::{self, SearchPath};
+use s3res_bootstrap::exec;
 use s3res_bootstrap::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyRun};
 use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
-use s3res_inject::report::{self, CampaignInfo, CampaignOutput};
+use s3res_inject::report::{self, CampaignInfo, CampaignOutput, MachineInfo};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
+use s3res_inject::storm::{self, StormOptions};
 use s3res_inject::target::{resolve, Pick, Target};
 use s3res_protocol::live::LiveView;
 
@@ -48,6 +49,8 @@ Subcommands:
   campaign  run a system N times with injections; tables of detection, recovery, errors
   classify  run a system once clean and N times with one injection; benign/SDC/crash/hang
   merge     combine the outputs of campaign shards (--shard K/N) or several campaigns
+  storm     faults into a running system for as long as it runs (what a description's
+            `inject` starts)
 
 The guide, the matching rule and a Slurm example: docs/campaigns.md.";
 
@@ -124,6 +127,55 @@ enum Command {
     ///     s3res-inject merge --out out/all out/shard-*
     #[command(verbatim_doc_comment)]
     Merge(MergeArgs),
+    /// Inject a seeded mix of faults into a running system until it stops (or SIGTERM).
+    ///
+    /// Waits until every target runs, then injects at --rate (Poisson arrivals), each time a
+    /// kind drawn from --faults and a target drawn from --components, one fault at a time per
+    /// component (a component with a replica still being replaced is skipped: missed). Each
+    /// injection is one JSON line in --log (as `inject` prints it, with `index`, and `miss`
+    /// when not delivered). bootstrap starts it for a description with `inject`:
+    ///
+    ///     s3res-inject storm --state state.json --faults exec,sdc,cfe --rate 2 --seed 1 \
+    ///         --log injections.jsonl
+    #[command(verbatim_doc_comment)]
+    Storm(StormArgs),
+}
+
+#[derive(Debug, Args)]
+struct StormArgs {
+    /// The live view written by `s3res-bootstrap --state FILE`.
+    #[arg(long, value_name = "FILE")]
+    state: PathBuf,
+    /// Fault kinds to mix, comma-separated, each equally likely.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "exec,sdc,cfe"
+    )]
+    faults: Vec<FaultKind>,
+    /// Injections per second (Poisson arrivals).
+    #[arg(long, value_name = "HZ", default_value_t = 2.0)]
+    rate: f64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Components to inject into, comma-separated (default: every protected component).
+    #[arg(long, value_name = "LIST", value_delimiter = ',')]
+    components: Option<Vec<String>>,
+    /// Seconds to wait after every target runs before the first injection.
+    #[arg(long, value_name = "SECS", default_value_t = 1.0)]
+    after: f64,
+    /// Seconds after an injection into a component before the next one into it (a fault not
+    /// yet detected does not show in the live view; two at once are beyond what TMR masks).
+    #[arg(long, value_name = "SECS", default_value_t = 0.5)]
+    settle: f64,
+    /// Write the injections here (JSON lines) instead of stdout.
+    #[arg(long, value_name = "FILE")]
+    log: Option<PathBuf>,
+    #[command(flatten)]
+    var: VarArgs,
+    #[command(flatten)]
+    reg: RegArgs,
 }
 
 #[derive(Debug, Args)]
@@ -346,12 +398,22 @@ fn main() -> ExitCode {
             return ExitCode::from(1);
         }
     };
-    replica_rt::init_cli_logging(cli.quiet, cli.verbose);
+    if matches!(cli.command, Command::Storm(_)) {
+        // Started beside the components: its lines carry a prefix as theirs do.
+        replica_rt::init_logging("injector");
+    } else {
+        replica_rt::init_cli_logging(cli.quiet, cli.verbose);
+    }
     let kind = match &cli.command {
         Command::Inject(a) => Some(a.fault),
         Command::Campaign(a) => Some(a.fault),
         Command::Classify(a) => Some(a.fault),
         Command::Merge(_) => None,
+        Command::Storm(a) => a
+            .faults
+            .iter()
+            .copied()
+            .find(|f| check_available(*f).is_err()),
     };
     if let Some(Err(e)) = kind.map(check_available) {
         eprintln!("error: {e}");
@@ -362,17 +424,28 @@ fn main() -> ExitCode {
         Command::Campaign(a) => cmd_campaign(a, &stop),
         Command::Classify(a) => cmd_classify(a, &stop),
         Command::Merge(a) => cmd_merge(a),
+        Command::Storm(a) => cmd_storm(a, &stop),
     };
+    // A storm ends when it is told to: that is its normal end.
+    if matches!(cli.command, Command::Storm(_)) && stop.requested().is_some() && res.is_ok() {
+        return ExitCode::SUCCESS;
+    }
     if let Some(sig) = stop.requested() {
         if let Err(e) = &res {
-            eprintln!("error: {e:#}");
+            eprintln!(
+                "error: {}",
+                s3res_bootstrap::logging::error_chain(e.as_ref())
+            );
         }
         return ExitCode::from((128 + sig).clamp(0, 255) as u8);
     }
     match res {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!(
+                "error: {}",
+                s3res_bootstrap::logging::error_chain(e.as_ref())
+            );
             ExitCode::from(1)
         }
     }
@@ -380,16 +453,8 @@ fn main() -> ExitCode {
 
 /// `$S3RES_BOOTSTRAP`, else s3res-bootstrap beside us, else on PATH.
 fn find_bootstrap() -> anyhow::Result<PathBuf> {
-    let search = SearchPath::from_environment();
-    match std::env::var(BOOTSTRAP_ENV) {
-        Ok(path) => {
-            let cwd = std::env::current_dir()?;
-            exec::resolve(&path, &cwd, &search).map_err(|e| anyhow::anyhow!("{BOOTSTRAP_ENV}: {e}"))
-        }
-        Err(_) => search
-            .find(BOOTSTRAP_BIN)
-            .map_err(|e| anyhow::anyhow!("cannot find {BOOTSTRAP_BIN}: {e}")),
-    }
+    exec::find_tool(BOOTSTRAP_BIN, BOOTSTRAP_ENV)
+        .map_err(|e| anyhow::anyhow!("cannot find {BOOTSTRAP_BIN}: {e}"))
 }
 
 fn load_system(path: &Path) -> anyhow::Result<(PathBuf, SystemPlan)> {
@@ -574,14 +639,18 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         run_limit_ms: seconds("--run-timeout", a.run_timeout)?.as_millis() as u64,
         task_summary: a.task_summary.clone(),
         redundancy,
+        machine: None,
     };
-    let run = CampaignRun {
+    let bootstrap = find_bootstrap()?;
+    let mut run = CampaignRun {
         info,
-        bootstrap: find_bootstrap()?,
-        out: a.out.clone(),
+        bootstrap,
+        // Absolute: each run's bootstrap works in its own folder and is given paths inside OUT.
+        out: exec::absolute(&a.out),
         keep_runs: a.keep_runs,
         ready_limit: Duration::from_secs(30),
     };
+    run.info.machine = Some(MachineInfo::probe(&run.bootstrap));
     eprintln!(
         "s3res-inject: campaign {} {} on {}: {} run(s){}, seed {}",
         run.info.config,
@@ -594,7 +663,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
     );
     let (s, _interrupted) = campaign::run(&run, stop)?;
     print!("{}", report::markdown(&[s]));
-    eprintln!("s3res-inject: outputs in {}", a.out.display());
+    eprintln!("s3res-inject: outputs in {}", run.out.display());
     Ok(())
 }
 
@@ -609,7 +678,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     let c = ClassifyRun {
         system,
         bootstrap: find_bootstrap()?,
-        out: a.out.clone(),
+        out: exec::absolute(&a.out),
         params: ScheduleParams {
             fault: a.fault,
             rate_hz: 1.0,
@@ -628,6 +697,24 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     };
     let s = classify::run(&c, stop)?;
     print!("{}", classify::markdown(&[s]));
+    Ok(())
+}
+
+fn cmd_storm(a: &StormArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    let o = StormOptions {
+        state: a.state.clone(),
+        faults: a.faults.clone(),
+        rate_hz: a.rate,
+        seed: a.seed,
+        components: a.components.clone().unwrap_or_default(),
+        after: seconds("--after", a.after)?,
+        settle: seconds("--settle", a.settle)?,
+        log: a.log.clone(),
+        var: a.var.spec()?,
+        reg: a.reg.options(),
+    };
+    let delivered = storm::run(&o, &|| stop.requested().is_some())?;
+    tracing::debug!("storm over: {delivered} injection(s) delivered");
     Ok(())
 }
 

@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+use replica_rt::machine::{Build, LoadAverage, Machine};
 use serde::{Deserialize, Serialize};
 
 use crate::fault::{Action, FaultKind, RegOptions};
@@ -40,6 +41,32 @@ pub struct CampaignInfo {
     pub task_summary: Option<String>,
     /// Redundancy of every component of the system.
     pub redundancy: BTreeMap<String, String>,
+    /// The machine and build the runs ran on (of the first input, after a `merge`). Each run's
+    /// load average before and after it is in `runs.jsonl`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub machine: Option<MachineInfo>,
+}
+
+/// Where a campaign ran: the machine (with its load when the campaign began), the load when it
+/// ended, and the build of s3res-bootstrap it ran.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MachineInfo {
+    #[serde(flatten)]
+    pub machine: Machine,
+    #[serde(default)]
+    pub load_at_end: Option<LoadAverage>,
+    pub build: Build,
+}
+
+impl MachineInfo {
+    /// This machine now, running the build of `bootstrap`.
+    pub fn probe(bootstrap: &Path) -> MachineInfo {
+        MachineInfo {
+            machine: Machine::probe(),
+            load_at_end: None,
+            build: Build::of(bootstrap),
+        }
+    }
 }
 
 impl CampaignInfo {
@@ -47,6 +74,7 @@ impl CampaignInfo {
     pub fn identity(&self) -> CampaignInfo {
         CampaignInfo {
             shard: None,
+            machine: None,
             ..self.clone()
         }
     }
@@ -120,6 +148,11 @@ pub struct RunRecord {
     pub duration_ms: u64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// The machine's load average just before the run started and just after it ended.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load_before: Option<LoadAverage>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load_after: Option<LoadAverage>,
 }
 
 /// Distribution of a latency, microseconds.
@@ -362,7 +395,7 @@ pub fn merge(parts: Vec<CampaignOutput>) -> Result<Vec<CampaignOutput>, String> 
     let mut merged: Vec<CampaignOutput> = Vec::new();
     for p in parts {
         let id = p.info.identity();
-        match merged.iter_mut().find(|m| m.info == id) {
+        match merged.iter_mut().find(|m| m.info.identity() == id) {
             Some(m) => {
                 for r in &p.runs {
                     if m.runs.iter().any(|x| x.run == r.run) {
@@ -376,7 +409,10 @@ pub fn merge(parts: Vec<CampaignOutput>) -> Result<Vec<CampaignOutput>, String> 
                 m.injections.extend(p.injections);
             }
             None => merged.push(CampaignOutput {
-                info: id,
+                info: CampaignInfo {
+                    machine: p.info.machine.clone(),
+                    ..id
+                },
                 runs: p.runs,
                 injections: p.injections,
             }),
@@ -448,6 +484,7 @@ mod tests {
             run_limit_ms: 60000,
             task_summary: None,
             redundancy: BTreeMap::new(),
+            machine: None,
         }
     }
 
@@ -469,6 +506,8 @@ mod tests {
             events: 0,
             duration_ms: 1,
             error: None,
+            load_before: None,
+            load_after: None,
         }
     }
 

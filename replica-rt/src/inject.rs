@@ -192,7 +192,8 @@ pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
     }
     let bit = if req >= 0 {
         let bit = req as u64 % bits;
-        tracing::warn!(
+        // Debug: the injector and the voter's events already say it (one line each).
+        tracing::debug!(
             port,
             bit,
             requested = req,
@@ -202,7 +203,7 @@ pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
     } else {
         let seed = sys::monotonic_ns() ^ u64::from(std::process::id());
         let bit = xorshift64(seed) % bits;
-        tracing::warn!(port, bit, seed, "injected SDC: flipping a random bit");
+        tracing::debug!(port, bit, seed, "injected SDC: flipping a random bit");
         bit
     };
     flip_bit(payload, bit);

@@ -43,6 +43,7 @@
 pub mod cow;
 pub mod inject;
 mod logging;
+pub mod machine;
 mod port;
 pub mod restart;
 pub mod select;
@@ -57,7 +58,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use thiserror::Error;
 
 use contract::{Direction, PortMap, PortSpec};
-pub use logging::{init_cli_logging, init_logging};
+pub use logging::{init_cli_logging, init_cli_logging_to, init_logging};
 pub use port::{InPort, OutPort, RecvError, SendError};
 pub use select::{wait_any, Ready, TryRecv};
 

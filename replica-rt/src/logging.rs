@@ -15,7 +15,8 @@ use tracing_subscriber::EnvFilter;
 use crate::contract::{ENV_COMPONENT, ENV_REPLICA};
 
 /// Installs a `tracing` subscriber that writes to stderr, filtered by `RUST_LOG` (default
-/// `info`), each line prefixed with `[component#replica pid N]`.
+/// `info`; bootstrap passes its `-q`/`-v` on through it), each line prefixed with
+/// `[component#replica pid N]`, and a panic hook that prefixes a panic's lines the same way.
 ///
 /// The component name is `S3RES_COMPONENT`, or `component_default` when the process was not
 /// started by s3res (by hand, in a shell pipeline). The replica index is `S3RES_REPLICA`, read
@@ -28,6 +29,7 @@ pub fn init_logging(component_default: &str) {
         Err(_) => component,
     };
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    install_panic_hook(prefix.clone());
     let layer = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_ansi(std::io::stderr().is_terminal())
@@ -42,11 +44,47 @@ pub fn init_logging(component_default: &str) {
         .try_init();
 }
 
+/// A panic is reported like a log line: every line of the message (and of the backtrace, with
+/// `RUST_BACKTRACE` set) carries the `[name pid N]` prefix, and the whole report goes out in
+/// one `write`, so lines of a dying replica are neither run together nor interleaved.
+fn install_panic_hook(prefix: String) {
+    std::panic::set_hook(Box::new(move |info| {
+        let head = format!("[{prefix} pid {}] ", std::process::id());
+        let mut text = info.to_string();
+        let trace = std::backtrace::Backtrace::capture();
+        if trace.status() == std::backtrace::BacktraceStatus::Captured {
+            text.push_str(&format!("\nbacktrace:\n{trace}"));
+        }
+        let report = prefix_lines(&head, &text);
+        let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), report.as_bytes());
+    }));
+}
+
+/// `text` with `head` before every line, each line ending in a newline.
+fn prefix_lines(head: &str, text: &str) -> String {
+    let mut out = String::with_capacity(text.len() + head.len() * 4);
+    for line in text.lines() {
+        out.push_str(head);
+        out.push_str(line);
+        out.push('\n');
+    }
+    out
+}
+
 /// Logs to stderr at `info` (`-q`: `warn`; `-v`: `debug`; `-vv`: `trace`); `RUST_LOG`, when
 /// set, takes precedence. Colours only on a terminal. For the command-line tools (bootstrap,
 /// the injector, the trainer) and the voter; `init_cli_logging(false, 0)` is plain `info`.
 /// Calling it again is harmless (the first subscriber stays).
 pub fn init_cli_logging(quiet: bool, verbose: u8) {
+    init_cli_logging_to(quiet, verbose, std::io::stderr);
+}
+
+/// [`init_cli_logging`] writing through `writer` instead of straight to stderr (bootstrap's
+/// lines go above its status line).
+pub fn init_cli_logging_to<W>(quiet: bool, verbose: u8, writer: W)
+where
+    W: for<'w> tracing_subscriber::fmt::MakeWriter<'w> + Send + Sync + 'static,
+{
     let default = match (quiet, verbose) {
         (true, _) => "warn",
         (false, 0) => "info",
@@ -56,7 +94,7 @@ pub fn init_cli_logging(quiet: bool, verbose: u8) {
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
     // Err only if a subscriber is already set, which is what "harmless" above means.
     let _ = tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
+        .with_writer(writer)
         .with_env_filter(filter)
         .with_target(false)
         .with_ansi(std::io::stderr().is_terminal())
@@ -83,5 +121,18 @@ where
         // The pid is read per line, not cached: after a restart by fork it is the child's.
         write!(writer, "[{} pid {}] ", self.prefix, std::process::id())?;
         self.inner.format_event(ctx, writer, event)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::prefix_lines;
+
+    #[test]
+    fn every_line_is_prefixed_and_ends() {
+        assert_eq!(
+            prefix_lines("[echo#1 pid 7] ", "panicked: boom\n  at x.rs:1"),
+            "[echo#1 pid 7] panicked: boom\n[echo#1 pid 7]   at x.rs:1\n"
+        );
     }
 }

@@ -278,7 +278,9 @@ fn wait_for(fd: BorrowedFd<'_>, events: libc::c_short) -> io::Result<()> {
 /// log itself).
 fn note_fork() {
     if let Some(donor) = restart::take_forked_from() {
-        tracing::info!(
+        // Debug: the voter's recovery event says it, with the slot (this child still carries
+        // its donor's slot in its log prefix).
+        tracing::debug!(
             donor,
             pid = std::process::id(),
             "restarted: forked from donor, rejoined the voter"

@@ -336,6 +336,33 @@ pub fn map_fds_on_exec(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
     }
 }
 
+/// Makes the child of `cmd` receive `sig` when this process dies (`PR_SET_PDEATHSIG`), so that
+/// nothing a supervisor started outlives it, however it dies (SIGKILL included). If this
+/// process is already gone when the child sets it up, the child sends itself `sig` at once.
+/// The parent is the thread that forks: spawn from a thread that lives as long as the process
+/// (the kernel sends the signal when the forking *thread* exits).
+pub fn die_with_parent(cmd: &mut Command, sig: libc::c_int) {
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: the closure runs in the forked child before exec and only calls prctl, getppid
+    // and raise, which are async-signal-safe; it neither allocates nor takes locks.
+    unsafe {
+        cmd.pre_exec(move || {
+            cvt(libc::prctl(
+                libc::PR_SET_PDEATHSIG,
+                sig as libc::c_ulong,
+                0,
+                0,
+                0,
+            ))?;
+            // The parent may have died between fork and prctl: then no signal would come.
+            if libc::getppid() != parent {
+                libc::raise(sig);
+            }
+            Ok(())
+        });
+    }
+}
+
 /// `mlockall(MCL_CURRENT | MCL_FUTURE)`.
 pub fn lock_all_memory() -> io::Result<()> {
     // SAFETY: flags only; locking memory has no memory-safety effect.
@@ -371,20 +398,18 @@ pub fn cstring(s: &str) -> io::Result<CString> {
 /// CLOCK_MONOTONIC in nanoseconds (the clock all s3res events share; the protocol's).
 pub use s3res_protocol::clock::monotonic_ns;
 
-/// Takes ownership of an fd this process inherited from its parent (a port or the events pipe)
-/// and marks it close-on-exec, so it does not leak into processes we start.
+/// Takes ownership of an fd this process inherited from its parent (a port or the events pipe,
+/// or one whose owner gave it up with `into_raw_fd`) and marks it close-on-exec, so it does not
+/// leak into processes we start. Checks what the number allows: it is above the standard
+/// streams and open (`EBADF` otherwise).
 ///
-/// Panics unless `fd` is open and not a standard stream; see [`try_adopt_inherited_fd`].
-pub fn adopt_inherited_fd(fd: RawFd) -> OwnedFd {
-    try_adopt_inherited_fd(fd).unwrap_or_else(|e| panic!("cannot adopt inherited fd {fd}: {e}"))
-}
-
-/// Takes ownership of an fd this process inherited from its parent (or that its owner gave up
-/// with `into_raw_fd`), after checking what the number allows: it is above the standard
-/// streams and open (`EBADF` otherwise). That nothing else owns it cannot be told from the
-/// number (a registry of adopted numbers fails when a closed number is reused): the fd must
-/// come from the plan the process was started with, which is this function's contract.
-pub fn try_adopt_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
+/// # Safety
+///
+/// Nothing else in this process may own `fd` or use it after this call (no other `OwnedFd`,
+/// `File` or raw use of the number): the returned `OwnedFd` closes it. That cannot be told from
+/// the number (a registry of adopted numbers fails when a closed number is reused); an fd named
+/// by the plan the process was started with, adopted once, satisfies it.
+pub unsafe fn try_adopt_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
     if fd <= libc::STDERR_FILENO {
         return Err(io::Error::new(
             io::ErrorKind::InvalidInput,
@@ -395,8 +420,7 @@ pub fn try_adopt_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
     let flags = cvt(unsafe { libc::fcntl(fd, libc::F_GETFD) })?;
     // SAFETY: F_SETFD with an integer flag touches no memory; the fd is open (checked above).
     cvt(unsafe { libc::fcntl(fd, libc::F_SETFD, flags | libc::FD_CLOEXEC) })?;
-    // SAFETY: the fd is open (checked above); that nothing else owns it is this function's
-    // documented contract with the plan the process was started with.
+    // SAFETY: the fd is open (checked above), and the caller guarantees nothing else owns it.
     Ok(unsafe { OwnedFd::from_raw_fd(fd) })
 }
 
@@ -729,13 +753,14 @@ mod tests {
         // nix's pipe is not close-on-exec, like an fd inherited at exec.
         let (r, w) = nix::unistd::pipe().unwrap();
         let raw = r.into_raw_fd();
-        let owned = try_adopt_inherited_fd(raw).unwrap();
+        // SAFETY: `raw` was just given up by its only owner (`into_raw_fd`).
+        let owned = unsafe { try_adopt_inherited_fd(raw) }.unwrap();
         drop((owned, w));
-        // A number that is not open (beyond any fd limit): refused.
-        assert_eq!(
-            try_adopt_inherited_fd(1 << 30).unwrap_err().raw_os_error(),
-            Some(libc::EBADF)
-        );
-        assert!(try_adopt_inherited_fd(1).is_err());
+        // A number that is not open (beyond any fd limit): refused, nothing owned.
+        // SAFETY: nothing owns fd 2^30 (it is not open); the call returns an error.
+        let closed = unsafe { try_adopt_inherited_fd(1 << 30) };
+        assert_eq!(closed.unwrap_err().raw_os_error(), Some(libc::EBADF));
+        // SAFETY: a standard stream is refused before anything is taken over.
+        assert!(unsafe { try_adopt_inherited_fd(1) }.is_err());
     }
 }

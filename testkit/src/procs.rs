@@ -86,6 +86,27 @@ pub fn with_env(key: &str, value: &str) -> Vec<ProcStat> {
         .collect()
 }
 
+/// Kills (SIGKILL) every live process whose environment holds `key=value`, until none is left
+/// (bounded: 50 rounds, 20 ms apart); returns what it found, for a test to fail on.
+pub fn kill_with_env(key: &str, value: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for _ in 0..50 {
+        let live: Vec<_> = with_env(key, value)
+            .into_iter()
+            .filter(|p| !p.is_zombie())
+            .collect();
+        if live.is_empty() {
+            break;
+        }
+        for p in live {
+            found.push(p.to_string());
+            let _ = crate::kill_pid(p.pid, libc::SIGKILL);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    found
+}
+
 /// How a process is scheduled right now: policy, real-time priority, nice value, CPUs.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Scheduling {

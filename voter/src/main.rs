@@ -27,7 +27,7 @@ struct Cli {
 }
 
 fn main() -> std::process::ExitCode {
-    init_logging();
+    replica_rt::init_cli_logging(false, 0);
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
@@ -50,15 +50,4 @@ fn run() -> anyhow::Result<()> {
         Mode::Stream => StreamVoter::start(plan)?.run()?,
     }
     Ok(())
-}
-
-fn init_logging() {
-    use tracing_subscriber::EnvFilter;
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
 }

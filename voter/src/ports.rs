@@ -7,8 +7,8 @@ use std::os::unix::fs::PermissionsExt;
 use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
-use nix::sys::signal::{SigSet, Signal};
-use nix::sys::signalfd::{SfdFlags, SignalFd};
+use nix::sys::signal::Signal;
+use nix::sys::signalfd::SignalFd;
 use replica_rt::sys;
 
 use crate::channel::{Fill, FrameReader, FrameWriter};
@@ -236,7 +236,9 @@ impl Endpoints {
     pub(crate) fn open(plan: &VoterPlan) -> Result<Endpoints, VoterError> {
         // Orphans (children of a donor that died) come to us, so they are reaped and killed.
         sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
-        let signals = block_signals()?;
+        let signals = sys::signal_fd(&[Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD])
+            .map_err(|e| io_err("blocking signals (signalfd)")(e.into()))?;
+        let mut adopted = Inherited::default();
 
         let inputs = plan
             .inputs
@@ -249,7 +251,7 @@ impl Endpoints {
                 });
                 Ok(ExternalInput {
                     name: p.name.clone(),
-                    reader: FrameReader::new(inherited(p.fd), p.max_frame)
+                    reader: FrameReader::new(adopted.take(p.fd, &p.name)?, p.max_frame)
                         .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
                     round,
                 })
@@ -261,13 +263,16 @@ impl Endpoints {
             .map(|p| {
                 Ok(ExternalOutput {
                     name: p.name.clone(),
-                    writer: FrameWriter::new(inherited(p.fd))
+                    writer: FrameWriter::new(adopted.take(p.fd, &p.name)?)
                         .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
                     broken: false,
                 })
             })
             .collect::<Result<Vec<_>, VoterError>>()?;
-        let events = plan.events_fd.map(inherited);
+        let events = plan
+            .events_fd
+            .map(|fd| adopted.take(fd, "events"))
+            .transpose()?;
 
         let _ = std::fs::remove_file(&plan.socket_path);
         let listener = UnixListener::bind(&plan.socket_path)
@@ -309,21 +314,26 @@ pub(crate) fn write_event(events: Option<&OwnedFd>, ev: &Event) {
     }
 }
 
-/// Takes ownership of an fd this process inherited.
-fn inherited(fd: RawFd) -> OwnedFd {
-    sys::adopt_inherited_fd(fd)
-}
+/// The fds taken over from bootstrap, each once.
+#[derive(Default)]
+struct Inherited(Vec<RawFd>);
 
-/// SIGTERM/SIGINT/SIGCHLD arrive through a signalfd, read in the event loop.
-pub(crate) fn block_signals() -> Result<SignalFd, VoterError> {
-    let mut mask = SigSet::empty();
-    for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD] {
-        mask.add(s);
+impl Inherited {
+    /// Takes ownership of `fd`, which the plan names for `what`: an error if it is not open,
+    /// is a standard stream, or was named twice.
+    fn take(&mut self, fd: RawFd, what: &str) -> Result<OwnedFd, VoterError> {
+        if self.0.contains(&fd) {
+            return Err(VoterError::Plan(format!(
+                "fd {fd} (`{what}`) is named twice in the plan"
+            )));
+        }
+        self.0.push(fd);
+        // SAFETY: `fd` comes from the plan bootstrap started this voter with, which hands each
+        // fd to exactly one port (checked just above: each number is adopted once), and no
+        // other code of the voter touches the inherited numbers.
+        unsafe { sys::try_adopt_inherited_fd(fd) }
+            .map_err(io_err(format!("`{what}` (inherited fd {fd})")))
     }
-    mask.thread_block()
-        .map_err(|e| io_err("blocking signals")(e.into()))?;
-    SignalFd::with_flags(&mask, SfdFlags::SFD_NONBLOCK | SfdFlags::SFD_CLOEXEC)
-        .map_err(|e| io_err("signalfd")(e.into()))
 }
 
 /// Reaps every child that has exited (replicas we started, orphans re-parented to us).
@@ -336,20 +346,8 @@ pub(crate) fn reap_children() {
 /// Kills every child of ours until none is left (or `limit` passes). As a subreaper we inherit
 /// the children of dying children, so this converges on the whole subtree.
 pub(crate) fn kill_all_children(limit: Duration) {
-    let end = Instant::now() + limit;
-    let me = std::process::id() as i32;
-    loop {
-        reap_children();
-        let children = sys::children_of(me);
-        if children.is_empty() || Instant::now() >= end {
-            if !children.is_empty() {
-                tracing::error!(?children, "children survived SIGKILL");
-            }
-            return;
-        }
-        for pid in children {
-            let _ = sys::kill(pid, libc::SIGKILL);
-        }
-        std::thread::sleep(Duration::from_millis(2));
+    let report = sys::sweep_children(limit);
+    if !report.resisted.is_empty() {
+        tracing::error!(children = ?report.resisted, "children survived SIGKILL");
     }
 }

@@ -393,20 +393,7 @@ pub fn catches_restart_signal(pid: libc::pid_t) -> bool {
         .is_some_and(|mask| mask & signal_bit(replica_rt::contract::signals::RESTART) != 0)
 }
 
-/// The set of signals `pid` has a handler for (`SigCgt` in `/proc/PID/status`, bit `n - 1`
-/// for signal `n`; see [`signal_bit`]); `None` if the process is gone.
-pub fn caught_signals(pid: libc::pid_t) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("SigCgt:"))
-        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
-}
-
-/// Signal `sig`'s bit in a [`caught_signals`] mask.
-pub fn signal_bit(sig: libc::c_int) -> u64 {
-    1u64 << (sig - 1)
-}
+pub use replica_rt::sys::{caught_signals, signal_bit};
 
 #[cfg(test)]
 mod tests {

@@ -987,3 +987,61 @@ fn monitoring_errors_name_the_field_and_line() {
         "needs a channel written by a protected component",
     );
 }
+
+/// ECHO with `extra` inserted after the name (on line 2 of the text).
+fn echo_with(extra: &str) -> String {
+    ECHO.replacen(
+        "\"name\": \"echo-demo\",",
+        &format!("\"name\": \"echo-demo\",\n  {extra},"),
+        1,
+    )
+}
+
+#[test]
+fn inject_outputs_and_outcome() {
+    let f = fixture();
+    let p = f.ok(&echo_with(
+        r#""inject": {"faults": ["exec", "cfe"], "rate_hz": 4, "seed": 9},
+  "events": "out/events.jsonl", "state": "out/state.json", "outcome": "out/task.json""#,
+    ));
+    let i = p.inject.expect("inject");
+    assert_eq!(i.faults, vec!["exec", "cfe"]);
+    assert_eq!((i.rate_hz, i.seed, i.after_s), (4.0, 9, 1.0));
+    assert_eq!(
+        i.components,
+        vec!["echo"],
+        "default: the protected components"
+    );
+    assert_eq!(p.events.as_deref(), Some(Path::new("out/events.jsonl")));
+    assert_eq!(p.outcome.as_deref(), Some(Path::new("out/task.json")));
+    assert!(f.ok(ECHO).inject.is_none());
+}
+
+#[test]
+fn inject_errors_name_the_field() {
+    let f = fixture();
+    f.fails(
+        &echo_with(r#""inject": {"faults": ["exec", "boom"]}"#),
+        3,
+        "inject.faults[1]",
+        "unknown fault kind `boom` (known: exec, sdc, cfe)",
+    );
+    f.fails(
+        &echo_with(r#""inject": {"rate_hz": 0}"#),
+        3,
+        "inject.rate_hz",
+        "0 is not a rate",
+    );
+    f.fails(
+        &echo_with(r#""inject": {"components": ["sink"]}"#),
+        3,
+        "inject.components[0]",
+        "`sink` is not a protected component (protected: echo)",
+    );
+    f.fails(
+        &echo_with(r#""inject": {"after": 1}"#),
+        3,
+        "inject.after",
+        "unknown field `after`",
+    );
+}

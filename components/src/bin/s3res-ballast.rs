@@ -16,7 +16,7 @@ use s3res_components::Echo;
 ///
 ///     s3res-ballast --mib 64
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-ballast", version, verbatim_doc_comment)]
 struct Cli {
     /// Ballast in MiB.
     #[arg(long, conflicts_with = "kib")]

@@ -23,7 +23,7 @@ use s3res_components::{Batcher, Echo};
 ///
 ///     s3res-source --count 10 --hz 0 | s3res-batch --every 4 --stateful | s3res-sink --stateful --expect 10
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-batch", version, verbatim_doc_comment)]
 struct Cli {
     /// Frames per batch (with --vary: the largest batch).
     #[arg(long, value_name = "N", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..))]

@@ -18,7 +18,7 @@ use s3res_components::Echo;
 ///
 ///     s3res-source --count 5 --hz 0 | s3res-echo --stateful | s3res-sink --stateful --expect 5
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-echo", version, verbatim_doc_comment)]
 struct Cli {
     /// Prefix each answer with the number of frames answered before it.
     #[arg(long)]

@@ -29,7 +29,7 @@ use s3res_components::Echo;
 /// donor inherits the donor's memory, including the donor's index, so it does not misbehave
 /// again. Without S3RES_REPLICA (started by hand) it never misbehaves.
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-misbehave", version, verbatim_doc_comment)]
 struct Cli {
     /// How to break the protocol.
     #[arg(long, value_enum)]

@@ -21,7 +21,7 @@ use s3res_components::{check_source_frame, Signal, SIGNAL_FRAME};
 ///
 ///     s3res-source --count 5 --hz 0 | s3res-signal | od -A d -t f8 -j 4 -N 40
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-signal", version, verbatim_doc_comment)]
 struct Cli {
     /// Added to every sequence number: the same motion further along (held-out data).
     #[arg(long, default_value_t = 0)]

@@ -24,7 +24,7 @@ use s3res_components::Checker;
 ///
 ///     s3res-source --count 5 --hz 0 | s3res-echo --stateful | s3res-sink --stateful --expect 5
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-sink", version, verbatim_doc_comment)]
 struct Cli {
     /// Number of frames that must arrive; missing ones at the end count as missing.
     #[arg(long, value_name = "N")]

@@ -22,7 +22,7 @@ use s3res_components::{source_frame, SEQ_LEN};
 ///
 ///     s3res-source --count 5 --hz 0 | s3res-echo | s3res-sink --expect 5
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-source", version, verbatim_doc_comment)]
 struct Cli {
     /// Number of frames to send.
     #[arg(long)]

@@ -9,8 +9,17 @@
 #![forbid(unsafe_code)]
 
 use anyhow::{bail, Context, Result};
+use clap::Parser;
+
+/// Answers every sample on port `samples` (one f64) with the count so far and the running mean
+/// on port `mean`. Started by s3res-bootstrap: see docs/writing-a-component.md.
+#[derive(Parser)]
+#[command(name = "s3res-running-mean", version)]
+struct Cli {}
 
 fn main() -> Result<()> {
+    // `--help` and `--version` answer before any port is opened; there are no other options.
+    let Cli {} = Cli::parse();
     // Logs go to stderr (stdout may be a port), each line prefixed with component and pid.
     replica_rt::init_logging("running-mean");
     // Reads the port map and installs the restart and fault-injection signal handlers.
@@ -28,7 +37,8 @@ fn main() -> Result<()> {
         let answer = encode_answer(count, sum / count as f64);
         mean.send(&answer).context("sending the mean")?;
     }
-    Ok(()) // end of input: exit 0
+    tracing::info!(count, "end of input");
+    Ok(()) // exit 0
 }
 
 /// One sample frame is exactly 8 bytes. Anything else is an error (main returns it, the process

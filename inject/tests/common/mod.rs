@@ -32,6 +32,11 @@ pub struct Spawned {
 
 /// Starts `s3res-inject ARGS` with the harness's environment mark.
 pub fn spawn(args: &[&str]) -> Spawned {
+    spawn_with(None, &[], args)
+}
+
+/// Starts `s3res-inject ARGS` in `cwd` (default: the test's) with `env` added.
+pub fn spawn_with(cwd: Option<&Path>, env: &[(&str, &str)], args: &[&str]) -> Spawned {
     static N: AtomicU64 = AtomicU64::new(0);
     let mark = format!(
         "inject-{}-{}",
@@ -41,8 +46,13 @@ pub fn spawn(args: &[&str]) -> Spawned {
     let dir = tempfile::tempdir().unwrap();
     let out_path = dir.path().join("stdout");
     let err_path = dir.path().join("stderr");
-    let child = Command::new(bin_path("s3res-inject"))
+    let mut cmd = Command::new(bin_path("s3res-inject"));
+    if let Some(cwd) = cwd {
+        cmd.current_dir(cwd);
+    }
+    let child = cmd
         .args(args)
+        .envs(env.iter().copied())
         .env(MARK_ENV, &mark)
         .stdin(Stdio::null())
         .stdout(std::fs::File::create(&out_path).unwrap())
@@ -103,22 +113,7 @@ pub fn inject(args: &[&str], limit: Duration) -> Finished {
 
 /// Kills every live process carrying `mark`; returns what was found.
 fn kill_marked(mark: &str) -> Vec<String> {
-    let mut found = Vec::new();
-    for _ in 0..50 {
-        let live: Vec<_> = procs::with_env(MARK_ENV, mark)
-            .into_iter()
-            .filter(|p| !p.is_zombie())
-            .collect();
-        if live.is_empty() {
-            break;
-        }
-        for p in live {
-            found.push(p.to_string());
-            let _ = s3res_testkit::kill_pid(p.pid, libc::SIGKILL);
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    found
+    procs::kill_with_env(MARK_ENV, mark)
 }
 
 /// The echo pipeline (source → echo → sink) at `redundancy`, `count` frames at 500 Hz; the

@@ -35,14 +35,38 @@ fn parse_u64(s: &str) -> Result<u64, String> {
     u64::from_str_radix(t, 16).map_err(|e| format!("`{s}` is not a hex u64: {e}"))
 }
 
+const USAGE: &str = "usage: regflip-target gpr PATTERN | gpr-signals PATTERN | gpr-thread \
+                     PATTERN | ah PATTERN | xmm LO HI | page-end";
+
+/// `--help` and `--version` (exit 0), before anything else.
+fn help_or_version() -> Option<ExitCode> {
+    match std::env::args().nth(1).as_deref() {
+        Some("-h" | "--help") => {
+            println!("regflip-target: a program with known register contents, for the register injector's tests (x86-64)\n\n{USAGE}");
+            Some(ExitCode::SUCCESS)
+        }
+        Some("-V" | "--version") => {
+            println!("regflip-target {}", env!("CARGO_PKG_VERSION"));
+            Some(ExitCode::SUCCESS)
+        }
+        _ => None,
+    }
+}
+
 #[cfg(not(target_arch = "x86_64"))]
 fn main() -> ExitCode {
+    if let Some(code) = help_or_version() {
+        return code;
+    }
     eprintln!("regflip-target: x86-64 only");
     ExitCode::from(2)
 }
 
 #[cfg(target_arch = "x86_64")]
 fn main() -> ExitCode {
+    if let Some(code) = help_or_version() {
+        return code;
+    }
     let args: Vec<String> = std::env::args().skip(1).collect();
     let result: Result<Infallible, String> =
         match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
@@ -58,11 +82,7 @@ fn main() -> ExitCode {
                 }
             }),
             ["page-end"] => page_end(),
-            _ => Err(
-                "usage: regflip-target gpr PATTERN | gpr-signals PATTERN | gpr-thread PATTERN | \
-              ah PATTERN | xmm LO HI | page-end"
-                    .into(),
-            ),
+            _ => Err(USAGE.into()),
         };
     match result {
         Ok(never) => match never {},

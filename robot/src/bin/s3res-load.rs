@@ -12,7 +12,7 @@ use s3res_robot::msg::Tick;
 /// input `tick` it does --work rounds of CPU-bound integer work and answers with their checksum
 /// on output `sum` — one frame in, one frame out, deterministic, so replicas agree.
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-load", version, verbatim_doc_comment)]
 struct Cli {
     /// Rounds of work per tick (about 1 ns each in a release build, ten times that in debug).
     #[arg(long, default_value_t = 100_000)]

@@ -15,7 +15,7 @@ use s3res_robot::msg::{LoadSum, Telemetry};
 /// input `telemetry` as a CSV line `seq,x,y,theta,v,w` to --out, and counts the load's
 /// checksums on input `load` (if connected). Ends when its inputs end.
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-logger", version, verbatim_doc_comment)]
 struct Cli {
     /// The CSV file to write (nothing is written without it; frames are still counted).
     #[arg(long)]
@@ -30,6 +30,10 @@ fn main() -> Result<()> {
     let mut load = optional_input(&mut rt, "load")?;
     let mut out = match &cli.out {
         Some(p) => {
+            if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir)
+                    .with_context(|| format!("creating the folder {}", dir.display()))?;
+            }
             let f =
                 std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
             let mut w = std::io::BufWriter::new(f);
@@ -94,6 +98,10 @@ fn main() -> Result<()> {
     if let Some(mut w) = out {
         w.flush().context("writing the log")?;
     }
-    tracing::info!(poses, load_sums = sums, bad_frames = bad, last_sum = ?last_sum, "end of input");
+    let last_sum = last_sum.map_or_else(
+        || "-".to_owned(),
+        |s| format!("{} (period {})", s.sum, s.seq),
+    );
+    tracing::info!(poses, load_sums = sums, bad_frames = bad, %last_sum, "end of input");
     Ok(())
 }

@@ -16,7 +16,7 @@ use s3res_robot::msg::Scan;
 /// needs stream mode; the schedule depends on the scan numbers only, so every replica sends the
 /// same k-th update. Frames that are not scans are skipped (logged).
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-mapper", version, verbatim_doc_comment)]
 struct Cli {
     /// Send an update every this many scans.
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]

@@ -23,7 +23,7 @@ use s3res_robot::navigator::{NavParams, Navigator};
 /// A frame on `sensors` that is not a scan is answered with a stop command and no request
 /// (logged).
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-navigator", version, verbatim_doc_comment)]
 struct Cli {
     /// Fastest forward speed commanded, m/s.
     #[arg(long, default_value_t = NavParams::default().v_max)]

@@ -23,7 +23,7 @@ use s3res_robot::planner::Planner;
 /// When the map ends (the mission is over) it closes `waypoints` at once, then reads both
 /// inputs to their end. Frames of the wrong type are skipped (logged).
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-planner", version, verbatim_doc_comment)]
 struct Cli {}
 
 fn main() -> Result<()> {

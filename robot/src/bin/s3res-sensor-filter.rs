@@ -18,7 +18,7 @@ use s3res_robot::msg::Scan;
 /// the last good scan again (logged), so the round is still complete (before the first good
 /// scan there is nothing to repeat, and the frame goes unanswered).
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment)]
+#[command(name = "s3res-sensor-filter", version, verbatim_doc_comment)]
 struct Cli {
     /// Median window, in scans (1 disables the filter).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..=MAX_WINDOW as u64))]

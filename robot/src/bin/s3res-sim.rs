@@ -34,7 +34,12 @@ use s3res_robot::svg;
 ///     s3res-sim golden --seed 3 --summary golden.json    # the mission in one process, ideal timing
 ///     s3res-sim render golden.json --overlay faulted.json --out maze.svg
 #[derive(Parser)]
-#[command(version, verbatim_doc_comment, args_conflicts_with_subcommands = true)]
+#[command(
+    name = "s3res-sim",
+    version,
+    verbatim_doc_comment,
+    args_conflicts_with_subcommands = true
+)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -143,6 +148,10 @@ fn write_summary(path: Option<&Path>, summary: &Summary) -> Result<()> {
     eprintln!("s3res-sim: {}", summary.line());
     if let Some(path) = path {
         let json = serde_json::to_string(summary).context("encoding the summary")?;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("creating the folder {}", dir.display()))?;
+        }
         std::fs::write(path, json + "\n")
             .with_context(|| format!("writing the summary to {}", path.display()))?;
     }

@@ -1,0 +1,662 @@
+//! What a person watching bootstrap sees: a live status while the system runs and a verdict
+//! block when it has ended.
+//!
+//! - [`Tally`] counts the voters' events as they arrive (the events reader applies each one):
+//!   faults by kind, recoveries by method, frames withheld for want of a majority, and which
+//!   replica slots are down at the moment.
+//! - [`Console`] shows the tally: on a terminal, one updating status line under the scrolling
+//!   logs (every process's stderr is then read through bootstrap, line by line, and printed
+//!   above the status line, so nothing writes over it); otherwise a plain line every few
+//!   seconds.
+//! - [`Verdict`] is the block printed at the end: the task's outcome (from the file a
+//!   component wrote, `outcome` in the description), faults by kind and component, recoveries
+//!   by method, frames withheld, what the injector did and whether the voters blamed anyone it
+//!   did not hit (false positives), and where the files are.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Write as _;
+use std::fs::File;
+use std::io::{BufRead, BufReader, Write as _};
+use std::os::fd::OwnedFd;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Deserialize;
+
+use s3res_protocol::event::{Event, EventKind, RecoveryMethod};
+
+use crate::outcome::{match_run, Fired, Outcome};
+use crate::plan::SystemPlan;
+
+/// How often the terminal status line is redrawn.
+pub const TERMINAL_TICK: Duration = Duration::from_millis(250);
+/// How often a plain status line is printed when stderr is not a terminal.
+pub const PLAIN_EVERY: Duration = Duration::from_secs(5);
+/// A fault event counts as an injection's consequence only this long after it (as campaigns).
+const MATCH_WINDOW_NS: u64 = 2_000_000_000;
+
+/// Counts of one component's events.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct ComponentTally {
+    /// Fault events by kind (`sdc`, `crash`, `hang`, `protocol`).
+    pub faults: BTreeMap<&'static str, u64>,
+    pub recovered_by_fork: u64,
+    pub recovered_by_exec: u64,
+    /// Recoveries that said the replica's state was lost.
+    pub state_lost: u64,
+    pub failed_recoveries: u64,
+    /// Fault events that blamed no replica: no majority, the frame was not forwarded.
+    pub withheld: u64,
+    pub anomalies: u64,
+    /// Slots found faulty and not yet replaced (or lost for good).
+    pub down: BTreeSet<usize>,
+}
+
+impl ComponentTally {
+    pub fn fault_count(&self) -> u64 {
+        self.faults.values().sum()
+    }
+
+    pub fn recoveries(&self) -> u64 {
+        self.recovered_by_fork + self.recovered_by_exec
+    }
+}
+
+/// Everything counted so far.
+#[derive(Debug, Default, Clone)]
+pub struct TallyData {
+    pub per_component: BTreeMap<String, ComponentTally>,
+    /// Fault and recovery events, for matching against the injector's log at the end.
+    pub events: Vec<Event>,
+}
+
+/// The shared tally: the events reader writes it, the console and the verdict read it.
+#[derive(Debug, Default, Clone)]
+pub struct Tally(Arc<Mutex<TallyData>>);
+
+impl Tally {
+    /// Takes one event into account.
+    pub fn apply(&self, e: &Event) {
+        let mut d = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let c = d.per_component.entry(e.component.clone()).or_default();
+        match e.kind {
+            EventKind::Start => return,
+            EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
+                *c.faults.entry(kind_name(e.kind)).or_default() += 1;
+                match e.replica {
+                    Some(slot) => {
+                        c.down.insert(slot);
+                    }
+                    None => c.withheld += 1,
+                }
+            }
+            EventKind::Recovery => {
+                match e.method {
+                    Some(RecoveryMethod::Exec) => c.recovered_by_exec += 1,
+                    _ => c.recovered_by_fork += 1,
+                }
+                if e.state_lost == Some(true) {
+                    c.state_lost += 1;
+                }
+                if let Some(slot) = e.replica {
+                    c.down.remove(&slot);
+                }
+            }
+            EventKind::RecoveryFailed => c.failed_recoveries += 1,
+            EventKind::Anomaly => c.anomalies += 1,
+        }
+        d.events.push(e.clone());
+    }
+
+    pub fn snapshot(&self) -> TallyData {
+        self.0.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+}
+
+/// `sdc`, `crash`, … as the events spell them.
+pub fn kind_name(kind: EventKind) -> &'static str {
+    match kind {
+        EventKind::Start => "start",
+        EventKind::Sdc => "sdc",
+        EventKind::Crash => "crash",
+        EventKind::Hang => "hang",
+        EventKind::Protocol => "protocol",
+        EventKind::Recovery => "recovery",
+        EventKind::RecoveryFailed => "recovery_failed",
+        EventKind::Anomaly => "anomaly",
+    }
+}
+
+/// The status of the moment, one line: `12.5 s · filter 3 faults/3 recovered · … · degraded:
+/// none`.
+pub fn status_line(plan: &SystemPlan, t: &TallyData, elapsed: Duration, injected: u64) -> String {
+    let mut parts = vec![format!("{:5.1} s", elapsed.as_secs_f64())];
+    let mut degraded = Vec::new();
+    for c in plan.components.iter().filter(|c| c.is_protected()) {
+        let ct = t.per_component.get(&c.name).cloned().unwrap_or_default();
+        parts.push(format!(
+            "{} {}/{}",
+            c.name,
+            ct.fault_count(),
+            ct.recoveries()
+        ));
+        if !ct.down.is_empty() {
+            degraded.push(format!(
+                "{} ({} of {} down)",
+                c.name,
+                ct.down.len(),
+                c.replicas
+            ));
+        }
+    }
+    let mut line = parts.join(" · ");
+    line.push_str(" (faults/recovered)");
+    if plan.inject.is_some() {
+        line.push_str(&format!(" · injected {injected}"));
+    }
+    line.push_str(" · degraded: ");
+    if degraded.is_empty() {
+        line.push_str("none");
+    } else {
+        line.push_str(&degraded.join(", "));
+    }
+    line
+}
+
+/// The status line on a terminal, if one is shown; logs are printed above it.
+static BAR: OnceLock<ProgressBar> = OnceLock::new();
+
+/// Writes `bytes` to stderr above the status line (or plainly if there is none).
+pub fn write_stderr(bytes: &[u8]) {
+    let write = || {
+        let mut err = std::io::stderr().lock();
+        let _ = err.write_all(bytes);
+        if !bytes.ends_with(b"\n") {
+            let _ = err.write_all(b"\n");
+        }
+    };
+    match BAR.get() {
+        Some(bar) => bar.suspend(write),
+        None => write(),
+    }
+}
+
+/// A `tracing` writer that prints above the status line.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StatusAwareStderr;
+
+impl std::io::Write for StatusAwareStderr {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match BAR.get() {
+            Some(bar) => bar.suspend(|| std::io::stderr().write_all(buf))?,
+            None => std::io::stderr().write_all(buf)?,
+        }
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
+    }
+}
+
+impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for StatusAwareStderr {
+    type Writer = StatusAwareStderr;
+    fn make_writer(&'a self) -> Self::Writer {
+        *self
+    }
+}
+
+/// How the status is shown.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConsoleMode {
+    /// One updating line on the terminal; children's stderr is read through bootstrap.
+    Terminal,
+    /// A plain line every [`PLAIN_EVERY`].
+    Plain,
+    /// Nothing (`-q`).
+    Off,
+}
+
+/// The live status while the system runs.
+pub struct Console {
+    mode: ConsoleMode,
+    started: Instant,
+    last_plain: Instant,
+}
+
+impl Console {
+    /// Starts showing the status. In terminal mode the status line appears at once.
+    pub fn start(mode: ConsoleMode) -> Console {
+        if mode == ConsoleMode::Terminal {
+            let bar = ProgressBar::new_spinner();
+            bar.set_style(
+                ProgressStyle::with_template("{spinner} {msg}")
+                    .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+            );
+            let _ = BAR.set(bar);
+        }
+        let now = Instant::now();
+        Console {
+            mode,
+            started: now,
+            last_plain: now,
+        }
+    }
+
+    /// How often [`Console::tick`] wants to be called; `None` when never.
+    pub fn period(&self) -> Option<Duration> {
+        match self.mode {
+            ConsoleMode::Terminal => Some(TERMINAL_TICK),
+            ConsoleMode::Plain => Some(PLAIN_EVERY),
+            ConsoleMode::Off => None,
+        }
+    }
+
+    pub fn elapsed(&self) -> Duration {
+        self.started.elapsed()
+    }
+
+    /// Shows the status of the moment (plain mode: only when [`PLAIN_EVERY`] has passed).
+    pub fn tick(&mut self, line: impl FnOnce(Duration) -> String) {
+        match self.mode {
+            ConsoleMode::Terminal => {
+                if let Some(bar) = BAR.get() {
+                    bar.set_message(line(self.elapsed()));
+                    bar.tick();
+                }
+            }
+            ConsoleMode::Plain if self.last_plain.elapsed() >= PLAIN_EVERY => {
+                self.last_plain = Instant::now();
+                eprintln!("s3res-bootstrap: {}", line(self.elapsed()));
+            }
+            _ => {}
+        }
+    }
+
+    /// Removes the status line (before the verdict is printed).
+    pub fn finish(&self) {
+        if let Some(bar) = BAR.get() {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// Reads children's stderr (one pipe, shared) line by line and prints every line whole above
+/// the status line, until every writer has closed it. A last line without a newline (a
+/// process that died mid-line) gets one. The receiver hears when it is done.
+pub fn forward_stderr(pipe: OwnedFd) -> std::io::Result<std::sync::mpsc::Receiver<()>> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::Builder::new()
+        .name("stderr".to_owned())
+        .spawn(move || {
+            let mut input = BufReader::new(File::from(pipe));
+            let mut buf = Vec::with_capacity(4096);
+            loop {
+                buf.clear();
+                match input.read_until(b'\n', &mut buf) {
+                    Ok(0) | Err(_) => break,
+                    Ok(_) => write_stderr(&buf),
+                }
+            }
+            let _ = tx.send(());
+        })?;
+    Ok(rx)
+}
+
+/// One line of the injector's log (`s3res-inject storm --log`), as far as the verdict needs it.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct Injected {
+    /// When the signal went out; absent if it did not (`miss` says why).
+    #[serde(default)]
+    pub ts_ns: Option<u64>,
+    pub kind: String,
+    pub component: String,
+    #[serde(default)]
+    pub replica: Option<usize>,
+    #[serde(default)]
+    pub pid: Option<i32>,
+    #[serde(default)]
+    pub miss: Option<String>,
+}
+
+/// Reads the injector's log; unreadable lines are skipped (and counted).
+pub fn read_injections(path: &Path) -> (Vec<Injected>, usize) {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return (Vec::new(), 0);
+    };
+    let mut bad = 0;
+    let list = text
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+        .filter_map(|l| serde_json::from_str(l).map_err(|_| bad += 1).ok())
+        .collect();
+    (list, bad)
+}
+
+/// The task's verdict, read from the `outcome` file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TaskOutcome {
+    pub ok: bool,
+    /// Its other top-level numbers, strings and booleans, `key value`.
+    pub details: Vec<String>,
+}
+
+/// Reads an outcome file: a JSON object with `ok` or `success`. `Err` says why it cannot be
+/// used.
+pub fn read_outcome(path: &Path) -> Result<TaskOutcome, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("not written ({e})"))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("not JSON ({e})"))?;
+    let obj = v.as_object().ok_or("not a JSON object")?;
+    let ok = obj
+        .get("ok")
+        .or_else(|| obj.get("success"))
+        .and_then(serde_json::Value::as_bool)
+        .ok_or("has no `ok` or `success` field")?;
+    let details = obj
+        .iter()
+        .filter(|(k, _)| !matches!(k.as_str(), "ok" | "success"))
+        .filter_map(|(k, v)| {
+            let shown = match v {
+                serde_json::Value::String(s) => s.clone(),
+                serde_json::Value::Bool(b) => b.to_string(),
+                serde_json::Value::Number(n) => match n.as_f64() {
+                    Some(f) if n.is_f64() => format!("{f:.2}"),
+                    _ => n.to_string(),
+                },
+                _ => return None,
+            };
+            Some(format!("{k} {shown}"))
+        })
+        .collect();
+    Ok(TaskOutcome { ok, details })
+}
+
+/// Where the run's files are; `None` for one not kept.
+#[derive(Debug, Clone, Default)]
+pub struct Files {
+    pub events: Option<PathBuf>,
+    pub state: Option<PathBuf>,
+    pub injections: Option<PathBuf>,
+    pub outcome: Option<PathBuf>,
+}
+
+/// Everything the verdict block says.
+#[derive(Debug, Clone)]
+pub struct Verdict {
+    pub system: String,
+    pub elapsed: Duration,
+    pub exit_code: u8,
+    /// `component: status` of every component that failed.
+    pub failures: Vec<String>,
+    pub outcome: Option<Result<TaskOutcome, String>>,
+    pub tally: TallyData,
+    /// The injector's log, if one ran.
+    pub injections: Option<Vec<Injected>>,
+    pub files: Files,
+    /// Protected components, in description order, with their replica count.
+    pub protected: Vec<(String, usize)>,
+}
+
+impl Verdict {
+    /// The block, ready to print (each line ends with a newline).
+    pub fn render(&self) -> String {
+        let mut s = String::new();
+        let rule = "─".repeat(72);
+        let _ = writeln!(s, "{rule}");
+        let _ = writeln!(
+            s,
+            "{}: {} after {:.1} s",
+            self.system,
+            if self.exit_code == 0 {
+                "ran clean".to_owned()
+            } else {
+                format!("exit status {}", self.exit_code)
+            },
+            self.elapsed.as_secs_f64()
+        );
+        let task_ok = match &self.outcome {
+            Some(Ok(o)) => {
+                let word = if o.ok { "succeeded" } else { "FAILED" };
+                let _ = writeln!(s, "  outcome      {word}: {}", o.details.join(", "));
+                o.ok
+            }
+            Some(Err(why)) => {
+                let _ = writeln!(s, "  outcome      unknown: the outcome file is {why}");
+                false
+            }
+            None => self.exit_code == 0,
+        };
+        for f in &self.failures {
+            let _ = writeln!(s, "  failed       {f}");
+        }
+
+        // Faults by component and kind.
+        let mut total = 0;
+        let mut lines = Vec::new();
+        for (name, _) in &self.protected {
+            let Some(c) = self.tally.per_component.get(name) else {
+                continue;
+            };
+            let n = c.fault_count();
+            total += n;
+            if n > 0 {
+                let kinds: Vec<String> = c.faults.iter().map(|(k, v)| format!("{k} {v}")).collect();
+                lines.push(format!("{name} {n} ({})", kinds.join(", ")));
+            }
+        }
+        let _ = writeln!(
+            s,
+            "  faults       {total}{}{}",
+            if lines.is_empty() { "" } else { ": " },
+            lines.join(" · ")
+        );
+
+        let sum = |f: fn(&ComponentTally) -> u64| -> u64 {
+            self.tally.per_component.values().map(f).sum()
+        };
+        let (fork, exec, lost, failed) = (
+            sum(|c| c.recovered_by_fork),
+            sum(|c| c.recovered_by_exec),
+            sum(|c| c.state_lost),
+            sum(|c| c.failed_recoveries),
+        );
+        let _ = writeln!(
+            s,
+            "  recoveries   {} by fork (state kept), {exec} by exec ({lost} with state lost), \
+             {failed} failed",
+            fork
+        );
+        let degraded: Vec<String> = self
+            .protected
+            .iter()
+            .filter_map(|(name, n)| {
+                let c = self.tally.per_component.get(name)?;
+                (!c.down.is_empty()).then(|| format!("{name} ({} of {n} down)", c.down.len()))
+            })
+            .collect();
+        let _ = writeln!(
+            s,
+            "  frames       {} withheld (no majority); degraded at the end: {}",
+            sum(|c| c.withheld),
+            if degraded.is_empty() {
+                "none".to_owned()
+            } else {
+                degraded.join(", ")
+            }
+        );
+        let anomalies = sum(|c| c.anomalies);
+        if anomalies > 0 {
+            let _ = writeln!(s, "  anomalies    {anomalies} detector alarm(s)");
+        }
+
+        if let Some(inj) = &self.injections {
+            self.render_injections(&mut s, inj, task_ok);
+        }
+
+        let f = &self.files;
+        let mut files = Vec::new();
+        for (what, p) in [
+            ("events", &f.events),
+            ("state", &f.state),
+            ("injections", &f.injections),
+            ("outcome", &f.outcome),
+        ] {
+            if let Some(p) = p {
+                files.push(format!("{what} {}", p.display()));
+            }
+        }
+        if !files.is_empty() {
+            let _ = writeln!(s, "  files        {}", files.join(" · "));
+        }
+        let _ = writeln!(s, "{rule}");
+        s
+    }
+
+    fn render_injections(&self, s: &mut String, inj: &[Injected], task_ok: bool) {
+        let delivered: Vec<&Injected> = inj.iter().filter(|i| i.ts_ns.is_some()).collect();
+        let mut by_kind: BTreeMap<&str, u64> = BTreeMap::new();
+        for i in &delivered {
+            *by_kind.entry(i.kind.as_str()).or_default() += 1;
+        }
+        let fired: Vec<Fired> = delivered
+            .iter()
+            .filter_map(|i| {
+                Some(Fired {
+                    ts_ns: i.ts_ns?,
+                    component: i.component.clone(),
+                    slot: i.replica,
+                    pid: i.pid?,
+                })
+            })
+            .collect();
+        let m = match_run(&fired, &self.tally.events, MATCH_WINDOW_NS, task_ok);
+        let count = |o: Outcome| m.per_injection.iter().filter(|(x, _)| *x == o).count();
+        let kinds: Vec<String> = by_kind.iter().map(|(k, v)| format!("{k} {v}")).collect();
+        let _ = writeln!(
+            s,
+            "  injected     {} ({}); {} not delivered (target busy or gone)",
+            delivered.len(),
+            kinds.join(", "),
+            inj.len() - delivered.len()
+        );
+        let _ = writeln!(
+            s,
+            "               {} detected and recovered, {} detected not recovered, {} not \
+             detected ({} harmless), {} hit an already faulty process",
+            count(Outcome::Recovered),
+            count(Outcome::Unrecovered),
+            count(Outcome::Undetected) + count(Outcome::Benign),
+            count(Outcome::Benign),
+            count(Outcome::Missed)
+        );
+        let _ = writeln!(
+            s,
+            "  false pos.   {} (faults blamed on a replica nobody injected)",
+            m.false_positives
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn event(kind: EventKind, slot: Option<usize>) -> Event {
+        let mut e = Event::new("s", "filter", kind);
+        e.replica = slot;
+        e
+    }
+
+    #[test]
+    fn tally_counts_kinds_methods_and_down_slots() {
+        let t = Tally::default();
+        t.apply(&event(EventKind::Start, Some(0)));
+        t.apply(&event(EventKind::Crash, Some(1)));
+        let mut r = event(EventKind::Recovery, Some(1));
+        r.method = Some(RecoveryMethod::Fork);
+        t.apply(&r);
+        t.apply(&event(EventKind::Sdc, None));
+        t.apply(&event(EventKind::Hang, Some(2)));
+        let d = t.snapshot();
+        let c = &d.per_component["filter"];
+        assert_eq!(c.faults.get("crash"), Some(&1));
+        assert_eq!((c.recovered_by_fork, c.withheld), (1, 1));
+        assert_eq!(c.down.iter().copied().collect::<Vec<_>>(), vec![2]);
+        assert_eq!(d.events.len(), 4, "start events are not kept");
+    }
+
+    #[test]
+    fn outcome_file_reads_ok_or_success_and_scalars() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.json");
+        std::fs::write(
+            &p,
+            r#"{"success":true,"outcome":"Goal","mission_time_s":66.25,"collisions":0,"trajectory":[[0,0,0]]}"#,
+        )
+        .unwrap();
+        let o = read_outcome(&p).unwrap();
+        assert!(o.ok);
+        assert_eq!(
+            o.details,
+            vec!["collisions 0", "mission_time_s 66.25", "outcome Goal"]
+        );
+        std::fs::write(&p, r#"{"x":1}"#).unwrap();
+        assert!(read_outcome(&p).unwrap_err().contains("no `ok`"));
+        assert!(read_outcome(&dir.path().join("none.json"))
+            .unwrap_err()
+            .starts_with("not written"));
+    }
+
+    #[test]
+    fn verdict_names_faults_recoveries_and_false_positives() {
+        let t = Tally::default();
+        let mut crash = event(EventKind::Crash, Some(1));
+        crash.pid = Some(100);
+        crash.ts_ns = 1_000;
+        t.apply(&crash);
+        let mut r = event(EventKind::Recovery, Some(1));
+        r.method = Some(RecoveryMethod::Fork);
+        r.pid = Some(100);
+        r.ts_ns = 2_000;
+        t.apply(&r);
+        let mut stray = event(EventKind::Hang, Some(0));
+        stray.pid = Some(200);
+        stray.ts_ns = 3_000;
+        t.apply(&stray);
+        let v = Verdict {
+            system: "robot".into(),
+            elapsed: Duration::from_secs(3),
+            exit_code: 0,
+            failures: vec![],
+            outcome: None,
+            tally: t.snapshot(),
+            injections: Some(vec![Injected {
+                ts_ns: Some(500),
+                kind: "exec".into(),
+                component: "filter".into(),
+                replica: Some(1),
+                pid: Some(100),
+                miss: None,
+            }]),
+            files: Files {
+                events: Some("out/events.jsonl".into()),
+                ..Files::default()
+            },
+            protected: vec![("filter".into(), 3)],
+        };
+        let text = v.render();
+        assert!(
+            text.contains("faults       2: filter 2 (crash 1, hang 1)"),
+            "{text}"
+        );
+        assert!(text.contains("1 by fork"), "{text}");
+        assert!(text.contains("injected     1 (exec 1)"), "{text}");
+        assert!(text.contains("1 detected and recovered"), "{text}");
+        assert!(text.contains("false pos.   1"), "{text}");
+        assert!(text.contains("events out/events.jsonl"), "{text}");
+        assert!(text.contains("filter (1 of 3 down)"), "{text}");
+    }
+}

@@ -1,0 +1,99 @@
+//! End to end: s3res's own processes. bootstrap is the trusted base: when it dies, however it
+//! dies, everything it started dies with it and nothing is left behind.
+
+use std::time::{Duration, Instant};
+
+use s3res_testkit::{echo_pipeline, procs, System};
+
+const TIMEOUT_US: u64 = 300_000;
+
+/// A TMR echo pipeline that runs for a minute (the tests end it much earlier).
+fn long_running(sys: &System) -> String {
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
+    );
+    echo_pipeline(&sys.path("summary.json"), &echo, 60_000, 1000)
+}
+
+/// The live (not zombie) processes of process group `pgid`, but `except`.
+fn live_in_group(pgid: i32, except: i32) -> Vec<procs::ProcStat> {
+    procs::in_group(pgid)
+        .into_iter()
+        .filter(|p| !p.is_zombie() && p.pid != except)
+        .collect()
+}
+
+/// The runtime folder (`s3res-PID-0` in the temp dir) of the bootstrap with this pid.
+fn runtime_dir(bootstrap: i32) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("s3res-{bootstrap}-0"))
+}
+
+/// Sends `sig` to bootstrap mid-run and waits (10 s at most) until no process of the system
+/// is left; returns how long that took.
+fn kill_bootstrap(sig: i32) -> (Duration, i32) {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let (bootstrap, pgid) = (run.pid(), run.pgid());
+    let before = live_in_group(pgid, bootstrap);
+    // source, voter, three replicas, sink.
+    assert!(before.len() >= 6, "the system is not running: {before:?}");
+    assert!(runtime_dir(bootstrap).is_dir(), "no runtime folder");
+
+    s3res_testkit::kill_pid(bootstrap, sig).expect("signal bootstrap");
+    let start = Instant::now();
+    loop {
+        let left = live_in_group(pgid, bootstrap);
+        let bootstrap_gone = run.try_status().is_some();
+        if left.is_empty() && bootstrap_gone {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "10 s after signal {sig} to bootstrap, still running: {left:?} (bootstrap gone: {bootstrap_gone})"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let took = start.elapsed();
+    eprintln!("signal {sig}: every process of the system gone {took:?} after it reached bootstrap");
+    run.assert_nothing_left();
+    (took, bootstrap)
+}
+
+#[test]
+fn sigkill_of_bootstrap_ends_every_process_it_started() {
+    let (_, bootstrap) = kill_bootstrap(libc::SIGKILL);
+    // A SIGKILLed bootstrap cannot clean up; the next one removes its runtime folder.
+    assert!(
+        runtime_dir(bootstrap).is_dir(),
+        "nothing removed the folder yet"
+    );
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut next = sys.start(&desc);
+    next.wait_for_replicas("echo", 3);
+    assert!(
+        !runtime_dir(bootstrap).exists(),
+        "the next bootstrap did not remove the runtime folder of the dead one"
+    );
+    next.stop();
+}
+
+#[test]
+fn sighup_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
+    let (_, bootstrap) = kill_bootstrap(libc::SIGHUP);
+    assert!(
+        !runtime_dir(bootstrap).exists(),
+        "runtime folder left behind"
+    );
+}
+
+#[test]
+fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
+    let (_, bootstrap) = kill_bootstrap(libc::SIGQUIT);
+    assert!(
+        !runtime_dir(bootstrap).exists(),
+        "runtime folder left behind"
+    );
+}
