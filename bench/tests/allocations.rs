@@ -148,7 +148,7 @@ fn model(dir: &std::path::Path) -> std::path::PathBuf {
 
 fn steady_state(monitored: bool) {
     let _one = ONE_VOTER.lock().unwrap_or_else(|e| e.into_inner());
-    let echo = s3res_tests::bin_path("s3res-echo");
+    let echo = s3res_testkit::bin_path("s3res-echo");
     let dir = tempfile::tempdir().unwrap();
     let (in_r, in_w) = replica_rt::sys::pipe().unwrap();
     let (out_r, out_w) = replica_rt::sys::pipe().unwrap();

@@ -16,7 +16,7 @@ const LIMIT: Duration = Duration::from_secs(300);
 fn bench() -> Command {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_s3res-bench"));
     cmd.arg("--bin-dir")
-        .arg(s3res_tests::bin_dir())
+        .arg(s3res_testkit::bin_dir())
         .arg("--quiet")
         .stdin(Stdio::null());
     cmd

@@ -69,7 +69,7 @@ fn run(bin: &Path, arg: &str, cwd: &Path) -> Output {
         std::thread::sleep(Duration::from_millis(10));
     };
     // Whatever it started (nothing, normally) goes with it.
-    let _ = s3res_tests::kill_pid(-pgid, libc::SIGKILL);
+    let _ = s3res_testkit::kill_pid(-pgid, libc::SIGKILL);
     let status = status.unwrap_or_else(|| {
         let _ = child.wait();
         panic!("{} {arg} did not end within {LIMIT:?}", bin.display())
@@ -92,7 +92,7 @@ fn every_binary_answers_help_and_version_with_its_own_name() {
     let version = env!("CARGO_PKG_VERSION");
     let mut wrong = Vec::new();
     for name in &bins {
-        let path = s3res_tests::bin_path(name);
+        let path = s3res_testkit::bin_path(name);
         let help = run(&path, "--help", cwd.path());
         let (out, err) = (
             String::from_utf8_lossy(&help.stdout),

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use s3res_tests::System;
+use s3res_testkit::System;
 
 /// Bound on one run; the system itself takes about four seconds.
 const LIMIT: Duration = Duration::from_secs(120);

@@ -89,7 +89,7 @@ fn workdir() -> tempfile::TempDir {
     }
     std::fs::create_dir(dir.path().join("target")).unwrap();
     std::os::unix::fs::symlink(
-        s3res_tests::bin_dir(),
+        s3res_testkit::bin_dir(),
         dir.path().join("target").join("release"),
     )
     .unwrap();
@@ -119,15 +119,15 @@ fn run_block(file: &str, line: usize, block: &str) -> Result<(), String> {
             break Some(st);
         }
         if Instant::now() >= deadline {
-            let _ = s3res_tests::kill_pid(-pgid, libc::SIGKILL);
+            let _ = s3res_testkit::kill_pid(-pgid, libc::SIGKILL);
             let _ = child.wait();
             break None;
         }
         std::thread::sleep(Duration::from_millis(50));
     };
-    let left = s3res_tests::procs::kill_with_env(MARK, &mark);
+    let left = s3res_testkit::procs::kill_with_env(MARK, &mark);
     let stderr = std::fs::read_to_string(dir.path().join("stderr.txt")).unwrap_or_default();
-    let tail = s3res_tests::tail(&stderr, 30);
+    let tail = s3res_testkit::tail(&stderr, 30);
     match status {
         None => Err(format!(
             "{file}:{line}: did not end within {LIMIT:?}\n{script}\n{tail}"

@@ -10,7 +10,7 @@ use std::sync::Mutex;
 use std::time::Duration;
 
 use common::{echo_system, inject, read_json, read_jsonl};
-use s3res_tests::Rng;
+use s3res_testkit::Rng;
 
 /// One campaign at a time: the machine has two cores, and the verdicts depend on deadlines.
 static SERIAL: Mutex<()> = Mutex::new(());
@@ -221,7 +221,7 @@ fn sigint_stops_the_run_in_progress_and_keeps_the_completed_ones() {
     }
     // Into the next run.
     std::thread::sleep(Duration::from_millis(700));
-    s3res_tests::kill_pid(p.child.id() as i32, libc::SIGINT).unwrap();
+    s3res_testkit::kill_pid(p.child.id() as i32, libc::SIGINT).unwrap();
     let f = p.wait(Duration::from_secs(60)); // fails if any process of the run is left
     assert_eq!(f.code, Some(130), "{}", f.stderr);
     let kept = read_jsonl(&runs).len();

@@ -8,7 +8,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use common::{inject, read_json, read_jsonl};
-use s3res_tests::Rng;
+use s3res_testkit::Rng;
 
 const DESCRIPTION: &str = r#"{
   "name": "echo-to-stdout",

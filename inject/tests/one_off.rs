@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use common::inject;
 use s3res_protocol::live::{LiveView, ReplicaState};
-use s3res_tests::{Event, EventKind, RunningSystem, System};
+use s3res_testkit::{Event, EventKind, RunningSystem, System};
 
 const LIMIT: Duration = Duration::from_secs(60);
 

@@ -2,7 +2,7 @@
 
 use std::process::Command;
 
-use s3res_tests::bin_path;
+use s3res_testkit::bin_path;
 
 fn sim() -> Command {
     Command::new(bin_path("s3res-sim"))

@@ -7,7 +7,7 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use s3res_tests::{procs, Cause, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System};
+use s3res_testkit::{procs, Cause, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System};
 use serde_json::{json, Value};
 
 /// Wall-clock bound on one mission (the mission itself ends by 120 simulated s = 48 s at 50 Hz;
@@ -230,7 +230,7 @@ fn tmr_mission_survives_navigator_kills() {
     run.wait_for_replicas("filter", 3);
 
     let killed = inject_until_end(&mut run, &mut rng, &["navigator"], |_, pid| {
-        s3res_tests::kill_pid(pid, libc::SIGKILL).ok()
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).ok()
     });
     let out = run.wait_success(LIMIT);
     let m = mission(&run);
@@ -260,7 +260,7 @@ fn tmr_mission_survives_mapper_and_planner_kills() {
     run.wait_for_replicas("planner", 3);
 
     let killed = inject_until_end(&mut run, &mut rng, &["mapper", "planner"], |_, pid| {
-        s3res_tests::kill_pid(pid, libc::SIGKILL).ok()
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).ok()
     });
     let out = run.wait_success(LIMIT);
     let m = mission(&run);
@@ -310,7 +310,7 @@ fn the_repository_system_json_flies_a_mission() {
         .stderr
         .lines()
         .find(|l| l.contains("s3res-sim: mission"))
-        .unwrap_or_else(|| panic!("no verdict: {}", s3res_tests::tail(&out.stderr, 20)));
+        .unwrap_or_else(|| panic!("no verdict: {}", s3res_testkit::tail(&out.stderr, 20)));
     eprintln!("{verdict}");
     assert!(verdict.contains("mission succeeded"), "{verdict}");
     for needle in [
@@ -321,7 +321,7 @@ fn the_repository_system_json_flies_a_mission() {
         assert!(
             out.stderr.contains(needle),
             "{needle:?} missing: {}",
-            s3res_tests::tail(&out.stderr, 20)
+            s3res_testkit::tail(&out.stderr, 20)
         );
     }
     let faults: Vec<&Event> = out.faults();
@@ -369,7 +369,7 @@ fn tmr_mission_outvotes_corrupted_navigator_frames() {
     // A bit of the command (25 bytes) or of the request (38), whichever is sent next.
     let flipped = inject_until_end(&mut run, &mut rng, &["navigator"], |rng, pid| {
         let bit = rng.below(25 * 8) as i32;
-        s3res_tests::sigqueue(pid, s3res_tests::signals::INJECT_SDC, bit)
+        s3res_testkit::sigqueue(pid, s3res_testkit::signals::INJECT_SDC, bit)
             .is_ok()
             .then_some(bit)
     });
@@ -421,7 +421,7 @@ fn unprotected_mission_fails_when_the_navigator_is_killed() {
     };
     // Let the robot get going (it waits for its first plan), then kill the navigator.
     std::thread::sleep(Duration::from_millis(1500));
-    s3res_tests::kill_pid(navigator, libc::SIGKILL).expect("kill the navigator");
+    s3res_testkit::kill_pid(navigator, libc::SIGKILL).expect("kill the navigator");
     let out = run.wait(LIMIT);
     let m = mission(&run);
     eprintln!("none, navigator killed: {}", line(&m));
@@ -430,7 +430,7 @@ fn unprotected_mission_fails_when_the_navigator_is_killed() {
     assert!(
         out.stderr.contains("component sim failed"),
         "the sim's verdict reaches bootstrap: {}",
-        s3res_tests::tail(&out.stderr, 20)
+        s3res_testkit::tail(&out.stderr, 20)
     );
     run.assert_nothing_left();
 }
@@ -452,7 +452,7 @@ fn dmr_mission_survives_the_planners_state_loss() {
     // Both stopped first, so that neither can be the other's donor between the two kills.
     for sig in [libc::SIGSTOP, libc::SIGKILL] {
         for pid in pids.values() {
-            s3res_tests::kill_pid(*pid, sig).expect("signal a planner replica");
+            s3res_testkit::kill_pid(*pid, sig).expect("signal a planner replica");
         }
     }
     for (&slot, &pid) in &pids {

@@ -253,7 +253,9 @@ const RESAMPLE: Duration = Duration::from_micros(200);
 /// (its voluntary context switches grew) since the first look: a healthy burst of work is
 /// short. The voter looks every 200 µs for at most `patience` (the component's `timeout_us`,
 /// the time any answer may take); a proven candidate that never waits in that time is
-/// returned in [`DonorPick::hung`]. A stopped candidate is the last resort, as before.
+/// returned in [`DonorPick::hung`]. A stopped candidate is the last resort, as before; a
+/// running one that has not answered yet is taken only at a clean point as well (passed over,
+/// not blamed, if it never waits).
 /// Replicas that kept their state are looked at first; only when none of them can donate
 /// are the fresh ones. Slots in `exclude` are passed over (a donor that already failed).
 pub fn best_donor(
@@ -316,11 +318,30 @@ pub fn best_donor(
             break;
         }
     }
-    // The next best (stopped, or not yet proven, kept first) is the donor, if any.
-    DonorPick {
-        donor: ranked.iter().map(|c| c.2).find(|d| !looked.contains(d)),
-        hung,
+    // The next best (stopped, or not yet proven, kept first) is the donor, if any. A stopped
+    // one runs nothing and is taken as it is; one that runs but has not answered yet is taken
+    // only at a clean point too: it may already spin (a control-flow error injected before its
+    // first frame), and its child would spin as well. One that never waits is passed over,
+    // not blamed: it may still be starting; the deadlines and the liveness look judge it.
+    let rest: Vec<_> = ranked.iter().filter(|c| !looked.contains(&c.2)).collect();
+    let mut ranks: Vec<DonorRank> = rest.iter().map(|c| c.0).collect();
+    ranks.dedup();
+    for rank in ranks {
+        let group: Vec<(usize, libc::pid_t, Option<u64>)> = rest
+            .iter()
+            .filter(|c| c.0 == rank)
+            .map(|&&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+            .collect();
+        let donor = if rank.stopped {
+            group.first().map(|c| c.0)
+        } else {
+            first_to_wait(&group, patience)
+        };
+        if donor.is_some() {
+            return DonorPick { donor, hung };
+        }
     }
+    DonorPick { donor: None, hung }
 }
 
 /// The first of `candidates` seen asleep or having blocked since the first look, within

@@ -8,9 +8,9 @@ use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use s3res_tests::{bin_path, procs};
+use s3res_testkit::{bin_path, procs};
 
-pub use s3res_tests::system::MARK_ENV;
+pub use s3res_testkit::system::MARK_ENV;
 
 /// What one `s3res-inject` invocation did.
 pub struct Finished {

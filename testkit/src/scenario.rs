@@ -84,6 +84,9 @@ impl RunningSystem {
         kills: usize,
         pause_ms: (u64, u64),
     ) -> Vec<(usize, i32)> {
+        // Every kill must be repaired by fork with the state kept: the donors must have
+        // answered (a donor that has not is reported as a fresh start, state lost).
+        self.wait_for_answers(component);
         let mut killed = Vec::new();
         for _ in 0..kills {
             let slot = rng.below(replicas as u64) as usize;
@@ -126,24 +129,129 @@ impl RunningSystem {
     }
 
     /// Flips bit `bit` in the same frame of each listed replica `(slot, bit)` of `component`:
-    /// pauses the system's `s3res-source`, lets what it sent be answered, arms the flips, and
-    /// lets the source go on. Returns the pids at the injection.
+    /// pauses the system's `s3res-source` until everything it sent is answered
+    /// ([`RunningSystem::pause_source`]), arms the flips, and lets the source go on. Returns
+    /// the pids at the injection.
     pub fn flip_bits_in_one_frame(
         &mut self,
         component: &str,
         hits: &[(usize, i32)],
     ) -> std::collections::BTreeMap<usize, i32> {
         let pids = self.replica_pids(component);
-        let source = self
-            .process_named("s3res-source")
-            .expect("the source's pid");
-        crate::kill_pid(source, libc::SIGSTOP).expect("SIGSTOP the source");
-        std::thread::sleep(Duration::from_millis(300));
+        let source = self.pause_source(component);
         for &(slot, bit) in hits {
             crate::sigqueue(pids[&slot], crate::signals::INJECT_SDC, bit).expect("sigqueue");
         }
         crate::kill_pid(source, libc::SIGCONT).expect("SIGCONT the source");
         pids
+    }
+
+    /// Waits until every replica of `component` has answered at least once: a frame reached
+    /// the sink, then, with the source paused ([`RunningSystem::pause_source`]), everything in
+    /// flight was handled (replicas are deterministic: each made the frames the others did),
+    /// and the source goes on.
+    pub fn wait_for_answers(&mut self, component: &str) {
+        let mark = self.sink_mark();
+        let sink = self.pid_of("s3res-sink");
+        crate::wait::wait_until("a frame at the sink", Duration::from_secs(20), || {
+            crate::procs::io(sink).filter(|io| io.rchar > mark)
+        });
+        let source = self.pause_source(component);
+        crate::kill_pid(source, libc::SIGCONT).expect("SIGCONT the source");
+    }
+
+    /// The pid of this system's one living process named `comm`; panics if there is none or
+    /// more than one.
+    pub fn pid_of(&self, comm: &str) -> i32 {
+        self.process_named(comm)
+            .unwrap_or_else(|| panic!("the system has no single living `{comm}` process"))
+    }
+
+    /// Stops (SIGSTOP) the system's `s3res-source` and waits until everything it sent has
+    /// been handled: `component`'s voter sleeps and each of its replicas sleeps reading its
+    /// input pipe, at three looks in a row. (A replica given input is woken at once, and a
+    /// voter holding input or an open round has a replica to wait for, so with the source
+    /// stopped this state means nothing is in flight.) Returns the source's pid, for SIGCONT.
+    pub fn pause_source(&mut self, component: &str) -> i32 {
+        let source = self.pid_of("s3res-source");
+        crate::kill_pid(source, libc::SIGSTOP).expect("SIGSTOP the source");
+        let voter = self.pid_of("s3res-voter");
+        let mut quiet_looks = 0;
+        crate::wait::wait_until(
+            &format!("`{component}` to handle everything the stopped source sent"),
+            Duration::from_secs(20),
+            || {
+                let replicas = self.replica_pids(component);
+                let quiet = replica_rt::sys::process_state(voter) == Some('S')
+                    && replicas
+                        .values()
+                        .all(|&pid| crate::procs::waits_on_pipe_read(pid))
+                    && replica_rt::sys::process_state(voter) == Some('S');
+                quiet_looks = if quiet { quiet_looks + 1 } else { 0 };
+                (quiet_looks >= 3).then_some(())
+            },
+        );
+        source
+    }
+
+    /// Whole length-prefixed frames bootstrap's stdout holds so far (a channel `"to":
+    /// "stdout"` writes them there); a frame still being written is not counted.
+    pub fn stdout_frames(&self) -> usize {
+        let bytes = std::fs::read(self.path("stdout.txt")).unwrap_or_default();
+        let mut at = 0;
+        let mut frames = 0;
+        while let Some(len) = bytes.get(at..at + 4) {
+            let len = u32::from_le_bytes(len.try_into().expect("4 bytes")) as usize;
+            if at + 4 + len > bytes.len() {
+                break;
+            }
+            at += 4 + len;
+            frames += 1;
+        }
+        frames
+    }
+
+    /// Waits (at most `timeout`) until bootstrap's stdout holds `frames` whole frames.
+    pub fn wait_for_stdout_frames(&mut self, frames: usize, timeout: Duration) {
+        crate::wait::wait_until(
+            &format!("{frames} frames on bootstrap's stdout"),
+            timeout,
+            || {
+                assert!(
+                    self.try_status().is_none(),
+                    "bootstrap exited with {} frames on its stdout, waiting for {frames}",
+                    self.stdout_frames()
+                );
+                (self.stdout_frames() >= frames).then_some(())
+            },
+        );
+    }
+
+    /// The sink's read count (`rchar`) once it waits for input (its start-up reads are
+    /// over): the mark for [`RunningSystem::assert_sink_progressed`].
+    pub fn sink_mark(&self) -> u64 {
+        let sink = self.pid_of("s3res-sink");
+        crate::wait::wait_until(
+            "the sink to wait for its input",
+            Duration::from_secs(20),
+            || {
+                if !crate::procs::waits_on_pipe_read(sink) {
+                    return None;
+                }
+                crate::procs::io(sink).map(|io| io.rchar)
+            },
+        )
+    }
+
+    /// Frames reached the sink since `mark` (its read count grew): the system did not stall.
+    /// Panics naming `window` (what the test was checking meanwhile) otherwise.
+    pub fn assert_sink_progressed(&self, mark: u64, window: &str) {
+        let sink = self.pid_of("s3res-sink");
+        let now = crate::procs::io(sink).map_or(0, |io| io.rchar);
+        assert!(
+            now > mark,
+            "no frame reached the sink during {window}: the system stalled (sink read {mark} B before, {now} B after)"
+        );
     }
 
     /// Waits for the `sdc` that names `slot` (process `pid`) of `component` as outvoted bit by

@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use s3res_tests::{EventKind, System};
+use s3res_testkit::{EventKind, System};
 
 /// Bound on one run; the demo itself takes about four seconds (2000 frames at 500 Hz). The sink
 /// (`--stateful --expect 2000`) fails, and so bootstrap fails, unless every frame arrived in

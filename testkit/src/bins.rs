@@ -50,7 +50,7 @@ fn find_or_build() -> Result<PathBuf, String> {
     let layout = Layout::from_test_exe(&exe)?;
     let workspace = Path::new(env!("CARGO_MANIFEST_DIR"))
         .parent()
-        .ok_or("tests crate has no parent directory")?
+        .ok_or("the testkit crate has no parent directory")?
         .join("Cargo.toml");
     let mut cmd = Command::new(env!("CARGO"));
     cmd.arg("build")
@@ -62,7 +62,7 @@ fn find_or_build() -> Result<PathBuf, String> {
         .arg(&layout.target_dir)
         .args(layout.cargo_args())
         .stdin(Stdio::null());
-    eprintln!("s3res-tests: building the workspace's binaries: {cmd:?}");
+    eprintln!("s3res-testkit: building the workspace's binaries: {cmd:?}");
     // Output to a file, not a pipe, so a chatty build can never block on a full pipe.
     let log = tempfile::tempfile().map_err(|e| format!("temp file for cargo's output: {e}"))?;
     let log_err = log.try_clone().map_err(|e| format!("dup: {e}"))?;

@@ -18,7 +18,7 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use s3res_components::{Signal, SIGNAL_FRAME};
-use s3res_tests::{
+use s3res_testkit::{
     bin_path, signals, sigqueue, Cause, Event, EventKind, RecoveryMethod, Rng, RunningSystem,
     System,
 };
@@ -340,7 +340,8 @@ fn smr_holds_back(
     let models = models();
     let mut rng = Rng::from_env();
     let mut run = start_monitored(&mode.signal("smr", offset), 1, count, &models.autoencoder);
-    std::thread::sleep(Duration::from_millis(500));
+    // The detector has a history (half a second at 200 Hz) before the flip.
+    run.wait_for_stdout_frames(100, Duration::from_secs(20));
     let (field, bit, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, 0);
     assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
     assert_eq!(rec.state_lost, Some(true), "{rec:?}");
@@ -408,7 +409,8 @@ fn tmr_logs_the_alarm(mode: Mode) {
     let mut rng = Rng::from_env();
     let (offset, count) = (40_000, 800);
     let mut run = start_monitored(&mode.signal("tmr", offset), 3, count, &models.gaussian);
-    std::thread::sleep(Duration::from_millis(500));
+    // The detector has a history (half a second at 200 Hz) before the flip.
+    run.wait_for_stdout_frames(100, Duration::from_secs(20));
     let slot = rng.below(3) as usize;
     let (field, _, pid, rec) = flip_and_wait_for_recovery(&mut run, &mut rng, slot);
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");

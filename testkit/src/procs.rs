@@ -161,6 +161,64 @@ pub fn handles_hooks(pid: i32) -> bool {
     })
 }
 
+/// I/O counters of a process (`/proc/PID/io`; root, or the same user).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Io {
+    /// Bytes read by `read`-like calls (`rchar`): pipes included.
+    pub rchar: u64,
+    /// Bytes written by `write`-like calls (`wchar`).
+    pub wchar: u64,
+    /// `read`-like calls (`syscr`).
+    pub syscr: u64,
+    /// `write`-like calls (`syscw`).
+    pub syscw: u64,
+}
+
+/// `pid`'s I/O counters; `None` if it is gone (or not ours to read).
+pub fn io(pid: i32) -> Option<Io> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/io")).ok()?;
+    let field = |name: &str| {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name)?.strip_prefix(':'))
+            .and_then(|v| v.trim().parse().ok())
+    };
+    Some(Io {
+        rchar: field("rchar")?,
+        wchar: field("wchar")?,
+        syscr: field("syscr")?,
+        syscw: field("syscw")?,
+    })
+}
+
+/// Voluntary context switches of `pid` (`voluntary_ctxt_switches` in `/proc/PID/status`: how
+/// often it blocked); `None` if it is gone.
+pub fn voluntary_switches(pid: i32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
+        .and_then(|v| v.trim().parse().ok())
+}
+
+/// Time `pid` has spent on a CPU, ns (the first field of `/proc/PID/schedstat`); `None` if it
+/// is gone.
+pub fn cpu_time_ns(pid: i32) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/schedstat")).ok()?;
+    stat.split_whitespace().next()?.parse().ok()
+}
+
+/// Where in the kernel `pid` sleeps (`/proc/PID/wchan`, e.g. `pipe_read`, `anon_pipe_read`,
+/// `do_sys_poll`); `None` if it is gone, `Some("0")` while it runs.
+pub fn wchan(pid: i32) -> Option<String> {
+    std::fs::read_to_string(format!("/proc/{pid}/wchan")).ok()
+}
+
+/// Whether `pid` sleeps waiting to read a pipe (its input): asleep, in the pipe's read.
+pub fn waits_on_pipe_read(pid: i32) -> bool {
+    replica_rt::sys::process_state(pid) == Some('S')
+        && wchan(pid).is_some_and(|w| w.contains("pipe_read"))
+}
+
 /// The real uid and gid of `pid` (`Uid:`/`Gid:` in `/proc/PID/status`).
 pub fn owner(pid: i32) -> Option<(u32, u32)> {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
@@ -280,6 +338,32 @@ mod tests {
         child.wait().unwrap();
         assert_eq!(found.len(), 1, "{found:?}");
         assert_eq!(found[0].pid, child.id() as i32);
+    }
+
+    #[test]
+    fn reads_io_counters_and_a_pipe_reader() {
+        use std::io::Write;
+        let mut cat = std::process::Command::new("cat")
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let pid = cat.id() as i32;
+        crate::wait::wait_until(
+            "cat to wait on its stdin",
+            std::time::Duration::from_secs(10),
+            || waits_on_pipe_read(pid).then_some(()),
+        );
+        let before = io(pid).expect("cat's /proc/PID/io");
+        cat.stdin.as_mut().unwrap().write_all(b"12345").unwrap();
+        let after = crate::wait::wait_until(
+            "cat to read 5 bytes",
+            std::time::Duration::from_secs(10),
+            || io(pid).filter(|a| a.rchar >= before.rchar + 5),
+        );
+        assert!(after.syscr > before.syscr);
+        drop(cat.stdin.take());
+        cat.wait().unwrap();
     }
 
     #[test]

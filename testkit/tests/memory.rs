@@ -2,8 +2,8 @@
 //!
 //! - After a recovery by fork, the donor and the new replica share no physical page of private
 //!   writable memory (replica-rt's copy-on-write break). Checked by comparing page frame numbers
-//!   from `/proc/PID/pagemap`, which shows them only to CAP_SYS_ADMIN: without it the test says
-//!   why and skips.
+//!   from `/proc/PID/pagemap`, which shows them only to CAP_SYS_ADMIN: without it the test is
+//!   listed as ignored, with the reason (see `build.rs`).
 //! - A refused `mlockall` is reported once per replica process and the system runs on.
 
 use std::collections::HashSet;
@@ -12,7 +12,9 @@ use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use s3res_tests::{assert_sink_whole, bin_path, echo_pipeline, EventKind, RecoveryMethod, System};
+use s3res_testkit::{
+    assert_sink_whole, bin_path, echo_pipeline, EventKind, RecoveryMethod, System,
+};
 
 const LIMIT: Duration = Duration::from_secs(120);
 /// Private heap each replica holds, filled.
@@ -112,14 +114,14 @@ struct Stopped(i32);
 
 impl Stopped {
     fn new(pid: i32) -> Stopped {
-        s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP donor");
+        s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP donor");
         Stopped(pid)
     }
 }
 
 impl Drop for Stopped {
     fn drop(&mut self) {
-        let _ = s3res_tests::kill_pid(self.0, libc::SIGCONT);
+        let _ = s3res_testkit::kill_pid(self.0, libc::SIGCONT);
     }
 }
 
@@ -129,14 +131,15 @@ impl Drop for Stopped {
 /// the child may be one of the donor's. The executable's code pages, which both map from the
 /// page cache, must be seen shared — the check that the comparison can see sharing at all.
 #[test]
+#[cfg_attr(
+    not(s3res_pagemap_pfns),
+    ignore = "needs CAP_SYS_ADMIN (root): /proc/PID/pagemap shows page frame numbers only to it"
+)]
 fn donor_and_fork_child_share_no_private_page() {
-    if !pfns_visible() {
-        eprintln!(
-            "SKIPPED donor_and_fork_child_share_no_private_page: /proc/PID/pagemap shows page \
-             frame numbers only to CAP_SYS_ADMIN (run as root); here they read as 0"
-        );
-        return;
-    }
+    s3res_testkit::require(
+        pfns_visible(),
+        "/proc/PID/pagemap shows page frame numbers only to CAP_SYS_ADMIN; here they read as 0",
+    );
     let count = 2500;
     let sys = System::new();
     let echo = format!(
@@ -148,7 +151,7 @@ fn donor_and_fork_child_share_no_private_page() {
     run.wait_for_replicas("echo", 3);
     let first = run.replica_pids("echo");
 
-    s3res_tests::kill_pid(first[&2], libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(first[&2], libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
         |e| e.kind == EventKind::Recovery && e.pid == Some(first[&2]),
         Duration::from_secs(20),
@@ -218,21 +221,22 @@ fn donor_and_fork_child_share_no_private_page() {
 /// (fork children, which lock again inside the restart handler, stay quiet), a crash is still
 /// recovered by fork, and every frame gets through.
 #[test]
+#[cfg_attr(
+    not(s3res_prlimit),
+    ignore = "needs `prlimit` (and, as root, `setpriv`) from util-linux"
+)]
 fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
-    let root = euid_is_root();
+    let root = s3res_testkit::is_root();
     let tools: &[&str] = if root {
         &["setpriv", "prlimit"]
     } else {
         &["prlimit"]
     };
     for tool in tools {
-        if which(tool).is_none() {
-            eprintln!(
-                "SKIPPED refused_mlockall_is_reported_once_and_the_system_runs_on: `{tool}` \
-                 (util-linux) is not installed"
-            );
-            return;
-        }
+        s3res_testkit::require(
+            which(tool).is_some(),
+            &format!("`{tool}` (util-linux) is not installed"),
+        );
     }
     let count = 1500;
     let sys = System::new();
@@ -256,7 +260,7 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
     let mut run = sys.start_with(&wrapper, &desc);
     run.wait_for_replicas("echo", 3);
     let first = run.replica_pids("echo");
-    s3res_tests::kill_pid(first[&1], libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(first[&1], libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
         |e| e.kind == EventKind::Recovery && e.pid == Some(first[&1]),
         Duration::from_secs(20),
@@ -276,21 +280,9 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
         reports,
         3,
         "one report per replica started, none from the fork child; stderr:\n{}",
-        s3res_tests::tail(&out.stderr, 40)
+        s3res_testkit::tail(&out.stderr, 40)
     );
     assert_sink_whole(&run.path("summary.json"), count);
-}
-
-/// Effective uid 0, from `/proc/self/status` (`Uid: real effective saved fs`).
-fn euid_is_root() -> bool {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("Uid:"))
-                .and_then(|v| v.split_whitespace().nth(1).map(|e| e == "0"))
-        })
-        .unwrap_or(false)
 }
 
 fn which(tool: &str) -> Option<std::path::PathBuf> {

@@ -4,8 +4,8 @@
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use s3res_tests::procs::{self, ProcStat};
-use s3res_tests::{
+use s3res_testkit::procs::{self, ProcStat};
+use s3res_testkit::{
     assert_sink_whole, echo_pipeline, signals, EventKind, RecoveryMethod, RunningSystem, System,
 };
 
@@ -113,7 +113,7 @@ fn orphaned_fork_child_stays_under_control() {
     let voter = parent_of(first[&0]).expect("replica 0 has a parent");
 
     // 1. Kill replica 2: it is rebuilt as a fork child of a donor.
-    s3res_tests::kill_pid(first[&2], libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(first[&2], libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
         |e| e.kind == EventKind::Recovery && e.pid == Some(first[&2]),
         Duration::from_secs(20),
@@ -128,7 +128,7 @@ fn orphaned_fork_child_stays_under_control() {
     );
 
     // 2. Kill the donor at once: its child is orphaned and must come to the voter.
-    s3res_tests::kill_pid(donor, libc::SIGKILL).unwrap();
+    s3res_testkit::kill_pid(donor, libc::SIGKILL).unwrap();
     run.wait_for_event(
         |e| e.kind == EventKind::Recovery && e.pid == Some(donor),
         Duration::from_secs(20),
@@ -143,9 +143,20 @@ fn orphaned_fork_child_stays_under_control() {
     }
     assert_only_current_replicas(&run);
 
-    // 3. The orphan still takes part in the vote: rounds go on and it is never blamed.
+    // 3. The orphan still takes part in the vote: rounds go on (it reads input and answers
+    //    100 more times, and frames reach the sink) and it is never blamed.
     let seen = run.events().len();
-    std::thread::sleep(Duration::from_millis(500));
+    let sink = run.sink_mark();
+    let before = procs::io(child).expect("the orphan's io");
+    s3res_testkit::wait_until(
+        "the orphan to take part in 100 more rounds",
+        Duration::from_secs(20),
+        || {
+            let now = procs::io(child)?;
+            (now.syscr >= before.syscr + 100 && now.syscw >= before.syscw + 100).then_some(())
+        },
+    );
+    run.assert_sink_progressed(sink, "the orphan's rounds");
     let blamed: Vec<_> = run.events()[seen..]
         .iter()
         .filter(|e| e.pid == Some(child))
@@ -155,7 +166,7 @@ fn orphaned_fork_child_stays_under_control() {
 
     // 4. The orphan is still controlled: made to spin, it misses a deadline (a hang, seen by
     //    the voter alone), and the voter kills, replaces and reaps it.
-    s3res_tests::kill_pid(child, signals::inject_cfe()).unwrap();
+    s3res_testkit::kill_pid(child, signals::inject_cfe()).unwrap();
     run.wait_for_event(
         |e| e.kind == EventKind::Hang && e.pid == Some(child),
         Duration::from_secs(20),

@@ -10,8 +10,8 @@ use std::process::Command;
 use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
-use s3res_tests::procs::{self, Scheduling};
-use s3res_tests::{
+use s3res_testkit::procs::{self, Scheduling};
+use s3res_testkit::{
     assert_sink_whole, bin_path, echo_pipeline, signals, Cause, EventKind, RecoveryMethod,
     RunningSystem, System,
 };
@@ -74,12 +74,10 @@ fn assert_placed(s: &Scheduling, rr: bool, priority: i32, cpus: &[usize], who: &
 fn priorities_and_cpus(unprivileged: bool) {
     let _turn = one_system_at_a_time();
     let cpus = usable_cpus();
-    if cpus.len() < 2 {
-        eprintln!(
-            "SKIPPED: this test places two replicas on two distinct CPUs; only {cpus:?} usable"
-        );
-        return;
-    }
+    s3res_testkit::require(
+        cpus.len() >= 2,
+        &format!("this test places two replicas on two distinct CPUs; only {cpus:?} usable"),
+    );
     let (a, b) = (cpus[0], cpus[1]);
     let count = 3000;
     let mut sys = System::new();
@@ -164,11 +162,13 @@ fn priorities_and_cpus(unprivileged: bool) {
 }
 
 #[test]
+#[cfg_attr(not(s3res_two_cpus), ignore = "needs two usable CPUs")]
 fn priorities_and_cpus_are_applied_to_every_process_and_a_forked_replacement() {
     priorities_and_cpus(false);
 }
 
 #[test]
+#[cfg_attr(not(s3res_two_cpus), ignore = "needs two usable CPUs")]
 fn unprivileged_priorities_fall_back_to_nice_values_in_the_same_order() {
     priorities_and_cpus(true);
 }
@@ -209,6 +209,9 @@ fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i3
     let (mut run, summary) =
         start_tmr_on_one_cpu(unprivileged, "s3res-echo", &["--stateful"], count, 500);
     run.wait_for_replicas("echo", 3);
+    // After every replica's first answer: before it, a turn runs on the start-up allowance
+    // and a replica that misses it is a `StartDeadline`.
+    run.wait_for_answers("echo");
     let pid = run.replica_pids("echo")[&slot];
     inject(pid);
     let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
@@ -418,15 +421,19 @@ fn unprivileged_sequential_rounds_survive_a_sibling_spinning_after_its_answer() 
 /// deadline names it. (At distinct levels the spinner above them would stall the component
 /// with no fault ever seen.)
 #[test]
+#[cfg_attr(
+    not(s3res_sched_rr),
+    ignore = "needs SCHED_RR (root or CAP_SYS_NICE; not with S3RES_TEST_UNPRIVILEGED)"
+)]
 fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
     let _turn = one_system_at_a_time();
     let cpus = usable_cpus();
     let (shared, voter_cpu) = (cpus[0], cpus[cpus.len() - 1]);
     let sys = System::new();
-    if !sys.round_robin_allowed() {
-        eprintln!("SKIPPED: SCHED_RR is refused here; this test is about SCHED_RR levels");
-        return;
-    }
+    s3res_testkit::require(
+        sys.round_robin_allowed(),
+        "SCHED_RR is refused here (this test is about SCHED_RR levels)",
+    );
     let count = 600;
     let summary = sys.path("summary.json");
     let batch = format!(

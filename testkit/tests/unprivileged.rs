@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use s3res_tests::{
+use s3res_testkit::{
     assert_sink_whole, echo_pipeline, signals, EventKind, RecoveryMethod, Rng, RunningSystem,
     System,
 };
@@ -72,7 +72,7 @@ fn unprivileged_tmr_survives_kills_with_state() {
     for _ in 0..kills {
         let slot = rng.below(3) as usize;
         let pid = run.replica_pids("echo")[&slot];
-        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill replica");
         let rec = run.wait_for_event(
             |e| e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(pid),
             Duration::from_secs(20),
@@ -102,7 +102,7 @@ fn unprivileged_tmr_outvotes_a_corrupted_frame() {
     let count = 1500;
     let (mut run, summary, refusals) = start_prioritized_echo(count, 500);
     let pid = run.replica_pids("echo")[&2];
-    s3res_tests::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue");
+    s3res_testkit::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue");
     let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(20));
     assert_eq!(sdc.replica, Some(2), "{sdc:?}");
     assert_eq!(sdc.pid, Some(pid), "{sdc:?}");

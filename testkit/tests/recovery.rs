@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use s3res_tests::{
+use s3res_testkit::{
     assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, procs,
     signals, sink_summary, Cause, Event, EventKind, RecoveryMethod, Rng, System,
 };
@@ -93,7 +93,7 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
 #[test]
 fn tmr_outvotes_a_corrupted_frame() {
     tmr_single_fault(
-        |pid| s3res_tests::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue"),
+        |pid| s3res_testkit::sigqueue(pid, signals::INJECT_SDC, 13).expect("sigqueue"),
         EventKind::Sdc,
     );
 }
@@ -101,7 +101,7 @@ fn tmr_outvotes_a_corrupted_frame() {
 #[test]
 fn tmr_detects_a_control_flow_error_as_a_hang() {
     tmr_single_fault(
-        |pid| s3res_tests::kill_pid(pid, signals::inject_cfe()).expect("kill"),
+        |pid| s3res_testkit::kill_pid(pid, signals::inject_cfe()).expect("kill"),
         EventKind::Hang,
     );
 }
@@ -109,7 +109,7 @@ fn tmr_detects_a_control_flow_error_as_a_hang() {
 #[test]
 fn tmr_detects_a_stopped_replica_as_a_hang() {
     tmr_single_fault(
-        |pid| s3res_tests::kill_pid(pid, libc::SIGSTOP).expect("kill"),
+        |pid| s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("kill"),
         EventKind::Hang,
     );
 }
@@ -151,7 +151,7 @@ fn smr_restarts_by_exec_and_says_state_was_lost() {
     run.wait_for_replicas("echo", 1);
 
     let pid = run.replica_pids("echo")[&0];
-    s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill");
+    s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill");
     run.wait_for_event(
         |e| e.kind == EventKind::Crash && e.pid == Some(pid),
         Duration::from_secs(20),
@@ -245,11 +245,26 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
     let pids = run.replica_pids("echo");
-    s3res_tests::kill_pid(pids[&0], libc::SIGSTOP).unwrap();
-    s3res_tests::kill_pid(pids[&2], libc::SIGKILL).unwrap();
-    std::thread::sleep(Duration::from_millis(450));
-    s3res_tests::kill_pid(pids[&0], libc::SIGCONT).unwrap();
-    run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+    // Between rounds (the source paused, everything answered), stop both possible donors and
+    // kill the third: recovery starts at once, and the best donor left is the stopped slot 0.
+    let source = run.pause_source("echo");
+    for slot in [0, 1] {
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGSTOP).unwrap();
+        s3res_testkit::wait_state(pids[&slot], "T", Duration::from_secs(20));
+    }
+    s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).unwrap();
+    // The attempt times out (restart_timeout_ms) and the slot is filled by exec.
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
+    assert_eq!(
+        (rec.method, rec.state_lost),
+        (Some(RecoveryMethod::Exec), Some(true)),
+        "the fork from the stopped donor must have timed out: {rec:?}"
+    );
+    // Slot 0 now forks for the abandoned attempt; its late child connects to the voter.
+    for slot in [0, 1] {
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGCONT).unwrap();
+    }
+    s3res_testkit::kill_pid(source, libc::SIGCONT).unwrap();
 
     let out = run.wait_success(LIMIT);
     // At most one SDC: the exec'd replacement starts with a fresh count and is then rebuilt by
@@ -266,33 +281,32 @@ fn a_late_child_of_an_abandoned_attempt_is_refused() {
 /// sees no state break: the fresh slot 0 is outvoted at its first answer and rebuilt by fork.
 #[test]
 fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
-    // One frame a second: the stop → kill → exec → continue → kill sequence (a few hundred
-    // ms) falls between two rounds.
-    let count = 6;
+    // The stop → kill → exec → continue → kill sequence happens between two rounds: the
+    // source is paused once frames have come through (every replica has answered).
+    let count = 60;
     let sys = System::new();
     let summary = sys.path("summary.json");
     let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
                     "timeout_us": 400000, "restart_timeout_ms": 150 }"#;
-    let mut run = sys.start(&echo_pipeline(&summary, echo, count, 1));
+    let mut run = sys.start(&echo_pipeline(&summary, echo, count, 20));
     run.wait_for_replicas("echo", 3);
-    std::thread::sleep(Duration::from_millis(1300));
+    run.wait_for_answers("echo");
+    let source = run.pause_source("echo");
     let pids = run.replica_pids("echo");
     for slot in [1, 2] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGSTOP).expect("stop");
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGSTOP).expect("stop");
     }
-    s3res_tests::kill_pid(pids[&0], libc::SIGKILL).expect("kill slot 0");
+    s3res_testkit::kill_pid(pids[&0], libc::SIGKILL).expect("kill slot 0");
     let rec0 = run.wait_for_event(|e| is_recovery_of(e, 0, pids[&0]), Duration::from_secs(20));
     assert_eq!(rec0.method, Some(RecoveryMethod::Exec), "{rec0:?}");
     let fresh = rec0.new_pid.expect("new pid");
-    let deadline = std::time::Instant::now() + Duration::from_secs(20);
-    while !s3res_tests::procs::handles_hooks(fresh) {
-        assert!(std::time::Instant::now() < deadline, "slot 0 never started");
-        std::thread::sleep(Duration::from_millis(2));
-    }
+    s3res_testkit::wait_until("slot 0 to start", Duration::from_secs(20), || {
+        s3res_testkit::procs::handles_hooks(fresh).then_some(())
+    });
     for slot in [1, 2] {
-        s3res_tests::kill_pid(pids[&slot], libc::SIGCONT).expect("continue");
+        s3res_testkit::kill_pid(pids[&slot], libc::SIGCONT).expect("continue");
     }
-    s3res_tests::kill_pid(pids[&2], libc::SIGKILL).expect("kill slot 2");
+    s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill slot 2");
     let rec2 = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(20));
     assert_eq!(rec2.method, Some(RecoveryMethod::Fork), "{rec2:?}");
     assert_eq!(
@@ -300,6 +314,7 @@ fn a_replica_restarted_afresh_is_never_chosen_as_donor_over_a_healthy_one() {
         Some(1),
         "the healthy replica is the donor: {rec2:?}"
     );
+    s3res_testkit::kill_pid(source, libc::SIGCONT).expect("continue the source");
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }
@@ -356,10 +371,27 @@ fn dmr_does_not_clone_a_donor_that_spins() {
     run.wait_for_replicas("echo", 2);
 
     let pids = run.replica_pids("echo");
-    s3res_tests::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
-    // Replica 1 answers the next round (at most 20 ms away) long before its 300 ms deadline.
-    std::thread::sleep(Duration::from_millis(100));
-    s3res_tests::kill_pid(pids[&1], signals::inject_cfe()).expect("inject cfe");
+    // Between rounds (the source paused, everything answered), replica 0 starts to spin; the
+    // next round, once the source goes on, is the one it never answers.
+    let source = run.pause_source("echo");
+    s3res_testkit::kill_pid(pids[&0], signals::inject_cfe()).expect("inject cfe");
+    s3res_testkit::wait_spinning(pids[&0], Duration::from_secs(20));
+    let answered = s3res_testkit::procs::io(pids[&1])
+        .expect("replica 1's io")
+        .wchar;
+    s3res_testkit::kill_pid(source, libc::SIGCONT).expect("continue the source");
+    // Replica 1 answers that round (it wrote, and waits for input again) long before its
+    // 300 ms deadline; then it spins too.
+    s3res_testkit::wait_until(
+        "replica 1 to answer the round",
+        Duration::from_secs(20),
+        || {
+            let io = s3res_testkit::procs::io(pids[&1])?;
+            (io.wchar > answered && s3res_testkit::procs::waits_on_pipe_read(pids[&1]))
+                .then_some(())
+        },
+    );
+    s3res_testkit::kill_pid(pids[&1], signals::inject_cfe()).expect("inject cfe");
 
     let first = run.wait_for_event(
         |e| e.kind == EventKind::Hang && e.replica == Some(0),
@@ -408,12 +440,12 @@ fn a_donor_killed_during_the_fork_never_lets_lost_state_win() {
         let delay = Duration::from_micros(cycle * 15);
         let pids = run.replica_pids("echo");
         let (first, donor) = (pids[&1], pids[&0]);
-        s3res_tests::kill_pid(first, libc::SIGKILL).expect("kill replica 1");
+        s3res_testkit::kill_pid(first, libc::SIGKILL).expect("kill replica 1");
         let start = std::time::Instant::now();
         while start.elapsed() < delay {
             std::hint::spin_loop();
         }
-        s3res_tests::kill_pid(donor, libc::SIGKILL).expect("kill replica 0");
+        s3res_testkit::kill_pid(donor, libc::SIGKILL).expect("kill replica 0");
         for (slot, pid) in [(1, first), (0, donor)] {
             let rec = run.wait_for_recovery("echo", slot, pid);
             assert_eq!(
@@ -487,7 +519,7 @@ fn a_connection_flood_on_the_recovery_socket_does_not_stop_a_fork() {
     }
     for slot in [1, 2, 0, 1] {
         let pid = run.replica_pids("echo")[&slot];
-        s3res_tests::kill_pid(pid, libc::SIGKILL).expect("kill replica");
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill replica");
         let rec = run.wait_for_recovery("echo", slot, pid);
         assert_eq!(
             (rec.method, rec.state_lost),
@@ -531,7 +563,7 @@ fn redundancy_is_restored_after_a_recovery_failed() {
         procs::set_nproc_soft(p, Some(1));
     }
 
-    s3res_tests::kill_pid(pids[&1], libc::SIGKILL).expect("kill replica 1");
+    s3res_testkit::kill_pid(pids[&1], libc::SIGKILL).expect("kill replica 1");
     let failed = run.wait_for_event(
         |e| e.kind == EventKind::RecoveryFailed && e.replica == Some(1),
         Duration::from_secs(20),

@@ -12,7 +12,7 @@
 //!
 //! ```no_run
 //! use std::time::Duration;
-//! use s3res_tests::System;
+//! use s3res_testkit::System;
 //!
 //! let sys = System::new();
 //! let summary = sys.path("summary.json"); // a file in the system's temp dir
@@ -32,6 +32,7 @@ pub mod procs;
 pub mod rng;
 pub mod scenario;
 pub mod system;
+pub mod wait;
 
 pub use bins::{bin_dir, bin_path};
 pub use events::{parse_events, replica_pids};
@@ -40,6 +41,7 @@ pub use scenario::{
     assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,
 };
 pub use system::{is_root, Outcome, RunningSystem, System};
+pub use wait::{wait_spinning, wait_state, wait_until};
 
 use std::path::Path;
 
@@ -67,6 +69,17 @@ pub fn sink_summary(path: impl AsRef<Path>) -> serde_json::Value {
         .unwrap_or_else(|e| panic!("reading sink summary {}: {e}", path.display()));
     serde_json::from_str(&text)
         .unwrap_or_else(|e| panic!("sink summary {} is not JSON ({e}): {text}", path.display()))
+}
+
+/// The run-time half of the skip mechanism (see `build.rs`): a test that `build.rs` let run
+/// here checks that the machine still gives it what it needs, and fails naming `missing` if
+/// not (the crate was built elsewhere, say as root, and run as a user).
+pub fn require(available: bool, missing: &str) {
+    assert!(
+        available,
+        "{missing}, but this test crate was built where it was not missing: rebuild it \
+         (cargo clean -p s3res-testkit) to have this test listed as ignored"
+    );
 }
 
 /// The last `max_lines` lines of `text` (for failure messages).

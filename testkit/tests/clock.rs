@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use s3res_tests::{assert_sink_whole, bin_path, echo_pipeline, signals, EventKind, System};
+use s3res_testkit::{assert_sink_whole, bin_path, echo_pipeline, signals, EventKind, System};
 
 const LIMIT: Duration = Duration::from_secs(90);
 
@@ -33,7 +33,7 @@ fn hang_caught_under(clock: &str) -> String {
     let mut run = sys.start_with(&bootstrap, &desc);
     run.wait_for_replicas("echo", 3);
     let spinner = run.replica_pids("echo")[&1];
-    s3res_tests::kill_pid(spinner, signals::inject_cfe()).unwrap();
+    s3res_testkit::kill_pid(spinner, signals::inject_cfe()).unwrap();
     run.wait_for_event(
         |e| e.kind == EventKind::Hang && e.pid == Some(spinner),
         Duration::from_secs(20),
@@ -99,7 +99,7 @@ fn a_clock_setting_that_names_no_clock_is_a_clear_error() {
         out.stderr
             .contains("S3RES_CLOCK=\"sundial\" is not a clock"),
         "{}",
-        s3res_tests::tail(&out.stderr, 30)
+        s3res_testkit::tail(&out.stderr, 30)
     );
     run.assert_nothing_left();
 }

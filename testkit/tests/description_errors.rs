@@ -8,7 +8,7 @@
 use std::os::unix::fs::PermissionsExt;
 use std::time::Duration;
 
-use s3res_tests::System;
+use s3res_testkit::System;
 
 /// Bound on one refusal; bootstrap refuses within milliseconds.
 const LIMIT: Duration = Duration::from_secs(30);

@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use s3res_tests::{signals, EventKind, RecoveryMethod, Rng, RunningSystem, System};
+use s3res_testkit::{signals, EventKind, RecoveryMethod, Rng, RunningSystem, System};
 
 const DOC: &str = include_str!("../../docs/writing-a-component.md");
 const MAIN_RS: &str = include_str!("../../examples/running-mean/src/main.rs");
@@ -143,7 +143,7 @@ fn the_documented_tmr_system_gives_every_running_mean_exactly() {
         out.status.success(),
         "bootstrap failed ({}):\n{}",
         out.status,
-        s3res_tests::tail(&out.stderr, 30)
+        s3res_testkit::tail(&out.stderr, 30)
     );
     run.assert_nothing_left();
 
@@ -167,7 +167,7 @@ fn the_documented_tmr_system_gives_every_running_mean_exactly() {
 const BY_HAND_PORTS: &str = r#"{"ports":[{"name":"samples","dir":"in","fd":0,"max_frame":65536},{"name":"mean","dir":"out","fd":1,"max_frame":65536}]}"#;
 
 fn run_by_hand(ports: Option<&str>, stdin: Vec<u8>) -> std::process::Output {
-    let mut cmd = Command::new(s3res_tests::bin_path("s3res-running-mean"));
+    let mut cmd = Command::new(s3res_testkit::bin_path("s3res-running-mean"));
     cmd.env_remove("S3RES_PORTS")
         .env_remove("S3RES_VOTER_SOCKET")
         .env_remove("S3RES_REPLICA")
@@ -331,7 +331,7 @@ fn a_corrupted_replica_is_outvoted_and_replaced_without_losing_the_mean() {
     let slot = 1;
     let pid = pids[&slot];
     // Bit 7 of the first payload byte: the low byte of the count in the next answer.
-    s3res_tests::sigqueue(pid, signals::INJECT_SDC, 7).expect("sigqueue");
+    s3res_testkit::sigqueue(pid, signals::INJECT_SDC, 7).expect("sigqueue");
 
     writer.write_all(&sample_frames(second)).unwrap();
     let sdc = run.wait_for_event(|e| e.kind == EventKind::Sdc, Duration::from_secs(30));
@@ -353,7 +353,7 @@ fn a_corrupted_replica_is_outvoted_and_replaced_without_losing_the_mean() {
         out.status.success(),
         "bootstrap failed ({}):\n{}",
         out.status,
-        s3res_tests::tail(&out.stderr, 30)
+        s3res_testkit::tail(&out.stderr, 30)
     );
     run.assert_nothing_left();
     let faults: Vec<_> = out

@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use s3res_tests::{echo_pipeline, procs, System};
+use s3res_testkit::{echo_pipeline, procs, System};
 
 const TIMEOUT_US: u64 = 300_000;
 
@@ -41,7 +41,7 @@ fn kill_bootstrap(sig: i32) -> (Duration, i32) {
     assert!(before.len() >= 6, "the system is not running: {before:?}");
     assert!(runtime_dir(bootstrap).is_dir(), "no runtime folder");
 
-    s3res_tests::kill_pid(bootstrap, sig).expect("signal bootstrap");
+    s3res_testkit::kill_pid(bootstrap, sig).expect("signal bootstrap");
     let start = Instant::now();
     loop {
         let left = live_in_group(pgid, bootstrap);

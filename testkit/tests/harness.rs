@@ -7,7 +7,7 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::PathBuf;
 use std::time::Duration;
 
-use s3res_tests::{procs, EventKind, RunningSystem, System};
+use s3res_testkit::{procs, EventKind, RunningSystem, System};
 
 /// Writes an executable shell script into the system's dir and returns its path.
 fn script(sys: &System, name: &str, body: &str) -> PathBuf {

@@ -494,7 +494,7 @@ impl RunningSystem {
             left.extend(self.leftovers().into_iter().filter(|p| !p.is_zombie()));
         } else {
             eprintln!(
-                "s3res-tests: bootstrap (pid {}) did not stop within {TERM_GRACE:?} of SIGTERM; \
+                "s3res-testkit: bootstrap (pid {}) did not stop within {TERM_GRACE:?} of SIGTERM; \
                  killing its process group",
                 self.pgid
             );
@@ -542,9 +542,9 @@ impl Drop for RunningSystem {
         if let Some(dir) = self.dir.take() {
             if std::env::var_os(KEEP_TMP_ENV).is_some() {
                 let kept = dir.keep();
-                eprintln!("s3res-tests: kept {}", kept.display());
+                eprintln!("s3res-testkit: kept {}", kept.display());
             } else if panicking {
-                eprintln!("s3res-tests: set {KEEP_TMP_ENV}=1 to keep the system's temp dir");
+                eprintln!("s3res-testkit: set {KEEP_TMP_ENV}=1 to keep the system's temp dir");
             }
         }
         if !left.is_empty() && !panicking {
@@ -588,7 +588,7 @@ fn reap_orphans_here() {
     static SUBREAPER: Once = Once::new();
     SUBREAPER.call_once(|| {
         if let Err(e) = replica_rt::sys::set_child_subreaper() {
-            eprintln!("s3res-tests: cannot become a child subreaper: {e}");
+            eprintln!("s3res-testkit: cannot become a child subreaper: {e}");
         }
     });
     let me = std::process::id() as i32;

@@ -1,0 +1,101 @@
+//! Probes what this machine allows, for the end-to-end tests that cannot run everywhere. Each
+//! such test is `#[cfg_attr(not(s3res_…), ignore = "reason")]`: where it cannot run, `cargo
+//! test` lists it as ignored with the reason (and counts it in the summary) instead of passing
+//! it silently; where it can (CI runs as root), it runs by default. Each test also checks its
+//! condition when it runs and fails, naming it, if the machine disagrees with the build (built
+//! as root, run as a user: rebuild, or `cargo clean -p s3res-testkit`).
+//!
+//! | cfg                 | set when                                                         |
+//! |---------------------|------------------------------------------------------------------|
+//! | `s3res_pagemap_pfns`| `/proc/self/pagemap` shows page frame numbers (CAP_SYS_ADMIN)     |
+//! | `s3res_sched_rr`    | `chrt -r 1 true` succeeds (SCHED_RR allowed: root or CAP_SYS_NICE) and `S3RES_TEST_UNPRIVILEGED` is not set |
+//! | `s3res_two_cpus`    | at least two CPUs are usable                                     |
+//! | `s3res_prlimit`     | `prlimit` is installed, and `setpriv` too when building as root   |
+
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::process::{Command, Stdio};
+
+const CFGS: [&str; 4] = [
+    "s3res_pagemap_pfns",
+    "s3res_sched_rr",
+    "s3res_two_cpus",
+    "s3res_prlimit",
+];
+
+/// The harness's `system::UNPRIVILEGED_ENV`.
+const UNPRIVILEGED_ENV: &str = "S3RES_TEST_UNPRIVILEGED";
+
+fn main() {
+    for cfg in CFGS {
+        println!("cargo::rustc-check-cfg=cfg({cfg})");
+    }
+    println!("cargo::rerun-if-changed=build.rs");
+    // A change of user (sudo, su) probes again.
+    for var in ["USER", "SUDO_USER", "HOME", "PATH", UNPRIVILEGED_ENV] {
+        println!("cargo::rerun-if-env-changed={var}");
+    }
+    let set = |cfg: &str, on: bool| {
+        if on {
+            println!("cargo::rustc-cfg={cfg}");
+        }
+    };
+    set("s3res_pagemap_pfns", pagemap_shows_pfns());
+    // `S3RES_TEST_UNPRIVILEGED=1` runs every test system as `nobody`: no SCHED_RR then.
+    let unprivileged = std::env::var_os(UNPRIVILEGED_ENV).is_some_and(|v| v != "0");
+    set(
+        "s3res_sched_rr",
+        !unprivileged && succeeds("chrt", &["-r", "1", "true"]),
+    );
+    set(
+        "s3res_two_cpus",
+        std::thread::available_parallelism().is_ok_and(|n| n.get() >= 2),
+    );
+    let tools: &[&str] = if euid_is_root() {
+        &["prlimit", "setpriv"]
+    } else {
+        &["prlimit"]
+    };
+    set(
+        "s3res_prlimit",
+        tools.iter().all(|t| succeeds(t, &["--version"])),
+    );
+}
+
+fn succeeds(program: &str, args: &[&str]) -> bool {
+    Command::new(program)
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// Whether the page frame number of a page of our own, touched, reads as non-zero.
+fn pagemap_shows_pfns() -> bool {
+    const PAGE: u64 = 4096;
+    let probe = vec![1u8; 4 * PAGE as usize];
+    let Ok(pagemap) = File::open("/proc/self/pagemap") else {
+        return false;
+    };
+    let first = probe.as_ptr() as u64 / PAGE;
+    let seen = (first..first + 4).any(|page| {
+        let mut entry = [0u8; 8];
+        pagemap.read_exact_at(&mut entry, page * 8).is_ok()
+            && u64::from_le_bytes(entry) & ((1 << 55) - 1) != 0
+    });
+    std::hint::black_box(&probe);
+    seen
+}
+
+/// Effective uid 0, from `/proc/self/status` (`Uid: real effective saved fs`).
+fn euid_is_root() -> bool {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("Uid:"))
+                .and_then(|v| v.split_whitespace().nth(1).map(|e| e == "0"))
+        })
+        .unwrap_or(false)
+}
