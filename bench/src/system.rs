@@ -162,6 +162,8 @@ impl System {
                 priority: sched.priority,
                 cpus: sched.cpus,
                 start_timeout_ms: s3res_protocol::plan::default_start_timeout_ms(),
+                max_restarts: s3res_protocol::plan::default_max_restarts(),
+                restart_window_ms: s3res_protocol::plan::default_restart_window_ms(),
                 voter_cpu: sched.voter_cpu,
                 schedule: sched.schedule,
                 realtime: true,

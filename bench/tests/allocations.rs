@@ -182,6 +182,8 @@ fn steady_state(monitored: bool) {
         priority: None,
         cpus: Vec::new(),
         start_timeout_ms: s3res_protocol::plan::default_start_timeout_ms(),
+        max_restarts: s3res_protocol::plan::default_max_restarts(),
+        restart_window_ms: s3res_protocol::plan::default_restart_window_ms(),
         voter_cpu: None,
         schedule: Default::default(),
         realtime: true,

@@ -14,8 +14,8 @@ use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::DEFAULT_MAX_FRAME;
 use s3res_anomaly::{Field, FieldLayout, Model};
 use s3res_protocol::plan::{
-    default_restart_timeout_ms, default_start_timeout_ms, default_stream_window, CapturePlan, Mode,
-    MonitorPlan, RoundTrigger,
+    default_max_restarts, default_restart_timeout_ms, default_restart_window_ms,
+    default_start_timeout_ms, default_stream_window, CapturePlan, Mode, MonitorPlan, RoundTrigger,
 };
 use s3res_protocol::sched::{self, Schedule};
 
@@ -31,6 +31,8 @@ pub const INJECT_FAULTS: [&str; 3] = ["exec", "sdc", "cfe"];
 pub const MAX_FRAME_LIMIT: usize = 16 * 1024 * 1024;
 /// Largest replica count (`replicas`).
 pub const MAX_REPLICAS: u64 = 9;
+/// Largest `max_restarts`.
+pub const MAX_RESTART_BUDGET: u64 = 1000;
 /// Longest name of a component or a port, in characters.
 pub const MAX_NAME_LEN: usize = 64;
 /// Longest system name, in characters.
@@ -292,6 +294,9 @@ struct ComponentDesc {
     rounds: Option<Vec<RoundDesc>>,
     restart_timeout_ms: Option<u64>,
     start_timeout_ms: Option<u64>,
+    /// Restart budget: replicas started by exec within `restart_window_ms`.
+    max_restarts: Option<u64>,
+    restart_window_ms: Option<u64>,
     inputs: Option<Vec<String>>,
     outputs: Option<Vec<String>>,
 }
@@ -698,6 +703,8 @@ impl Checker<'_> {
                 (desc.rounds.is_some(), "rounds"),
                 (desc.restart_timeout_ms.is_some(), "restart_timeout_ms"),
                 (desc.start_timeout_ms.is_some(), "start_timeout_ms"),
+                (desc.max_restarts.is_some(), "max_restarts"),
+                (desc.restart_window_ms.is_some(), "restart_window_ms"),
             ] {
                 if present {
                     warnings.push(format!(
@@ -719,9 +726,25 @@ impl Checker<'_> {
                 "start_timeout_ms must be more than 0",
             ));
         }
+        if let Some(n) = desc
+            .max_restarts
+            .filter(|n| !(1..=MAX_RESTART_BUDGET).contains(n))
+        {
+            return Err(self.err(
+                &field("max_restarts"),
+                format!("max_restarts {n} is outside 1..={MAX_RESTART_BUDGET}"),
+            ));
+        }
+        if desc.restart_window_ms == Some(0) {
+            return Err(self.err(
+                &field("restart_window_ms"),
+                "restart_window_ms must be more than 0",
+            ));
+        }
         for (value, what) in [
             (desc.restart_timeout_ms, "restart_timeout_ms"),
             (desc.start_timeout_ms, "start_timeout_ms"),
+            (desc.restart_window_ms, "restart_window_ms"),
         ] {
             if let Some(ms) = value.filter(|&ms| ms > MAX_DURATION_MS) {
                 return Err(self.err(
@@ -1141,6 +1164,14 @@ impl Checker<'_> {
                 .desc
                 .start_timeout_ms
                 .unwrap_or_else(default_start_timeout_ms),
+            max_restarts: d
+                .desc
+                .max_restarts
+                .map_or_else(default_max_restarts, |n| n as u32),
+            restart_window_ms: d
+                .desc
+                .restart_window_ms
+                .unwrap_or_else(default_restart_window_ms),
             priority: d.priority,
             cpus: d.cpus,
             voter_cpu: d.voter_cpu,

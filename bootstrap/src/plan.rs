@@ -98,6 +98,9 @@ pub struct ComponentPlan {
     pub timeout_us: u64,
     pub restart_timeout_ms: u64,
     pub start_timeout_ms: u64,
+    /// The restart budget: replicas started by exec within `restart_window_ms`.
+    pub max_restarts: u32,
+    pub restart_window_ms: u64,
     /// SCHED_RR priority: of the component, or of the voter (replicas run below it).
     pub priority: Option<u8>,
     /// CPUs: the component's mask, or the CPUs the replicas are spread over.
@@ -269,6 +272,11 @@ impl SystemPlan {
                 out,
                 "  timeout   {} us {per}, {} ms per restart, {} ms for a fresh replica's first answer",
                 c.timeout_us, c.restart_timeout_ms, c.start_timeout_ms
+            );
+            let _ = writeln!(
+                out,
+                "  budget    {} restarts by exec within {} ms, then the component has failed",
+                c.max_restarts, c.restart_window_ms
             );
             for m in &c.monitors {
                 let names: Vec<&str> = m.fields.fields().iter().map(|f| f.name.as_str()).collect();

@@ -788,6 +788,8 @@ fn spawn_voter(
         socket_path,
         restart_timeout_ms: c.restart_timeout_ms,
         start_timeout_ms: c.start_timeout_ms,
+        max_restarts: c.max_restarts,
+        restart_window_ms: c.restart_window_ms,
         priority: c.priority,
         cpus: c.cpus.clone(),
         voter_cpu: c.voter_cpu,
@@ -824,6 +826,9 @@ fn supervise(
     let mut stop: Option<(i32, Instant)> = None;
     let mut killed = false;
     let mut helpers_deadline: Option<Instant> = None;
+    // A component failed beyond recovery (its voter gave up): the system stops, and the run
+    // ends as failed rather than as stopped by a signal.
+    let mut failed = false;
     loop {
         reap_all(children, stop.is_some());
         tick();
@@ -831,6 +836,20 @@ fn supervise(
             break;
         }
         let now = Instant::now();
+        if stop.is_none() {
+            let gave_up = children
+                .iter()
+                .find(|c| !c.helper && c.status == Some(sys::ExitStatus::Code(VOTER_GAVE_UP)));
+            if let Some(c) = gave_up {
+                tracing::error!(
+                    "component {} failed beyond recovery (its voter's reason is above); stopping the system",
+                    c.component
+                );
+                failed = true;
+                stop = Some((libc::SIGTERM, now + stop_timeout));
+                signal_live(children, libc::SIGTERM);
+            }
+        }
         let system_done = children
             .iter()
             .filter(|c| !c.helper)
@@ -917,8 +936,8 @@ fn supervise(
         }
     }
     Ok(match stop {
-        Some((sig, _)) => Ending::Stopped(sig),
-        None => Ending::Finished,
+        Some((sig, _)) if !failed => Ending::Stopped(sig),
+        _ => Ending::Finished,
     })
 }
 
@@ -957,6 +976,10 @@ fn signal_live(children: &[Child], sig: i32) {
         }
     }
 }
+
+/// `s3res-voter`'s exit status when its component failed beyond recovery (restart budget spent,
+/// or no replica can be started).
+const VOTER_GAVE_UP: i32 = 3;
 
 /// The signals that stop the system.
 const STOP_SIGNALS: [i32; 4] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP, libc::SIGQUIT];

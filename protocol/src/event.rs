@@ -152,6 +152,11 @@ pub struct Event {
     pub method: Option<RecoveryMethod>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub state_lost: Option<bool>,
+    /// `crash` of a replica the voter started: its exit status, or the signal that killed it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exit_code: Option<i32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub signal: Option<i32>,
     /// Fault detected → new replica ready, microseconds.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub recovery_us: Option<u64>,
@@ -186,6 +191,8 @@ impl Event {
             donor: None,
             method: None,
             state_lost: None,
+            exit_code: None,
+            signal: None,
             recovery_us: None,
             output: None,
             field: None,
@@ -242,6 +249,12 @@ impl std::fmt::Display for Event {
         }
         if self.state_lost == Some(true) {
             write!(f, ", state lost")?;
+        }
+        if let Some(code) = self.exit_code {
+            write!(f, ", exited with status {code}")?;
+        }
+        if let Some(sig) = self.signal {
+            write!(f, ", killed by signal {sig}")?;
         }
         if let Some(cause) = self.cause {
             let c = serde_json::to_value(cause).ok();

@@ -102,6 +102,13 @@ pub struct VoterPlan {
     /// which such a replica takes part runs on `max(timeout_us, start_timeout_ms)`.
     #[serde(default = "default_start_timeout_ms")]
     pub start_timeout_ms: u64,
+    /// Restart budget: at most this many replicas started by exec (state lost) within
+    /// `restart_window_ms`; one more and the component has failed (after OTP's restart
+    /// intensity). Fork recoveries do not count: they keep the state.
+    #[serde(default = "default_max_restarts")]
+    pub max_restarts: u32,
+    #[serde(default = "default_restart_window_ms")]
+    pub restart_window_ms: u64,
     /// SCHED_RR priority of the voter (replicas run below it); `None` leaves the default.
     #[serde(default)]
     pub priority: Option<u8>,
@@ -157,6 +164,14 @@ pub fn default_start_timeout_ms() -> u64 {
 }
 
 pub fn default_restart_timeout_ms() -> u64 {
+    1000
+}
+
+pub fn default_max_restarts() -> u32 {
+    10
+}
+
+pub fn default_restart_window_ms() -> u64 {
     1000
 }
 

@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use s3res_testkit::{echo_pipeline, procs, System};
+use s3res_testkit::{echo_pipeline, procs, EventKind, RecoveryMethod, System};
 
 const TIMEOUT_US: u64 = 300_000;
 
@@ -95,5 +95,90 @@ fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
     assert!(
         !runtime_dir(bootstrap).exists(),
         "runtime folder left behind"
+    );
+}
+
+/// A component that cannot run: its description's echo is `echo`, the rest of the pipeline as
+/// usual. The system must end on its own, non-zero, with one line that names the component
+/// and why, after at most `max_restarts` (10) restarts by exec — not restart forever.
+fn cannot_run(echo: &str, why: &[&str]) {
+    cannot_run_as(echo, |desc| desc, why);
+}
+
+/// [`cannot_run`], with the pipeline's description changed by `edit` first.
+fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) {
+    let sys = System::new();
+    let desc = edit(echo_pipeline(
+        &sys.path("summary.json"),
+        echo,
+        100_000,
+        1000,
+    ));
+    let mut run = sys.start(&desc);
+    let start = Instant::now();
+    let out = run.wait(Duration::from_secs(60));
+    let took = start.elapsed();
+    eprintln!("ended {took:?} after start: {}", out.status);
+    assert!(
+        !out.status.success(),
+        "a component that cannot run: {}",
+        out.status
+    );
+    let line = out
+        .stderr
+        .lines()
+        .find(|l| l.contains("failed beyond recovery: component echo restarted a replica by exec"))
+        .unwrap_or_else(|| {
+            panic!(
+                "no line names the failed component:\n{}",
+                s3res_testkit::tail(&out.stderr, 30)
+            )
+        });
+    for w in why {
+        assert!(line.contains(w), "{w:?} not in {line:?}");
+    }
+    // The budget: never more than 10 restarts by exec within one second.
+    let at: Vec<u64> = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::Recovery && e.method == Some(RecoveryMethod::Exec))
+        .map(|e| e.ts_ns)
+        .collect();
+    eprintln!("{} restarts by exec", at.len());
+    for (k, &t) in at.iter().enumerate() {
+        let within = at[k..]
+            .iter()
+            .take_while(|&&u| u - t <= 1_000_000_000)
+            .count();
+        assert!(within <= 10, "{within} restarts by exec within one second");
+    }
+    run.assert_nothing_left();
+}
+
+#[test]
+fn a_replica_that_panics_at_every_start_fails_the_component_in_one_line() {
+    cannot_run(
+        &format!(
+            r#"{{ "exec": "s3res-misbehave", "args": ["--mode", "panic", "--replica", "0,1,2", "--at", "0"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
+        ),
+        &["exited with status 101", "max_restarts 10"],
+    );
+}
+
+#[test]
+fn a_program_that_does_not_speak_the_protocol_fails_the_component_in_one_line() {
+    cannot_run(
+        &format!(r#"{{ "exec": "cat", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#),
+        &["speak the s3res protocol"],
+    );
+}
+
+#[test]
+fn a_misspelled_port_fails_the_component_in_one_line() {
+    // The echo opens `in`; the channels call its input `inn`.
+    cannot_run_as(
+        &format!(r#"{{ "exec": "s3res-echo", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#),
+        |desc| desc.replace("\"echo.in\"", "\"echo.inn\""),
+        &["exited with status 1"],
     );
 }

@@ -26,7 +26,7 @@ use crate::event::{Cause, Event, EventKind, RecoveryMethod};
 use crate::monitor::{Captures, Monitors};
 use crate::plan::{Mode as PlanMode, VoterPlan};
 use crate::ports::{
-    kill_all_children, reap_children, stop_requested, wait_until, write_event, Endpoints,
+    self, kill_all_children, reap_children, stop_requested, wait_until, write_event, Endpoints,
     ExternalInput, ExternalOutput, PollSet, Token,
 };
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
@@ -170,6 +170,12 @@ pub(crate) struct Core {
     pub(crate) faults: Vec<Fault>,
     /// Slots whose replacement failed, tried again with backoff.
     pub(crate) vacant: Vec<Vacancy>,
+    /// When replicas were started by exec after a fault, within the restart window.
+    exec_restarts: std::collections::VecDeque<Instant>,
+    /// Some replica started by exec has answered (so the program speaks the protocol).
+    pub(crate) exec_answered: bool,
+    /// The last fault, as its event reads: the budget's message quotes it.
+    last_fault: String,
     /// Names the current fork attempt; a child of an older attempt is refused.
     restart_nonce: u32,
     listener: UnixListener,
@@ -215,6 +221,9 @@ impl Core {
             slots,
             faults: Vec::new(),
             vacant: Vec::new(),
+            exec_restarts: std::collections::VecDeque::new(),
+            exec_answered: false,
+            last_fault: String::new(),
             restart_nonce: 0,
             listener,
             signals,
@@ -308,18 +317,19 @@ impl Core {
     ) -> Option<libc::pid_t> {
         let replica = self.slots[r].take()?;
         replica.kill();
-        if self.slots.iter().flatten().all(|rep| rep.state_lost) {
-            // The last replica that kept the component's state is gone: what the others hold
-            // is the only state there is now.
-            for rep in self.slots.iter_mut().flatten() {
-                rep.state_lost = false;
-            }
-        }
         let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
         ev.replica = Some(r);
         ev.pid = Some(replica.pid);
         ev.round = round;
+        if cause == Cause::Died && replica.our_child {
+            match ports::exit_of(replica.pid) {
+                Some(sys::ExitStatus::Code(code)) => ev.exit_code = Some(code),
+                Some(sys::ExitStatus::Signal(sig)) => ev.signal = Some(sig),
+                None => {}
+            }
+        }
         ev.detail = Some(detail);
+        self.last_fault = ev.to_string();
         let detected_ns = ev.ts_ns;
         self.emit(ev);
         let pid = replica.pid;
@@ -529,6 +539,7 @@ impl Core {
         detected_ns: u64,
         retry: bool,
     ) -> Result<bool, VoterError> {
+        self.spend_restart()?;
         match Replica::spawn(&self.plan, slot) {
             Ok(fresh) => {
                 self.rt.apply_to_replica(fresh.pid, slot);
@@ -537,8 +548,7 @@ impl Core {
                 ev.state_lost = Some(true);
                 self.emit(ev);
                 let mut fresh = fresh;
-                // Its state is lost, unless no replica kept any: then it is as good as any.
-                fresh.state_lost = self.slots.iter().flatten().any(|r| !r.state_lost);
+                fresh.state_lost = true;
                 self.slots[slot] = Some(fresh);
                 // A fresh process: its first frame is a warm-up for the detectors.
                 self.monitors.reset_stream(slot);
@@ -566,6 +576,41 @@ impl Core {
                 Ok(false)
             }
         }
+    }
+
+    /// Counts one restart by exec against the budget (`max_restarts` within
+    /// `restart_window_ms`, after OTP's restart intensity); beyond it the component has
+    /// failed, with one line that says why.
+    fn spend_restart(&mut self) -> Result<(), VoterError> {
+        let now = Instant::now();
+        let window = Duration::from_millis(self.plan.restart_window_ms);
+        while self
+            .exec_restarts
+            .front()
+            .is_some_and(|&t| now.saturating_duration_since(t) > window)
+        {
+            self.exec_restarts.pop_front();
+        }
+        self.exec_restarts.push_back(now);
+        if self.exec_restarts.len() <= self.plan.max_restarts as usize {
+            return Ok(());
+        }
+        let hint = if self.exec_answered {
+            String::new()
+        } else {
+            format!(
+                "; no replica started by exec ever answered: does `{}` speak the s3res protocol? (link replica-rt: docs/writing-a-component.md)",
+                self.plan.exec.display()
+            )
+        };
+        Err(VoterError::Unrecoverable(format!(
+            "component {} restarted a replica by exec {} times within {} ms (max_restarts {}); last fault: {}{hint}",
+            self.plan.component,
+            self.exec_restarts.len(),
+            self.plan.restart_window_ms,
+            self.plan.max_restarts,
+            self.last_fault
+        )))
     }
 
     // ----- the end -----------------------------------------------------------------------

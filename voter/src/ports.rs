@@ -340,7 +340,42 @@ impl Inherited {
 pub(crate) fn reap_children() {
     while let Ok(Some((pid, status))) = sys::reap_any() {
         tracing::trace!(pid, %status, "reaped");
+        remember_exit(pid, status);
     }
+}
+
+/// How many exit statuses of reaped children are kept for [`exit_of`].
+const EXITS_KEPT: usize = 64;
+
+thread_local! {
+    /// The latest reaped children and how they ended (the voter is single-threaded).
+    static EXITS: std::cell::RefCell<std::collections::VecDeque<(libc::pid_t, sys::ExitStatus)>> =
+        const { std::cell::RefCell::new(std::collections::VecDeque::new()) };
+}
+
+fn remember_exit(pid: libc::pid_t, status: sys::ExitStatus) {
+    EXITS.with_borrow_mut(|exits| {
+        if exits.len() == EXITS_KEPT {
+            exits.pop_front();
+        }
+        exits.push_back((pid, status));
+    });
+}
+
+/// How child `pid` ended: reaped now if it has exited, or found among the children reaped
+/// before (on SIGCHLD). `None` while it runs, or if it is not our child (a fork child belongs
+/// to its donor, whose exit status the kernel discards).
+pub(crate) fn exit_of(pid: libc::pid_t) -> Option<sys::ExitStatus> {
+    if let Ok(Some((_, status))) = sys::reap(pid) {
+        remember_exit(pid, status);
+    }
+    EXITS.with_borrow(|exits| {
+        exits
+            .iter()
+            .rev()
+            .find(|&&(p, _)| p == pid)
+            .map(|&(_, s)| s)
+    })
 }
 
 /// Kills every child of ours until none is left (or `limit` passes). As a subreaper we inherit

@@ -441,6 +441,8 @@ impl ReactiveVoter {
                 return self.fault(r, cause, detail);
             }
             rep.proven = true;
+            // The program speaks the protocol (the restart budget's message says otherwise).
+            self.core.exec_answered = true;
             let pid = rep.pid;
             let buf = &mut self.answers[r][o];
             buf.clear();

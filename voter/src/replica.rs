@@ -40,6 +40,7 @@ pub struct Replica {
     /// Its state is lost: started by exec after a fault, or forked from a replica whose state
     /// was. Such a replica never outvotes, and is never cloned over, one that kept the
     /// component's state (see `decision.rs`). The replicas started with the component kept it.
+    /// Once no replica that kept it is left, the fresh ones vote among themselves as equals.
     pub state_lost: bool,
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.

@@ -221,6 +221,8 @@ impl StreamVoter {
                 }
             };
             rep.proven = true;
+            // The program speaks the protocol (the restart budget's message says otherwise).
+            self.core.exec_answered = true;
             let pid = rep.pid;
             // Every frame is scored, also when all agree and also late copies: each replica's
             // stream must be complete for the next delta to be meaningful.

@@ -22,6 +22,8 @@ use s3res_components::Echo;
 ///             junk; then normal answers again from frame K+1
 ///   corrupt   a well-formed answer with the last byte inverted (a silent data corruption);
 ///             then normal answers again from frame K+1
+///   panic     panic at start, before answering anything (a replacement started by exec has
+///             the same index and panics again: a component that always fails)
 ///   spin      the correct answer, then spin forever (a control-flow error that strikes just
 ///             after the replica answered, while its siblings are still working on the round)
 ///
@@ -53,6 +55,7 @@ enum Mode {
     Garbage,
     Corrupt,
     Spin,
+    Panic,
 }
 
 fn main() -> Result<()> {
@@ -64,6 +67,9 @@ fn main() -> Result<()> {
     let armed = me.is_some_and(|r| cli.replica.contains(&r));
     if armed {
         tracing::info!(mode = ?cli.mode, at = cli.at, "this replica will misbehave");
+        if matches!(cli.mode, Mode::Panic) {
+            panic!("misbehaving on purpose: a replica that fails at every start");
+        }
     }
     let mut input = rt.input("in").context("opening the input port")?;
     let mut output = Some(rt.output("out").context("opening the output port")?);
@@ -131,6 +137,7 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
                 std::hint::spin_loop();
             }
         }
+        Mode::Panic => unreachable!("panics at start"),
     };
     out.write_raw(&bytes).context("writing the broken frame")?;
     Ok(after)
