@@ -21,6 +21,10 @@ pub const ENV_COMPONENT: &str = "S3RES_COMPONENT";
 /// uses fixed-size arrays of this length, because it may not allocate.
 pub const MAX_PORTS: usize = 32;
 
+/// Largest number of fds a fork child is handed at a restart: one per port, and its own stderr
+/// pipe (so that the voter can tell its lines from its donor's).
+pub const MAX_HANDED_FDS: usize = MAX_PORTS + 1;
+
 /// Direction of a port, seen from the component.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -82,7 +86,7 @@ pub const FIRST_PORT_FD: RawFd = 3;
 /// [`FdTransfer`]: handshake::FdTransfer
 /// [`Ready`]: handshake::Ready
 pub mod handshake {
-    use super::MAX_PORTS;
+    use super::{MAX_HANDED_FDS, MAX_PORTS};
 
     /// Voter → replica payload: how many fds follow and which fd number each must end up on.
     /// Fixed-size and plain-old-data so the signal handler can receive it without allocating.
@@ -91,7 +95,7 @@ pub mod handshake {
     pub struct FdTransfer {
         pub magic: u32,
         pub count: u32,
-        pub targets: [i32; MAX_PORTS],
+        pub targets: [i32; MAX_HANDED_FDS],
     }
 
     /// Replica → voter, first: which recovery attempt this child belongs to.

@@ -12,21 +12,26 @@ use tracing_subscriber::prelude::*;
 use tracing_subscriber::registry::LookupSpan;
 use tracing_subscriber::EnvFilter;
 
-use crate::contract::{ENV_COMPONENT, ENV_REPLICA};
+use crate::contract::{ENV_COMPONENT, ENV_REPLICA, ENV_VOTER_SOCKET};
 
 /// Installs a `tracing` subscriber that writes to stderr, filtered by `RUST_LOG` (default
 /// `info`; bootstrap passes its `-q`/`-v` on through it), each line prefixed with
 /// `[component#replica pid N]`, and a panic hook that prefixes a panic's lines the same way.
 ///
 /// The component name is `S3RES_COMPONENT`, or `component_default` when the process was not
-/// started by s3res (by hand, in a shell pipeline). The replica index is `S3RES_REPLICA`, read
-/// once here: a replica forked from a donor keeps the donor's prefix, and the pid tells them
-/// apart. Calling it again is harmless (the first subscriber stays).
+/// started by s3res (by hand, in a shell pipeline). A replica (started by a voter) writes no
+/// prefix: its stderr is a pipe of its own that the voter reads, and the voter writes each line
+/// behind `[component#slot pid N]` (a fork child under its own slot). Calling it again is
+/// harmless (the first subscriber stays).
 pub fn init_logging(component_default: &str) {
     let component = std::env::var(ENV_COMPONENT).unwrap_or_else(|_| component_default.to_owned());
+    // A replica's stderr is a pipe its voter reads: the voter puts `[component#slot pid N]`
+    // before each line itself, from its own bookkeeping (a fork child's slot is not its
+    // donor's), so the replica writes none.
     let prefix = match std::env::var(ENV_REPLICA) {
-        Ok(r) => format!("{component}#{r}"),
-        Err(_) => component,
+        _ if std::env::var_os(ENV_VOTER_SOCKET).is_some() => None,
+        Ok(r) => Some(format!("{component}#{r}")),
+        Err(_) => Some(component),
     };
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
     install_panic_hook(prefix.clone());
@@ -47,9 +52,12 @@ pub fn init_logging(component_default: &str) {
 /// A panic is reported like a log line: every line of the message (and of the backtrace, with
 /// `RUST_BACKTRACE` set) carries the `[name pid N]` prefix, and the whole report goes out in
 /// one `write`, so lines of a dying replica are neither run together nor interleaved.
-fn install_panic_hook(prefix: String) {
+fn install_panic_hook(prefix: Option<String>) {
     std::panic::set_hook(Box::new(move |info| {
-        let head = format!("[{prefix} pid {}] ", std::process::id());
+        let head = match &prefix {
+            Some(prefix) => format!("[{prefix} pid {}] ", std::process::id()),
+            None => String::new(),
+        };
         let mut text = info.to_string();
         let trace = std::backtrace::Backtrace::capture();
         if trace.status() == std::backtrace::BacktraceStatus::Captured {
@@ -103,7 +111,8 @@ where
 
 /// The default full format, after a `[name pid N]` prefix.
 struct Prefixed {
-    prefix: String,
+    /// `None` under a voter, which prefixes the lines itself.
+    prefix: Option<String>,
     inner: Format<Full>,
 }
 
@@ -119,7 +128,9 @@ where
         event: &Event<'_>,
     ) -> fmt::Result {
         // The pid is read per line, not cached: after a restart by fork it is the child's.
-        write!(writer, "[{} pid {}] ", self.prefix, std::process::id())?;
+        if let Some(prefix) = &self.prefix {
+            write!(writer, "[{prefix} pid {}] ", std::process::id())?;
+        }
         self.inner.format_event(ctx, writer, event)
     }
 }

@@ -53,7 +53,7 @@ use std::sync::OnceLock;
 use crate::contract::handshake::{
     FdTransfer, Hello, Ready, CHILD_SOCKET_TIMEOUT_MS, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
 };
-use crate::contract::{signals, MAX_PORTS};
+use crate::contract::{signals, MAX_HANDED_FDS, MAX_PORTS};
 use crate::sys;
 
 /// Exit status of a forked child that could not join the voter.
@@ -233,9 +233,9 @@ fn join_voter(nonce: u32) -> Result<Fd, ()> {
     let mut transfer = FdTransfer {
         magic: 0,
         count: 0,
-        targets: [-1; MAX_PORTS],
+        targets: [-1; MAX_HANDED_FDS],
     };
-    let mut received = [-1 as libc::c_int; MAX_PORTS];
+    let mut received = [-1 as libc::c_int; MAX_HANDED_FDS];
     let n = recv_transfer(sock.0, &mut transfer, &mut received)?;
     let fds = &received[..n];
     let valid = transfer.magic == TRANSFER_MAGIC && transfer.count as usize == n;
@@ -254,7 +254,7 @@ fn place_fds(fds: &[libc::c_int], targets: &[libc::c_int]) -> Result<(), ()> {
     // the close below would lose it. So first move such fds above every target.
     // Saturating: the targets come from outside, and nothing here may panic.
     let floor = targets.iter().copied().max().unwrap_or(0).saturating_add(1);
-    let mut moved = [-1 as libc::c_int; MAX_PORTS];
+    let mut moved = [-1 as libc::c_int; MAX_HANDED_FDS];
     for (i, &fd) in fds.iter().enumerate() {
         moved[i] = if targets.contains(&fd) {
             let m = dup_above(fd, floor)?;
@@ -276,7 +276,7 @@ fn place_fds(fds: &[libc::c_int], targets: &[libc::c_int]) -> Result<(), ()> {
 fn recv_transfer(
     sock: libc::c_int,
     transfer: &mut FdTransfer,
-    fds: &mut [libc::c_int; MAX_PORTS],
+    fds: &mut [libc::c_int; MAX_HANDED_FDS],
 ) -> Result<usize, ()> {
     let want = size_of::<FdTransfer>();
     let dst = (transfer as *mut FdTransfer).cast::<u8>();
@@ -295,20 +295,20 @@ fn recv_transfer(
     Ok(nfds)
 }
 
-/// Room for MAX_PORTS fds in one SCM_RIGHTS message, aligned as `cmsghdr` requires.
+/// Room for MAX_HANDED_FDS fds in one SCM_RIGHTS message, aligned as `cmsghdr` requires.
 #[repr(C, align(8))]
 struct CmsgBuf([u8; CMSG_SPACE]);
 
 // SAFETY: CMSG_SPACE is a pure size computation.
 const CMSG_SPACE: usize =
-    unsafe { libc::CMSG_SPACE((MAX_PORTS * size_of::<libc::c_int>()) as u32) } as usize;
+    unsafe { libc::CMSG_SPACE((MAX_HANDED_FDS * size_of::<libc::c_int>()) as u32) } as usize;
 
 /// One `recvmsg` into `dst[..len]`; returns (bytes, fds received into `fds`).
 fn recvmsg_with_fds(
     sock: libc::c_int,
     dst: *mut u8,
     len: usize,
-    fds: &mut [libc::c_int; MAX_PORTS],
+    fds: &mut [libc::c_int; MAX_HANDED_FDS],
 ) -> Result<(usize, usize), ()> {
     let mut cbuf = CmsgBuf([0; CMSG_SPACE]);
     let mut iov = libc::iovec {
@@ -339,7 +339,7 @@ fn recvmsg_with_fds(
 }
 
 /// Copies the SCM_RIGHTS fds of `msg` into `fds`; returns how many.
-fn collect_fds(msg: &libc::msghdr, fds: &mut [libc::c_int; MAX_PORTS]) -> usize {
+fn collect_fds(msg: &libc::msghdr, fds: &mut [libc::c_int; MAX_HANDED_FDS]) -> usize {
     let mut count = 0;
     // SAFETY: `msg` was filled in by recvmsg; the CMSG_* macros stay within msg_controllen.
     let mut cmsg = unsafe { libc::CMSG_FIRSTHDR(msg) };
@@ -356,9 +356,9 @@ fn collect_fds(msg: &libc::msghdr, fds: &mut [libc::c_int; MAX_PORTS]) -> usize 
                 // SAFETY: `i` is within the data of this header; read_unaligned because cmsg
                 // data carries no alignment promise for its contents.
                 let fd = unsafe { data.add(i).read_unaligned() };
-                // The buffer holds at most MAX_PORTS fds, so this never overflows; the check
+                // The buffer holds at most MAX_HANDED_FDS fds, so this never overflows; the check
                 // keeps it so even for a kernel that packed differently.
-                if count < MAX_PORTS {
+                if count < MAX_HANDED_FDS {
                     fds[count] = fd;
                     count += 1;
                 } else {

@@ -18,7 +18,7 @@ use replica_rt::contract::handshake::{
 
 /// The nonce this test's "voter" sends with RESTART; the child must echo it.
 const NONCE: u32 = 0x5eed;
-use replica_rt::contract::{self, signals, Direction, PortMap, PortSpec, MAX_PORTS};
+use replica_rt::contract::{self, signals, Direction, PortMap, PortSpec, MAX_HANDED_FDS};
 use replica_rt::{frame, sys};
 
 const HELPER_ENV: &str = "S3RES_RT_TEST_HELPER";
@@ -291,7 +291,7 @@ fn join_child(
 }
 
 fn transfer(magic: u32) -> FdTransfer {
-    let mut targets = [-1; MAX_PORTS];
+    let mut targets = [-1; MAX_HANDED_FDS];
     targets[0] = IN_FD;
     targets[1] = OUT_FD;
     FdTransfer {

@@ -157,11 +157,17 @@ fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) 
 
 #[test]
 fn a_replica_that_panics_at_every_start_fails_the_component_in_one_line() {
+    // The panic report is relayed whole, every line behind its replica's prefix; the budget's
+    // line quotes its last line.
     cannot_run(
         &format!(
             r#"{{ "exec": "s3res-misbehave", "args": ["--mode", "panic", "--replica", "0,1,2", "--at", "0"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
         ),
-        &["exited with status 101", "max_restarts 10"],
+        &[
+            "exited with status 101",
+            "max_restarts 10",
+            "its last stderr line",
+        ],
     );
 }
 
@@ -180,5 +186,49 @@ fn a_misspelled_port_fails_the_component_in_one_line() {
         &format!(r#"{{ "exec": "s3res-echo", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#),
         |desc| desc.replace("\"echo.in\"", "\"echo.inn\""),
         &["exited with status 1"],
+    );
+}
+
+/// Every line a replica writes to stderr reaches bootstrap's stderr behind
+/// `[component#slot pid N]`, written by the voter: a fork child under its own slot and pid,
+/// not its donor's. (`-v` makes the replicas log at debug, so the child's injection hook says
+/// something.)
+#[test]
+fn a_fork_child_logs_under_its_own_slot() {
+    let count = 4000;
+    let sys = System::new().arg("-v");
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
+    );
+    let desc = echo_pipeline(&sys.path("summary.json"), &echo, count, 1000);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let old = run.replica_pids("echo")[&1];
+    s3res_testkit::kill_pid(old, libc::SIGKILL).expect("kill replica 1");
+    let rec = run.wait_for_recovery("echo", 1, old);
+    let child = rec.new_pid.expect("the child's pid");
+    assert_eq!(rec.donor, Some(0), "{rec:?}");
+    // The child flips a bit of its next frame and logs it (debug): outvoted, and a line.
+    s3res_testkit::sigqueue(child, s3res_testkit::signals::INJECT_SDC, 3).expect("sigqueue");
+    run.wait_for_event(
+        |e| e.kind == EventKind::Sdc && e.pid == Some(child),
+        Duration::from_secs(20),
+    );
+    let out = run.wait(Duration::from_secs(90));
+    assert!(out.status.success(), "{}", out.status);
+    let own = format!("[echo#1 pid {child}] ");
+    let donors = format!("[echo#0 pid {child}] ");
+    let lines: Vec<&str> = out
+        .stderr
+        .lines()
+        .filter(|l| l.contains("injected SDC"))
+        .collect();
+    assert!(
+        lines.iter().any(|l| l.starts_with(&own)),
+        "no line of the child under {own:?}: {lines:#?}"
+    );
+    assert!(
+        !out.stderr.contains(&donors),
+        "the child logged under its donor's slot"
     );
 }

@@ -315,8 +315,10 @@ impl Core {
         detail: String,
         round: Option<u64>,
     ) -> Option<libc::pid_t> {
-        let replica = self.slots[r].take()?;
+        let mut replica = self.slots[r].take()?;
         replica.kill();
+        // What it wrote last, for the restart budget's message (more may follow as it dies).
+        replica.relay_stderr(&self.plan.component, r);
         let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
         ev.replica = Some(r);
         ev.pid = Some(replica.pid);
@@ -330,6 +332,12 @@ impl Core {
         }
         ev.detail = Some(detail);
         self.last_fault = ev.to_string();
+        if !replica.stderr.last_line.is_empty() {
+            self.last_fault = format!(
+                "{}; its last stderr line: {}",
+                self.last_fault, replica.stderr.last_line
+            );
+        }
         let detected_ns = ev.ts_ns;
         self.emit(ev);
         let pid = replica.pid;
@@ -595,7 +603,9 @@ impl Core {
         if self.exec_restarts.len() <= self.plan.max_restarts as usize {
             return Ok(());
         }
-        let hint = if self.exec_answered {
+        // A program that never answered and never said a word did not speak the protocol; one
+        // that said something (a panic, an error) is quoted in `last_fault` instead.
+        let hint = if self.exec_answered || self.last_fault.contains("its last stderr line") {
             String::new()
         } else {
             format!(
@@ -646,8 +656,15 @@ impl Core {
             }
         }
         self.kill_replicas();
-        for rep in self.slots.iter().flatten() {
-            rep.exited_within(DEATH_WAIT);
+        let component = self.plan.component.clone();
+        for (r, rep) in self.slots.iter_mut().enumerate() {
+            if let Some(rep) = rep {
+                rep.exited_within(DEATH_WAIT);
+                rep.relay_stderr(&component, r);
+            }
+        }
+        for fault in &mut self.faults {
+            fault.replica.relay_stderr(&component, fault.slot);
         }
         kill_all_children(Duration::from_secs(3));
         let _ = std::fs::remove_file(&self.plan.socket_path);
@@ -722,6 +739,12 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
             Token::OutputWritable(o) => core.outputs[o].flush(),
             Token::ReplicaExit(r) => m.on_replica_exit(r),
             Token::ReplicaOutput(r, o) => m.on_replica_output(r, o),
+            Token::ReplicaStderr(r) => {
+                let component = &core.plan.component;
+                if let Some(rep) = core.slots[r].as_mut() {
+                    rep.relay_stderr(component, r);
+                }
+            }
             Token::ReplicaInputWritable(r, i) => {
                 let flushed = core.slots[r].as_mut().map(|rep| rep.flush_input(i));
                 if let Some(Err(e)) = flushed {
@@ -780,7 +803,8 @@ pub(crate) fn recover_faulty(m: &mut impl Mode, replace_them: bool) -> Result<bo
         if !replace_them {
             continue;
         }
-        let (slot, old_pid, detected_ns) = fault.retire();
+        let component = m.core().plan.component.clone();
+        let (slot, old_pid, detected_ns) = fault.retire(&component);
         if !replace(m, slot, old_pid, detected_ns, false)? {
             m.core().vacant.push(Vacancy {
                 slot,
@@ -883,15 +907,17 @@ fn replace(
 impl Fault {
     /// Makes sure the killed replica is gone (bounded) and reaped; returns its slot, pid and
     /// when it was found faulty.
-    pub(crate) fn retire(self) -> (usize, i32, u64) {
+    pub(crate) fn retire(self, component: &str) -> (usize, i32, u64) {
         let Fault {
             slot,
-            replica: old,
+            replica: mut old,
             detected_ns,
         } = self;
         if !old.exited_within(DEATH_WAIT) {
             tracing::warn!(pid = old.pid, "killed replica has not exited yet");
         }
+        // Its last words (a panic report, an error) are in its stderr pipe.
+        old.relay_stderr(component, slot);
         if old.our_child {
             let _ = sys::reap(old.pid);
         }

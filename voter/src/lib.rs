@@ -24,6 +24,7 @@ pub mod recovery;
 pub mod replica;
 pub mod round;
 pub mod rt;
+pub mod stderr;
 pub mod stream;
 pub mod vote;
 

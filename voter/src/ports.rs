@@ -87,6 +87,7 @@ pub(crate) enum Token {
     ReplicaExit(usize),
     ReplicaOutput(usize, usize),
     ReplicaInputWritable(usize, usize),
+    ReplicaStderr(usize),
 }
 
 /// The fds one wait of an event loop watches, each with the [`Token`] saying what it stands
@@ -160,6 +161,9 @@ impl PollSet {
                     Token::ReplicaOutput(r, o),
                 );
             }
+        }
+        if let Some(fd) = rep.stderr.fd() {
+            self.add(fd.as_raw_fd(), libc::POLLIN, Token::ReplicaStderr(r));
         }
         for (i, input) in rep.inputs.iter().enumerate() {
             if input.writer.has_pending() {

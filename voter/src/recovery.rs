@@ -28,7 +28,7 @@ use crate::clock::Instant;
 use replica_rt::contract::handshake::{
     FdTransfer, Hello, Ready, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
 };
-use replica_rt::contract::{signals, MAX_PORTS};
+use replica_rt::contract::{signals, MAX_HANDED_FDS};
 use replica_rt::sys;
 use thiserror::Error;
 
@@ -394,7 +394,7 @@ fn hand_over_pipes(
     let mut transfer = FdTransfer {
         magic: TRANSFER_MAGIC,
         count: pipes.replica_ends.len() as u32,
-        targets: [-1; MAX_PORTS],
+        targets: [-1; MAX_HANDED_FDS],
     };
     for (slot, target) in transfer.targets.iter_mut().zip(pipes.targets()) {
         *slot = target;
@@ -406,6 +406,7 @@ fn hand_over_pipes(
         replica_ends,
         inputs,
         outputs,
+        stderr,
     } = pipes;
     drop::<Vec<OwnedFd>>(replica_ends);
 
@@ -432,6 +433,7 @@ fn hand_over_pipes(
         pidfd,
         inputs,
         outputs,
+        stderr,
         our_child: false,
         // A fork of a replica that has answered: its handler is in place.
         proven: true,

@@ -14,6 +14,7 @@ use replica_rt::sys;
 
 use crate::channel::{FrameReader, FrameWriter};
 use crate::plan::VoterPlan;
+use crate::stderr::StderrRelay;
 
 /// The voter's end of one replica input pipe. The voter keeps the read end too, so that it can
 /// take back input the replica has not consumed when the replica becomes a recovery donor.
@@ -42,17 +43,20 @@ pub struct Replica {
     /// component's state (see `decision.rs`). The replicas started with the component kept it.
     /// Once no replica that kept it is left, the fresh ones vote among themselves as equals.
     pub state_lost: bool,
+    /// Its stderr, relayed line by line with its slot and pid (`stderr.rs`).
+    pub stderr: StderrRelay,
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.
     pub output_closed_at: Option<crate::clock::Instant>,
 }
 
-/// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs) and
-/// the voter's ends.
+/// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs, then
+/// its stderr) and the voter's ends.
 pub struct ReplicaPipes {
     pub replica_ends: Vec<OwnedFd>,
     pub inputs: Vec<ReplicaInput>,
     pub outputs: Vec<FrameReader>,
+    pub stderr: StderrRelay,
 }
 
 impl ReplicaPipes {
@@ -77,16 +81,24 @@ impl ReplicaPipes {
             replica_ends.push(w);
             outputs.push(FrameReader::new(r, port.max_frame)?);
         }
+        let (r, w) = sys::pipe()?;
+        sys::set_nonblocking(r.as_fd(), true)?;
+        replica_ends.push(w);
         Ok(ReplicaPipes {
             replica_ends,
             inputs,
             outputs,
+            stderr: StderrRelay::new(r),
         })
     }
 
-    /// Where each replica end must sit in the replica: fd 3, 4, ... in port order.
+    /// Where each replica end must sit in the replica: fd 3, 4, ... in port order, and its
+    /// stderr on fd 2.
     pub fn targets(&self) -> impl Iterator<Item = RawFd> + '_ {
-        (0..self.replica_ends.len()).map(|k| FIRST_PORT_FD + k as RawFd)
+        let ports = self.replica_ends.len() - 1;
+        (0..ports)
+            .map(|k| FIRST_PORT_FD + k as RawFd)
+            .chain(std::iter::once(libc::STDERR_FILENO))
     }
 }
 
@@ -147,6 +159,7 @@ impl Replica {
             pidfd,
             inputs: pipes.inputs,
             outputs: pipes.outputs,
+            stderr: pipes.stderr,
             our_child: true,
             proven: false,
             state_lost: false,
@@ -188,6 +201,13 @@ impl Replica {
 }
 
 impl Replica {
+    /// Relays what it wrote to stderr (see `stderr.rs`), each line behind
+    /// `[component#slot pid N]`.
+    pub fn relay_stderr(&mut self, component: &str, slot: usize) {
+        let prefix = format!("[{component}#{slot} pid {}] ", self.pid);
+        self.stderr.relay(&prefix);
+    }
+
     /// Whether this replica can be a recovery donor: its restart handler is installed (before
     /// replica-rt's `init` the restart signal would simply kill it). Known once it has sent a
     /// frame; before that (a replica killed right after start, a stream replica that has not

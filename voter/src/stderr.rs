@@ -1,0 +1,151 @@
+//! A replica's stderr, relayed line by line. Every replica writes its stderr into a pipe of its
+//! own (a fork child gets a fresh one at the handover, on fd 2), and the voter writes each whole
+//! line to its own stderr behind `[component#slot pid N]`. So every line says which replica
+//! wrote it — a fork child under its own slot, not its donor's —, lines of different replicas
+//! never run into each other, and what a replica wrote just before it died is still read to the
+//! end (the budget's message quotes the last line).
+
+use std::io::Write as _;
+use std::os::fd::{AsFd, OwnedFd};
+
+use replica_rt::sys;
+
+/// Longest line kept whole; a longer one is cut there (and the rest follows as a line).
+const MAX_LINE: usize = 4096;
+/// At most this much is read at one call, so that a replica that floods its stderr cannot keep
+/// the event loop from its rounds.
+const READ_LIMIT: usize = 64 * 1024;
+
+/// The voter's end of one replica's stderr pipe.
+#[derive(Debug)]
+pub struct StderrRelay {
+    fd: Option<OwnedFd>,
+    partial: Vec<u8>,
+    /// The last whole line that says something (without the prefix): not a backtrace frame
+    /// (indented) nor its heading, so that after a panic it is the panic's message.
+    pub last_line: String,
+}
+
+impl StderrRelay {
+    /// Takes the non-blocking read end of the pipe.
+    pub fn new(fd: OwnedFd) -> StderrRelay {
+        StderrRelay {
+            fd: Some(fd),
+            partial: Vec::new(),
+            last_line: String::new(),
+        }
+    }
+
+    /// The fd to wait on, while the pipe is open.
+    pub fn fd(&self) -> Option<&OwnedFd> {
+        self.fd.as_ref()
+    }
+
+    /// Reads what the pipe holds now (at most [`READ_LIMIT`]) and writes every whole line to
+    /// our stderr behind `prefix`. At the end of the pipe the last partial line goes out too.
+    pub fn relay(&mut self, prefix: &str) {
+        let mut buf = [0u8; 4096];
+        let mut read = 0;
+        while read < READ_LIMIT {
+            let Some(fd) = self.fd.as_ref() else { return };
+            match sys::read(fd.as_fd(), &mut buf) {
+                Ok(0) => {
+                    self.fd = None;
+                    if !self.partial.is_empty() {
+                        let rest = std::mem::take(&mut self.partial);
+                        self.emit(prefix, &rest);
+                    }
+                    return;
+                }
+                Ok(n) => {
+                    read += n;
+                    self.take(prefix, &buf[..n]);
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(_) => {
+                    self.fd = None;
+                    return;
+                }
+            }
+        }
+    }
+
+    fn take(&mut self, prefix: &str, mut bytes: &[u8]) {
+        while let Some(nl) = bytes.iter().position(|&b| b == b'\n') {
+            let mut line = std::mem::take(&mut self.partial);
+            line.extend_from_slice(&bytes[..nl]);
+            self.emit(prefix, &line);
+            bytes = &bytes[nl + 1..];
+        }
+        self.partial.extend_from_slice(bytes);
+        while self.partial.len() >= MAX_LINE {
+            let rest = self.partial.split_off(MAX_LINE);
+            let line = std::mem::replace(&mut self.partial, rest);
+            self.emit(prefix, &line);
+        }
+    }
+
+    /// One line out, in one write (so that lines of the voter and of other replicas never mix).
+    fn emit(&mut self, prefix: &str, line: &[u8]) {
+        let text = String::from_utf8_lossy(line);
+        let text = text.trim_end_matches('\r');
+        let mut out = Vec::with_capacity(prefix.len() + text.len() + 1);
+        out.extend_from_slice(prefix.as_bytes());
+        out.extend_from_slice(text.as_bytes());
+        out.push(b'\n');
+        let _ = std::io::stderr().lock().write_all(&out);
+        let says = !text.trim().is_empty()
+            && !text.starts_with(char::is_whitespace)
+            && !text.starts_with("stack backtrace")
+            && !text.starts_with("backtrace:")
+            && !text.starts_with("note: ");
+        if says {
+            self.last_line = text.to_owned();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn relay_of(chunks: &[&[u8]]) -> (StderrRelay, Vec<String>) {
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        let mut relay = StderrRelay::new(r);
+        let mut lasts = Vec::new();
+        for c in chunks {
+            sys::write(w.as_fd(), c).unwrap();
+            relay.relay("[t#0 pid 1] ");
+            lasts.push(relay.last_line.clone());
+        }
+        drop(w);
+        relay.relay("[t#0 pid 1] ");
+        lasts.push(relay.last_line.clone());
+        (relay, lasts)
+    }
+
+    #[test]
+    fn lines_are_relayed_whole_and_the_last_one_is_kept() {
+        let (relay, lasts) = relay_of(&[b"first li", b"ne\nsecond\nthi", b"rd without newline"]);
+        assert_eq!(lasts, ["", "second", "second", "third without newline"]);
+        assert!(relay.fd().is_none(), "closed at the end of the pipe");
+    }
+
+    #[test]
+    fn the_last_line_that_says_something_is_kept_not_a_backtrace_frame() {
+        let (_, lasts) = relay_of(&[
+            b"panicked at src/main.rs:3:5:\nboom\nstack backtrace:\n   0: main\n             at x.rs:1\n",
+        ]);
+        assert_eq!(lasts[0], "boom");
+    }
+
+    #[test]
+    fn a_long_line_is_cut() {
+        let long = vec![b'x'; MAX_LINE + 10];
+        let (_, lasts) = relay_of(&[&long]);
+        assert_eq!(lasts[0].len(), MAX_LINE);
+        assert_eq!(lasts[1].len(), 10);
+    }
+}
