@@ -9,7 +9,8 @@
 //! donor and hand over its pipes, else exec) and events; it applies the decisions. The two
 //! modes use it: [`reactive`] (a [`round`] per input frame) and [`stream`] (the k-th frame of
 //! each output, its bookkeeping in [`stream::ledger`]). [`clock`] keeps the deadlines on the
-//! CPU's counter; [`replica`] is the process handle; [`channel`] the non-blocking pipe ends;
+//! CPU's counter; [`replica`] is the process handle, [`stderr`] the relay of its stderr;
+//! [`channel`] the non-blocking pipe ends;
 //! [`plan`] and [`event`] the contracts with bootstrap; [`monitor`] the anomaly detectors on
 //! the outputs and frame capture; [`rt`] and [`sched`] priorities and pinning.
 
