@@ -23,6 +23,19 @@ pub fn parse_events(text: &str) -> Result<Vec<Event>, String> {
         .collect()
 }
 
+/// The events of `kind` about `component`.
+pub fn of_kind<'a>(events: &'a [Event], component: &str, kind: EventKind) -> Vec<&'a Event> {
+    events
+        .iter()
+        .filter(|e| e.kind == kind && e.component == component)
+        .collect()
+}
+
+/// Whether `e` is the recovery of `slot` whose faulty replica had `old_pid`.
+pub fn is_recovery_of(e: &Event, slot: usize, old_pid: i32) -> bool {
+    e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(old_pid)
+}
+
 /// The current pid of each replica slot of `component`: a `start` event puts its pid in its
 /// slot, a `recovery` event puts its `new_pid` there, a `recovery_failed` event empties it.
 pub fn replica_pids(events: &[Event], component: &str) -> BTreeMap<usize, i32> {

@@ -35,7 +35,7 @@ pub mod system;
 pub mod wait;
 
 pub use bins::{bin_dir, bin_path};
-pub use events::{parse_events, replica_pids};
+pub use events::{is_recovery_of, of_kind, parse_events, replica_pids};
 pub use rng::Rng;
 pub use scenario::{
     assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,

@@ -202,11 +202,9 @@ fn models() -> &'static Models {
     })
 }
 
+/// The events of `kind` about the signal component.
 fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
-    events
-        .iter()
-        .filter(|e| e.component == "signal" && e.kind == kind)
-        .collect()
+    s3res_testkit::of_kind(events, "signal", kind)
 }
 
 /// The `anomaly` events of corrupted frames, leaving out the alarm on the frame after one

@@ -5,8 +5,9 @@
 use std::time::Duration;
 
 use s3res_testkit::{
-    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, procs,
-    signals, sink_summary, Cause, Event, EventKind, RecoveryMethod, Rng, System,
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,
+    is_recovery_of, procs, signals, sink_summary, Cause, Event, EventKind, RecoveryMethod, Rng,
+    System,
 };
 
 /// Generous, so that a loaded CI machine running tests in parallel does not see false hangs;
@@ -30,15 +31,9 @@ fn echo_system(
     echo_pipeline(&sys.path("summary.json"), &echo, count, hz)
 }
 
+/// The events of `kind` about the echo.
 fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
-    events
-        .iter()
-        .filter(|e| e.kind == kind && e.component == "echo")
-        .collect()
-}
-
-fn is_recovery_of(e: &Event, slot: usize, old_pid: i32) -> bool {
-    e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(old_pid)
+    s3res_testkit::of_kind(events, "echo", kind)
 }
 
 /// Kills a random replica `kills` times while frames flow; every kill must be seen as a crash

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use s3res_testkit::{
-    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline, signals,
-    Cause, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
+    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,
+    is_recovery_of, signals, Cause, Event, EventKind, RecoveryMethod, Rng, RunningSystem, System,
 };
 
 /// Generous, so that a loaded CI machine does not see false hangs; the tests check behaviour,
@@ -34,15 +34,9 @@ fn start_batch(
     (sys.start(&desc), summary)
 }
 
+/// The events of `kind` about the echo.
 fn of_kind(events: &[Event], kind: EventKind) -> Vec<&Event> {
-    events
-        .iter()
-        .filter(|e| e.kind == kind && e.component == "echo")
-        .collect()
-}
-
-fn is_recovery_of(e: &Event, slot: usize, old_pid: i32) -> bool {
-    e.kind == EventKind::Recovery && e.replica == Some(slot) && e.pid == Some(old_pid)
+    s3res_testkit::of_kind(events, "echo", kind)
 }
 
 fn faults(events: &[Event]) -> Vec<&Event> {
