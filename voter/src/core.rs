@@ -547,9 +547,10 @@ impl Core {
         detected_ns: u64,
         retry: bool,
     ) -> Result<bool, VoterError> {
-        self.spend_restart()?;
+        self.check_restart_budget()?;
         match Replica::spawn(&self.plan, slot) {
             Ok(fresh) => {
+                self.exec_restarts.push_back(Instant::now());
                 self.rt.apply_to_replica(fresh.pid, slot);
                 let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
                 ev.method = Some(RecoveryMethod::Exec);
@@ -586,10 +587,11 @@ impl Core {
         }
     }
 
-    /// Counts one restart by exec against the budget (`max_restarts` within
-    /// `restart_window_ms`, after OTP's restart intensity); beyond it the component has
-    /// failed, with one line that says why.
-    fn spend_restart(&mut self) -> Result<(), VoterError> {
+    /// Checks the budget before a restart by exec (`max_restarts` replicas started within
+    /// `restart_window_ms`, after OTP's restart intensity; only replicas that were started
+    /// count, not attempts that the kernel refused): one more and the component has failed,
+    /// with one line that says why.
+    fn check_restart_budget(&mut self) -> Result<(), VoterError> {
         let now = Instant::now();
         let window = Duration::from_millis(self.plan.restart_window_ms);
         while self
@@ -599,8 +601,7 @@ impl Core {
         {
             self.exec_restarts.pop_front();
         }
-        self.exec_restarts.push_back(now);
-        if self.exec_restarts.len() <= self.plan.max_restarts as usize {
+        if self.exec_restarts.len() < self.plan.max_restarts as usize {
             return Ok(());
         }
         // A program that never answered and never said a word did not speak the protocol; one
@@ -614,7 +615,7 @@ impl Core {
             )
         };
         Err(VoterError::Unrecoverable(format!(
-            "component {} restarted a replica by exec {} times within {} ms (max_restarts {}); last fault: {}{hint}",
+            "component {} restarted a replica by exec {} times within {} ms (max_restarts {}) and needs another; last fault: {}{hint}",
             self.plan.component,
             self.exec_restarts.len(),
             self.plan.restart_window_ms,
