@@ -182,15 +182,12 @@ impl ReactiveVoter {
             Decision::HoldBack { .. } => round.held |= 1 << o,
             _ => round.forwarded |= 1 << o,
         }
-        self.apply(o, number, &decision);
+        self.apply(o, number, &decision, false);
     }
 
-    /// Carries out one decision on output `o` of round `number` and faults its suspects.
-    fn apply(&mut self, o: usize, number: u64, decision: &Decision) {
-        self.apply_sent(o, number, decision, false);
-    }
-
-    fn apply_sent(&mut self, o: usize, number: u64, decision: &Decision, sent: bool) {
+    /// Carries out one decision on output `o` of round `number` (`sent`: its frame already
+    /// went out during the round) and faults its suspects.
+    fn apply(&mut self, o: usize, number: u64, decision: &Decision, sent: bool) {
         let answers = &self.answers;
         let frame = decision
             .frame(|r| Some(answers[r][o].as_slice()))
@@ -390,7 +387,7 @@ impl ReactiveVoter {
             self.blame_late(r, round.number, round.turn == Some(r));
         }
         for d in &close.decisions {
-            self.apply_sent(d.output, round.number, &d.decision, d.sent);
+            self.apply(d.output, round.number, &d.decision, d.sent);
         }
         self.closing = None;
         self.close = close;

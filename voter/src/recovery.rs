@@ -87,18 +87,6 @@ pub struct Forked {
     pub frames_sent: Vec<u64>,
 }
 
-/// Makes a copy of `donor` by fork at a quiet point (reactive mode). `nonce` must differ from
-/// every earlier attempt's.
-pub fn fork_from(
-    plan: &VoterPlan,
-    listener: &UnixListener,
-    donor: &mut Replica,
-    nonce: u32,
-    family: &[libc::pid_t],
-) -> Result<Replica, RecoveryError> {
-    fork(plan, listener, donor, nonce, family, DonorState::Quiet).map(|f| f.replica)
-}
-
 /// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
 pub fn fork(
     plan: &VoterPlan,
