@@ -172,6 +172,8 @@ impl System {
                 window: s3res_protocol::plan::default_stream_window(),
                 monitors: Vec::new(),
                 captures: Vec::new(),
+                framing: Default::default(),
+                preload: None,
             };
             cmd = Command::new(voter);
             cmd.arg("--plan")

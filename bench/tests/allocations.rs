@@ -192,6 +192,8 @@ fn steady_state(monitored: bool) {
         window: s3res_protocol::plan::default_stream_window(),
         monitors: Vec::new(),
         captures: Vec::new(),
+        framing: Default::default(),
+        preload: None,
     };
     let mut plan = plan;
     let capture = dir.path().join("capture.bin");

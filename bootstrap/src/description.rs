@@ -15,7 +15,8 @@ use replica_rt::frame::DEFAULT_MAX_FRAME;
 use s3res_anomaly::{Field, FieldLayout, Model};
 use s3res_protocol::plan::{
     default_max_restarts, default_restart_timeout_ms, default_restart_window_ms,
-    default_start_timeout_ms, default_stream_window, CapturePlan, Mode, MonitorPlan, RoundTrigger,
+    default_start_timeout_ms, default_stream_window, CapturePlan, Framing, Mode, MonitorPlan,
+    RoundTrigger,
 };
 use s3res_protocol::sched::{self, Schedule};
 
@@ -299,7 +300,28 @@ struct ComponentDesc {
     restart_window_ms: Option<u64>,
     inputs: Option<Vec<String>>,
     outputs: Option<Vec<String>>,
+    /// How the program takes part: it links replica-rt (or the C library), or it is an
+    /// unmodified program that the preload library is injected into.
+    runtime: Option<RuntimeChoice>,
+    /// An unmodified program's stdin/stdout: lines (the default) or s3res frames.
+    framing: Option<Framing>,
 }
+
+/// `runtime` as written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+enum RuntimeChoice {
+    /// The program links replica-rt (Rust) or libs3res (C, C++): ports on fd 3, 4, ...
+    #[serde(rename = "replica-rt")]
+    ReplicaRt,
+    /// An unmodified program reading stdin and writing stdout; the voter puts the preload
+    /// library in its `LD_PRELOAD`.
+    #[serde(rename = "preload")]
+    Preload,
+}
+
+/// The ports of an unmodified program: its stdin and its stdout.
+const PRELOAD_INPUT: &str = "in";
+const PRELOAD_OUTPUT: &str = "out";
 
 /// `schedule` as written: `auto` resolves from the placement ([`sched::choose`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
@@ -366,6 +388,9 @@ struct Draft {
     schedule: Schedule,
     schedule_auto: bool,
     window: usize,
+    framing: Framing,
+    /// The preload library, for an unmodified program.
+    preload: Option<PathBuf>,
 }
 
 /// Largest stream window: frames are buffered per replica and output, so keep it sane.
@@ -832,6 +857,7 @@ impl Checker<'_> {
 
         let exec = exec::resolve(&desc.exec, &self.ctx.base_dir, &self.ctx.search)
             .map_err(|what| self.err(&field("exec"), what))?;
+        let (framing, preload) = self.check_runtime(&at, &desc, &exec, protected)?;
 
         Ok(Draft {
             name,
@@ -845,7 +871,49 @@ impl Checker<'_> {
             schedule,
             schedule_auto: choice == ScheduleChoice::Auto,
             window,
+            framing,
+            preload,
         })
+    }
+
+    /// `runtime` and `framing`: for an unmodified program, its framing and the preload library
+    /// (found now, so that `--check` reports a missing one).
+    fn check_runtime(
+        &self,
+        at: &str,
+        desc: &ComponentDesc,
+        exec: &Path,
+        protected: bool,
+    ) -> Result<(Framing, Option<PathBuf>), DescriptionError> {
+        let field = |f: &str| member_path(at, f);
+        if desc.runtime != Some(RuntimeChoice::Preload) {
+            if desc.framing == Some(Framing::Lines) {
+                return Err(self.err(
+                    &field("framing"),
+                    "`framing: lines` is for an unmodified program: add `\"runtime\": \"preload\"`",
+                ));
+            }
+            return Ok((Framing::Frames, None));
+        }
+        if !protected {
+            return Err(self.err(
+                &field("runtime"),
+                "`runtime: preload` needs a voter to frame and vote the program's lines: give \
+                 the component a redundancy (smr, dmr or tmr)",
+            ));
+        }
+        if desc.mode == Mode::Stream {
+            return Err(self.err(
+                &field("mode"),
+                "an unmodified program (`runtime: preload`) is voted in rounds, one answer per \
+                 input frame; stream mode is not supported for it yet",
+            ));
+        }
+        if let Some(problem) = exec::preload_problem(exec) {
+            return Err(self.err(&field("exec"), problem));
+        }
+        let library = exec::find_preload_library().map_err(|e| self.err(&field("runtime"), e))?;
+        Ok((desc.framing.unwrap_or(Framing::Lines), Some(library)))
     }
 
     /// `cpu` as a CPU of this machine that bootstrap may use, or an error at `path`.
@@ -1077,22 +1145,31 @@ impl Checker<'_> {
         let used_in = ports_of(&d.name, inputs_used);
         let used_out = ports_of(&d.name, outputs_used);
 
-        let inputs = self.port_list(
-            &d,
-            "inputs",
-            d.desc.inputs.as_deref(),
-            &used_in,
-            channels,
-            true,
-        )?;
-        let outputs = self.port_list(
-            &d,
-            "outputs",
-            d.desc.outputs.as_deref(),
-            &used_out,
-            channels,
-            false,
-        )?;
+        // An unmodified program has exactly its stdin and its stdout.
+        let stdin_port = [PRELOAD_INPUT.to_owned()];
+        let stdout_port = [PRELOAD_OUTPUT.to_owned()];
+        let (declared_in, declared_out) = if d.preload.is_some() {
+            for (field, declared, only) in [
+                ("inputs", &d.desc.inputs, PRELOAD_INPUT),
+                ("outputs", &d.desc.outputs, PRELOAD_OUTPUT),
+            ] {
+                if declared.as_ref().is_some_and(|l| l != &[only.to_owned()]) {
+                    return Err(self.err(
+                        &member_path(&at, field),
+                        format!(
+                            "an unmodified program (`runtime: preload`) has one input, \
+                             `{PRELOAD_INPUT}` (its stdin), and one output, `{PRELOAD_OUTPUT}` \
+                             (its stdout); `{field}` must be [\"{only}\"] or left out"
+                        ),
+                    ));
+                }
+            }
+            (Some(&stdin_port[..]), Some(&stdout_port[..]))
+        } else {
+            (d.desc.inputs.as_deref(), d.desc.outputs.as_deref())
+        };
+        let inputs = self.port_list(&d, "inputs", declared_in, &used_in, channels, true)?;
+        let outputs = self.port_list(&d, "outputs", declared_out, &used_out, channels, false)?;
         if let Some(declared) = &d.desc.outputs {
             for (k, name) in declared.iter().enumerate() {
                 if inputs.iter().any(|p| &p.name == name) {
@@ -1184,6 +1261,8 @@ impl Checker<'_> {
             window: d.window,
             monitors: Vec::new(),
             captures: Vec::new(),
+            framing: d.framing,
+            preload: d.preload,
         })
     }
 

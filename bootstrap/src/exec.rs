@@ -126,6 +126,126 @@ fn check_executable(path: &Path) -> Result<(), ExecProblem> {
     Ok(())
 }
 
+/// File name of the preload library (the `s3res-preload` crate's cdylib).
+pub const PRELOAD_LIBRARY: &str = "libs3res_preload.so";
+
+/// Environment variable naming the preload library to use instead of the one beside
+/// s3res-bootstrap.
+pub const PRELOAD_ENV: &str = "S3RES_PRELOAD";
+
+/// The preload library: `$S3RES_PRELOAD`, else [`PRELOAD_LIBRARY`] beside the running
+/// s3res-bootstrap (where cargo builds it).
+pub fn find_preload_library() -> Result<PathBuf, String> {
+    if let Some(path) = std::env::var_os(PRELOAD_ENV) {
+        let path = absolute(Path::new(&path));
+        return if path.is_file() {
+            Ok(path)
+        } else {
+            Err(format!(
+                "{PRELOAD_ENV}={} is not a file",
+                path.display()
+            ))
+        };
+    }
+    let beside = SearchPath::from_environment()
+        .self_dir
+        .map(|d| d.join(PRELOAD_LIBRARY));
+    match beside {
+        Some(p) if p.is_file() => Ok(absolute(&p)),
+        Some(p) => Err(format!(
+            "the preload library was not found at {} (build the workspace with `cargo build`, \
+             or set {PRELOAD_ENV})",
+            p.display()
+        )),
+        None => Err(format!(
+            "no folder for s3res-bootstrap, so no {PRELOAD_LIBRARY}; set {PRELOAD_ENV}"
+        )),
+    }
+}
+
+/// Why `LD_PRELOAD` cannot reach the program at `path`, if it cannot: a setuid or setgid
+/// program (the dynamic linker ignores `LD_PRELOAD` for it), a statically linked executable
+/// (there is no dynamic linker), or a file that is neither an ELF executable nor a `#!` script.
+/// A script is judged by its interpreter.
+pub fn preload_problem(path: &Path) -> Option<String> {
+    preload_problem_at(path, 0)
+}
+
+fn preload_problem_at(path: &Path, depth: usize) -> Option<String> {
+    use std::io::Read;
+    let shown = path.display();
+    let meta = std::fs::metadata(path).ok()?;
+    if meta.permissions().mode() & 0o6000 != 0 {
+        return Some(format!(
+            "{shown} is setuid or setgid: the dynamic linker ignores LD_PRELOAD for it, so it \
+             cannot run as an unmodified program"
+        ));
+    }
+    let mut head = [0u8; 4096];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| f.read(&mut head))
+        .ok()?;
+    let head = &head[..n];
+    if let Some(rest) = head.strip_prefix(b"#!") {
+        let line = rest.split(|&b| b == b'\n').next().unwrap_or_default();
+        let interpreter = String::from_utf8_lossy(line);
+        let interpreter = interpreter.split_whitespace().next().unwrap_or_default();
+        if interpreter.is_empty() || depth > 2 {
+            return Some(format!("{shown}: a `#!` line without a usable interpreter"));
+        }
+        return preload_problem_at(Path::new(interpreter), depth + 1);
+    }
+    match elf_is_dynamic(head) {
+        Some(true) => None,
+        Some(false) => Some(format!(
+            "{shown} is statically linked: LD_PRELOAD cannot reach it, so it cannot run as an \
+             unmodified program (link it with libs3res_replica_c instead; see \
+             docs/writing-a-component.md)"
+        )),
+        None => Some(format!(
+            "{shown} is neither an ELF executable nor a `#!` script"
+        )),
+    }
+}
+
+/// Whether the ELF image starting with `head` asks for a dynamic linker (has `PT_INTERP`);
+/// `None` if it is not ELF or its program headers are not within `head`.
+fn elf_is_dynamic(head: &[u8]) -> Option<bool> {
+    const PT_INTERP: u64 = 3;
+    if head.len() < 0x40 || &head[..4] != b"\x7fELF" {
+        return None;
+    }
+    let le = match head[5] {
+        1 => true,
+        2 => false,
+        _ => return None,
+    };
+    let u16_at = |o: usize| -> Option<u64> {
+        let b: [u8; 2] = head.get(o..o + 2)?.try_into().ok()?;
+        Some(u64::from(if le { u16::from_le_bytes(b) } else { u16::from_be_bytes(b) }))
+    };
+    let u32_at = |o: usize| -> Option<u64> {
+        let b: [u8; 4] = head.get(o..o + 4)?.try_into().ok()?;
+        Some(u64::from(if le { u32::from_le_bytes(b) } else { u32::from_be_bytes(b) }))
+    };
+    let u64_at = |o: usize| -> Option<u64> {
+        let b: [u8; 8] = head.get(o..o + 8)?.try_into().ok()?;
+        Some(if le { u64::from_le_bytes(b) } else { u64::from_be_bytes(b) })
+    };
+    let (phoff, phentsize, phnum) = match head[4] {
+        1 => (u32_at(0x1c)?, u16_at(0x2a)?, u16_at(0x2c)?),
+        2 => (u64_at(0x20)?, u16_at(0x36)?, u16_at(0x38)?),
+        _ => return None,
+    };
+    for k in 0..phnum {
+        let at = usize::try_from(phoff.checked_add(k.checked_mul(phentsize)?)?).ok()?;
+        if u32_at(at)? == PT_INTERP {
+            return Some(true);
+        }
+    }
+    Some(false)
+}
+
 /// `path` made absolute against the current directory, with `.` parts dropped and `..` folded
 /// lexically (the stored path is for display and exec; symlinks are left alone).
 pub fn absolute(path: &Path) -> PathBuf {
@@ -215,6 +335,51 @@ mod tests {
             e.contains("not found beside s3res-bootstrap nor on PATH"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn what_ld_preload_cannot_reach_is_named() {
+        // The system's own awk or sh is dynamically linked (as on every distribution we know).
+        let sh = Path::new("/bin/sh");
+        assert_eq!(preload_problem(sh), None, "/bin/sh");
+        let dir = tempfile::tempdir().unwrap();
+        let script = dir.path().join("s.sh");
+        fs::write(&script, "#!/bin/sh\necho hi\n").unwrap();
+        assert_eq!(preload_problem(&script), None);
+        let odd = make_file(dir.path(), "odd", 0o755);
+        fs::write(&odd, "not a program").unwrap();
+        let e = preload_problem(&odd).unwrap();
+        assert!(e.contains("neither an ELF executable nor"), "{e}");
+        let suid = dir.path().join("suid");
+        fs::copy(sh, &suid).unwrap();
+        fs::set_permissions(&suid, fs::Permissions::from_mode(0o4755)).unwrap();
+        let e = preload_problem(&suid).unwrap();
+        assert!(e.contains("setuid"), "{e}");
+        // A minimal 64-bit ELF header with one PT_LOAD program header: static.
+        let mut elf = vec![0u8; 0x40 + 56];
+        elf[..4].copy_from_slice(b"\x7fELF");
+        elf[4] = 2;
+        elf[5] = 1;
+        elf[0x20..0x28].copy_from_slice(&0x40u64.to_le_bytes());
+        elf[0x36..0x38].copy_from_slice(&56u16.to_le_bytes());
+        elf[0x38..0x3a].copy_from_slice(&1u16.to_le_bytes());
+        elf[0x40..0x44].copy_from_slice(&1u32.to_le_bytes());
+        assert_eq!(elf_is_dynamic(&elf), Some(false));
+        elf[0x40..0x44].copy_from_slice(&3u32.to_le_bytes());
+        assert_eq!(elf_is_dynamic(&elf), Some(true));
+        let stat = dir.path().join("static");
+        fs::write(&stat, {
+            let mut e = elf.clone();
+            e[0x40..0x44].copy_from_slice(&1u32.to_le_bytes());
+            e
+        })
+        .unwrap();
+        let e = preload_problem(&stat).unwrap();
+        assert!(e.contains("statically linked"), "{e}");
+        // Truncated or garbage headers are not ELF, never a panic.
+        assert_eq!(elf_is_dynamic(&elf[..0x30]), None);
+        elf[0x20..0x28].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert_eq!(elf_is_dynamic(&elf), None);
     }
 
     #[test]

@@ -4,7 +4,7 @@
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
-use s3res_protocol::plan::{CapturePlan, Mode, MonitorPlan, RoundTrigger};
+use s3res_protocol::plan::{CapturePlan, Framing, Mode, MonitorPlan, RoundTrigger};
 use s3res_protocol::sched::Schedule;
 use serde::Deserialize;
 
@@ -123,6 +123,10 @@ pub struct ComponentPlan {
     pub monitors: Vec<MonitorPlan>,
     /// Outputs whose voted frames are captured to a file (the channels' `capture`).
     pub captures: Vec<CapturePlan>,
+    /// How the replicas' stdin/stdout or ports are framed.
+    pub framing: Framing,
+    /// An unmodified program: the library put in its `LD_PRELOAD`.
+    pub preload: Option<PathBuf>,
 }
 
 impl ComponentPlan {

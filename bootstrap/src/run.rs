@@ -800,6 +800,8 @@ fn spawn_voter(
         window: c.window,
         monitors: c.monitors.clone(),
         captures: c.captures.clone(),
+        framing: c.framing,
+        preload: c.preload.clone(),
     };
     let mut cmd = base_command(voter, &c.name, out).map_err(spawn_err)?;
     // If bootstrap dies (even by SIGKILL), the voter is asked to stop: it kills its replicas

@@ -39,6 +39,8 @@ pub fn encode_into(payload: &[u8], out: &mut Vec<u8>) {
 #[derive(Debug)]
 pub struct FrameDecoder {
     max: usize,
+    /// Newline-delimited text instead of length-prefixed frames (see [`FrameDecoder::lines`]).
+    lines: bool,
     /// Storage. Its length only grows (zero-filled once); `start..end` are the bytes received
     /// and not yet decoded, so a read into the spare room costs no memset in steady state.
     buf: Vec<u8>,
@@ -50,9 +52,20 @@ impl FrameDecoder {
     pub fn new(max: usize) -> Self {
         FrameDecoder {
             max,
+            lines: false,
             buf: Vec::new(),
             start: 0,
             end: 0,
+        }
+    }
+
+    /// A decoder of newline-delimited text: each line, without its `\n`, is one frame, and a
+    /// line longer than `max` bytes is [`FrameError::Oversized`] (an unmodified program's
+    /// stdout, `"framing": "lines"`).
+    pub fn lines(max: usize) -> Self {
+        FrameDecoder {
+            lines: true,
+            ..FrameDecoder::new(max)
         }
     }
 
@@ -91,6 +104,9 @@ impl FrameDecoder {
 
     /// The next whole frame's payload, if one has arrived.
     pub fn next_frame(&mut self) -> Result<Option<&[u8]>, FrameError> {
+        if self.lines {
+            return self.next_line();
+        }
         let avail = &self.buf[self.start..self.end];
         if avail.len() < HEADER_LEN {
             return Ok(None);
@@ -111,6 +127,9 @@ impl FrameDecoder {
     /// then reports) is waiting, so that the next `next_frame` returns without more bytes.
     pub fn has_frame(&self) -> bool {
         let avail = &self.buf[self.start..self.end];
+        if self.lines {
+            return avail.len() > self.max || avail.contains(&b'\n');
+        }
         if avail.len() < HEADER_LEN {
             return false;
         }
@@ -121,6 +140,13 @@ impl FrameDecoder {
     /// Called at end of stream: an error if a frame was cut off.
     pub fn finish(&self) -> Result<(), FrameError> {
         let avail = &self.buf[self.start..self.end];
+        if self.lines && !avail.is_empty() {
+            // The last line has no newline: it may be whole, but there is no telling.
+            return Err(FrameError::Truncated {
+                have: avail.len(),
+                want: avail.len() + 1,
+            });
+        }
         match avail.len() {
             0 => Ok(()),
             n if n < HEADER_LEN => Err(FrameError::Truncated {
@@ -134,6 +160,25 @@ impl FrameDecoder {
                     want: HEADER_LEN + len,
                 })
             }
+        }
+    }
+
+    /// The next whole line (see [`FrameDecoder::lines`]).
+    fn next_line(&mut self) -> Result<Option<&[u8]>, FrameError> {
+        let avail = &self.buf[self.start..self.end];
+        // A line may be `max` bytes long, and its newline comes after it.
+        let look = &avail[..avail.len().min(self.max.saturating_add(1))];
+        match look.iter().position(|&b| b == b'\n') {
+            Some(len) => {
+                let from = self.start;
+                self.start = from + len + 1;
+                Ok(Some(&self.buf[from..from + len]))
+            }
+            None if avail.len() > self.max => Err(FrameError::Oversized {
+                len: avail.len(),
+                max: self.max,
+            }),
+            None => Ok(None),
         }
     }
 
@@ -216,6 +261,49 @@ mod tests {
             let truncated = matches!(dec.finish(), Err(FrameError::Truncated { .. }));
             prop_assert!(truncated);
         }
+    }
+
+    proptest! {
+        /// Lines, split anywhere, decode to the lines without their newlines.
+        #[test]
+        fn lines_decode_however_split(
+            lines in proptest::collection::vec("[ -~]{0,40}", 0..20),
+            cuts in proptest::collection::vec(1usize..17, 0..40),
+        ) {
+            let bytes: Vec<u8> = lines.iter().flat_map(|l| l.bytes().chain([b'\n'])).collect();
+            let mut dec = FrameDecoder::lines(40);
+            let mut got = Vec::new();
+            let mut pos = 0;
+            let mut cuts = cuts.into_iter();
+            while pos < bytes.len() {
+                let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
+                dec.push(&bytes[pos..pos + step]);
+                pos += step;
+                while let Some(f) = dec.next_frame().unwrap() {
+                    got.push(String::from_utf8(f.to_vec()).unwrap());
+                }
+            }
+            prop_assert_eq!(got, lines);
+            prop_assert!(dec.finish().is_ok());
+        }
+    }
+
+    #[test]
+    fn a_line_longer_than_the_maximum_is_oversized_and_a_cut_line_truncated() {
+        let mut dec = FrameDecoder::lines(4);
+        dec.push(b"abcd\nabcde");
+        assert!(dec.has_frame());
+        assert_eq!(dec.next_frame().unwrap(), Some(&b"abcd"[..]));
+        assert!(dec.has_frame());
+        assert_eq!(
+            dec.next_frame(),
+            Err(FrameError::Oversized { len: 5, max: 4 })
+        );
+        let mut dec = FrameDecoder::lines(4);
+        dec.push(b"ab");
+        assert!(!dec.has_frame());
+        assert_eq!(dec.next_frame().unwrap(), None);
+        assert!(matches!(dec.finish(), Err(FrameError::Truncated { .. })));
     }
 
     #[test]

@@ -142,6 +142,26 @@ pub struct VoterPlan {
     /// Outputs whose voted frames are captured to a file.
     #[serde(default)]
     pub captures: Vec<CapturePlan>,
+    /// How the replicas' own pipes are framed; the channels outside stay in s3res frames.
+    #[serde(default)]
+    pub framing: Framing,
+    /// An unmodified program: this library is put in its `LD_PRELOAD` (it installs the restart
+    /// handler and the injection hooks), and its one input and one output are its stdin and
+    /// stdout. `None`: the component links replica-rt itself and finds its ports on fd 3, 4, ...
+    #[serde(default)]
+    pub preload: Option<PathBuf>,
+}
+
+/// How frames cross the pipes between the voter and its replicas.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Framing {
+    /// The s3res framing: a 4-byte little-endian length, then the payload.
+    #[default]
+    Frames,
+    /// Newline-delimited text: each line (without its `\n`) is one frame. The voter writes
+    /// each frame reaching the component as one line and votes the k-th line of each replica.
+    Lines,
 }
 
 /// Nice values used instead of SCHED_RR priorities, chosen by bootstrap so that the order of

@@ -175,6 +175,18 @@ fn apply_var(port: &str, payload: &mut [u8]) {
     );
 }
 
+/// Applies a pending SDC or variable injection to `payload`, an outgoing frame that does not
+/// go through [`crate::OutPort::send`] (the preload library's lines on an unmodified program's
+/// stdout). Components that use `OutPort` never call this.
+pub fn corrupt_if_injected(port: &str, payload: &mut [u8]) {
+    apply_pending(port, payload);
+}
+
+/// Whether an SDC or variable injection waits for the next outgoing frame.
+pub fn injection_pending() -> bool {
+    PENDING_SDC.load(Ordering::SeqCst) != NONE || VAR_ARMED.load(Ordering::SeqCst)
+}
+
 /// Applies a pending SDC injection to `payload` (the outgoing copy), logging what was done.
 pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
     apply_var(port, payload);

@@ -154,8 +154,51 @@ pub(crate) unsafe fn raw_fork() -> libc::pid_t {
     unsafe { _Fork() }
 }
 
+/// Set by [`refuse_fork_when_threaded`].
+static REFUSE_WHEN_THREADED: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
+
+/// From now on the restart handler checks, before every fork, that the process has a single
+/// thread, and refuses to fork (saying so on stderr) if it has more: a fork copies only the
+/// calling thread. Replica-rt components are single-threaded by contract; the preload library
+/// turns this on for unmodified programs, which promise nothing.
+pub fn refuse_fork_when_threaded() {
+    REFUSE_WHEN_THREADED.store(true, Ordering::SeqCst);
+}
+
+/// Threads of this process, from `/proc/self/stat` (field 20); `None` if it cannot be read.
+/// Async-signal-safe: `open`, `read` and `close` on a stack buffer.
+pub fn thread_count() -> Option<u64> {
+    let mut buf = [0u8; 1024];
+    // SAFETY: a NUL-terminated literal path; the fd is closed below.
+    let fd = unsafe { libc::open(c"/proc/self/stat".as_ptr(), libc::O_RDONLY | libc::O_CLOEXEC) };
+    if fd < 0 {
+        return None;
+    }
+    // SAFETY: `buf` is writable for its whole length.
+    let n = unsafe { libc::read(fd, buf.as_mut_ptr().cast(), buf.len()) };
+    // SAFETY: `fd` was opened above and is not used after this.
+    unsafe { libc::close(fd) };
+    let text = buf.get(..usize::try_from(n).ok()?)?;
+    // The command name (field 2) may hold spaces and parentheses: count from the last `)`.
+    let after = &text[text.iter().rposition(|&b| b == b')')? + 1..];
+    let field = after.split(|&b| b == b' ').filter(|f| !f.is_empty()).nth(17)?;
+    field.iter().try_fold(0u64, |acc, &b| {
+        b.is_ascii_digit()
+            .then(|| acc.saturating_mul(10).saturating_add(u64::from(b - b'0')))
+    })
+}
+
 extern "C" fn on_restart(_sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *mut libc::c_void) {
     let saved = errno();
+    if REFUSE_WHEN_THREADED.load(Ordering::SeqCst) && thread_count() != Some(1) {
+        const MSG: &[u8] = b"s3res: this program runs more than one thread; a fork copies only \
+one, so it cannot be a recovery donor (refused)\n";
+        // SAFETY: write(2) of a static buffer to stderr, async-signal-safe.
+        unsafe { libc::write(libc::STDERR_FILENO, MSG.as_ptr().cast(), MSG.len()) };
+        set_errno(saved);
+        return;
+    }
     // The attempt's nonce, read before the fork so the child has it on its stack.
     // SAFETY: the kernel passes a valid (or no) siginfo to an SA_SIGINFO handler.
     let info = unsafe { info.as_ref() };
@@ -496,4 +539,18 @@ fn errno() -> libc::c_int {
 fn set_errno(v: libc::c_int) {
     // SAFETY: as in `errno`.
     unsafe { *libc::__errno_location() = v };
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn threads_are_counted() {
+        let before = super::thread_count().expect("/proc/self/stat");
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let t = std::thread::spawn(move || rx.recv());
+        let during = super::thread_count().expect("/proc/self/stat");
+        assert!(during > before.saturating_sub(1) && during >= 2, "{before} → {during}");
+        tx.send(()).unwrap();
+        let _ = t.join();
+    }
 }

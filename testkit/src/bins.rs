@@ -3,7 +3,7 @@
 //! `cargo test --workspace` builds the normal executables of a package's bin targets only when
 //! that package has integration tests of its own; the voter and the components have none, so
 //! their executables would be missing, or stale from an earlier build. So the first call here in
-//! each test process runs `cargo build --workspace --bins` with the same cargo, target dir and
+//! each test process runs `cargo build --workspace --bins --lib` with the same cargo, target dir and
 //! profile as the test executable. Cargo releases its build-directory lock before it runs test
 //! executables, so the nested build does not deadlock; when everything is current it is a no-op
 //! that takes a fraction of a second.
@@ -56,6 +56,8 @@ fn find_or_build() -> Result<PathBuf, String> {
     cmd.arg("build")
         .arg("--workspace")
         .arg("--bins")
+        // The libraries too: the preload library (a cdylib) is not a bin, and no bin needs it.
+        .arg("--lib")
         .arg("--manifest-path")
         .arg(&workspace)
         .arg("--target-dir")

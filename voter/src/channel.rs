@@ -15,6 +15,8 @@ const READ_CHUNK: usize = 64 * 1024;
 #[derive(Debug)]
 pub struct FrameWriter {
     fd: OwnedFd,
+    /// Writes each frame as a line (`"framing": "lines"`) instead of length-prefixed.
+    lines: bool,
     pending: Vec<u8>,
     /// Start of the unwritten part of `pending`.
     start: usize,
@@ -25,15 +27,31 @@ impl FrameWriter {
         sys::set_nonblocking(fd.as_fd(), true)?;
         Ok(FrameWriter {
             fd,
+            lines: false,
             pending: Vec::new(),
             start: 0,
+        })
+    }
+
+    /// A writer of newline-delimited text: each frame is written as its payload and a `\n`.
+    /// (A payload that holds a newline reaches the program as more than one line: the
+    /// channel's writer must not send one.)
+    pub fn lines(fd: OwnedFd) -> io::Result<Self> {
+        Ok(FrameWriter {
+            lines: true,
+            ..FrameWriter::new(fd)?
         })
     }
 
     /// Queues a whole frame and writes as much as the pipe takes now.
     pub fn send(&mut self, payload: &[u8]) -> io::Result<()> {
         self.compact();
-        frame::encode_into(payload, &mut self.pending);
+        if self.lines {
+            self.pending.extend_from_slice(payload);
+            self.pending.push(b'\n');
+        } else {
+            frame::encode_into(payload, &mut self.pending);
+        }
         self.flush()
     }
 
@@ -119,6 +137,13 @@ impl FrameReader {
             decoder: FrameDecoder::new(max_frame),
             closed: false,
         })
+    }
+
+    /// A reader of newline-delimited text, one frame per line (see [`FrameDecoder::lines`]).
+    pub fn lines(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
+        let mut reader = FrameReader::new(fd, max_frame)?;
+        reader.decoder = FrameDecoder::lines(max_frame);
+        Ok(reader)
     }
 
     pub fn is_closed(&self) -> bool {

@@ -608,9 +608,18 @@ impl Core {
         // that said something (a panic, an error) is quoted in `last_fault` instead.
         let hint = if self.exec_answered || self.last_fault.contains("its last stderr line") {
             String::new()
+        } else if self.plan.preload.is_some() {
+            format!(
+                "; no replica started by exec ever answered: does `{}` write one line to stdout \
+                 for each line it reads, and flush it (`python3 -u`, awk's `fflush()`)?",
+                self.plan.exec.display()
+            )
         } else {
             format!(
-                "; no replica started by exec ever answered: does `{}` speak the s3res protocol? (link replica-rt: docs/writing-a-component.md)",
+                "; no replica started by exec ever answered: `{}` does not speak the s3res protocol. \
+                 Protect it one of three ways (docs/writing-a-component.md): link replica-rt (Rust), \
+                 link libs3res_replica_c (C, C++), or declare it an unmodified stdin/stdout program \
+                 with \"runtime\": \"preload\"",
                 self.plan.exec.display()
             )
         };

@@ -395,6 +395,7 @@ fn hand_over_pipes(
         inputs,
         outputs,
         stderr,
+        ..
     } = pipes;
     drop::<Vec<OwnedFd>>(replica_ends);
 

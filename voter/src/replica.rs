@@ -13,7 +13,7 @@ use replica_rt::contract::{
 use replica_rt::sys;
 
 use crate::channel::{FrameReader, FrameWriter};
-use crate::plan::VoterPlan;
+use crate::plan::{Framing, VoterPlan};
 use crate::stderr::StderrRelay;
 
 /// The voter's end of one replica input pipe. The voter keeps the read end too, so that it can
@@ -57,10 +57,13 @@ pub struct ReplicaPipes {
     pub inputs: Vec<ReplicaInput>,
     pub outputs: Vec<FrameReader>,
     pub stderr: StderrRelay,
+    /// An unmodified program's pipes: its ports are stdin and stdout.
+    preload: bool,
 }
 
 impl ReplicaPipes {
     pub fn new(plan: &VoterPlan) -> io::Result<Self> {
+        let lines = plan.framing == Framing::Lines;
         let mut replica_ends = Vec::with_capacity(plan.inputs.len() + plan.outputs.len());
         let mut inputs = Vec::with_capacity(plan.inputs.len());
         for _ in &plan.inputs {
@@ -71,7 +74,11 @@ impl ReplicaPipes {
             let voter_r = reopen_nonblocking(&r)?;
             replica_ends.push(r);
             inputs.push(ReplicaInput {
-                writer: FrameWriter::new(w)?,
+                writer: if lines {
+                    FrameWriter::lines(w)?
+                } else {
+                    FrameWriter::new(w)?
+                },
                 read_end: voter_r,
             });
         }
@@ -79,7 +86,11 @@ impl ReplicaPipes {
         for port in &plan.outputs {
             let (r, w) = sys::pipe()?;
             replica_ends.push(w);
-            outputs.push(FrameReader::new(r, port.max_frame)?);
+            outputs.push(if lines {
+                FrameReader::lines(r, port.max_frame)?
+            } else {
+                FrameReader::new(r, port.max_frame)?
+            });
         }
         let (r, w) = sys::pipe()?;
         sys::set_nonblocking(r.as_fd(), true)?;
@@ -89,16 +100,28 @@ impl ReplicaPipes {
             inputs,
             outputs,
             stderr: StderrRelay::new(r),
+            preload: plan.preload.is_some(),
         })
     }
 
-    /// Where each replica end must sit in the replica: fd 3, 4, ... in port order, and its
+    /// Where each replica end must sit in the replica: its ports (see [`port_fd`]), then its
     /// stderr on fd 2.
     pub fn targets(&self) -> impl Iterator<Item = RawFd> + '_ {
         let ports = self.replica_ends.len() - 1;
         (0..ports)
-            .map(|k| FIRST_PORT_FD + k as RawFd)
+            .map(|k| port_fd(self.preload, k))
             .chain(std::iter::once(libc::STDERR_FILENO))
+    }
+}
+
+/// The fd number of port `k` (inputs first, then outputs) inside a replica: 3, 4, ... for a
+/// component that links replica-rt; stdin and stdout for an unmodified program (bootstrap
+/// gives it exactly one input, `in`, and one output, `out`).
+fn port_fd(preload: bool, k: usize) -> RawFd {
+    if preload {
+        [libc::STDIN_FILENO, libc::STDOUT_FILENO][k.min(1)]
+    } else {
+        FIRST_PORT_FD + k as RawFd
     }
 }
 
@@ -124,7 +147,7 @@ pub fn port_map(plan: &VoterPlan) -> PortMap {
             .map(|(k, (p, dir))| PortSpec {
                 name: p.name.clone(),
                 dir,
-                fd: FIRST_PORT_FD + k as RawFd,
+                fd: port_fd(plan.preload.is_some(), k),
                 max_frame: p.max_frame,
             })
             .collect(),
@@ -142,6 +165,10 @@ impl Replica {
             .env(ENV_REPLICA, slot.to_string())
             .env(ENV_COMPONENT, &plan.component)
             .stdin(Stdio::null());
+        if let Some(library) = &plan.preload {
+            // The library reads the contract above at load time, before the program's `main`.
+            cmd.env("LD_PRELOAD", library);
+        }
         let map = pipes
             .replica_ends
             .iter()

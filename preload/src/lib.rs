@@ -1,0 +1,157 @@
+//! The preload library: lets s3res protect an unmodified, dynamically linked program that reads
+//! stdin and writes stdout (`"runtime": "preload"` in the system description).
+//!
+//! The voter starts each replica with this library in `LD_PRELOAD` and the s3res contract in
+//! its environment, and with the replica's pipes on fd 0 and fd 1. Before the program's `main`,
+//! [`load`] runs (an ELF constructor) and:
+//! - refuses a program that already runs more than one thread (a fork copies one);
+//! - runs replica-rt's `init`: the restart handler (SIGUSR1: fork, the child joins the voter and
+//!   puts its new pipes on fds 0 and 1), the injection hooks, locked memory — exactly what a
+//!   component that links replica-rt gets — and asks the restart handler to check for a single
+//!   thread before every fork;
+//! - makes C stdio's stdout line-buffered, so that each line is one `write` (a pipe is fully
+//!   buffered by default, and the voter would wait for a line that sits in the buffer);
+//! - notes its pid in the environment (`S3RES_PRELOAD_PID`). The environment is otherwise left
+//!   as it is, so that a wrapper that `exec`s the real program (a pyenv shim, `env`, a shell
+//!   script) loads the library again in the same process; a *child* process the program
+//!   starts finds another pid there, removes the contract and `LD_PRELOAD` from its own
+//!   environment and stays out of it.
+//!
+//! It also defines `write`, which the dynamic linker then resolves to here for the whole
+//! program, to keep lines whole across a fork: while the program's last `write` to stdout ended
+//! in the middle of a line (`print` in `python3 -u` writes the text and its newline
+//! separately), the restart signal is held, so a fork child never starts its output with the
+//! tail of its donor's line. The same place applies SDC injections to the outgoing line. (C
+//! stdio writes from inside libc and does not come here; line-buffered, it writes whole lines.)
+//!
+//! Outside s3res (no contract in the environment) the library does nothing.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use replica_rt::contract::{signals, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET};
+
+/// The library is active: loaded by a voter into a replica.
+static ACTIVE: AtomicBool = AtomicBool::new(false);
+/// The last write to stdout ended in the middle of a line (RESTART is held meanwhile).
+static MID_LINE: AtomicBool = AtomicBool::new(false);
+
+/// Exit status of a replica that cannot be protected this way (refused at load).
+const REFUSED: libc::c_int = 125;
+
+/// Run by the dynamic linker before `main` (and before any other constructor of the program's
+/// own that runs after ours).
+#[used]
+#[link_section = ".init_array"]
+static LOAD: extern "C" fn() = load;
+
+/// The pid of the replica the library was loaded into first.
+const ENV_PID: &str = "S3RES_PRELOAD_PID";
+
+extern "C" fn load() {
+    if std::env::var_os(ENV_VOTER_SOCKET).is_none() {
+        return;
+    }
+    let me = std::process::id().to_string();
+    if std::env::var(ENV_PID).is_ok_and(|pid| pid != me) {
+        // A process the replica started, not the replica: not ours to protect.
+        for var in ["LD_PRELOAD", ENV_PID, ENV_PORTS, ENV_VOTER_SOCKET, ENV_REPLICA, ENV_COMPONENT] {
+            // Before `main`, single-threaded: nothing reads the environment concurrently.
+            std::env::remove_var(var);
+        }
+        return;
+    }
+    // Before `main`, single-threaded (checked just below for the replica itself).
+    std::env::set_var(ENV_PID, &me);
+    replica_rt::init_logging("s3res_preload=info,replica_rt=warn");
+    if let Some(n) = replica_rt::restart::thread_count().filter(|&n| n != 1) {
+        refuse(&format!(
+            "the program runs {n} threads at start; an unmodified program must be \
+             single-threaded (a fork recovery copies one thread)"
+        ));
+    }
+    match replica_rt::init() {
+        Ok(runtime) => {
+            // The program uses fds 0 and 1 itself; the runtime only had to install its handlers.
+            std::mem::forget(runtime);
+        }
+        Err(e) => refuse(&format!("replica-rt: {e}")),
+    }
+    replica_rt::restart::refuse_fork_when_threaded();
+    line_buffer_stdout();
+    ACTIVE.store(true, Ordering::SeqCst);
+}
+
+fn refuse(why: &str) -> ! {
+    eprintln!("s3res-preload: refused: {why}");
+    replica_rt::sys::exit_now(REFUSED)
+}
+
+extern "C" {
+    /// glibc's `stdout` stream.
+    static mut stdout: *mut libc::FILE;
+}
+
+fn line_buffer_stdout() {
+    // SAFETY: called before `main`, single-threaded; `stdout` is glibc's stream, valid for the
+    // whole process, and setvbuf before any output is how C asks for line buffering (a null
+    // buffer lets stdio allocate its own).
+    unsafe {
+        libc::setvbuf(stdout, std::ptr::null_mut(), libc::_IOLBF, 0);
+    }
+}
+
+/// `write(2)`, as the program calls it. For stdout, in a replica: holds the restart signal
+/// while a line is incomplete, and applies a pending SDC injection to the bytes written.
+///
+/// # Safety
+/// The contract of `write(2)`: `buf` is readable for `count` bytes.
+#[no_mangle]
+pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count: usize) -> isize {
+    if fd != libc::STDOUT_FILENO || count == 0 || !ACTIVE.load(Ordering::Relaxed) {
+        return raw_write(fd, buf, count);
+    }
+    // SAFETY: the caller's contract: `buf` is readable for `count` bytes.
+    let bytes = unsafe { std::slice::from_raw_parts(buf.cast::<u8>(), count) };
+    hold_restart(true);
+    let n = if replica_rt::inject::injection_pending() {
+        let mut copy = bytes.to_vec();
+        // The newline stays: the flip must change a line, not the framing.
+        let body = copy.len() - usize::from(copy.last() == Some(&b'\n'));
+        replica_rt::inject::corrupt_if_injected("out", &mut copy[..body]);
+        raw_write(fd, copy.as_ptr().cast(), copy.len())
+    } else {
+        raw_write(fd, buf, count)
+    };
+    if let Ok(written) = usize::try_from(n) {
+        if written > 0 {
+            MID_LINE.store(bytes[written - 1] != b'\n', Ordering::SeqCst);
+        }
+    }
+    if !MID_LINE.load(Ordering::SeqCst) {
+        hold_restart(false);
+    }
+    n
+}
+
+/// The `write` system call itself (libc's `write` is this library's, above).
+fn raw_write(fd: libc::c_int, buf: *const libc::c_void, count: usize) -> isize {
+    // SAFETY: the write system call with the caller's arguments; the kernel checks the buffer.
+    unsafe { libc::syscall(libc::SYS_write, fd, buf, count) as isize }
+}
+
+/// Blocks (`true`) or unblocks the restart signal for this thread.
+fn hold_restart(hold: bool) {
+    // SAFETY: sigemptyset/sigaddset fill a local set; sigprocmask only changes this thread's
+    // mask and reads nothing else of ours.
+    unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, signals::RESTART);
+        let how = if hold {
+            libc::SIG_BLOCK
+        } else {
+            libc::SIG_UNBLOCK
+        };
+        libc::sigprocmask(how, &set, std::ptr::null_mut());
+    }
+}
