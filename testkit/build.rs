@@ -11,16 +11,24 @@
 //! | `s3res_sched_rr`    | `chrt -r 1 true` succeeds (SCHED_RR allowed: root or CAP_SYS_NICE) and `S3RES_TEST_UNPRIVILEGED` is not set |
 //! | `s3res_two_cpus`    | at least two CPUs are usable                                     |
 //! | `s3res_prlimit`     | `prlimit` is installed, and `setpriv` too when building as root   |
+//! | `s3res_python3`     | `python3` runs                                                   |
+//! | `s3res_awk`         | `awk` runs                                                       |
+//! | `s3res_cc`          | `cc` compiles and links a C file                                 |
+//! | `s3res_cc_static`   | `cc -static` links one too (a static libc is installed)           |
 
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::process::{Command, Stdio};
 
-const CFGS: [&str; 4] = [
+const CFGS: [&str; 8] = [
     "s3res_pagemap_pfns",
     "s3res_sched_rr",
     "s3res_two_cpus",
     "s3res_prlimit",
+    "s3res_python3",
+    "s3res_awk",
+    "s3res_cc",
+    "s3res_cc_static",
 ];
 
 /// The harness's `system::UNPRIVILEGED_ENV`.
@@ -60,6 +68,30 @@ fn main() {
         "s3res_prlimit",
         tools.iter().all(|t| succeeds(t, &["--version"])),
     );
+    set("s3res_python3", succeeds("python3", &["--version"]));
+    set("s3res_awk", succeeds("awk", &["BEGIN { exit 0 }"]));
+    set("s3res_cc", compiles(&[]));
+    set("s3res_cc_static", compiles(&["-static"]));
+}
+
+/// Whether `cc FLAGS` compiles and links a minimal C program.
+fn compiles(flags: &[&str]) -> bool {
+    let Some(out) = std::env::var_os("OUT_DIR").map(std::path::PathBuf::from) else {
+        return false;
+    };
+    let src = out.join("probe.c");
+    if std::fs::write(&src, "int main(void) { return 0; }\n").is_err() {
+        return false;
+    }
+    let exe = out.join("probe");
+    let mut args: Vec<&std::ffi::OsStr> = flags.iter().map(std::ffi::OsStr::new).collect();
+    args.extend([std::ffi::OsStr::new("-o"), exe.as_os_str(), src.as_os_str()]);
+    Command::new("cc")
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success())
 }
 
 fn succeeds(program: &str, args: &[&str]) -> bool {

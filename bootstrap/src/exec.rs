@@ -141,10 +141,7 @@ pub fn find_preload_library() -> Result<PathBuf, String> {
         return if path.is_file() {
             Ok(path)
         } else {
-            Err(format!(
-                "{PRELOAD_ENV}={} is not a file",
-                path.display()
-            ))
+            Err(format!("{PRELOAD_ENV}={} is not a file", path.display()))
         };
     }
     let beside = SearchPath::from_environment()
@@ -222,15 +219,27 @@ fn elf_is_dynamic(head: &[u8]) -> Option<bool> {
     };
     let u16_at = |o: usize| -> Option<u64> {
         let b: [u8; 2] = head.get(o..o + 2)?.try_into().ok()?;
-        Some(u64::from(if le { u16::from_le_bytes(b) } else { u16::from_be_bytes(b) }))
+        Some(u64::from(if le {
+            u16::from_le_bytes(b)
+        } else {
+            u16::from_be_bytes(b)
+        }))
     };
     let u32_at = |o: usize| -> Option<u64> {
         let b: [u8; 4] = head.get(o..o + 4)?.try_into().ok()?;
-        Some(u64::from(if le { u32::from_le_bytes(b) } else { u32::from_be_bytes(b) }))
+        Some(u64::from(if le {
+            u32::from_le_bytes(b)
+        } else {
+            u32::from_be_bytes(b)
+        }))
     };
     let u64_at = |o: usize| -> Option<u64> {
         let b: [u8; 8] = head.get(o..o + 8)?.try_into().ok()?;
-        Some(if le { u64::from_le_bytes(b) } else { u64::from_be_bytes(b) })
+        Some(if le {
+            u64::from_le_bytes(b)
+        } else {
+            u64::from_be_bytes(b)
+        })
     };
     let (phoff, phentsize, phnum) = match head[4] {
         1 => (u32_at(0x1c)?, u16_at(0x2a)?, u16_at(0x2c)?),

@@ -54,7 +54,14 @@ extern "C" fn load() {
     let me = std::process::id().to_string();
     if std::env::var(ENV_PID).is_ok_and(|pid| pid != me) {
         // A process the replica started, not the replica: not ours to protect.
-        for var in ["LD_PRELOAD", ENV_PID, ENV_PORTS, ENV_VOTER_SOCKET, ENV_REPLICA, ENV_COMPONENT] {
+        for var in [
+            "LD_PRELOAD",
+            ENV_PID,
+            ENV_PORTS,
+            ENV_VOTER_SOCKET,
+            ENV_REPLICA,
+            ENV_COMPONENT,
+        ] {
             // Before `main`, single-threaded: nothing reads the environment concurrently.
             std::env::remove_var(var);
         }

@@ -171,7 +171,12 @@ pub fn refuse_fork_when_threaded() {
 pub fn thread_count() -> Option<u64> {
     let mut buf = [0u8; 1024];
     // SAFETY: a NUL-terminated literal path; the fd is closed below.
-    let fd = unsafe { libc::open(c"/proc/self/stat".as_ptr(), libc::O_RDONLY | libc::O_CLOEXEC) };
+    let fd = unsafe {
+        libc::open(
+            c"/proc/self/stat".as_ptr(),
+            libc::O_RDONLY | libc::O_CLOEXEC,
+        )
+    };
     if fd < 0 {
         return None;
     }
@@ -182,7 +187,10 @@ pub fn thread_count() -> Option<u64> {
     let text = buf.get(..usize::try_from(n).ok()?)?;
     // The command name (field 2) may hold spaces and parentheses: count from the last `)`.
     let after = &text[text.iter().rposition(|&b| b == b')')? + 1..];
-    let field = after.split(|&b| b == b' ').filter(|f| !f.is_empty()).nth(17)?;
+    let field = after
+        .split(|&b| b == b' ')
+        .filter(|f| !f.is_empty())
+        .nth(17)?;
     field.iter().try_fold(0u64, |acc, &b| {
         b.is_ascii_digit()
             .then(|| acc.saturating_mul(10).saturating_add(u64::from(b - b'0')))
@@ -549,7 +557,10 @@ mod tests {
         let (tx, rx) = std::sync::mpsc::channel::<()>();
         let t = std::thread::spawn(move || rx.recv());
         let during = super::thread_count().expect("/proc/self/stat");
-        assert!(during > before.saturating_sub(1) && during >= 2, "{before} → {during}");
+        assert!(
+            during > before.saturating_sub(1) && during >= 2,
+            "{before} → {during}"
+        );
         tx.send(()).unwrap();
         let _ = t.join();
     }
