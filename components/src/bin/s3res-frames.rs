@@ -93,14 +93,15 @@ struct SendArgs {
     port: String,
 }
 
-/// Prints every frame received on a port, one line each: its index (from 0), a space, the
-/// frame. Ends when the stream does.
+/// Prints every frame it receives, one line each, until the stream ends.
+///
+/// Each line is the frame's index (from 0), a space, and the frame in the chosen format.
 ///
 /// Formats (--format):
 ///
 ///   hex          every byte as two hex digits: 0 0000000000000040
-///   text         the bytes as UTF-8 text; line ends, other control characters and bytes
-///                that are not UTF-8 are escaped (\n, \r, \x07): 0 hello
+///   text         the bytes as UTF-8 text; line ends, control characters (tab aside) and
+///                bytes that are not UTF-8 are escaped (\n, \r, \x07, \xff): 0 hello
 ///   layout:SPEC  the fields of a layout, name=value: 0 count=1 mean=1.0
 ///
 /// A layout SPEC is written as the system description's `fields` (the layout the anomaly
@@ -130,10 +131,12 @@ struct ShowArgs {
     no_index: bool,
 }
 
+/// Compares the frames it receives, as lines, with an expected file.
+///
 /// Reads frames until the stream ends, renders each as a line (as `show --no-index` would) and
-/// compares them with the lines of an expected file. Exits 0 only if they are exactly the same
-/// and as many; otherwise prints the first difference (frame index, expected line, the line it
-/// got) and how many lines differ, are missing and are extra, and exits 1.
+/// compares them with the lines of the file. Exits 0 only if they are exactly the same and as
+/// many; otherwise prints the first difference (frame index, expected line, the line it got)
+/// and how many lines differ, are missing and are extra, and exits 1.
 ///
 ///     check: first difference at frame 2 (line 3):
 ///       expected: count=3 mean=2.0
