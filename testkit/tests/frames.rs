@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use s3res_testkit::{tail, EventKind, Outcome, RunningSystem, System};
+use s3res_testkit::{of_kind, tail, EventKind, Outcome, RunningSystem, System};
 
 const LIMIT: Duration = Duration::from_secs(120);
 const MEAN_LAYOUT: &str = "layout:count:u64,mean:f64";
@@ -107,12 +107,8 @@ fn send_through_tmr_then_check_passes_on_an_exact_match() {
         "{}",
         out.stdout
     );
-    let starts = out
-        .events
-        .iter()
-        .filter(|e| e.component == "middle" && e.kind == EventKind::Start)
-        .count();
-    assert_eq!(starts, 3, "TMR: three replicas: {:?}", out.events);
+    let starts = of_kind(&out.events, "middle", EventKind::Start);
+    assert_eq!(starts.len(), 3, "TMR: three replicas: {:?}", out.events);
 }
 
 #[test]
