@@ -19,7 +19,11 @@
 
 #![forbid(unsafe_code)]
 
+use std::time::{Duration, Instant};
+
 use serde::Serialize;
+
+pub mod frames;
 
 /// Bytes of the sequence number at the start of a source frame (and its minimum size).
 pub const SEQ_LEN: usize = 8;
@@ -33,6 +37,15 @@ pub fn filler(seq: u64, i: usize) -> u8 {
     ((h >> (8 * (i % 8))) as u8)
         .wrapping_add(i as u8)
         .wrapping_mul(31)
+}
+
+/// `start + seq * period`, exactly (integer nanoseconds), or `None` past the clock's range: when
+/// frame `seq` of a paced stream is due. Deadlines from the start, not from the last send, so a
+/// late frame does not delay the ones after it and the rate does not drift.
+pub fn due_at(start: Instant, period: Duration, seq: u64) -> Option<Instant> {
+    let nanos = period.as_nanos().checked_mul(u128::from(seq))?;
+    let secs = u64::try_from(nanos / 1_000_000_000).ok()?;
+    start.checked_add(Duration::new(secs, (nanos % 1_000_000_000) as u32))
 }
 
 /// Writes source frame `seq` of `size` bytes (at least [`SEQ_LEN`]) into `out`, replacing its

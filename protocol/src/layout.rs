@@ -28,6 +28,25 @@ pub enum FieldType {
 }
 
 impl FieldType {
+    /// Every type, in the order the documentation lists them.
+    pub const ALL: [FieldType; 10] = [
+        FieldType::F64,
+        FieldType::F32,
+        FieldType::I64,
+        FieldType::U64,
+        FieldType::I32,
+        FieldType::U32,
+        FieldType::I16,
+        FieldType::U16,
+        FieldType::I8,
+        FieldType::U8,
+    ];
+
+    /// The type called `name` in JSON (`"f64"`, `"u16"`, ...).
+    pub fn from_name(name: &str) -> Option<FieldType> {
+        FieldType::ALL.into_iter().find(|t| t.name() == name)
+    }
+
     /// Bytes the field takes in a frame.
     pub const fn size(self) -> usize {
         match self {
@@ -287,6 +306,24 @@ impl FieldLayout {
     }
 }
 
+impl FieldLayout {
+    /// Parses a layout written as JSON: an array of fields, or an object with a `fields` array
+    /// (a channel entry of a system description; its other keys are ignored). Errors carry the
+    /// line and column.
+    pub fn from_json(text: &str) -> Result<FieldLayout, serde_json::Error> {
+        #[derive(Deserialize)]
+        struct Channel {
+            fields: FieldLayout,
+        }
+        // Parsed from the text (not via a Value) so that errors carry line and column.
+        if text.trim_start().starts_with('{') {
+            serde_json::from_str::<Channel>(text).map(|c| c.fields)
+        } else {
+            serde_json::from_str::<FieldLayout>(text)
+        }
+    }
+}
+
 impl TryFrom<Vec<Field>> for FieldLayout {
     type Error = LayoutError;
     fn try_from(fields: Vec<Field>) -> Result<Self, LayoutError> {
@@ -305,18 +342,7 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    const TYPES: [FieldType; 10] = [
-        FieldType::F64,
-        FieldType::F32,
-        FieldType::I64,
-        FieldType::U64,
-        FieldType::I32,
-        FieldType::U32,
-        FieldType::I16,
-        FieldType::U16,
-        FieldType::I8,
-        FieldType::U8,
-    ];
+    const TYPES: [FieldType; 10] = FieldType::ALL;
 
     proptest! {
         /// Any type at any offset reads back what was written there, and any shorter frame is
@@ -432,6 +458,24 @@ mod tests {
         let layout: FieldLayout = serde_json::from_str(json).unwrap();
         assert_eq!(layout.fields()[1], Field::new("n", FieldType::U16, 8));
         assert_eq!(serde_json::to_string(&layout).unwrap(), json);
+    }
+
+    #[test]
+    fn types_by_name_and_layouts_from_either_json_shape() {
+        for t in FieldType::ALL {
+            assert_eq!(FieldType::from_name(t.name()), Some(t));
+        }
+        assert_eq!(FieldType::from_name("f16"), None);
+        let bare = r#"[{"name":"x","type":"f64","offset":0}]"#;
+        let channel =
+            r#" {"from": "a.out", "to": "b.in", "fields": [{"name":"x","type":"f64","offset":0}]}"#;
+        assert_eq!(
+            FieldLayout::from_json(bare).unwrap(),
+            FieldLayout::from_json(channel).unwrap()
+        );
+        let err = FieldLayout::from_json("[\n{\"name\":\"x\",\"type\":\"f16\",\"offset\":0}]")
+            .unwrap_err();
+        assert_eq!(err.line(), 2, "{err}");
     }
 
     #[test]

@@ -15,6 +15,7 @@ use s3res_testkit::{signals, EventKind, RecoveryMethod, Rng, RunningSystem, Syst
 const DOC: &str = include_str!("../../docs/writing-a-component.md");
 const MAIN_RS: &str = include_str!("../../examples/running-mean/src/main.rs");
 const CARGO_TOML: &str = include_str!("../../examples/running-mean/Cargo.toml");
+const EXAMPLE_JSON: &str = include_str!("../../examples/running-mean/running-mean.json");
 
 const COMPONENT: &str = "running-mean";
 /// Bytes of one answer frame on the wire: 4 of header, 8 of count, 8 of mean.
@@ -113,6 +114,12 @@ fn the_doc_shows_the_example_verbatim() {
         "docs/writing-a-component.md must show examples/running-mean/src/main.rs verbatim, \
          in a ```rust block; copy the file into the doc again"
     );
+    let json_block = format!("```json\n{EXAMPLE_JSON}```\n");
+    assert!(
+        DOC.contains(&json_block),
+        "docs/writing-a-component.md must show examples/running-mean/running-mean.json \
+         verbatim, in a ```json block; copy the file into the doc again"
+    );
     let toml_block = format!("```toml\n{CARGO_TOML}```\n");
     assert!(
         DOC.contains(&toml_block),
@@ -167,8 +174,30 @@ fn the_documented_tmr_system_gives_every_running_mean_exactly() {
 const BY_HAND_PORTS: &str = r#"{"ports":[{"name":"samples","dir":"in","fd":0,"max_frame":65536},{"name":"mean","dir":"out","fd":1,"max_frame":65536}]}"#;
 
 fn run_by_hand(ports: Option<&str>, stdin: Vec<u8>) -> std::process::Output {
-    let mut cmd = Command::new(s3res_testkit::bin_path("s3res-running-mean"));
-    cmd.env_remove("S3RES_PORTS")
+    run_tool("s3res-running-mean", &[], ports, stdin)
+}
+
+/// A child killed and reaped when dropped (a test that fails midway leaves nothing behind).
+struct Reaped(std::process::Child);
+
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Runs the workspace executable `name` with `args`, the port map `ports` (standalone without
+/// one) and `stdin`, as a user would by hand; bounded in time.
+fn run_tool(
+    name: &str,
+    args: &[&str],
+    ports: Option<&str>,
+    stdin: Vec<u8>,
+) -> std::process::Output {
+    let mut cmd = Command::new(s3res_testkit::bin_path(name));
+    cmd.args(args)
+        .env_remove("S3RES_PORTS")
         .env_remove("S3RES_VOTER_SOCKET")
         .env_remove("S3RES_REPLICA")
         .env_remove("S3RES_COMPONENT")
@@ -179,25 +208,128 @@ fn run_by_hand(ports: Option<&str>, stdin: Vec<u8>) -> std::process::Output {
     if let Some(p) = ports {
         cmd.env("S3RES_PORTS", p);
     }
-    let mut child = cmd.spawn().expect("starting s3res-running-mean");
-    let mut input = child.stdin.take().unwrap();
+    let mut child = Reaped(
+        cmd.spawn()
+            .unwrap_or_else(|e| panic!("starting {name}: {e}")),
+    );
+    let mut input = child.0.stdin.take().unwrap();
     let writer = std::thread::spawn(move || {
         // The component may stop reading (bad frame): a broken pipe is expected then.
         let _ = input.write_all(&stdin);
     });
-    let out = child
-        .wait_with_output()
-        .expect("waiting for s3res-running-mean");
+    let drain = |mut r: Box<dyn Read + Send>| {
+        std::thread::spawn(move || {
+            let mut v = Vec::new();
+            let _ = r.read_to_end(&mut v);
+            v
+        })
+    };
+    let stdout = drain(Box::new(child.0.stdout.take().unwrap()));
+    let stderr = drain(Box::new(child.0.stderr.take().unwrap()));
+    let deadline = Instant::now() + LIMIT;
+    let status = loop {
+        if let Some(st) = child.0.try_wait().expect("waitpid") {
+            break st;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{name} did not end within {LIMIT:?}"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    };
     writer.join().unwrap();
-    out
+    std::process::Output {
+        status,
+        stdout: stdout.join().unwrap(),
+        stderr: stderr.join().unwrap(),
+    }
+}
+
+/// The doc's lines of `s3res-frames`: the samples it sends, and how it shows the answers.
+const DOC_SEND: &str =
+    "printf '1\\n2\\n3\\n10\\n' | target/release/s3res-frames send --as f64 \\\n";
+const DOC_SHOW: &str = "  | target/release/s3res-frames show --format layout:count:u64,mean:f64\n";
+const DOC_SAMPLES: &str = "1\n2\n3\n10\n";
+const DOC_SHOWN: &str =
+    "0 count=1 mean=1.0\n1 count=2 mean=1.5\n2 count=3 mean=2.0\n3 count=4 mean=4.0\n";
+
+/// `s3res-frames send --as f64` of the doc's samples: the frames bootstrap gets on stdin.
+fn doc_sample_frames() -> Vec<u8> {
+    let out = run_tool(
+        "s3res-frames",
+        &["send", "--as", "f64"],
+        None,
+        DOC_SAMPLES.as_bytes().to_vec(),
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(out.stdout, sample_frames(&[1.0, 2.0, 3.0, 10.0]));
+    out.stdout
+}
+
+/// `s3res-frames show --format layout:count:u64,mean:f64` of answer frames.
+fn show_answers(frames: Vec<u8>) -> String {
+    let out = run_tool(
+        "s3res-frames",
+        &["show", "--format", "layout:count:u64,mean:f64"],
+        None,
+        frames,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap()
+}
+
+/// Section 5's pipeline, `s3res-frames send | s3res-bootstrap | s3res-frames show`, prints
+/// exactly the lines the doc says (bootstrap run by the harness, its stdin and stdout the
+/// pipeline's middle).
+#[test]
+fn the_documented_pipeline_prints_the_documented_lines() {
+    assert!(
+        DOC.contains(&format!(
+            "{DOC_SEND}  | target/release/s3res-bootstrap --events events.jsonl \
+             examples/running-mean/running-mean.json \\\n{DOC_SHOW}"
+        )),
+        "the doc's pipeline changed; update DOC_SEND/DOC_SHOW"
+    );
+    assert!(
+        DOC.contains(&format!("```\n{DOC_SHOWN}```\n")),
+        "the doc's output changed; update DOC_SHOWN"
+    );
+    let mut run = System::new().stdin(doc_sample_frames()).start(EXAMPLE_JSON);
+    run.wait_success(LIMIT);
+    assert_eq!(show_answers(stdout_bytes(&run)), DOC_SHOWN);
 }
 
 #[test]
 fn the_by_hand_command_works_and_a_bad_frame_ends_it_cleanly() {
     assert!(
-        DOC.contains(&format!("export S3RES_PORTS='{BY_HAND_PORTS}'")),
+        DOC.contains(&format!("ports='{BY_HAND_PORTS}'")),
         "the doc's by-hand port map changed; update BY_HAND_PORTS"
     );
+    assert!(
+        DOC.contains(&format!(
+            "{DOC_SEND}  | S3RES_PORTS=\"$ports\" target/release/s3res-running-mean \\\n{DOC_SHOW}"
+        )),
+        "the doc's by-hand pipeline changed"
+    );
+    // The doc's pipeline, stage by stage: the same four lines as through bootstrap.
+    let out = run_by_hand(Some(BY_HAND_PORTS), doc_sample_frames());
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(show_answers(out.stdout), DOC_SHOWN);
+    // The doc's bad frame: `echo abc | s3res-frames send` is the 3-byte frame below.
+    let abc = run_tool("s3res-frames", &["send"], None, b"abc\n".to_vec());
+    assert_eq!(abc.stdout, [3, 0, 0, 0, b'a', b'b', b'c']);
     let samples = [1.0, 2.0, 3.0, 10.0];
     let out = run_by_hand(Some(BY_HAND_PORTS), sample_frames(&samples));
     assert!(

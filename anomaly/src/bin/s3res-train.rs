@@ -206,19 +206,10 @@ fn run(cli: Cli) -> Result<()> {
 /// Reads a layout file: a JSON array of fields, or an object with a `fields` array (a channel
 /// entry of a system description).
 fn read_layout(path: &Path, max_frame: usize) -> Result<FieldLayout> {
-    #[derive(serde::Deserialize)]
-    struct Channel {
-        fields: FieldLayout,
-    }
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read layout {}", path.display()))?;
-    // Parsed from the text (not via a Value) so that errors carry line and column.
-    let layout = if text.trim_start().starts_with('{') {
-        serde_json::from_str::<Channel>(&text).map(|c| c.fields)
-    } else {
-        serde_json::from_str::<FieldLayout>(&text)
-    }
-    .with_context(|| format!("layout {}", path.display()))?;
+    let layout =
+        FieldLayout::from_json(&text).with_context(|| format!("layout {}", path.display()))?;
     layout
         .within(max_frame)
         .with_context(|| format!("layout {}", path.display()))?;

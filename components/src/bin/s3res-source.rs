@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use s3res_components::{source_frame, SEQ_LEN};
+use s3res_components::{due_at, source_frame, SEQ_LEN};
 
 /// Sends COUNT numbered frames on its output `out`, HZ per second, then exits.
 ///
@@ -89,11 +89,4 @@ fn main() -> Result<()> {
     }
     tracing::info!(count = cli.count, elapsed = ?start.elapsed(), "done");
     Ok(())
-}
-
-/// `start + seq * period`, exactly (integer nanoseconds), or `None` past the clock's range.
-fn due_at(start: Instant, period: Duration, seq: u64) -> Option<Instant> {
-    let nanos = period.as_nanos().checked_mul(u128::from(seq))?;
-    let secs = u64::try_from(nanos / 1_000_000_000).ok()?;
-    start.checked_add(Duration::new(secs, (nanos % 1_000_000_000) as u32))
 }
