@@ -267,6 +267,39 @@ fn flip_registers(run: &mut RunningSystem, rng: &mut Rng, state: &Path) {
     }
 }
 
+/// SDC injections (`--fault sdc`): the library flips a bit of the next line the program writes
+/// through `write`; the voter outvotes the line and replaces the replica.
+fn corrupt_lines(run: &mut RunningSystem, rng: &mut Rng, state: &Path, n: usize) {
+    for _ in 0..n {
+        let slot = rng.below(3) as usize;
+        let pid = run.replica_pids("sum")[&slot];
+        let out = Command::new(bin_path("s3res-inject"))
+            .args(["inject", "--state"])
+            .arg(state)
+            .args(["--component", "sum", "--replica"])
+            .arg(slot.to_string())
+            .args(["--fault", "sdc"])
+            .stdin(Stdio::null())
+            .output()
+            .expect("running s3res-inject");
+        assert!(
+            out.status.success(),
+            "s3res-inject --fault sdc: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let rec = run.wait_for_recovery("sum", slot, pid);
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        let fault = run.events().into_iter().find(|e| {
+            e.pid == Some(pid) && e.kind != EventKind::Start && e.kind != EventKind::Recovery
+        });
+        assert_eq!(
+            fault.as_ref().map(|e| e.kind),
+            Some(EventKind::Sdc),
+            "{fault:?}"
+        );
+    }
+}
+
 fn under_fire(program: Program, redundancy: &str, replicas: usize) {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let mut rng = Rng::from_env();
@@ -278,6 +311,9 @@ fn under_fire(program: Program, redundancy: &str, replicas: usize) {
     kill_and_stop(&mut run, &mut rng, replicas);
     if replicas == 3 {
         flip_registers(&mut run, &mut rng, &state);
+        if matches!(program, Program::Python) {
+            corrupt_lines(&mut run, &mut rng, &state, 5);
+        }
     }
     assert!(
         run.try_status().is_none(),
