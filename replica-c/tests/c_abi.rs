@@ -7,6 +7,7 @@ mod common;
 
 use std::collections::BTreeSet;
 use std::io::{Read, Write};
+use std::os::fd::AsRawFd;
 use std::path::Path;
 use std::process::{Command, Stdio};
 
@@ -112,8 +113,9 @@ fn the_header_constants_are_the_library_s() {
     assert!(code.contains("#define S3RES_NO_TIMEOUT (-1)"));
 }
 
-/// The port map abi_check.c expects: `in` on stdin (1024 bytes), `out` on stdout (64 bytes).
-const ABI_PORTS: &str = r#"{"ports":[{"name":"in","dir":"in","fd":0,"max_frame":1024},{"name":"out","dir":"out","fd":1,"max_frame":64}]}"#;
+/// The port map abi_check.c expects: `in` on stdin (1024 bytes), `out` on stdout (64 bytes),
+/// `aux` on fd 3.
+const ABI_PORTS: &str = r#"{"ports":[{"name":"in","dir":"in","fd":0,"max_frame":1024},{"name":"out","dir":"out","fd":1,"max_frame":64},{"name":"aux","dir":"in","fd":3,"max_frame":1024}]}"#;
 
 /// Reads one frame from `r` (blocking; the watchdog bounds it).
 fn read_frame(r: &mut impl Read) -> Vec<u8> {
@@ -142,15 +144,22 @@ fn abi_check(link: Link) {
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped());
+    let (aux_read, aux_write) = replica_rt::sys::pipe().unwrap();
+    replica_rt::sys::map_fds_on_exec(&mut cmd, vec![(aux_read.as_raw_fd(), 3)]);
     let mut w = Watched::spawn(&mut cmd);
+    drop(aux_read);
+    let mut aux = std::fs::File::from(aux_write);
     let mut input = w.child.stdin.take().unwrap();
     let mut output = w.child.stdout.take().unwrap();
+    aux.write_all(&frames(&[b"side"])).unwrap();
+    assert_eq!(read_frame(&mut output), b"side");
     input.write_all(&frames(&[b"one"])).unwrap();
     assert_eq!(read_frame(&mut output), b"one");
     input.write_all(&frames(&[b"two", b"three"])).unwrap();
     assert_eq!(read_frame(&mut output), b"two");
     assert_eq!(read_frame(&mut output), b"three");
     drop(input);
+    drop(aux);
     assert_eq!(read_frame(&mut output), b"");
     let mut rest = Vec::new();
     output.read_to_end(&mut rest).unwrap();

@@ -1,11 +1,12 @@
 /*
  * Calls every function of s3res.h (tests/c_abi.rs checks that each declared name appears here)
  * and checks what it answers. Run by tests/c_abi.rs with the port map
- *   in: fd 0 (stdin), max_frame 1024;  out: fd 1 (stdout), max_frame 64
+ *   in: fd 0 (stdin), max_frame 1024;  out: fd 1 (stdout), max_frame 64;  aux: fd 3 (in)
  * and this conversation on the pipes:
+ *   test writes "side" on aux   -> wait_any on (in, aux) names aux alone; we echo it
  *   test writes "one"           -> we check try_recv/recv_timeout find nothing more, echo it
  *   test writes "two" + "three" -> one write; we wait_any, recv_timeout, try_recv, echo both
- *   test closes stdin           -> we see end of stream, send an empty frame, exit 0
+ *   test closes stdin and aux   -> we see end of stream, send an empty frame, exit 0
  * Any failed check: a message on stderr and exit status 1.
  */
 #include <errno.h>
@@ -66,6 +67,17 @@ int main(void) {
 
     const uint8_t *p;
     size_t len;
+    s3res_in *aux = NULL;
+    CHECK(s3res_input(rt, "aux", &aux) == 0);
+    if (aux == NULL) return 1;
+    CHECK(s3res_in_fd(aux) == 3);
+    /* "side" on aux, nothing on in until we answer it. */
+    uint32_t ready = 0;
+    s3res_in *both[2] = {in, aux};
+    CHECK(s3res_wait_any(both, 2, S3RES_NO_TIMEOUT, &ready) == 1 && ready == 2);
+    CHECK(s3res_recv(aux, &p, &len) == 1 && frame_is(p, len, "side"));
+    CHECK(s3res_send(out, p, len) == 0);
+
     /* "one", then nothing more until we answer it. */
     CHECK(s3res_recv(in, &p, &len) == 1 && frame_is(p, len, "one"));
     uint8_t copy[16];
@@ -76,7 +88,6 @@ int main(void) {
     CHECK(s3res_send(out, copy, copy_len) == 0);
 
     /* "two" and "three", written at once. */
-    uint32_t ready = 0;
     s3res_in *ports[1] = {in};
     CHECK(s3res_wait_any(ports, 1, S3RES_NO_TIMEOUT, &ready) == 1 && ready == 1);
     CHECK(s3res_wait_any(ports, 0, 0, &ready) == -EINVAL);
@@ -95,6 +106,7 @@ int main(void) {
     CHECK(s3res_wait_any(ports, 1, 10000000, &ready) == 1 && ready == 1);
     CHECK(s3res_recv(in, &p, &len) == 0 && p == NULL && len == 0);
     CHECK(s3res_try_recv(in, &p, &len) == 0);
+    CHECK(s3res_recv(aux, &p, &len) == 0);
     CHECK(s3res_send(out, NULL, 0) == 0);
 
     int locked = s3res_lock_memory();
@@ -104,6 +116,7 @@ int main(void) {
     CHECK(s3res_signal_inject_cfe() == s3res_signal_inject_var() - 1);
 
     s3res_in_close(in);
+    s3res_in_close(aux);
     s3res_out_close(out);
     s3res_runtime_free(rt);
     s3res_log(S3RES_LOG_INFO, failures ? "abi check FAILED" : "abi check passed");
