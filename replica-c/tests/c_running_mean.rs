@@ -132,6 +132,8 @@ enum Fault {
     Kill,
     Stop,
     Sdc,
+    /// The control-flow-error hook (SIGRTMIN+2): the replica spins in the handler.
+    Cfe,
 }
 
 impl Fault {
@@ -140,19 +142,23 @@ impl Fault {
             Fault::Kill => EventKind::Crash,
             Fault::Stop => EventKind::Hang,
             Fault::Sdc => EventKind::Sdc,
+            Fault::Cfe => EventKind::Hang,
         }
     }
 }
 
 /// Each of `FAULTS_PER_KIND` SIGKILLs, SIGSTOPs and SDC signals (a random bit of the next
-/// answer) hits a random replica, in a random order, while samples flow; each must be detected
-/// as what it is (`crash`, `hang`, `sdc`) in that replica and repaired by fork with the state
+/// answer), and `CFE_FAULTS` control-flow errors, hits a random replica, in a random order,
+/// while samples flow; each must be detected as what it is (`crash`, `hang`, `sdc`, `hang`) in
+/// that replica and repaired by fork with the state
 /// kept, and at the end every answer is exact: each sample answered once, in order, with the
 /// count and the mean continuous through all repairs.
 #[test]
 #[cfg_attr(not(s3res_cc), ignore = "no C compiler (`cc`) on this machine")]
 fn the_c_example_keeps_its_mean_through_kills_stops_and_corruptions_under_tmr() {
     const FAULTS_PER_KIND: usize = 30;
+    /// A few control-flow errors as well: the C component has that hook too.
+    const CFE_FAULTS: usize = 5;
     const CHUNK: usize = 5;
     const TAIL: usize = 30;
     let mut rng = Rng::from_env();
@@ -163,6 +169,7 @@ fn the_c_example_keeps_its_mean_through_kills_stops_and_corruptions_under_tmr() 
     let kinds = [Fault::Kill, Fault::Stop, Fault::Sdc];
     let mut faults: Vec<Fault> = (0..kinds.len() * FAULTS_PER_KIND)
         .map(|i| kinds[i % kinds.len()])
+        .chain((0..CFE_FAULTS).map(|_| Fault::Cfe))
         .collect();
     for i in (1..faults.len()).rev() {
         faults.swap(i, rng.below(i as u64 + 1) as usize);
@@ -185,6 +192,7 @@ fn the_c_example_keeps_its_mean_through_kills_stops_and_corruptions_under_tmr() 
         match fault {
             Fault::Kill => s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("SIGKILL"),
             Fault::Stop => s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP"),
+            Fault::Cfe => s3res_testkit::kill_pid(pid, signals::inject_cfe()).expect("SIGRTMIN+2"),
             Fault::Sdc => {
                 let bit = rng.below(128) as i32;
                 s3res_testkit::sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue")
@@ -210,9 +218,13 @@ fn the_c_example_keeps_its_mean_through_kills_stops_and_corruptions_under_tmr() 
     drop(writer);
 
     let out = run.wait_success(LIMIT);
-    for fault in [Fault::Kill, Fault::Stop, Fault::Sdc] {
-        let n = s3res_testkit::of_kind(&out.events, COMPONENT, fault.detected_as()).len();
-        assert_eq!(n, FAULTS_PER_KIND, "{:?} events", fault.detected_as());
+    for (kind, want) in [
+        (EventKind::Crash, FAULTS_PER_KIND),
+        (EventKind::Hang, FAULTS_PER_KIND + CFE_FAULTS),
+        (EventKind::Sdc, FAULTS_PER_KIND),
+    ] {
+        let n = s3res_testkit::of_kind(&out.events, COMPONENT, kind).len();
+        assert_eq!(n, want, "{kind:?} events");
     }
     let others: Vec<_> = out
         .events
