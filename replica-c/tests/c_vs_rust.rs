@@ -1,9 +1,11 @@
-//! A measurement, not a check (ignored by default): restart time and round trip of the C
-//! running mean against the Rust one, both under TMR in the same system shape (FIFO → `cat`
-//! feeder → component → bootstrap's stdout file), the same voter, the same profile.
+//! A measurement, not a check: restart time and round trip of the C running mean against the
+//! Rust one, both under TMR in the same system shape (FIFO → `cat` feeder → component →
+//! bootstrap's stdout file), the same voter, the same profile. A test target without the test
+//! harness and with `test = false` (Cargo.toml), so that `cargo test` leaves it out unless it
+//! is named:
 //!
 //! ```sh
-//! cargo test --release -p s3res-replica-c --test c_vs_rust -- --ignored --nocapture
+//! cargo test --release -p s3res-replica-c --test c_vs_rust
 //! ```
 //!
 //! - **restart** = the `recovery` event's `ts_ns` − the `crash` event's `ts_ns` after a SIGKILL
@@ -105,9 +107,8 @@ fn measure(exe: &Path) -> Figures {
     }
 }
 
-#[test]
-#[ignore = "a measurement: run with --ignored --nocapture (best with --release)"]
-fn restart_and_round_trip_of_the_c_and_the_rust_running_mean() {
+/// Restart and round trip of the C and the Rust running mean.
+fn main() {
     common::require_compiler("cc");
     let rust = s3res_testkit::bin_path("s3res-running-mean");
     let dir = tempfile::tempdir().unwrap();
