@@ -13,6 +13,7 @@
 //! | `s3res_prlimit`     | `prlimit` is installed, and `setpriv` too when building as root   |
 //! | `s3res_python3`     | `python3` runs                                                   |
 //! | `s3res_awk`         | `awk` runs                                                       |
+//! | `s3res_mawk`        | `awk` is mawk (the docs' example uses its `-W interactive`)       |
 //! | `s3res_cc`          | `cc` compiles and links a C file                                 |
 //! | `s3res_cc_static`   | `cc -static` links one too (a static libc is installed)           |
 
@@ -20,13 +21,14 @@ use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::process::{Command, Stdio};
 
-const CFGS: [&str; 8] = [
+const CFGS: [&str; 9] = [
     "s3res_pagemap_pfns",
     "s3res_sched_rr",
     "s3res_two_cpus",
     "s3res_prlimit",
     "s3res_python3",
     "s3res_awk",
+    "s3res_mawk",
     "s3res_cc",
     "s3res_cc_static",
 ];
@@ -70,6 +72,14 @@ fn main() {
     );
     set("s3res_python3", succeeds("python3", &["--version"]));
     set("s3res_awk", succeeds("awk", &["BEGIN { exit 0 }"]));
+    set(
+        "s3res_mawk",
+        Command::new("awk")
+            .args(["-W", "version"])
+            .stdin(Stdio::null())
+            .output()
+            .is_ok_and(|o| String::from_utf8_lossy(&o.stdout).contains("mawk")),
+    );
     set("s3res_cc", compiles(&[]));
     set("s3res_cc_static", compiles(&["-static"]));
 }

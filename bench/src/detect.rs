@@ -51,6 +51,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
         max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
         voter: Some(voter.clone()),
         setup: o.setup,
+        preload: None,
     };
     let mut rng = Rng::new(o.seed);
     let total = o.timeouts_us.len() as u64 * o.count * 3 + o.rounds;

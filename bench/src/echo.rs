@@ -13,7 +13,40 @@ use crate::Common;
 /// Longest a single round trip may take before the run is abandoned as broken.
 const ROUND_LIMIT: Duration = Duration::from_secs(5);
 
+/// The echo that is measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Program {
+    /// `s3res-echo`, which links replica-rt.
+    Linked,
+    /// `cat`, unmodified, with the preload library: s3res frames on its stdin and stdout.
+    PreloadFrames,
+    /// `cat`, unmodified, with the preload library: one line per frame (`framing: lines`).
+    PreloadLines,
+}
+
+impl Program {
+    pub fn parse(s: &str) -> Result<Program, String> {
+        match s {
+            "linked" => Ok(Program::Linked),
+            "preload-frames" => Ok(Program::PreloadFrames),
+            "preload-lines" => Ok(Program::PreloadLines),
+            _ => Err(format!(
+                "unknown program {s:?} (linked, preload-frames, preload-lines)"
+            )),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Program::Linked => "linked",
+            Program::PreloadFrames => "preload-frames",
+            Program::PreloadLines => "preload-lines",
+        }
+    }
+}
+
 pub struct EchoOptions {
+    pub program: Program,
     pub replicas: Vec<usize>,
     pub sizes: Vec<usize>,
     pub count: u64,
@@ -35,8 +68,41 @@ pub fn fill_frame(seq: u64, buf: &mut [u8]) {
     }
 }
 
+/// Payload of round `seq` for a line-framed program: printable, no newline (the seq in hex,
+/// then letters that depend on it).
+pub fn fill_line(seq: u64, buf: &mut [u8]) {
+    let hex = format!("{seq:016x}");
+    for (i, b) in buf.iter_mut().enumerate() {
+        *b = match hex.as_bytes().get(i) {
+            Some(&h) => h,
+            None => b'a' + ((i as u64 ^ seq) % 26) as u8,
+        };
+    }
+}
+
 pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
-    let echo = common.bins.path("s3res-echo")?;
+    let (echo, preload) = match o.program {
+        Program::Linked => (common.bins.path("s3res-echo")?, None),
+        Program::PreloadFrames | Program::PreloadLines => {
+            if o.replicas.contains(&0) {
+                anyhow::bail!(
+                    "--program {}: an unmodified program runs under a voter (--replicas 1,2,3); \
+                     the no-voter baseline is `--program linked --replicas 0`",
+                    o.program.name()
+                );
+            }
+            let framing = if o.program == Program::PreloadLines {
+                s3res_protocol::plan::Framing::Lines
+            } else {
+                s3res_protocol::plan::Framing::Frames
+            };
+            let library = common.bins.path("libs3res_preload.so")?;
+            (
+                std::path::PathBuf::from("/bin/cat"),
+                Some((library, framing)),
+            )
+        }
+    };
     let voter = if o.replicas.iter().any(|&r| r > 0) {
         Some(common.bins.path("s3res-voter")?)
     } else {
@@ -68,6 +134,7 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
             max_frame: size.max(replica_rt::frame::DEFAULT_MAX_FRAME),
             voter: voter.clone(),
             setup,
+            preload: preload.clone(),
         };
         let result = measure(&spec, setup, size, o, &bar);
         Setup::reset_bench();
@@ -79,6 +146,9 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
             )
         })?;
         row.setup = setup.name();
+        if o.program != Program::Linked {
+            row.what = Some(o.program.name().to_owned());
+        }
         rows.push(row);
     }
     bar.finish_and_clear();
@@ -112,7 +182,11 @@ fn measure(
     let mut h = histogram();
     let total = o.warmup + o.count;
     for seq in 0..total {
-        fill_frame(seq, &mut frame);
+        if o.program == Program::PreloadLines {
+            fill_line(seq, &mut frame);
+        } else {
+            fill_frame(seq, &mut frame);
+        }
         let t0 = replica_rt::sys::monotonic_ns();
         let answered = system
             .echo_round(&frame, ROUND_LIMIT)
@@ -143,6 +217,7 @@ pub fn render(rows: &[Row]) -> String {
         .iter()
         .map(|r| {
             vec![
+                r.what.clone().unwrap_or_else(|| "linked".to_owned()),
                 r.setup.to_string(),
                 report::level_name(r.replicas),
                 report::bytes_name(r.size),
@@ -158,6 +233,7 @@ pub fn render(rows: &[Row]) -> String {
         .collect();
     report::table(
         &[
+            "program",
             "setup",
             "level",
             "size",

@@ -74,6 +74,11 @@ struct CommonArgs {
 enum Command {
     /// Round trip by replication level and frame size (Figure 3).
     Echo {
+        /// The echo measured: `linked` (s3res-echo, linked to replica-rt), `preload-frames`
+        /// (`cat`, unmodified, preloaded, s3res frames on stdin/stdout) or `preload-lines`
+        /// (`cat`, preloaded, one line per frame: payloads are printable, no newline).
+        #[arg(long, value_parser = echo::Program::parse, default_value = "linked")]
+        program: echo::Program,
         /// Replication levels: 0 = no voter, 1 SMR, 2 DMR, 3 TMR (or more).
         #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
         replicas: Vec<usize>,
@@ -224,6 +229,7 @@ fn run() -> Result<()> {
     }
     match cli.command {
         Command::Echo {
+            program,
             replicas,
             size,
             count,
@@ -242,6 +248,7 @@ fn run() -> Result<()> {
                 tracing::warn!("setups rr and rr-pinned need root or CAP_SYS_NICE; they may fail");
             }
             let opts = echo::EchoOptions {
+                program,
                 replicas,
                 sizes: size.into_iter().map(|s| s as usize).collect(),
                 count,

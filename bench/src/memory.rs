@@ -54,6 +54,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
         max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
         voter: Some(voter.clone()),
         setup: crate::system::Setup::Plain,
+        preload: None,
     };
     let mut configs = vec![
         ("s3res-echo".to_string(), base(&echo, Vec::new(), 0), 0u64),

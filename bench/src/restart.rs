@@ -45,6 +45,7 @@ pub fn run(
             max_frame: replica_rt::frame::DEFAULT_MAX_FRAME,
             voter: Some(voter.clone()),
             setup,
+            preload: None,
         };
         let (restart, extra) = restarts(&spec, setup, count, &bar)
             .with_context(|| format!("restart with {} of state", report::bytes_name(size)))?;

@@ -77,6 +77,8 @@ pub struct Spec {
     pub voter: Option<PathBuf>,
     /// How the processes are scheduled: the voter's plan carries it (see [`Setup::plan_fields`]).
     pub setup: Setup,
+    /// An unmodified program: the preload library and how its stdin/stdout are framed.
+    pub preload: Option<(PathBuf, s3res_protocol::plan::Framing)>,
 }
 
 /// Name of the component in plans and events.
@@ -100,6 +102,8 @@ pub struct System {
     group_slot: Option<usize>,
     workdir: tempfile::TempDir,
     reaped: bool,
+    /// An unmodified program (its input is its stdin).
+    preloaded: bool,
 }
 
 impl System {
@@ -172,8 +176,8 @@ impl System {
                 window: s3res_protocol::plan::default_stream_window(),
                 monitors: Vec::new(),
                 captures: Vec::new(),
-                framing: Default::default(),
-                preload: None,
+                framing: spec.preload.as_ref().map(|p| p.1).unwrap_or_default(),
+                preload: spec.preload.as_ref().map(|p| p.0.clone()),
             };
             cmd = Command::new(voter);
             cmd.arg("--plan")
@@ -215,6 +219,7 @@ impl System {
             group_slot,
             workdir,
             reaped: false,
+            preloaded: spec.preload.is_some(),
         };
         if spec.replicas > 0 {
             let deadline = Instant::now() + Duration::from_secs(10);
@@ -241,9 +246,15 @@ impl System {
             self.replicas.clone()
         };
         let deadline = Instant::now() + timeout;
+        // An unmodified program reads its stdin.
+        let input_fd = if self.preloaded {
+            libc::STDIN_FILENO
+        } else {
+            FIRST_PORT_FD
+        };
         for pid in pids {
             loop {
-                if reading_fd(pid, FIRST_PORT_FD) {
+                if reading_fd(pid, input_fd) {
                     break;
                 }
                 if Instant::now() > deadline || sys::interrupted() {

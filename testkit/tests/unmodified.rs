@@ -433,3 +433,26 @@ fn a_program_that_starts_a_thread_is_not_forked() {
     );
     run.assert_nothing_left();
 }
+
+/// The example of `docs/writing-a-component.md` ("Unmodified programs") runs as shown: awk,
+/// unmodified, under TMR, fed by `s3res-frames send` and watched by `s3res-frames show`.
+#[test]
+#[cfg_attr(
+    not(s3res_mawk),
+    ignore = "the docs' example uses mawk's -W interactive"
+)]
+fn the_documented_example_runs_as_shown() {
+    const DOC: &str = include_str!("../../docs/writing-a-component.md");
+    let section = &DOC[DOC.find("## 8. Unmodified programs").expect("the section")..];
+    let start = section.find("```json\n").expect("a json block") + "```json\n".len();
+    let block = &section[start..start + section[start..].find("```").unwrap()];
+    assert!(block.contains("\"runtime\": \"preload\""), "{block}");
+    let sys = System::new();
+    let numbers: Vec<String> = (1..=50).map(|k| k.to_string()).collect();
+    std::fs::write(sys.path("numbers.txt"), numbers.join("\n") + "\n").unwrap();
+    let mut run = sys.start(block);
+    let out = run.wait_success(LIMIT);
+    let sums: Vec<u64> = out.stdout.lines().map(|l| l.parse().unwrap()).collect();
+    let expected: Vec<u64> = (1..=50u64).map(|k| k * (k + 1) / 2).collect();
+    assert_eq!(sums, expected, "{}", s3res_testkit::tail(&out.stderr, 20));
+}
