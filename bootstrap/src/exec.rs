@@ -218,7 +218,7 @@ fn elf_is_dynamic(head: &[u8]) -> Option<bool> {
         _ => return None,
     };
     let u16_at = |o: usize| -> Option<u64> {
-        let b: [u8; 2] = head.get(o..o + 2)?.try_into().ok()?;
+        let b: [u8; 2] = head.get(o..o.checked_add(2)?)?.try_into().ok()?;
         Some(u64::from(if le {
             u16::from_le_bytes(b)
         } else {
@@ -226,7 +226,7 @@ fn elf_is_dynamic(head: &[u8]) -> Option<bool> {
         }))
     };
     let u32_at = |o: usize| -> Option<u64> {
-        let b: [u8; 4] = head.get(o..o + 4)?.try_into().ok()?;
+        let b: [u8; 4] = head.get(o..o.checked_add(4)?)?.try_into().ok()?;
         Some(u64::from(if le {
             u32::from_le_bytes(b)
         } else {
@@ -234,7 +234,7 @@ fn elf_is_dynamic(head: &[u8]) -> Option<bool> {
         }))
     };
     let u64_at = |o: usize| -> Option<u64> {
-        let b: [u8; 8] = head.get(o..o + 8)?.try_into().ok()?;
+        let b: [u8; 8] = head.get(o..o.checked_add(8)?)?.try_into().ok()?;
         Some(if le {
             u64::from_le_bytes(b)
         } else {
