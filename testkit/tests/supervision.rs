@@ -175,7 +175,13 @@ fn a_replica_that_panics_at_every_start_fails_the_component_in_one_line() {
 fn a_program_that_does_not_speak_the_protocol_fails_the_component_in_one_line() {
     cannot_run(
         &format!(r#"{{ "exec": "cat", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#),
-        &["speak the s3res protocol"],
+        // One line that says so and names the three ways to protect a program.
+        &[
+            "does not speak the s3res protocol",
+            "link replica-rt",
+            "libs3res_replica_c",
+            "\"runtime\": \"preload\"",
+        ],
     );
 }
 

@@ -456,3 +456,28 @@ fn the_documented_example_runs_as_shown() {
     let expected: Vec<u64> = (1..=50u64).map(|k| k * (k + 1) / 2).collect();
     assert_eq!(sums, expected, "{}", s3res_testkit::tail(&out.stderr, 20));
 }
+
+/// The first mistake with an unmodified program: mawk without `-W interactive` reads its input
+/// in blocks and never answers a single line. The component fails within its restart budget,
+/// in one line that says what to check.
+#[test]
+#[cfg_attr(not(all(s3res_mawk, s3res_python3)), ignore = "needs mawk and python3")]
+fn a_program_that_never_answers_a_line_is_told_to_flush() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let sys = System::new();
+    let awk = which("awk").expect("awk");
+    let desc = pipeline(&sys, (awk, vec!["{ print }".to_owned()]), "tmr", 3000);
+    let mut run = sys.start_json(&desc);
+    let out = run.wait(LIMIT);
+    assert!(!out.status.success(), "{}", out.status);
+    let line = out
+        .stderr
+        .lines()
+        .find(|l| l.contains("failed beyond recovery: component sum"))
+        .unwrap_or_else(|| panic!("{}", s3res_testkit::tail(&out.stderr, 20)));
+    assert!(
+        line.contains("write one line to stdout for each line it reads, and flush it"),
+        "{line}"
+    );
+    run.assert_nothing_left();
+}

@@ -172,6 +172,8 @@ pub(crate) struct Core {
     pub(crate) vacant: Vec<Vacancy>,
     /// When replicas were started by exec after a fault, within the restart window.
     exec_restarts: std::collections::VecDeque<Instant>,
+    /// Replicas started by exec after a fault, since the start, in any window.
+    exec_restarts_total: u64,
     /// Some replica started by exec has answered (so the program speaks the protocol).
     pub(crate) exec_answered: bool,
     /// The last fault, as its event reads: the budget's message quotes it.
@@ -222,6 +224,7 @@ impl Core {
             faults: Vec::new(),
             vacant: Vec::new(),
             exec_restarts: std::collections::VecDeque::new(),
+            exec_restarts_total: 0,
             exec_answered: false,
             last_fault: String::new(),
             restart_nonce: 0,
@@ -551,6 +554,7 @@ impl Core {
         match Replica::spawn(&self.plan, slot) {
             Ok(fresh) => {
                 self.exec_restarts.push_back(Instant::now());
+                self.exec_restarts_total += 1;
                 self.rt.apply_to_replica(fresh.pid, slot);
                 let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
                 ev.method = Some(RecoveryMethod::Exec);
@@ -601,7 +605,12 @@ impl Core {
         {
             self.exec_restarts.pop_front();
         }
-        if self.exec_restarts.len() < self.plan.max_restarts as usize {
+        // A replica that never answers is restarted at the pace of its start deadline (1 s by
+        // default), slower than any window: the budget also ends a component none of whose
+        // replicas ever answered, however slowly it was restarted.
+        let max = self.plan.max_restarts as usize;
+        let never_answered = !self.exec_answered && self.exec_restarts_total >= max as u64;
+        if self.exec_restarts.len() < max && !never_answered {
             return Ok(());
         }
         // A program that never answered and never said a word did not speak the protocol; one
@@ -623,11 +632,21 @@ impl Core {
                 self.plan.exec.display()
             )
         };
+        let how_often = if self.exec_restarts.len() >= max {
+            format!(
+                "{} times within {} ms",
+                self.exec_restarts.len(),
+                self.plan.restart_window_ms
+            )
+        } else {
+            format!(
+                "{} times and none of its replicas ever answered",
+                self.exec_restarts_total
+            )
+        };
         Err(VoterError::Unrecoverable(format!(
-            "component {} restarted a replica by exec {} times within {} ms (max_restarts {}) and needs another; last fault: {}{hint}",
+            "component {} restarted a replica by exec {how_often} (max_restarts {}) and needs another; last fault: {}{hint}",
             self.plan.component,
-            self.exec_restarts.len(),
-            self.plan.restart_window_ms,
             self.plan.max_restarts,
             self.last_fault
         )))
