@@ -8,16 +8,20 @@
 #   2. submits the example (the block of docs/campaigns.md with `#SBATCH --job-name=s3res-tmr-cfe`)
 #      as an array of N shards, waits, merges the shards, runs the same campaign unsharded, and
 #      checks that the merge has the same runs and the same injection schedule, run for run;
-#   3. under each ProctrackType of PROCTRACKS: cancels a running shard with scancel (SIGTERM)
-#      and with scancel --signal=KILL, checks that no process of the job is left, that the
+#   3. under each ProctrackType of PROCTRACKS: cancels a running shard with scancel (SIGTERM to
+#      the job), and kills its s3res-inject with scancel --batch --signal=KILL (SIGKILL to the
+#      batch step's process alone, as an out-of-memory kill would), checks that no process of
+#      the job is left, that the
 #      completed runs are on disk, and that resubmitting the shard (the example has --resume)
 #      finishes it; under the first one also lets a shard hit its time limit;
 #   4. stops the daemons it started.
 #
 # Run as root from anywhere in the checkout:   scripts/slurm-one-node.sh
-# Environment: PROFILE (release; or debug), N (4 shards), RUNS (12 runs), CANCEL_RUNS (4),
-#   PROCTRACKS ("proctrack/pgid proctrack/linuxproc"), TIMELIMIT_TEST (1; 0 skips it, which
-#   takes about two minutes), WORK (a new folder under /tmp), KEEP=1 leaves the daemons running.
+# Environment: PROFILE (release; or debug), N (4 shards), RUNS (12 runs), CANCEL_RUNS (3),
+#   PROCTRACKS ("proctrack/pgid proctrack/linuxproc"), BIN (target/PROFILE: where the binaries
+#   are taken from), TIMELIMIT_TEST (1; 0 skips it, which takes about two minutes), WORK (a new
+#   folder under /tmp), GONE_LIMIT (5: seconds after which a process of a stopped job left is
+#   a failure), KEEP=1 leaves the daemons running.
 # Exit status 0 if every check passed; the last line says how many passed and failed.
 set -euo pipefail
 
@@ -25,15 +29,17 @@ REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 PROFILE=${PROFILE:-release}
 N=${N:-4}
 RUNS=${RUNS:-12}
-CANCEL_RUNS=${CANCEL_RUNS:-4}
+CANCEL_RUNS=${CANCEL_RUNS:-3}
 PROCTRACKS=${PROCTRACKS:-proctrack/pgid proctrack/linuxproc}
 TIMELIMIT_TEST=${TIMELIMIT_TEST:-1}
+GONE_LIMIT=${GONE_LIMIT:-5}
+STOP_SYSTEM=$REPO/inject/systems/echo-tmr-long.json
 WORK=${WORK:-$(mktemp -d /tmp/s3res-slurm.XXXXXX)}
 HOST=$(hostname -s)
 export SLURM_CONF=$WORK/slurm.conf
 case $PROFILE in
-    debug) BIN=$REPO/target/debug ;;
-    *) BIN=$REPO/target/$PROFILE ;;
+    debug) BIN=${BIN:-$REPO/target/debug} ;;
+    *) BIN=${BIN:-$REPO/target/$PROFILE} ;;
 esac
 PASSED=0
 FAILED=0
@@ -204,10 +210,12 @@ job_states() {
     }' || true
 }
 
-submit() { # $1: out folder, $2: shards N, $3: runs, then sbatch options; prints the job id
-    local out=$1 n=$2 runs=$3
+# Submits the example from $WORK: $1 out folder, $2 shards N, $3 runs, then sbatch options;
+# $SUBMIT_SYSTEM, if set, is the description. Prints the job id.
+submit() {
+    local out=$1 n=$2 runs=$3 system=${SUBMIT_SYSTEM:-$REPO/inject/systems/echo-tmr.json}
     shift 3
-    (cd "$WORK" && S3RES=$REPO BIN=$BIN N=$n RUNS=$runs OUT=$out \
+    (cd "$WORK" && S3RES=$REPO BIN=$BIN SYSTEM=$system N=$n RUNS=$runs OUT=$out \
         sbatch --parsable "$@" "$WORK/example.sbatch") | cut -d';' -f1
 }
 
@@ -274,20 +282,21 @@ same "summary: runs, runs done, planned, seed, config, fault" \
 
 # ---- 3. cancelled and timed-out shards --------------------------------------------------------
 
-# Submits one shard, waits until it has $2 run(s) done and a system running, then does $1
-# (scancel options, or "timelimit": the shard was submitted with --time=1 and is left to it).
-# Checks that nothing of the job is left, that the finished runs are on disk, and (unless $3 is
-# "no-resume") that resubmitting the same shard finishes it.
+# Submits one shard of the echo demo's long system (10 s a run: a run left behind would still
+# be running), waits until it has $2 run(s) done and a system running, then does $1 (scancel
+# options, or "timelimit": the shard was submitted with --time=1 and is left to it). Checks
+# that nothing of the job is left GONE_LIMIT seconds later, that the finished runs are on disk,
+# and (unless $3 is "no-resume") that resubmitting the same shard finishes it.
 stop_test() {
-    local how=$1 after=$2 resume=${3:-resume} name out job t0 left gone=
-    name=$(echo "$PT-$how" | tr -c 'a-zA-Z0-9-\n' '-')
+    local how=$1 after=$2 resume=${3:-resume} label=${1:-scancel} name out job t0 left gone=
+    name=$(echo "$PT-$label" | tr -c 'a-zA-Z0-9-\n' '-')
     out=$WORK/results/$name
     local runs=$CANCEL_RUNS opts=(--array=1)
     if [ "$how" = timelimit ]; then
-        runs=40
+        runs=20
         opts+=(--time=1)
     fi
-    job=$(submit "$out" 1 "$runs" "${opts[@]}")
+    job=$(SUBMIT_SYSTEM=$STOP_SYSTEM submit "$out" 1 "$runs" "${opts[@]}")
     local end=$(($(date +%s) + 300))
     while :; do
         [ "$(date +%s)" -lt "$end" ] || { fail "$PT $how: job $job never got going"; scancel "$job"; return; }
@@ -308,36 +317,42 @@ stop_test() {
         t0=$(now)
         scancel $how "$job"
     fi
-    for _ in $(seq 300); do
+    local limit_at=$(($(date +%s) + GONE_LIMIT))
+    while :; do
         left=$(job_procs "$job")
         if [ -z "$left" ]; then gone=$(since "$t0"); break; fi
+        [ "$(date +%s)" -lt "$limit_at" ] || break
         sleep 0.1
     done
+    if [ -z "$gone" ]; then
+        for _ in $(seq 600); do [ -n "$(job_procs "$job")" ] || break; sleep 0.1; done
+        say "    (left over after ${GONE_LIMIT} s: $(echo "$left" | tr '\n' ' '); all gone $(since "$t0") s after)"
+    fi
     wait_job "$job" 120 || true
     local done_runs
     done_runs=$(lines "$out/shard-1/runs.jsonl")
-    say "$PT, ${how:-scancel}: $(echo "$before" | wc -l) s3res processes before: $(echo "$before" | cut -d: -f2 | sort | uniq -c | awk '{ printf "%s %s, ", $1, $2 }')"
-    say "    $(job_states "$job"); runs on disk: $done_runs; summary.json: $([ -f "$out/shard-1/summary.json" ] && echo written || echo not written)"
+    say "$PT, $label: $(echo "$before" | wc -l) s3res processes before: $(echo "$before" | cut -d: -f2 | sort | uniq -c | awk '{ printf "%s %s, ", $1, $2 }')"
+    say "    $(job_states "$job")runs on disk: $done_runs; summary.json: $([ -f "$out/shard-1/summary.json" ] && echo written || echo not written)"
     tail -3 "$WORK/s3res-tmr-cfe_${job}_1.out" 2>/dev/null | sed 's/^/    log: /'
     if [ -n "$gone" ]; then
-        ok "$PT, ${how:-scancel}: nothing of the job left $gone s after $([ "$how" = timelimit ] && echo "s3res-inject ended at the limit" || echo "scancel")"
+        ok "$PT, $label: nothing of the job left $gone s after $([ "$how" = timelimit ] && echo "s3res-inject ended at the limit" || echo "scancel")"
     else
-        fail "$PT, ${how:-scancel}: still running 30 s later: $(echo "$left" | tr '\n' ' ')"
+        fail "$PT, $label: still running ${GONE_LIMIT} s later: $(echo "$left" | tr '\n' ' ')"
     fi
-    if [ "$done_runs" -ge "$after" ]; then ok "$PT, $how: the $done_runs finished run(s) are on disk"; else
-        fail "$PT, $how: $done_runs run(s) on disk, $after were done before"
+    if [ "$done_runs" -ge "$after" ]; then ok "$PT, $label: the $done_runs finished run(s) are on disk"; else
+        fail "$PT, $label: $done_runs run(s) on disk, $after were done before"
     fi
     [ "$resume" = resume ] || return 0
     t0=$(now)
-    job=$(submit "$out" 1 "$runs" --array=1)
+    job=$(SUBMIT_SYSTEM=$STOP_SYSTEM submit "$out" 1 "$runs" --array=1)
     wait_job "$job" $((runs * 60 + 120)) || true
     local final
     final=$(lines "$out/shard-1/runs.jsonl")
     if [ "$final" = "$runs" ] && grep -q "resuming: $done_runs run(s) already done" "$WORK/s3res-tmr-cfe_${job}_1.out" \
         && [ "$(jq -r '.[0].runs_done' "$out/shard-1/summary.json")" = "$runs" ]; then
-        ok "$PT, $how: resubmitted, the shard resumed from $done_runs and finished its $runs runs in $(since "$t0") s"
+        ok "$PT, $label: resubmitted, the shard resumed from $done_runs and finished its $runs runs in $(since "$t0") s"
     else
-        fail "$PT, $how: resubmitted shard has $final of $runs runs"
+        fail "$PT, $label: resubmitted shard has $final of $runs runs"
         tail -5 "$WORK/s3res-tmr-cfe_${job}_1.out" 2>/dev/null || true
     fi
 }
@@ -345,7 +360,7 @@ stop_test() {
 for PT in $PROCTRACKS; do
     [ "$PT" = "$FIRST_PT" ] || start_slurm "$PT"
     stop_test "" 1
-    stop_test "--signal=KILL --full" 1
+    stop_test "--batch --signal=KILL" 1
     if [ "$PT" = "$FIRST_PT" ] && [ "$TIMELIMIT_TEST" = 1 ]; then stop_test timelimit 1 no-resume; fi
 done
 
