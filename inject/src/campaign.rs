@@ -1,6 +1,7 @@
 //! A campaign: run the system N times with a schedule of injections, match each run's
 //! injections with its voters' events, and write the records, the summary and the tables.
 
+use std::collections::BTreeSet;
 use std::io::{IsTerminal as _, Write as _};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -24,6 +25,8 @@ pub struct CampaignRun {
     pub out: PathBuf,
     /// Keep every run's folder (events, state, stdout, stderr) under `OUT/runs/`.
     pub keep_runs: bool,
+    /// Continue the campaign `out` holds (same parameters): run only its missing runs.
+    pub resume: bool,
     pub ready_limit: Duration,
 }
 
@@ -47,33 +50,39 @@ pub fn schedule_params(info: &CampaignInfo) -> ScheduleParams {
 
 /// Runs the campaign (or its shard) and writes its outputs into `c.out`. Returns the summary
 /// and, if a stop signal cut it short, that signal (the outputs then hold the completed runs).
+/// With `c.resume`, a folder that already holds this campaign keeps the runs it completed and
+/// only the missing ones are run.
 pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Option<i32>)> {
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
-    for f in ["injections.jsonl", "runs.jsonl", "summary.json", "table.md"] {
-        if c.out.join(f).exists() {
-            bail!(
-                "{} already holds a campaign ({f}); give an empty or new --out folder",
-                c.out.display()
-            );
-        }
-    }
+    let (info, mut all_runs, mut all_inj) = prepare(c)?;
     if let Err(e) = replica_rt::sys::set_child_subreaper() {
         tracing::warn!(
             "cannot become a child subreaper ({e}): processes of a run whose parent died are \
              still killed, but reaped by init instead of by this process"
         );
     }
-    let info_text = serde_json::to_string_pretty(&c.info)?;
-    std::fs::write(c.out.join("campaign.json"), info_text + "\n")?;
-    let mut inj_file = std::fs::File::create(c.out.join("injections.jsonl"))?;
-    let mut runs_file = std::fs::File::create(c.out.join("runs.jsonl"))?;
+    let append = |name: &str| {
+        std::fs::OpenOptions::new()
+            .append(true)
+            .open(c.out.join(name))
+            .with_context(|| format!("cannot open {}", c.out.join(name).display()))
+    };
+    let mut inj_file = append("injections.jsonl")?;
+    let mut runs_file = append("runs.jsonl")?;
 
     let params = c.schedule_params();
-    let indices: Vec<u64> = c.info.run_indices().collect();
+    let done: BTreeSet<u64> = all_runs.iter().map(|r| r.run).collect();
+    let indices: Vec<u64> = c.info.run_indices().filter(|r| !done.contains(r)).collect();
+    if !done.is_empty() {
+        eprintln!(
+            "s3res-inject: resuming: {} run(s) already done in {}, {} to go",
+            done.len(),
+            c.out.display(),
+            indices.len()
+        );
+    }
     let mut progress = Progress::new(indices.len() as u64, &c.info);
-    let mut all_runs = Vec::with_capacity(indices.len());
-    let mut all_inj = Vec::new();
     let stamp = std::process::id();
     for &r in &indices {
         let schedule = plan_run(&params, c.info.seed, r);
@@ -95,7 +104,7 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
         if result.interrupted {
             eprintln!(
                 "s3res-inject: stopped by signal during run {r}; that run is discarded, the {} \
-                 completed run(s) are kept",
+                 completed run(s) are kept (the same command with --resume runs the rest)",
                 all_runs.len()
             );
             break;
@@ -107,10 +116,8 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
         if run_rec.error.is_none() {
             run_rec.error.clone_from(&never_started);
         }
-        for rec in &inj {
-            writeln!(inj_file, "{}", serde_json::to_string(rec)?)?;
-        }
-        writeln!(runs_file, "{}", serde_json::to_string(&run_rec)?)?;
+        inj_file.write_all(report::jsonl(&inj)?.as_bytes())?;
+        runs_file.write_all(report::jsonl(std::slice::from_ref(&run_rec))?.as_bytes())?;
         progress.run_done(&run_rec, &inj);
         all_runs.push(run_rec);
         all_inj.extend(inj);
@@ -118,7 +125,7 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
             progress.finish();
             drop((inj_file, runs_file));
             let done = all_runs.len();
-            write(c, all_runs, all_inj)?;
+            write(c, info, all_runs, all_inj)?;
             bail!(
                 "run {r} never started its system, so the campaign stopped ({done} run(s) \
                  written to {}): {why}",
@@ -128,20 +135,124 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
     }
     progress.finish();
     drop((inj_file, runs_file));
-    let summary = write(c, all_runs, all_inj)?;
+    let summary = write(c, info, all_runs, all_inj)?;
     Ok((summary, stop.requested()))
 }
 
-/// Writes the campaign's outputs (with the load at its end) and returns its summary.
+/// The files of a campaign's output folder.
+const OUTPUT_FILES: [&str; 5] = [
+    "campaign.json",
+    "injections.jsonl",
+    "runs.jsonl",
+    "summary.json",
+    "table.md",
+];
+
+/// Prepares `c.out` and returns the parameters to record with the runs already done. A new
+/// campaign writes its `campaign.json` and empty records. With `--resume`, a folder holding the
+/// same campaign (the same parameters; the machine may differ) keeps its completed runs (a run
+/// that never started its system is run again) with their injections, and its `campaign.json`
+/// (the first start's machine and build).
+fn prepare(
+    c: &CampaignRun,
+) -> anyhow::Result<(CampaignInfo, Vec<RunRecord>, Vec<InjectionRecord>)> {
+    let found = if c.resume {
+        CampaignOutput::read_partial(&c.out).map_err(anyhow::Error::msg)?
+    } else {
+        None
+    };
+    let Some(old) = found else {
+        if let Some(f) = OUTPUT_FILES.iter().find(|f| c.out.join(f).exists()) {
+            bail!(
+                "{} already holds a campaign ({f}); give an empty or new --out folder, or \
+                 --resume (with the same parameters) to finish its missing runs",
+                c.out.display()
+            );
+        }
+        let info_text = serde_json::to_string_pretty(&c.info)?;
+        std::fs::write(c.out.join("campaign.json"), info_text + "\n")?;
+        write_records(&c.out, &[], &[])?;
+        return Ok((c.info.clone(), Vec::new(), Vec::new()));
+    };
+    let differ = differences(&old.info, &c.info)?;
+    if !differ.is_empty() {
+        bail!(
+            "{} holds another campaign, so --resume cannot continue it: {} (folder vs \
+             command line); resume with the command that started it, or give a new --out folder",
+            c.out.display(),
+            differ.join(", ")
+        );
+    }
+    let wanted: BTreeSet<u64> = c.info.run_indices().collect();
+    let mut kept = BTreeSet::new();
+    let runs: Vec<RunRecord> = old
+        .runs
+        .into_iter()
+        .filter(|r| (r.ready || r.exit_code == Some(0)) && wanted.contains(&r.run))
+        .filter(|r| kept.insert(r.run))
+        .collect();
+    let inj: Vec<InjectionRecord> = old
+        .injections
+        .into_iter()
+        .filter(|i| kept.contains(&i.run))
+        .collect();
+    write_records(&c.out, &runs, &inj)?;
+    Ok((old.info, runs, inj))
+}
+
+/// The parameters (all but the machine) in which `old` and `new` differ, as `name: old vs new`.
+fn differences(old: &CampaignInfo, new: &CampaignInfo) -> anyhow::Result<Vec<String>> {
+    let value = |i: &CampaignInfo| {
+        serde_json::to_value(CampaignInfo {
+            machine: None,
+            ..i.clone()
+        })
+    };
+    let (old, new) = (value(old)?, value(new)?);
+    let (Some(o), Some(n)) = (old.as_object(), new.as_object()) else {
+        bail!("a campaign's parameters are a JSON object");
+    };
+    let keys: BTreeSet<&String> = o.keys().chain(n.keys()).collect();
+    Ok(keys
+        .into_iter()
+        .filter(|k| o.get(*k) != n.get(*k))
+        .map(|k| {
+            let show = |v: Option<&serde_json::Value>| v.map_or("-".to_owned(), |v| v.to_string());
+            format!("{k}: {} vs {}", show(o.get(k)), show(n.get(k)))
+        })
+        .collect())
+}
+
+/// Replaces the records files with `runs` and `injections` (each written whole, then renamed).
+fn write_records(
+    out: &Path,
+    runs: &[RunRecord],
+    injections: &[InjectionRecord],
+) -> anyhow::Result<()> {
+    for (name, text) in [
+        ("injections.jsonl", report::jsonl(injections)?),
+        ("runs.jsonl", report::jsonl(runs)?),
+    ] {
+        let tmp = out.join(format!("{name}.tmp"));
+        std::fs::write(&tmp, text)?;
+        std::fs::rename(&tmp, out.join(name))?;
+    }
+    Ok(())
+}
+
+/// Writes the campaign's outputs (the records in run order, `info` with the load at its end)
+/// and returns its summary.
 fn write(
     c: &CampaignRun,
-    runs: Vec<RunRecord>,
-    injections: Vec<InjectionRecord>,
+    mut info: CampaignInfo,
+    mut runs: Vec<RunRecord>,
+    mut injections: Vec<InjectionRecord>,
 ) -> anyhow::Result<Summary> {
-    let mut info = c.info.clone();
     if let Some(m) = &mut info.machine {
         m.load_at_end = LoadAverage::now();
     }
+    runs.sort_by_key(|r| r.run);
+    injections.sort_by_key(|i| (i.run, i.index));
     let out = CampaignOutput {
         info,
         runs,

@@ -56,7 +56,9 @@ The guide, the matching rule and a Slurm example: docs/campaigns.md.";
 
 const AFTER_LONG_HELP: &str = "\
 Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage, 130/143 stopped by
-SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written).
+SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written, and
+`campaign --resume` with the same command runs the rest). If s3res-inject is killed outright
+(SIGKILL), the system it was running dies with it.
 
 Environment:
   RUST_LOG         log filter (overrides -v/-q)
@@ -287,9 +289,15 @@ struct CampaignArgs {
     runs: u64,
     #[arg(long)]
     seed: u64,
-    /// Output folder (new or empty).
+    /// Output folder (new or empty; see --resume).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
+    /// If --out already holds this campaign (one stopped by a signal, a kill, a time limit),
+    /// keep its completed runs and do only the missing ones, then write the tables as an
+    /// uninterrupted campaign would. The parameters must be the same (give the same command).
+    /// If --out holds no campaign, start one.
+    #[arg(long)]
+    resume: bool,
     /// Components to inject into, comma-separated (default: every protected component).
     #[arg(long, value_name = "LIST", value_delimiter = ',')]
     components: Option<Vec<String>>,
@@ -648,6 +656,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         // Absolute: each run's bootstrap works in its own folder and is given paths inside OUT.
         out: exec::absolute(&a.out),
         keep_runs: a.keep_runs,
+        resume: a.resume,
         ready_limit: Duration::from_secs(30),
     };
     run.info.machine = Some(MachineInfo::probe(&run.bootstrap));

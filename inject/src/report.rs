@@ -360,12 +360,32 @@ pub struct CampaignOutput {
 fn read_jsonl<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>, String> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    parse_jsonl(path, &text, false)
+}
+
+/// The records of `text` (read from `path`). With `cut_ok`, a last line that is not a whole
+/// record (the writer was killed in the middle of it: no newline after it) is left out.
+fn parse_jsonl<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    text: &str,
+    cut_ok: bool,
+) -> Result<Vec<T>, String> {
+    let cut = if cut_ok && !text.ends_with('\n') {
+        text.lines().count()
+    } else {
+        0
+    };
     text.lines()
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
-        .map(|(i, l)| {
-            serde_json::from_str(l)
-                .map_err(|e| format!("{}:{}: not a record: {e}", path.display(), i + 1))
+        .filter_map(|(i, l)| match serde_json::from_str(l) {
+            Ok(r) => Some(Ok(r)),
+            Err(_) if i + 1 == cut => None,
+            Err(e) => Some(Err(format!(
+                "{}:{}: not a record: {e}",
+                path.display(),
+                i + 1
+            ))),
         })
         .collect()
 }
@@ -382,6 +402,35 @@ impl CampaignOutput {
             runs: read_jsonl(&dir.join("runs.jsonl"))?,
             injections: read_jsonl(&dir.join("injections.jsonl"))?,
         })
+    }
+
+    /// Reads what a campaign interrupted at any point left in `dir`: a missing records file is
+    /// empty, and a record cut short by a kill is left out. `None` if `dir` holds no campaign.
+    pub fn read_partial(dir: &Path) -> Result<Option<Self>, String> {
+        let info_path = dir.join("campaign.json");
+        if !info_path.exists() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&info_path)
+            .map_err(|e| format!("cannot read {}: {e}", info_path.display()))?;
+        let info = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: not a campaign description: {e}", info_path.display()))?;
+        let records = |name: &str| {
+            let path = dir.join(name);
+            match std::fs::read_to_string(&path) {
+                Ok(text) => Ok(text),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(String::new()),
+                Err(e) => Err(format!("cannot read {}: {e}", path.display())),
+            }
+            .map(|text| (path, text))
+        };
+        let (runs_path, runs) = records("runs.jsonl")?;
+        let (inj_path, inj) = records("injections.jsonl")?;
+        Ok(Some(CampaignOutput {
+            info,
+            runs: parse_jsonl(&runs_path, &runs, true)?,
+            injections: parse_jsonl(&inj_path, &inj, true)?,
+        }))
     }
 
     pub fn summary(&self) -> Summary {
@@ -425,6 +474,16 @@ pub fn merge(parts: Vec<CampaignOutput>) -> Result<Vec<CampaignOutput>, String> 
     Ok(merged)
 }
 
+/// `records` as JSON lines, one per record.
+pub fn jsonl<T: Serialize>(records: &[T]) -> std::io::Result<String> {
+    let mut text = String::new();
+    for r in records {
+        text.push_str(&serde_json::to_string(r).map_err(std::io::Error::other)?);
+        text.push('\n');
+    }
+    Ok(text)
+}
+
 /// Writes `injections.jsonl`, `runs.jsonl`, `summary.json`, `table.md` (and, for a single
 /// campaign, `campaign.json`) into `dir`.
 pub fn write_outputs(dir: &Path, outputs: &[CampaignOutput]) -> std::io::Result<Vec<Summary>> {
@@ -432,14 +491,8 @@ pub fn write_outputs(dir: &Path, outputs: &[CampaignOutput]) -> std::io::Result<
     let mut inj = String::new();
     let mut runs = String::new();
     for o in outputs {
-        for r in &o.injections {
-            inj.push_str(&serde_json::to_string(r).map_err(std::io::Error::other)?);
-            inj.push('\n');
-        }
-        for r in &o.runs {
-            runs.push_str(&serde_json::to_string(r).map_err(std::io::Error::other)?);
-            runs.push('\n');
-        }
+        inj.push_str(&jsonl(&o.injections)?);
+        runs.push_str(&jsonl(&o.runs)?);
     }
     std::fs::write(dir.join("injections.jsonl"), inj)?;
     std::fs::write(dir.join("runs.jsonl"), runs)?;
@@ -625,5 +678,27 @@ mod tests {
         assert_eq!(merged[0].summary(), whole.summary());
         assert_eq!(merged[0].runs, whole.runs);
         assert!(merge(vec![shard(1), shard(1)]).is_err());
+    }
+
+    #[test]
+    fn a_partial_campaign_reads_without_its_cut_last_record() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(CampaignOutput::read_partial(dir.path()).unwrap().is_none());
+        let text = serde_json::to_string(&info(Some((1, 2)))).unwrap();
+        std::fs::write(dir.path().join("campaign.json"), text).unwrap();
+        // Killed in the middle of the third line: no injections file yet.
+        let whole = jsonl(&[run(0, true, 0), run(2, false, 1)]).unwrap();
+        let cut = jsonl(&[run(4, true, 0)]).unwrap();
+        let runs = format!("{whole}{}", &cut[..cut.len() / 2]);
+        std::fs::write(dir.path().join("runs.jsonl"), &runs).unwrap();
+        let p = CampaignOutput::read_partial(dir.path()).unwrap().unwrap();
+        assert_eq!(p.runs, vec![run(0, true, 0), run(2, false, 1)]);
+        assert!(p.injections.is_empty());
+        assert_eq!(p.info, info(Some((1, 2))));
+        // A bad line that is not the last, or a cut line in a finished file, is an error.
+        std::fs::write(dir.path().join("runs.jsonl"), format!("{runs}\n")).unwrap();
+        let e = CampaignOutput::read_partial(dir.path()).unwrap_err();
+        assert!(e.contains("runs.jsonl:3"), "{e}");
+        assert!(CampaignOutput::read(dir.path()).is_err());
     }
 }

@@ -4,6 +4,11 @@
 //! directory, so a sink's `--summary task.json` lands there), with an environment mark that every
 //! process of the run inherits. When the run ends — on its own, or killed at the time limit —
 //! whatever still carries the mark is killed, and this process, a child subreaper, reaps it.
+//!
+//! If this process dies without that (SIGKILL, an out-of-memory kill, a batch system's kill),
+//! bootstrap gets SIGKILL from the kernel (`PR_SET_PDEATHSIG`): its voters then get SIGTERM and
+//! kill their replicas, its unprotected components get SIGKILL (bootstrap's own death signals),
+//! so a run never outlives the injector that started it, whatever process group it is in.
 
 use std::fs::File;
 use std::os::unix::process::CommandExt as _;
@@ -153,8 +158,8 @@ pub fn run_once(setup: &RunSetup, schedule: &[Planned], stop: &dyn Fn() -> bool)
 fn spawn(setup: &RunSetup, events: &Path, state: &Path) -> std::io::Result<Child> {
     let stdout = File::create(RunResult::stdout_path(&setup.dir))?;
     let stderr = File::create(setup.dir.join("stderr"))?;
-    Command::new(&setup.bootstrap)
-        .arg("-q")
+    let mut cmd = Command::new(&setup.bootstrap);
+    cmd.arg("-q")
         .arg("--events")
         .arg(events)
         .arg("--state")
@@ -165,8 +170,12 @@ fn spawn(setup: &RunSetup, events: &Path, state: &Path) -> std::io::Result<Child
         .stdin(Stdio::null())
         .stdout(stdout)
         .stderr(stderr)
-        .process_group(0)
-        .spawn()
+        .process_group(0);
+    // Its own group (so a terminal's ^C reaches only us, and the run is killed as one group),
+    // but it dies with us: nothing tracks it otherwise once we are gone (a batch system's
+    // process tracking by group, for one, does not see it).
+    replica_rt::sys::die_with_parent(&mut cmd, libc::SIGKILL);
+    cmd.spawn()
 }
 
 fn missed(p: &Planned, why: &str) -> Attempt {

@@ -4,12 +4,11 @@
 
 mod common;
 
-use std::collections::BTreeSet;
 use std::path::Path;
 use std::sync::Mutex;
 use std::time::Duration;
 
-use common::{echo_system, inject, read_json, read_jsonl};
+use common::{echo_system, inject, read_json, read_jsonl, run_numbers, schedule};
 use s3res_testkit::Rng;
 
 /// One campaign at a time: the machine has two cores, and the verdicts depend on deadlines.
@@ -130,19 +129,6 @@ fn without_protection_the_same_campaign_fails() {
     }
 }
 
-/// The schedule of a campaign: what was planned where, independent of timing.
-fn schedule(out: &Path) -> BTreeSet<String> {
-    read_jsonl(&out.join("injections.jsonl"))
-        .into_iter()
-        .map(|i| {
-            format!(
-                "run {} #{} at {} {} value {} into {}",
-                i["run"], i["index"], i["at_ns"], i["kind"], i["value"], i["component"]
-            )
-        })
-        .collect()
-}
-
 #[test]
 fn same_seed_same_schedule_and_shards_merge_into_the_whole() {
     let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
@@ -154,14 +140,8 @@ fn same_seed_same_schedule_and_shards_merge_into_the_whole() {
     let (a, b) = (dir.path().join("s1"), dir.path().join("s2"));
     campaign(&system, "sdc", 3, seed, &a, &["--shard", "1/2"]);
     campaign(&system, "sdc", 3, seed, &b, &["--shard", "2/2"]);
-    let runs = |d: &Path| -> Vec<u64> {
-        read_jsonl(&d.join("runs.jsonl"))
-            .iter()
-            .map(|r| r["run"].as_u64().unwrap())
-            .collect()
-    };
-    assert_eq!(runs(&a), vec![0, 2]);
-    assert_eq!(runs(&b), vec![1]);
+    assert_eq!(run_numbers(&a), vec![0, 2]);
+    assert_eq!(run_numbers(&b), vec![1]);
 
     let merge = |out: &Path, inputs: &[&Path]| {
         let mut args = vec!["merge", "--out", out.to_str().unwrap()];

@@ -3,6 +3,7 @@
 
 #![allow(dead_code)] // each test file uses a part
 
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -106,6 +107,32 @@ impl Spawned {
     }
 }
 
+impl Spawned {
+    /// The live processes it caused to exist, itself included (found by the harness's mark).
+    pub fn live(&self) -> Vec<procs::ProcStat> {
+        procs::with_env(MARK_ENV, &self.mark)
+            .into_iter()
+            .filter(|p| !p.is_zombie())
+            .collect()
+    }
+
+    /// Waits up to `limit` until none of its processes is alive; how long that took, or what
+    /// was still alive at the end.
+    pub fn gone_within(&self, limit: Duration) -> Result<Duration, Vec<String>> {
+        let start = Instant::now();
+        loop {
+            let live = self.live();
+            if live.is_empty() {
+                return Ok(start.elapsed());
+            }
+            if start.elapsed() >= limit {
+                return Err(live.iter().map(ToString::to_string).collect());
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
 /// Runs `s3res-inject ARGS` to the end, bounded by `limit` (see [`Spawned::wait`]).
 pub fn inject(args: &[&str], limit: Duration) -> Finished {
     spawn(args).wait(limit)
@@ -157,5 +184,26 @@ pub fn read_jsonl(path: &Path) -> Vec<serde_json::Value> {
         .unwrap_or_else(|e| panic!("reading {}: {e}", path.display()))
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+/// The schedule of a campaign: what was planned where, independent of timing.
+pub fn schedule(out: &Path) -> BTreeSet<String> {
+    read_jsonl(&out.join("injections.jsonl"))
+        .into_iter()
+        .map(|i| {
+            format!(
+                "run {} #{} at {} {} value {} into {}",
+                i["run"], i["index"], i["at_ns"], i["kind"], i["value"], i["component"]
+            )
+        })
+        .collect()
+}
+
+/// The run numbers in a campaign's `runs.jsonl`, in the file's order.
+pub fn run_numbers(out: &Path) -> Vec<u64> {
+    read_jsonl(&out.join("runs.jsonl"))
+        .iter()
+        .map(|r| r["run"].as_u64().unwrap())
         .collect()
 }
