@@ -206,6 +206,23 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
+    /// Pushes `bytes` into `dec` in pieces of the sizes in `cuts` (the rest at once), taking
+    /// every whole frame after each piece.
+    fn decode_in_pieces(dec: &mut FrameDecoder, bytes: &[u8], cuts: Vec<usize>) -> Vec<Vec<u8>> {
+        let mut got = Vec::new();
+        let mut pos = 0;
+        let mut cuts = cuts.into_iter();
+        while pos < bytes.len() {
+            let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
+            dec.push(&bytes[pos..pos + step]);
+            pos += step;
+            while let Some(f) = dec.next_frame().unwrap() {
+                got.push(f.to_vec());
+            }
+        }
+        got
+    }
+
     fn encode_all(frames: &[Vec<u8>]) -> Vec<u8> {
         let mut out = Vec::new();
         for f in frames {
@@ -223,17 +240,7 @@ mod tests {
         ) {
             let bytes = encode_all(&frames);
             let mut dec = FrameDecoder::new(1024);
-            let mut got = Vec::new();
-            let mut pos = 0;
-            let mut cuts = cuts.into_iter();
-            while pos < bytes.len() {
-                let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
-                dec.push(&bytes[pos..pos + step]);
-                pos += step;
-                while let Some(f) = dec.next_frame().unwrap() {
-                    got.push(f.to_vec());
-                }
-            }
+            let got = decode_in_pieces(&mut dec, &bytes, cuts);
             prop_assert_eq!(got, frames);
             prop_assert!(dec.finish().is_ok());
         }
@@ -272,17 +279,10 @@ mod tests {
         ) {
             let bytes: Vec<u8> = lines.iter().flat_map(|l| l.bytes().chain([b'\n'])).collect();
             let mut dec = FrameDecoder::lines(40);
-            let mut got = Vec::new();
-            let mut pos = 0;
-            let mut cuts = cuts.into_iter();
-            while pos < bytes.len() {
-                let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
-                dec.push(&bytes[pos..pos + step]);
-                pos += step;
-                while let Some(f) = dec.next_frame().unwrap() {
-                    got.push(String::from_utf8(f.to_vec()).unwrap());
-                }
-            }
+            let got: Vec<String> = decode_in_pieces(&mut dec, &bytes, cuts)
+                .into_iter()
+                .map(|f| String::from_utf8(f).unwrap())
+                .collect();
             prop_assert_eq!(got, lines);
             prop_assert!(dec.finish().is_ok());
         }
