@@ -240,26 +240,35 @@ fn kill_and_stop(run: &mut RunningSystem, rng: &mut Rng, replicas: usize) {
     }
 }
 
+/// One `s3res-inject inject` into replica `slot` of `sum`, with `fault` (its `--fault` and
+/// options); it must succeed.
+fn inject(state: &Path, slot: usize, fault: &[&str]) {
+    let out = Command::new(bin_path("s3res-inject"))
+        .args(["inject", "--state"])
+        .arg(state)
+        .args(["--component", "sum", "--replica"])
+        .arg(slot.to_string())
+        .args(fault)
+        .stdin(Stdio::null())
+        .output()
+        .expect("running s3res-inject");
+    assert!(
+        out.status.success(),
+        "s3res-inject {fault:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 /// Register flips through `s3res-inject --fault reg` (ptrace; works on any process). Whatever
 /// each does — nothing, a crash, a hang, a wrong sum — TMR masks it.
 fn flip_registers(run: &mut RunningSystem, rng: &mut Rng, state: &Path) {
     for _ in 0..REG_FLIPS {
         let slot = rng.below(3);
         let seed = rng.next_u64() % 1_000_000;
-        let out = Command::new(bin_path("s3res-inject"))
-            .args(["inject", "--state"])
-            .arg(state)
-            .args(["--component", "sum", "--replica"])
-            .arg(slot.to_string())
-            .args(["--fault", "reg", "--seed"])
-            .arg(seed.to_string())
-            .stdin(Stdio::null())
-            .output()
-            .expect("running s3res-inject");
-        assert!(
-            out.status.success(),
-            "s3res-inject --fault reg: {}",
-            String::from_utf8_lossy(&out.stderr)
+        inject(
+            state,
+            slot as usize,
+            &["--fault", "reg", "--seed", &seed.to_string()],
         );
         // Give the flip time to show (or not) before the next one: one fault at a time.
         std::thread::sleep(Duration::from_millis(rng.range(300, 500)));
@@ -273,20 +282,7 @@ fn corrupt_lines(run: &mut RunningSystem, rng: &mut Rng, state: &Path, n: usize)
     for _ in 0..n {
         let slot = rng.below(3) as usize;
         let pid = run.replica_pids("sum")[&slot];
-        let out = Command::new(bin_path("s3res-inject"))
-            .args(["inject", "--state"])
-            .arg(state)
-            .args(["--component", "sum", "--replica"])
-            .arg(slot.to_string())
-            .args(["--fault", "sdc"])
-            .stdin(Stdio::null())
-            .output()
-            .expect("running s3res-inject");
-        assert!(
-            out.status.success(),
-            "s3res-inject --fault sdc: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        inject(state, slot, &["--fault", "sdc"]);
         let rec = run.wait_for_recovery("sum", slot, pid);
         assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
         let fault = run.events().into_iter().find(|e| {
