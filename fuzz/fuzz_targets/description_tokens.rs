@@ -1,0 +1,60 @@
+//! The system description's position index (`s3res_bootstrap::posindex`): the tokenizer that
+//! finds the line of every value and the duplicate keys serde_json merges silently. On any text
+//! it must return an index or an error with a line inside the text, never panic; on text
+//! serde_json accepts it must never report a syntax error, and every line it gives must exist.
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use s3res_bootstrap::posindex::{element_path, member_path, IndexError, PositionIndex};
+
+/// Walks `value` and checks that the index knows every path in it.
+fn walk(index: &PositionIndex, value: &serde_json::Value, path: &str, lines: usize) {
+    let line = index.line_or_parent(path);
+    assert!(
+        (1..=lines).contains(&line),
+        "line {line} of {lines} for {path:?}"
+    );
+    match value {
+        serde_json::Value::Object(map) => {
+            let keys = index.keys(path);
+            // serde_json keeps one entry per distinct key; the index saw them all.
+            assert_eq!(keys.len(), map.len(), "keys of {path:?}");
+            for (k, v) in map {
+                let p = member_path(path, k);
+                assert!(index.line(&p).is_some(), "no line for {p:?}");
+                walk(index, v, &p, lines);
+            }
+        }
+        serde_json::Value::Array(items) => {
+            for (i, v) in items.iter().enumerate() {
+                let p = element_path(path, i);
+                assert!(index.line(&p).is_some(), "no line for {p:?}");
+                walk(index, v, &p, lines);
+            }
+        }
+        _ => {}
+    }
+}
+
+fuzz_target!(|data: &[u8]| {
+    let text = String::from_utf8_lossy(data);
+    // A text of n newlines has n + 1 lines.
+    let lines = text.matches('\n').count() + 1;
+    let parsed = serde_json::from_str::<serde_json::Value>(&text);
+    match PositionIndex::build(&text) {
+        Ok(index) => {
+            if let Ok(value) = &parsed {
+                walk(&index, value, "", lines);
+            }
+        }
+        Err(e) => {
+            assert!((1..=lines).contains(&e.line()), "{e:?} in {lines} lines");
+            if parsed.is_ok() {
+                assert!(
+                    matches!(e, IndexError::DuplicateKey { .. }),
+                    "serde_json accepts what the index calls {e:?}"
+                );
+            }
+        }
+    }
+});
