@@ -3,10 +3,13 @@
 # executions per second, coverage and the outcome. Exits non-zero if any target found a crash,
 # a hang (an input running longer than 10 s) or an out-of-memory (above 2 GiB), or did not run.
 #
-#   fuzz/run.sh [--keep] [-j JOBS] [SECONDS [TARGET...]]
+#   fuzz/run.sh [--keep] [--minimize] [-j JOBS] [SECONDS [TARGET...]]
 #
 #   --keep   new inputs go into fuzz/corpus/TARGET (default: a scratch folder, so that a smoke
 #            run leaves the checkout as it was; the committed corpus is read either way)
+#   --minimize  afterwards, cut each corpus down to the inputs that cover its edges (a merge
+#            with -use_counters=0: the same edges, few of the hit-count variants; what the
+#            repository keeps)
 #   -j JOBS  targets run at once (default 1; the machine has 2 cores)
 #
 # Needs a nightly toolchain (`cargo +nightly`) for the sanitizer flags; without one it uses the
@@ -17,12 +20,14 @@ set -uo pipefail
 cd "$(dirname "$0")"
 
 keep=0
+minimize=0
 jobs=1
 while [ $# -gt 0 ]; do
     case "$1" in
         --keep) keep=1; shift ;;
+        --minimize) minimize=1; shift ;;
         -j) jobs="$2"; shift 2 ;;
-        -h|--help) sed -n '2,15p' "$0"; exit 0 ;;
+        -h|--help) sed -n '2,18p' "$0"; exit 0 ;;
         *) break ;;
     esac
 done
@@ -109,6 +114,19 @@ for t in "${targets[@]}"; do
     printf '%-20s %8s %10s %8s %8s %7s %8s  %s\n' "$t" "${took:--}" "${runs:--}" "${eps:--}" \
         "${cov:--}" "${ft:--}" "${corp:--}" "$result"
 done
+if [ "$minimize" = 1 ]; then
+    echo
+    for t in "${targets[@]}"; do
+        min="$scratch/min-$t"
+        mkdir -p "$min"
+        "target/$(rustc -vV | sed -n 's/^host: //p')/release/$t" -merge=1 -use_counters=0 \
+            "$min" "corpus/$t" >"logs/$t.min.log" 2>&1 || { failed=1; continue; }
+        before=$(find "corpus/$t" -type f | wc -l)
+        rm -rf "corpus/$t" && mv "$min" "corpus/$t"
+        echo "fuzz: corpus/$t minimized: $before -> $(find "corpus/$t" -type f | wc -l) inputs," \
+            "$(cat "corpus/$t"/* | wc -c) bytes, $(sed -n 's/.* \([0-9]*\) new coverage edges.*/\1/p' "logs/$t.min.log") edges"
+    done
+fi
 if [ "$failed" != 0 ]; then
     echo
     echo "fuzz: a target failed; its log is in fuzz/logs/, its reproducer in fuzz/artifacts/"
