@@ -183,6 +183,13 @@ pub fn fire(
         Err(e) if e.raw_os_error() == Some(libc::ESRCH) => Err(FireError::Gone(pid)),
         Err(source) => Err(FireError::Signal { pid, source }),
     };
+    // kill(0) is our own process group, kill(-1) every process we may signal: never a target.
+    if pid <= 0 {
+        return Err(FireError::Signal {
+            pid,
+            source: std::io::Error::from_raw_os_error(libc::EINVAL),
+        });
+    }
     match action {
         Action::Exec => check(replica_rt::sys::kill(pid, libc::SIGKILL))?,
         Action::Sdc { value } => check(replica_rt::sys::sigqueue(
@@ -252,5 +259,20 @@ mod tests {
         assert_eq!(v["offset"], 8);
         assert_eq!(serde_json::from_value::<Action>(v).unwrap(), a);
         assert_eq!(a.kind(), FaultKind::Var);
+    }
+
+    /// Found by fuzzing the live-view reader: a pid of 0 or -1 reached `kill`, which takes
+    /// them as the injector's own process group and as every process it may signal.
+    #[test]
+    fn a_pid_that_is_no_process_is_never_signalled() {
+        for pid in [0, -1, i32::MIN] {
+            for action in [Action::Exec, Action::Cfe, Action::Sdc { value: 3 }] {
+                let e = fire(&action, pid, &RegOptions::default()).unwrap_err();
+                assert!(
+                    matches!(e, FireError::Signal { pid: p, .. } if p == pid),
+                    "{e}"
+                );
+            }
+        }
     }
 }

@@ -8,7 +8,8 @@
 //! - [`schedule`]: the seeded plan of instants, targets, bits;
 //! - [`runner`]: one bounded run of a system that leaves nothing behind;
 //! - [`outcome`]: matching injections with the voters' events;
-//! - [`report`]: records, summaries, tables, merging shards;
+//! - [`report`]: records, summaries, tables, merging shards; [`interval`]: the exact 95 %
+//!   interval printed with every rate;
 //! - [`campaign`] and [`classify`]: the two experiments;
 //! - [`stop`]: SIGINT/SIGTERM end the current run cleanly;
 //! - [`storm`]: faults into a running system for as long as it runs (a description's `inject`).
@@ -20,6 +21,7 @@
 pub mod campaign;
 pub mod classify;
 pub mod fault;
+pub mod interval;
 /// Matching injections with events lives in bootstrap, which shows the verdict of a run with an
 /// injector; re-exported here under its old name.
 pub use s3res_bootstrap::outcome;

@@ -10,6 +10,7 @@ use replica_rt::machine::{Build, LoadAverage, Machine};
 use serde::{Deserialize, Serialize};
 
 use crate::fault::{Action, FaultKind, RegOptions};
+use crate::interval::Rate;
 use crate::outcome::{Match, Outcome};
 use crate::schedule::{Arrival, VarSpec};
 use crate::target::Pick;
@@ -222,6 +223,15 @@ pub struct Summary {
     pub benign: u64,
     /// (unrecovered + undetected) / injected × 100; `null` when nothing was injected.
     pub pct_error: Option<f64>,
+    /// The same rate with what it rests on: `k` = unrecovered + undetected, `n` = injected, and
+    /// its exact 95 % (Clopper–Pearson) interval `lower_pct`..`upper_pct`; `null` when nothing
+    /// was injected.
+    #[serde(default)]
+    pub error_rate: Option<Rate>,
+    /// Successful runs over the runs in these records, with its 95 % interval; `null` without
+    /// runs.
+    #[serde(default)]
+    pub success_rate: Option<Rate>,
     pub false_positives: u64,
     pub detection_latency_us: Stats,
     pub recovery_us: Stats,
@@ -239,6 +249,7 @@ pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord
         count(Outcome::Undetected),
         count(Outcome::Benign),
     );
+    let successful_runs = runs.iter().filter(|r| r.task_ok).count() as u64;
     let collect = |f: fn(&Match) -> Option<u64>| {
         Stats::of(inj.iter().filter_map(|r| f(&r.matched)).collect())
     };
@@ -249,7 +260,7 @@ pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord
         seed: info.seed,
         runs: info.runs,
         runs_done: runs.len() as u64,
-        successful_runs: runs.iter().filter(|r| r.task_ok).count() as u64,
+        successful_runs,
         timed_out_runs: runs.iter().filter(|r| r.timed_out).count() as u64,
         planned: inj.len() as u64,
         injected,
@@ -260,6 +271,8 @@ pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord
         benign,
         pct_error: (injected > 0)
             .then(|| (unrecovered + undetected) as f64 * 100.0 / injected as f64),
+        error_rate: Rate::of(unrecovered + undetected, injected),
+        success_rate: Rate::of(successful_runs, runs.len() as u64),
         false_positives: runs.iter().map(|r| r.false_positives).sum(),
         detection_latency_us: collect(|m| m.detection_latency_us),
         recovery_us: collect(|m| m.recovery_us),
@@ -278,17 +291,18 @@ pub fn markdown(summaries: &[Summary]) -> String {
         s,
         "Injections (S³RES Table 2 layout): % error = injections not followed by a recovery of \
          the injected replica (undetected in a failed run, or detected and not recovered), \
-         over delivered injections.\n"
+         over delivered injections, with its exact 95 % (Clopper–Pearson) interval and the \
+         count it rests on.\n"
     );
     let _ = writeln!(
         s,
-        "| Config | Fault | Runs | Injected | % Error | F Pos. | Recovered | Unrecovered | Undetected | Benign | Missed | Detect p50 / p99 (ms) | Recovery p50 / p99 (ms) |"
+        "| Config | Fault | Runs | Injected | % Error [95 % CI] of injected | F Pos. | Recovered | Unrecovered | Undetected | Benign | Missed | Detect p50 / p99 (ms) | Recovery p50 / p99 (ms) |"
     );
     let _ = writeln!(s, "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
     for x in summaries {
         let pct = x
-            .pct_error
-            .map_or_else(|| "NA".to_owned(), |p| format!("{p:.2}"));
+            .error_rate
+            .map_or_else(|| "NA".to_owned(), |r| r.to_string());
         let lat = |st: &Stats| {
             if st.n == 0 {
                 "–".to_owned()
@@ -323,7 +337,8 @@ pub fn markdown(summaries: &[Summary]) -> String {
     faults.dedup();
     let _ = writeln!(
         s,
-        "\nSuccessful runs (S³RES Table 3 layout): runs whose task succeeded / runs.\n"
+        "\nSuccessful runs (S³RES Table 3 layout): runs whose task succeeded / runs, and the \
+         success rate with its exact 95 % (Clopper–Pearson) interval.\n"
     );
     let _ = writeln!(s, "| Fault | {} |", configs.join(" | "));
     let _ = writeln!(s, "|---|{}", "--:|".repeat(configs.len()));
@@ -340,13 +355,21 @@ pub fn markdown(summaries: &[Summary]) -> String {
                 } else {
                     let ok: u64 = rows.iter().map(|x| x.successful_runs).sum();
                     let n: u64 = rows.iter().map(|x| x.runs_done).sum();
-                    format!("{ok}/{n}")
+                    success_cell(ok, n)
                 }
             })
             .collect();
         let _ = writeln!(s, "| {f} | {} |", cells.join(" | "));
     }
     s
+}
+
+/// `9/12: 75.00 % [42.81, 94.51]`: successful runs of runs, the rate and its 95 % interval.
+pub fn success_cell(ok: u64, n: u64) -> String {
+    match Rate::of(ok, n) {
+        Some(r) => format!("{ok}/{n}: {:.2} % {}", r.pct, r.interval()),
+        None => format!("{ok}/{n}"),
+    }
 }
 
 /// A campaign's output folder, read back.
@@ -357,16 +380,15 @@ pub struct CampaignOutput {
     pub injections: Vec<InjectionRecord>,
 }
 
-fn read_jsonl<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>, String> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    parse_jsonl(path, &text, false)
+fn read_text(path: &Path) -> Result<String, String> {
+    std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
 }
 
-/// The records of `text` (read from `path`). With `cut_ok`, a last line that is not a whole
-/// record (the writer was killed in the middle of it: no newline after it) is left out.
+/// One record per non-blank line of `text`; `label` names the file in errors. With `cut_ok`, a
+/// last line that is not a whole record (the writer was killed in the middle of it: no
+/// newline after it) is left out.
 fn parse_jsonl<T: serde::de::DeserializeOwned>(
-    path: &Path,
+    label: &str,
     text: &str,
     cut_ok: bool,
 ) -> Result<Vec<T>, String> {
@@ -381,26 +403,34 @@ fn parse_jsonl<T: serde::de::DeserializeOwned>(
         .filter_map(|(i, l)| match serde_json::from_str(l) {
             Ok(r) => Some(Ok(r)),
             Err(_) if i + 1 == cut => None,
-            Err(e) => Some(Err(format!(
-                "{}:{}: not a record: {e}",
-                path.display(),
-                i + 1
-            ))),
+            Err(e) => Some(Err(format!("{label}:{}: not a record: {e}", i + 1))),
         })
         .collect()
 }
 
 impl CampaignOutput {
+    /// Reads the folder a campaign (or a shard of one) wrote.
     pub fn read(dir: &Path) -> Result<Self, String> {
-        let info_path = dir.join("campaign.json");
-        let text = std::fs::read_to_string(&info_path)
-            .map_err(|e| format!("cannot read {}: {e}", info_path.display()))?;
-        let info = serde_json::from_str(&text)
-            .map_err(|e| format!("{}: not a campaign description: {e}", info_path.display()))?;
+        let (info, runs, inj) = (
+            dir.join("campaign.json"),
+            dir.join("runs.jsonl"),
+            dir.join("injections.jsonl"),
+        );
+        CampaignOutput::parse(
+            [&info, &runs, &inj].map(|p| p.display().to_string()),
+            [read_text(&info)?, read_text(&runs)?, read_text(&inj)?].each_ref(),
+        )
+    }
+
+    /// The same from the texts of `campaign.json`, `runs.jsonl` and `injections.jsonl`, in
+    /// that order; `labels` name them in errors.
+    pub fn parse(labels: [String; 3], texts: [&String; 3]) -> Result<Self, String> {
+        let info = serde_json::from_str(texts[0])
+            .map_err(|e| format!("{}: not a campaign description: {e}", labels[0]))?;
         Ok(CampaignOutput {
             info,
-            runs: read_jsonl(&dir.join("runs.jsonl"))?,
-            injections: read_jsonl(&dir.join("injections.jsonl"))?,
+            runs: parse_jsonl(&labels[1], texts[1], false)?,
+            injections: parse_jsonl(&labels[2], texts[2], false)?,
         })
     }
 
@@ -428,8 +458,8 @@ impl CampaignOutput {
         let (inj_path, inj) = records("injections.jsonl")?;
         Ok(Some(CampaignOutput {
             info,
-            runs: parse_jsonl(&runs_path, &runs, true)?,
-            injections: parse_jsonl(&inj_path, &inj, true)?,
+            runs: parse_jsonl(&runs_path.display().to_string(), &runs, true)?,
+            injections: parse_jsonl(&inj_path.display().to_string(), &inj, true)?,
         }))
     }
 
@@ -640,9 +670,24 @@ mod tests {
         assert!((s.pct_error.unwrap() - 100.0 / 3.0).abs() < 1e-9);
         assert_eq!(s.successful_runs, 1);
         assert_eq!(s.detection_latency_us.p50, 1000);
+        let e = s.error_rate.unwrap();
+        assert_eq!((e.k, e.n), (1, 3));
+        assert!((e.lower_pct - 0.840_3).abs() < 1e-3, "{e:?}");
+        assert!((e.upper_pct - 90.57).abs() < 1e-2, "{e:?}");
+        let ok = s.success_rate.unwrap();
+        assert_eq!((ok.k, ok.n), (1, 2));
+        let json = serde_json::to_value(&s).unwrap();
+        for (field, n) in [("error_rate", 3), ("success_rate", 2)] {
+            let r = &json[field];
+            assert_eq!(r["n"], n, "{json}");
+            assert!(r["lower_pct"].is_f64() && r["upper_pct"].is_f64(), "{json}");
+        }
         let md = markdown(&[s]);
-        assert!(md.contains("| tmr | exec | 2 | 3 | 33.33 | 2 |"), "{md}");
-        assert!(md.contains("| exec | 1/2 |"), "{md}");
+        assert!(
+            md.contains("| tmr | exec | 2 | 3 | 33.33 % [0.84, 90.57] of 3 | 2 |"),
+            "{md}"
+        );
+        assert!(md.contains("| exec | 1/2: 50.00 % [1.26, 98.74] |"), "{md}");
     }
 
     #[test]

@@ -81,8 +81,44 @@ impl LiveView {
     pub fn read(path: &Path) -> Result<Self, String> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| format!("cannot read the state file {}: {e}", path.display()))?;
-        serde_json::from_str(&text)
+        LiveView::parse(&text)
             .map_err(|e| format!("{} is not an s3res state file: {e}", path.display()))
+    }
+
+    /// A view from the text of a state file, [checked](Self::check).
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let view: LiveView = serde_json::from_str(text).map_err(|e| e.to_string())?;
+        view.check()?;
+        Ok(view)
+    }
+
+    /// What readers rely on, and bootstrap always writes: every pid is a process (above 0:
+    /// an injector sends signals to them, and `kill` takes 0 as its own process group and -1
+    /// as every process it may signal), and replica `i` of a component is slot `i` (events name
+    /// slots, and a target is taken by position).
+    pub fn check(&self) -> Result<(), String> {
+        let bad_pid = |what: String, pid: i32| Err(format!("{what} has pid {pid}"));
+        if self.bootstrap_pid <= 0 {
+            return bad_pid("bootstrap".to_owned(), self.bootstrap_pid);
+        }
+        for (name, c) in &self.components {
+            for (what, pid) in [("component", c.pid), ("voter of", c.voter_pid)] {
+                match pid {
+                    Some(pid) if pid <= 0 => return bad_pid(format!("{what} {name}"), pid),
+                    _ => {}
+                }
+            }
+            for (i, r) in c.replicas.iter().enumerate() {
+                if r.slot != i {
+                    return Err(format!("replica {i} of {name} says it is slot {}", r.slot));
+                }
+                match r.pid {
+                    Some(pid) if pid <= 0 => return bad_pid(format!("replica {i} of {name}"), pid),
+                    _ => {}
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Writes the view to `path` atomically (`path.tmp`, then `rename`): readers see the old
@@ -107,6 +143,10 @@ impl LiveView {
         let Some(r) = e.replica.and_then(|slot| c.replicas.get_mut(slot)) else {
             return false;
         };
+        // A pid that is no process (a corrupted event line) would make the view unreadable.
+        if [e.pid, e.new_pid].into_iter().flatten().any(|pid| pid <= 0) {
+            return false;
+        }
         let (pid, state) = match e.kind {
             EventKind::Start => (e.pid, ReplicaState::Running),
             EventKind::Recovery => (e.new_pid, ReplicaState::Running),
@@ -207,5 +247,36 @@ mod tests {
         assert!(LiveView::read(&path)
             .unwrap_err()
             .contains("not an s3res state file"));
+    }
+
+    /// Found by fuzzing (`fuzz/`, target `events_live`): a state file whose pids are not
+    /// processes, or whose replica entries are not slots 0, 1, … in order, was read as it was.
+    /// An injector then signalled pid 0 or -1 (its own process group, or every process), or
+    /// named one slot in its record while signalling another's process.
+    #[test]
+    fn a_view_with_pids_that_are_no_process_or_slots_out_of_place_is_refused() {
+        let good = serde_json::to_string(&view()).unwrap();
+        assert!(LiveView::parse(&good).is_ok());
+        let mut v = view();
+        v.components.get_mut("echo").unwrap().replicas[0].pid = Some(-1);
+        let e = LiveView::parse(&serde_json::to_string(&v).unwrap()).unwrap_err();
+        assert!(e.contains("replica 0 of echo has pid -1"), "{e}");
+        let mut v = view();
+        v.components.get_mut("echo").unwrap().voter_pid = Some(0);
+        assert!(LiveView::parse(&serde_json::to_string(&v).unwrap()).is_err());
+        let mut v = view();
+        v.bootstrap_pid = 0;
+        assert!(LiveView::parse(&serde_json::to_string(&v).unwrap()).is_err());
+        let mut v = view();
+        v.components.get_mut("echo").unwrap().replicas[1].slot = 5;
+        let e = LiveView::parse(&serde_json::to_string(&v).unwrap()).unwrap_err();
+        assert!(e.contains("replica 1 of echo says it is slot 5"), "{e}");
+        // An event naming such a pid does not bring one into the view.
+        let mut v = view();
+        assert!(!v.apply(&event(EventKind::Start, 0, -1)));
+        let mut rec = event(EventKind::Recovery, 0, 100);
+        rec.new_pid = Some(0);
+        assert!(!v.apply(&rec));
+        assert!(v.check().is_ok());
     }
 }

@@ -179,11 +179,7 @@ fn init_inner() -> Result<Runtime, InitError> {
             })
         }
         (Some(json), _) => {
-            let map = PortMap::from_env(&json).map_err(|source| InitError::BadPortMap {
-                var: contract::ENV_PORTS,
-                source,
-            })?;
-            validate(&map)?;
+            let map = parse_port_map(&json)?;
             let mode = if socket.is_some() {
                 Mode::Replica
             } else {
@@ -241,6 +237,18 @@ fn standalone_ports() -> PortMap {
     PortMap {
         ports: vec![port("in", Direction::In, 0), port("out", Direction::Out, 1)],
     }
+}
+
+/// Reads and checks the port map of [`contract::ENV_PORTS`] as a component receives it: at most
+/// [`contract::MAX_PORTS`] ports, fds not negative and not shared, a frame size a header can
+/// announce, no port listed twice.
+pub fn parse_port_map(json: &str) -> Result<PortMap, InitError> {
+    let map = PortMap::from_env(json).map_err(|source| InitError::BadPortMap {
+        var: contract::ENV_PORTS,
+        source,
+    })?;
+    validate(&map)?;
+    Ok(map)
 }
 
 fn validate(map: &PortMap) -> Result<(), InitError> {

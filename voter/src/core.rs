@@ -993,7 +993,7 @@ fn start_replicas(
 }
 
 /// Checks what a plan must hold before anything starts.
-pub(crate) fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
+pub fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
     let fail = |m: String| Err(VoterError::Plan(m));
     if plan.replicas == 0 || plan.replicas > MAX_REPLICAS {
         return fail(format!(

@@ -33,6 +33,6 @@ pub mod vote;
 /// paths stay.
 pub use s3res_protocol::{event, plan, sched};
 
-pub use crate::core::VoterError;
+pub use crate::core::{validate as validate_plan, VoterError};
 pub use reactive::ReactiveVoter;
 pub use stream::StreamVoter;

@@ -1,0 +1,99 @@
+//! The frame decoder (`s3res_protocol::frame::FrameDecoder`), driven by arbitrary sequences of
+//! pushes, reads into its spare room, decodes, hand-overs and ends of stream, and checked
+//! against a plain model of the format: whatever the bytes and however they are split, it
+//! returns the frames the model finds, refuses an oversized length, and never panics or
+//! allocates beyond what it was given.
+#![no_main]
+
+use arbitrary::Arbitrary;
+use libfuzzer_sys::fuzz_target;
+use s3res_protocol::frame::{FrameDecoder, FrameError, HEADER_LEN};
+
+#[derive(Debug, Arbitrary)]
+enum Op {
+    Push(Vec<u8>),
+    /// `spare(want)`, fill `filled` bytes of it (at most `want`) with `byte`, `commit`.
+    Read {
+        want: u16,
+        filled: u16,
+        byte: u8,
+    },
+    Next,
+    Take,
+    Finish,
+}
+
+#[derive(Debug, Arbitrary)]
+struct Input {
+    max: u16,
+    ops: Vec<Op>,
+}
+
+/// The format, read the simple way.
+struct Model {
+    max: usize,
+    bytes: Vec<u8>,
+    at: usize,
+}
+
+impl Model {
+    fn next(&mut self) -> Result<Option<Vec<u8>>, FrameError> {
+        let avail = &self.bytes[self.at..];
+        if avail.len() < HEADER_LEN {
+            return Ok(None);
+        }
+        let len = u32::from_le_bytes(avail[..4].try_into().unwrap()) as usize;
+        if len > self.max {
+            return Err(FrameError::Oversized { len, max: self.max });
+        }
+        if avail.len() < HEADER_LEN + len {
+            return Ok(None);
+        }
+        let frame = avail[HEADER_LEN..HEADER_LEN + len].to_vec();
+        self.at += HEADER_LEN + len;
+        Ok(Some(frame))
+    }
+}
+
+fuzz_target!(|input: Input| {
+    let max = usize::from(input.max);
+    let mut dec = FrameDecoder::new(max);
+    let mut model = Model {
+        max,
+        bytes: Vec::new(),
+        at: 0,
+    };
+    for op in input.ops {
+        match op {
+            Op::Push(bytes) => {
+                dec.push(&bytes);
+                model.bytes.extend_from_slice(&bytes);
+            }
+            Op::Read { want, filled, byte } => {
+                let (want, filled) = (usize::from(want), usize::from(filled.min(want)));
+                let spare = dec.spare(want);
+                assert_eq!(spare.len(), want);
+                spare[..filled].fill(byte);
+                dec.commit(want, filled);
+                model.bytes.extend(std::iter::repeat(byte).take(filled));
+            }
+            Op::Next => {
+                let waiting = dec.has_frame();
+                let want = model.next();
+                let got = dec.next_frame().map(|f| f.map(<[u8]>::to_vec));
+                assert_eq!(got, want);
+                assert_eq!(waiting, !matches!(got, Ok(None)));
+            }
+            Op::Take => {
+                assert_eq!(dec.take_pending(), model.bytes[model.at..].to_vec());
+                model.bytes.clear();
+                model.at = 0;
+            }
+            Op::Finish => {
+                let rest = model.bytes.len() - model.at;
+                assert_eq!(dec.finish().is_ok(), rest == 0);
+            }
+        }
+        assert_eq!(dec.pending(), model.bytes.len() - model.at);
+    }
+});
