@@ -18,7 +18,7 @@ use serde_json::{json, Value};
 
 const LIMIT: Duration = Duration::from_secs(180);
 /// Numbers fed per run, and how fast: long enough for every fault to land mid-stream.
-const NUMBERS: u64 = 4000;
+const NUMBERS: u64 = 6000;
 const HZ: u64 = 250;
 /// Faults per run (the issue asks for at least 30 kills and 10 stops).
 const KILLS: usize = 30;
