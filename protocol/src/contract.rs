@@ -16,6 +16,14 @@ pub const ENV_VOTER_SOCKET: &str = "S3RES_VOTER_SOCKET";
 pub const ENV_REPLICA: &str = "S3RES_REPLICA";
 /// Name of the component in the system description.
 pub const ENV_COMPONENT: &str = "S3RES_COMPONENT";
+/// The start handshake: the number of an inherited fd, the write end of a pipe the voter
+/// reads. A replica's runtime writes [`STARTED`] to it once its `init` is done (handlers in
+/// place: the replica can answer, be a donor, be injected), then closes it. A replica whose pipe
+/// closes, or whose start deadline passes, without that byte never started the runtime: the
+/// program does not speak the s3res protocol.
+pub const ENV_STARTED_FD: &str = "S3RES_STARTED_FD";
+/// The byte of the start handshake.
+pub const STARTED: u8 = b'S';
 
 /// Largest number of ports one component may have (inputs plus outputs). The restart handler
 /// uses fixed-size arrays of this length, because it may not allocate.

@@ -212,6 +212,7 @@ fn init_inner() -> Result<Runtime, InitError> {
             );
         }
     }
+    say_started();
     tracing::debug!(
         ?mode,
         replica,
@@ -225,6 +226,31 @@ fn init_inner() -> Result<Runtime, InitError> {
         taken,
         replica,
     })
+}
+
+/// The start handshake (see [`contract::ENV_STARTED_FD`]): one byte to the voter, then the fd
+/// is closed and the variable removed, so that nothing the component starts later writes to a
+/// number that may have been reused by then.
+fn say_started() {
+    let Some(fd) = std::env::var(contract::ENV_STARTED_FD)
+        .ok()
+        .and_then(|v| v.parse::<std::os::fd::RawFd>().ok())
+    else {
+        return;
+    };
+    // `init` runs before any thread is started (its contract), so nothing reads the environment
+    // concurrently.
+    std::env::remove_var(contract::ENV_STARTED_FD);
+    // SAFETY: the number comes from the variable the voter set for this process, which is read
+    // once (removed above); nothing else in the process knows it.
+    match unsafe { sys::try_adopt_inherited_fd(fd) } {
+        Ok(owned) => {
+            if let Err(e) = sys::write(std::os::fd::AsFd::as_fd(&owned), &[contract::STARTED]) {
+                tracing::warn!(fd, error = %e, "could not tell the voter that the runtime started");
+            }
+        }
+        Err(e) => tracing::warn!(fd, error = %e, "the start handshake's fd is not open"),
+    }
 }
 
 fn standalone_ports() -> PortMap {

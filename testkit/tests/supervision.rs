@@ -101,12 +101,12 @@ fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
 /// A component that cannot run: its description's echo is `echo`, the rest of the pipeline as
 /// usual. The system must end on its own, non-zero, with one line that names the component
 /// and why, after at most `max_restarts` (10) restarts by exec — not restart forever.
-fn cannot_run(echo: &str, why: &[&str]) {
-    cannot_run_as(echo, |desc| desc, why);
+fn cannot_run(echo: &str, why: &[&str]) -> String {
+    cannot_run_as(echo, |desc| desc, why)
 }
 
 /// [`cannot_run`], with the pipeline's description changed by `edit` first.
-fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) {
+fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) -> String {
     let sys = System::new();
     let desc = edit(echo_pipeline(
         &sys.path("summary.json"),
@@ -153,6 +153,7 @@ fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) 
         assert!(within <= 10, "{within} restarts by exec within one second");
     }
     run.assert_nothing_left();
+    line.to_owned()
 }
 
 #[test]
@@ -177,12 +178,43 @@ fn a_program_that_does_not_speak_the_protocol_fails_the_component_in_one_line() 
         &format!(r#"{{ "exec": "cat", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#),
         // One line that says so and names the three ways to protect a program.
         &[
+            "completed the s3res start (its runtime's init never ran)",
             "does not speak the s3res protocol",
             "link replica-rt",
             "libs3res_replica_c",
             "\"runtime\": \"preload\"",
         ],
     );
+}
+
+/// A program that neither speaks the protocol nor exits (`sleep`): each replica misses its start
+/// deadline without the start handshake; the component fails within its budget, in one line
+/// that says the runtime never started.
+#[test]
+fn a_program_that_hangs_without_starting_the_runtime_fails_in_one_line() {
+    cannot_run(
+        &format!(
+            r#"{{ "exec": "sleep", "args": ["1000"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
+        ),
+        &[
+            "none of its replicas ever answered",
+            "its runtime's init never ran",
+            "does not speak the s3res protocol",
+        ],
+    );
+}
+
+/// A program that speaks the protocol (its runtime starts: the start handshake says so) but
+/// never answers is not told that it does not speak it: the line quotes what it said.
+#[test]
+fn a_program_that_starts_but_never_answers_is_not_told_it_does_not_speak_the_protocol() {
+    let line = cannot_run(
+        &format!(
+            r#"{{ "exec": "s3res-misbehave", "args": ["--mode", "spin", "--replica", "0,1,2", "--at", "0"], "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
+        ),
+        &["hang", "its last stderr line", "misbehaving now"],
+    );
+    assert!(!line.contains("does not speak"), "{line}");
 }
 
 #[test]

@@ -176,6 +176,8 @@ pub(crate) struct Core {
     exec_restarts_total: u64,
     /// Some replica started by exec has answered (so the program speaks the protocol).
     pub(crate) exec_answered: bool,
+    /// Some replica said, through the start handshake, that its runtime started.
+    pub(crate) runtime_started: bool,
     /// The last fault, as its event reads: the budget's message quotes it.
     last_fault: String,
     /// Names the current fork attempt; a child of an older attempt is refused.
@@ -226,6 +228,7 @@ impl Core {
             exec_restarts: std::collections::VecDeque::new(),
             exec_restarts_total: 0,
             exec_answered: false,
+            runtime_started: false,
             last_fault: String::new(),
             restart_nonce: 0,
             listener,
@@ -615,21 +618,28 @@ impl Core {
         }
         // A program that never answered and never said a word did not speak the protocol; one
         // that said something (a panic, an error) is quoted in `last_fault` instead.
+        let started =
+            self.runtime_started || self.slots.iter_mut().flatten().any(Replica::read_started);
+        let exec = self.plan.exec.display();
         let hint = if self.exec_answered || self.last_fault.contains("its last stderr line") {
             String::new()
+        } else if !started {
+            format!(
+                "; no replica ever completed the s3res start (its runtime's init never ran): \
+                 `{exec}` does not speak the s3res protocol. Protect it one of three ways \
+                 (docs/writing-a-component.md): link replica-rt (Rust), link libs3res_replica_c \
+                 (C, C++), or declare it an unmodified stdin/stdout program with \
+                 \"runtime\": \"preload\""
+            )
         } else if self.plan.preload.is_some() {
             format!(
-                "; no replica started by exec ever answered: does `{}` write one line to stdout \
-                 for each line it reads, and flush it (`python3 -u`, awk's `fflush()`)?",
-                self.plan.exec.display()
+                "; its replicas started but none ever answered: does `{exec}` write one line to \
+                 stdout for each line it reads, and flush it (`python3 -u`, awk's `fflush()`)?"
             )
         } else {
             format!(
-                "; no replica started by exec ever answered: `{}` does not speak the s3res protocol. \
-                 Protect it one of three ways (docs/writing-a-component.md): link replica-rt (Rust), \
-                 link libs3res_replica_c (C, C++), or declare it an unmodified stdin/stdout program \
-                 with \"runtime\": \"preload\"",
-                self.plan.exec.display()
+                "; its replicas started (replica-rt's init ran) but none ever answered: does \
+                 `{exec}` answer every round with one frame on each of its outputs?"
             )
         };
         let how_often = if self.exec_restarts.len() >= max {
@@ -772,6 +782,11 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
                 let component = &core.plan.component;
                 if let Some(rep) = core.slots[r].as_mut() {
                     rep.relay_stderr(component, r);
+                }
+            }
+            Token::ReplicaStarted(r) => {
+                if core.slots[r].as_mut().is_some_and(Replica::read_started) {
+                    core.runtime_started = true;
                 }
             }
             Token::ReplicaInputWritable(r, i) => {

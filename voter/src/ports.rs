@@ -88,6 +88,7 @@ pub(crate) enum Token {
     ReplicaOutput(usize, usize),
     ReplicaInputWritable(usize, usize),
     ReplicaStderr(usize),
+    ReplicaStarted(usize),
 }
 
 /// The fds one wait of an event loop watches, each with the [`Token`] saying what it stands
@@ -164,6 +165,9 @@ impl PollSet {
         }
         if let Some(fd) = rep.stderr.fd() {
             self.add(fd.as_raw_fd(), libc::POLLIN, Token::ReplicaStderr(r));
+        }
+        if let Some(fd) = rep.start_pipe.as_ref() {
+            self.add(fd.as_raw_fd(), libc::POLLIN, Token::ReplicaStarted(r));
         }
         for (i, input) in rep.inputs.iter().enumerate() {
             if input.writer.has_pending() {

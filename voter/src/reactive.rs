@@ -324,10 +324,15 @@ impl ReactiveVoter {
     /// Blames replica `r`, late in round `number` (`on_turn`: at the deadline of its own
     /// turn): `protocol` with a partial frame in its pipe, else `hang`.
     fn blame_late(&mut self, r: usize, number: u64, on_turn: bool) {
-        let Some(rep) = self.core.slots[r].as_ref() else {
+        let Some(rep) = self.core.slots[r].as_mut() else {
             return;
         };
         let proven = rep.proven;
+        let never_started = if rep.read_started() {
+            ""
+        } else {
+            " (its runtime never started: no s3res start handshake)"
+        };
         let turn = if on_turn { " of its turn" } else { "" };
         let plan = &self.core.plan;
         let hang = match (proven, on_turn) {
@@ -348,7 +353,7 @@ impl ReactiveVoter {
                 )
             }
             _ => format!(
-                "no first answer within {} ms of start-up{turn} in round {number}",
+                "no first answer within {} ms of start-up{turn} in round {number}{never_started}",
                 plan.start_timeout_ms.max(plan.timeout_us / 1000)
             ),
         };

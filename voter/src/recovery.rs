@@ -429,6 +429,9 @@ fn hand_over_pipes(
         // The voter sets it from the donor's.
         state_lost: false,
         output_closed_at: None,
+        // A copy of a donor whose runtime had started.
+        start_pipe: None,
+        started: true,
     };
     Ok((replica, ready))
 }

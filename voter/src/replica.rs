@@ -7,8 +7,8 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use replica_rt::contract::{
-    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET,
-    FIRST_PORT_FD,
+    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_STARTED_FD,
+    ENV_VOTER_SOCKET, FIRST_PORT_FD, STARTED,
 };
 use replica_rt::sys;
 
@@ -48,6 +48,11 @@ pub struct Replica {
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.
     pub output_closed_at: Option<crate::clock::Instant>,
+    /// The start handshake: where a replica started by exec says that its runtime's `init` is
+    /// done (see [`Replica::read_started`]); `None` once said, closed, or for a fork child.
+    pub start_pipe: Option<OwnedFd>,
+    /// The runtime started in this process: it said so, or it is a fork child of one that had.
+    pub started: bool,
 }
 
 /// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs, then
@@ -169,14 +174,27 @@ impl Replica {
             // The library reads the contract above at load time, before the program's `main`.
             cmd.env("LD_PRELOAD", library);
         }
-        let map = pipes
+        // The start handshake's pipe goes on the first number after the ports.
+        let (start_r, start_w) = sys::pipe()?;
+        sys::set_nonblocking(start_r.as_fd(), true)?;
+        let start_target = FIRST_PORT_FD
+            + if plan.preload.is_some() {
+                0
+            } else {
+                (plan.inputs.len() + plan.outputs.len()) as RawFd
+            };
+        cmd.env(ENV_STARTED_FD, start_target.to_string());
+        let mut map: Vec<(RawFd, RawFd)> = pipes
             .replica_ends
             .iter()
             .zip(pipes.targets())
             .map(|(fd, target)| (fd.as_raw_fd(), target))
             .collect();
+        map.push((start_w.as_raw_fd(), start_target));
         sys::map_fds_on_exec(&mut cmd, map);
         let child = cmd.spawn()?;
+        // Only the replica holds the write end now: its end of the pipe is its exit.
+        drop(start_w);
         let pid = child.id() as libc::pid_t;
         // `child` is dropped without waiting: the voter reaps with waitpid itself.
         drop(child);
@@ -191,7 +209,28 @@ impl Replica {
             proven: false,
             state_lost: false,
             output_closed_at: None,
+            start_pipe: Some(start_r),
+            started: false,
         })
+    }
+
+    /// Reads the start handshake's pipe: `true` if the replica said that its runtime started
+    /// (the pipe is closed either way once it has said so or closed its end).
+    pub fn read_started(&mut self) -> bool {
+        let Some(fd) = self.start_pipe.as_ref() else {
+            return self.started;
+        };
+        let mut byte = [0u8; 1];
+        match sys::read(fd.as_fd(), &mut byte) {
+            Ok(1) if byte[0] == STARTED => {
+                self.started = true;
+                self.start_pipe = None;
+            }
+            Ok(_) => self.start_pipe = None,
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => {}
+            Err(_) => self.start_pipe = None,
+        }
+        self.started
     }
 
     /// An output pipe of this replica was seen closed: `true` if the process is already gone
