@@ -38,6 +38,9 @@ use crate::vote::{ReplicaSet, MAX_REPLICAS};
 /// protocol fault instead of a crash. The kernel closes a dying process's fds before it signals
 /// the exit, so the two are seen a moment apart.
 pub(crate) const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
+/// How long a replica seen dying may take to finish, so that its exit status is read rather
+/// than replaced by our SIGKILL's.
+const EXIT_STATUS_WAIT: Duration = Duration::from_millis(100);
 /// How long replicas get to exit by themselves after their input is closed at the end.
 pub(crate) const SHUTDOWN_GRACE: Duration = Duration::from_secs(2);
 /// How long downstream gets to take the last voted frames at the end.
@@ -322,6 +325,15 @@ impl Core {
         round: Option<u64>,
     ) -> Option<libc::pid_t> {
         let mut replica = self.slots[r].take()?;
+        // A replica that died on its own: its exit status, before our SIGKILL could take its
+        // place. It may still be dying (its output closed just before its exit): the kernel
+        // has the status as soon as its pidfd says so, which is bounded here.
+        let status = if cause == Cause::Died && replica.our_child {
+            replica.exited_within(EXIT_STATUS_WAIT);
+            ports::exit_of(replica.pid)
+        } else {
+            None
+        };
         replica.kill();
         // What it wrote last, for the restart budget's message (more may follow as it dies).
         replica.relay_stderr(&self.plan.component, r);
@@ -329,12 +341,10 @@ impl Core {
         ev.replica = Some(r);
         ev.pid = Some(replica.pid);
         ev.round = round;
-        if cause == Cause::Died && replica.our_child {
-            match ports::exit_of(replica.pid) {
-                Some(sys::ExitStatus::Code(code)) => ev.exit_code = Some(code),
-                Some(sys::ExitStatus::Signal(sig)) => ev.signal = Some(sig),
-                None => {}
-            }
+        match status {
+            Some(sys::ExitStatus::Code(code)) => ev.exit_code = Some(code),
+            Some(sys::ExitStatus::Signal(sig)) => ev.signal = Some(sig),
+            None => {}
         }
         ev.detail = Some(detail);
         self.last_fault = ev.to_string();

@@ -34,7 +34,10 @@ fn main() -> std::process::ExitCode {
             let unrecoverable = e
                 .downcast_ref::<VoterError>()
                 .is_some_and(|v| matches!(v, VoterError::Unrecoverable(_)));
-            eprintln!("s3res-voter: {e:#}");
+            // One write: replicas and unprotected components share this stderr, and a line
+            // written in pieces could be interleaved with theirs.
+            let line = format!("s3res-voter: {e:#}\n");
+            let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), line.as_bytes());
             std::process::ExitCode::from(if unrecoverable { 3 } else { 1 })
         }
     }

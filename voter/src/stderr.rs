@@ -95,10 +95,13 @@ impl StderrRelay {
         out.extend_from_slice(text.as_bytes());
         out.push(b'\n');
         let _ = std::io::stderr().lock().write_all(&out);
+        // std's panic says "stack backtrace:", anyhow's error report "Stack backtrace:".
+        let heading = text.to_ascii_lowercase();
         let says = !text.trim().is_empty()
             && !text.starts_with(char::is_whitespace)
-            && !text.starts_with("stack backtrace")
-            && !text.starts_with("backtrace:")
+            && !heading.starts_with("stack backtrace")
+            && !heading.starts_with("backtrace:")
+            && !text.starts_with("Caused by:")
             && !text.starts_with("note: ");
         if says {
             self.last_line = text.to_owned();
@@ -139,6 +142,14 @@ mod tests {
             b"panicked at src/main.rs:3:5:\nboom\nstack backtrace:\n   0: main\n             at x.rs:1\n",
         ]);
         assert_eq!(lasts[0], "boom");
+    }
+
+    #[test]
+    fn an_error_report_with_a_backtrace_keeps_its_message() {
+        let (_, lasts) = relay_of(&[
+            b"Error: opening port `in`\n\nCaused by:\n    no such port\n\nStack backtrace:\n   0: main\n",
+        ]);
+        assert_eq!(lasts[0], "Error: opening port `in`");
     }
 
     #[test]

@@ -145,7 +145,10 @@ fn main() {
 }
 
 fn write_summary(path: Option<&Path>, summary: &Summary) -> Result<()> {
-    eprintln!("s3res-sim: {}", summary.line());
+    // One write: the other processes of the system share this stderr, and a verdict written
+    // in pieces could be interleaved with their lines.
+    let verdict = format!("s3res-sim: {}\n", summary.line());
+    let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), verdict.as_bytes());
     if let Some(path) = path {
         let json = serde_json::to_string(summary).context("encoding the summary")?;
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
