@@ -16,12 +16,13 @@
 //! | `s3res_mawk`        | `awk` is mawk (the docs' example uses its `-W interactive`)       |
 //! | `s3res_cc`          | `cc` compiles and links a C file                                 |
 //! | `s3res_cc_static`   | `cc -static` links one too (a static libc is installed)           |
+//! | `s3res_pidfd_exit`  | Linux 6.15+: a pidfd tells a non-parent how its process ended     |
 
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::process::{Command, Stdio};
 
-const CFGS: [&str; 9] = [
+const CFGS: [&str; 10] = [
     "s3res_pagemap_pfns",
     "s3res_sched_rr",
     "s3res_two_cpus",
@@ -31,6 +32,7 @@ const CFGS: [&str; 9] = [
     "s3res_mawk",
     "s3res_cc",
     "s3res_cc_static",
+    "s3res_pidfd_exit",
 ];
 
 /// The harness's `system::UNPRIVILEGED_ENV`.
@@ -82,6 +84,19 @@ fn main() {
     );
     set("s3res_cc", compiles(&[]));
     set("s3res_cc_static", compiles(&["-static"]));
+    set("s3res_pidfd_exit", kernel_at_least(6, 15));
+}
+
+/// Whether the running kernel's release (`6.18.4-…`) is `major.minor` or later.
+fn kernel_at_least(major: u32, minor: u32) -> bool {
+    let Ok(release) = std::fs::read_to_string("/proc/sys/kernel/osrelease") else {
+        return false;
+    };
+    let mut parts = release
+        .split(|c: char| !c.is_ascii_digit())
+        .map(|p| p.parse::<u32>().unwrap_or(0));
+    let (a, b) = (parts.next().unwrap_or(0), parts.next().unwrap_or(0));
+    (a, b) >= (major, minor)
 }
 
 /// Whether `cc FLAGS` compiles and links a minimal C program.

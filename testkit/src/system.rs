@@ -49,6 +49,8 @@ pub struct System {
     unprivileged: bool,
     /// Extra bootstrap options, before the description.
     args: Vec<std::ffi::OsString>,
+    /// Extra environment for bootstrap (and so for every process it starts).
+    envs: Vec<(std::ffi::OsString, std::ffi::OsString)>,
 }
 
 impl Default for System {
@@ -70,6 +72,7 @@ impl System {
             events: true,
             unprivileged: std::env::var_os(UNPRIVILEGED_ENV).is_some_and(|v| v != "0"),
             args: Vec::new(),
+            envs: Vec::new(),
         }
     }
 
@@ -134,6 +137,16 @@ impl System {
         self
     }
 
+    /// One more environment variable for bootstrap and everything it starts (e.g. `TMPDIR`).
+    pub fn env(
+        mut self,
+        key: impl Into<std::ffi::OsString>,
+        value: impl Into<std::ffi::OsString>,
+    ) -> Self {
+        self.envs.push((key.into(), value.into()));
+        self
+    }
+
     /// Do not pass `--events` (the plain `s3res-bootstrap SYSTEM.json` command line).
     pub fn without_events(mut self) -> Self {
         self.events = false;
@@ -186,6 +199,7 @@ impl System {
             Command::new(bootstrap)
         };
         cmd.env(MARK_ENV, &mark);
+        cmd.envs(self.envs.iter().map(|(k, v)| (k, v)));
         if let Some(ev) = &events {
             cmd.arg("--events").arg(ev);
         }

@@ -1,6 +1,7 @@
 //! End to end: s3res's own processes. bootstrap is the trusted base: when it dies, however it
 //! dies, everything it started dies with it and nothing is left behind.
 
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use s3res_testkit::{echo_pipeline, procs, EventKind, RecoveryMethod, System};
@@ -23,15 +24,25 @@ fn live_in_group(pgid: i32, except: i32) -> Vec<procs::ProcStat> {
         .collect()
 }
 
-/// The runtime folder (`s3res-PID-0` in the temp dir) of the bootstrap with this pid.
-fn runtime_dir(bootstrap: i32) -> std::path::PathBuf {
-    std::env::temp_dir().join(format!("s3res-{bootstrap}-0"))
+/// The runtime folder (`s3res-PID-0` in `tmp`) of the bootstrap with this pid.
+fn runtime_dir(tmp: &Path, bootstrap: i32) -> PathBuf {
+    tmp.join(format!("s3res-{bootstrap}-0"))
+}
+
+/// A temp dir of the test's own, for bootstrap's `TMPDIR`: every bootstrap removes the stale
+/// runtime folders it finds in its `TMPDIR`, so in the shared one another test's bootstrap,
+/// started meanwhile, could remove a folder this test wants to see.
+fn private_tmp() -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix("s3res-tmp-")
+        .tempdir()
+        .expect("creating a temp dir")
 }
 
 /// Sends `sig` to bootstrap mid-run and waits (10 s at most) until no process of the system
-/// is left; returns how long that took.
-fn kill_bootstrap(sig: i32) -> (Duration, i32) {
-    let sys = System::new();
+/// is left; returns how long that took and bootstrap's pid. bootstrap's `TMPDIR` is `tmp`.
+fn kill_bootstrap(sig: i32, tmp: &Path) -> (Duration, i32) {
+    let sys = System::new().env("TMPDIR", tmp);
     let desc = long_running(&sys);
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
@@ -39,7 +50,7 @@ fn kill_bootstrap(sig: i32) -> (Duration, i32) {
     let before = live_in_group(pgid, bootstrap);
     // source, voter, three replicas, sink.
     assert!(before.len() >= 6, "the system is not running: {before:?}");
-    assert!(runtime_dir(bootstrap).is_dir(), "no runtime folder");
+    assert!(runtime_dir(tmp, bootstrap).is_dir(), "no runtime folder");
 
     s3res_testkit::kill_pid(bootstrap, sig).expect("signal bootstrap");
     let start = Instant::now();
@@ -63,18 +74,19 @@ fn kill_bootstrap(sig: i32) -> (Duration, i32) {
 
 #[test]
 fn sigkill_of_bootstrap_ends_every_process_it_started() {
-    let (_, bootstrap) = kill_bootstrap(libc::SIGKILL);
+    let tmp = private_tmp();
+    let (_, bootstrap) = kill_bootstrap(libc::SIGKILL, tmp.path());
     // A SIGKILLed bootstrap cannot clean up; the next one removes its runtime folder.
     assert!(
-        runtime_dir(bootstrap).is_dir(),
+        runtime_dir(tmp.path(), bootstrap).is_dir(),
         "nothing removed the folder yet"
     );
-    let sys = System::new();
+    let sys = System::new().env("TMPDIR", tmp.path());
     let desc = long_running(&sys);
     let mut next = sys.start(&desc);
     next.wait_for_replicas("echo", 3);
     assert!(
-        !runtime_dir(bootstrap).exists(),
+        !runtime_dir(tmp.path(), bootstrap).exists(),
         "the next bootstrap did not remove the runtime folder of the dead one"
     );
     next.stop();
@@ -82,20 +94,48 @@ fn sigkill_of_bootstrap_ends_every_process_it_started() {
 
 #[test]
 fn sighup_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
-    let (_, bootstrap) = kill_bootstrap(libc::SIGHUP);
+    let tmp = private_tmp();
+    let (_, bootstrap) = kill_bootstrap(libc::SIGHUP, tmp.path());
     assert!(
-        !runtime_dir(bootstrap).exists(),
+        !runtime_dir(tmp.path(), bootstrap).exists(),
         "runtime folder left behind"
     );
 }
 
 #[test]
 fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
-    let (_, bootstrap) = kill_bootstrap(libc::SIGQUIT);
+    let tmp = private_tmp();
+    let (_, bootstrap) = kill_bootstrap(libc::SIGQUIT, tmp.path());
     assert!(
-        !runtime_dir(bootstrap).exists(),
+        !runtime_dir(tmp.path(), bootstrap).exists(),
         "runtime folder left behind"
     );
+}
+
+/// A fork child is its donor's child, not the voter's, so `waitpid` cannot tell the voter how
+/// it ended; its pidfd can (Linux 6.15+). Its crash event names the signal that killed it.
+#[test]
+#[cfg_attr(
+    not(s3res_pidfd_exit),
+    ignore = "needs Linux 6.15+ (a non-parent learns an exit status from the pidfd)"
+)]
+fn a_fork_child_that_crashes_is_reported_with_its_signal() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let old = run.replica_pids("echo")[&1];
+    s3res_testkit::kill_pid(old, libc::SIGKILL).expect("kill replica 1");
+    let rec = run.wait_for_recovery("echo", 1, old);
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let child = rec.new_pid.expect("the child's pid");
+    s3res_testkit::kill_pid(child, libc::SIGABRT).expect("abort the fork child");
+    let crash = run.wait_for_event(
+        |e| e.kind == EventKind::Crash && e.pid == Some(child),
+        Duration::from_secs(10),
+    );
+    assert_eq!(crash.signal, Some(libc::SIGABRT), "{crash:?}");
+    run.stop();
 }
 
 /// A component that cannot run: its description's echo is `echo`, the rest of the pipeline as

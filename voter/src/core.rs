@@ -26,7 +26,7 @@ use crate::event::{Cause, Event, EventKind, RecoveryMethod};
 use crate::monitor::{Captures, Monitors};
 use crate::plan::{Mode as PlanMode, VoterPlan};
 use crate::ports::{
-    self, kill_all_children, reap_children, stop_requested, wait_until, write_event, Endpoints,
+    kill_all_children, reap_children, stop_requested, wait_until, write_event, Endpoints,
     ExternalInput, ExternalOutput, PollSet, Token,
 };
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
@@ -326,11 +326,10 @@ impl Core {
     ) -> Option<libc::pid_t> {
         let mut replica = self.slots[r].take()?;
         // A replica that died on its own: its exit status, before our SIGKILL could take its
-        // place. It may still be dying (its output closed just before its exit): the kernel
-        // has the status as soon as its pidfd says so, which is bounded here.
-        let status = if cause == Cause::Died && replica.our_child {
-            replica.exited_within(EXIT_STATUS_WAIT);
-            ports::exit_of(replica.pid)
+        // place. It may still be dying (its output closed just before its exit), which is
+        // waited for here, within a bound.
+        let status = if cause == Cause::Died {
+            replica.exit_status(EXIT_STATUS_WAIT)
         } else {
             None
         };

@@ -264,6 +264,36 @@ impl Replica {
     pub fn exited_within(&self, timeout: std::time::Duration) -> bool {
         sys::wait_readable(self.pidfd.as_fd(), timeout).unwrap_or(true)
     }
+
+    /// How the process ended, waiting up to `within` for it to finish dying; `None` if it has
+    /// not, or its status cannot be known. Our own child is reaped here. A fork child belongs
+    /// to its donor, which lets the kernel reap it at once (SIGCHLD ignored); its status then
+    /// stays beside its pidfd (Linux 6.15+; older kernels do not tell a non-parent).
+    pub fn exit_status(&self, within: std::time::Duration) -> Option<sys::ExitStatus> {
+        let deadline = crate::clock::Instant::now() + within;
+        if !self.exited_within(within) {
+            return None;
+        }
+        loop {
+            if self.our_child {
+                if let Some(status) = crate::ports::exit_of(self.pid) {
+                    return Some(status);
+                }
+            }
+            match sys::pidfd_exit_status(self.pidfd.as_fd()) {
+                Ok(Some(status)) => return Some(status),
+                Ok(None) => {}
+                // This kernel does not say; our child's status comes from waitpid alone.
+                Err(_) if !self.our_child => return None,
+                Err(_) => {}
+            }
+            if crate::clock::Instant::now() >= deadline {
+                return None;
+            }
+            // Between the exit (pidfd readable) and the reaping that records the status.
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+    }
 }
 
 impl Replica {
