@@ -161,6 +161,7 @@ impl System {
                     outputs: vec!["out".into()],
                 }],
                 events_fd: Some(FIRST_PORT_FD + 2),
+                heartbeat_fd: None,
                 socket_path: workdir.path().join("v.sock"),
                 restart_timeout_ms: s3res_protocol::plan::default_restart_timeout_ms(),
                 priority: sched.priority,

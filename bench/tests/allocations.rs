@@ -177,6 +177,7 @@ fn steady_state(monitored: bool) {
             outputs: vec!["out".into()],
         }],
         events_fd: Some(ev_w.into_raw_fd()),
+        heartbeat_fd: None,
         socket_path: dir.path().join("v.sock"),
         restart_timeout_ms: 1000,
         priority: None,

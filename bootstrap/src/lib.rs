@@ -18,3 +18,4 @@ pub mod run;
 pub mod sched;
 pub mod status;
 pub mod sweep;
+pub mod watch;

@@ -214,8 +214,13 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;
 
     for f in &report.failures {
+        let why = f
+            .why
+            .as_ref()
+            .map(|w| format!(" ({w})"))
+            .unwrap_or_default();
         eprintln!(
-            "s3res-bootstrap: component {} failed: {}",
+            "s3res-bootstrap: component {} failed: {}{why}",
             f.component, f.status
         );
     }
@@ -230,11 +235,7 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
             system: plan.name.clone(),
             elapsed: report.elapsed,
             exit_code: report.exit_code(),
-            failures: report
-                .failures
-                .iter()
-                .map(|f| format!("{}: {}", f.component, f.status))
-                .collect(),
+            failures: report.failures.iter().map(|f| f.to_string()).collect(),
             outcome: plan.outcome.as_deref().map(read_outcome),
             tally: report.tally.clone(),
             injections: report.injections.clone(),

@@ -31,6 +31,7 @@ use crate::status::{
     TallyData,
 };
 use crate::sweep::SweepGuard;
+use crate::watch::{VoterWatch, WATCH_PERIOD};
 
 /// Name of the voter binary.
 pub const VOTER_BIN: &str = "s3res-voter";
@@ -114,6 +115,8 @@ pub enum RunError {
     Internal(String),
     #[error("supervision failed: {0}")]
     Supervise(std::io::Error),
+    #[error("cannot create a voter's heartbeat page: {0}")]
+    Heartbeat(std::io::Error),
 }
 
 /// A component (or its voter) that did not exit cleanly.
@@ -121,6 +124,18 @@ pub enum RunError {
 pub struct Failure {
     pub component: String,
     pub status: ExitStatus,
+    /// What bootstrap knows beyond the status (a voter it found stalled and killed).
+    pub why: Option<String>,
+}
+
+impl std::fmt::Display for Failure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.component, self.status)?;
+        if let Some(why) = &self.why {
+            write!(f, " ({why})")?;
+        }
+        Ok(())
+    }
 }
 
 /// How the run ended.
@@ -172,6 +187,10 @@ struct Child {
     helper: bool,
     /// Was sent SIGTERM because the components had ended.
     told_to_stop: bool,
+    /// A voter's heartbeat.
+    watch: Option<VoterWatch>,
+    /// What bootstrap did to it and why, for the report.
+    why: Option<String>,
 }
 
 /// Both ends of a channel until they are handed to the components.
@@ -298,18 +317,25 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
 
     let mut children: Vec<Child> = Vec::with_capacity(plan.components.len());
     for (index, c) in plan.components.iter().enumerate() {
+        let mut watch = None;
         let pid = match (&voter, &socket_dir, &events_write) {
-            (Some(voter), Some(dir), Some(ev)) if c.is_protected() => spawn_voter(
-                plan,
-                c,
-                index,
-                &sched,
-                voter,
-                dir,
-                ev.as_raw_fd(),
-                &mut channels,
-                &out,
-            )?,
+            (Some(voter), Some(dir), Some(ev)) if c.is_protected() => {
+                let w = VoterWatch::new(c).map_err(RunError::Heartbeat)?;
+                let pid = spawn_voter(
+                    plan,
+                    c,
+                    index,
+                    &sched,
+                    voter,
+                    dir,
+                    ev.as_raw_fd(),
+                    w.page().as_fd().as_raw_fd(),
+                    &mut channels,
+                    &out,
+                )?;
+                watch = Some(w);
+                pid
+            }
             _ if c.is_protected() => {
                 return Err(RunError::Internal(format!(
                     "protected component {} without a voter",
@@ -352,6 +378,8 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             after_stop: false,
             helper: false,
             told_to_stop: false,
+            watch,
+            why: None,
         });
     }
     if let (Some((bin, inject, _)), Some(state), Some(log)) =
@@ -373,6 +401,8 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             after_stop: false,
             helper: true,
             told_to_stop: false,
+            watch: None,
+            why: None,
         });
     }
     // Our copies of every pipe end must go, or readers never see end of stream.
@@ -453,6 +483,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             Some(s) if !s.success() => Some(Failure {
                 component: c.component.clone(),
                 status: s,
+                why: c.why.clone(),
             }),
             _ => None,
         })
@@ -747,6 +778,7 @@ fn spawn_voter(
     voter: &Path,
     socket_dir: &Path,
     events_fd: RawFd,
+    heartbeat_fd: RawFd,
     channels: &mut [ChannelEnds],
     out: &Outputs,
 ) -> Result<libc::pid_t, RunError> {
@@ -763,6 +795,8 @@ fn spawn_voter(
     let mut mapping = fd_mapping(&fds);
     let events_target = FIRST_PORT_FD + mapping.len() as RawFd;
     mapping.push((events_fd, events_target));
+    let heartbeat_target = events_target + 1;
+    mapping.push((heartbeat_fd, heartbeat_target));
     let external = |ports: &[crate::plan::PortPlan], first: usize| -> Vec<ExternalPort> {
         ports
             .iter()
@@ -785,6 +819,7 @@ fn spawn_voter(
         outputs: external(&c.outputs, c.inputs.len()),
         rounds: c.rounds.clone(),
         events_fd: Some(events_target),
+        heartbeat_fd: Some(heartbeat_target),
         socket_path,
         restart_timeout_ms: c.restart_timeout_ms,
         start_timeout_ms: c.start_timeout_ms,
@@ -839,14 +874,9 @@ fn supervise(
         }
         let now = Instant::now();
         if stop.is_none() {
-            let gave_up = children
-                .iter()
-                .find(|c| !c.helper && c.status == Some(sys::ExitStatus::Code(VOTER_GAVE_UP)));
-            if let Some(c) = gave_up {
-                tracing::error!(
-                    "component {} failed beyond recovery (its voter's reason is above); stopping the system",
-                    c.component
-                );
+            if let Some(why) = voter_failure(children, now) {
+                // One line on stderr, whatever the log level: this is why the run failed.
+                eprintln!("s3res-bootstrap: {why}; stopping the system");
                 failed = true;
                 stop = Some((libc::SIGTERM, now + stop_timeout));
                 signal_live(children, libc::SIGTERM);
@@ -894,6 +924,13 @@ fn supervise(
             Some(_) if killed => Some(Duration::from_millis(50)),
             Some((_, deadline)) => Some(deadline.saturating_duration_since(now)),
             None => helpers_deadline.map(|d| d.saturating_duration_since(now)),
+        };
+        // The voters' heartbeats are looked at while the system runs.
+        let watching = stop.is_none() && children.iter().any(|c| c.watch.is_some());
+        let period = match (period, watching) {
+            (Some(p), true) => Some(p.min(WATCH_PERIOD)),
+            (None, true) => Some(WATCH_PERIOD),
+            (p, false) => p,
         };
         let timeout = match (timeout, period) {
             (Some(t), Some(p)) => Some(t.min(p)),
@@ -943,13 +980,60 @@ fn supervise(
     })
 }
 
+/// A voter that ended the system's run: one that gave up on its component (its reason is
+/// already on stderr), died, or stopped making progress (then it is killed here). The text
+/// says which and why. Voters are not restarted yet: any of these stops the system.
+fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
+    for c in children.iter_mut().filter(|c| c.watch.is_some()) {
+        match c.status {
+            Some(ExitStatus::Code(VOTER_GAVE_UP)) => {
+                return Some(format!(
+                    "component {} failed beyond recovery (its voter's reason is above)",
+                    c.component
+                ))
+            }
+            Some(status) if !status.success() => {
+                return Some(format!(
+                "the voter of component {} (pid {}) died: {status}; voters are not restarted yet",
+                c.component, c.pid
+            ))
+            }
+            Some(_) => {}
+            None => {
+                let Some(still) = c.watch.as_mut().and_then(|w| w.stalled(now)) else {
+                    continue;
+                };
+                let state = match sys::process_state(c.pid) {
+                    Some('T' | 't') => "it is stopped",
+                    Some('D') => "it is blocked in the kernel",
+                    Some(_) => "it is stuck",
+                    None => "it is gone",
+                };
+                let why = format!(
+                    "the voter of component {} (pid {}) made no progress for {:.1} s ({state}); killed it",
+                    c.component,
+                    c.pid,
+                    still.as_secs_f64()
+                );
+                // Not reaped yet, so the pid is still the voter's. SIGKILL reaches a
+                // stopped process too.
+                let _ = sys::kill(c.pid, libc::SIGKILL);
+                c.why = Some(format!("made no progress for {:.1} s", still.as_secs_f64()));
+                return Some(why);
+            }
+        }
+    }
+    None
+}
+
 fn reap_all(children: &mut [Child], stopping: bool) {
     loop {
         match sys::reap_any() {
             Ok(Some((pid, status))) => match children.iter_mut().find(|c| c.pid == pid) {
                 Some(c) => {
                     c.status = Some(status);
-                    c.after_stop = stopping || c.told_to_stop;
+                    // A voter bootstrap killed for standing still failed, stop or not.
+                    c.after_stop = (stopping || c.told_to_stop) && c.why.is_none();
                     if status.success() {
                         tracing::info!(component = %c.component, pid, "exited cleanly");
                     } else if stopping {

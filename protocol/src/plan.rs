@@ -92,6 +92,10 @@ pub struct VoterPlan {
     pub rounds: Vec<RoundTrigger>,
     /// Fd to write events to, one JSON object per line (bootstrap gathers them).
     pub events_fd: Option<RawFd>,
+    /// Fd of the heartbeat page (`replica_rt::heartbeat`) the voter bumps on every turn of
+    /// its loop, so that bootstrap can tell a stopped or stuck voter. `None`: no one watches.
+    #[serde(default)]
+    pub heartbeat_fd: Option<RawFd>,
     /// Where the voter binds its Unix socket for the restart handshake.
     pub socket_path: PathBuf,
     /// How long a recovery may wait for the donor's child to connect and take its fds.

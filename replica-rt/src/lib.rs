@@ -41,6 +41,7 @@
 //!   once.
 
 pub mod cow;
+pub mod heartbeat;
 pub mod inject;
 mod logging;
 pub mod machine;

@@ -112,6 +112,74 @@ fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
     );
 }
 
+/// A voter that stops (SIGSTOP) no longer turns its loop, and its heartbeat stands still:
+/// bootstrap kills it after the deadline its plan allows and stops the system, non-zero, with
+/// one line that names the voter and says it is stopped. Nothing is left. (Voters are not
+/// restarted yet; without the heartbeat the system hung without a word.)
+#[test]
+fn a_stopped_voter_stops_the_system_in_one_line() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let voter = run.process_named("s3res-voter").expect("the echo's voter");
+    s3res_testkit::kill_pid(voter, libc::SIGSTOP).expect("stop the voter");
+    let stopped = Instant::now();
+    let out = run.wait(Duration::from_secs(60));
+    eprintln!(
+        "bootstrap ended {:?} after the voter stopped: {}",
+        stopped.elapsed(),
+        out.status
+    );
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    let line = format!("the voter of component echo (pid {voter}) made no progress for");
+    let found = out
+        .stderr
+        .lines()
+        .find(|l| l.starts_with("s3res-bootstrap: ") && l.contains(&line))
+        .unwrap_or_else(|| {
+            panic!(
+                "no line {line:?}:\n{}",
+                s3res_testkit::tail(&out.stderr, 30)
+            )
+        });
+    assert!(found.contains("(it is stopped); killed it"), "{found}");
+    run.assert_nothing_left();
+}
+
+/// A voter that dies takes its replicas with it; bootstrap stops the rest of the system at
+/// once, non-zero, and says which voter died and how. Nothing is left.
+#[test]
+fn a_killed_voter_stops_the_system_in_one_line() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let voter = run.process_named("s3res-voter").expect("the echo's voter");
+    s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+    let out = run.wait(Duration::from_secs(30));
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    let line = format!(
+        "s3res-bootstrap: the voter of component echo (pid {voter}) died: killed by signal 9"
+    );
+    assert!(
+        out.stderr.lines().any(|l| l.starts_with(&line)),
+        "no line {line:?}:\n{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    run.assert_nothing_left();
+}
+
 /// A fork child is its donor's child, not the voter's, so `waitpid` cannot tell the voter how
 /// it ended; its pidfd can (Linux 6.15+). Its crash event names the signal that killed it.
 #[test]

@@ -26,8 +26,8 @@ use crate::event::{Cause, Event, EventKind, RecoveryMethod};
 use crate::monitor::{Captures, Monitors};
 use crate::plan::{Mode as PlanMode, VoterPlan};
 use crate::ports::{
-    kill_all_children, reap_children, stop_requested, wait_until, write_event, Endpoints,
-    ExternalInput, ExternalOutput, PollSet, Token,
+    beat, heartbeat_ending, kill_all_children, reap_children, stop_requested, wait_until,
+    write_event, Endpoints, ExternalInput, ExternalOutput, PollSet, Token, HEARTBEAT_PERIOD,
 };
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
 use crate::replica::Replica;
@@ -676,6 +676,7 @@ impl Core {
     /// Writes out what is still queued for downstream (blocking up to [`OUTPUT_DRAIN_LIMIT`]),
     /// then gives the replicas [`SHUTDOWN_GRACE`] to exit by themselves.
     pub(crate) fn drain_and_let_finish(&mut self) {
+        heartbeat_ending();
         let drain_deadline = Instant::now() + OUTPUT_DRAIN_LIMIT;
         for out in &mut self.outputs {
             out.drain(drain_deadline);
@@ -695,6 +696,7 @@ impl Core {
     /// Kills every replica (trusted or faulty) and everything re-parented to us, after giving
     /// downstream whatever it takes at once; removes the socket.
     pub(crate) fn shut_down(&mut self) {
+        heartbeat_ending();
         self.captures.flush();
         self.monitors.log_cost();
         // On a requested stop, whatever downstream can take right now still goes out.
@@ -768,6 +770,10 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
         (Some(a), Some(b)) => Some(a.min(b)),
         (a, b) => a.or(b),
     };
+    // Never asleep longer than a heartbeat period: bootstrap must see the loop turn.
+    beat();
+    let heartbeat = Instant::now() + HEARTBEAT_PERIOD;
+    let wake = Some(wake.map_or(heartbeat, |w| w.min(heartbeat)));
     let ready = wait_until(&mut m.core().poll.fds, wake)?;
     if ready == 0 {
         return Ok(());

@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use nix::sys::signal::Signal;
 use nix::sys::signalfd::SignalFd;
+use replica_rt::heartbeat::Heartbeat;
 use replica_rt::sys;
 
 use crate::channel::{Fill, FrameReader, FrameWriter};
@@ -215,6 +216,28 @@ impl ExternalInput {
     }
 }
 
+/// The heartbeat page bootstrap watches (see `replica_rt::heartbeat`), if it gave us one.
+static HEARTBEAT: std::sync::OnceLock<Heartbeat> = std::sync::OnceLock::new();
+
+/// The longest the loop sleeps without a beat: bootstrap's deadline is seconds, so this only
+/// has to be well below that, and costs a wake-up ten times a second on an idle voter.
+pub(crate) const HEARTBEAT_PERIOD: Duration = Duration::from_millis(100);
+
+/// One more turn of the loop, for bootstrap's watch.
+pub(crate) fn beat() {
+    if let Some(h) = HEARTBEAT.get() {
+        h.beat();
+    }
+}
+
+/// The voter is ending: its waits are bounded by its own limits from here on, and bootstrap
+/// stops judging it by its heartbeat.
+pub(crate) fn heartbeat_ending() {
+    if let Some(h) = HEARTBEAT.get() {
+        h.set_ending();
+    }
+}
+
 /// Reads the signalfd: reaps on SIGCHLD; `true` if SIGTERM/SIGINT came.
 pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
     let mut stop = false;
@@ -281,6 +304,12 @@ impl Endpoints {
             .events_fd
             .map(|fd| adopted.take(fd, "events"))
             .transpose()?;
+        if let Some(fd) = plan.heartbeat_fd {
+            let page = Heartbeat::adopt(adopted.take(fd, "heartbeat")?)
+                .map_err(io_err(format!("heartbeat (fd {fd})")))?;
+            // A second voter in this process (tests) keeps the first page: one is watched.
+            let _ = HEARTBEAT.set(page);
+        }
 
         let _ = std::fs::remove_file(&plan.socket_path);
         let listener = UnixListener::bind(&plan.socket_path)
