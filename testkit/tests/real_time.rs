@@ -466,3 +466,62 @@ fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
     assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
     run.wait_success(LIMIT);
 }
+
+/// A healthy replica kept off its CPU past its deadline (here a SCHED_RR hog above every
+/// process of the system holds replica 1's CPU for 30 ms, five times, against a 2 ms round
+/// deadline; in the field, the kernel's real-time throttling does the same for 50 ms) is not
+/// blamed: just before the deadline the voter looks whether a late replica could run at all,
+/// and waits for one that could not (voter/src/starvation.rs). No fault, every frame once, in
+/// order. A replica that does not answer although it could run is still blamed at the deadline
+/// (the hang tests here and in recovery.rs).
+#[test]
+#[cfg_attr(
+    not(all(s3res_sched_rr, s3res_two_cpus)),
+    ignore = "needs SCHED_RR and two usable CPUs"
+)]
+fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
+    let _turn = one_system_at_a_time();
+    let cpus = usable_cpus();
+    s3res_testkit::require(cpus.len() >= 2, "two usable CPUs");
+    let (a, b) = (cpus[0], cpus[1]);
+    let count = 3000;
+    let sys = System::new();
+    s3res_testkit::require(sys.round_robin_allowed(), "SCHED_RR allowed");
+    let summary = sys.path("summary.json");
+    // Replicas 0 and 2 on `a` with the voter, replica 1 alone on `b`.
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 2000,
+             "priority": 30, "cpus": [{a}, {b}], "voter_cpu": {a} }}"#
+    );
+    let desc = echo_pipeline(&summary, &echo, count, 1000);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    for _ in 0..5 {
+        std::thread::sleep(Duration::from_millis(200));
+        // `timeout` ends the loop after 30 ms; everything inherits SCHED_RR 99 and CPU `b`.
+        let hog = Command::new("chrt")
+            .args(["-r", "99", "taskset", "-c", &b.to_string()])
+            .args(["timeout", "0.03", "sh", "-c", "while :; do :; done"])
+            .status()
+            .expect("running chrt, taskset and timeout");
+        // 124: `timeout` ended the loop, as meant.
+        assert_eq!(hog.code(), Some(124), "the hog: {hog}");
+    }
+    run.wait_success(LIMIT);
+    let faults: Vec<_> = run
+        .events()
+        .into_iter()
+        .filter(|e| {
+            e.component == "echo"
+                && matches!(
+                    e.kind,
+                    EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol
+                )
+        })
+        .collect();
+    assert!(
+        faults.is_empty(),
+        "a replica that could not run was blamed: {faults:?}"
+    );
+    assert_sink_whole(&summary, count);
+}

@@ -375,7 +375,9 @@ impl Core {
         if Instant::now() < since + EXIT_AFTER_EOF {
             return None;
         }
-        if rep.exited_within(Duration::ZERO) {
+        // On a loaded machine a killed replica can take longer than the grace to finish
+        // dying (its fds closed first): the kernel's own flag says it is on its way out.
+        if rep.exited_within(Duration::ZERO) || sys::process_exiting(rep.pid) {
             return Some((Cause::Died, DIED.into()));
         }
         let closed = rep

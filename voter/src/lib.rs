@@ -25,6 +25,7 @@ pub mod recovery;
 pub mod replica;
 pub mod round;
 pub mod rt;
+pub mod starvation;
 pub mod stderr;
 pub mod stream;
 pub mod vote;

@@ -18,8 +18,10 @@ use crate::decision::{decide_round, Decision, RoundBallot, RoundClose};
 use crate::event::Cause;
 use crate::plan::VoterPlan;
 use crate::recovery::DonorState;
-use crate::round::{OutputSet, Round};
+use crate::replica::Replica;
+use crate::round::{Look, OutputSet, Round};
 use crate::sched::Schedule;
+use crate::starvation::{self, Seen, Window};
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 use replica_rt::contract::MAX_PORTS;
 
@@ -35,6 +37,9 @@ pub struct ReactiveVoter {
     close: RoundClose,
     /// The number of the round being closed (taken out of `round`: no early forwarding).
     closing: Option<u64>,
+    /// Per replica, what the looks before the open round's deadline saw it do, for the
+    /// `hang` event's detail.
+    evidence: [Option<Seen>; MAX_REPLICAS],
 }
 
 impl ReactiveVoter {
@@ -50,6 +55,7 @@ impl ReactiveVoter {
             rounds_started: 0,
             close: RoundClose::default(),
             closing: None,
+            evidence: [None; MAX_REPLICAS],
         })
     }
 
@@ -83,6 +89,7 @@ impl ReactiveVoter {
 
     fn open_round(&mut self, pair: usize, expected: OutputSet, members: ReplicaSet) {
         self.rounds_started += 1;
+        self.evidence = [None; MAX_REPLICAS];
         let deadline = Instant::now() + self.allowance(members);
         self.core.monitors.clear_verdicts();
         self.round = Some(Round::new(
@@ -206,7 +213,14 @@ impl ReactiveVoter {
     fn wakeup(&mut self) -> Option<Instant> {
         self.timers.cancel_all();
         if let Some(round) = &self.round {
-            self.timers.set(Timer::Round(round.pair), round.deadline);
+            // A window before the deadline, the look at the replicas not done yet.
+            let (first, second) = self.looks_before(round);
+            let at = match (round.look, round.starved) {
+                (None, _) => first,
+                (Some(_), None) => second,
+                (Some(_), Some(_)) => round.deadline,
+            };
+            self.timers.set(Timer::Round(round.pair), at);
         }
         for (r, rep) in self.core.slots.iter().enumerate() {
             if let Some(since) = rep.as_ref().and_then(|rep| rep.output_closed_at) {
@@ -235,10 +249,168 @@ impl ReactiveVoter {
         if self.core.plan.schedule == Schedule::Sequential {
             return self.advance_turn();
         }
-        if Instant::now() < round.deadline {
+        let now = Instant::now();
+        if now < round.deadline {
+            return self.looks_due(now);
+        }
+        if self.extend_for_the_starved(now) {
             return;
         }
         self.close_round();
+    }
+
+    /// Before a deadline: the two looks at the timed replicas, when due (see
+    /// `starvation.rs`).
+    fn looks_due(&mut self, now: Instant) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let (first, second) = self.looks_before(round);
+        match (round.look, round.starved) {
+            (None, _) if now >= first => self.look_at_late(now),
+            (Some(_), None) if now >= second => {
+                let starved = self.judge_late(now);
+                if let Some(round) = self.round.as_mut() {
+                    round.starved = Some(starved);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// How long before a deadline the replicas not done yet are looked at.
+    fn look_window(&self) -> Duration {
+        starvation::window(Duration::from_micros(self.core.plan.timeout_us))
+    }
+
+    /// When the two looks before `round`'s deadline are due: the first a window before it,
+    /// the second just before it.
+    fn looks_before(&self, round: &Round) -> (Instant, Instant) {
+        let window = self.look_window();
+        (
+            round.deadline - window,
+            round.deadline - starvation::second_look(window),
+        )
+    }
+
+    /// The replicas the open round's deadline is for: those trusted that have not answered
+    /// everything (a sequential round: the one whose turn it is, if it has not).
+    fn timed(&self) -> ReplicaSet {
+        let Some(round) = self.round.as_ref() else {
+            return ReplicaSet::EMPTY;
+        };
+        round
+            .members
+            .iter()
+            .filter(|&r| self.core.slots[r].is_some() && !round.is_done_by(r))
+            .filter(|&r| match self.core.plan.schedule {
+                Schedule::Sequential => round.turn == Some(r),
+                _ => true,
+            })
+            .fold(ReplicaSet::EMPTY, |set, r| set.with(r))
+    }
+
+    /// Records what the replicas not done yet have run and waited so far (see
+    /// `starvation.rs`).
+    fn look_at_late(&mut self, now: Instant) {
+        let mut look = Look {
+            at: now,
+            times: [None; MAX_REPLICAS],
+        };
+        for r in self.timed().iter() {
+            look.times[r] = self.core.slots[r].as_ref().and_then(Replica::sched_times);
+        }
+        if let Some(round) = self.round.as_mut() {
+            round.look = Some(look);
+        }
+    }
+
+    /// Just before the deadline (so that the reads cost the deadline nothing): which of the
+    /// replicas not done yet could not run since the look (see `starvation.rs`). Keeps what
+    /// each did for the `hang` event's detail.
+    fn judge_late(&mut self, now: Instant) -> ReplicaSet {
+        let Some(look) = self.round.as_ref().and_then(|rd| rd.look) else {
+            return ReplicaSet::EMPTY;
+        };
+        let span = now.saturating_duration_since(look.at);
+        let mut starved = ReplicaSet::EMPTY;
+        for r in self.timed().iter() {
+            let Some(rep) = self.core.slots[r].as_ref() else {
+                continue;
+            };
+            let (Some(before), Some(after)) = (look.times[r], rep.sched_times()) else {
+                continue;
+            };
+            let mut state = None;
+            let runnable = || {
+                state = replica_rt::sys::process_state(rep.pid);
+                state == Some('R')
+            };
+            let verdict = starvation::judge(before, after, span, runnable);
+            self.evidence[r] = Some(Seen {
+                state,
+                ..Seen::between(before, after, span)
+            });
+            if verdict == Window::Starved {
+                starved = starved.with(r);
+            }
+        }
+        starved
+    }
+
+    /// At the deadline: the late replicas that could not run over the window before it get
+    /// one window more (within [`starvation::MAX_EXTENSION`] per round), and those that could
+    /// are blamed now. `true` if the round stays open.
+    fn extend_for_the_starved(&mut self, now: Instant) -> bool {
+        for r in self.timed().iter() {
+            self.last_look(r);
+        }
+        let late = self.timed();
+        let window = self.look_window();
+        let Some(round) = self.round.as_ref() else {
+            return true;
+        };
+        if late.is_empty() || round.extended + window > starvation::MAX_EXTENSION {
+            return false;
+        }
+        let number = round.number;
+        let starved = match (round.look, round.starved) {
+            (Some(_), Some(starved)) => starved,
+            // The voter woke up too late for the second look; it looks now.
+            (Some(_), None) => self.judge_late(now),
+            // The voter itself woke up past the first look: it was held up as much as anyone.
+            (None, _) => {
+                tracing::debug!(
+                    round = number,
+                    "the voter missed the look before the deadline: deadline moved on"
+                );
+                late
+            }
+        };
+        let starved = late
+            .iter()
+            .filter(|&r| starved.contains(r))
+            .fold(ReplicaSet::EMPTY, |set, r| set.with(r));
+        if starved.is_empty() {
+            return false;
+        }
+        tracing::debug!(
+            round = number,
+            starved = ?starved.iter().collect::<Vec<_>>(),
+            "late, but they could not run: deadline moved on"
+        );
+        // Blamed at the deadline, as without the look: those that had their chance.
+        let on_turn = self.core.plan.schedule == Schedule::Sequential;
+        for r in late.iter().filter(|&r| !starved.contains(r)) {
+            self.blame_late(r, number, on_turn);
+        }
+        self.look_at_late(now);
+        if let Some(round) = self.round.as_mut() {
+            round.deadline = now + window;
+            round.extended += window;
+            round.starved = None;
+        }
+        true
     }
 
     /// Sequential schedule: the replica whose turn it is keeps it until it has answered every
@@ -251,7 +423,11 @@ impl ReactiveVoter {
         };
         if let Some(t) = round.turn {
             if self.core.slots[t].is_some() && !round.is_done_by(t) {
-                if Instant::now() < round.deadline {
+                let now = Instant::now();
+                if now < round.deadline {
+                    return self.looks_due(now);
+                }
+                if self.extend_for_the_starved(now) {
                     return;
                 }
                 self.last_look(t);
@@ -294,6 +470,10 @@ impl ReactiveVoter {
         let round = self.round.as_mut().expect("checked above");
         round.turn = Some(next);
         round.deadline = Instant::now() + allowance;
+        // The looks and extensions were for the previous turn.
+        round.look = None;
+        round.starved = None;
+        round.extended = Duration::ZERO;
         true
     }
 
@@ -347,8 +527,12 @@ impl ReactiveVoter {
                 plan.outputs[o].name
             ),
             (Cause::Deadline | Cause::TurnDeadline, None) => {
+                let seen = match self.evidence[r] {
+                    Some(seen) => format!(" ({seen})"),
+                    None => String::new(),
+                };
                 format!(
-                    "no answer within {} µs{turn} in round {number}",
+                    "no answer within {} µs{turn} in round {number}{seen}",
                     plan.timeout_us
                 )
             }

@@ -432,6 +432,7 @@ fn hand_over_pipes(
         // A copy of a donor whose runtime had started.
         start_pipe: None,
         started: true,
+        schedstat: crate::starvation::SchedStat::new(pid),
     };
     Ok((replica, ready))
 }

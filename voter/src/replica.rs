@@ -14,6 +14,7 @@ use replica_rt::sys;
 
 use crate::channel::{FrameReader, FrameWriter};
 use crate::plan::{Framing, VoterPlan};
+use crate::starvation::{SchedStat, SchedTimes};
 use crate::stderr::StderrRelay;
 
 /// The voter's end of one replica input pipe. The voter keeps the read end too, so that it can
@@ -53,6 +54,8 @@ pub struct Replica {
     pub start_pipe: Option<OwnedFd>,
     /// The runtime started in this process: it said so, or it is a fork child of one that had.
     pub started: bool,
+    /// Its times on and waiting for a CPU, to tell a late replica from one that could not run.
+    pub schedstat: SchedStat,
 }
 
 /// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs, then
@@ -211,6 +214,7 @@ impl Replica {
             output_closed_at: None,
             start_pipe: Some(start_r),
             started: false,
+            schedstat: SchedStat::new(pid),
         })
     }
 
@@ -258,6 +262,11 @@ impl Replica {
                 tracing::warn!(pid = self.pid, error = %e, "could not kill replica");
             }
         }
+    }
+
+    /// Its time on a CPU and waiting for one so far; `None` if `/proc` does not say.
+    pub fn sched_times(&self) -> Option<SchedTimes> {
+        self.schedstat.read()
     }
 
     /// Whether the process has exited (its pidfd is readable), waiting up to `timeout`.

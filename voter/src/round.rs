@@ -1,7 +1,10 @@
 //! A reactive round (S³RES's timed pair): one input frame, one expected answer per output from
 //! every replica, one deadline (parallel), or one deadline per replica's turn (sequential).
 
+use std::time::Duration;
+
 use crate::clock::Instant;
+use crate::starvation::SchedTimes;
 
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
@@ -29,6 +32,21 @@ pub struct Round {
     /// Outputs whose frame was held back: it stood on one replica's word and its anomaly
     /// detector alarmed.
     pub held: OutputSet,
+    /// The look at the replicas not done yet, a window before the deadline (see
+    /// `starvation.rs`).
+    pub look: Option<Look>,
+    /// What the second look, just before the deadline, found: the replicas that could not
+    /// run since the first.
+    pub starved: Option<ReplicaSet>,
+    /// How far the deadline has been moved on for replicas that could not run.
+    pub extended: Duration,
+}
+
+/// What the replicas that had not answered had run and waited, at one moment.
+#[derive(Debug, Clone, Copy)]
+pub struct Look {
+    pub at: Instant,
+    pub times: [Option<SchedTimes>; MAX_REPLICAS],
 }
 
 impl Round {
@@ -49,6 +67,9 @@ impl Round {
             answered: [0; MAX_REPLICAS],
             forwarded: 0,
             held: 0,
+            look: None,
+            starved: None,
+            extended: Duration::ZERO,
         }
     }
 

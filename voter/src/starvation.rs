@@ -1,0 +1,281 @@
+//! Could a late replica have answered? A deadline measures wall-clock time, but a replica
+//! only computes while it has a CPU. When the machine stalls (the kernel's real-time
+//! throttling stops every SCHED_RR task for tens of ms; a busier process of higher priority
+//! holds the replica's CPU; the voter itself is held up), a healthy replica misses its
+//! deadline without being at fault, and blaming it costs a recovery and, when all of them
+//! miss it together, the round.
+//!
+//! So a window before a round's deadline (a tenth of `timeout_us`) the voter reads, for each
+//! replica that has not answered yet, how long it has run (a perf task clock, exact to the
+//! read: `/proc`'s counts and the process CPU clock move on only at scheduler ticks,
+//! milliseconds apart, so a spinning replica would look idle for a whole window) and how long
+//! it has waited for a CPU (`/proc/PID/schedstat`). It reads again just before the deadline (a
+//! quarter of the window before it), so that the reads do not delay the decision. Over that
+//! window a late replica:
+//!
+//! * **had its chance**: it ran at least a quarter of it on a CPU (spinning, perhaps preempted
+//!   now and then), or ran less and is not waiting for a CPU (asleep, stopped, blocked). It is
+//!   late, blamed at the deadline exactly as without the looks;
+//! * **starved**: it ran less than a quarter of it, and either is waiting for a CPU right now (state
+//!   `R`) or finished waiting for one for at least a quarter of it. (The kernel adds a wait to
+//!   `schedstat` only when the wait ends, so a replica kept off its CPU for the whole window
+//!   shows no wait yet; its state says that it is runnable.) The deadline moves on by one
+//!   window, and it is judged again then. The extensions of one round are bounded
+//!   ([`MAX_EXTENSION`]), so a replica that never gets a CPU is still blamed in the end.
+//!
+//! A voter that itself woke up past the first look (it was held up too) did not see the
+//! window: the deadline moves on by one window, with a fresh look.
+//!
+//! What was seen goes into the `hang` event's detail ("in the last 180 µs it ran 0 µs and
+//! waited 0 µs for a CPU; state R").
+//!
+//! The cost: nothing in a round where every replica answers before the first look; per late
+//! replica otherwise, a task-clock read and a `pread` at each look (the task clock and the
+//! file are opened at its first look), and a read of its state if it ran less than a quarter
+//! of the window.
+
+use std::cell::OnceCell;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::time::Duration;
+
+use replica_rt::sys::TaskClock;
+
+/// How long the deadlines of one round may be moved on in all, at most: longer than the
+/// kernel's real-time throttling holds tasks (50 ms of every second by default).
+pub const MAX_EXTENSION: Duration = Duration::from_millis(100);
+
+/// The shortest window looked at: below this, one scheduler tick decides.
+const MIN_WINDOW: Duration = Duration::from_micros(100);
+
+/// The window for a round deadline of `timeout`: a tenth of it, at least [`MIN_WINDOW`], at
+/// most the timeout itself.
+pub fn window(timeout: Duration) -> Duration {
+    (timeout / 10).max(MIN_WINDOW).min(timeout)
+}
+
+/// How long before the deadline the second look is taken: long enough for its reads (a
+/// remote task clock is read through an interrupt to the replica's CPU), so that the
+/// decision is ready at the deadline and a hang is reported as soon as without the looks.
+pub fn second_look(window: Duration) -> Duration {
+    (window / 4).max(Duration::from_micros(25))
+}
+
+/// A process's time on a CPU and waiting for one, so far.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SchedTimes {
+    pub run_ns: u64,
+    pub wait_ns: u64,
+}
+
+impl SchedTimes {
+    /// `/proc/PID/schedstat`: "run_ns wait_ns timeslices".
+    pub fn parse(text: &str) -> Option<SchedTimes> {
+        let mut fields = text.split_ascii_whitespace().map(|f| f.parse::<u64>().ok());
+        Some(SchedTimes {
+            run_ns: fields.next()??,
+            wait_ns: fields.next()??,
+        })
+    }
+}
+
+/// Where a replica's times are read: its `/proc/PID/schedstat` (a read is one `pread`) and
+/// its task clock (`replica_rt::sys::TaskClock`), each opened at the first look, so that
+/// starting or recovering a replica costs nothing more.
+#[derive(Debug)]
+pub struct SchedStat {
+    pid: libc::pid_t,
+    file: OnceCell<Option<File>>,
+    clock: OnceCell<Option<TaskClock>>,
+}
+
+impl SchedStat {
+    pub fn new(pid: libc::pid_t) -> SchedStat {
+        SchedStat {
+            pid,
+            file: OnceCell::new(),
+            clock: OnceCell::new(),
+        }
+    }
+
+    /// `None` where `/proc` does not say: the replica is then judged as without the look.
+    pub fn read(&self) -> Option<SchedTimes> {
+        let file = self
+            .file
+            .get_or_init(|| File::open(format!("/proc/{}/schedstat", self.pid)).ok())
+            .as_ref()?;
+        let mut buf = [0u8; 96];
+        let n = file.read_at(&mut buf, 0).ok()?;
+        let booked = SchedTimes::parse(std::str::from_utf8(&buf[..n]).ok()?)?;
+        let clock = self.clock.get_or_init(|| match TaskClock::open(self.pid) {
+            Ok(c) => Some(c),
+            Err(e) => {
+                static SAID: std::sync::Once = std::sync::Once::new();
+                SAID.call_once(|| {
+                    tracing::info!(
+                        error = %e,
+                        "no task clock (perf_event_open); a late replica's time on a CPU is \
+                         known to a scheduler tick only"
+                    );
+                });
+                None
+            }
+        });
+        let run_ns = match clock {
+            Some(c) => c.read()?,
+            None => booked.run_ns,
+        };
+        Some(SchedTimes {
+            run_ns,
+            wait_ns: booked.wait_ns,
+        })
+    }
+}
+
+/// What the looks saw a late replica do over the window before its deadline (for the `hang`
+/// event's detail).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Seen {
+    pub window_us: u64,
+    pub ran_us: u64,
+    pub waited_us: u64,
+    /// Its state at the second look, where it was read.
+    pub state: Option<char>,
+}
+
+impl Seen {
+    pub fn between(before: SchedTimes, after: SchedTimes, window: Duration) -> Seen {
+        Seen {
+            window_us: window.as_micros() as u64,
+            ran_us: after.run_ns.saturating_sub(before.run_ns) / 1000,
+            waited_us: after.wait_ns.saturating_sub(before.wait_ns) / 1000,
+            state: None,
+        }
+    }
+}
+
+impl std::fmt::Display for Seen {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "in the last {} µs it ran {} µs and waited {} µs for a CPU",
+            self.window_us, self.ran_us, self.waited_us
+        )?;
+        if let Some(s) = self.state {
+            write!(f, "; state {s}")?;
+        }
+        Ok(())
+    }
+}
+
+/// What a late replica did over the window before its deadline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Window {
+    /// It had a CPU for at least a quarter of the window, or was not waiting for one: its
+    /// lateness is its own.
+    HadItsChance,
+    /// It ran less than a quarter of the window and was kept waiting for a CPU.
+    Starved,
+}
+
+/// The rule of the module's comment, from the samples at both ends of a window of `window`;
+/// `runnable` tells whether the replica is waiting for a CPU now (read only when it ran less
+/// than a quarter of the window: a spinning replica costs no extra read).
+pub fn judge(
+    before: SchedTimes,
+    after: SchedTimes,
+    window: Duration,
+    runnable: impl FnOnce() -> bool,
+) -> Window {
+    let ran = u128::from(after.run_ns.saturating_sub(before.run_ns));
+    let waited = u128::from(after.wait_ns.saturating_sub(before.wait_ns));
+    let w = window.as_nanos();
+    if ran * 4 < w && (waited * 4 >= w || runnable()) {
+        Window::Starved
+    } else {
+        Window::HadItsChance
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const W: Duration = Duration::from_micros(200);
+
+    fn t(run_us: u64, wait_us: u64) -> SchedTimes {
+        SchedTimes {
+            run_ns: run_us * 1000,
+            wait_ns: wait_us * 1000,
+        }
+    }
+
+    const RUNNABLE: fn() -> bool = || true;
+    const ASLEEP: fn() -> bool = || false;
+
+    #[test]
+    fn a_spinning_replica_had_its_chance() {
+        assert_eq!(
+            judge(t(50, 10), t(245, 15), W, RUNNABLE),
+            Window::HadItsChance
+        );
+    }
+
+    #[test]
+    fn a_stopped_or_sleeping_replica_had_its_chance() {
+        // Neither ran nor waited, and is not runnable: SIGSTOP, a blocking read, a deadlock.
+        assert_eq!(judge(t(50, 10), t(50, 10), W, ASLEEP), Window::HadItsChance);
+    }
+
+    #[test]
+    fn a_replica_kept_off_its_cpu_was_starved() {
+        // Kept off its CPU for the whole window and still waiting: no wait is booked yet.
+        assert_eq!(judge(t(50, 10), t(50, 10), W, RUNNABLE), Window::Starved);
+        // Throttled, then ran a little just now: the wait is booked.
+        assert_eq!(judge(t(50, 10), t(60, 210), W, ASLEEP), Window::Starved);
+        // Ran a little, waited most.
+        assert_eq!(judge(t(50, 10), t(90, 140), W, ASLEEP), Window::Starved);
+    }
+
+    #[test]
+    fn a_quarter_of_the_window_on_a_cpu_is_a_chance_even_if_it_also_waited() {
+        assert_eq!(
+            judge(t(0, 0), t(100, 100), W, RUNNABLE),
+            Window::HadItsChance
+        );
+    }
+
+    #[test]
+    fn schedstat_parses_and_this_process_reads() {
+        let parsed = SchedTimes::parse("123 456 7\n");
+        assert_eq!(
+            parsed,
+            Some(SchedTimes {
+                run_ns: 123,
+                wait_ns: 456
+            })
+        );
+        assert_eq!(SchedTimes::parse("garbage"), None);
+        let mut child = std::process::Command::new("sh")
+            .args(["-c", "while :; do :; done"])
+            .spawn()
+            .unwrap();
+        let stat = SchedStat::new(child.id() as libc::pid_t);
+        let a = stat.read().expect("readable");
+        std::thread::sleep(Duration::from_millis(5));
+        let b = stat.read().expect("readable");
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert!(b.run_ns > a.run_ns, "{a:?} {b:?}");
+    }
+
+    #[test]
+    fn the_window_is_a_tenth_of_the_timeout_within_bounds() {
+        assert_eq!(window(Duration::from_millis(2)), Duration::from_micros(200));
+        assert_eq!(
+            window(Duration::from_micros(500)),
+            Duration::from_micros(100)
+        );
+        assert_eq!(window(Duration::from_micros(50)), Duration::from_micros(50));
+    }
+}
