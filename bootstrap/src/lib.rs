@@ -6,16 +6,19 @@
 
 #![forbid(unsafe_code)]
 
-pub mod description;
 pub mod events;
-pub mod exec;
 pub mod live;
 pub mod logging;
-pub mod outcome;
-pub mod plan;
-pub mod posindex;
 pub mod run;
 pub mod sched;
 pub mod status;
 pub mod sweep;
 pub mod watch;
+
+/// The description, its checks, the checked plan and finding programs are
+/// `s3res-description`'s, shared with `s3res-inject`.
+pub use s3res_description::{description, exec, plan, posindex};
+
+/// Matching injections with events is the protocol's (`s3res-protocol`), shared with
+/// `s3res-inject`.
+pub use s3res_protocol::outcome;

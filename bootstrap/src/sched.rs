@@ -9,7 +9,7 @@ use replica_rt::sys;
 use s3res_protocol::plan::NiceFallback;
 use s3res_protocol::sched::{self, Schedule};
 
-use crate::plan::{ComponentPlan, SystemPlan};
+use crate::plan::{ComponentPlan, SchedLines, SystemPlan};
 
 /// What the system will run with.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -207,6 +207,16 @@ impl SystemSched {
                  (run as root or grant CAP_SYS_NICE)"
             ),
         })
+    }
+}
+
+impl SchedLines for SystemSched {
+    fn headline(&self) -> Option<String> {
+        SystemSched::headline(self)
+    }
+
+    fn describe(&self, index: usize, c: &ComponentPlan, out: &mut String) {
+        SystemSched::describe(self, index, c, out)
     }
 }
 

@@ -4,107 +4,11 @@
 //! which seed); [`fire`] only delivers it. That is what makes a campaign reproducible: the same
 //! seed gives the same actions, whatever the timing of the run.
 
-use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use replica_rt::contract::signals::{self, VarRequest};
 
-/// What kind of fault a campaign injects.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Hash,
-    PartialOrd,
-    Ord,
-    Serialize,
-    Deserialize,
-    clap::ValueEnum,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum FaultKind {
-    /// Nothing is injected: a baseline that counts false positives and task success.
-    None,
-    /// Execution error: SIGKILL.
-    Exec,
-    /// Silent data corruption: replica-rt flips one bit of the next outgoing frame (SIGUSR2).
-    Sdc,
-    /// Control-flow error: replica-rt spins forever (SIGRTMIN+2).
-    Cfe,
-    /// Variable-level flip: chosen bits at a chosen byte offset of the next frame (SIGRTMIN+3).
-    Var,
-    /// Register bit flip through ptrace (the s3res-regflip crate).
-    Reg,
-}
-
-impl FaultKind {
-    pub fn name(self) -> &'static str {
-        match self {
-            FaultKind::None => "none",
-            FaultKind::Exec => "exec",
-            FaultKind::Sdc => "sdc",
-            FaultKind::Cfe => "cfe",
-            FaultKind::Var => "var",
-            FaultKind::Reg => "reg",
-        }
-    }
-}
-
-impl std::fmt::Display for FaultKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-/// One injection, fully decided.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "lowercase")]
-pub enum Action {
-    Exec,
-    /// `value` is the `sigqueue` value: the bit to flip, reduced by the replica modulo the
-    /// frame's bit count (bit 0 = lowest bit of the first payload byte).
-    Sdc {
-        value: u32,
-    },
-    Cfe,
-    /// Flip `bits` (bit 0 = lowest bit of byte `offset`, little-endian) of the next frame.
-    Var {
-        offset: u32,
-        bits: Vec<u32>,
-    },
-    /// A register flip; `seed` seeds the ChaCha8 generator handed to the register injector.
-    Reg {
-        seed: u64,
-    },
-}
-
-impl Action {
-    pub fn kind(&self) -> FaultKind {
-        match self {
-            Action::Exec => FaultKind::Exec,
-            Action::Sdc { .. } => FaultKind::Sdc,
-            Action::Cfe => FaultKind::Cfe,
-            Action::Var { .. } => FaultKind::Var,
-            Action::Reg { .. } => FaultKind::Reg,
-        }
-    }
-}
-
-/// Options of the register injector, as given on the command line (see
-/// `s3res-regflip`'s `RegFlipSpec`).
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct RegOptions {
-    /// `source`, `destination` or `any` operand.
-    pub role: String,
-    /// Bits flipped per injection.
-    pub bits: u32,
-    /// `whole`, `sign`, `exponent` or `mantissa`.
-    pub field: String,
-    /// Only these registers (names as the injector spells them); all if `None`.
-    pub registers: Option<Vec<String>>,
-}
+pub use s3res_protocol::campaign::{Action, FaultKind, RegOptions};
 
 #[derive(Debug, Error)]
 pub enum FireError {
@@ -134,29 +38,27 @@ pub enum FireError {
 const REG_ATTEMPTS: u32 = 2000;
 const REG_RETRY: std::time::Duration = std::time::Duration::from_micros(500);
 
-impl RegOptions {
-    /// The injector's spec, or a clear error naming the bad option.
-    pub fn spec(&self) -> Result<s3res_regflip::RegFlipSpec, FireError> {
-        let role = match self.role.as_str() {
-            "" => s3res_regflip::OperandRole::Any,
-            r => r
-                .parse()
-                .map_err(|e| FireError::RegOptions(format!("--reg-role {r}: {e}")))?,
-        };
-        let field = match self.field.as_str() {
-            "" => s3res_regflip::FloatField::Whole,
-            f => f
-                .parse()
-                .map_err(|e| FireError::RegOptions(format!("--reg-field {f}: {e}")))?,
-        };
-        Ok(s3res_regflip::RegFlipSpec {
-            role,
-            bits: self.bits.max(1),
-            field,
-            registers: self.registers.clone(),
-            ..Default::default()
-        })
-    }
+/// The register injector's spec from `reg`'s options, or a clear error naming the bad option.
+pub fn reg_spec(reg: &RegOptions) -> Result<s3res_regflip::RegFlipSpec, FireError> {
+    let role = match reg.role.as_str() {
+        "" => s3res_regflip::OperandRole::Any,
+        r => r
+            .parse()
+            .map_err(|e| FireError::RegOptions(format!("--reg-role {r}: {e}")))?,
+    };
+    let field = match reg.field.as_str() {
+        "" => s3res_regflip::FloatField::Whole,
+        f => f
+            .parse()
+            .map_err(|e| FireError::RegOptions(format!("--reg-field {f}: {e}")))?,
+    };
+    Ok(s3res_regflip::RegFlipSpec {
+        role,
+        bits: reg.bits.max(1),
+        field,
+        registers: reg.registers.clone(),
+        ..Default::default()
+    })
 }
 
 /// Whether this build can deliver `kind` (checked before a campaign starts, so that a kind
@@ -219,7 +121,7 @@ pub fn fire(
 fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, FireError> {
     use rand::SeedableRng;
     use s3res_regflip::RegFlipError;
-    let spec = reg.spec()?;
+    let spec = reg_spec(reg)?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     for attempt in 1..=REG_ATTEMPTS {
         match s3res_regflip::inject(pid, &spec, &mut rng) {

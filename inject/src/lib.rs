@@ -8,7 +8,7 @@
 //! - [`schedule`]: the seeded plan of instants, targets, bits;
 //! - [`runner`]: one bounded run of a system that leaves nothing behind;
 //! - [`outcome`]: matching injections with the voters' events;
-//! - [`report`]: records, summaries, tables, merging shards; [`interval`]: the exact 95 %
+//! - [`report`]: records (their types are `s3res_protocol::campaign`'s), summaries, tables, merging shards; [`interval`]: the exact 95 %
 //!   interval printed with every rate;
 //! - [`campaign`] and [`classify`]: the two experiments;
 //! - [`stop`]: SIGINT/SIGTERM end the current run cleanly;
@@ -22,9 +22,10 @@ pub mod campaign;
 pub mod classify;
 pub mod fault;
 pub mod interval;
-/// Matching injections with events lives in bootstrap, which shows the verdict of a run with an
-/// injector; re-exported here under its old name.
-pub use s3res_bootstrap::outcome;
+/// Matching injections with events is the protocol's (`s3res-protocol`), shared with
+/// bootstrap, which shows the verdict of a run with an injector; re-exported here under its
+/// old name.
+pub use s3res_protocol::outcome;
 pub mod report;
 pub mod runner;
 pub mod schedule;

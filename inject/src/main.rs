@@ -11,9 +11,9 @@ use anyhow::{bail, Context as _};
 use clap::{ArgAction, Args, Parser, Subcommand};
 use rand::SeedableRng as _;
 
-use s3res_bootstrap::description::{self, HostContext};
-use s3res_bootstrap::exec;
-use s3res_bootstrap::plan::SystemPlan;
+use s3res_description::description::{self, HostContext};
+use s3res_description::exec;
+use s3res_description::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyRun};
 use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
@@ -440,20 +440,14 @@ fn main() -> ExitCode {
     }
     if let Some(sig) = stop.requested() {
         if let Err(e) = &res {
-            eprintln!(
-                "error: {}",
-                s3res_bootstrap::logging::error_chain(e.as_ref())
-            );
+            eprintln!("error: {}", replica_rt::error_chain(e.as_ref()));
         }
         return ExitCode::from((128 + sig).clamp(0, 255) as u8);
     }
     match res {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!(
-                "error: {}",
-                s3res_bootstrap::logging::error_chain(e.as_ref())
-            );
+            eprintln!("error: {}", replica_rt::error_chain(e.as_ref()));
             ExitCode::from(1)
         }
     }

@@ -2,159 +2,16 @@
 //! is a function of the records alone, so `merge` of shards computes exactly what one machine
 //! would have.
 
-use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use replica_rt::machine::{Build, LoadAverage, Machine};
 use serde::{Deserialize, Serialize};
 
-use crate::fault::{Action, FaultKind, RegOptions};
+use crate::fault::FaultKind;
 use crate::interval::Rate;
 use crate::outcome::{Match, Outcome};
-use crate::schedule::{Arrival, VarSpec};
-use crate::target::Pick;
 
-/// `campaign.json`: the parameters of a campaign (or of one shard of it).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CampaignInfo {
-    /// Row label in the tables ("tmr", or what `--label` said).
-    pub config: String,
-    /// The description as given, and the system's name.
-    pub system: PathBuf,
-    pub system_name: String,
-    pub fault: FaultKind,
-    pub rate_hz: f64,
-    pub arrival: Arrival,
-    pub window_ms: u64,
-    /// Runs of the whole campaign (all shards).
-    pub runs: u64,
-    pub seed: u64,
-    /// `(k, n)`: this output holds runs `r` with `r % n == k - 1`. `None`: all runs.
-    pub shard: Option<(u64, u64)>,
-    pub pick: Pick,
-    pub components: Vec<String>,
-    pub var: VarSpec,
-    pub reg: RegOptions,
-    pub match_window_ms: u64,
-    pub run_limit_ms: u64,
-    /// File (in each run's folder) the task writes its verdict to, if any.
-    pub task_summary: Option<String>,
-    /// Redundancy of every component of the system.
-    pub redundancy: BTreeMap<String, String>,
-    /// The machine and build the runs ran on (of the first input, after a `merge`). Each run's
-    /// load average before and after it is in `runs.jsonl`.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub machine: Option<MachineInfo>,
-}
-
-/// Where a campaign ran: the machine (with its load when the campaign began), the load when it
-/// ended, and the build of s3res-bootstrap it ran.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MachineInfo {
-    #[serde(flatten)]
-    pub machine: Machine,
-    #[serde(default)]
-    pub load_at_end: Option<LoadAverage>,
-    pub build: Build,
-}
-
-impl MachineInfo {
-    /// This machine now, running the build of `bootstrap`.
-    pub fn probe(bootstrap: &Path) -> MachineInfo {
-        MachineInfo {
-            machine: Machine::probe(),
-            load_at_end: None,
-            build: Build::of(bootstrap),
-        }
-    }
-}
-
-impl CampaignInfo {
-    /// The same campaign whatever the shard: what shards must agree on to be merged.
-    pub fn identity(&self) -> CampaignInfo {
-        CampaignInfo {
-            shard: None,
-            machine: None,
-            ..self.clone()
-        }
-    }
-
-    /// The runs this shard (or the whole campaign) does.
-    pub fn run_indices(&self) -> impl Iterator<Item = u64> + '_ {
-        (0..self.runs).filter(|r| match self.shard {
-            Some((k, n)) => r % n == k - 1,
-            None => true,
-        })
-    }
-}
-
-/// One line of `injections.jsonl`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct InjectionRecord {
-    pub config: String,
-    /// The campaign seed (the run's own seed is in `runs.jsonl`).
-    pub seed: u64,
-    pub run: u64,
-    pub index: usize,
-    /// Planned instant, from the opening of the run's injection window.
-    pub at_ns: u64,
-    /// CLOCK_MONOTONIC when the signal went out; absent if it did not.
-    #[serde(default)]
-    pub ts_ns: Option<u64>,
-    /// `kind` and its fields (`value`, `offset`, `bits`, `seed`).
-    #[serde(flatten)]
-    pub action: Action,
-    pub component: String,
-    /// Replica slot (absent for an unprotected component or a missed injection).
-    #[serde(default)]
-    pub replica: Option<usize>,
-    #[serde(default)]
-    pub pid: Option<i32>,
-    pub outcome: Outcome,
-    /// Why it was not delivered (outcome `missed`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub miss: Option<String>,
-    #[serde(flatten)]
-    pub matched: Match,
-    /// The injector's own record (register flips).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub injector: Option<serde_json::Value>,
-}
-
-/// One line of `runs.jsonl`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RunRecord {
-    pub config: String,
-    pub seed: u64,
-    pub run: u64,
-    pub run_seed: u64,
-    /// bootstrap's exit code, or the signal that ended it.
-    #[serde(default)]
-    pub exit_code: Option<i32>,
-    #[serde(default)]
-    pub exit_signal: Option<i32>,
-    pub timed_out: bool,
-    /// Every target ran before injection began.
-    pub ready: bool,
-    /// The task's verdict, from the task summary file (`ok`), if one was asked for.
-    #[serde(default)]
-    pub task_summary_ok: Option<bool>,
-    /// The verdict: exit status 0, not timed out, and the task summary (if any) says ok.
-    pub task_ok: bool,
-    pub planned: u64,
-    pub injected: u64,
-    pub false_positives: u64,
-    pub events: u64,
-    pub duration_ms: u64,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-    /// The machine's load average just before the run started and just after it ended.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub load_before: Option<LoadAverage>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub load_after: Option<LoadAverage>,
-}
+pub use s3res_protocol::campaign::{CampaignInfo, InjectionRecord, MachineInfo, RunRecord};
 
 /// Distribution of a latency, microseconds.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -540,7 +397,8 @@ pub fn write_outputs(dir: &Path, outputs: &[CampaignOutput]) -> std::io::Result<
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::schedule::VarField;
+    use s3res_protocol::campaign::{Action, Arrival, Pick, RegOptions, VarField, VarSpec};
+    use std::collections::BTreeMap;
 
     pub(crate) fn info(shard: Option<(u64, u64)>) -> CampaignInfo {
         CampaignInfo {

@@ -13,90 +13,21 @@ use serde::{Deserialize, Serialize};
 
 use crate::fault::{Action, FaultKind};
 
-/// How inter-arrival times are drawn.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum Arrival {
-    /// Exponential with mean 1/rate (a Poisson process).
-    Exponential,
-    /// Exactly 1/rate apart, the first one after 1/rate.
-    Fixed,
-}
+pub use s3res_protocol::campaign::{Arrival, VarField, VarSpec};
 
-/// Which bits of the value at `--var-offset` a variable-level injection may flip. The value is
-/// read as a little-endian 64-bit word (an f64: bit 63 sign, 52..63 exponent, 0..52 mantissa).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum VarField {
-    /// Bit 63 of the f64 (only one bit to flip).
-    Sign,
-    /// Bits 52..63 of the f64.
-    Exponent,
-    /// Bits 0..52 of the f64.
-    Mantissa,
-    /// Any of the 64 bits.
-    Whole,
-    /// Any bit of the single byte at the offset.
-    Byte,
-}
-
-impl VarField {
-    /// The bit range, relative to the offset.
-    pub fn bits(self) -> std::ops::Range<u32> {
-        match self {
-            VarField::Sign => 63..64,
-            VarField::Exponent => 52..63,
-            VarField::Mantissa => 0..52,
-            VarField::Whole => 0..64,
-            VarField::Byte => 0..8,
-        }
+/// The bits a variable-level injection flips: `var.bits` if given, else `var.flips` distinct
+/// bits of its field drawn from `rng`.
+fn choose_bits(var: &VarSpec, rng: &mut ChaCha8Rng) -> Vec<u32> {
+    if let Some(bits) = &var.bits {
+        return bits.clone();
     }
-}
-
-/// What a variable-level injection flips.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct VarSpec {
-    /// Byte offset of the value in the payload.
-    pub offset: u32,
-    pub field: VarField,
-    /// How many distinct bits of the field each injection flips.
-    pub flips: u32,
-    /// Exactly these bits (relative to the offset) instead of a random choice.
-    pub bits: Option<Vec<u32>>,
-}
-
-impl VarSpec {
-    /// Checks that the request can be satisfied; the reason if not.
-    pub fn validate(&self) -> Result<(), String> {
-        let range = self.field.bits();
-        if self.bits.is_none() && (self.flips == 0 || self.flips > range.len() as u32) {
-            return Err(format!(
-                "--var-flips {} does not fit field {:?} ({} bits)",
-                self.flips,
-                self.field,
-                range.len()
-            ));
-        }
-        if let Some(bits) = &self.bits {
-            if bits.is_empty() {
-                return Err("--var-bits names no bit".to_owned());
-            }
-        }
-        Ok(())
-    }
-
-    fn choose(&self, rng: &mut ChaCha8Rng) -> Vec<u32> {
-        if let Some(bits) = &self.bits {
-            return bits.clone();
-        }
-        let range = self.field.bits();
-        let mut bits: Vec<u32> = rand::seq::index::sample(rng, range.len(), self.flips as usize)
-            .into_iter()
-            .map(|i| range.start + i as u32)
-            .collect();
-        bits.sort_unstable();
-        bits
-    }
+    let range = var.field.bits();
+    let mut bits: Vec<u32> = rand::seq::index::sample(rng, range.len(), var.flips as usize)
+        .into_iter()
+        .map(|i| range.start + i as u32)
+        .collect();
+    bits.sort_unstable();
+    bits
 }
 
 /// Everything the schedule depends on.
@@ -190,7 +121,7 @@ pub fn draw_injection(
         },
         FaultKind::Var => Action::Var {
             offset: params.var.offset,
-            bits: params.var.choose(rng),
+            bits: choose_bits(&params.var, rng),
         },
         FaultKind::Reg => Action::Reg { seed: rng.gen() },
         FaultKind::None => return None,

@@ -19,7 +19,7 @@ use rand::{Rng as _, SeedableRng as _};
 use rand_chacha::ChaCha8Rng;
 use thiserror::Error;
 
-use s3res_bootstrap::live::{LiveView, ReplicaState};
+use s3res_protocol::live::{LiveView, ReplicaState};
 
 use crate::fault::{fire, Action, FaultKind, RegOptions};
 use crate::runner::all_running;

@@ -1,20 +1,8 @@
 //! Finding the process to inject into, from bootstrap's live view (`--state FILE`).
 
-use serde::{Deserialize, Serialize};
-
 use s3res_protocol::live::{LiveView, ReplicaState};
 
-/// How the replica of a protected component is chosen.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum Pick {
-    /// Every slot equally likely (the same seed picks the same slots).
-    Uniform,
-    /// Proportional to each running replica's CPU time so far (user + system, from
-    /// /proc/PID/stat): exposure to upsets grows with time on the CPU. The draw is the same for
-    /// the same seed; the slot it lands on depends on the measured times.
-    Cpu,
-}
+pub use s3res_protocol::campaign::Pick;
 
 /// The process an injection goes to.
 #[derive(Debug, Clone, PartialEq, Eq)]

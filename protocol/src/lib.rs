@@ -11,18 +11,24 @@
 //! - [`event`]: the events a voter writes (JSON lines), which bootstrap gathers and campaigns
 //!   match against.
 //! - [`live`]: bootstrap's live view (`--state FILE`), which injectors read.
+//! - [`outcome`]: what became of an injection (matched against the events), and
+//!   [`campaign`]: the records a campaign writes (`campaign.json`, `runs.jsonl`,
+//!   `injections.jsonl`); [`machine`] the machine and build they ran on.
 //! - [`clock`]: the clock of every timestamp in them.
 //! - [`rng`]: the seeded generator (SplitMix64) that makes a mission, a campaign or a test
 //!   replayable from one number.
 
 #![deny(unsafe_code)]
 
+pub mod campaign;
 pub mod clock;
 pub mod contract;
 pub mod event;
 pub mod frame;
 pub mod layout;
 pub mod live;
+pub mod machine;
+pub mod outcome;
 pub mod plan;
 pub mod rng;
 pub mod sched;

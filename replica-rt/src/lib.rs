@@ -44,22 +44,22 @@ pub mod cow;
 pub mod heartbeat;
 pub mod inject;
 mod logging;
-pub mod machine;
 mod port;
 pub mod restart;
 pub mod select;
 pub mod sys;
 
-/// The contract and the framing are the protocol's (`s3res-protocol`), re-exported so that
-/// components keep writing `replica_rt::contract` and `replica_rt::frame`.
-pub use s3res_protocol::{contract, frame};
+/// The contract, the framing and the machine records are the protocol's (`s3res-protocol`),
+/// re-exported so that components keep writing `replica_rt::contract`, `replica_rt::frame` and
+/// `replica_rt::machine`.
+pub use s3res_protocol::{contract, frame, machine};
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use thiserror::Error;
 
 use contract::{Direction, PortMap, PortSpec};
-pub use logging::{init_cli_logging, init_cli_logging_to, init_logging};
+pub use logging::{error_chain, init_cli_logging, init_cli_logging_to, init_logging};
 pub use port::{InPort, OutPort, RecvError, SendError};
 pub use select::{wait_any, Ready, TryRecv};
 

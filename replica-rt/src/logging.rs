@@ -1,6 +1,7 @@
 //! Logging set-up, the one place of the project that installs a `tracing` subscriber: for
 //! components ([`init_logging`]: each line prefixed with who wrote it) and for the command-line
-//! tools and the voter ([`init_cli_logging`]: verbosity from `-q`/`-v`).
+//! tools and the voter ([`init_cli_logging`]: verbosity from `-q`/`-v`), and how they print an
+//! error with its causes ([`error_chain`]).
 
 use std::fmt;
 use std::io::IsTerminal;
@@ -135,9 +136,25 @@ where
     }
 }
 
+/// An error and its causes on one line, `what: why: because`, leaving out a cause whose text
+/// the message before it already ends with (thiserror messages often quote their source).
+pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut line = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let text = c.to_string();
+        if !line.ends_with(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
+        cause = c.source();
+    }
+    line
+}
+
 #[cfg(test)]
 mod tests {
-    use super::prefix_lines;
+    use super::{error_chain, prefix_lines};
 
     #[test]
     fn every_line_is_prefixed_and_ends() {
@@ -145,5 +162,28 @@ mod tests {
             prefix_lines("[echo#1 pid 7] ", "panicked: boom\n  at x.rs:1"),
             "[echo#1 pid 7] panicked: boom\n[echo#1 pid 7]   at x.rs:1\n"
         );
+    }
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot create {path}: {source}")]
+    struct Quoting {
+        path: &'static str,
+        source: std::io::Error,
+    }
+
+    #[test]
+    fn a_quoted_cause_is_not_repeated() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "no such file");
+        let e = anyhow::Error::new(Quoting {
+            path: "x",
+            source: io,
+        })
+        .context("did not run");
+        assert_eq!(
+            error_chain(e.as_ref()),
+            "did not run: cannot create x: no such file"
+        );
+        let plain = anyhow::anyhow!("inner").context("outer");
+        assert_eq!(error_chain(plain.as_ref()), "outer: inner");
     }
 }

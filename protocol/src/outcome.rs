@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use s3res_protocol::event::{Event, EventKind};
+use crate::event::{Event, EventKind};
 
 /// What became of one injection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -201,7 +201,7 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
 #[cfg(test)]
 mod tests {
     use super::*;
-    use s3res_protocol::event::RecoveryMethod;
+    use crate::event::RecoveryMethod;
 
     const MS: u64 = 1_000_000;
 

@@ -10,9 +10,9 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use thiserror::Error;
 
-use replica_rt::contract::MAX_PORTS;
-use replica_rt::frame::DEFAULT_MAX_FRAME;
 use s3res_anomaly::{Field, FieldLayout, Model};
+use s3res_protocol::contract::MAX_PORTS;
+use s3res_protocol::frame::DEFAULT_MAX_FRAME;
 use s3res_protocol::plan::{
     default_max_restarts, default_restart_timeout_ms, default_restart_window_ms,
     default_start_timeout_ms, default_stream_window, CapturePlan, Framing, Mode, MonitorPlan,

@@ -1,5 +1,5 @@
 //! The validated system: what runs, how, and which channel each port is on. Built by
-//! [`crate::description`], consumed by [`crate::run`] and printed by `--check`.
+//! [`crate::description`], run by bootstrap (`s3res_bootstrap::run`) and printed by `--check`.
 
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
@@ -167,6 +167,15 @@ pub struct InjectPlan {
     pub after_s: f64,
 }
 
+/// What `--check` says about priorities and CPUs, beside the plan: bootstrap's
+/// `sched::SystemSched`, which finds out by probing the machine.
+pub trait SchedLines {
+    /// One line about the system as a whole, if there is something to say.
+    fn headline(&self) -> Option<String>;
+    /// The lines of component `index` (`c`), appended to `out`.
+    fn describe(&self, index: usize, c: &ComponentPlan, out: &mut String);
+}
+
 impl SystemPlan {
     /// True if some channel ends at bootstrap's stdout: then fd 1 carries frames, and every
     /// component's own stdout is sent to stderr instead so text never mixes with frames.
@@ -183,7 +192,7 @@ impl SystemPlan {
     pub fn describe(
         &self,
         voter: Option<&std::path::Path>,
-        sched: Option<&crate::sched::SystemSched>,
+        sched: Option<&dyn SchedLines>,
     ) -> String {
         let mut out = String::new();
         let _ = writeln!(

@@ -1,0 +1,361 @@
+//! The records a campaign of `s3res-inject` writes, and the parameters they are built from:
+//! `campaign.json` ([`CampaignInfo`]), `runs.jsonl` ([`RunRecord`]) and `injections.jsonl`
+//! ([`InjectionRecord`]), one JSON object a line. `merge`, `--resume` and outside tools read
+//! them back with these types; what an injection became is [`crate::outcome`]'s.
+//!
+//! The parameter enums are also command-line values of `s3res-inject`: with the `clap`
+//! feature they derive `clap::ValueEnum` (their doc comments are the help), without it this
+//! crate does not depend on clap.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::machine::{Build, LoadAverage, Machine};
+use crate::outcome::{Match, Outcome};
+
+/// What kind of fault a campaign injects.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum FaultKind {
+    /// Nothing is injected: a baseline that counts false positives and task success.
+    None,
+    /// Execution error: SIGKILL.
+    Exec,
+    /// Silent data corruption: replica-rt flips one bit of the next outgoing frame (SIGUSR2).
+    Sdc,
+    /// Control-flow error: replica-rt spins forever (SIGRTMIN+2).
+    Cfe,
+    /// Variable-level flip: chosen bits at a chosen byte offset of the next frame (SIGRTMIN+3).
+    Var,
+    /// Register bit flip through ptrace (the s3res-regflip crate).
+    Reg,
+}
+
+impl FaultKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            FaultKind::None => "none",
+            FaultKind::Exec => "exec",
+            FaultKind::Sdc => "sdc",
+            FaultKind::Cfe => "cfe",
+            FaultKind::Var => "var",
+            FaultKind::Reg => "reg",
+        }
+    }
+}
+
+impl std::fmt::Display for FaultKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// One injection, fully decided.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum Action {
+    Exec,
+    /// `value` is the `sigqueue` value: the bit to flip, reduced by the replica modulo the
+    /// frame's bit count (bit 0 = lowest bit of the first payload byte).
+    Sdc {
+        value: u32,
+    },
+    Cfe,
+    /// Flip `bits` (bit 0 = lowest bit of byte `offset`, little-endian) of the next frame.
+    Var {
+        offset: u32,
+        bits: Vec<u32>,
+    },
+    /// A register flip; `seed` seeds the ChaCha8 generator handed to the register injector.
+    Reg {
+        seed: u64,
+    },
+}
+
+impl Action {
+    pub fn kind(&self) -> FaultKind {
+        match self {
+            Action::Exec => FaultKind::Exec,
+            Action::Sdc { .. } => FaultKind::Sdc,
+            Action::Cfe => FaultKind::Cfe,
+            Action::Var { .. } => FaultKind::Var,
+            Action::Reg { .. } => FaultKind::Reg,
+        }
+    }
+}
+
+/// Options of the register injector, as given on the command line (see
+/// `s3res-regflip`'s `RegFlipSpec`).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RegOptions {
+    /// `source`, `destination` or `any` operand.
+    pub role: String,
+    /// Bits flipped per injection.
+    pub bits: u32,
+    /// `whole`, `sign`, `exponent` or `mantissa`.
+    pub field: String,
+    /// Only these registers (names as the injector spells them); all if `None`.
+    pub registers: Option<Vec<String>>,
+}
+
+/// How inter-arrival times are drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum Arrival {
+    /// Exponential with mean 1/rate (a Poisson process).
+    Exponential,
+    /// Exactly 1/rate apart, the first one after 1/rate.
+    Fixed,
+}
+
+/// Which bits of the value at `--var-offset` a variable-level injection may flip. The value is
+/// read as a little-endian 64-bit word (an f64: bit 63 sign, 52..63 exponent, 0..52 mantissa).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum VarField {
+    /// Bit 63 of the f64 (only one bit to flip).
+    Sign,
+    /// Bits 52..63 of the f64.
+    Exponent,
+    /// Bits 0..52 of the f64.
+    Mantissa,
+    /// Any of the 64 bits.
+    Whole,
+    /// Any bit of the single byte at the offset.
+    Byte,
+}
+
+impl VarField {
+    /// The bit range, relative to the offset.
+    pub fn bits(self) -> std::ops::Range<u32> {
+        match self {
+            VarField::Sign => 63..64,
+            VarField::Exponent => 52..63,
+            VarField::Mantissa => 0..52,
+            VarField::Whole => 0..64,
+            VarField::Byte => 0..8,
+        }
+    }
+}
+
+/// What a variable-level injection flips.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct VarSpec {
+    /// Byte offset of the value in the payload.
+    pub offset: u32,
+    pub field: VarField,
+    /// How many distinct bits of the field each injection flips.
+    pub flips: u32,
+    /// Exactly these bits (relative to the offset) instead of a random choice.
+    pub bits: Option<Vec<u32>>,
+}
+
+impl VarSpec {
+    /// Checks that the request can be satisfied; the reason if not.
+    pub fn validate(&self) -> Result<(), String> {
+        let range = self.field.bits();
+        if self.bits.is_none() && (self.flips == 0 || self.flips > range.len() as u32) {
+            return Err(format!(
+                "--var-flips {} does not fit field {:?} ({} bits)",
+                self.flips,
+                self.field,
+                range.len()
+            ));
+        }
+        if let Some(bits) = &self.bits {
+            if bits.is_empty() {
+                return Err("--var-bits names no bit".to_owned());
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How the replica of a protected component is chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum Pick {
+    /// Every slot equally likely (the same seed picks the same slots).
+    Uniform,
+    /// Proportional to each running replica's CPU time so far (user + system, from
+    /// /proc/PID/stat): exposure to upsets grows with time on the CPU. The draw is the same for
+    /// the same seed; the slot it lands on depends on the measured times.
+    Cpu,
+}
+
+/// `campaign.json`: the parameters of a campaign (or of one shard of it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CampaignInfo {
+    /// Row label in the tables ("tmr", or what `--label` said).
+    pub config: String,
+    /// The description as given, and the system's name.
+    pub system: PathBuf,
+    pub system_name: String,
+    pub fault: FaultKind,
+    pub rate_hz: f64,
+    pub arrival: Arrival,
+    pub window_ms: u64,
+    /// Runs of the whole campaign (all shards).
+    pub runs: u64,
+    pub seed: u64,
+    /// `(k, n)`: this output holds runs `r` with `r % n == k - 1`. `None`: all runs.
+    pub shard: Option<(u64, u64)>,
+    pub pick: Pick,
+    pub components: Vec<String>,
+    pub var: VarSpec,
+    pub reg: RegOptions,
+    pub match_window_ms: u64,
+    pub run_limit_ms: u64,
+    /// File (in each run's folder) the task writes its verdict to, if any.
+    pub task_summary: Option<String>,
+    /// Redundancy of every component of the system.
+    pub redundancy: BTreeMap<String, String>,
+    /// The machine and build the runs ran on (of the first input, after a `merge`). Each run's
+    /// load average before and after it is in `runs.jsonl`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub machine: Option<MachineInfo>,
+}
+
+/// Where a campaign ran: the machine (with its load when the campaign began), the load when it
+/// ended, and the build of s3res-bootstrap it ran.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MachineInfo {
+    #[serde(flatten)]
+    pub machine: Machine,
+    #[serde(default)]
+    pub load_at_end: Option<LoadAverage>,
+    pub build: Build,
+}
+
+impl MachineInfo {
+    /// This machine now, running the build of `bootstrap`.
+    pub fn probe(bootstrap: &Path) -> MachineInfo {
+        MachineInfo {
+            machine: Machine::probe(),
+            load_at_end: None,
+            build: Build::of(bootstrap),
+        }
+    }
+}
+
+impl CampaignInfo {
+    /// The same campaign whatever the shard: what shards must agree on to be merged.
+    pub fn identity(&self) -> CampaignInfo {
+        CampaignInfo {
+            shard: None,
+            machine: None,
+            ..self.clone()
+        }
+    }
+
+    /// The runs this shard (or the whole campaign) does.
+    pub fn run_indices(&self) -> impl Iterator<Item = u64> + '_ {
+        (0..self.runs).filter(|r| match self.shard {
+            Some((k, n)) => r % n == k - 1,
+            None => true,
+        })
+    }
+}
+
+/// One line of `injections.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InjectionRecord {
+    pub config: String,
+    /// The campaign seed (the run's own seed is in `runs.jsonl`).
+    pub seed: u64,
+    pub run: u64,
+    pub index: usize,
+    /// Planned instant, from the opening of the run's injection window.
+    pub at_ns: u64,
+    /// CLOCK_MONOTONIC when the signal went out; absent if it did not.
+    #[serde(default)]
+    pub ts_ns: Option<u64>,
+    /// `kind` and its fields (`value`, `offset`, `bits`, `seed`).
+    #[serde(flatten)]
+    pub action: Action,
+    pub component: String,
+    /// Replica slot (absent for an unprotected component or a missed injection).
+    #[serde(default)]
+    pub replica: Option<usize>,
+    #[serde(default)]
+    pub pid: Option<i32>,
+    pub outcome: Outcome,
+    /// Why it was not delivered (outcome `missed`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub miss: Option<String>,
+    #[serde(flatten)]
+    pub matched: Match,
+    /// The injector's own record (register flips).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub injector: Option<serde_json::Value>,
+}
+
+/// One line of `runs.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunRecord {
+    pub config: String,
+    pub seed: u64,
+    pub run: u64,
+    pub run_seed: u64,
+    /// bootstrap's exit code, or the signal that ended it.
+    #[serde(default)]
+    pub exit_code: Option<i32>,
+    #[serde(default)]
+    pub exit_signal: Option<i32>,
+    pub timed_out: bool,
+    /// Every target ran before injection began.
+    pub ready: bool,
+    /// The task's verdict, from the task summary file (`ok`), if one was asked for.
+    #[serde(default)]
+    pub task_summary_ok: Option<bool>,
+    /// The verdict: exit status 0, not timed out, and the task summary (if any) says ok.
+    pub task_ok: bool,
+    pub planned: u64,
+    pub injected: u64,
+    pub false_positives: u64,
+    pub events: u64,
+    pub duration_ms: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// The machine's load average just before the run started and just after it ended.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load_before: Option<LoadAverage>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load_after: Option<LoadAverage>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Lines as campaigns have written them: each parses and is written back byte for byte, so
+    /// `merge` and `--resume` keep reading the files of earlier builds.
+    #[test]
+    fn records_keep_their_format() {
+        fn same<T: Serialize + serde::de::DeserializeOwned>(line: &str) -> T {
+            let record: T = serde_json::from_str(line).unwrap();
+            assert_eq!(serde_json::to_string(&record).unwrap(), line);
+            record
+        }
+        let info: CampaignInfo = same(
+            r#"{"config":"tmr","system":"s.json","system_name":"s","fault":"var","rate_hz":2.0,"arrival":"exponential","window_ms":1000,"runs":4,"seed":1,"shard":[1,2],"pick":"cpu","components":["echo"],"var":{"offset":0,"field":"exponent","flips":1,"bits":null},"reg":{"role":"","bits":0,"field":"","registers":null},"match_window_ms":2000,"run_limit_ms":60000,"task_summary":null,"redundancy":{"echo":"tmr"},"machine":{"cpu_model":"x","cores":2,"usable_cores":2,"kernel":"6.1","load":null,"load_at_end":null,"build":{"profile":"release","commit":"abc","dirty":false}}}"#,
+        );
+        assert_eq!(info.run_indices().collect::<Vec<_>>(), vec![0, 2]);
+        let inj: InjectionRecord = same(
+            r#"{"config":"tmr","seed":1,"run":0,"index":0,"at_ns":5,"ts_ns":7,"kind":"var","offset":8,"bits":[63],"component":"echo","replica":1,"pid":42,"outcome":"recovered","detected_as":"sdc","detection_latency_us":120,"recovery_us":900,"recovered_after_us":1100,"recovery_method":"fork"}"#,
+        );
+        assert_eq!(inj.action.kind(), FaultKind::Var);
+        same::<InjectionRecord>(
+            r#"{"config":"tmr","seed":1,"run":1,"index":2,"at_ns":5,"ts_ns":null,"kind":"sdc","value":3,"component":"echo","replica":null,"pid":null,"outcome":"missed","miss":"target busy"}"#,
+        );
+        same::<RunRecord>(
+            r#"{"config":"tmr","seed":1,"run":0,"run_seed":99,"exit_code":0,"exit_signal":null,"timed_out":false,"ready":true,"task_summary_ok":null,"task_ok":true,"planned":3,"injected":2,"false_positives":0,"events":4,"duration_ms":1500,"load_before":{"one":0.5,"five":0.25,"fifteen":0.125}}"#,
+        );
+    }
+}
