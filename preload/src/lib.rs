@@ -18,21 +18,25 @@
 //!   environment and stays out of it.
 //!
 //! It also defines `write`, which the dynamic linker then resolves to here for the whole
-//! program, to keep lines whole across a fork: while the program's last `write` to stdout ended
-//! in the middle of a line (`print` in `python3 -u` writes the text and its newline
-//! separately), the restart signal is held, so a fork child never starts its output with the
-//! tail of its donor's line. The same place applies SDC injections to the outgoing line. (C
-//! stdio writes from inside libc and does not come here; line-buffered, it writes whole lines.)
+//! program, to keep lines whole across a fork: during a `write` to stdout, and for as long as
+//! the program's last one ended in the middle of a line (`print` in `python3 -u` writes the
+//! text and its newline separately), restarts are deferred (`replica_rt::restart::hold_restarts`:
+//! an atomic counter, no system call), so a fork child never starts its output with the tail
+//! of its donor's line, and a RESTART that came meanwhile forks at the end of the `write` that
+//! completes the line. The same place applies SDC injections to the outgoing line. (C stdio
+//! writes from inside libc and does not come here; line-buffered, it writes whole lines.)
 //!
 //! Outside s3res (no contract in the environment) the library does nothing.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use replica_rt::contract::{signals, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET};
+use replica_rt::contract::{ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET};
+use replica_rt::restart;
 
 /// The library is active: loaded by a voter into a replica.
 static ACTIVE: AtomicBool = AtomicBool::new(false);
-/// The last write to stdout ended in the middle of a line (RESTART is held meanwhile).
+/// The last write to stdout ended in the middle of a line (restarts are held meanwhile: this
+/// library holds one `hold_restarts` exactly while this is set, or while in `write`).
 static MID_LINE: AtomicBool = AtomicBool::new(false);
 
 /// Exit status of a replica that cannot be protected this way (refused at load).
@@ -107,8 +111,8 @@ fn line_buffer_stdout() {
     }
 }
 
-/// `write(2)`, as the program calls it. For stdout, in a replica: holds the restart signal
-/// while a line is incomplete, and applies a pending SDC injection to the bytes written.
+/// `write(2)`, as the program calls it. For stdout, in a replica: defers restarts while a line
+/// is incomplete, and applies a pending SDC injection to the bytes written.
 ///
 /// # Safety
 /// The contract of `write(2)`: `buf` is readable for `count` bytes.
@@ -119,7 +123,11 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
     }
     // SAFETY: the caller's contract: `buf` is readable for `count` bytes.
     let bytes = unsafe { std::slice::from_raw_parts(buf.cast::<u8>(), count) };
-    hold_restart(true);
+    // Mid-line, the hold taken by the write that left the line open is still on: not twice.
+    let held = MID_LINE.load(Ordering::SeqCst);
+    if !held {
+        restart::hold_restarts();
+    }
     let n = if replica_rt::inject::injection_pending() {
         let mut copy = bytes.to_vec();
         // The newline stays: the flip must change a line, not the framing.
@@ -135,7 +143,9 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
         }
     }
     if !MID_LINE.load(Ordering::SeqCst) {
-        hold_restart(false);
+        // The line is whole: a RESTART that came meanwhile forks here (errno is kept, for a
+        // failed write's caller).
+        restart::release_restarts();
     }
     n
 }
@@ -144,21 +154,4 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
 fn raw_write(fd: libc::c_int, buf: *const libc::c_void, count: usize) -> isize {
     // SAFETY: the write system call with the caller's arguments; the kernel checks the buffer.
     unsafe { libc::syscall(libc::SYS_write, fd, buf, count) as isize }
-}
-
-/// Blocks (`true`) or unblocks the restart signal for this thread.
-fn hold_restart(hold: bool) {
-    // SAFETY: sigemptyset/sigaddset fill a local set; sigprocmask only changes this thread's
-    // mask and reads nothing else of ours.
-    unsafe {
-        let mut set: libc::sigset_t = std::mem::zeroed();
-        libc::sigemptyset(&mut set);
-        libc::sigaddset(&mut set, signals::RESTART);
-        let how = if hold {
-            libc::SIG_BLOCK
-        } else {
-            libc::SIG_UNBLOCK
-        };
-        libc::sigprocmask(how, &set, std::ptr::null_mut());
-    }
 }

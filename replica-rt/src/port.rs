@@ -5,7 +5,7 @@ use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
 
 use thiserror::Error;
 
-use crate::contract::{signals, FIRST_PORT_FD};
+use crate::contract::FIRST_PORT_FD;
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
 use crate::{inject, restart, sys};
 
@@ -168,7 +168,8 @@ pub struct OutPort {
     max: usize,
     /// Header and payload of the frame being sent, reused from frame to frame.
     buf: Vec<u8>,
-    /// In replica mode a RESTART must not fork in the middle of a frame (see `restart`).
+    /// In replica mode a RESTART must not fork in the middle of a frame (see `restart`): it is
+    /// deferred to the end of the frame.
     replica: bool,
     /// Position in the port map (fd − 3), under which whole frames sent are counted for the
     /// restart handshake; `None` off the replica fd layout (standalone stdout).
@@ -209,13 +210,11 @@ impl OutPort {
         self.buf.clear();
         frame::encode_into(payload, &mut self.buf);
         inject::apply_pending(&self.name, &mut self.buf[HEADER_LEN..]);
-        let _no_restart = if self.replica {
-            Some(sys::block_signal(signals::RESTART).map_err(|e| self.io_error(e))?)
-        } else {
-            None
-        };
+        // A RESTART from here until the guard drops forks at the drop, once the frame is whole
+        // and counted (no system call: see `restart`, "Output frames stay whole").
+        let _deferred = self.replica.then(restart::RestartsHeld::new);
         write_all(self.fd.as_fd(), &self.buf).map_err(|e| self.io_error(e))?;
-        // Still under the RESTART block: a fork sees the count and the pipe agree.
+        // Still deferred: a fork sees the count and the pipe agree.
         if let Some(position) = self.position {
             restart::count_sent(position);
         }

@@ -38,16 +38,69 @@
 //! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
 //!
-//! # Output frames stay whole
+//! # Output frames stay whole: restarts are deferred, not masked
 //!
-//! [`crate::OutPort::send`] blocks RESTART while it writes a frame. Otherwise a fork in the
-//! middle of a large frame (more than a pipe holds, written in several `write`s) would let the
-//! child finish the frame on its *new* output pipe, which would then start with the tail of a
-//! frame. The cost for the voter: a donor blocked writing a frame forks only once the voter has
-//! drained enough of its output for the write to finish.
+//! A fork in the middle of a large frame (more than a pipe holds, written in several `write`s)
+//! would let the child finish the frame on its *new* output pipe, which would then start with
+//! the tail of a frame; a fork between the write and `count_sent` would report a count the
+//! pipe disagrees with. So [`crate::OutPort::send`] writes and counts each frame inside a
+//! *deferral* ([`hold_restarts`] … [`release_restarts`], through the guard `RestartsHeld`), and the
+//! preload library holds one while an unmodified program's stdout is mid-line. No system call
+//! is made for it: a deferral is an atomic counter (`Deferral::depth`) and a RESTART that comes
+//! meanwhile an atomic note (`Deferral::pending`), not a signal mask (it was a `pthread_sigmask`
+//! pair per frame before, two system calls per frame per replica).
+//!
+//! - The handler (`on_restart`) reads its nonce from the siginfo (as before: `sigqueue`'s
+//!   value, 0 for a plain `kill`). If `depth` is non-zero it only records the nonce in
+//!   `pending` (one store) and returns: no fork. Otherwise it clears `pending` and forks at
+//!   once, in the handler, as it always did.
+//! - [`release_restarts`] decrements the depth; the one that brings it to zero then looks at
+//!   `pending`, and if a restart is pending it holds again, takes the nonce and runs the
+//!   same fork (`restart_now`, async-signal-safe, now in normal context), then releases
+//!   again (and looks again). The depth is above zero while that fork runs, so a RESTART
+//!   arriving then is recorded, not nested.
+//! - `restart_now` keeps the handler's checks: the single-thread check (preload) comes before
+//!   every fork, whichever path reaches it, and `errno` is saved and restored around it — the
+//!   preload library's `write` returns to a C caller that may read `errno` after it.
+//!
+//! Every access is a `SeqCst` atomic (the handler runs on the same thread, so this is about the
+//! compiler: nothing is moved across the depth's increment or decrement, and the frame's
+//! `write`s and its count stay between them). Components are single-threaded (below), so
+//! the counter is process-wide, no thread-local (which a handler cannot use safely anyway).
+//!
+//! The races, each closed:
+//!
+//! - **RESTART just before the deferral starts**: depth 0, the handler forks; the frame has
+//!   not been written, the count does not include it, the child writes it on its new pipe.
+//! - **RESTART inside** (during the `write`s, between the last `write` and the count, or after
+//!   the count): recorded; the fork happens at the release, after the frame is whole and
+//!   counted, so the child's output starts at a frame boundary and `Ready`'s count agrees
+//!   with the donor's pipe. A blocked `write` interrupted by the handler returns what it wrote
+//!   (or is restarted, `SA_RESTART`), and `send` writes the rest, as for any signal.
+//! - **RESTART between the decrement to zero and the look at `pending`**: the handler
+//!   sees depth 0, clears `pending` (its own, newer nonce supersedes the recorded one)
+//!   and forks; the release then finds nothing pending. One fork, with the newest nonce.
+//!   (Looking first and decrementing after would lose a RESTART that lands in between.)
+//! - **RESTART between that look and the re-hold**: as above, the handler forks and clears;
+//!   the release, holding again, takes nothing, releases and looks again.
+//! - **Two RESTARTs inside one deferral**: the later nonce overwrites the earlier; one fork.
+//!   The voter sends a donor a second RESTART only once its first attempt is over (joined, or
+//!   failed: timed out), and then waits for the second attempt's nonce alone, so the newest is
+//!   the one to answer. (A masked
+//!   signal did worse: the kernel keeps the *first* of two pending standard signals, so the
+//!   child answered with the abandoned attempt's nonce and was refused.)
+//! - **RESTART while the deferred fork runs** (depth held): recorded; in the donor the release
+//!   loop forks again for it afterwards (the voter abandoned the earlier attempt, so that
+//!   child is refused as stale, as before). The fork child inherits the donor's
+//!   `pending`, aimed at the donor's pid, and clears it first thing; a RESTART aimed at
+//!   the child itself (after its `Ready`) is then recorded and run by the child's own release.
+//! - **Nested deferrals** (the counter): only the outermost release forks.
+//!
+//! The cost for the voter is unchanged: a donor blocked writing a frame forks only once the
+//! voter has drained enough of its output for the write to finish.
 
 use std::mem::{size_of, MaybeUninit};
-use std::sync::atomic::{AtomicI32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicI32, AtomicU32, AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 use crate::contract::handshake::{
@@ -78,8 +131,8 @@ static VOTER_ADDR: OnceLock<VoterAddr> = OnceLock::new();
 static FORKED_FROM: AtomicI32 = AtomicI32::new(0);
 
 /// Whole frames sent on each port since exec, by port position (fd − [`FIRST_PORT_FD`]). Updated
-/// by [`crate::OutPort::send`] while RESTART is blocked, so at a fork it counts exactly the frames
-/// that are whole in the donor's output pipes; the child reports it in [`Ready`].
+/// by [`crate::OutPort::send`] inside a deferral (module docs), so at a fork it counts exactly the
+/// frames that are whole in the donor's output pipes; the child reports it in [`Ready`].
 ///
 /// [`FIRST_PORT_FD`]: crate::contract::FIRST_PORT_FD
 static FRAMES_SENT: [AtomicU64; MAX_PORTS] = [const { AtomicU64::new(0) }; MAX_PORTS];
@@ -88,6 +141,109 @@ static FRAMES_SENT: [AtomicU64; MAX_PORTS] = [const { AtomicU64::new(0) }; MAX_P
 pub(crate) fn count_sent(port: usize) {
     if let Some(n) = FRAMES_SENT.get(port) {
         n.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// A value of the pending nonce: a RESTART is pending, its nonce in the low 32 bits.
+const PENDING: u64 = 1 << 32;
+
+/// Where restarts are deferred (module docs, "Output frames stay whole"): one per process,
+/// [`DEFERRAL`]; the unit tests make their own.
+struct Deferral {
+    /// Deferrals open now (nested ones count). RESTART forks only at zero.
+    depth: AtomicU32,
+    /// `PENDING | nonce` of the RESTART that came last while `depth` was above zero; 0 if none.
+    pending: AtomicU64,
+}
+
+/// The process's deferral: held by [`crate::OutPort::send`] around each frame, by the preload
+/// library while a line is incomplete, and read by the handler.
+static DEFERRAL: Deferral = Deferral::new();
+
+impl Deferral {
+    const fn new() -> Self {
+        Deferral {
+            depth: AtomicU32::new(0),
+            pending: AtomicU64::new(0),
+        }
+    }
+
+    fn hold(&self) {
+        self.depth.fetch_add(1, Ordering::SeqCst);
+    }
+
+    /// What the handler does with a RESTART carrying `nonce`: record it while deferred, else
+    /// `restart` now (superseding any nonce recorded earlier that nobody has taken yet).
+    /// Async-signal-safe: atomics only, then `restart`.
+    fn signal(&self, nonce: u32, restart: impl FnOnce(u32)) {
+        if self.depth.load(Ordering::SeqCst) > 0 {
+            self.pending
+                .store(PENDING | u64::from(nonce), Ordering::SeqCst);
+        } else {
+            self.pending.store(0, Ordering::SeqCst);
+            restart(nonce);
+        }
+    }
+
+    /// Ends one deferral; the outermost runs `restart` for a RESTART that came meanwhile,
+    /// holding again while it runs, until none is pending. A release without a hold is ignored.
+    fn release(&self, mut restart: impl FnMut(u32)) {
+        loop {
+            // Decrement first, look after: a RESTART landing in between finds depth 0 and
+            // forks in its handler; looking first would leave it recorded and nobody to run it.
+            let Ok(was) = self
+                .depth
+                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |d| d.checked_sub(1))
+            else {
+                return;
+            };
+            if was != 1 || self.pending.load(Ordering::SeqCst) == 0 {
+                return;
+            }
+            self.hold();
+            let pending = self.pending.swap(0, Ordering::SeqCst);
+            if pending != 0 {
+                restart(pending as u32);
+            }
+        }
+    }
+
+    /// Drops a recorded RESTART (a fork child: it was aimed at the donor).
+    fn forget_pending(&self) {
+        self.pending.store(0, Ordering::SeqCst);
+    }
+}
+
+/// Defers RESTART until the matching [`release_restarts`]: a RESTART that arrives meanwhile
+/// forks there, after the caller's output is whole, instead of in its handler. No system call,
+/// async-signal-safe. Holds nest; every hold must be ended by exactly one release. The preload
+/// library holds while an unmodified program's stdout is mid-line; replica-rt's own
+/// [`crate::OutPort::send`] holds around every frame.
+pub fn hold_restarts() {
+    DEFERRAL.hold();
+}
+
+/// Ends a [`hold_restarts`]. The outermost release forks for a RESTART that came meanwhile
+/// (the newest one's nonce), in the caller's context, and returns in the donor and — once it
+/// has joined the voter — in the child, as the handler would. `errno` is left as it was.
+pub fn release_restarts() {
+    DEFERRAL.release(restart_now);
+}
+
+/// [`hold_restarts`] until dropped.
+#[must_use = "restarts are deferred only while the guard lives"]
+pub(crate) struct RestartsHeld(());
+
+impl RestartsHeld {
+    pub(crate) fn new() -> Self {
+        hold_restarts();
+        RestartsHeld(())
+    }
+}
+
+impl Drop for RestartsHeld {
+    fn drop(&mut self) {
+        release_restarts();
     }
 }
 
@@ -198,6 +354,19 @@ pub fn thread_count() -> Option<u64> {
 }
 
 extern "C" fn on_restart(_sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *mut libc::c_void) {
+    // The attempt's nonce, kept (deferred) or taken onto the stack before the fork, so the
+    // child has it.
+    // SAFETY: the kernel passes a valid (or no) siginfo to an SA_SIGINFO handler.
+    let info = unsafe { info.as_ref() };
+    let nonce = info.and_then(sys::queued_value).unwrap_or(0) as u32;
+    DEFERRAL.signal(nonce, restart_now);
+}
+
+/// The restart itself: fork, and in the child join the voter. Runs in the handler, or at the
+/// release of a deferral (then in normal context); async-signal-safe either way. `errno` is
+/// saved and restored, so neither the interrupted code nor the caller of a release sees it
+/// change.
+fn restart_now(nonce: u32) {
     let saved = errno();
     if REFUSE_WHEN_THREADED.load(Ordering::SeqCst) && thread_count() != Some(1) {
         const MSG: &[u8] = b"s3res: this program runs more than one thread; a fork copies only \
@@ -207,14 +376,13 @@ one, so it cannot be a recovery donor (refused)\n";
         set_errno(saved);
         return;
     }
-    // The attempt's nonce, read before the fork so the child has it on its stack.
-    // SAFETY: the kernel passes a valid (or no) siginfo to an SA_SIGINFO handler.
-    let info = unsafe { info.as_ref() };
-    let nonce = info.and_then(sys::queued_value).unwrap_or(0) as u32;
     // SAFETY: components are single-threaded (module doc), and the child runs only
     // async-signal-safe code (`become_replacement`) before returning to the component.
     let pid = unsafe { raw_fork() };
     if pid == 0 {
+        // A RESTART recorded in the donor after its nonce was taken was aimed at the donor,
+        // which keeps its own copy and forks for it; it is not the child's.
+        DEFERRAL.forget_pending();
         become_replacement(nonce);
     }
     // In the donor: nothing else. A failed fork (-1) is seen by the voter as a connect timeout.
@@ -551,6 +719,129 @@ fn set_errno(v: libc::c_int) {
 
 #[cfg(test)]
 mod tests {
+    use super::{Deferral, Ordering};
+    use std::cell::RefCell;
+
+    /// Records the nonces a deferral's restarts ran with.
+    #[derive(Default)]
+    struct Forks(RefCell<Vec<u32>>);
+
+    impl Forks {
+        fn run(&self) -> impl FnMut(u32) + '_ {
+            |nonce| self.0.borrow_mut().push(nonce)
+        }
+        fn take(&self) -> Vec<u32> {
+            std::mem::take(&mut self.0.borrow_mut())
+        }
+    }
+
+    fn never(nonce: u32) {
+        panic!("restart {nonce:#x} ran while deferred");
+    }
+
+    #[test]
+    fn restart_outside_a_deferral_runs_at_once() {
+        let d = Deferral::new();
+        let forks = Forks::default();
+        d.signal(7, forks.run());
+        assert_eq!(forks.take(), [7]);
+        // Nothing left for a later release.
+        d.hold();
+        d.release(forks.run());
+        assert_eq!(forks.take(), [] as [u32; 0]);
+    }
+
+    #[test]
+    fn restart_inside_runs_once_at_the_release_with_the_newest_nonce() {
+        let d = Deferral::new();
+        let forks = Forks::default();
+        d.hold();
+        d.signal(1, never);
+        d.signal(2, never);
+        assert_eq!(forks.take(), [] as [u32; 0]);
+        d.release(forks.run());
+        assert_eq!(forks.take(), [2]);
+        assert_eq!(d.depth.load(Ordering::SeqCst), 0);
+        assert_eq!(d.pending.load(Ordering::SeqCst), 0);
+        // A nonce of 0 (a plain `kill`) is still a pending restart.
+        d.hold();
+        d.signal(0, never);
+        d.release(forks.run());
+        assert_eq!(forks.take(), [0]);
+    }
+
+    #[test]
+    fn only_the_outermost_release_restarts() {
+        let d = Deferral::new();
+        let forks = Forks::default();
+        d.hold();
+        d.hold();
+        d.signal(3, never);
+        d.release(forks.run());
+        assert_eq!(forks.take(), [] as [u32; 0], "inner release");
+        d.release(forks.run());
+        assert_eq!(forks.take(), [3]);
+    }
+
+    /// A RESTART that lands while the deferred restart runs is recorded (the depth is held, so
+    /// it does not nest) and run after it, once.
+    #[test]
+    fn restart_during_the_deferred_restart_runs_after_it() {
+        let d = Deferral::new();
+        let mut ran = Vec::new();
+        d.hold();
+        d.signal(10, never);
+        d.release(|nonce| {
+            assert!(
+                d.depth.load(Ordering::SeqCst) > 0,
+                "deferred restart runs held"
+            );
+            ran.push(nonce);
+            if nonce == 10 {
+                d.signal(11, never);
+            }
+        });
+        assert_eq!(ran, [10, 11]);
+        assert_eq!(d.depth.load(Ordering::SeqCst), 0);
+    }
+
+    /// A release that finds a RESTART recorded, and one that arrives once the depth is zero
+    /// again: the handler runs the new one itself and the recorded one is superseded, not run
+    /// a second time.
+    #[test]
+    fn restart_after_the_depth_reaches_zero_supersedes_the_recorded_one() {
+        let d = Deferral::new();
+        let forks = Forks::default();
+        d.hold();
+        d.signal(20, never);
+        // As if the release had decremented and the handler came before its look.
+        d.depth.store(0, Ordering::SeqCst);
+        d.signal(21, forks.run());
+        assert_eq!(forks.take(), [21]);
+        assert_eq!(d.pending.load(Ordering::SeqCst), 0);
+    }
+
+    #[test]
+    fn release_without_hold_is_ignored() {
+        let d = Deferral::new();
+        let forks = Forks::default();
+        d.release(forks.run());
+        assert_eq!(d.depth.load(Ordering::SeqCst), 0);
+        d.signal(5, forks.run());
+        assert_eq!(forks.take(), [5], "not deferred by an unbalanced release");
+    }
+
+    #[test]
+    fn a_fork_child_forgets_what_was_aimed_at_its_donor() {
+        let d = Deferral::new();
+        let forks = Forks::default();
+        d.hold();
+        d.signal(30, never);
+        d.forget_pending();
+        d.release(forks.run());
+        assert_eq!(forks.take(), [] as [u32; 0]);
+    }
+
     #[test]
     fn threads_are_counted() {
         let before = super::thread_count().expect("/proc/self/stat");

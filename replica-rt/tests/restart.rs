@@ -18,6 +18,8 @@ use replica_rt::contract::handshake::{
 
 /// The nonce this test's "voter" sends with RESTART; the child must echo it.
 const NONCE: u32 = 0x5eed;
+/// The nonce of an attempt this test's "voter" abandons at once (superseded by [`NONCE`]).
+const ABANDONED: u32 = 0xdead;
 use replica_rt::contract::{self, signals, Direction, PortMap, PortSpec, MAX_HANDED_FDS};
 use replica_rt::{frame, sys};
 
@@ -208,12 +210,15 @@ fn restart_by_fork() -> Result<()> {
         "forked child did not exit at EOF"
     );
 
-    // A RESTART while the donor is blocked in the middle of writing a frame larger than a pipe
-    // holds is deferred until the frame is out, so the child's new output starts on a frame
-    // boundary.
+    // RESTARTs while the donor is blocked in the middle of writing a frame larger than a pipe
+    // holds are deferred until the frame is out and counted, so the child's new output starts
+    // on a frame boundary and its count agrees with the donor's pipe. Two arrive: the later
+    // one's nonce wins, and only one child is made. (A masked signal kept the first.)
     let big = vec![0x42u8; 200_000];
     write_frame(&first.to_replica, &big)?;
     std::thread::sleep(Duration::from_millis(50));
+    sys::sigqueue(donor_pid, signals::RESTART, ABANDONED as i32)?;
+    std::thread::sleep(Duration::from_millis(20));
     sys::sigqueue(donor_pid, signals::RESTART, NONCE as i32)?;
     ensure!(
         !sys::wait_readable(listener.as_fd(), Duration::from_millis(200))?,
@@ -232,6 +237,13 @@ fn restart_by_fork() -> Result<()> {
         "Ready counts {:?}",
         &ready.frames_sent[..2]
     );
+    ensure!(
+        !sys::wait_readable(listener.as_fd(), Duration::from_millis(200))?,
+        "a second child connected: two RESTARTs in one frame made two forks"
+    );
+    // The donor goes on from the same state, on its old pipe, right after the big frame.
+    let a = roundtrip(&first.to_replica, &first.from_replica, b"after")?;
+    ensure!(a == answer(4, b"after"), "donor answered {a:?}");
     let a = roundtrip(&third.to_replica, &third.from_replica, b"third")?;
     ensure!(
         a == answer(4, b"third"),

@@ -477,3 +477,161 @@ fn a_program_that_never_answers_a_line_is_told_to_flush() {
     );
     run.assert_nothing_left();
 }
+
+/// Writes each line's answer in two `write`s with a pause between them: `head-`, then,
+/// 1.5 s later, `tail` and the newline.
+const SPLIT_LINE_PY: &str = r#"
+import os, sys, time
+for line in sys.stdin:
+    os.write(1, b"head-")
+    time.sleep(1.5)
+    os.write(1, b"tail\n")
+"#;
+
+/// The preload library defers a restart while the program's stdout is mid-line: a RESTART that
+/// arrives between `head-` and `tail\n` forks only once the line is whole, so the donor's pipe
+/// carries the whole line and the child's new stdout starts at a line boundary. This test
+/// plays the voter's part of the handshake itself (no bootstrap, no voter): a voter forks only
+/// at a quiet point, where no line is open, so the end-to-end tests never reach this case.
+#[test]
+#[cfg_attr(not(s3res_python3), ignore = "needs python3")]
+fn a_restart_mid_line_waits_for_the_end_of_the_line() {
+    use replica_rt::contract::handshake::{
+        FdTransfer, Hello, Ready, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
+    };
+    use replica_rt::contract::{self, Direction, PortMap, PortSpec, MAX_HANDED_FDS};
+    use replica_rt::sys;
+    use std::io::{Read, Write};
+    use std::os::fd::{AsFd, AsRawFd, OwnedFd};
+    use std::os::unix::net::UnixListener;
+
+    const NONCE: u32 = 0x1e1e;
+    const STEP: Duration = Duration::from_secs(20);
+
+    /// Kills the donor and its fork child, also when the test fails.
+    struct Guard {
+        donor: std::process::Child,
+        child: Option<OwnedFd>,
+    }
+    impl Drop for Guard {
+        fn drop(&mut self) {
+            if let Some(pidfd) = &self.child {
+                let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+            }
+            let _ = self.donor.kill();
+            let _ = self.donor.wait();
+        }
+    }
+
+    /// Reads from `fd` until `want` bytes came (or `STEP` passed); returns them.
+    fn read_exactly(fd: &OwnedFd, want: usize) -> Vec<u8> {
+        let mut got = Vec::new();
+        let deadline = std::time::Instant::now() + STEP;
+        while got.len() < want {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            assert!(
+                sys::wait_readable(fd.as_fd(), left).unwrap(),
+                "only {:?} within {STEP:?}",
+                String::from_utf8_lossy(&got)
+            );
+            let mut buf = [0u8; 256];
+            let n = sys::read(fd.as_fd(), &mut buf[..want - got.len()]).unwrap();
+            assert!(n > 0, "closed after {:?}", String::from_utf8_lossy(&got));
+            got.extend_from_slice(&buf[..n]);
+        }
+        got
+    }
+
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let sock_path = dir.path().join("voter.sock");
+    let listener = UnixListener::bind(&sock_path).unwrap();
+    listener.set_nonblocking(true).unwrap();
+    let map = PortMap {
+        ports: vec![
+            PortSpec {
+                name: "in".into(),
+                dir: Direction::In,
+                fd: libc::STDIN_FILENO,
+                max_frame: 4096,
+            },
+            PortSpec {
+                name: "out".into(),
+                dir: Direction::Out,
+                fd: libc::STDOUT_FILENO,
+                max_frame: 4096,
+            },
+        ],
+    };
+    let (stdin_r, stdin_w) = sys::pipe().unwrap();
+    let (stdout_r, stdout_w) = sys::pipe().unwrap();
+    let donor = Command::new(python3())
+        .args(["-c", SPLIT_LINE_PY])
+        .env("LD_PRELOAD", bin_path("libs3res_preload.so"))
+        .env(contract::ENV_PORTS, map.to_env())
+        .env(contract::ENV_VOTER_SOCKET, &sock_path)
+        .env(contract::ENV_REPLICA, "0")
+        .env(contract::ENV_COMPONENT, "split")
+        .stdin(Stdio::from(stdin_r))
+        .stdout(Stdio::from(stdout_w))
+        .spawn()
+        .expect("starting python3");
+    let donor_pid = donor.id() as libc::pid_t;
+    let mut guard = Guard { donor, child: None };
+    let mut to_donor = std::fs::File::from(stdin_w);
+
+    // Mid-line: `head-` is out, `tail\n` 1.5 s away. The RESTART must wait for it.
+    to_donor.write_all(b"1\n").unwrap();
+    assert_eq!(read_exactly(&stdout_r, 5), b"head-");
+    s3res_testkit::sigqueue(donor_pid, contract::signals::RESTART, NONCE as i32).unwrap();
+    assert!(
+        !sys::wait_readable(listener.as_fd(), Duration::from_millis(500)).unwrap(),
+        "the donor forked in the middle of a line"
+    );
+    assert_eq!(read_exactly(&stdout_r, 5), b"tail\n");
+
+    // Then the fork: the child connects with the nonce.
+    assert!(
+        sys::wait_readable(listener.as_fd(), STEP).unwrap(),
+        "no fork once the line was whole"
+    );
+    let (mut conn, _) = listener.accept().unwrap();
+    conn.set_nonblocking(false).unwrap();
+    conn.set_read_timeout(Some(STEP)).unwrap();
+    let child = sys::peer_pid(conn.as_fd()).unwrap();
+    guard.child = Some(sys::pidfd_open(child).unwrap());
+    assert_eq!(sys::parent_pid(child), Some(donor_pid));
+    let mut hello = [0u8; Hello::SIZE];
+    conn.read_exact(&mut hello).unwrap();
+    let hello = Hello::from_bytes(hello);
+    assert_eq!((hello.magic, hello.nonce), (HELLO_MAGIC, NONCE));
+    let (child_in_r, child_in_w) = sys::pipe().unwrap();
+    let (child_out_r, child_out_w) = sys::pipe().unwrap();
+    let mut targets = [-1; MAX_HANDED_FDS];
+    targets[0] = libc::STDIN_FILENO;
+    targets[1] = libc::STDOUT_FILENO;
+    let transfer = FdTransfer {
+        magic: TRANSFER_MAGIC,
+        count: 2,
+        targets,
+    };
+    sys::send_with_fds(
+        conn.as_fd(),
+        transfer.as_bytes(),
+        &[child_in_r.as_raw_fd(), child_out_w.as_raw_fd()],
+    )
+    .unwrap();
+    drop((child_in_r, child_out_w));
+    let mut ready = [0u8; Ready::SIZE];
+    conn.read_exact(&mut ready).unwrap();
+    let ready = Ready::from_bytes(ready);
+    assert_eq!((ready.magic, ready.pid), (READY_MAGIC, child));
+    drop(conn);
+
+    // The child's stdout starts at a line boundary; the donor's goes on with whole lines.
+    std::fs::File::from(child_in_w).write_all(b"2\n").unwrap();
+    assert_eq!(read_exactly(&child_out_r, 10), b"head-tail\n");
+    to_donor.write_all(b"3\n").unwrap();
+    assert_eq!(read_exactly(&stdout_r, 10), b"head-tail\n");
+    drop(guard);
+}

@@ -73,7 +73,7 @@ pub enum DonorState {
     /// Reactive mode: between rounds, idle. A partial frame of it in our decoder is an error.
     Quiet,
     /// Stream mode: it may be writing output right now. Its output pipes are read while we wait
-    /// for the child (a donor blocked on a full pipe holds RESTART until its frame is out), and
+    /// for the child (a donor blocked on a full pipe defers RESTART until its frame is out), and
     /// the child's [`Forked::frames_sent`] says where its output starts.
     Streaming,
 }
