@@ -241,22 +241,31 @@ fn kill_and_stop(run: &mut RunningSystem, rng: &mut Rng, replicas: usize) {
 }
 
 /// One `s3res-inject inject` into replica `slot` of `sum`, with `fault` (its `--fault` and
-/// options); it must succeed.
+/// options); it must succeed. The live view can still name a replica that has just died (a
+/// register flip that crashed it a moment later, its replacement not yet in the view):
+/// `s3res-inject` then refuses, rightly, and the injection is tried again, at most three
+/// times, 200 ms apart.
 fn inject(state: &Path, slot: usize, fault: &[&str]) {
-    let out = Command::new(bin_path("s3res-inject"))
-        .args(["inject", "--state"])
-        .arg(state)
-        .args(["--component", "sum", "--replica"])
-        .arg(slot.to_string())
-        .args(fault)
-        .stdin(Stdio::null())
-        .output()
-        .expect("running s3res-inject");
-    assert!(
-        out.status.success(),
-        "s3res-inject {fault:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let mut tries = 0;
+    loop {
+        let out = Command::new(bin_path("s3res-inject"))
+            .args(["inject", "--state"])
+            .arg(state)
+            .args(["--component", "sum", "--replica"])
+            .arg(slot.to_string())
+            .args(fault)
+            .stdin(Stdio::null())
+            .output()
+            .expect("running s3res-inject");
+        if out.status.success() {
+            return;
+        }
+        tries += 1;
+        let why = String::from_utf8_lossy(&out.stderr);
+        assert!(tries < 3, "s3res-inject {fault:?}, {tries} tries: {why}");
+        eprintln!("s3res-inject {fault:?} refused (try {tries}): {why}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
 }
 
 /// Register flips through `s3res-inject --fault reg` (ptrace; works on any process). Whatever
