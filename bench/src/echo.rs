@@ -13,8 +13,8 @@ use crate::Common;
 /// Longest a single round trip may take before the run is abandoned as broken.
 const ROUND_LIMIT: Duration = Duration::from_secs(5);
 
-/// The echo that is measured.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The echo that is measured (`--program`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Program {
     /// `s3res-echo`, which links replica-rt.
     Linked,
@@ -25,17 +25,7 @@ pub enum Program {
 }
 
 impl Program {
-    pub fn parse(s: &str) -> Result<Program, String> {
-        match s {
-            "linked" => Ok(Program::Linked),
-            "preload-frames" => Ok(Program::PreloadFrames),
-            "preload-lines" => Ok(Program::PreloadLines),
-            _ => Err(format!(
-                "unknown program {s:?} (linked, preload-frames, preload-lines)"
-            )),
-        }
-    }
-
+    /// Its name on the command line and in the results (`preload-lines`).
     pub fn name(self) -> &'static str {
         match self {
             Program::Linked => "linked",
@@ -247,4 +237,18 @@ pub fn render(rows: &[Row]) -> String {
         ],
         &cells,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::ValueEnum;
+
+    #[test]
+    fn a_program_is_named_in_results_as_on_the_command_line() {
+        for p in Program::value_variants() {
+            let on_command_line = p.to_possible_value().expect("not skipped");
+            assert_eq!(p.name(), on_command_line.get_name());
+        }
+    }
 }

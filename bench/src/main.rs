@@ -77,7 +77,7 @@ enum Command {
         /// The echo measured: `linked` (s3res-echo, linked to replica-rt), `preload-frames`
         /// (`cat`, unmodified, preloaded, s3res frames on stdin/stdout) or `preload-lines`
         /// (`cat`, preloaded, one line per frame: payloads are printable, no newline).
-        #[arg(long, value_parser = echo::Program::parse, default_value = "linked")]
+        #[arg(long, value_enum, default_value = "linked")]
         program: echo::Program,
         /// Replication levels: 0 = no voter, 1 SMR, 2 DMR, 3 TMR (or more).
         #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
