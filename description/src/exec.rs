@@ -217,30 +217,19 @@ fn elf_is_dynamic(head: &[u8]) -> Option<bool> {
         2 => false,
         _ => return None,
     };
-    let u16_at = |o: usize| -> Option<u64> {
-        let b: [u8; 2] = head.get(o..o.checked_add(2)?)?.try_into().ok()?;
-        Some(u64::from(if le {
-            u16::from_le_bytes(b)
-        } else {
-            u16::from_be_bytes(b)
-        }))
-    };
-    let u32_at = |o: usize| -> Option<u64> {
-        let b: [u8; 4] = head.get(o..o.checked_add(4)?)?.try_into().ok()?;
-        Some(u64::from(if le {
-            u32::from_le_bytes(b)
-        } else {
-            u32::from_be_bytes(b)
-        }))
-    };
-    let u64_at = |o: usize| -> Option<u64> {
-        let b: [u8; 8] = head.get(o..o.checked_add(8)?)?.try_into().ok()?;
+    // An unsigned field of `width` bytes at offset `o`, in the file's byte order.
+    let field = |o: usize, width: usize| -> Option<u64> {
+        let bytes = head.get(o..o.checked_add(width)?)?;
+        let fold = |acc: u64, &b: &u8| acc << 8 | u64::from(b);
         Some(if le {
-            u64::from_le_bytes(b)
+            bytes.iter().rev().fold(0, fold)
         } else {
-            u64::from_be_bytes(b)
+            bytes.iter().fold(0, fold)
         })
     };
+    let u16_at = |o| field(o, 2);
+    let u32_at = |o| field(o, 4);
+    let u64_at = |o| field(o, 8);
     let (phoff, phentsize, phnum) = match head[4] {
         1 => (u32_at(0x1c)?, u16_at(0x2a)?, u16_at(0x2c)?),
         2 => (u64_at(0x20)?, u16_at(0x36)?, u16_at(0x38)?),
@@ -388,6 +377,26 @@ mod tests {
         // Truncated or garbage headers are not ELF, never a panic.
         assert_eq!(elf_is_dynamic(&elf[..0x30]), None);
         elf[0x20..0x28].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert_eq!(elf_is_dynamic(&elf), None);
+    }
+
+    #[test]
+    fn a_big_endian_32_bit_elf_is_read_in_its_own_byte_order() {
+        // ELFCLASS32, ELFDATA2MSB: phoff at 0x1c, phentsize at 0x2a, phnum at 0x2c.
+        let mut elf = vec![0u8; 0x40 + 2 * 32];
+        elf[..4].copy_from_slice(b"\x7fELF");
+        elf[4] = 1;
+        elf[5] = 2;
+        elf[0x1c..0x20].copy_from_slice(&0x40u32.to_be_bytes());
+        elf[0x2a..0x2c].copy_from_slice(&32u16.to_be_bytes());
+        elf[0x2c..0x2e].copy_from_slice(&2u16.to_be_bytes());
+        elf[0x40..0x44].copy_from_slice(&1u32.to_be_bytes());
+        assert_eq!(elf_is_dynamic(&elf), Some(false));
+        // The second program header is PT_INTERP.
+        elf[0x60..0x64].copy_from_slice(&3u32.to_be_bytes());
+        assert_eq!(elf_is_dynamic(&elf), Some(true));
+        // Read little-endian, the same bytes would be other numbers.
+        elf[5] = 1;
         assert_eq!(elf_is_dynamic(&elf), None);
     }
 
