@@ -219,10 +219,10 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
             .as_ref()
             .map(|w| format!(" ({w})"))
             .unwrap_or_default();
-        eprintln!(
-            "s3res-bootstrap: component {} failed: {}{why}",
+        s3res_bootstrap::logging::say(&format!(
+            "component {} failed: {}{why}",
             f.component, f.status
-        );
+        ));
     }
     if let Some(events) = report.events.as_ref().filter(|e| e.unparsable > 0) {
         tracing::warn!("{} event line(s) could not be read", events.unparsable);

@@ -876,7 +876,7 @@ fn supervise(
         if stop.is_none() {
             if let Some(why) = voter_failure(children, now) {
                 // One line on stderr, whatever the log level: this is why the run failed.
-                eprintln!("s3res-bootstrap: {why}; stopping the system");
+                crate::logging::say(&format!("{why}; stopping the system"));
                 failed = true;
                 stop = Some((libc::SIGTERM, now + stop_timeout));
                 signal_live(children, libc::SIGTERM);
