@@ -498,10 +498,19 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     run.wait_for_replicas("echo", 3);
     for _ in 0..5 {
         std::thread::sleep(Duration::from_millis(200));
-        // `timeout` ends the loop after 30 ms; everything inherits SCHED_RR 99 and CPU `b`.
+        // `timeout` (SCHED_RR 99, any CPU) ends the loop (SCHED_RR 98, on `b`) after 30 ms.
+        // At the loop's own priority and CPU, `timeout` would wait for the loop's round-robin
+        // slice (100 ms) before it could end it.
         let hog = Command::new("chrt")
-            .args(["-r", "99", "taskset", "-c", &b.to_string()])
-            .args(["timeout", "0.03", "sh", "-c", "while :; do :; done"])
+            .args(["-r", "99", "timeout", "0.03", "chrt", "-r", "98"])
+            .args([
+                "taskset",
+                "-c",
+                &b.to_string(),
+                "sh",
+                "-c",
+                "while :; do :; done",
+            ])
             .status()
             .expect("running chrt, taskset and timeout");
         // 124: `timeout` ended the loop, as meant.
