@@ -2,6 +2,13 @@
 //!
 //! A frame is a 4-byte little-endian length followed by that many bytes. Each channel has a
 //! maximum frame size; a length above it is a protocol error, never an allocation.
+//!
+//! A length word with its top bit set is a *control frame*, not data. There is one:
+//! [`RESUME`], followed by a 64-bit little-endian index, says "the next data frame on this
+//! channel is number *k*" (counting from 0). A writer that may have sent frames twice — a voter
+//! restarted in the middle of a round — sends it first, and a reader that has already taken
+//! frame *k* drops the repeats (see [`FrameDecoder::resuming`]). Readers that do not expect
+//! control frames see the length as oversized, as before.
 
 use thiserror::Error;
 
@@ -10,6 +17,24 @@ pub const HEADER_LEN: usize = 4;
 
 /// Default maximum payload size of a channel (64 KiB).
 pub const DEFAULT_MAX_FRAME: usize = 64 * 1024;
+
+/// Top bit of a length word: the frame is a control frame. No channel's maximum reaches it.
+pub const CONTROL_BIT: u32 = 1 << 31;
+
+/// The length word of a resume frame: "the next data frame is number *k*", *k* in the 8 bytes
+/// after it.
+pub const RESUME: u32 = CONTROL_BIT | 1;
+
+/// Size of a whole resume frame (length word and index).
+pub const RESUME_LEN: usize = HEADER_LEN + 8;
+
+/// A whole resume frame announcing that the next data frame is number `next`.
+pub fn resume_frame(next: u64) -> [u8; RESUME_LEN] {
+    let mut out = [0u8; RESUME_LEN];
+    out[..HEADER_LEN].copy_from_slice(&RESUME.to_le_bytes());
+    out[HEADER_LEN..].copy_from_slice(&next.to_le_bytes());
+    out
+}
 
 /// What can be wrong with the bytes on a channel.
 #[derive(Debug, Error, Clone, PartialEq, Eq)]
@@ -20,6 +45,9 @@ pub enum FrameError {
     /// The writer closed the channel in the middle of a frame.
     #[error("channel closed after {have} of {want} bytes of a frame")]
     Truncated { have: usize, want: usize },
+    /// A control frame this reader does not know (its length word has the top bit set).
+    #[error("unknown control frame {word:#010x}")]
+    UnknownControl { word: u32 },
 }
 
 /// The 4-byte header for a payload of `len` bytes.
@@ -31,6 +59,20 @@ pub fn header(len: usize) -> [u8; HEADER_LEN] {
 pub fn encode_into(payload: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(&header(payload.len()));
     out.extend_from_slice(payload);
+}
+
+/// What a decoder finds at the head of its bytes.
+enum Head {
+    /// Not enough bytes yet for what the length word announces.
+    Incomplete,
+    /// A whole data frame with a payload of this many bytes.
+    Data(usize),
+    /// A whole `RESUME k`.
+    Resume(u64),
+    /// A control frame this decoder does not know.
+    Unknown(u32),
+    /// A length above the channel's maximum.
+    Oversized(usize),
 }
 
 /// Incremental frame decoder: bytes go in as they arrive (in any split), whole frames come out.
@@ -46,6 +88,21 @@ pub struct FrameDecoder {
     buf: Vec<u8>,
     start: usize,
     end: usize,
+    /// Whether resume frames are understood (see [`FrameDecoder::resuming`]); otherwise their
+    /// length word is [`FrameError::Oversized`] like any other.
+    resuming: bool,
+    /// Number of the next data frame on the channel, as the writer counts it.
+    next_index: u64,
+    /// Distinct data frames returned so far: frames numbered below it are repeats.
+    taken: u64,
+    /// Repeats dropped since the last [`take_repeats`](FrameDecoder::take_repeats).
+    repeats: u64,
+    /// Of those, repeats of the last frame taken (a replayed round), since the last
+    /// [`take_repeats_of_last`](FrameDecoder::take_repeats_of_last).
+    repeats_of_last: u64,
+    /// Frames the writer skipped (a resume past `taken`) since the last
+    /// [`take_skipped`](FrameDecoder::take_skipped).
+    skipped: u64,
 }
 
 impl FrameDecoder {
@@ -56,7 +113,46 @@ impl FrameDecoder {
             buf: Vec::new(),
             start: 0,
             end: 0,
+            resuming: false,
+            next_index: 0,
+            taken: 0,
+            repeats: 0,
+            repeats_of_last: 0,
+            skipped: 0,
         }
+    }
+
+    /// A decoder that understands resume frames: after `RESUME k`, the data frames numbered
+    /// below the count already taken are dropped (counted by
+    /// [`take_repeats`](Self::take_repeats)), and a `k` beyond it is a gap (counted by
+    /// [`take_skipped`](Self::take_skipped)). Any other control frame is
+    /// [`FrameError::UnknownControl`]. For channels whose writer may be restarted.
+    pub fn resuming(max: usize) -> Self {
+        FrameDecoder {
+            resuming: true,
+            ..FrameDecoder::new(max)
+        }
+    }
+
+    /// Distinct data frames returned so far (repeats not counted).
+    pub fn taken(&self) -> u64 {
+        self.taken
+    }
+
+    /// Repeats dropped since the last call.
+    pub fn take_repeats(&mut self) -> u64 {
+        std::mem::take(&mut self.repeats)
+    }
+
+    /// Repeats of the last frame taken dropped since the last call: a writer that replays its
+    /// last round wants its answer again (`replica_rt` re-sends it).
+    pub fn take_repeats_of_last(&mut self) -> u64 {
+        std::mem::take(&mut self.repeats_of_last)
+    }
+
+    /// Frames the writer announced it skipped since the last call.
+    pub fn take_skipped(&mut self) -> u64 {
+        std::mem::take(&mut self.skipped)
     }
 
     /// A decoder of newline-delimited text: each line, without its `\n`, is one frame, and a
@@ -107,20 +203,41 @@ impl FrameDecoder {
         if self.lines {
             return self.next_line();
         }
-        let avail = &self.buf[self.start..self.end];
-        if avail.len() < HEADER_LEN {
-            return Ok(None);
+        loop {
+            let len = match self.head(&self.buf[self.start..self.end]) {
+                Head::Incomplete => return Ok(None),
+                Head::Resume(next) => {
+                    self.start += RESUME_LEN;
+                    self.resume(next);
+                    continue;
+                }
+                Head::Unknown(word) => return Err(FrameError::UnknownControl { word }),
+                Head::Oversized(len) => return Err(FrameError::Oversized { len, max: self.max }),
+                Head::Data(len) => len,
+            };
+            let from = self.start + HEADER_LEN;
+            self.start = from + len;
+            let index = self.next_index;
+            self.next_index = index.saturating_add(1);
+            if index < self.taken {
+                self.repeats += 1;
+                if index + 1 == self.taken {
+                    self.repeats_of_last += 1;
+                }
+                continue;
+            }
+            self.taken = self.next_index;
+            return Ok(Some(&self.buf[from..from + len]));
         }
-        let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
-        if len > self.max {
-            return Err(FrameError::Oversized { len, max: self.max });
+    }
+
+    /// `RESUME next`: the writer's next data frame is number `next`.
+    fn resume(&mut self, next: u64) {
+        if next > self.taken {
+            self.skipped = self.skipped.saturating_add(next - self.taken);
+            self.taken = next;
         }
-        if avail.len() < HEADER_LEN + len {
-            return Ok(None);
-        }
-        let from = self.start + HEADER_LEN;
-        self.start = from + len;
-        Ok(Some(&self.buf[from..from + len]))
+        self.next_index = next;
     }
 
     /// Whether a whole frame (or an oversized header, which [`next_frame`](Self::next_frame)
@@ -130,11 +247,50 @@ impl FrameDecoder {
         if self.lines {
             return avail.len() > self.max || avail.contains(&b'\n');
         }
-        if avail.len() < HEADER_LEN {
-            return false;
+        // Walks what `next_frame` would do, without doing it: resume frames and repeats are
+        // passed over, as `next_frame` passes over them.
+        let (mut at, mut next, mut taken) = (0, self.next_index, self.taken);
+        loop {
+            match self.head(&avail[at..]) {
+                Head::Incomplete => return false,
+                Head::Resume(k) => {
+                    (next, taken) = (k, taken.max(k));
+                    at += RESUME_LEN;
+                }
+                // `next_frame` reports these.
+                Head::Unknown(_) | Head::Oversized(_) => return true,
+                Head::Data(_) if next >= taken => return true,
+                Head::Data(len) => {
+                    next += 1;
+                    at += HEADER_LEN + len;
+                }
+            }
         }
-        let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
-        len > self.max || avail.len() >= HEADER_LEN + len
+    }
+
+    /// What the bytes at the head of `avail` are (frames, not lines).
+    fn head(&self, avail: &[u8]) -> Head {
+        let Some(word) = avail.first_chunk::<HEADER_LEN>() else {
+            return Head::Incomplete;
+        };
+        let word = u32::from_le_bytes(*word);
+        if self.resuming && word & CONTROL_BIT != 0 {
+            if word != RESUME {
+                return Head::Unknown(word);
+            }
+            return match avail[HEADER_LEN..].first_chunk::<8>() {
+                Some(index) => Head::Resume(u64::from_le_bytes(*index)),
+                None => Head::Incomplete,
+            };
+        }
+        let len = word as usize;
+        if len > self.max {
+            Head::Oversized(len)
+        } else if avail.len() < HEADER_LEN + len {
+            Head::Incomplete
+        } else {
+            Head::Data(len)
+        }
     }
 
     /// Called at end of stream: an error if a frame was cut off.
@@ -154,11 +310,13 @@ impl FrameDecoder {
                 want: HEADER_LEN,
             }),
             n => {
-                let len = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]) as usize;
-                Err(FrameError::Truncated {
-                    have: n,
-                    want: HEADER_LEN + len,
-                })
+                let word = u32::from_le_bytes([avail[0], avail[1], avail[2], avail[3]]);
+                let want = if self.resuming && word == RESUME {
+                    RESUME_LEN
+                } else {
+                    HEADER_LEN + word as usize
+                };
+                Err(FrameError::Truncated { have: n, want })
             }
         }
     }
@@ -207,7 +365,7 @@ mod tests {
     use proptest::prelude::*;
 
     /// Pushes `bytes` into `dec` in pieces of the sizes in `cuts` (the rest at once), taking
-    /// every whole frame after each piece.
+    /// every whole frame after each piece, and checks that `has_frame` promised each one.
     fn decode_in_pieces(dec: &mut FrameDecoder, bytes: &[u8], cuts: Vec<usize>) -> Vec<Vec<u8>> {
         let mut got = Vec::new();
         let mut pos = 0;
@@ -216,7 +374,19 @@ mod tests {
             let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
             dec.push(&bytes[pos..pos + step]);
             pos += step;
-            while let Some(f) = dec.next_frame().unwrap() {
+            loop {
+                let promised = dec.has_frame();
+                let Some(f) = dec.next_frame().unwrap() else {
+                    assert!(
+                        !promised,
+                        "has_frame promised a frame that next_frame did not give"
+                    );
+                    break;
+                };
+                assert!(
+                    promised,
+                    "next_frame gave a frame that has_frame did not promise"
+                );
                 got.push(f.to_vec());
             }
         }
@@ -268,6 +438,123 @@ mod tests {
             let truncated = matches!(dec.finish(), Err(FrameError::Truncated { .. }));
             prop_assert!(truncated);
         }
+    }
+
+    /// What a writer restarted at the points in `restarts` sends: frames `0..frames.len()`,
+    /// and at each restart `(after, back)` — after sending `after` frames — a resume frame that
+    /// goes `back` frames back and sends them again.
+    fn replayed_stream(frames: &[Vec<u8>], restarts: &[(usize, usize)]) -> Vec<u8> {
+        let mut out = Vec::new();
+        let mut sent = 0;
+        let mut restarts = restarts.to_vec();
+        restarts.sort();
+        let mut restarts = restarts.into_iter().peekable();
+        while sent < frames.len() {
+            while let Some(&(after, back)) = restarts.peek() {
+                if after > sent {
+                    break;
+                }
+                restarts.next();
+                sent -= back.min(sent);
+                out.extend_from_slice(&resume_frame(sent as u64));
+            }
+            encode_into(&frames[sent], &mut out);
+            sent += 1;
+        }
+        out
+    }
+
+    proptest! {
+        /// A writer that resumes anywhere, going back any number of frames, is read as if it
+        /// had sent each frame once, however the bytes are split; the repeats are counted.
+        #[test]
+        fn repeats_after_a_resume_are_dropped(
+            frames in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..40), 0..20),
+            restarts in proptest::collection::vec((0usize..20, 0usize..4), 0..5),
+            cuts in proptest::collection::vec(1usize..23, 0..60),
+        ) {
+            let bytes = replayed_stream(&frames, &restarts);
+            let mut dec = FrameDecoder::resuming(64);
+            let got = decode_in_pieces(&mut dec, &bytes, cuts);
+            prop_assert!(dec.finish().is_ok());
+            prop_assert_eq!(&got, &frames);
+            prop_assert_eq!(dec.taken(), frames.len() as u64);
+            prop_assert_eq!(dec.take_skipped(), 0);
+        }
+    }
+
+    /// A stream of data frames (`Ok(payload)`) and resume frames (`Err(next)`).
+    fn stream(parts: &[Result<&[u8], u64>]) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        for part in parts {
+            match part {
+                Ok(payload) => encode_into(payload, &mut bytes),
+                Err(next) => bytes.extend_from_slice(&resume_frame(*next)),
+            }
+        }
+        bytes
+    }
+
+    #[test]
+    fn a_resume_past_what_was_taken_is_a_gap() {
+        let mut dec = FrameDecoder::resuming(16);
+        dec.push(&stream(&[Ok(b"a"), Err(3), Ok(b"d")]));
+        assert_eq!(dec.next_frame().unwrap(), Some(&b"a"[..]));
+        assert_eq!(dec.next_frame().unwrap(), Some(&b"d"[..]));
+        assert_eq!((dec.taken(), dec.take_skipped()), (4, 2));
+        assert_eq!(dec.take_skipped(), 0);
+    }
+
+    #[test]
+    fn a_resume_is_counted_as_repeats_and_cut_resumes_are_truncated() {
+        let mut dec = FrameDecoder::resuming(16);
+        dec.push(&stream(&[Ok(b"a"), Ok(b"b"), Err(1), Ok(b"b"), Ok(b"c")]));
+        let mut got = Vec::new();
+        while let Some(f) = dec.next_frame().unwrap() {
+            got.push(f.to_vec());
+        }
+        assert_eq!(got, [b"a".to_vec(), b"b".to_vec(), b"c".to_vec()]);
+        assert_eq!((dec.take_repeats(), dec.take_repeats_of_last()), (1, 1));
+        assert_eq!((dec.take_repeats(), dec.take_repeats_of_last()), (0, 0));
+
+        // Two back: two repeats, one of them of the last frame.
+        dec.push(&stream(&[Err(1), Ok(b"b"), Ok(b"c")]));
+        assert_eq!(dec.next_frame().unwrap(), None);
+        assert_eq!((dec.take_repeats(), dec.take_repeats_of_last()), (2, 1));
+
+        dec.push(&resume_frame(0)[..7]);
+        assert!(!dec.has_frame());
+        assert_eq!(dec.next_frame().unwrap(), None);
+        assert_eq!(
+            dec.finish(),
+            Err(FrameError::Truncated {
+                have: 7,
+                want: RESUME_LEN
+            })
+        );
+    }
+
+    #[test]
+    fn control_frames_are_oversized_to_a_reader_that_does_not_resume() {
+        let mut dec = FrameDecoder::new(16);
+        dec.push(&resume_frame(0));
+        assert!(dec.has_frame());
+        assert_eq!(
+            dec.next_frame(),
+            Err(FrameError::Oversized {
+                len: RESUME as usize,
+                max: 16
+            })
+        );
+        let mut dec = FrameDecoder::resuming(16);
+        dec.push(&(CONTROL_BIT | 7).to_le_bytes());
+        assert!(dec.has_frame());
+        assert_eq!(
+            dec.next_frame(),
+            Err(FrameError::UnknownControl {
+                word: CONTROL_BIT | 7
+            })
+        );
     }
 
     proptest! {

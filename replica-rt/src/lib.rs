@@ -40,6 +40,7 @@
 //!   (terminate). A voter should restart-by-fork only from replicas that have answered at least
 //!   once.
 
+mod answers;
 pub mod cow;
 pub mod heartbeat;
 pub mod inject;

@@ -2,9 +2,11 @@
 
 use std::io;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use thiserror::Error;
 
+use crate::answers::{self, LastFrame};
 use crate::contract::FIRST_PORT_FD;
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
 use crate::{inject, restart, sys};
@@ -61,6 +63,8 @@ pub struct InPort {
     /// The payload last returned by `recv`, copied out of the decoder.
     pub(crate) frame: Vec<u8>,
     pub(crate) eof: bool,
+    /// The step (see `answers`) at which the last frame was taken.
+    pub(crate) taken_at: u64,
 }
 
 impl InPort {
@@ -68,9 +72,11 @@ impl InPort {
         InPort {
             name,
             fd,
-            dec: FrameDecoder::new(max_frame),
+            // A voter restarted mid-round replays it behind a resume frame (see `answers`).
+            dec: FrameDecoder::resuming(max_frame),
             frame: Vec::new(),
             eof: false,
+            taken_at: 0,
         }
     }
 
@@ -96,14 +102,8 @@ impl InPort {
     pub fn recv(&mut self) -> Result<Option<&[u8]>, RecvError> {
         note_fork();
         loop {
-            match self.dec.next_frame() {
-                Ok(Some(payload)) => {
-                    self.frame.clear();
-                    self.frame.extend_from_slice(payload);
-                    return Ok(Some(&self.frame));
-                }
-                Ok(None) => {}
-                Err(e) => return Err(self.frame_error(e)),
+            if self.next_buffered()? {
+                return Ok(Some(&self.frame));
             }
             if self.eof || !self.fill()? {
                 self.eof = true;
@@ -113,6 +113,32 @@ impl InPort {
                 };
             }
         }
+    }
+
+    /// Moves the next whole frame from the decoder into `self.frame`; `false` if none is
+    /// buffered. A replayed round (its input frame repeated) is answered again on the way.
+    pub(crate) fn next_buffered(&mut self) -> Result<bool, RecvError> {
+        let taken = match self.dec.next_frame() {
+            Ok(Some(payload)) => {
+                self.frame.clear();
+                self.frame.extend_from_slice(payload);
+                true
+            }
+            Ok(None) => false,
+            Err(e) => return Err(self.frame_error(e)),
+        };
+        if self.dec.take_repeats_of_last() > 0 {
+            // Before the next frame is taken: the answers to the replayed one are the frames
+            // sent after it. A failed write is the voter's end closing, which the next read
+            // reports as the end of the stream.
+            if let Err(e) = answers::answer_again(self.taken_at) {
+                tracing::warn!(port = %self.name, error = %e, "could not answer a replayed round again");
+            }
+        }
+        if taken {
+            self.taken_at = answers::step();
+        }
+        Ok(taken)
     }
 
     /// One `read` into the decoder; `false` at end of stream.
@@ -166,8 +192,9 @@ pub struct OutPort {
     name: String,
     fd: OwnedFd,
     max: usize,
-    /// Header and payload of the frame being sent, reused from frame to frame.
-    buf: Vec<u8>,
+    /// Header and payload of the frame being sent, reused from frame to frame; after a send,
+    /// the frame a replayed round is answered with again (see `answers`).
+    last: Arc<Mutex<LastFrame>>,
     /// In replica mode a RESTART must not fork in the middle of a frame (see `restart`): it is
     /// deferred to the end of the frame.
     replica: bool,
@@ -178,10 +205,17 @@ pub struct OutPort {
 
 impl OutPort {
     pub(crate) fn new(name: String, fd: OwnedFd, max: usize, replica: bool) -> Self {
+        let last = Arc::new(Mutex::new(LastFrame {
+            bytes: Vec::with_capacity(HEADER_LEN + max.min(frame::DEFAULT_MAX_FRAME)),
+            ..LastFrame::default()
+        }));
+        if replica {
+            answers::register(fd.as_raw_fd(), &last);
+        }
         OutPort {
             name,
             max,
-            buf: Vec::with_capacity(HEADER_LEN + max.min(frame::DEFAULT_MAX_FRAME)),
+            last,
             replica,
             position: usize::try_from(fd.as_raw_fd() - FIRST_PORT_FD).ok(),
             fd,
@@ -207,17 +241,23 @@ impl OutPort {
                 max: self.max,
             });
         }
-        self.buf.clear();
-        frame::encode_into(payload, &mut self.buf);
-        inject::apply_pending(&self.name, &mut self.buf[HEADER_LEN..]);
+        let mut last = self.last.lock().unwrap_or_else(PoisonError::into_inner);
+        last.bytes.clear();
+        frame::encode_into(payload, &mut last.bytes);
+        inject::apply_pending(&self.name, &mut last.bytes[HEADER_LEN..]);
         // A RESTART from here until the guard drops forks at the drop, once the frame is whole
         // and counted (no system call: see `restart`, "Output frames stay whole").
         let _deferred = self.replica.then(restart::RestartsHeld::new);
-        write_all(self.fd.as_fd(), &self.buf).map_err(|e| self.io_error(e))?;
+        if let Err(e) = write_all(self.fd.as_fd(), &last.bytes) {
+            drop(last);
+            return Err(self.io_error(e));
+        }
         // Still deferred: a fork sees the count and the pipe agree.
         if let Some(position) = self.position {
             restart::count_sent(position);
         }
+        last.sent += 1;
+        last.step = answers::step();
         Ok(())
     }
 
@@ -248,7 +288,7 @@ impl AsRawFd for OutPort {
 }
 
 /// Writes all of `bytes`, looping on partial writes (EINTR is retried inside `sys::write`).
-fn write_all(fd: BorrowedFd<'_>, mut bytes: &[u8]) -> io::Result<()> {
+pub(crate) fn write_all(fd: BorrowedFd<'_>, mut bytes: &[u8]) -> io::Result<()> {
     while !bytes.is_empty() {
         match sys::write(fd, bytes) {
             Ok(0) => return Err(io::ErrorKind::WriteZero.into()),

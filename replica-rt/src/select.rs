@@ -132,14 +132,8 @@ impl InPort {
     /// `deadline`: CLOCK_MONOTONIC ns; `Some(0)` means "do not wait at all".
     fn recv_until(&mut self, deadline: Option<u64>) -> Result<TryRecv<'_>, RecvError> {
         loop {
-            match self.dec.next_frame() {
-                Ok(Some(payload)) => {
-                    self.frame.clear();
-                    self.frame.extend_from_slice(payload);
-                    return Ok(TryRecv::Frame(&self.frame));
-                }
-                Ok(None) => {}
-                Err(e) => return Err(self.frame_error(e)),
+            if self.next_buffered()? {
+                return Ok(TryRecv::Frame(&self.frame));
             }
             if self.eof {
                 return match self.dec.finish() {

@@ -139,6 +139,15 @@ impl FrameReader {
         })
     }
 
+    /// A reader of a channel whose writer may be restarted and replay frames behind a resume
+    /// frame (another component's voter): the repeats are dropped (see
+    /// [`FrameDecoder::resuming`]).
+    pub fn resuming(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
+        let mut reader = FrameReader::new(fd, max_frame)?;
+        reader.decoder = FrameDecoder::resuming(max_frame);
+        Ok(reader)
+    }
+
     /// A reader of newline-delimited text, one frame per line (see [`FrameDecoder::lines`]).
     pub fn lines(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
         let mut reader = FrameReader::new(fd, max_frame)?;

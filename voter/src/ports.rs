@@ -282,7 +282,7 @@ impl Endpoints {
                 });
                 Ok(ExternalInput {
                     name: p.name.clone(),
-                    reader: FrameReader::new(adopted.take(p.fd, &p.name)?, p.max_frame)
+                    reader: FrameReader::resuming(adopted.take(p.fd, &p.name)?, p.max_frame)
                         .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
                     round,
                 })
