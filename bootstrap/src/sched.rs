@@ -184,7 +184,7 @@ impl SystemSched {
     fn describe_priority(&self, rt: Option<u8>, nice: Option<i32>, turn: Option<u8>) -> String {
         match (rt, self.realtime(), nice) {
             (Some(p), true, _) => match turn {
-                Some(t) => format!("SCHED_RR {p} ({t} on its turn)"),
+                Some(t) => format!("SCHED_RR {p} ({t} if its turn is kept off the CPU)"),
                 None => format!("SCHED_RR {p}"),
             },
             (Some(p), false, Some(n)) => format!("nice {n} (instead of SCHED_RR {p}: refused)"),
@@ -303,11 +303,15 @@ mod tests {
             "{out}"
         );
         assert!(
-            out.contains("process   replica 0  SCHED_RR 28 (29 on its turn), CPU 0"),
+            out.contains(
+                "process   replica 0  SCHED_RR 28 (29 if its turn is kept off the CPU), CPU 0"
+            ),
             "{out}"
         );
         assert!(
-            out.contains("process   replica 2  SCHED_RR 26 (29 on its turn), CPU 0"),
+            out.contains(
+                "process   replica 2  SCHED_RR 26 (29 if its turn is kept off the CPU), CPU 0"
+            ),
             "{out}"
         );
         let refused = SystemSched::with(&p, true, Some("EPERM".into()), 0);

@@ -3,9 +3,9 @@
 //! to validate it and print it (`--check`).
 //!
 //! **Priorities.** A protected component of priority `P` with `n` replicas runs its voter at
-//! `P` (SCHED_RR), the replica whose turn it is at `P - 1`, and replica `i` at rest at
-//! `P - 2 - i`: distinct, all below the voter, so a replica hogging a CPU never starves the
-//! voter that must detect it. `P - 1` is also what a recovery donor is raised to while it
+//! `P` (SCHED_RR), replica `i` at rest at `P - 2 - i`: distinct, all below the voter, so a
+//! replica hogging a CPU never starves the voter that must detect it. `P - 1` is the turn
+//! level: a sequential turn kept off its CPU is raised to it, and a recovery donor while it
 //! forks. Hence `P >= n + 2` ([`min_priority`]).
 //!
 //! **Placement.** With `cpus = [c0, c1, ...]`, replica `i` is pinned to `cpus[i % len]`; the
@@ -14,9 +14,10 @@
 //! **Strategies.** [`Schedule::Parallel`]: every replica gets the input at once and the round
 //! has one deadline; a replica that has not answered by then is the hung one. This is exact
 //! only when the replicas do not share a CPU. [`Schedule::Sequential`]: every replica still
-//! gets the input at once, but only one replica at a time has its *turn*: it is raised to
-//! `P - 1`, above its siblings, and has its own deadline of `timeout_us`; when it has
-//! answered (or is found faulty), the next one's turn begins. A hung replica is then exactly
+//! gets the input at once, but only one replica at a time has its *turn*, with its own
+//! deadline of `timeout_us`; when it has answered (or is found faulty), the next one's turn
+//! begins. Turns go in slot order, which is the order of the resting priorities, so a turn is
+//! raised to `P - 1` only if the voter finds it kept off its CPU. A hung replica is then exactly
 //! the one whose turn it was. `auto` picks sequential when the placement puts two replicas on
 //! one CPU ([`choose`]).
 
@@ -49,7 +50,7 @@ pub fn min_priority(replicas: usize) -> u8 {
     (replicas + 2).min(99) as u8
 }
 
-/// SCHED_RR priority of the replica whose turn it is (and of a recovery donor).
+/// SCHED_RR priority of a sequential turn kept off its CPU (and of a recovery donor).
 pub fn turn_priority(priority: u8) -> u8 {
     priority.saturating_sub(1).max(1)
 }

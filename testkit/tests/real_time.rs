@@ -316,9 +316,15 @@ fn check_prints_schedule_priority_and_cpu_of_every_process() {
             "process   component  SCHED_RR 60, any CPU".into(),
             format!("schedule  sequential (auto: 3 replicas share CPU {c})"),
             format!("process   voter      SCHED_RR 30, CPU {c}"),
-            format!("process   replica 0  SCHED_RR 28 (29 on its turn), CPU {c}"),
-            format!("process   replica 1  SCHED_RR 27 (29 on its turn), CPU {c}"),
-            format!("process   replica 2  SCHED_RR 26 (29 on its turn), CPU {c}"),
+            format!(
+                "process   replica 0  SCHED_RR 28 (29 if its turn is kept off the CPU), CPU {c}"
+            ),
+            format!(
+                "process   replica 1  SCHED_RR 27 (29 if its turn is kept off the CPU), CPU {c}"
+            ),
+            format!(
+                "process   replica 2  SCHED_RR 26 (29 if its turn is kept off the CPU), CPU {c}"
+            ),
             "process   component  default priority (SCHED_OTHER), any CPU".into(),
         ]
     } else {

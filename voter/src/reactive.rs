@@ -273,6 +273,7 @@ impl ReactiveVoter {
                 if let Some(round) = self.round.as_mut() {
                     round.starved = Some(starved);
                 }
+                self.raise_the_starved_turn(starved);
             }
             _ => {}
         }
@@ -394,6 +395,7 @@ impl ReactiveVoter {
         if starved.is_empty() {
             return false;
         }
+        self.raise_the_starved_turn(starved);
         tracing::debug!(
             round = number,
             starved = ?starved.iter().collect::<Vec<_>>(),
@@ -443,8 +445,16 @@ impl ReactiveVoter {
     }
 
     /// Gives the turn to the lowest-numbered member that is still trusted and has not
-    /// answered yet: raises it above its siblings (puts the previous one back to rest) and
-    /// starts its deadline. Returns `false` when no such replica is left.
+    /// answered yet and starts its deadline (puts the previous one back to rest if it had to
+    /// be raised). Returns `false` when no such replica is left.
+    ///
+    /// The turn is not raised when it begins: turns go in slot order, and replicas rest at
+    /// priorities that fall with the slot, so the replica whose turn it is already outranks
+    /// every sibling that has not answered, and one that has answered is blocked on its next
+    /// input. Only a sibling still running after its answer (a fault) can keep the turn off
+    /// the CPU; the look before the deadline sees that and raises the turn then (see
+    /// [`raise_the_starved_turn`](Self::raise_the_starved_turn)). So a fault-free round
+    /// changes no priority (S³RES raised and lowered every replica in every round).
     fn next_turn(&mut self) -> bool {
         let Some(round) = self.round.as_ref() else {
             return false;
@@ -455,17 +465,10 @@ impl ReactiveVoter {
             .iter()
             .filter(|&r| self.core.slots[r].is_some())
             .find(|&r| !round.is_done_by(r) && Some(r) != previous);
-        if let Some(prev) = previous {
-            if let Some(pid) = self.core.slots[prev].as_ref().map(|rep| rep.pid) {
-                self.core.rt.rest(pid, prev);
-            }
-        }
+        self.rest_the_raised_turn();
         let Some(next) = next else {
             return false;
         };
-        if let Some(pid) = self.core.slots[next].as_ref().map(|r| r.pid) {
-            self.core.rt.raise(pid);
-        }
         let allowance = self.allowance(ReplicaSet::EMPTY.with(next));
         let round = self.round.as_mut().expect("checked above");
         round.turn = Some(next);
@@ -475,6 +478,45 @@ impl ReactiveVoter {
         round.starved = None;
         round.extended = Duration::ZERO;
         true
+    }
+
+    /// Sequential schedule: the replica whose turn it is could not run (a sibling that kept
+    /// running after its answer outranks it): raises it above its siblings for the rest of its
+    /// turn.
+    fn raise_the_starved_turn(&mut self, starved: ReplicaSet) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let Some(t) = round
+            .turn
+            .filter(|&t| starved.contains(t) && round.raised.is_none())
+        else {
+            return;
+        };
+        if !self.core.rt.can_raise() {
+            return;
+        }
+        if let Some(pid) = self.core.slots[t].as_ref().map(|r| r.pid) {
+            tracing::debug!(
+                round = round.number,
+                replica = t,
+                "turn kept off its CPU: raised"
+            );
+            self.core.rt.raise(pid);
+            if let Some(round) = self.round.as_mut() {
+                round.raised = Some(t);
+            }
+        }
+    }
+
+    /// Puts the replica raised for its turn, if any, back to rest.
+    fn rest_the_raised_turn(&mut self) {
+        let Some(t) = self.round.as_mut().and_then(|rd| rd.raised.take()) else {
+            return;
+        };
+        if let Some(pid) = self.core.slots[t].as_ref().map(|r| r.pid) {
+            self.core.rt.rest(pid, t);
+        }
     }
 
     /// How long `replicas` get to answer a round: `timeout_us`, or the start-up allowance
@@ -558,14 +600,10 @@ impl ReactiveVoter {
         for &r in &late {
             self.last_look(r);
         }
+        self.rest_the_raised_turn();
         let Some(round) = self.round.take() else {
             return;
         };
-        if let Some(t) = round.turn {
-            if let Some(pid) = self.core.slots[t].as_ref().map(|r| r.pid) {
-                self.core.rt.rest(pid, t);
-            }
-        }
         let alarmed = self.alarmed(&round);
         let mut close = std::mem::take(&mut self.close);
         decide_round(&self.ballot(&round, &alarmed), &mut close);

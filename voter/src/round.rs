@@ -40,6 +40,9 @@ pub struct Round {
     pub starved: Option<ReplicaSet>,
     /// How far the deadline has been moved on for replicas that could not run.
     pub extended: Duration,
+    /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
+    /// siblings to run (found starved); put back to rest when its turn ends.
+    pub raised: Option<usize>,
 }
 
 /// What the replicas that had not answered had run and waited, at one moment.
@@ -70,6 +73,7 @@ impl Round {
             look: None,
             starved: None,
             extended: Duration::ZERO,
+            raised: None,
         }
     }
 
