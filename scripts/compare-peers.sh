@@ -1,0 +1,107 @@
+#!/bin/bash
+# compare-peers.sh — s3res side by side with the original S³RES and the C floor, in one table.
+# See docs/benchmarks.md, "Side by side with S³RES and the C floor".
+set -uo pipefail
+
+usage() {
+  cat <<'EOF'
+usage: scripts/compare-peers.sh [-h|--help]
+
+Runs the peer comparison (PEERS/s3res/compare.sh: the C floor, the original S³RES and
+target/release/s3res-bench, interleaved repetition by repetition), then the replicas'
+resident sizes, and prints one markdown table: C floor, S³RES, s3res, s3res / S³RES and
+s3res / C floor, median with p99 where there is one.
+
+Environment:
+  PEERS=DIR   the peer tooling (default: ../shared/peers next to the repository)
+  REPS=N      repetitions (default 3; one took under 4 minutes on a 2-core VM, plus
+              S³RES's build on first use)
+  RES=DIR     raw results (default target/s3res-peer/results/<UTC time>)
+  COUNT=N     round trips per configuration (default 20000, compare.sh's)
+Run as root (SCHED_RR). The table alone, again, from saved results:
+  python3 scripts/peers-table.py RES_DIR
+EOF
+}
+case "${1:-}" in
+  -h|--help) usage; exit 0;;
+  "") ;;
+  *) usage >&2; exit 2;;
+esac
+
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+PEERS=${PEERS:-$ROOT/../shared/peers}
+if [ ! -f "$PEERS/s3res/compare.sh" ]; then
+  echo "compare-peers: no peer tooling at $PEERS (expected $PEERS/s3res/compare.sh; set PEERS=dir)" >&2
+  exit 2
+fi
+PEERS=$(cd "$PEERS" && pwd)
+REPS=${REPS:-3}
+RES=${RES:-$ROOT/target/s3res-peer/results/$(date -u +%Y%m%dT%H%M%SZ)}
+mkdir -p "$RES"
+RES=$(cd "$RES" && pwd)
+cd "$ROOT"
+
+# Every child runs in a session of its own (GEVoteTest makes its own process groups inside
+# it); on INT/TERM every process of those sessions is killed.
+kill_sessions() { # [SID]: every process of that session, or of every session started here
+  local sig sid pids
+  for sig in TERM KILL; do
+    for sid in ${1:-$(cat "$SIDS" 2>/dev/null)}; do
+      pids=$(ps -eo pid=,sid= | awk -v s="$sid" '$2 == s {print $1}')
+      [ -n "$pids" ] && kill -s $sig $pids 2>/dev/null
+    done
+    [ $sig = TERM ] && sleep 1
+  done
+}
+exec 3>&2  # the trap may run inside a redirection
+trap 'echo "compare-peers: interrupted, stopping its processes" >&3; kill_sessions; exit 130' INT TERM
+SIDS=$RES/.sessions
+: > "$SIDS"
+in_session() { # runs "$@" in a new session, in the background; the session id goes to $SIDS
+  setsid -w bash -c 'echo $$ >> "$0"; exec "$@"' "$SIDS" "$@" &
+}
+run_session() { # runs "$@" in a new session and waits for it
+  in_session "$@"
+  wait $!
+}
+
+echo "compare-peers: cargo build --release" >&2
+cargo build --release -q || { echo "compare-peers: cargo build --release failed" >&2; exit 1; }
+
+{
+  echo "commit $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- . ':!docs' ':!scripts' 2>/dev/null || echo ' (with uncommitted changes outside docs/ and scripts/)')"
+  echo "branch $(git rev-parse --abbrev-ref HEAD)"
+  echo "started $(date -u '+%Y-%m-%d %H:%M:%S UTC')"
+  echo "reps $REPS"
+  echo "load_start $(cut -d' ' -f1-3 /proc/loadavg)"
+  echo "machine $(nproc) CPUs, $(uname -r), $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //')"
+} > "$RES/meta.txt"
+
+echo "compare-peers: $PEERS/s3res/compare.sh, REPS=$REPS, raw results in $RES" >&2
+export REPS RES
+run_session bash "$PEERS/s3res/compare.sh" > "$RES/compare.log" 2>&1
+rc=$?
+grep -E '^(===|TIMEOUT)' "$RES/compare.log" >&2
+[ $rc = 0 ] || { echo "compare-peers: compare.sh failed ($rc), see $RES/compare.log" >&2; exit 1; }
+
+# Replica resident size. s3res: s3res-bench memory (TMR s3res-echo, idle after 1000 rounds).
+echo "compare-peers: resident sizes" >&2
+run_session target/release/s3res-bench memory --size 0 --json --quiet > "$RES/s3res-memory.jsonl" 2>>"$RES/rss-stderr.log"
+# S³RES: a TMR GenericEmpty under VoterM (pinned build), one round a millisecond; VmRSS of
+# each process once the rounds run.
+GE=${OUT:-$ROOT/target/s3res-peer}/pinned/test
+(cd "$GE" && in_session ./GEVoteTest -v VoterM -r TMR -s 8 -n 6000 -w 0 -i 1000 -t 20000 -p 60 \
+  > "$RES/orig-rss-run.log" 2>&1; wait $!) &
+ge=$!
+sleep 4
+sid=$(tail -n1 "$SIDS")
+for p in $(ps -eo pid=,sid=,comm= | awk -v s="$sid" '$2 == s && ($3 == "VoterM" || $3 == "GenericEmpty") {print $1}'); do
+  echo "rss comm=$(cat /proc/$p/comm) pid=$p vmrss_kib=$(awk '/^VmRSS/ {print $2}' /proc/$p/status)" \
+    "pss_kib=$(awk '/^Pss:/ {print $2}' /proc/$p/smaps_rollup 2>/dev/null)"
+done > "$RES/orig-rss.txt"
+kill_sessions "$sid"
+wait $ge 2>/dev/null
+
+echo "load_end $(cut -d' ' -f1-3 /proc/loadavg)" >> "$RES/meta.txt"
+echo "finished $(date -u '+%Y-%m-%d %H:%M:%S UTC')" >> "$RES/meta.txt"
+python3 "$ROOT/scripts/peers-table.py" "$RES"
