@@ -79,10 +79,16 @@ cargo build --release -q || { echo "compare-peers: cargo build --release failed"
 
 echo "compare-peers: $PEERS/s3res/compare.sh, REPS=$REPS, raw results in $RES" >&2
 export REPS RES
+# compare.sh works in target/s3res-peer (its OUT) and does not create it: on a fresh checkout
+# its `cd` failed and the C floor was compiled nowhere, leaving that column empty.
+mkdir -p "${OUT:-$PWD/target/s3res-peer}"
 run_session bash "$PEERS/s3res/compare.sh" > "$RES/compare.log" 2>&1
 rc=$?
 grep -E '^(===|TIMEOUT)' "$RES/compare.log" >&2
 [ $rc = 0 ] || { echo "compare-peers: compare.sh failed ($rc), see $RES/compare.log" >&2; exit 1; }
+for f in "$RES"/c-*.txt; do
+  [ -s "$f" ] || { echo "compare-peers: the C floor produced nothing ($f is empty), see $RES/compare.log" >&2; exit 1; }
+done
 
 # Replica resident size. s3res: s3res-bench memory (TMR s3res-echo, idle after 1000 rounds).
 echo "compare-peers: resident sizes" >&2
