@@ -412,6 +412,26 @@ pub fn process_exiting(pid: libc::pid_t) -> bool {
     .unwrap_or(true)
 }
 
+/// How `pid` ended, while it is a zombie (exited, not yet reaped by its parent): field 52 of
+/// `/proc/PID/stat`, the status as `waitpid` would report it (Linux 3.5+). `None` if the
+/// process is not a zombie (running, or reaped and gone) or `/proc` does not say.
+///
+/// For a process that is not our child, whose parent may take its time to reap it (a fork
+/// child whose donor died belongs to a subreaper), this is the status without waiting for the
+/// reaping that `PIDFD_INFO_EXIT` needs.
+pub fn zombie_exit_status(pid: libc::pid_t) -> Option<ExitStatus> {
+    with_proc_stat(pid, |rest| {
+        let mut fields = rest.split_ascii_whitespace();
+        let state = fields.next()?;
+        if state != "Z" && state != "X" {
+            return None;
+        }
+        // Field 3 was `state`; field 52 is 49 further on.
+        let code: libc::c_int = fields.nth(48)?.parse().ok()?;
+        Some(ExitStatus::from_wait_status(code))
+    })
+}
+
 /// Reads `/proc/PID/stat` and gives `f` what follows `comm` (from field 3 on).
 fn with_proc_stat<R>(pid: libc::pid_t, f: impl FnOnce(&str) -> Option<R>) -> Option<R> {
     use std::io::Read;
@@ -924,18 +944,55 @@ mod tests {
         let mut child = std::process::Command::new("true").spawn().unwrap();
         let pid = child.id() as libc::pid_t;
         // Not reaped yet: a zombie once it has exited.
-        let start = std::time::Instant::now();
-        while process_state(pid) != Some('Z') {
-            assert!(
-                start.elapsed() < Duration::from_secs(10),
-                "`true` did not exit"
-            );
-            std::thread::sleep(Duration::from_millis(1));
-        }
+        until_zombie(pid);
         assert!(process_exiting(pid));
         child.wait().unwrap();
         // Gone counts as on its way out, too.
         assert!(process_exiting(pid));
+    }
+
+    /// Waits (bounded) until `pid`, our child, is a zombie.
+    fn until_zombie(pid: libc::pid_t) {
+        let start = std::time::Instant::now();
+        while process_state(pid) != Some('Z') {
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "{pid} did not exit"
+            );
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    /// A child killed and reaped when dropped, also when the test fails.
+    struct Reaped(std::process::Child);
+
+    impl Drop for Reaped {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+
+    #[test]
+    fn a_zombie_tells_how_it_ended_before_it_is_reaped() {
+        let spawn = |cmd: &str, args: &[&str]| {
+            Reaped(std::process::Command::new(cmd).args(args).spawn().unwrap())
+        };
+        let Reaped(code) = &mut spawn("sh", &["-c", "exit 7"]);
+        let Reaped(sleeper) = &mut spawn("sleep", &["30"]);
+        let (code_pid, sleeper_pid) = (code.id() as libc::pid_t, sleeper.id() as libc::pid_t);
+        assert_eq!(zombie_exit_status(sleeper_pid), None, "a live process");
+        sleeper.kill().unwrap();
+        until_zombie(code_pid);
+        until_zombie(sleeper_pid);
+        assert_eq!(zombie_exit_status(code_pid), Some(ExitStatus::Code(7)));
+        assert_eq!(
+            zombie_exit_status(sleeper_pid),
+            Some(ExitStatus::Signal(libc::SIGKILL))
+        );
+        code.wait().unwrap();
+        sleeper.wait().unwrap();
+        assert_eq!(zombie_exit_status(code_pid), None, "reaped: gone");
     }
 
     #[test]

@@ -267,7 +267,7 @@ impl ReactiveVoter {
         };
         let (first, second) = self.looks_before(round);
         match (round.look, round.starved) {
-            (None, _) if now >= first => self.look_at_late(now),
+            (None, _) if now >= first => self.look_at_late(),
             (Some(_), None) if now >= second => {
                 let starved = self.judge_late(now);
                 if let Some(round) = self.round.as_mut() {
@@ -313,14 +313,19 @@ impl ReactiveVoter {
 
     /// Records what the replicas not done yet have run and waited so far (see
     /// `starvation.rs`).
-    fn look_at_late(&mut self, now: Instant) {
-        let mut look = Look {
-            at: now,
-            times: [None; MAX_REPLICAS],
-        };
+    fn look_at_late(&mut self) {
+        let mut times = [None; MAX_REPLICAS];
         for r in self.timed().iter() {
-            look.times[r] = self.core.slots[r].as_ref().and_then(Replica::sched_times);
+            times[r] = self.core.slots[r].as_ref().and_then(Replica::sched_times);
         }
+        // The window starts when the reads are done, not before them: a replica on the
+        // voter's CPU cannot run while the voter reads (the first look of a replica opens its
+        // task clock and `/proc` file, tens of µs), and that time is the voter's, not the
+        // replica's. Counted in, it made a spinner on the voter's CPU look starved.
+        let look = Look {
+            at: Instant::now(),
+            times,
+        };
         if let Some(round) = self.round.as_mut() {
             round.look = Some(look);
         }
@@ -406,7 +411,7 @@ impl ReactiveVoter {
         for r in late.iter().filter(|&r| !starved.contains(r)) {
             self.blame_late(r, number, on_turn);
         }
-        self.look_at_late(now);
+        self.look_at_late();
         if let Some(round) = self.round.as_mut() {
             round.deadline = now + window;
             round.extended += window;

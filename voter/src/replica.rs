@@ -293,8 +293,16 @@ impl Replica {
                 Ok(Some(status)) => return Some(status),
                 Ok(None) => {}
                 // This kernel does not say; our child's status comes from waitpid alone.
-                Err(_) if !self.our_child => return None,
+                Err(_) if !self.our_child => return sys::zombie_exit_status(self.pid),
                 Err(_) => {}
+            }
+            // Not reaped yet (the pidfd records the status only then): a fork child whose
+            // donor died belongs to a subreaper that may reap it late, and waiting for that
+            // held the crash event, and the recovery, for the whole bound (100 ms).
+            if !self.our_child {
+                if let Some(status) = sys::zombie_exit_status(self.pid) {
+                    return Some(status);
+                }
             }
             if crate::clock::Instant::now() >= deadline {
                 return None;
