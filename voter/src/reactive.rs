@@ -267,7 +267,7 @@ impl ReactiveVoter {
         };
         let (first, second) = self.looks_before(round);
         match (round.look, round.starved) {
-            (None, _) if now >= first => self.look_at_late(),
+            (None, _) if now >= first => self.look_at_late(now),
             (Some(_), None) if now >= second => {
                 let starved = self.judge_late(now);
                 if let Some(round) = self.round.as_mut() {
@@ -313,19 +313,21 @@ impl ReactiveVoter {
 
     /// Records what the replicas not done yet have run and waited so far (see
     /// `starvation.rs`).
-    fn look_at_late(&mut self) {
-        let mut times = [None; MAX_REPLICAS];
-        for r in self.timed().iter() {
-            times[r] = self.core.slots[r].as_ref().and_then(Replica::sched_times);
-        }
-        // The window starts when the reads are done, not before them: a replica on the
-        // voter's CPU cannot run while the voter reads (the first look of a replica opens its
-        // task clock and `/proc` file, tens of µs), and that time is the voter's, not the
-        // replica's. Counted in, it made a spinner on the voter's CPU look starved.
-        let look = Look {
-            at: Instant::now(),
-            times,
+    fn look_at_late(&mut self, now: Instant) {
+        // The window starts before the reads, although a replica on the voter's CPU cannot
+        // run while the voter reads (the first look of a replica opens its task clock and
+        // `/proc` file, tens of µs), so that a spinner there may look starved and get one
+        // more window (the hang p99's extra ~200 µs in `s3res-bench detect`). Starting it
+        // after the reads shortened the window so much that a replica that had just got its
+        // CPU back after milliseconds ran a quarter of it and was blamed (CI, 24e10d2:
+        // "in the last 55 µs it ran 23 µs and waited 4926 µs for a CPU").
+        let mut look = Look {
+            at: now,
+            times: [None; MAX_REPLICAS],
         };
+        for r in self.timed().iter() {
+            look.times[r] = self.core.slots[r].as_ref().and_then(Replica::sched_times);
+        }
         if let Some(round) = self.round.as_mut() {
             round.look = Some(look);
         }
@@ -411,7 +413,7 @@ impl ReactiveVoter {
         for r in late.iter().filter(|&r| !starved.contains(r)) {
             self.blame_late(r, number, on_turn);
         }
-        self.look_at_late();
+        self.look_at_late(now);
         if let Some(round) = self.round.as_mut() {
             round.deadline = now + window;
             round.extended += window;
