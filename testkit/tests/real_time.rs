@@ -214,7 +214,13 @@ fn sequential_identifies(unprivileged: bool, slot: usize, inject: impl FnOnce(i3
     run.wait_for_answers("echo");
     let pid = run.replica_pids("echo")[&slot];
     inject(pid);
-    let hang = run.wait_for_event(|e| e.kind == EventKind::Hang, Duration::from_secs(20));
+    // The hang of the replica injected: a machine loaded by others can have made a replica
+    // miss a turn before (CI, 0814efe: a `hang` of round 10, before the injection, was taken
+    // for it).
+    let hang = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
     assert_eq!(hang.replica, Some(slot), "{hang:?}");
     assert_eq!(hang.pid, Some(pid), "{hang:?}");
     assert_eq!(

@@ -40,6 +40,14 @@ pub struct ReactiveVoter {
     /// Per replica, what the looks before the open round's deadline saw it do, for the
     /// `hang` event's detail.
     evidence: [Option<Seen>; MAX_REPLICAS],
+    /// In a sequential round, the replicas whose answers the last wait watched (see
+    /// [`ReactiveVoter::watched`]); `None`: it watched every replica.
+    watching: Option<ReplicaSet>,
+    /// The replicas that may share a CPU with the voter: pinned to one of its CPUs, or either
+    /// of them not pinned.
+    shares_cpu: ReplicaSet,
+    /// When the last wait was to end at the latest (its nearest timer).
+    wake_at: Option<Instant>,
 }
 
 impl ReactiveVoter {
@@ -47,6 +55,7 @@ impl ReactiveVoter {
     pub fn start(plan: VoterPlan) -> Result<ReactiveVoter, VoterError> {
         let core = Core::start(plan)?;
         let n = core.plan.replicas;
+        let shares_cpu = shares_cpu(&core.plan.cpus, core.plan.voter_cpu, n);
         Ok(ReactiveVoter {
             answers: vec![vec![Vec::new(); core.plan.outputs.len()]; n],
             timers: Deadlines::new(core.plan.inputs.len(), n),
@@ -56,6 +65,9 @@ impl ReactiveVoter {
             close: RoundClose::default(),
             closing: None,
             evidence: [None; MAX_REPLICAS],
+            watching: None,
+            wake_at: None,
+            shares_cpu,
         })
     }
 
@@ -220,6 +232,11 @@ impl ReactiveVoter {
                 (Some(_), None) => second,
                 (Some(_), Some(_)) => round.deadline,
             };
+            // A turn whose answer does not wake the loop is looked for now and then.
+            let at = match self.unwatched_turn_check(round) {
+                Some(check) => at.min(check),
+                None => at,
+            };
             self.timers.set(Timer::Round(round.pair), at);
         }
         for (r, rep) in self.core.slots.iter().enumerate() {
@@ -227,7 +244,8 @@ impl ReactiveVoter {
                 self.timers.set(Timer::Grace(r), since + EXIT_AFTER_EOF);
             }
         }
-        self.timers.nearest().map(|(_, at)| at)
+        self.wake_at = self.timers.nearest().map(|(_, at)| at);
+        self.wake_at
     }
 
     // ----- rounds -----------------------------------------------------------------------
@@ -235,6 +253,7 @@ impl ReactiveVoter {
     /// Closes the round when everyone trusted has answered, or when its deadline has passed.
     /// In a sequential round, moves the turn on instead (see [`ReactiveVoter::advance_turn`]).
     fn advance_round(&mut self) {
+        self.read_unwatched();
         let Some(round) = self.round.as_ref() else {
             return;
         };
@@ -257,6 +276,113 @@ impl ReactiveVoter {
             return;
         }
         self.close_round();
+    }
+
+    /// Whose output pipes the next wait watches. Every replica's, except in a sequential
+    /// round: there the answer that can complete the next decision, and the answer of the
+    /// replica whose turn it is if the voter is pinned off that replica's CPU.
+    ///
+    /// Replicas sharing a CPU run their turns in slot order, and the voter outranks them. On
+    /// their CPU, every answer the voter waits for preempts the replica that wrote it before
+    /// that replica can block on its next input: the voter runs, finds nothing to decide,
+    /// sleeps, and the replica runs again only to block. In a TMR round the first answer never
+    /// decides anything (a majority needs two), so waking for it cost a voter turn and two
+    /// context switches per round (9 switches a TMR round trip against the C floor's 6). The
+    /// answers not watched are read whenever the loop wakes (`read_unwatched`): at the answer
+    /// that completes a majority, a death (pidfds are always watched), a deadline, a look, or
+    /// the turn check ([`unwatched_turn_check`](Self::unwatched_turn_check)), which bounds how
+    /// late the next turn's deadline starts. On another CPU, the voter's wake-up preempts no
+    /// replica, and the turn's answer is watched so that the next turn starts on time.
+    fn watched(&self) -> ReplicaSet {
+        let all = ReplicaSet::first(self.core.slots.len());
+        let Some(round) = self.round.as_ref() else {
+            return all;
+        };
+        if self.core.plan.schedule != Schedule::Sequential {
+            return all;
+        }
+        let pending = self.pending(round).count();
+        if pending == 0 {
+            return all;
+        }
+        let k = if round.expected & !(round.forwarded | round.held) == 0 {
+            // Everything went out: only the round's close is left, at the last answer.
+            pending - 1
+        } else {
+            // Answers still missing for a majority if every one agreed: the one that brings
+            // the count there is watched (with disagreement, later ones; the last always is).
+            let trusted = round
+                .members
+                .iter()
+                .filter(|&r| self.core.slots[r].is_some())
+                .count();
+            let missing = (trusted / 2 + 1).saturating_sub(trusted - pending).max(1);
+            missing.min(pending) - 1
+        };
+        let Some(decider) = self.pending(round).nth(k) else {
+            return all;
+        };
+        let watched = ReplicaSet::EMPTY.with(decider);
+        match round.turn {
+            Some(t) if !self.shares_cpu.contains(t) => watched.with(t),
+            _ => watched,
+        }
+    }
+
+    /// The trusted members of `round` that have not answered everything, in turn order.
+    fn pending<'a>(&'a self, round: &'a Round) -> impl Iterator<Item = usize> + 'a {
+        round
+            .members
+            .iter()
+            .filter(move |&r| self.core.slots[r].is_some() && !round.is_done_by(r))
+    }
+
+    /// Reads the answers that did not wake the loop (see [`watched`](Self::watched)): of the
+    /// pending replicas whose turn comes before a watched one's (they ran first), or of
+    /// every pending one when a timer woke the loop. (Not of the others after any wake-up:
+    /// right after the voter delivered an input, on the replicas' CPU, nobody has answered,
+    /// and each read would be a wasted system call.)
+    fn read_unwatched(&mut self) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        let Some(watched) = self.watching else {
+            return;
+        };
+        let last_watched = watched.iter().last().unwrap_or(0);
+        let timer_due = self.wake_at.is_some_and(|at| Instant::now() >= at);
+        let mut pending = [0usize; MAX_REPLICAS];
+        let mut n = 0;
+        for r in self.pending(round) {
+            if timer_due || (r < last_watched && !watched.contains(r)) {
+                pending[n] = r;
+                n += 1;
+            }
+        }
+        for &r in &pending[..n] {
+            self.last_look(r);
+            if self.round.is_none() {
+                return;
+            }
+        }
+        if timer_due {
+            if let Some(round) = self.round.as_mut() {
+                round.checked = Some(Instant::now());
+            }
+        }
+    }
+
+    /// When the loop must wake to see whether the replica whose turn it is has answered, if
+    /// its answer does not wake the loop: half a look window after the last look at the
+    /// pipes. So the next turn's deadline starts at most that late (never early: a turn is
+    /// never shortened), about 5 % of `timeout_us`; a fault-free round is over long before.
+    fn unwatched_turn_check(&self, round: &Round) -> Option<Instant> {
+        let turn = round.turn?;
+        if self.watched().contains(turn) {
+            return None;
+        }
+        let since = round.checked?;
+        Some(since + self.look_window() / 2)
     }
 
     /// Before a deadline: the two looks at the timed replicas, when due (see
@@ -479,7 +605,9 @@ impl ReactiveVoter {
         let allowance = self.allowance(ReplicaSet::EMPTY.with(next));
         let round = self.round.as_mut().expect("checked above");
         round.turn = Some(next);
-        round.deadline = Instant::now() + allowance;
+        let now = Instant::now();
+        round.deadline = now + allowance;
+        round.checked = Some(now);
         // The looks and extensions were for the previous turn.
         round.look = None;
         round.starved = None;
@@ -741,10 +869,13 @@ impl Mode for ReactiveVoter {
         // of unbounded buffering.
         let take_input = self.round.is_none() && self.core.faults.is_empty() && !backlog;
         self.core.reset_poll(take_input);
+        let watched = self.watched();
+        let all = ReplicaSet::first(self.core.slots.len());
+        self.watching = (watched != all).then_some(watched);
         let core = &mut self.core;
         for (r, rep) in core.slots.iter().enumerate() {
             if let Some(rep) = rep {
-                core.poll.add_replica(r, rep, true, |_| true);
+                core.poll.add_replica(r, rep, true, |_| watched.contains(r));
             }
         }
     }
@@ -786,10 +917,53 @@ impl Mode for ReactiveVoter {
     fn started_fresh(&mut self, _slot: usize) {}
 }
 
+/// The replicas of a component placed on `cpus` (voter on `voter_cpu`) that may run on one of
+/// the voter's CPUs (see `sched`): all unless both sides are pinned apart.
+fn shares_cpu(cpus: &[usize], voter_cpu: Option<usize>, replicas: usize) -> ReplicaSet {
+    let voter = crate::sched::voter_cpus(cpus, voter_cpu);
+    (0..replicas)
+        .filter(|&r| match crate::sched::replica_cpu(cpus, r) {
+            Some(c) => voter.is_empty() || voter.contains(&c),
+            None => true,
+        })
+        .fold(ReplicaSet::EMPTY, ReplicaSet::with)
+}
+
 /// How many bytes the voter queues for one replica input beyond what its pipe holds before
 /// the replica counts as not taking its input (a `hang`): 64 frames of the channel's maximum,
 /// and at least 4 MiB, so a burst of an upstream neighbour never trips it, while a replica
 /// that stopped reading cannot make the voter's memory grow without bound.
 fn input_backlog_limit(max_frame: usize) -> usize {
     (64 * (max_frame + replica_rt::frame::HEADER_LEN)).max(4 << 20)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn set(slots: &[usize]) -> ReplicaSet {
+        slots.iter().fold(ReplicaSet::EMPTY, |s, &r| s.with(r))
+    }
+
+    #[test]
+    fn replicas_share_the_voters_cpu_unless_both_are_pinned_apart() {
+        // Nothing pinned: anyone may run anywhere.
+        assert_eq!(shares_cpu(&[], None, 3), set(&[0, 1, 2]));
+        // Everything on CPU 0 (the voter goes to the component's list).
+        assert_eq!(shares_cpu(&[0], None, 3), set(&[0, 1, 2]));
+        assert_eq!(shares_cpu(&[0], Some(0), 3), set(&[0, 1, 2]));
+        // Replicas on CPU 1, voter on CPU 0.
+        assert_eq!(shares_cpu(&[1], Some(0), 3), ReplicaSet::EMPTY);
+        // Replicas over CPUs 0 and 1 (0, 1, 0), voter on 1.
+        assert_eq!(shares_cpu(&[0, 1], Some(1), 3), set(&[1]));
+        // Voter pinned, replicas not: they may come to its CPU.
+        assert_eq!(shares_cpu(&[], Some(0), 2), set(&[0, 1]));
+    }
+
+    #[test]
+    fn the_first_replicas() {
+        assert_eq!(ReplicaSet::first(0), ReplicaSet::EMPTY);
+        assert_eq!(ReplicaSet::first(3), set(&[0, 1, 2]));
+        assert_eq!(ReplicaSet::first(MAX_REPLICAS).len(), MAX_REPLICAS);
+    }
 }

@@ -43,6 +43,9 @@ pub struct Round {
     /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
     /// siblings to run (found starved); put back to rest when its turn ends.
     pub raised: Option<usize>,
+    /// Sequential schedule: when the loop last read the answers it does not wait for (see
+    /// `ReactiveVoter::watched`).
+    pub checked: Option<Instant>,
 }
 
 /// What the replicas that had not answered had run and waited, at one moment.
@@ -74,6 +77,7 @@ impl Round {
             starved: None,
             extended: Duration::ZERO,
             raised: None,
+            checked: None,
         }
     }
 

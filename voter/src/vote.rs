@@ -26,6 +26,11 @@ pub struct ReplicaSet(u32);
 impl ReplicaSet {
     pub const EMPTY: ReplicaSet = ReplicaSet(0);
 
+    /// Replicas `0..n`.
+    pub fn first(n: usize) -> Self {
+        ReplicaSet(((1u64 << n.min(MAX_REPLICAS)) - 1) as u32)
+    }
+
     pub fn with(self, i: usize) -> Self {
         ReplicaSet(self.0 | (1 << i))
     }
