@@ -141,16 +141,21 @@ impl FrameIn {
                 self.end -= self.start;
                 self.start = 0;
             }
+            // Wait first: a round trip's answer is never there the moment the bench asks
+            // (on one CPU the system runs only once the bench sleeps), so reading first cost
+            // every round an `EAGAIN` read the peers' harnesses do not make.
+            wait(&self.fd, libc::POLLIN, deadline).map_err(|e| match e {
+                FrameIoError::Timeout(_) => FrameIoError::Timeout(timeout),
+                e => e,
+            })?;
             match sys::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
                 Ok(0) => return Err(FrameIoError::Closed),
                 Ok(n) => self.end += n,
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    wait(&self.fd, libc::POLLIN, deadline).map_err(|e| match e {
-                        FrameIoError::Timeout(_) => FrameIoError::Timeout(timeout),
-                        e => e,
-                    })?
-                }
-                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::Interrupted
+                    ) => {}
                 Err(e) => return Err(e.into()),
             }
         }
