@@ -80,9 +80,11 @@ pub const FIRST_PORT_FD: RawFd = 3;
 ///    that names this recovery attempt;
 /// 1. the donor's handler forks; the child connects and sends [`Hello`] with that nonce (a child
 ///    forked for an earlier, abandoned attempt carries an old nonce and is refused and killed);
-/// 2. the voter checks `SO_PEERCRED` (the peer's parent must be the donor) and the nonce, then
-///    sends one message: [`FdTransfer`] as the payload and the new pipe fds as `SCM_RIGHTS`, in
-///    the same order as `targets`;
+/// 2. the voter checks `SO_PEERCRED` (the peer's parent must be the donor), then sends one
+///    message: [`FdTransfer`] as the payload and the new pipe fds as `SCM_RIGHTS`, in the same
+///    order as `targets`, and only then reads `Hello` and checks the nonce (a child with an old
+///    one is killed, and the pipes it got are dropped by the voter); so the child may receive
+///    its fds before, or while, its `Hello` is read;
 /// 3. the replica `dup2`s each fd onto its target number, closes the received copy, and answers
 ///    with [`Ready`];
 /// 4. both close the connection.

@@ -309,11 +309,12 @@ fn proc_stat_field(pid: libc::pid_t, n: usize) -> Option<libc::pid_t> {
 /// The set of signals `pid` has a handler for (`SigCgt` in `/proc/PID/status`, bit `n - 1`
 /// for signal `n`; see [`signal_bit`]); `None` if the process is gone.
 pub fn caught_signals(pid: libc::pid_t) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("SigCgt:"))
-        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+    with_proc_status(pid, |status| {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix("SigCgt:"))
+            .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+    })
 }
 
 /// Signal `sig`'s bit in a [`caught_signals`] mask.
@@ -434,11 +435,25 @@ pub fn zombie_exit_status(pid: libc::pid_t) -> Option<ExitStatus> {
 
 /// Reads `/proc/PID/stat` and gives `f` what follows `comm` (from field 3 on).
 fn with_proc_stat<R>(pid: libc::pid_t, f: impl FnOnce(&str) -> Option<R>) -> Option<R> {
-    use std::io::Read;
-    // One `read` into a stack buffer (the line is ~300 bytes; comm is at most 16), not
-    // `read_to_string`'s statx and growing reads: this is on the restart path.
+    // The line is ~300 bytes; comm is at most 16.
     let mut buf = [0u8; 1024];
-    let mut file = std::fs::File::open(format!("/proc/{pid}/stat")).ok()?;
+    let stat = read_proc_small(&format!("/proc/{pid}/stat"), &mut buf)?;
+    // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
+    f(&stat[stat.rfind(')')? + 1..])
+}
+
+/// Reads `/proc/PID/status` (about 1.5 KiB) and gives it to `f`.
+pub fn with_proc_status<R>(pid: libc::pid_t, f: impl FnOnce(&str) -> Option<R>) -> Option<R> {
+    let mut buf = [0u8; 4096];
+    f(read_proc_small(&format!("/proc/{pid}/status"), &mut buf)?)
+}
+
+/// Reads a small `/proc` file into `buf` (cut at its length): reads into a stack buffer,
+/// normally one, not `read_to_string`'s statx and growing reads (eight for a `status`), since
+/// these are on the restart path.
+fn read_proc_small<'a>(path: &str, buf: &'a mut [u8]) -> Option<&'a str> {
+    use std::io::Read;
+    let mut file = std::fs::File::open(path).ok()?;
     let mut len = 0;
     while len < buf.len() {
         match file.read(&mut buf[len..]) {
@@ -448,9 +463,7 @@ fn with_proc_stat<R>(pid: libc::pid_t, f: impl FnOnce(&str) -> Option<R>) -> Opt
             Err(_) => return None,
         }
     }
-    let stat = std::str::from_utf8(&buf[..len]).ok()?;
-    // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
-    f(&stat[stat.rfind(')')? + 1..])
+    std::str::from_utf8(&buf[..len]).ok()
 }
 
 /// Sends a whole buffer plus `fds` as SCM_RIGHTS in one `sendmsg`.

@@ -6,11 +6,15 @@
 //!    frame boundary: replica-rt never forks in the middle of a `send`), and take back the input
 //!    still buffered in its pipes (the child would not see it otherwise);
 //! 2. refuse and kill whatever is waiting on our socket from an abandoned earlier attempt;
-//! 3. send the donor [`signals::RESTART`] with a fresh nonce; its handler forks;
-//! 4. accept the child: `SO_PEERCRED` must name a child of the donor, and its `Hello` must carry
-//!    this attempt's nonce (a late child of an earlier attempt has an older state);
-//! 5. send it fresh pipes by `SCM_RIGHTS`, which it puts on the donor's fd numbers, and wait
-//!    for its `Ready`;
+//! 3. send the donor [`signals::RESTART`] with a fresh nonce; its handler forks; meanwhile,
+//!    make the child's fresh pipes;
+//! 4. accept the child: `SO_PEERCRED` must name a child of the donor (anyone else is refused
+//!    before anything is sent); send it the pipes by `SCM_RIGHTS` at once, which it puts on the
+//!    donor's fd numbers before it breaks its copy-on-write sharing; then, while it does, check
+//!    that its `Hello` carries this attempt's nonce (a late child of an earlier attempt has an
+//!    older state). One that fails is refused (killed) and its pipes are dropped; the next
+//!    connection gets a new set;
+//! 5. wait for its `Ready`;
 //! 6. give the taken-back input, followed by whatever is still queued for the donor, to both
 //!    (to the donor only after the fork: what it read in between would reach the child twice).
 //!
@@ -60,11 +64,13 @@ fn io_err(what: &'static str) -> impl FnOnce(io::Error) -> RecoveryError {
     move |source| RecoveryError::Io { what, source }
 }
 
-/// A connection from the donor's child, checked.
+/// A connection from the donor's child, checked, which has been sent its pipes.
 struct Joined {
     conn: UnixStream,
     pid: libc::pid_t,
     pidfd: OwnedFd,
+    /// The voter's ends of the pipes sent (the replica's ends were sent and closed here).
+    pipes: ReplicaPipes,
 }
 
 /// Where the donor is when it is asked to fork.
@@ -134,6 +140,7 @@ pub fn fork(
         .map_err(io_err("signalling the donor"))
         .and_then(|()| {
             let attempt = Attempt {
+                plan,
                 nonce,
                 family,
                 deadline,
@@ -146,7 +153,7 @@ pub fn fork(
     give_back(donor, &taken_back);
     let joined = joined?;
     let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
-    let (mut child, ready) = hand_over_pipes(plan, joined, deadline).inspect_err(|_| {
+    let (mut child, ready) = await_ready(joined, deadline).inspect_err(|_| {
         // The child exists but will never be used: do not leave it behind.
         let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
     })?;
@@ -186,6 +193,7 @@ const BACKLOG_CLEAR_LIMIT: usize = 256;
 
 /// One fork attempt, as the accept loop needs it.
 struct Attempt<'a> {
+    plan: &'a VoterPlan,
     nonce: u32,
     family: &'a [libc::pid_t],
     deadline: Instant,
@@ -269,12 +277,16 @@ fn accept_child(
     refused: &mut Refusals,
 ) -> Result<Joined, RecoveryError> {
     let &Attempt {
+        plan,
         nonce,
         family,
         deadline,
         timeout,
         state,
     } = attempt;
+    // Made while the donor forks (the signal is sent): the child's pipes are ready when it
+    // connects.
+    let mut pipes = Some(ReplicaPipes::new(plan).map_err(io_err("creating pipes"))?);
     let mut fds = Vec::with_capacity(2 + donor.outputs.len());
     loop {
         let now = Instant::now();
@@ -316,20 +328,68 @@ fn accept_child(
             Err(e) if e.kind() == io::ErrorKind::WouldBlock => continue,
             Err(e) => return Err(io_err("accepting the child")(e)),
         };
-        match check_child(conn, donor, nonce, deadline) {
-            Ok(joined) => return Ok(joined),
+        // Who it is first (cheap: a stranger costs no pipes); then the pipes go out at once,
+        // before the nonce in its `Hello` is read: the child puts them in place and starts on
+        // its copy-on-write sharing while the voter reads it. A child of the donor that turns
+        // out to belong to an abandoned attempt is refused (killed) and its pipes are dropped
+        // (the voter closes its ends, so they lead nowhere); the next connection gets a new set.
+        let (conn, pid, pidfd) = match identify_child(conn, donor) {
+            Ok(known) => known,
+            Err((conn, why)) => {
+                refuse(conn, family, &why, refused);
+                continue;
+            }
+        };
+        let sent = match pipes.take() {
+            Some(p) => p,
+            None => ReplicaPipes::new(plan).map_err(io_err("creating pipes"))?,
+        };
+        let sent = match send_pipes(&conn, sent) {
+            Ok(sent) => sent,
+            Err(e) => {
+                refuse(conn, family, &format!("sending the pipes: {e}"), refused);
+                continue;
+            }
+        };
+        match check_hello(conn, pid, nonce, deadline) {
+            Ok(conn) => {
+                return Ok(Joined {
+                    conn,
+                    pid,
+                    pidfd,
+                    pipes: sent,
+                })
+            }
             Err((conn, why)) => refuse(conn, family, &why, refused),
         }
     }
 }
 
-/// `SO_PEERCRED` names a child of the donor, and its `Hello` carries our nonce.
-fn check_child(
+/// Sends fresh pipes by `SCM_RIGHTS`, with the fd numbers they must land on, and closes the
+/// replica's ends here; returns the voter's ends.
+fn send_pipes(conn: &UnixStream, pipes: ReplicaPipes) -> io::Result<ReplicaPipes> {
+    let mut transfer = FdTransfer {
+        magic: TRANSFER_MAGIC,
+        count: pipes.replica_ends.len() as u32,
+        targets: [-1; MAX_HANDED_FDS],
+    };
+    for (slot, target) in transfer.targets.iter_mut().zip(pipes.targets()) {
+        *slot = target;
+    }
+    let raw: Vec<RawFd> = pipes.replica_ends.iter().map(AsRawFd::as_raw_fd).collect();
+    sys::send_with_fds(conn.as_fd(), transfer.as_bytes(), &raw)?;
+    let mut pipes = pipes;
+    drop::<Vec<OwnedFd>>(std::mem::take(&mut pipes.replica_ends));
+    Ok(pipes)
+}
+
+/// `SO_PEERCRED` names a child of the donor; returns its pid and a pidfd of it. Cheap (no
+/// read from the peer), and done before anything is sent: a stranger (a flood of connections)
+/// costs no pipes.
+fn identify_child(
     conn: UnixStream,
     donor: &Replica,
-    nonce: u32,
-    deadline: Instant,
-) -> Result<Joined, (UnixStream, String)> {
+) -> Result<(UnixStream, libc::pid_t, OwnedFd), (UnixStream, String)> {
     let pid = match sys::peer_pid(conn.as_fd()) {
         Ok(pid) => pid,
         Err(e) => return Err((conn, format!("no peer credentials: {e}"))),
@@ -345,6 +405,17 @@ fn check_child(
             format!("peer {pid} is not a child of the donor {}", donor.pid),
         ));
     }
+    Ok((conn, pid, pidfd))
+}
+
+/// The child's `Hello` carries our nonce (a late child of an abandoned attempt carries an older
+/// one).
+fn check_hello(
+    conn: UnixStream,
+    pid: libc::pid_t,
+    nonce: u32,
+    deadline: Instant,
+) -> Result<UnixStream, (UnixStream, String)> {
     let hello = match read_exact_by(&conn, deadline) {
         Ok(bytes) => Hello::from_bytes(bytes),
         Err(e) => return Err((conn, format!("no Hello from {pid}: {e}"))),
@@ -358,7 +429,7 @@ fn check_child(
             ),
         ));
     }
-    Ok(Joined { conn, pid, pidfd })
+    Ok(conn)
 }
 
 /// Reads exactly `N` bytes, giving up at `deadline`.
@@ -371,33 +442,20 @@ fn read_exact_by<const N: usize>(conn: &UnixStream, deadline: Instant) -> io::Re
     Ok(buf)
 }
 
-/// Sends fresh pipes to the child and waits for its confirmation.
-fn hand_over_pipes(
-    plan: &VoterPlan,
-    joined: Joined,
-    deadline: Instant,
-) -> Result<(Replica, Ready), RecoveryError> {
-    let Joined { conn, pid, pidfd } = joined;
-    let pipes = ReplicaPipes::new(plan).map_err(io_err("creating pipes"))?;
-    let mut transfer = FdTransfer {
-        magic: TRANSFER_MAGIC,
-        count: pipes.replica_ends.len() as u32,
-        targets: [-1; MAX_HANDED_FDS],
-    };
-    for (slot, target) in transfer.targets.iter_mut().zip(pipes.targets()) {
-        *slot = target;
-    }
-    let raw: Vec<RawFd> = pipes.replica_ends.iter().map(AsRawFd::as_raw_fd).collect();
-    sys::send_with_fds(conn.as_fd(), transfer.as_bytes(), &raw)
-        .map_err(io_err("sending the pipes"))?;
+/// Waits for the confirmation of a child that has been sent its pipes.
+fn await_ready(joined: Joined, deadline: Instant) -> Result<(Replica, Ready), RecoveryError> {
+    let Joined {
+        conn,
+        pid,
+        pidfd,
+        pipes,
+    } = joined;
     let ReplicaPipes {
-        replica_ends,
         inputs,
         outputs,
         stderr,
         ..
     } = pipes;
-    drop::<Vec<OwnedFd>>(replica_ends);
 
     let ready = match read_exact_by::<{ Ready::SIZE }>(&conn, deadline) {
         Ok(bytes) => Ready::from_bytes(bytes),

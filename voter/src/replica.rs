@@ -329,16 +329,19 @@ impl Replica {
         self.proven || catches_restart_signal(self.pid)
     }
 
-    /// How good a recovery donor this replica is; `None`: it cannot donate. See [`DonorRank`].
-    pub fn donor_rank(&self) -> Option<DonorRank> {
+    /// How good a recovery donor this replica is, and its state letter (from `/proc/PID/stat`,
+    /// `None` if it is gone) as seen for the rank; `None`: it cannot donate. See [`DonorRank`].
+    pub fn donor_rank(&self) -> Option<(DonorRank, Option<char>)> {
         if !self.may_donate() {
             return None;
         }
-        Some(DonorRank {
+        let state = sys::process_state(self.pid);
+        let rank = DonorRank {
             state_lost: self.state_lost,
             unproven: !self.proven,
-            stopped: matches!(sys::process_state(self.pid), Some('T' | 't')),
-        })
+            stopped: matches!(state, Some('T' | 't')),
+        };
+        Some((rank, state))
     }
 
     /// Whether the process sleeps in the kernel (`S`: waiting for input, or for its output
@@ -398,26 +401,28 @@ pub fn best_donor(
     patience: Duration,
     exclude: crate::vote::ReplicaSet,
 ) -> DonorPick {
-    let mut ranked: Vec<(DonorRank, std::cmp::Reverse<u64>, usize, libc::pid_t)> = slots
+    // (rank, progress, slot, pid, state letter when ranked); slots are unique, so the state
+    // never decides the order.
+    let mut ranked: Vec<Candidate> = slots
         .iter()
         .enumerate()
         .filter(|&(d, _)| !exclude.contains(d))
         .filter_map(|(d, rep)| {
             let rep = rep.as_ref()?;
-            Some((
-                rep.donor_rank()?,
-                std::cmp::Reverse(progress(d)),
-                d,
-                rep.pid,
-            ))
+            let (rank, state) = rep.donor_rank()?;
+            Some((rank, std::cmp::Reverse(progress(d)), d, rep.pid, state))
         })
         .collect();
     ranked.sort();
     let mut hung = Vec::new();
     let mut looked = Vec::new();
+    // The state read for the rank serves as a first look only until a group has been waited
+    // on (up to `patience`): after that it is stale, and the look is taken afresh.
+    let mut fresh = true;
+    let first_look = |state: Option<char>, fresh: bool| if fresh { state } else { None };
     for state_lost in [false, true] {
-        // (slot, pid, voluntary switches at the first look) of the proven, running candidates.
-        let clean: Vec<(usize, libc::pid_t, Option<u64>)> = ranked
+        // (slot, pid, state when ranked) of the proven, running candidates.
+        let clean: Vec<(usize, libc::pid_t, Option<char>)> = ranked
             .iter()
             .filter(|c| {
                 c.0 == DonorRank {
@@ -426,7 +431,7 @@ pub fn best_donor(
                     stopped: false,
                 }
             })
-            .map(|&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+            .map(|&(.., d, pid, state)| (d, pid, first_look(state, fresh)))
             .collect();
         looked.extend(clean.iter().map(|c| c.0));
         if let Some(d) = first_to_wait(&clean, patience) {
@@ -435,6 +440,7 @@ pub fn best_donor(
                 hung,
             };
         }
+        fresh &= clean.is_empty();
         // None of them waited for anything in all that time: hung.
         hung.extend(
             clean
@@ -461,15 +467,17 @@ pub fn best_donor(
     let mut ranks: Vec<DonorRank> = rest.iter().map(|c| c.0).collect();
     ranks.dedup();
     for rank in ranks {
-        let group: Vec<(usize, libc::pid_t, Option<u64>)> = rest
+        let group: Vec<(usize, libc::pid_t, Option<char>)> = rest
             .iter()
             .filter(|c| c.0 == rank)
-            .map(|&&(.., d, pid)| (d, pid, voluntary_switches(pid)))
+            .map(|&&(.., d, pid, state)| (d, pid, first_look(state, fresh)))
             .collect();
         let donor = if rank.stopped {
             group.first().map(|c| c.0)
         } else {
-            first_to_wait(&group, patience)
+            let donor = first_to_wait(&group, patience);
+            fresh &= group.is_empty();
+            donor
         };
         if donor.is_some() {
             return DonorPick { donor, hung };
@@ -478,25 +486,74 @@ pub fn best_donor(
     DonorPick { donor: None, hung }
 }
 
+/// A donor candidate as [`best_donor`] ranks it: rank, progress, slot, pid, and its state
+/// letter when ranked.
+type Candidate = (
+    DonorRank,
+    std::cmp::Reverse<u64>,
+    usize,
+    libc::pid_t,
+    Option<char>,
+);
+
 /// The first of `candidates` seen asleep or having blocked since the first look, within
 /// `patience` (looking every [`RESAMPLE`]).
+///
+/// The first look is the state each candidate was ranked with (`candidates` carries it, or
+/// `None` once it is stale), then, for one not seen asleep there, one read of
+/// `/proc/PID/status` for both its state and its voluntary switches; it stops at the first one
+/// asleep. In the common case (the first
+/// candidate waits for input) that is no further read of `/proc`: the voluntary switches of
+/// every candidate, then the state again, were read before (about a tenth of a restart).
 fn first_to_wait(
-    candidates: &[(usize, libc::pid_t, Option<u64>)],
+    candidates: &[(usize, libc::pid_t, Option<char>)],
     patience: Duration,
 ) -> Option<usize> {
     let started = std::time::Instant::now();
-    while !candidates.is_empty() {
-        for &(d, pid, first_blocks) in candidates {
-            if is_asleep(pid) || voluntary_switches(pid) != first_blocks {
+    let mut first_blocks = Vec::with_capacity(candidates.len());
+    for &(d, pid, ranked_state) in candidates {
+        if ranked_state == Some('S') {
+            return Some(d);
+        }
+        let look = status_look(pid);
+        if look.state == Some('S') {
+            return Some(d);
+        }
+        first_blocks.push(look.voluntary_switches);
+    }
+    while !candidates.is_empty() && started.elapsed() < patience {
+        std::thread::sleep(RESAMPLE);
+        for (&(d, pid, _), first) in candidates.iter().zip(&first_blocks) {
+            if is_asleep(pid) || voluntary_switches(pid) != *first {
                 return Some(d);
             }
         }
-        if started.elapsed() >= patience {
-            break;
-        }
-        std::thread::sleep(RESAMPLE);
     }
     None
+}
+
+/// A process's state and voluntary context switches, from one read of `/proc/PID/status`.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+struct StatusLook {
+    /// The state letter (`S`, `R`, `T`, …); `None` if the process is gone.
+    state: Option<char>,
+    voluntary_switches: Option<u64>,
+}
+
+fn status_look(pid: libc::pid_t) -> StatusLook {
+    sys::with_proc_status(pid, |status| Some(parse_status(status))).unwrap_or_default()
+}
+
+fn parse_status(status: &str) -> StatusLook {
+    let mut look = StatusLook::default();
+    for line in status.lines() {
+        if let Some(v) = line.strip_prefix("State:") {
+            look.state = v.trim_start().chars().next();
+        } else if let Some(v) = line.strip_prefix("voluntary_ctxt_switches:") {
+            look.voluntary_switches = v.trim().parse().ok();
+        }
+    }
+    look
 }
 
 /// Whether `pid` sleeps in the kernel (`S`): waiting for input, or for its output pipe.
@@ -506,11 +563,7 @@ pub fn is_asleep(pid: libc::pid_t) -> bool {
 
 /// Voluntary context switches of `pid`, from `/proc/PID/status`.
 pub fn voluntary_switches(pid: libc::pid_t) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
-        .and_then(|v| v.trim().parse().ok())
+    status_look(pid).voluntary_switches
 }
 
 /// Time `pid` has spent on a CPU, ns: the first field of `/proc/PID/schedstat`.
@@ -532,6 +585,30 @@ pub use replica_rt::sys::{caught_signals, signal_bit};
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn status_gives_state_and_voluntary_switches() {
+        let text = "Name:\tx\nState:\tS (sleeping)\nTgid:\t7\nvoluntary_ctxt_switches:\t42\n\
+                    nonvoluntary_ctxt_switches:\t3\n";
+        assert_eq!(
+            parse_status(text),
+            StatusLook {
+                state: Some('S'),
+                voluntary_switches: Some(42)
+            }
+        );
+        assert_eq!(parse_status(""), StatusLook::default());
+        // This thread runs (the process's main thread may be waiting for it).
+        // SAFETY: gettid takes no argument and cannot fail.
+        let me = status_look(unsafe { libc::gettid() });
+        assert_eq!(me.state, Some('R'), "the test itself runs");
+        assert!(me.voluntary_switches.is_some());
+        assert_eq!(
+            status_look(0),
+            StatusLook::default(),
+            "no process 0 in /proc"
+        );
+    }
 
     #[test]
     fn restart_handler_is_seen_in_proc() {
