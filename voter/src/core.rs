@@ -27,7 +27,8 @@ use crate::monitor::{Captures, Monitors};
 use crate::plan::{Mode as PlanMode, VoterPlan};
 use crate::ports::{
     beat, heartbeat_ending, kill_all_children, reap_children, stop_requested, wait_until,
-    write_event, Endpoints, ExternalInput, ExternalOutput, PollSet, Token, HEARTBEAT_PERIOD,
+    write_event, Endpoints, ExternalInput, ExternalOutput, PollSet, Token, WakeTimer,
+    HEARTBEAT_PERIOD,
 };
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
 use crate::replica::Replica;
@@ -190,6 +191,8 @@ pub(crate) struct Core {
     events: Option<OwnedFd>,
     pub(crate) stop: Option<Stop>,
     pub(crate) poll: PollSet,
+    /// Wakes the loop at the mode's next deadline (see [`WakeTimer`]).
+    pub(crate) timer: WakeTimer,
     /// Priorities, pinning and the raising of turns.
     pub(crate) rt: RealTime,
     /// Anomaly detectors on the outputs.
@@ -239,6 +242,7 @@ impl Core {
             events,
             stop: None,
             poll: PollSet::default(),
+            timer: WakeTimer::new()?,
             rt,
             monitors,
             captures,
@@ -270,8 +274,13 @@ impl Core {
     /// Starts the wait set: the signalfd, the external inputs (if `take_input`) and the
     /// outputs with frames queued.
     pub(crate) fn reset_poll(&mut self, take_input: bool) {
-        self.poll
-            .reset(&self.signals, &self.inputs, take_input, &self.outputs);
+        self.poll.reset(
+            &self.signals,
+            &self.timer,
+            &self.inputs,
+            take_input,
+            &self.outputs,
+        );
     }
 
     // ----- events ------------------------------------------------------------------------
@@ -772,11 +781,14 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
         (Some(a), Some(b)) => Some(a.min(b)),
         (a, b) => a.or(b),
     };
-    // Never asleep longer than a heartbeat period: bootstrap must see the loop turn.
+    if let Some(at) = wake {
+        m.core().timer.wake_by(at)?;
+    }
+    // Never asleep longer than a heartbeat period: bootstrap must see the loop turn. (A
+    // timeout that far ahead lies beyond the next tick and costs no timer reprogramming.)
     beat();
     let heartbeat = Instant::now() + HEARTBEAT_PERIOD;
-    let wake = Some(wake.map_or(heartbeat, |w| w.min(heartbeat)));
-    let ready = wait_until(&mut m.core().poll.fds, wake)?;
+    let ready = wait_until(&mut m.core().poll.fds, Some(heartbeat))?;
     if ready == 0 {
         return Ok(());
     }
@@ -793,6 +805,7 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
             }
             Token::Input(i) => m.on_input_readable(i),
             Token::OutputWritable(o) => core.outputs[o].flush(),
+            Token::Timer => core.timer.expired(),
             Token::ReplicaExit(r) => m.on_replica_exit(r),
             Token::ReplicaOutput(r, o) => m.on_replica_output(r, o),
             Token::ReplicaStderr(r) => {

@@ -233,7 +233,7 @@ impl ReactiveVoter {
                 (Some(_), Some(_)) => round.deadline,
             };
             // A turn whose answer does not wake the loop is looked for now and then.
-            let at = match self.unwatched_turn_check(round, at) {
+            let at = match self.unwatched_turn_check(round) {
                 Some(check) => at.min(check),
                 None => at,
             };
@@ -374,28 +374,17 @@ impl ReactiveVoter {
 
     /// When the loop must wake to see whether the replica whose turn it is has answered, if
     /// its answer does not wake the loop: half a look window after the last look at the
-    /// pipes (about 5 % of `timeout_us`), so the next turn's deadline starts at most that late
-    /// (never early: a turn is never shortened). A fault-free round is over long before.
-    ///
-    /// But not sooner than [`TIMER_HORIZON`] when the round's own next timer is later than
-    /// that: a wait whose timeout comes before the next scheduler tick makes the kernel
-    /// reprogram the CPU's timer when the wait begins and again when it ends early, and on
-    /// this VM that cost ~8 µs of CPU per round (DMR round trip on one CPU at a 20 ms timeout:
-    /// 23 µs with no check timer, 34 µs with one 1 ms ahead). Then the next turn starts at
-    /// most [`TIMER_HORIZON`] late. When the round's own timer is that close anyway (a
-    /// `timeout_us` under about 4.4 ms), the check replaces it in the wait at no extra cost.
-    fn unwatched_turn_check(&self, round: &Round, own: Instant) -> Option<Instant> {
+    /// pipes (`timeout_us / 20`, at least 50 µs), so the next turn's deadline starts at most
+    /// that late (never early: a turn is never shortened). A fault-free round is over long
+    /// before; the loop's timer (`ports::WakeTimer`) stays armed across rounds, so the check
+    /// costs no system call per round.
+    fn unwatched_turn_check(&self, round: &Round) -> Option<Instant> {
         let turn = round.turn?;
         if self.watched().contains(turn) {
             return None;
         }
         let since = round.checked?;
-        let check = since + self.look_window() / 2;
-        if own < since + TIMER_HORIZON {
-            Some(check)
-        } else {
-            Some(check.max(since + TIMER_HORIZON))
-        }
+        Some(since + self.look_window() / 2)
     }
 
     /// Before a deadline: the two looks at the timed replicas, when due (see
@@ -929,12 +918,6 @@ impl Mode for ReactiveVoter {
 
     fn started_fresh(&mut self, _slot: usize) {}
 }
-
-/// How far ahead a wait's timeout must be not to come before the next scheduler tick (4 ms
-/// at Debian's `HZ=250`), below which arming it costs a timer reprogram (see
-/// [`ReactiveVoter::unwatched_turn_check`]). A cost, not a correctness, matter: on a kernel
-/// with a longer tick some checks cost that, on one with a shorter tick none do.
-const TIMER_HORIZON: Duration = Duration::from_millis(4);
 
 /// The replicas of a component placed on `cpus` (voter on `voter_cpu`) that may run on one of
 /// the voter's CPUs (see `sched`): all unless both sides are pinned apart.
