@@ -154,11 +154,7 @@ impl ReactiveVoter {
 
     /// A ballot of the current round, as far as it got.
     fn ballot<'a>(&'a self, round: &'a Round, alarmed: &'a [OutputSet]) -> RoundBallot<'a> {
-        let alive = round
-            .members
-            .iter()
-            .filter(|&r| self.core.slots[r].is_some())
-            .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+        let alive = self.trusted(round);
         RoundBallot {
             expected: round.expected,
             forwarded: round.forwarded,
@@ -301,25 +297,22 @@ impl ReactiveVoter {
         if self.core.plan.schedule != Schedule::Sequential {
             return all;
         }
-        let pending = self.pending(round).count();
-        if pending == 0 {
+        let pending = self.pending(round);
+        if pending.is_empty() {
             return all;
         }
         let k = if round.expected & !(round.forwarded | round.held) == 0 {
             // Everything went out: only the round's close is left, at the last answer.
-            pending - 1
+            pending.len() - 1
         } else {
             // Answers still missing for a majority if every one agreed: the one that brings
             // the count there is watched (with disagreement, later ones; the last always is).
-            let trusted = round
-                .members
-                .iter()
-                .filter(|&r| self.core.slots[r].is_some())
-                .count();
-            let missing = (trusted / 2 + 1).saturating_sub(trusted - pending).max(1);
-            missing.min(pending) - 1
+            let trusted = self.trusted(round).len();
+            let done = trusted - pending.len();
+            let missing = (trusted / 2 + 1).saturating_sub(done).max(1);
+            missing.min(pending.len()) - 1
         };
-        let Some(decider) = self.pending(round).nth(k) else {
+        let Some(decider) = pending.iter().nth(k) else {
             return all;
         };
         let watched = ReplicaSet::EMPTY.with(decider);
@@ -329,12 +322,22 @@ impl ReactiveVoter {
         }
     }
 
-    /// The trusted members of `round` that have not answered everything, in turn order.
-    fn pending<'a>(&'a self, round: &'a Round) -> impl Iterator<Item = usize> + 'a {
+    /// The members of `round` still trusted.
+    fn trusted(&self, round: &Round) -> ReplicaSet {
         round
             .members
             .iter()
-            .filter(move |&r| self.core.slots[r].is_some() && !round.is_done_by(r))
+            .filter(|&r| self.core.slots[r].is_some())
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with)
+    }
+
+    /// The trusted members of `round` that have not answered everything (turn order is slot
+    /// order).
+    fn pending(&self, round: &Round) -> ReplicaSet {
+        self.trusted(round)
+            .iter()
+            .filter(|&r| !round.is_done_by(r))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with)
     }
 
     /// Reads the answers that did not wake the loop (see [`watched`](Self::watched)): of the
@@ -351,15 +354,12 @@ impl ReactiveVoter {
         };
         let last_watched = watched.iter().last().unwrap_or(0);
         let timer_due = self.wake_at.is_some_and(|at| Instant::now() >= at);
-        let mut pending = [0usize; MAX_REPLICAS];
-        let mut n = 0;
-        for r in self.pending(round) {
-            if timer_due || (r < last_watched && !watched.contains(r)) {
-                pending[n] = r;
-                n += 1;
-            }
-        }
-        for &r in &pending[..n] {
+        let unwatched = self
+            .pending(round)
+            .iter()
+            .filter(|&r| timer_due || (r < last_watched && !watched.contains(r)))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+        for r in unwatched.iter() {
             self.last_look(r);
             if self.round.is_none() {
                 return;
@@ -380,7 +380,8 @@ impl ReactiveVoter {
     /// costs no system call per round.
     fn unwatched_turn_check(&self, round: &Round) -> Option<Instant> {
         let turn = round.turn?;
-        if self.watched().contains(turn) {
+        // What this wait watches (`build_poll_set` ran just before): `None` is everyone.
+        if self.watching.is_none_or(|watched| watched.contains(turn)) {
             return None;
         }
         let since = round.checked?;
@@ -428,10 +429,8 @@ impl ReactiveVoter {
         let Some(round) = self.round.as_ref() else {
             return ReplicaSet::EMPTY;
         };
-        round
-            .members
+        self.pending(round)
             .iter()
-            .filter(|&r| self.core.slots[r].is_some() && !round.is_done_by(r))
             .filter(|&r| match self.core.plan.schedule {
                 Schedule::Sequential => round.turn == Some(r),
                 _ => true,
