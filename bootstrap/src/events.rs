@@ -103,6 +103,15 @@ impl EventSummary {
                     "anomaly"
                 );
             }
+            EventKind::VoterRestart => {
+                tracing::warn!(
+                    component = %event.component,
+                    pid = %shown(event.pid),
+                    recovery_us = %shown(event.recovery_us),
+                    detail = event.detail.as_deref().unwrap_or(""),
+                    "voter restarted"
+                );
+            }
             EventKind::RecoveryFailed => {
                 counts.failed_recoveries += 1;
                 tracing::error!(

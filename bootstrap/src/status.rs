@@ -50,6 +50,8 @@ pub struct ComponentTally {
     /// Fault events that blamed no replica: no majority, the frame was not forwarded.
     pub withheld: u64,
     pub anomalies: u64,
+    /// Times the component's voter was replaced by one that adopted its replicas.
+    pub voter_restarts: u64,
     /// Slots found faulty and not yet replaced (or lost for good).
     pub down: BTreeSet<usize>,
 }
@@ -106,6 +108,7 @@ impl Tally {
             }
             EventKind::RecoveryFailed => c.failed_recoveries += 1,
             EventKind::Anomaly => c.anomalies += 1,
+            EventKind::VoterRestart => c.voter_restarts += 1,
         }
         d.events.push(e.clone());
     }
@@ -126,6 +129,7 @@ pub fn kind_name(kind: EventKind) -> &'static str {
         EventKind::Recovery => "recovery",
         EventKind::RecoveryFailed => "recovery_failed",
         EventKind::Anomaly => "anomaly",
+        EventKind::VoterRestart => "voter_restart",
     }
 }
 

@@ -117,6 +117,71 @@ pub mod handshake {
         pub nonce: u32,
     }
 
+    /// Replica → voter's successor, first, when its voter died (an input ended without an
+    /// [`END`](crate::frame::END) frame, or an output's reader went away): "I am replica
+    /// `pid`; give me new channels". The rebind handshake:
+    ///
+    /// 1. the replica connects to the socket (`S3RES_VOTER_SOCKET`, bound by bootstrap, which
+    ///    keeps it open across voters, so the connection waits in its backlog while the next
+    ///    voter starts) and sends `Rebind`;
+    /// 2. the voter checks `SO_PEERCRED`'s pid against `pid` and against the replicas its
+    ///    predecessor recorded, then sends [`FdTransfer`] with fresh pipes for every port and
+    ///    stderr, as in the restart handshake;
+    /// 3. the replica `dup2`s them onto its port numbers, drops whatever part of a frame the
+    ///    old pipes left in its input buffers, answers [`Ready`], and goes on: its next frame on
+    ///    each output is preceded by `RESUME n` with that frame's number, and the voter replays
+    ///    the unfinished round (`RESUME k` and input frame `k`), which the replica answers
+    ///    again from its last frames if it had taken it already.
+    ///
+    /// A voter that closes the connection instead (or no voter at all: the socket's last holder
+    /// gone, the connection refused or reset) means the system is ending: the replica takes it
+    /// as the end of its input.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct Rebind {
+        pub magic: u32,
+        pub pid: i32,
+        /// Whole data frames taken so far on each port, by port position (fd − 3); 0 for
+        /// outputs.
+        pub frames_taken: [u64; MAX_PORTS],
+        /// Whole frames sent so far on each port, by port position; 0 for inputs.
+        pub frames_sent: [u64; MAX_PORTS],
+    }
+
+    pub const REBIND_MAGIC: u32 = u32::from_le_bytes(*b"S3rb");
+
+    /// How long a replica whose voter died waits for the next one to take it back.
+    pub const REBIND_TIMEOUT_MS: u64 = 10_000;
+
+    impl Rebind {
+        pub const SIZE: usize = std::mem::size_of::<Rebind>();
+
+        pub fn to_bytes(self) -> [u8; Self::SIZE] {
+            let mut out = [0u8; Self::SIZE];
+            out[..4].copy_from_slice(&self.magic.to_ne_bytes());
+            out[4..8].copy_from_slice(&self.pid.to_ne_bytes());
+            let words = self.frames_taken.iter().chain(self.frames_sent.iter());
+            for (k, n) in words.enumerate() {
+                out[8 + 8 * k..16 + 8 * k].copy_from_slice(&n.to_ne_bytes());
+            }
+            out
+        }
+
+        pub fn from_bytes(b: [u8; Self::SIZE]) -> Self {
+            let word = |k: usize| {
+                let mut w = [0u8; 8];
+                w.copy_from_slice(&b[8 + 8 * k..16 + 8 * k]);
+                u64::from_ne_bytes(w)
+            };
+            Rebind {
+                magic: u32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
+                pid: i32::from_ne_bytes([b[4], b[5], b[6], b[7]]),
+                frames_taken: std::array::from_fn(word),
+                frames_sent: std::array::from_fn(|k| word(MAX_PORTS + k)),
+            }
+        }
+    }
+
     /// Replica → voter: the fds are in place.
     #[repr(C)]
     #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -293,7 +358,7 @@ pub mod signals {
 
 #[cfg(test)]
 mod tests {
-    use super::handshake::{Ready, READY_MAGIC};
+    use super::handshake::{Ready, Rebind, READY_MAGIC, REBIND_MAGIC};
     use super::signals::VarRequest;
     use super::MAX_PORTS;
 
@@ -375,5 +440,17 @@ mod tests {
         };
         assert_eq!(Ready::from_bytes(ready.to_bytes()), ready);
         assert_eq!(Ready::SIZE, 8 + 8 * MAX_PORTS);
+    }
+
+    #[test]
+    fn rebind_roundtrips_with_its_frame_counts() {
+        let rebind = Rebind {
+            magic: REBIND_MAGIC,
+            pid: 77,
+            frames_taken: std::array::from_fn(|k| k as u64 * 3),
+            frames_sent: std::array::from_fn(|k| u64::MAX - k as u64),
+        };
+        assert_eq!(Rebind::from_bytes(rebind.to_bytes()), rebind);
+        assert_eq!(Rebind::SIZE, 8 + 16 * MAX_PORTS);
     }
 }

@@ -25,6 +25,10 @@ pub enum EventKind {
     /// say where and how much. What the voter did about it is a separate event (`sdc` with the
     /// replica, when the alarm decided something); see `docs/anomaly-detection.md`.
     Anomaly,
+    /// The component's voter died or stopped making progress, and a new one adopted its
+    /// replicas: `pid` is the new voter's, `recovery_us` the time from bootstrap seeing the
+    /// old one gone to the new one running the component again, `detail` what happened.
+    VoterRestart,
 }
 
 /// Why the voter raised an event: the observation behind a fault, or why a frame was

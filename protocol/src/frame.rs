@@ -28,6 +28,21 @@ pub const RESUME: u32 = CONTROL_BIT | 1;
 /// Size of a whole resume frame (length word and index).
 pub const RESUME_LEN: usize = HEADER_LEN + 8;
 
+/// The length word of an end frame: "no more frames will come on this channel, the writer
+/// ended on purpose". A voter sends it to its replicas before it closes their inputs at the
+/// normal end, so that a replica can tell that end from the death of its voter (an end of
+/// file without it: the replica then rebinds to the voter's successor, see
+/// `contract::handshake::Rebind`).
+pub const END: u32 = CONTROL_BIT | 2;
+
+/// Size of a whole end frame (the length word alone).
+pub const END_LEN: usize = HEADER_LEN;
+
+/// A whole end frame.
+pub fn end_frame() -> [u8; END_LEN] {
+    END.to_le_bytes()
+}
+
 /// A whole resume frame announcing that the next data frame is number `next`.
 pub fn resume_frame(next: u64) -> [u8; RESUME_LEN] {
     let mut out = [0u8; RESUME_LEN];
@@ -69,6 +84,8 @@ enum Head {
     Data(usize),
     /// A whole `RESUME k`.
     Resume(u64),
+    /// An end frame.
+    End,
     /// A control frame this decoder does not know.
     Unknown(u32),
     /// A length above the channel's maximum.
@@ -103,6 +120,8 @@ pub struct FrameDecoder {
     /// Frames the writer skipped (a resume past `taken`) since the last
     /// [`take_skipped`](FrameDecoder::take_skipped).
     skipped: u64,
+    /// An end frame was decoded: no frame comes after it (see [`END`]).
+    ended: bool,
 }
 
 impl FrameDecoder {
@@ -119,6 +138,7 @@ impl FrameDecoder {
             repeats: 0,
             repeats_of_last: 0,
             skipped: 0,
+            ended: false,
         }
     }
 
@@ -137,6 +157,39 @@ impl FrameDecoder {
     /// Distinct data frames returned so far (repeats not counted).
     pub fn taken(&self) -> u64 {
         self.taken
+    }
+
+    /// Whether the writer sent an end frame: the stream is over, on purpose (resuming
+    /// decoders only). Bytes after it are ignored.
+    pub fn ended(&self) -> bool {
+        self.ended
+    }
+
+    /// Drops the bytes after the last whole frame (a writer that died in the middle of one,
+    /// whose channel is then replaced by a fresh one). Whole frames already received stay.
+    /// Returns how many bytes were dropped.
+    pub fn discard_partial(&mut self) -> usize {
+        if self.lines {
+            let avail = &self.buf[self.start..self.end];
+            let keep = avail.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+            let dropped = avail.len() - keep;
+            self.end = self.start + keep;
+            return dropped;
+        }
+        let mut at = self.start;
+        loop {
+            match self.head(&self.buf[at..self.end]) {
+                Head::Incomplete => break,
+                Head::Resume(_) => at += RESUME_LEN,
+                Head::End => at += END_LEN,
+                Head::Data(len) => at += HEADER_LEN + len,
+                // Not a frame boundary anyone can pass: the reader reports it as it is.
+                Head::Unknown(_) | Head::Oversized(_) => return 0,
+            }
+        }
+        let dropped = self.end - at;
+        self.end = at;
+        dropped
     }
 
     /// Repeats dropped since the last call.
@@ -204,8 +257,16 @@ impl FrameDecoder {
             return self.next_line();
         }
         loop {
+            if self.ended {
+                return Ok(None);
+            }
             let len = match self.head(&self.buf[self.start..self.end]) {
                 Head::Incomplete => return Ok(None),
+                Head::End => {
+                    self.start = self.end;
+                    self.ended = true;
+                    return Ok(None);
+                }
                 Head::Resume(next) => {
                     self.start += RESUME_LEN;
                     self.resume(next);
@@ -250,9 +311,12 @@ impl FrameDecoder {
         // Walks what `next_frame` would do, without doing it: resume frames and repeats are
         // passed over, as `next_frame` passes over them.
         let (mut at, mut next, mut taken) = (0, self.next_index, self.taken);
+        if self.ended {
+            return false;
+        }
         loop {
             match self.head(&avail[at..]) {
-                Head::Incomplete => return false,
+                Head::Incomplete | Head::End => return false,
                 Head::Resume(k) => {
                     (next, taken) = (k, taken.max(k));
                     at += RESUME_LEN;
@@ -275,6 +339,9 @@ impl FrameDecoder {
         };
         let word = u32::from_le_bytes(*word);
         if self.resuming && word & CONTROL_BIT != 0 {
+            if word == END {
+                return Head::End;
+            }
             if word != RESUME {
                 return Head::Unknown(word);
             }
@@ -296,6 +363,9 @@ impl FrameDecoder {
     /// Called at end of stream: an error if a frame was cut off.
     pub fn finish(&self) -> Result<(), FrameError> {
         let avail = &self.buf[self.start..self.end];
+        if self.ended {
+            return Ok(());
+        }
         if self.lines && !avail.is_empty() {
             // The last line has no newline: it may be whole, but there is no telling.
             return Err(FrameError::Truncated {
@@ -603,5 +673,62 @@ mod tests {
         assert_eq!(dec.next_frame().unwrap(), Some(&b"abc"[..]));
         assert_eq!(dec.next_frame().unwrap(), None);
         assert_eq!(dec.pending(), 0);
+    }
+
+    #[test]
+    fn an_end_frame_ends_a_resuming_stream_and_nothing_after_it_counts() {
+        let mut bytes = Vec::new();
+        encode_into(b"a", &mut bytes);
+        bytes.extend_from_slice(&end_frame());
+        encode_into(b"late", &mut bytes);
+        let mut dec = FrameDecoder::resuming(16);
+        dec.push(&bytes);
+        assert!(dec.has_frame());
+        assert_eq!(dec.next_frame().unwrap(), Some(&b"a"[..]));
+        assert!(!dec.has_frame());
+        assert_eq!(dec.next_frame().unwrap(), None);
+        assert!(dec.ended());
+        assert_eq!(dec.next_frame().unwrap(), None);
+        assert_eq!(dec.finish(), Ok(()));
+        // To a reader that does not resume, it is a length like any other: oversized.
+        let mut plain = FrameDecoder::new(16);
+        plain.push(&end_frame());
+        assert!(matches!(
+            plain.next_frame(),
+            Err(FrameError::Oversized { .. })
+        ));
+    }
+
+    #[test]
+    fn discard_partial_keeps_whole_frames_and_drops_the_cut_tail() {
+        let mut bytes = Vec::new();
+        encode_into(b"one", &mut bytes);
+        bytes.extend_from_slice(&resume_frame(1));
+        encode_into(b"two", &mut bytes);
+        let whole = bytes.len();
+        encode_into(b"three", &mut bytes);
+        for cut in whole..bytes.len() {
+            let mut dec = FrameDecoder::resuming(16);
+            dec.push(&bytes[..cut]);
+            assert_eq!(dec.discard_partial(), cut - whole, "cut at {cut}");
+            // The stream goes on on a fresh channel, from a frame boundary.
+            dec.push(&resume_frame(2));
+            let mut rest = Vec::new();
+            encode_into(b"three", &mut rest);
+            dec.push(&rest);
+            let mut got = Vec::new();
+            while let Some(f) = dec.next_frame().unwrap() {
+                got.push(f.to_vec());
+            }
+            assert_eq!(
+                got,
+                vec![b"one".to_vec(), b"two".to_vec(), b"three".to_vec()]
+            );
+        }
+        let mut lines = FrameDecoder::lines(16);
+        lines.push(b"a\nbc");
+        assert_eq!(lines.discard_partial(), 2);
+        assert_eq!(lines.next_frame().unwrap(), Some(&b"a"[..]));
+        assert_eq!(lines.next_frame().unwrap(), None);
     }
 }

@@ -153,6 +153,8 @@ impl LiveView {
             EventKind::RecoveryFailed => (None, ReplicaState::Lost),
             // An alarm alone changes no replica's state (a fault it leads to is its own event).
             EventKind::Anomaly => return false,
+            // About the voter, not a replica (it names none).
+            EventKind::VoterRestart => return false,
             EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
                 // An event about an older process of this slot changes nothing.
                 if e.pid.is_some() && e.pid != r.pid {

@@ -96,8 +96,23 @@ pub struct VoterPlan {
     /// its loop, so that bootstrap can tell a stopped or stuck voter. `None`: no one watches.
     #[serde(default)]
     pub heartbeat_fd: Option<RawFd>,
-    /// Where the voter binds its Unix socket for the restart handshake.
+    /// Where the voter's Unix socket for the restart handshake lives (replicas find it through
+    /// `S3RES_VOTER_SOCKET`).
     pub socket_path: PathBuf,
+    /// The socket itself, bound and listening, when bootstrap made it: then it outlives the
+    /// voter (bootstrap keeps a copy), and replicas whose voter died wait in its backlog for
+    /// the next one. `None`: the voter binds `socket_path` itself.
+    #[serde(default)]
+    pub socket_fd: Option<RawFd>,
+    /// Fd of the voter's journal (a memfd bootstrap made and keeps; `voter/src/journal.rs`):
+    /// the replicas, the input frame of the unfinished round, the frames forwarded — what a
+    /// successor needs to take the component over. `None`: no journal, no successor.
+    #[serde(default)]
+    pub journal_fd: Option<RawFd>,
+    /// Set when this voter succeeds one that died or stopped: it adopts the replicas its
+    /// journal names instead of starting new ones.
+    #[serde(default)]
+    pub adopt: Option<Adoption>,
     /// How long a recovery may wait for the donor's child to connect and take its fds.
     #[serde(default = "default_restart_timeout_ms")]
     pub restart_timeout_ms: u64,
@@ -154,6 +169,20 @@ pub struct VoterPlan {
     /// stdout. `None`: the component links replica-rt itself and finds its ports on fd 3, 4, ...
     #[serde(default)]
     pub preload: Option<PathBuf>,
+}
+
+/// What bootstrap tells a voter that succeeds another (see [`VoterPlan::adopt`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Adoption {
+    /// The voter that died.
+    pub previous_pid: i32,
+    /// When bootstrap saw it gone (CLOCK_MONOTONIC, ns): the `voter_restart` event's
+    /// `recovery_us` runs from here.
+    pub gone_ns: u64,
+    /// Why it is gone, in words (`killed by signal 9`, `made no progress for 8.0 s`).
+    pub why: String,
+    /// Voters of this component started so far, this one included.
+    pub generation: u32,
 }
 
 /// How frames cross the pipes between the voter and its replicas.
