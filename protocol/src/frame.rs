@@ -122,6 +122,9 @@ pub struct FrameDecoder {
     skipped: u64,
     /// An end frame was decoded: no frame comes after it (see [`END`]).
     ended: bool,
+    /// Bytes decoded so far, over the decoder's life: frames returned, repeats and control
+    /// frames passed over (see [`passed`](FrameDecoder::passed)).
+    passed: u64,
 }
 
 impl FrameDecoder {
@@ -139,6 +142,7 @@ impl FrameDecoder {
             repeats_of_last: 0,
             skipped: 0,
             ended: false,
+            passed: 0,
         }
     }
 
@@ -157,6 +161,31 @@ impl FrameDecoder {
     /// Distinct data frames returned so far (repeats not counted).
     pub fn taken(&self) -> u64 {
         self.taken
+    }
+
+    /// Bytes decoded so far over the decoder's life (frames returned, repeats and control
+    /// frames passed over): a reader that takes bytes off its channel only once they are
+    /// decoded takes exactly the growth of this.
+    pub fn passed(&self) -> u64 {
+        self.passed
+    }
+
+    /// Keeps only the first `keep` undecoded bytes (a reader that peeks its channel drops
+    /// what it peeked before it peeks again).
+    pub fn keep_pending(&mut self, keep: usize) {
+        self.end = self.start + keep.min(self.end - self.start);
+    }
+
+    /// Where the stream stands: (distinct data frames taken, number of the next data frame).
+    pub fn position(&self) -> (u64, u64) {
+        (self.taken, self.next_index)
+    }
+
+    /// Puts the decoder where [`position`](Self::position) said another one stood (a voter
+    /// taking over its predecessor's channel).
+    pub fn set_position(&mut self, taken: u64, next_index: u64) {
+        self.taken = taken;
+        self.next_index = next_index;
     }
 
     /// Whether the writer sent an end frame: the stream is over, on purpose (resuming
@@ -263,12 +292,14 @@ impl FrameDecoder {
             let len = match self.head(&self.buf[self.start..self.end]) {
                 Head::Incomplete => return Ok(None),
                 Head::End => {
+                    self.passed += END_LEN as u64;
                     self.start = self.end;
                     self.ended = true;
                     return Ok(None);
                 }
                 Head::Resume(next) => {
                     self.start += RESUME_LEN;
+                    self.passed += RESUME_LEN as u64;
                     self.resume(next);
                     continue;
                 }
@@ -278,6 +309,7 @@ impl FrameDecoder {
             };
             let from = self.start + HEADER_LEN;
             self.start = from + len;
+            self.passed += (HEADER_LEN + len) as u64;
             let index = self.next_index;
             self.next_index = index.saturating_add(1);
             if index < self.taken {

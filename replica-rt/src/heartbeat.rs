@@ -5,19 +5,16 @@
 //! like any other inherited fd.
 
 use std::io;
-use std::os::fd::{AsFd, AsRawFd, BorrowedFd, FromRawFd, OwnedFd};
-use std::ptr::NonNull;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd};
+use std::sync::atomic::Ordering;
 
-/// The shared page's layout.
-#[repr(C)]
-struct Page {
-    /// Turns of the voter's loop so far.
-    beats: AtomicU64,
-    /// Non-zero once the voter is ending (draining its output, letting replicas finish): its
-    /// waits are then bounded by its own limits, not by the heartbeat.
-    ending: AtomicU64,
-}
+use crate::shared::{memfd, SharedRegion};
+
+/// The page's layout: two 64-bit words.
+const BEATS: usize = 0;
+/// Non-zero once the voter is ending (draining its output, letting replicas finish): its waits
+/// are then bounded by its own limits, not by the heartbeat.
+const ENDING: usize = 8;
 
 /// The size of the mapping (one page; the layout needs 16 bytes of it).
 const MAP_LEN: usize = 4096;
@@ -32,33 +29,20 @@ pub struct Pulse {
 /// One heartbeat page, mapped shared.
 #[derive(Debug)]
 pub struct Heartbeat {
-    page: NonNull<Page>,
-    fd: OwnedFd,
+    page: SharedRegion,
 }
 
-// SAFETY: the page is only accessed through atomics, so sharing it between threads (a
-// `static` in the voter) is as safe as sharing the atomics themselves; the mapping lives
-// until `Drop`, which needs `&mut self`.
-unsafe impl Send for Heartbeat {}
-// SAFETY: as above.
+// SAFETY: the page is only accessed through atomics (`SharedRegion::u64_at`), so sharing it
+// between threads (a `static` in the voter) is as safe as sharing the atomics themselves.
 unsafe impl Sync for Heartbeat {}
 
 impl Heartbeat {
     /// A new, zeroed page (bootstrap): a memfd, close-on-exec (handed on by fd mapping only).
     pub fn create() -> io::Result<Heartbeat> {
-        // SAFETY: the name is a valid NUL-terminated string; memfd_create returns a new fd
-        // or -1.
-        let fd = unsafe { libc::memfd_create(c"s3res-heartbeat".as_ptr(), libc::MFD_CLOEXEC) };
-        if fd < 0 {
-            return Err(io::Error::last_os_error());
-        }
-        // SAFETY: the kernel just created this fd for us; it is open and unowned.
-        let fd = unsafe { OwnedFd::from_raw_fd(fd) };
-        // SAFETY: ftruncate on an fd we own, with a positive length.
-        if unsafe { libc::ftruncate(fd.as_raw_fd(), MAP_LEN as libc::off_t) } != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        Self::map(fd)
+        let fd = memfd(c"s3res-heartbeat")?;
+        Ok(Heartbeat {
+            page: SharedRegion::sized(fd, MAP_LEN)?,
+        })
     }
 
     /// Maps the page behind `fd` (the voter, from the fd bootstrap handed it). An fd that is
@@ -76,66 +60,37 @@ impl Heartbeat {
                 format!("not a heartbeat page ({} bytes)", st.st_size),
             ));
         }
-        Self::map(fd)
-    }
-
-    fn map(fd: OwnedFd) -> io::Result<Heartbeat> {
-        // SAFETY: a fresh shared mapping of MAP_LEN bytes of a regular file at least that
-        // long (checked or set by the callers); the kernel picks the address.
-        let ptr = unsafe {
-            libc::mmap(
-                std::ptr::null_mut(),
-                MAP_LEN,
-                libc::PROT_READ | libc::PROT_WRITE,
-                libc::MAP_SHARED,
-                fd.as_raw_fd(),
-                0,
-            )
-        };
-        if ptr == libc::MAP_FAILED {
-            return Err(io::Error::last_os_error());
-        }
-        let page = NonNull::new(ptr.cast::<Page>())
-            .ok_or_else(|| io::Error::other("mmap gave a null address"))?;
-        Ok(Heartbeat { page, fd })
-    }
-
-    fn page(&self) -> &Page {
-        // SAFETY: `page` points at a live, page-aligned mapping of MAP_LEN bytes (until
-        // Drop), and `Page` is two atomics, valid for any bit pattern (zero at creation).
-        unsafe { self.page.as_ref() }
+        Ok(Heartbeat {
+            page: SharedRegion::existing(fd)?,
+        })
     }
 
     /// One more turn of the loop.
     pub fn beat(&self) {
-        self.page().beats.fetch_add(1, Ordering::Relaxed);
+        self.page.u64_at(BEATS).fetch_add(1, Ordering::Relaxed);
     }
 
     /// The voter is ending: stop judging it by its heartbeat.
     pub fn set_ending(&self) {
-        self.page().ending.store(1, Ordering::Relaxed);
+        self.page.u64_at(ENDING).store(1, Ordering::Relaxed);
+    }
+
+    /// A new voter took over: judge it by the heartbeat again.
+    pub fn clear_ending(&self) {
+        self.page.u64_at(ENDING).store(0, Ordering::Relaxed);
     }
 
     pub fn read(&self) -> Pulse {
-        let page = self.page();
         Pulse {
-            beats: page.beats.load(Ordering::Relaxed),
-            ending: page.ending.load(Ordering::Relaxed) != 0,
+            beats: self.page.u64_at(BEATS).load(Ordering::Relaxed),
+            ending: self.page.u64_at(ENDING).load(Ordering::Relaxed) != 0,
         }
     }
 }
 
 impl AsFd for Heartbeat {
     fn as_fd(&self) -> BorrowedFd<'_> {
-        self.fd.as_fd()
-    }
-}
-
-impl Drop for Heartbeat {
-    fn drop(&mut self) {
-        // SAFETY: the mapping was made by `map` with this address and length and nothing
-        // refers to it after Drop (`page()` borrows `self`).
-        unsafe { libc::munmap(self.page.as_ptr().cast(), MAP_LEN) };
+        self.page.as_fd()
     }
 }
 
@@ -169,14 +124,10 @@ mod tests {
         assert!(Heartbeat::adopt(small).is_err());
     }
 
-    fn tempfile_fd(len: i64) -> OwnedFd {
-        // SAFETY: as in `create`.
-        let fd = unsafe { libc::memfd_create(c"test".as_ptr(), libc::MFD_CLOEXEC) };
-        assert!(fd >= 0);
-        // SAFETY: the fd was just created for us.
-        let fd = unsafe { OwnedFd::from_raw_fd(fd) };
-        // SAFETY: ftruncate on an fd we own.
-        assert_eq!(unsafe { libc::ftruncate(fd.as_raw_fd(), len) }, 0);
+    fn tempfile_fd(len: usize) -> OwnedFd {
+        let fd = memfd(c"test").unwrap();
+        // Sized, then unmapped: only the file's length matters here.
+        drop(SharedRegion::sized(fd.try_clone().unwrap(), len).unwrap());
         fd
     }
 }

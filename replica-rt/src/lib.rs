@@ -48,6 +48,7 @@ mod logging;
 mod port;
 pub mod restart;
 pub mod select;
+pub mod shared;
 pub mod sys;
 
 /// The contract, the framing and the machine records are the protocol's (`s3res-protocol`),

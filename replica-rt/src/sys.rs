@@ -912,6 +912,44 @@ pub fn effective_uid() -> u32 {
     nix::unistd::geteuid().as_raw()
 }
 
+/// `tee(2)` without blocking: copies up to `len` bytes from the head of pipe `from` into pipe
+/// `to` without consuming them. `Ok(0)`: `from` is empty and has no writer left.
+pub fn tee(from: BorrowedFd<'_>, to: BorrowedFd<'_>, len: usize) -> io::Result<usize> {
+    loop {
+        // SAFETY: two pipe fds open for the borrow; tee copies between kernel buffers only.
+        let n = unsafe {
+            libc::tee(
+                from.as_raw_fd(),
+                to.as_raw_fd(),
+                len,
+                libc::SPLICE_F_NONBLOCK,
+            )
+        };
+        if n >= 0 {
+            return Ok(n as usize);
+        }
+        let e = io::Error::last_os_error();
+        if e.kind() != io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+}
+
+/// A pipe's capacity (`F_GETPIPE_SZ`).
+pub fn pipe_size(fd: BorrowedFd<'_>) -> io::Result<usize> {
+    // SAFETY: fcntl with F_GETPIPE_SZ takes no pointer.
+    Ok(cvt(unsafe { libc::fcntl(fd.as_raw_fd(), libc::F_GETPIPE_SZ) })? as usize)
+}
+
+/// Sets a pipe's capacity (`F_SETPIPE_SZ`); returns what the kernel made it.
+pub fn set_pipe_size(fd: BorrowedFd<'_>, size: usize) -> io::Result<usize> {
+    // SAFETY: fcntl with F_SETPIPE_SZ takes an integer, no pointer.
+    Ok(
+        cvt(unsafe { libc::fcntl(fd.as_raw_fd(), libc::F_SETPIPE_SZ, size as libc::c_int) })?
+            as usize,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use std::os::fd::IntoRawFd;

@@ -188,6 +188,75 @@ impl FrameReader {
     }
 }
 
+/// A private pipe through which a journaled input peeks its channel (`tee(2)`): the bytes
+/// stay in the channel until the voter takes them into its journal (see `journal.rs`).
+#[derive(Debug)]
+pub struct Peek {
+    r: OwnedFd,
+    w: OwnedFd,
+    cap: usize,
+}
+
+impl Peek {
+    /// A peek pipe as large as `channel`'s, so that one `tee` copies all it holds.
+    pub fn for_channel(channel: BorrowedFd<'_>) -> io::Result<Peek> {
+        let (r, w) = sys::pipe()?;
+        sys::set_nonblocking(r.as_fd(), true)?;
+        sys::set_nonblocking(w.as_fd(), true)?;
+        let want = sys::pipe_size(channel)?;
+        let cap = sys::set_pipe_size(w.as_fd(), want).or_else(|_| sys::pipe_size(w.as_fd()))?;
+        Ok(Peek { r, w, cap })
+    }
+}
+
+impl FrameReader {
+    /// Replaces what was peeked before (keeping the first `keep` undecoded bytes: input
+    /// already taken off the channel, being replayed) with a fresh copy of everything the
+    /// channel holds, without taking it off the channel.
+    pub fn peek_fill(&mut self, peek: &Peek, keep: usize) -> io::Result<Fill> {
+        if self.closed {
+            return Ok(Fill::Closed);
+        }
+        let n = match sys::tee(self.fd.as_fd(), peek.w.as_fd(), peek.cap) {
+            Ok(0) => {
+                self.closed = true;
+                return Ok(Fill::Closed);
+            }
+            Ok(n) => n,
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(Fill::Open),
+            Err(e) => return Err(e),
+        };
+        self.decoder.keep_pending(keep);
+        let mut left = n;
+        while left > 0 {
+            let spare = self.decoder.spare(left);
+            let got = sys::read(peek.r.as_fd(), spare)?;
+            self.decoder.commit(left, got);
+            if got == 0 {
+                break;
+            }
+            left -= got;
+        }
+        if !self.decoder.has_frame() && self.hung_up()? {
+            // A frame cut off by a writer that is gone: it never completes.
+            self.closed = true;
+            return Ok(Fill::Closed);
+        }
+        Ok(Fill::Open)
+    }
+
+    /// Whether the writer has closed its end (the pipe may still hold bytes).
+    fn hung_up(&self) -> io::Result<bool> {
+        let mut pfd = [libc::pollfd {
+            fd: std::os::fd::AsRawFd::as_raw_fd(&self.fd),
+            events: libc::POLLIN,
+            revents: 0,
+        }];
+        sys::ppoll(&mut pfd, Some(std::time::Duration::ZERO))?;
+        Ok(pfd[0].revents & libc::POLLHUP != 0)
+    }
+}
+
 impl AsFd for FrameReader {
     fn as_fd(&self) -> BorrowedFd<'_> {
         self.fd.as_fd()

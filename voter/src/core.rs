@@ -10,21 +10,23 @@
 //! [`Core::apply`] turns a decision into the frame sent and the events written, the same way
 //! for both modes.
 
-use std::os::fd::OwnedFd;
+use std::os::fd::{AsFd, OwnedFd};
 use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
 use nix::sys::signalfd::SignalFd;
-use replica_rt::frame::FrameError;
+use replica_rt::frame::{self, FrameError};
 use replica_rt::sys;
 use thiserror::Error;
 
+use crate::adopt;
 use crate::channel::Fill;
 use crate::clock::{self, ClockError, Instant};
 use crate::decision::Decision;
 use crate::event::{Cause, Event, EventKind, RecoveryMethod};
+use crate::journal::{self, Committed, InputState, Journal, SlotEntry};
 use crate::monitor::{Captures, Monitors};
-use crate::plan::{Mode as PlanMode, VoterPlan};
+use crate::plan::{Framing, Mode as PlanMode, VoterPlan};
 use crate::ports::{
     beat, heartbeat_ending, kill_all_children, reap_children, stop_requested, wait_until,
     write_event, Endpoints, ExternalInput, ExternalOutput, PollSet, Token, WakeTimer,
@@ -199,6 +201,15 @@ pub(crate) struct Core {
     pub(crate) monitors: Monitors,
     /// Voted frames written to files (training data).
     pub(crate) captures: Captures,
+    /// What a successor needs, if bootstrap keeps a journal for this voter (`journal.rs`).
+    pub(crate) journal: Option<Journal>,
+    /// Frames delivered to the replicas per input since the component started: the numbers
+    /// their decoders count in (a replayed frame is sent behind `RESUME` with its number).
+    pub(crate) delivered: Vec<u64>,
+    /// The pid recorded in the journal's replica table, per slot.
+    journaled_pids: Vec<libc::pid_t>,
+    /// Rounds its predecessors started (an adopting voter numbers on from there).
+    pub(crate) adopted_rounds: u64,
 }
 
 impl Core {
@@ -213,18 +224,47 @@ impl Core {
         let captures = Captures::open(&plan)?;
         let Endpoints {
             signals,
-            inputs,
+            mut inputs,
             outputs,
             events,
             listener,
+            journal,
         } = Endpoints::open(&plan)?;
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
-        let slots = start_replicas(&plan, events.as_ref(), |pid, slot| {
-            rt.apply_to_replica(pid, slot)
-        })?;
-        Ok(Core {
+        // A stream component's frames are not tied to rounds: nothing to replay (yet), so its
+        // voter keeps no journal.
+        let journal_fd = journal.filter(|_| plan.mode == PlanMode::Reactive);
+        let (journal, slots, adoption) = match journal_fd {
+            Some(fd) if plan.adopt.is_some() => {
+                let (journal, found) =
+                    Journal::open(fd, &plan).map_err(|e| VoterError::Plan(e.to_string()))?;
+                journaled_inputs(&mut inputs)?;
+                let adopted = adopt::replicas(&plan, &listener, &found.slots, |pid, slot| {
+                    rt.apply_to_replica(pid, slot)
+                });
+                (Some(journal), adopted.slots, Some((found, adopted.lost)))
+            }
+            journal_fd => {
+                let journal = match journal_fd {
+                    Some(fd) => {
+                        let journal = Journal::create(fd, &plan)
+                            .map_err(|e| VoterError::Plan(e.to_string()))?;
+                        journaled_inputs(&mut inputs)?;
+                        Some(journal)
+                    }
+                    None => None,
+                };
+                let slots = start_replicas(&plan, events.as_ref(), |pid, slot| {
+                    rt.apply_to_replica(pid, slot)
+                })?;
+                (journal, slots, None)
+            }
+        };
+        let delivered = vec![0; plan.inputs.len()];
+        let journaled_pids = vec![0; plan.replicas];
+        let mut core = Core {
             plan,
             inputs,
             outputs,
@@ -246,7 +286,212 @@ impl Core {
             rt,
             monitors,
             captures,
-        })
+            journal,
+            delivered,
+            journaled_pids,
+            adopted_rounds: 0,
+        };
+        if let Some((found, lost)) = adoption {
+            core.resume(found, lost);
+        }
+        core.journal_slots();
+        Ok(core)
+    }
+
+    /// Takes over where the predecessor left: the inputs' decoders where they stood at its
+    /// last commit, the bytes it took since queued for replay, every adopted replica told the
+    /// number of the next frame it will be sent on each input, and every output the number of
+    /// the next frame forwarded (`RESUME`: downstream drops what it already has). Slots whose
+    /// replica did not come back are refilled by the usual recovery, forked from an adopted
+    /// replica if one kept the state.
+    fn resume(&mut self, found: journal::Found, lost: Vec<adopt::Lost>) {
+        let committed = found.committed;
+        for (i, input) in self.inputs.iter_mut().enumerate() {
+            let at = committed.inputs[i];
+            input.reader.decoder.set_position(at.taken, at.next_index);
+            input.reader.decoder.push(&found.logs[i]);
+            if let Some(peek) = input.peek.as_mut() {
+                peek.mark = input.reader.decoder.passed();
+                peek.replay_left = found.logs[i].len();
+            }
+            self.delivered[i] = at.delivered;
+        }
+        for (out, &sent) in self.outputs.iter_mut().zip(&committed.forwarded) {
+            out.sent = sent;
+            out.writer.queue_raw(&frame::resume_frame(sent));
+            out.flush();
+        }
+        self.adopted_rounds = committed.rounds_started;
+        for slot in 0..self.slots.len() {
+            self.number_inputs_of(slot);
+        }
+        let now = Instant::now();
+        for gone in lost {
+            let cause = if gone.died {
+                Cause::Died
+            } else {
+                Cause::Deadline
+            };
+            if gone.pid > 0 {
+                let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
+                ev.replica = Some(gone.slot);
+                ev.pid = Some(gone.pid);
+                ev.detail = Some(if gone.died {
+                    "died while its voter was being replaced".into()
+                } else {
+                    format!(
+                        "did not come back to the new voter within {} ms; killed",
+                        self.plan.restart_timeout_ms
+                    )
+                });
+                self.emit(ev);
+            }
+            self.vacant.push(Vacancy {
+                slot: gone.slot,
+                old_pid: gone.pid,
+                detected_ns: s3res_protocol::clock::monotonic_ns(),
+                next_try: now,
+                backoff: VACANCY_BACKOFF.0,
+            });
+        }
+        let adoption = self
+            .plan
+            .adopt
+            .clone()
+            .expect("resume runs for an adopting voter");
+        let mut ev = self.event(EventKind::VoterRestart);
+        ev.pid = Some(std::process::id() as i32);
+        ev.recovery_us =
+            Some(s3res_protocol::clock::monotonic_ns().saturating_sub(adoption.gone_ns) / 1000);
+        let kept = self.slots.iter().flatten().count();
+        let replayed: usize = found.logs.iter().map(Vec::len).sum();
+        ev.detail = Some(format!(
+            "voter {} ({}) replaced; {kept} of {} replicas adopted, {replayed} bytes of input replayed",
+            adoption.previous_pid,
+            adoption.why,
+            self.slots.len()
+        ));
+        self.emit(ev);
+    }
+
+    // ----- the journal --------------------------------------------------------------------
+
+    /// Brings the journal's replica table up to date with the slots (a `/proc` read for each
+    /// slot whose process changed).
+    pub(crate) fn journal_slots(&mut self) {
+        let Some(journal) = self.journal.as_ref() else {
+            return;
+        };
+        for (slot, rep) in self.slots.iter().enumerate() {
+            let pid = rep.as_ref().map_or(0, |r| r.pid);
+            if pid == self.journaled_pids[slot] {
+                continue;
+            }
+            let entry = rep.as_ref().and_then(|r| {
+                Some(SlotEntry {
+                    pid: r.pid,
+                    start_time: journal::start_time(r.pid)?,
+                    state_lost: r.state_lost,
+                    proven: r.proven,
+                })
+            });
+            journal.set_slot(slot, entry);
+            self.journaled_pids[slot] = pid;
+        }
+    }
+
+    /// Commits what was taken off the inputs, once its rounds are over and their output and
+    /// input are out of the voter (nothing queued for downstream or for a replica): a
+    /// successor then replays nothing of it. Called between rounds.
+    pub(crate) fn commit(&mut self, rounds_started: u64) {
+        let Some(journal) = self.journal.as_mut() else {
+            return;
+        };
+        if !journal.uncommitted() {
+            return;
+        }
+        let queued = self.outputs.iter().any(|o| o.writer.has_pending())
+            || self
+                .slots
+                .iter()
+                .flatten()
+                .any(|r| r.inputs.iter().any(|i| i.writer.has_pending()));
+        if queued {
+            return;
+        }
+        let state = Committed {
+            rounds_started,
+            inputs: self
+                .inputs
+                .iter()
+                .zip(&self.delivered)
+                .map(|(input, &delivered)| {
+                    let (taken, next_index) = input.reader.decoder.position();
+                    InputState {
+                        taken,
+                        next_index,
+                        delivered,
+                    }
+                })
+                .collect(),
+            forwarded: self.outputs.iter().map(|o| o.sent).collect(),
+        };
+        journal.commit(&state);
+    }
+
+    /// Takes the bytes input `i`'s decoder has passed since the last take off its channel,
+    /// into the journal.
+    fn take_decoded(&mut self, i: usize) {
+        let (Some(journal), input) = (self.journal.as_mut(), &mut self.inputs[i]) else {
+            return;
+        };
+        let Some(peek) = input.peek.as_mut() else {
+            return;
+        };
+        let passed = input.reader.decoder.passed();
+        let delta = (passed - peek.mark) as usize;
+        peek.mark = passed;
+        let replayed = delta.min(peek.replay_left);
+        peek.replay_left -= replayed;
+        let n = delta - replayed;
+        if n == 0 {
+            return;
+        }
+        if let Err(e) = journal.take(i, input.reader.as_fd(), n) {
+            tracing::error!(input = %input.name, error = %e, "cannot take input into the journal; treating the input as closed");
+            input.reader.close();
+        }
+    }
+
+    /// A replica started by exec counts its inputs from zero: tell it the number of the next
+    /// frame, so that a replay after a voter restart lines up (journaled voters only).
+    pub(crate) fn number_inputs_of(&mut self, slot: usize) {
+        if self.journal.is_none() || self.plan.framing == Framing::Lines {
+            return;
+        }
+        let Some(rep) = self.slots[slot].as_mut() else {
+            return;
+        };
+        for (input, &next) in rep.inputs.iter_mut().zip(&self.delivered) {
+            input.writer.queue_raw(&frame::resume_frame(next));
+            let _ = input.writer.flush();
+        }
+    }
+
+    /// The end of the replicas' input, on purpose: an END frame (a replica tells it from its
+    /// voter's death, after which it would wait for a successor), then our ends closed.
+    pub(crate) fn end_replica_inputs(&mut self) {
+        let frames = self.plan.framing != Framing::Lines;
+        for rep in self.slots.iter_mut().flatten() {
+            for input in &mut rep.inputs {
+                if frames {
+                    input.writer.queue_raw(&frame::end_frame());
+                }
+                drain_writer(&mut input.writer, Instant::now() + END_FRAME_WAIT);
+            }
+            // Closing our write ends (and the read ends we kept) gives the replica EOF.
+            rep.inputs.clear();
+        }
     }
 
     /// The trusted replicas whose state is lost (see `decision.rs`).
@@ -493,6 +738,19 @@ impl Core {
         i: usize,
         backlog_limit: Option<usize>,
     ) -> Option<Delivery> {
+        if let Some(journal) = self.journal.as_ref() {
+            // Room for the largest frame and the resume frames before it, or wait for a commit.
+            let most = self.plan.inputs[i].max_frame + frame::HEADER_LEN + 2 * frame::RESUME_LEN;
+            if !journal.has_room(i, most) {
+                return None;
+            }
+        }
+        let delivery = self.deliver_decoded(i, backlog_limit);
+        self.take_decoded(i);
+        delivery
+    }
+
+    fn deliver_decoded(&mut self, i: usize, backlog_limit: Option<usize>) -> Option<Delivery> {
         let input = &mut self.inputs[i];
         let frame = match input.reader.decoder.next_frame() {
             Ok(Some(f)) => f,
@@ -528,6 +786,7 @@ impl Core {
                 ));
             }
         }
+        self.delivered[i] += 1;
         Some(delivery)
     }
 
@@ -586,6 +845,7 @@ impl Core {
                 let mut fresh = fresh;
                 fresh.state_lost = true;
                 self.slots[slot] = Some(fresh);
+                self.number_inputs_of(slot);
                 // A fresh process: its first frame is a warm-up for the detectors.
                 self.monitors.reset_stream(slot);
                 Ok(true)
@@ -999,6 +1259,45 @@ impl Fault {
         reap_children();
         (slot, old.pid, detected_ns)
     }
+}
+
+/// How long the end frame may wait for room in a replica's input pipe: a replica that does not
+/// read its input for that long takes the closed pipe for its voter's death, looks for a
+/// successor, finds none that takes it, and ends all the same.
+const END_FRAME_WAIT: Duration = Duration::from_millis(100);
+
+/// Writes out what `writer` has queued, waiting for room up to `deadline`.
+fn drain_writer(writer: &mut crate::channel::FrameWriter, deadline: Instant) {
+    use std::os::fd::AsRawFd;
+    while writer.has_pending() {
+        if writer.flush().is_err() || !writer.has_pending() {
+            return;
+        }
+        let left = deadline.saturating_duration_since(Instant::now());
+        let mut pfd = [libc::pollfd {
+            fd: writer.as_fd().as_raw_fd(),
+            events: libc::POLLOUT,
+            revents: 0,
+        }];
+        if left.is_zero() || sys::ppoll(&mut pfd, Some(left)).unwrap_or(0) == 0 {
+            return;
+        }
+    }
+}
+
+/// Makes every input peeked rather than read, for a journaled voter (see `journal.rs`).
+fn journaled_inputs(inputs: &mut [ExternalInput]) -> Result<(), VoterError> {
+    for input in inputs {
+        let pipe = crate::channel::Peek::for_channel(input.reader.as_fd())
+            .map_err(io_err(format!("peek pipe for input `{}`", input.name)))?;
+        input.peek = Some(crate::ports::Peeked {
+            pipe,
+            mark: input.reader.decoder.passed(),
+            replay_left: 0,
+            stalled_until: None,
+        });
+    }
+    Ok(())
 }
 
 /// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,

@@ -14,10 +14,12 @@
 //! [`plan`] and [`event`] the contracts with bootstrap; [`monitor`] the anomaly detectors on
 //! the outputs and frame capture; [`rt`] and [`sched`] priorities and pinning.
 
+mod adopt;
 pub mod channel;
 pub mod clock;
 mod core;
 pub mod decision;
+mod journal;
 pub mod monitor;
 mod ports;
 pub mod reactive;

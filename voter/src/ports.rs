@@ -14,7 +14,7 @@ use nix::sys::timerfd::{ClockId, Expiration, TimerFd, TimerFlags, TimerSetTimeFl
 use replica_rt::heartbeat::Heartbeat;
 use replica_rt::sys;
 
-use crate::channel::{Fill, FrameReader, FrameWriter};
+use crate::channel::{Fill, FrameReader, FrameWriter, Peek};
 use crate::clock::Instant;
 use crate::core::{io_err, VoterError};
 use crate::event::Event;
@@ -28,7 +28,27 @@ pub(crate) struct ExternalInput {
     pub(crate) reader: FrameReader,
     /// The outputs a frame on this input expects (its round), or `None` if it starts none.
     pub(crate) round: Option<OutputSet>,
+    /// Journaled: the channel is peeked, and frames are taken off it into the journal once
+    /// decoded (see `journal.rs`). `None`: read as usual.
+    pub(crate) peek: Option<Peeked>,
 }
+
+/// How far a journaled input's decoder is ahead of its channel.
+pub(crate) struct Peeked {
+    pub(crate) pipe: Peek,
+    /// The decoder's `passed()` when bytes were last taken off the channel.
+    pub(crate) mark: u64,
+    /// Undecoded bytes at the decoder's head that are already off the channel (the log a
+    /// predecessor left, being replayed).
+    pub(crate) replay_left: usize,
+    /// A frame only partly in the channel (its writer is in the middle of it): peeking again
+    /// before this would find the same bytes, so the input is not watched until then.
+    pub(crate) stalled_until: Option<Instant>,
+}
+
+/// How long a journaled input whose channel holds part of a frame waits before it looks
+/// again (the writer of a frame larger than the pipe's free room writes it in pieces).
+const PEEK_STALL: Duration = Duration::from_millis(1);
 
 /// An output of the protected component: the voter writes the winners here.
 pub(crate) struct ExternalOutput {
@@ -36,11 +56,14 @@ pub(crate) struct ExternalOutput {
     pub(crate) writer: FrameWriter,
     /// The reader went away; later frames are dropped (said once).
     pub(crate) broken: bool,
+    /// Frames sent (queued) so far by this voter and its predecessors: the next one's number.
+    pub(crate) sent: u64,
 }
 
 impl ExternalOutput {
     /// Queues `frame` for downstream and writes what the pipe takes now.
     pub(crate) fn send(&mut self, frame: &[u8]) {
+        self.sent += 1;
         if self.broken {
             return;
         }
@@ -129,8 +152,14 @@ impl PollSet {
         self.tokens.clear();
         self.add(signals.as_raw_fd(), libc::POLLIN, Token::Signal);
         self.add(timer.fd.as_fd().as_raw_fd(), libc::POLLIN, Token::Timer);
+        let now = Instant::now();
         for (i, input) in inputs.iter().enumerate() {
-            if take_input && !input.reader.is_closed() {
+            let stalled = input
+                .peek
+                .as_ref()
+                .and_then(|p| p.stalled_until)
+                .is_some_and(|t| t > now);
+            if take_input && !input.reader.is_closed() && !stalled {
                 self.add(
                     input.reader.as_fd().as_raw_fd(),
                     libc::POLLIN,
@@ -259,9 +288,20 @@ pub(crate) fn wait_until(
 }
 
 impl ExternalInput {
-    /// One read from upstream into the decoder; an end or an error closes the input (logged).
+    /// One read from upstream into the decoder (a peek, if journaled); an end or an error
+    /// closes the input (logged).
     pub(crate) fn read(&mut self) {
-        match self.reader.fill() {
+        let filled = match self.peek.as_mut() {
+            None => self.reader.fill(),
+            Some(p) => {
+                let filled = self.reader.peek_fill(&p.pipe, p.replay_left);
+                let partial = !self.reader.decoder.has_frame()
+                    && self.reader.decoder.pending() > p.replay_left;
+                p.stalled_until = partial.then(|| Instant::now() + PEEK_STALL);
+                filled
+            }
+        };
+        match filled {
             Ok(Fill::Open) => {}
             Ok(Fill::Closed) => {
                 if let Err(e) = self.reader.decoder.finish() {
@@ -321,6 +361,8 @@ pub(crate) struct Endpoints {
     pub(crate) outputs: Vec<ExternalOutput>,
     pub(crate) events: Option<OwnedFd>,
     pub(crate) listener: UnixListener,
+    /// The journal's memfd, if bootstrap gave one (`journal.rs`).
+    pub(crate) journal: Option<OwnedFd>,
 }
 
 impl Endpoints {
@@ -346,6 +388,7 @@ impl Endpoints {
                     reader: FrameReader::resuming(adopted.take(p.fd, &p.name)?, p.max_frame)
                         .map_err(io_err(format!("input `{}` (fd {})", p.name, p.fd)))?,
                     round,
+                    peek: None,
                 })
             })
             .collect::<Result<Vec<_>, VoterError>>()?;
@@ -358,6 +401,7 @@ impl Endpoints {
                     writer: FrameWriter::new(adopted.take(p.fd, &p.name)?)
                         .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
                     broken: false,
+                    sent: 0,
                 })
             })
             .collect::<Result<Vec<_>, VoterError>>()?;
@@ -368,15 +412,33 @@ impl Endpoints {
         if let Some(fd) = plan.heartbeat_fd {
             let page = Heartbeat::adopt(adopted.take(fd, "heartbeat")?)
                 .map_err(io_err(format!("heartbeat (fd {fd})")))?;
+            if plan.adopt.is_some() {
+                // The predecessor may have died while ending; this voter is judged afresh.
+                page.clear_ending();
+            }
             // A second voter in this process (tests) keeps the first page: one is watched.
             let _ = HEARTBEAT.set(page);
         }
 
-        let _ = std::fs::remove_file(&plan.socket_path);
-        let listener = UnixListener::bind(&plan.socket_path)
-            .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
-        // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
-        let _ = std::fs::set_permissions(&plan.socket_path, std::fs::Permissions::from_mode(0o600));
+        let journal = plan
+            .journal_fd
+            .map(|fd| adopted.take(fd, "journal"))
+            .transpose()?;
+        let listener = match plan.socket_fd {
+            // Bound and listening already: bootstrap keeps it across voters.
+            Some(fd) => UnixListener::from(adopted.take(fd, "socket")?),
+            None => {
+                let _ = std::fs::remove_file(&plan.socket_path);
+                let listener = UnixListener::bind(&plan.socket_path)
+                    .map_err(io_err(format!("binding {}", plan.socket_path.display())))?;
+                // Only our own user may connect; SO_PEERCRED narrows it to the donor's child.
+                let _ = std::fs::set_permissions(
+                    &plan.socket_path,
+                    std::fs::Permissions::from_mode(0o600),
+                );
+                listener
+            }
+        };
         listener.set_nonblocking(true).map_err(io_err("socket"))?;
         Ok(Endpoints {
             signals,
@@ -384,6 +446,7 @@ impl Endpoints {
             outputs,
             events,
             listener,
+            journal,
         })
     }
 }

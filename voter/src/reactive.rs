@@ -56,12 +56,13 @@ impl ReactiveVoter {
         let core = Core::start(plan)?;
         let n = core.plan.replicas;
         let shares_cpu = shares_cpu(&core.plan.cpus, core.plan.voter_cpu, n);
+        let rounds_started = core.adopted_rounds;
         Ok(ReactiveVoter {
             answers: vec![vec![Vec::new(); core.plan.outputs.len()]; n],
             timers: Deadlines::new(core.plan.inputs.len(), n),
             core,
             round: None,
-            rounds_started: 0,
+            rounds_started,
             close: RoundClose::default(),
             closing: None,
             evidence: [None; MAX_REPLICAS],
@@ -767,13 +768,7 @@ impl ReactiveVoter {
         for out in &mut self.core.outputs {
             out.drain(drain_deadline);
         }
-        for rep in self.core.slots.iter_mut().flatten() {
-            for input in &mut rep.inputs {
-                let _ = input.writer.flush();
-            }
-            // Closing our write ends (and the read ends we kept) gives the replica EOF.
-            rep.inputs.clear();
-        }
+        self.core.end_replica_inputs();
         self.core.drain_and_let_finish();
         Ok(())
     }
@@ -834,6 +829,8 @@ impl Mode for ReactiveVoter {
             if self.round.is_none() {
                 let replace = self.core.stop.is_none();
                 core::recover_faulty(self, replace)?;
+                self.core.journal_slots();
+                self.core.commit(self.rounds_started);
                 if self.core.stop == Some(Stop::Requested) {
                     return Ok(());
                 }

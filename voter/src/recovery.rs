@@ -367,7 +367,7 @@ fn accept_child(
 
 /// Sends fresh pipes by `SCM_RIGHTS`, with the fd numbers they must land on, and closes the
 /// replica's ends here; returns the voter's ends.
-fn send_pipes(conn: &UnixStream, pipes: ReplicaPipes) -> io::Result<ReplicaPipes> {
+pub(crate) fn send_pipes(conn: &UnixStream, pipes: ReplicaPipes) -> io::Result<ReplicaPipes> {
     let mut transfer = FdTransfer {
         magic: TRANSFER_MAGIC,
         count: pipes.replica_ends.len() as u32,
@@ -433,7 +433,10 @@ fn check_hello(
 }
 
 /// Reads exactly `N` bytes, giving up at `deadline`.
-fn read_exact_by<const N: usize>(conn: &UnixStream, deadline: Instant) -> io::Result<[u8; N]> {
+pub(crate) fn read_exact_by<const N: usize>(
+    conn: &UnixStream,
+    deadline: Instant,
+) -> io::Result<[u8; N]> {
     let left = deadline.saturating_duration_since(Instant::now());
     conn.set_nonblocking(false)?;
     conn.set_read_timeout(Some(left.max(Duration::from_millis(1))))?;

@@ -97,7 +97,10 @@ impl ReplicaPipes {
             outputs.push(if lines {
                 FrameReader::lines(r, port.max_frame)?
             } else {
-                FrameReader::new(r, port.max_frame)?
+                // A replica that took over fresh pipes from a voter's successor starts each
+                // output with `RESUME n`, and answers a replayed round again behind one: the
+                // repeats are dropped. Any other control word is still a bad frame.
+                FrameReader::resuming(r, port.max_frame)?
             });
         }
         let (r, w) = sys::pipe()?;
@@ -163,6 +166,31 @@ pub fn port_map(plan: &VoterPlan) -> PortMap {
 }
 
 impl Replica {
+    /// A replica a voter's successor took over (see `adopt.rs`): not its child, proven or not
+    /// and with its state kept or lost as the predecessor's journal says, on fresh pipes.
+    pub(crate) fn adopted(
+        pid: libc::pid_t,
+        pidfd: OwnedFd,
+        pipes: ReplicaPipes,
+        entry: crate::journal::SlotEntry,
+    ) -> Replica {
+        Replica {
+            pid,
+            pidfd,
+            inputs: pipes.inputs,
+            outputs: pipes.outputs,
+            stderr: pipes.stderr,
+            our_child: false,
+            proven: entry.proven,
+            state_lost: entry.state_lost,
+            output_closed_at: None,
+            start_pipe: None,
+            // It rebound: its runtime runs.
+            started: true,
+            schedstat: SchedStat::new(pid),
+        }
+    }
+
     /// Starts replica `slot` afresh by exec.
     pub fn spawn(plan: &VoterPlan, slot: usize) -> io::Result<Replica> {
         let pipes = ReplicaPipes::new(plan)?;

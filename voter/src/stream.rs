@@ -514,9 +514,7 @@ impl StreamVoter {
     /// (a batch flushed at the end), which are voted like any other.
     fn begin_end(&mut self) {
         tracing::debug!("inputs closed; letting the replicas finish their output");
-        for rep in self.core.slots.iter_mut().flatten() {
-            rep.inputs.clear();
-        }
+        self.core.end_replica_inputs();
         self.ending = Some(Instant::now() + core::SHUTDOWN_GRACE + self.timeout);
     }
 

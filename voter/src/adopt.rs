@@ -1,0 +1,163 @@
+//! A voter that succeeds one that died takes its replicas over instead of starting new ones
+//! (`plan.adopt`): the replicas its predecessor's journal names come back through the rebind
+//! handshake (`contract::handshake::Rebind`) and get fresh pipes; what its predecessor had
+//! taken off the inputs and not finished is replayed (see `journal.rs`).
+
+use std::io;
+use std::os::fd::{AsFd, AsRawFd, OwnedFd};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::time::Duration;
+
+use replica_rt::contract::handshake::{Ready, Rebind, READY_MAGIC, REBIND_MAGIC};
+use replica_rt::sys;
+
+use crate::clock::Instant;
+use crate::journal::{self, SlotEntry};
+use crate::plan::VoterPlan;
+use crate::recovery::{read_exact_by, send_pipes};
+use crate::replica::{Replica, ReplicaPipes};
+
+/// A slot whose replica did not come back.
+pub(crate) struct Lost {
+    pub(crate) slot: usize,
+    pub(crate) pid: libc::pid_t,
+    /// It was gone (`true`), or alive but did not rebind in time (killed).
+    pub(crate) died: bool,
+}
+
+/// What the adoption found.
+pub(crate) struct Adopted {
+    pub(crate) slots: Vec<Option<Replica>>,
+    pub(crate) lost: Vec<Lost>,
+}
+
+/// A replica named in the journal, alive, that has not rebound yet.
+struct Awaited {
+    slot: usize,
+    entry: SlotEntry,
+    pidfd: OwnedFd,
+}
+
+/// Takes over the replicas `table` names: each must connect within `restart_timeout_ms`.
+/// `on_adopt(pid, slot)` runs for each one taken (scheduling settings).
+pub(crate) fn replicas(
+    plan: &VoterPlan,
+    listener: &UnixListener,
+    table: &[Option<SlotEntry>],
+    mut on_adopt: impl FnMut(libc::pid_t, usize),
+) -> Adopted {
+    let mut adopted = Adopted {
+        slots: (0..plan.replicas).map(|_| None).collect(),
+        lost: Vec::new(),
+    };
+    let mut awaited = Vec::new();
+    for (slot, entry) in table.iter().enumerate() {
+        let Some(entry) = *entry else {
+            adopted.lost.push(Lost {
+                slot,
+                pid: 0,
+                died: true,
+            });
+            continue;
+        };
+        // The pidfd first: from then on the pid cannot be reused; then the start time says it
+        // is still the process the journal named.
+        match sys::pidfd_open(entry.pid) {
+            Ok(pidfd) if journal::start_time(entry.pid) == Some(entry.start_time) => {
+                awaited.push(Awaited { slot, entry, pidfd })
+            }
+            _ => adopted.lost.push(Lost {
+                slot,
+                pid: entry.pid,
+                died: true,
+            }),
+        }
+    }
+    let deadline = Instant::now() + Duration::from_millis(plan.restart_timeout_ms);
+    while !awaited.is_empty() {
+        let now = Instant::now();
+        if now >= deadline {
+            break;
+        }
+        let mut fds = vec![libc::pollfd {
+            fd: listener.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        }];
+        fds.extend(awaited.iter().map(|a| libc::pollfd {
+            fd: a.pidfd.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        }));
+        if sys::ppoll(&mut fds, Some(deadline - now)).is_err() {
+            continue;
+        }
+        // The dead first (in reverse, so that indices stay valid).
+        for k in (1..fds.len()).rev() {
+            if fds[k].revents != 0 {
+                let gone = awaited.remove(k - 1);
+                adopted.lost.push(Lost {
+                    slot: gone.slot,
+                    pid: gone.entry.pid,
+                    died: true,
+                });
+            }
+        }
+        if fds[0].revents == 0 {
+            continue;
+        }
+        while let Ok((conn, _)) = listener.accept() {
+            match rebind(plan, conn, &mut awaited, deadline) {
+                Ok((slot, replica)) => {
+                    on_adopt(replica.pid, slot);
+                    tracing::info!(replica = slot, pid = replica.pid, "adopted");
+                    adopted.slots[slot] = Some(replica);
+                }
+                Err(why) => tracing::warn!("refused a connection while adopting: {why}"),
+            }
+        }
+    }
+    for late in awaited {
+        // Stopped, or busy past the whole wait: it cannot be trusted with a round now.
+        let _ = sys::pidfd_send_signal(late.pidfd.as_fd(), libc::SIGKILL);
+        adopted.lost.push(Lost {
+            slot: late.slot,
+            pid: late.entry.pid,
+            died: false,
+        });
+    }
+    adopted
+}
+
+/// One rebind: the peer must be an awaited replica, and say so; it gets fresh pipes.
+fn rebind(
+    plan: &VoterPlan,
+    conn: UnixStream,
+    awaited: &mut Vec<Awaited>,
+    deadline: Instant,
+) -> Result<(usize, Replica), String> {
+    let pid = sys::peer_pid(conn.as_fd()).map_err(|e| format!("no peer credentials: {e}"))?;
+    let Some(k) = awaited.iter().position(|a| a.entry.pid == pid) else {
+        // A fork child its predecessor was handing pipes to, or a stranger.
+        return Err(format!("peer {pid} is not a replica the journal names"));
+    };
+    let bytes = read_exact_by::<{ Rebind::SIZE }>(&conn, deadline)
+        .map_err(|e| format!("no Rebind from {pid}: {e}"))?;
+    let hello = Rebind::from_bytes(bytes);
+    if hello.magic != REBIND_MAGIC || hello.pid != pid {
+        return Err(format!(
+            "bad Rebind from {pid} (magic {:#x}, pid {})",
+            hello.magic, hello.pid
+        ));
+    }
+    let pipes = ReplicaPipes::new(plan).map_err(|e| format!("pipes for {pid}: {e}"))?;
+    let pipes = send_pipes(&conn, pipes).map_err(|e| format!("sending pipes to {pid}: {e}"))?;
+    let ready = read_exact_by::<{ Ready::SIZE }>(&conn, deadline)
+        .map(Ready::from_bytes)
+        .map_err(|e: io::Error| format!("no Ready from {pid}: {e}"))?;
+    if ready.magic != READY_MAGIC || ready.pid != pid {
+        return Err(format!("bad Ready from {pid}"));
+    }
+    let Awaited { slot, entry, pidfd } = awaited.remove(k);
+    Ok((slot, Replica::adopted(pid, pidfd, pipes, entry)))
+}

@@ -1,0 +1,492 @@
+//! The voter's journal: what a successor needs to take a reactive component over when this
+//! voter dies — the replicas (pid, start time, state kept or lost), and the input frames of
+//! the unfinished rounds together with where every channel stood before them.
+//!
+//! It lives in a memfd that bootstrap made and keeps (`plan.journal_fd`), mapped shared
+//! ([`SharedRegion`]). Nothing in it needs the voter to be alive, or to have finished what it
+//! was doing, to be right: a SIGKILL lands between any two instructions, and the journal is
+//! built so that every such point leaves it saying something true.
+//!
+//! **Two records and a switch.** A record holds a *committed state* (rounds started; per
+//! input, where its decoder stood and how many frames were delivered to the replicas; per
+//! output, how many frames were forwarded) and, per input, a *log* of the bytes taken off the
+//! channel since. The header's `current` word names the record in force. A commit fills the
+//! other record — its state, and an empty log — and then flips `current` with one atomic
+//! store: before the store the old record is in force, after it the new one.
+//!
+//! **Taking bytes off a channel is the journal entry.** The voter peeks its inputs (`tee(2)`)
+//! and takes a frame off the pipe only once it has decoded it, with one `read(2)` straight
+//! into the log ([`Journal::take`]). Before that read, it writes a marker at the position the
+//! read starts at and at the one it will end at. A successor walks the log frame by frame
+//! from its start and stops at the first marker: the marker no read has covered. No frame
+//! header can be the marker (`0xffff_ffff`: a control word, and not one that exists), so
+//! "the frame is in the log" and "the frame is gone from the pipe" come true in the same
+//! system call, and a SIGKILL lands before both or after both.
+//!
+//! A successor thus finds: the state at the last commit, and every byte taken since, which it
+//! replays to the replicas behind `RESUME` (they drop what they already took, and answer a
+//! replayed round again from their last frames), and whose rounds' outputs it forwards
+//! behind `RESUME` with the committed output counts (downstream drops a repeat).
+//!
+//! The replica table is not part of a record: each slot's entry is rewritten in place when
+//! the slot changes. An entry torn by a SIGKILL names a pid whose start time does not match,
+//! and the successor treats that slot as empty (it forks it from a sibling).
+
+use std::io;
+use std::os::fd::{BorrowedFd, OwnedFd};
+use std::sync::atomic::Ordering;
+
+use replica_rt::shared::SharedRegion;
+
+use crate::plan::VoterPlan;
+use replica_rt::frame::{CONTROL_BIT, HEADER_LEN, RESUME, RESUME_LEN};
+
+/// "s3resjnl", the header's first word.
+const MAGIC: u64 = u64::from_le_bytes(*b"s3resjnl");
+/// Layout version (a successor refuses a journal of another layout).
+const VERSION: u64 = 1;
+/// What no frame header is: written where the next read into a log starts and ends.
+const MARKER: u32 = u32::MAX;
+const PAGE: usize = 4096;
+/// The header: identification, `current`, and the replica table.
+const HEADER: usize = PAGE;
+const OFF_MAGIC: usize = 0;
+const OFF_VERSION: usize = 8;
+const OFF_INPUTS: usize = 16;
+const OFF_OUTPUTS: usize = 24;
+const OFF_SLOTS: usize = 32;
+const OFF_LOG_CAP: usize = 40;
+const OFF_CURRENT: usize = 48;
+const OFF_TABLE: usize = 256;
+/// Per slot: pid (0: none), start time (clock ticks since boot), flags.
+const SLOT_LEN: usize = 24;
+const FLAG_STATE_LOST: u64 = 1;
+const FLAG_PROVEN: u64 = 2;
+
+/// Where one input stood at a commit.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(crate) struct InputState {
+    /// The channel decoder's position (`FrameDecoder::position`).
+    pub taken: u64,
+    pub next_index: u64,
+    /// Frames delivered to the replicas on this input, since the component started: the
+    /// numbering every replica's decoder of this input counts in.
+    pub delivered: u64,
+}
+
+/// What a commit records.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub(crate) struct Committed {
+    pub rounds_started: u64,
+    pub inputs: Vec<InputState>,
+    /// Frames forwarded per output.
+    pub forwarded: Vec<u64>,
+}
+
+/// One slot of the replica table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct SlotEntry {
+    pub pid: libc::pid_t,
+    pub start_time: u64,
+    pub state_lost: bool,
+    pub proven: bool,
+}
+
+/// What a successor finds.
+#[derive(Debug)]
+pub(crate) struct Found {
+    pub committed: Committed,
+    /// Per input: the bytes taken off the channel since the commit, whole frames.
+    pub logs: Vec<Vec<u8>>,
+    pub slots: Vec<Option<SlotEntry>>,
+}
+
+/// The journal, mapped.
+pub(crate) struct Journal {
+    region: SharedRegion,
+    inputs: usize,
+    outputs: usize,
+    slots: usize,
+    log_cap: usize,
+    state_len: usize,
+    /// The record in force.
+    current: usize,
+    /// Per input: bytes in the current record's log.
+    log_len: Vec<usize>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum JournalError {
+    #[error("journal: {0}")]
+    Io(#[from] io::Error),
+    #[error("journal does not match this component: {0}")]
+    Mismatch(String),
+}
+
+/// A log holds at least two of the largest frames with their resume frames (rounds may run
+/// ahead of a commit while downstream is slow), and never less than 64 KiB.
+fn log_cap(max_frame: usize) -> usize {
+    let want = (2 * (max_frame + HEADER_LEN + 2 * RESUME_LEN) + 8).max(64 * 1024);
+    want.next_multiple_of(PAGE)
+}
+
+impl Journal {
+    /// The journal of `plan`'s shape in `region`, with record `current` in force.
+    fn shaped(region: SharedRegion, plan: &VoterPlan, current: usize) -> Journal {
+        let (log_cap, state_len) = Self::layout(plan);
+        Journal {
+            region,
+            inputs: plan.inputs.len(),
+            outputs: plan.outputs.len(),
+            slots: plan.replicas,
+            log_cap,
+            state_len,
+            current,
+            log_len: vec![0; plan.inputs.len()],
+        }
+    }
+
+    fn layout(plan: &VoterPlan) -> (usize, usize) {
+        let max = plan.inputs.iter().map(|p| p.max_frame).max().unwrap_or(0);
+        let state_len =
+            (8 + 24 * plan.inputs.len() + 8 * plan.outputs.len()).next_multiple_of(PAGE);
+        (log_cap(max), state_len)
+    }
+
+    fn record_len(&self) -> usize {
+        self.state_len + self.inputs * self.log_cap
+    }
+
+    fn record(&self, r: usize) -> usize {
+        HEADER + r * self.record_len()
+    }
+
+    fn log(&self, r: usize, i: usize) -> usize {
+        self.record(r) + self.state_len + i * self.log_cap
+    }
+
+    /// A new journal in the (empty) memfd `fd`: nothing delivered, nothing forwarded.
+    pub(crate) fn create(fd: OwnedFd, plan: &VoterPlan) -> Result<Journal, JournalError> {
+        let (log_cap, state_len) = Self::layout(plan);
+        let record_len = state_len + plan.inputs.len() * log_cap;
+        let region = SharedRegion::sized(fd, HEADER + 2 * record_len)?;
+        let mut journal = Self::shaped(region, plan, 0);
+        let h = &journal.region;
+        h.u64_at(OFF_VERSION).store(VERSION, Ordering::Relaxed);
+        h.u64_at(OFF_INPUTS)
+            .store(journal.inputs as u64, Ordering::Relaxed);
+        h.u64_at(OFF_OUTPUTS)
+            .store(journal.outputs as u64, Ordering::Relaxed);
+        h.u64_at(OFF_SLOTS)
+            .store(journal.slots as u64, Ordering::Relaxed);
+        h.u64_at(OFF_LOG_CAP)
+            .store(log_cap as u64, Ordering::Relaxed);
+        for i in 0..journal.inputs {
+            let at = journal.log(0, i);
+            journal.region.write_bytes(at, &MARKER.to_le_bytes());
+        }
+        journal
+            .region
+            .u64_at(OFF_CURRENT)
+            .store(0, Ordering::Release);
+        // Last: a successor that finds no magic finds no journal.
+        journal
+            .region
+            .u64_at(OFF_MAGIC)
+            .store(MAGIC, Ordering::Release);
+        Ok(journal)
+    }
+
+    /// The journal a predecessor left in `fd`, and what it says.
+    pub(crate) fn open(fd: OwnedFd, plan: &VoterPlan) -> Result<(Journal, Found), JournalError> {
+        let region = SharedRegion::existing(fd)?;
+        let word = |off| region.u64_at(off).load(Ordering::Acquire);
+        if word(OFF_MAGIC) != MAGIC || word(OFF_VERSION) != VERSION {
+            return Err(JournalError::Mismatch(
+                "no journal of this version in it".into(),
+            ));
+        }
+        let (log_cap, _) = Self::layout(plan);
+        let dims = [
+            (word(OFF_INPUTS), plan.inputs.len(), "inputs"),
+            (word(OFF_OUTPUTS), plan.outputs.len(), "outputs"),
+            (word(OFF_SLOTS), plan.replicas, "replicas"),
+            (word(OFF_LOG_CAP), log_cap, "log size"),
+        ];
+        for (have, want, what) in dims {
+            if have != want as u64 {
+                return Err(JournalError::Mismatch(format!(
+                    "{what}: {have}, plan says {want}"
+                )));
+            }
+        }
+        let current = (word(OFF_CURRENT) & 1) as usize;
+        let mut journal = Self::shaped(region, plan, current);
+        if journal.region.len() < HEADER + 2 * journal.record_len() {
+            return Err(JournalError::Mismatch("shorter than its layout".into()));
+        }
+        let committed = journal.read_state(current);
+        let mut logs = Vec::with_capacity(journal.inputs);
+        for (i, port) in plan.inputs.iter().enumerate() {
+            let bytes = journal.read_log(current, i, port.max_frame);
+            journal.log_len[i] = bytes.len();
+            logs.push(bytes);
+        }
+        let slots = (0..journal.slots).map(|s| journal.slot(s)).collect();
+        Ok((
+            journal,
+            Found {
+                committed,
+                logs,
+                slots,
+            },
+        ))
+    }
+
+    fn read_state(&self, r: usize) -> Committed {
+        let base = self.record(r);
+        let word = |off: usize| self.region.u64_at(base + off).load(Ordering::Relaxed);
+        Committed {
+            rounds_started: word(0),
+            inputs: (0..self.inputs)
+                .map(|i| InputState {
+                    taken: word(8 + 24 * i),
+                    next_index: word(16 + 24 * i),
+                    delivered: word(24 + 24 * i),
+                })
+                .collect(),
+            forwarded: (0..self.outputs)
+                .map(|o| word(8 + 24 * self.inputs + 8 * o))
+                .collect(),
+        }
+    }
+
+    /// The whole frames in log `i` of record `r`, up to the first marker.
+    fn read_log(&self, r: usize, i: usize, max_frame: usize) -> Vec<u8> {
+        let base = self.log(r, i);
+        let mut at = 0;
+        loop {
+            if at + HEADER_LEN > self.log_cap {
+                break;
+            }
+            let mut word = [0u8; HEADER_LEN];
+            self.region.read_bytes(base + at, &mut word);
+            let word = u32::from_le_bytes(word);
+            let len = match word {
+                MARKER => break,
+                RESUME => RESUME_LEN,
+                w if w & CONTROL_BIT != 0 => HEADER_LEN,
+                w if (w as usize) <= max_frame => HEADER_LEN + w as usize,
+                // Cannot have been written by a take: the log ends before it.
+                _ => break,
+            };
+            if at + len + HEADER_LEN > self.log_cap {
+                break;
+            }
+            at += len;
+        }
+        let mut bytes = vec![0u8; at];
+        self.region.read_bytes(base, &mut bytes);
+        bytes
+    }
+
+    /// Whether log `i` has room for `n` more bytes (and the marker after them).
+    pub(crate) fn has_room(&self, i: usize, n: usize) -> bool {
+        self.log_len[i] + n + HEADER_LEN <= self.log_cap
+    }
+
+    /// Takes `n` bytes (whole frames, already peeked) off `fd` into log `i`, in one `read`.
+    pub(crate) fn take(&mut self, i: usize, fd: BorrowedFd<'_>, n: usize) -> io::Result<()> {
+        if !self.has_room(i, n) {
+            return Err(io::Error::other(format!(
+                "journal log of input {i} full ({} of {} bytes)",
+                self.log_len[i], self.log_cap
+            )));
+        }
+        let at = self.log(self.current, i) + self.log_len[i];
+        self.region.write_bytes(at + n, &MARKER.to_le_bytes());
+        self.region.write_bytes(at, &MARKER.to_le_bytes());
+        let mut got = 0;
+        // One read takes everything: the bytes are in the pipe (peeked) and nobody else reads
+        // it. A short read would be a second entry; the loop only guards against surprises.
+        while got < n {
+            let k = self.region.read_from(fd, at + got, n - got)?;
+            if k == 0 {
+                return Err(io::Error::new(
+                    io::ErrorKind::UnexpectedEof,
+                    "peeked bytes gone from the pipe",
+                ));
+            }
+            got += k;
+        }
+        self.log_len[i] += n;
+        Ok(())
+    }
+
+    /// Commits `state`: the other record gets it and empty logs, then becomes the one in force.
+    pub(crate) fn commit(&mut self, state: &Committed) {
+        let next = 1 - self.current;
+        let base = self.record(next);
+        let r = &self.region;
+        r.u64_at(base)
+            .store(state.rounds_started, Ordering::Relaxed);
+        for (i, s) in state.inputs.iter().enumerate() {
+            r.u64_at(base + 8 + 24 * i)
+                .store(s.taken, Ordering::Relaxed);
+            r.u64_at(base + 16 + 24 * i)
+                .store(s.next_index, Ordering::Relaxed);
+            r.u64_at(base + 24 + 24 * i)
+                .store(s.delivered, Ordering::Relaxed);
+        }
+        for (o, &n) in state.forwarded.iter().enumerate() {
+            r.u64_at(base + 8 + 24 * self.inputs + 8 * o)
+                .store(n, Ordering::Relaxed);
+        }
+        for i in 0..self.inputs {
+            let at = self.log(next, i);
+            self.region.write_bytes(at, &MARKER.to_le_bytes());
+        }
+        // The switch: one store.
+        self.region
+            .u64_at(OFF_CURRENT)
+            .store(next as u64, Ordering::Release);
+        self.current = next;
+        self.log_len.iter_mut().for_each(|n| *n = 0);
+    }
+
+    /// Whether anything was taken since the last commit.
+    pub(crate) fn uncommitted(&self) -> bool {
+        self.log_len.iter().any(|&n| n > 0)
+    }
+
+    /// Records who is in `slot` (`None`: nobody).
+    pub(crate) fn set_slot(&self, slot: usize, entry: Option<SlotEntry>) {
+        let at = OFF_TABLE + SLOT_LEN * slot;
+        let r = &self.region;
+        match entry {
+            None => r.u64_at(at).store(0, Ordering::Release),
+            Some(e) => {
+                // The pid last: a torn entry has a pid whose start time does not match.
+                r.u64_at(at).store(0, Ordering::Release);
+                r.u64_at(at + 8).store(e.start_time, Ordering::Relaxed);
+                let flags = if e.state_lost { FLAG_STATE_LOST } else { 0 }
+                    | if e.proven { FLAG_PROVEN } else { 0 };
+                r.u64_at(at + 16).store(flags, Ordering::Relaxed);
+                r.u64_at(at).store(e.pid as u64, Ordering::Release);
+            }
+        }
+    }
+
+    fn slot(&self, slot: usize) -> Option<SlotEntry> {
+        let at = OFF_TABLE + SLOT_LEN * slot;
+        let r = &self.region;
+        let pid = r.u64_at(at).load(Ordering::Acquire) as libc::pid_t;
+        if pid <= 0 {
+            return None;
+        }
+        let flags = r.u64_at(at + 16).load(Ordering::Relaxed);
+        Some(SlotEntry {
+            pid,
+            start_time: r.u64_at(at + 8).load(Ordering::Relaxed),
+            state_lost: flags & FLAG_STATE_LOST != 0,
+            proven: flags & FLAG_PROVEN != 0,
+        })
+    }
+}
+
+/// A process's start time (field 22 of `/proc/PID/stat`, clock ticks since boot): with the
+/// pid, it names one process for good.
+pub(crate) fn start_time(pid: libc::pid_t) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // The command name may hold spaces and parentheses: fields count from the last ')'.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    rest.split(' ').nth(19)?.parse().ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use replica_rt::frame::{encode_into, resume_frame};
+    use replica_rt::shared::memfd;
+    use std::os::fd::AsFd;
+
+    fn plan() -> VoterPlan {
+        let json = r#"{"system":"s","component":"c","exec":"/bin/true","args":[],"replicas":3,
+            "timeout_us":1000,"inputs":[{"name":"in","fd":3,"max_frame":64}],
+            "outputs":[{"name":"out","fd":4,"max_frame":64}],"rounds":[],
+            "events_fd":null,"socket_path":"/nonexistent"}"#;
+        serde_json::from_str(json).unwrap()
+    }
+
+    /// Frames taken since the last commit are what a successor finds, whole, in order, and a
+    /// commit empties the log with the state it records; a take cut short by death (the
+    /// markers written, the read not done) leaves nothing.
+    #[test]
+    fn a_successor_finds_the_last_commit_and_every_frame_taken_since() {
+        let plan = plan();
+        let fd = memfd(c"journal").unwrap();
+        let keep = fd.try_clone().unwrap();
+        let mut journal = Journal::create(fd, &plan).unwrap();
+        let (r, w) = nix::unistd::pipe().unwrap();
+        let mut bytes = Vec::new();
+        encode_into(b"zero", &mut bytes);
+        nix::unistd::write(&w, &bytes).unwrap();
+        journal.take(0, r.as_fd(), bytes.len()).unwrap();
+        let state = Committed {
+            rounds_started: 1,
+            inputs: vec![InputState {
+                taken: 1,
+                next_index: 1,
+                delivered: 1,
+            }],
+            forwarded: vec![1],
+        };
+        journal.commit(&state);
+        let mut more = resume_frame(1).to_vec();
+        encode_into(b"one", &mut more);
+        let mut two = Vec::new();
+        encode_into(b"", &mut two);
+        nix::unistd::write(&w, &more).unwrap();
+        nix::unistd::write(&w, &two).unwrap();
+        journal.take(0, r.as_fd(), more.len()).unwrap();
+        journal.take(0, r.as_fd(), two.len()).unwrap();
+        journal.set_slot(
+            1,
+            Some(SlotEntry {
+                pid: 1234,
+                start_time: 99,
+                state_lost: true,
+                proven: true,
+            }),
+        );
+        let (_, found) = Journal::open(keep.try_clone().unwrap(), &plan).unwrap();
+        assert_eq!(found.committed, state);
+        let mut want = more.clone();
+        want.extend_from_slice(&two);
+        assert_eq!(found.logs, vec![want]);
+        assert_eq!(found.slots[0], None);
+        assert_eq!(found.slots[1].unwrap().pid, 1234);
+        assert!(found.slots[1].unwrap().state_lost);
+        // A take that died between its markers and its read: the log ends where it was.
+        let at = journal.log(journal.current, 0) + journal.log_len[0];
+        journal.region.write_bytes(at + 12, &MARKER.to_le_bytes());
+        journal.region.write_bytes(at, &MARKER.to_le_bytes());
+        let (_, found) = Journal::open(keep, &plan).unwrap();
+        assert_eq!(found.logs[0].len(), more.len() + two.len());
+    }
+
+    #[test]
+    fn a_journal_of_another_shape_is_refused() {
+        let plan = plan();
+        let fd = memfd(c"journal").unwrap();
+        let keep = fd.try_clone().unwrap();
+        Journal::create(fd, &plan).unwrap();
+        let mut other = plan.clone();
+        other.replicas = 2;
+        assert!(matches!(
+            Journal::open(keep, &other),
+            Err(JournalError::Mismatch(_))
+        ));
+        assert!(Journal::open(memfd(c"empty").unwrap(), &plan).is_err());
+    }
+}
