@@ -935,6 +935,14 @@ pub fn tee(from: BorrowedFd<'_>, to: BorrowedFd<'_>, len: usize) -> io::Result<u
     }
 }
 
+/// Bytes waiting in a pipe (`FIONREAD`; works on either end).
+pub fn bytes_in_pipe(fd: BorrowedFd<'_>) -> io::Result<usize> {
+    let mut n: libc::c_int = 0;
+    // SAFETY: FIONREAD writes one c_int through the pointer, which is valid for that.
+    cvt(unsafe { libc::ioctl(fd.as_raw_fd(), libc::FIONREAD, &mut n) })?;
+    Ok(n.max(0) as usize)
+}
+
 /// A pipe's capacity (`F_GETPIPE_SZ`).
 pub fn pipe_size(fd: BorrowedFd<'_>) -> io::Result<usize> {
     // SAFETY: fcntl with F_GETPIPE_SZ takes no pointer.

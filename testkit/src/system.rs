@@ -291,8 +291,9 @@ pub struct Outcome {
 }
 
 impl Outcome {
-    /// The fault events (everything but `start`, `recovery` and `anomaly`: an alarm is an
-    /// opinion; what the voter concluded from it is a fault event of its own).
+    /// The fault events (everything but `start`, `recovery`, `anomaly` and `voter_restart`:
+    /// an alarm is an opinion, what the voter concluded from it is a fault event of its own;
+    /// a voter restart is about the voter, not a replica).
     pub fn faults(&self) -> Vec<&Event> {
         use s3res_protocol::event::EventKind;
         self.events
@@ -300,7 +301,10 @@ impl Outcome {
             .filter(|e| {
                 !matches!(
                     e.kind,
-                    EventKind::Start | EventKind::Recovery | EventKind::Anomaly
+                    EventKind::Start
+                        | EventKind::Recovery
+                        | EventKind::Anomaly
+                        | EventKind::VoterRestart
                 )
             })
             .collect()

@@ -20,6 +20,18 @@ pub struct FrameWriter {
     pending: Vec<u8>,
     /// Start of the unwritten part of `pending`.
     start: usize,
+    /// Frames go into the pipe whole or not at all (see [`FrameWriter::whole_frames`]).
+    whole: Option<Whole>,
+}
+
+/// What a writer of whole frames keeps: where each queued frame ends, and the pipe's size.
+#[derive(Debug)]
+struct Whole {
+    /// End offsets in `pending` of the frames queued, in order.
+    ends: std::collections::VecDeque<usize>,
+    capacity: usize,
+    /// The last flush stopped because the next frame did not fit in the pipe's free room.
+    waiting_for_room: bool,
 }
 
 impl FrameWriter {
@@ -30,7 +42,34 @@ impl FrameWriter {
             lines: false,
             pending: Vec::new(),
             start: 0,
+            whole: None,
         })
+    }
+
+    /// A writer that never leaves part of a frame in the pipe: a frame larger than `PIPE_BUF`
+    /// (which the kernel may otherwise write in pieces) is written only once the pipe has room
+    /// for all of it. A voter whose successor may write on the same pipe needs this: a cut
+    /// frame followed by the successor's `RESUME` would be garbage to the reader. The pipe is
+    /// made large enough for `max_frame` where the kernel allows.
+    pub fn write_whole_frames(&mut self, max_frame: usize) -> io::Result<()> {
+        let want = (max_frame + 2 * frame::RESUME_LEN + frame::HEADER_LEN).next_power_of_two();
+        let mut capacity = sys::pipe_size(self.fd.as_fd())?;
+        if capacity < want {
+            capacity = sys::set_pipe_size(self.fd.as_fd(), want).unwrap_or(capacity);
+        }
+        self.whole = Some(Whole {
+            ends: Default::default(),
+            capacity,
+            waiting_for_room: false,
+        });
+        Ok(())
+    }
+
+    /// The last flush left a frame queued because the pipe had no room for all of it: poll
+    /// for writability would wake at once (the kernel says writable at `PIPE_BUF` free), so
+    /// the caller looks again a little later instead.
+    pub fn waiting_for_room(&self) -> bool {
+        self.whole.as_ref().is_some_and(|w| w.waiting_for_room)
     }
 
     /// A writer of newline-delimited text: each frame is written as its payload and a `\n`.
@@ -52,19 +91,32 @@ impl FrameWriter {
         } else {
             frame::encode_into(payload, &mut self.pending);
         }
+        self.frame_queued();
         self.flush()
     }
 
-    /// Queues raw bytes (already framed) without writing them yet.
+    /// Queues raw bytes (already framed: whole frames) without writing them yet.
     pub fn queue_raw(&mut self, bytes: &[u8]) {
         self.compact();
         self.pending.extend_from_slice(bytes);
+        self.frame_queued();
+    }
+
+    fn frame_queued(&mut self) {
+        let end = self.pending.len();
+        if let Some(whole) = self.whole.as_mut() {
+            whole.ends.push_back(end);
+        }
     }
 
     /// Puts raw bytes in front of everything queued (input taken back from a pipe).
     pub fn prepend_raw(&mut self, bytes: &[u8]) {
         self.compact();
         self.pending.splice(0..0, bytes.iter().copied());
+        if let Some(whole) = self.whole.as_mut() {
+            whole.ends.iter_mut().for_each(|e| *e += bytes.len());
+            whole.ends.push_front(bytes.len());
+        }
     }
 
     /// Bytes queued and not yet written.
@@ -80,10 +132,16 @@ impl FrameWriter {
     pub fn discard(&mut self) {
         self.pending.clear();
         self.start = 0;
+        if let Some(whole) = self.whole.as_mut() {
+            whole.ends.clear();
+        }
     }
 
     /// Writes queued bytes until done or the pipe is full.
     pub fn flush(&mut self) -> io::Result<()> {
+        if self.whole.is_some() {
+            return self.flush_whole();
+        }
         while self.has_pending() {
             match sys::write(self.fd.as_fd(), &self.pending[self.start..]) {
                 Ok(n) => self.start += n,
@@ -98,9 +156,48 @@ impl FrameWriter {
         Ok(())
     }
 
+    /// [`flush`](Self::flush) for a writer of whole frames: frame by frame, each one only
+    /// when it fits.
+    fn flush_whole(&mut self) -> io::Result<()> {
+        let Some(whole) = self.whole.as_mut() else {
+            return Ok(());
+        };
+        whole.waiting_for_room = false;
+        while let Some(&end) = whole.ends.front() {
+            let frame = &self.pending[self.start..end];
+            // Up to PIPE_BUF a write is all or nothing anyway; above it, only into room for all.
+            if frame.len() > libc::PIPE_BUF && frame.len() <= whole.capacity {
+                let room = whole
+                    .capacity
+                    .saturating_sub(sys::bytes_in_pipe(self.fd.as_fd())?);
+                if room < frame.len() {
+                    whole.waiting_for_room = true;
+                    break;
+                }
+            }
+            match sys::write(self.fd.as_fd(), frame) {
+                Ok(n) => self.start += n,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) => return Err(e),
+            }
+            if self.start >= end {
+                whole.ends.pop_front();
+            }
+        }
+        if self.start >= self.pending.len() {
+            self.pending.clear();
+            self.start = 0;
+            whole.ends.clear();
+        }
+        Ok(())
+    }
+
     fn compact(&mut self) {
         if self.start > 0 {
             self.pending.drain(..self.start);
+            if let Some(whole) = self.whole.as_mut() {
+                whole.ends.iter_mut().for_each(|e| *e -= self.start);
+            }
             self.start = 0;
         }
     }
@@ -275,5 +372,41 @@ pub fn drain(fd: BorrowedFd<'_>) -> io::Result<Vec<u8>> {
             Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(out),
             Err(e) => return Err(e),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A frame larger than PIPE_BUF waits until the pipe has room for all of it, so a reader
+    /// never holds part of one when its writer dies; smaller frames go as usual.
+    #[test]
+    fn a_writer_of_whole_frames_never_leaves_part_of_one_in_the_pipe() {
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        let mut writer = FrameWriter::new(w).unwrap();
+        writer.write_whole_frames(16 * 1024).unwrap();
+        let capacity = sys::pipe_size(writer.as_fd()).unwrap();
+        // Fill the pipe but for 6000 bytes.
+        let filler = vec![0u8; capacity - 6000 - frame::HEADER_LEN];
+        writer.send(&filler).unwrap();
+        assert!(!writer.has_pending());
+        let big = vec![7u8; 10_000];
+        writer.send(&big).unwrap();
+        assert!(writer.has_pending(), "written in part");
+        assert!(writer.waiting_for_room());
+        assert_eq!(sys::bytes_in_pipe(r.as_fd()).unwrap(), capacity - 6000);
+        // A small frame queued behind it waits its turn.
+        writer.send(b"small").unwrap();
+        let drained = drain(r.as_fd()).unwrap();
+        assert_eq!(drained.len(), filler.len() + frame::HEADER_LEN);
+        writer.flush().unwrap();
+        assert!(!writer.has_pending());
+        assert!(!writer.waiting_for_room());
+        let mut dec = FrameDecoder::new(16 * 1024);
+        dec.push(&drain(r.as_fd()).unwrap());
+        assert_eq!(dec.next_frame().unwrap(), Some(&big[..]));
+        assert_eq!(dec.next_frame().unwrap(), Some(&b"small"[..]));
     }
 }

@@ -225,7 +225,7 @@ impl Core {
         let Endpoints {
             signals,
             mut inputs,
-            outputs,
+            mut outputs,
             events,
             listener,
             journal,
@@ -241,6 +241,7 @@ impl Core {
                 let (journal, found) =
                     Journal::open(fd, &plan).map_err(|e| VoterError::Plan(e.to_string()))?;
                 journaled_inputs(&mut inputs)?;
+                whole_frame_outputs(&mut outputs, &plan)?;
                 let adopted = adopt::replicas(&plan, &listener, &found.slots, |pid, slot| {
                     rt.apply_to_replica(pid, slot)
                 });
@@ -252,6 +253,7 @@ impl Core {
                         let journal = Journal::create(fd, &plan)
                             .map_err(|e| VoterError::Plan(e.to_string()))?;
                         journaled_inputs(&mut inputs)?;
+                        whole_frame_outputs(&mut outputs, &plan)?;
                         Some(journal)
                     }
                     None => None,
@@ -322,6 +324,11 @@ impl Core {
             out.flush();
         }
         self.adopted_rounds = committed.rounds_started;
+        if self.slots.iter().flatten().any(|r| r.proven) {
+            // The program speaks the protocol: its replicas answered the predecessor.
+            self.exec_answered = true;
+            self.runtime_started = true;
+        }
         for slot in 0..self.slots.len() {
             self.number_inputs_of(slot);
         }
@@ -1036,7 +1043,24 @@ pub(crate) fn run(mut m: impl Mode) -> Result<(), VoterError> {
 /// each ready fd to the core or the mode.
 pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     m.build_poll_set();
-    let retry = m.core().vacant.iter().map(|v| v.next_try).min();
+    let core = m.core();
+    let stalled_input = core
+        .inputs
+        .iter()
+        .filter_map(|i| i.peek.as_ref().and_then(|p| p.stalled_until))
+        .min();
+    let output_room = core
+        .outputs
+        .iter()
+        .any(|o| o.writer.waiting_for_room())
+        .then(|| Instant::now() + ROOM_RETRY);
+    let retry = core
+        .vacant
+        .iter()
+        .map(|v| v.next_try)
+        .chain(stalled_input)
+        .chain(output_room)
+        .min();
     let wake = match (m.next_wakeup(), retry) {
         (Some(a), Some(b)) => Some(a.min(b)),
         (a, b) => a.or(b),
@@ -1049,6 +1073,11 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     beat();
     let heartbeat = Instant::now() + HEARTBEAT_PERIOD;
     let ready = wait_until(&mut m.core().poll.fds, Some(heartbeat))?;
+    for out in &mut m.core().outputs {
+        if out.writer.waiting_for_room() {
+            out.flush();
+        }
+    }
     if ready == 0 {
         return Ok(());
     }
@@ -1261,6 +1290,9 @@ impl Fault {
     }
 }
 
+/// How soon an output waiting for room for a whole frame looks again.
+const ROOM_RETRY: Duration = Duration::from_millis(1);
+
 /// How long the end frame may wait for room in a replica's input pipe: a replica that does not
 /// read its input for that long takes the closed pipe for its voter's death, looks for a
 /// successor, finds none that takes it, and ends all the same.
@@ -1283,6 +1315,17 @@ fn drain_writer(writer: &mut crate::channel::FrameWriter, deadline: Instant) {
             return;
         }
     }
+}
+
+/// Makes every output write whole frames only, for a journaled voter: its successor writes on
+/// the same pipes.
+fn whole_frame_outputs(outputs: &mut [ExternalOutput], plan: &VoterPlan) -> Result<(), VoterError> {
+    for (out, port) in outputs.iter_mut().zip(&plan.outputs) {
+        out.writer
+            .write_whole_frames(port.max_frame)
+            .map_err(io_err(format!("output `{}`", out.name)))?;
+    }
+    Ok(())
 }
 
 /// Makes every input peeked rather than read, for a journaled voter (see `journal.rs`).

@@ -168,7 +168,8 @@ impl PollSet {
             }
         }
         for (o, output) in outputs.iter().enumerate() {
-            if output.writer.has_pending() {
+            // Waiting for room for a whole frame: looked at again on a timer (see `core`).
+            if output.writer.has_pending() && !output.writer.waiting_for_room() {
                 self.add(
                     output.writer.as_fd().as_raw_fd(),
                     libc::POLLOUT,

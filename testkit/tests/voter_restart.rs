@@ -1,0 +1,83 @@
+//! End to end: a voter that dies is replaced by one that adopts its replicas, and the rest of
+//! the system does not notice (issue 13, item 2). The stateful TMR echo counts the frames it
+//! has seen; the sink checks every frame arrived once, in order, with that count continuous.
+
+use std::time::{Duration, Instant};
+
+use s3res_testkit::{assert_sink_whole, echo_pipeline, EventKind, Rng, System};
+
+/// A stateful TMR echo fed `count` frames at `hz`.
+fn stateful_echo(sys: &System, count: u32, hz: u32) -> String {
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 200000 }"#;
+    echo_pipeline(&sys.path("summary.json"), echo, count, hz)
+}
+
+/// Waits until the system's one `s3res-voter` is a process other than `old`; its pid.
+fn next_voter(run: &mut s3res_testkit::RunningSystem, old: i32, timeout: Duration) -> i32 {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(pid) = run.process_named("s3res-voter").filter(|&p| p != old) {
+            return pid;
+        }
+        if run.try_status().is_some() || Instant::now() >= deadline {
+            let out = run.wait(Duration::from_secs(10));
+            panic!(
+                "no new voter after {old} was killed (bootstrap: {}):\n{}",
+                out.status,
+                s3res_testkit::tail(&out.stderr, 30)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+/// SIGKILL of the voter, 20 times while frames flow, each at a seeded random moment: every
+/// frame reaches the sink exactly once and in order, the echo's count never breaks, every
+/// kill is a `voter_restart` event, and the run ends cleanly with nothing left behind.
+#[test]
+fn twenty_voter_kills_lose_and_repeat_no_frame_and_keep_the_state() {
+    const KILLS: usize = 20;
+    const COUNT: u32 = 4000;
+    let mut rng = Rng::from_env();
+    let sys = System::new();
+    let desc = stateful_echo(&sys, COUNT, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let mut voter = run.process_named("s3res-voter").expect("the echo's voter");
+    let mut restart_times = Vec::new();
+    for kill in 0..KILLS {
+        // Between 20 and 220 ms after the last restart: anywhere in a round, or between.
+        std::thread::sleep(Duration::from_micros(20_000 + rng.below(200_000)));
+        s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+        let killed = Instant::now();
+        voter = next_voter(&mut run, voter, Duration::from_secs(10));
+        restart_times.push(killed.elapsed());
+        eprintln!(
+            "kill {kill}: new voter {voter} after {:?}",
+            killed.elapsed()
+        );
+    }
+    let out = run.wait(Duration::from_secs(60));
+    assert!(
+        out.status.success(),
+        "bootstrap: {}\n{}",
+        out.status,
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    let restarts: Vec<_> = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::VoterRestart)
+        .collect();
+    assert_eq!(restarts.len(), KILLS, "voter_restart events: {restarts:#?}");
+    let mut took: Vec<u64> = restarts.iter().filter_map(|e| e.recovery_us).collect();
+    took.sort_unstable();
+    eprintln!(
+        "voter restart (bootstrap saw it gone -> adopted), us: median {} max {}",
+        took[took.len() / 2],
+        took[took.len() - 1]
+    );
+    assert_sink_whole(&summary, COUNT);
+    run.assert_nothing_left();
+}
