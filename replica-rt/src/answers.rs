@@ -112,7 +112,7 @@ mod tests {
     fn a_replayed_round_is_answered_again_and_not_run_twice() {
         let (in_r, in_w) = sys::pipe().unwrap();
         let (out_r, out_w) = sys::pipe().unwrap();
-        let mut input = InPort::new("in".into(), in_r, 64);
+        let mut input = InPort::new("in".into(), in_r, 64, false);
         let mut output = OutPort::new("out".into(), out_w, 64, true);
         assert!(registered(output.as_raw_fd()));
 

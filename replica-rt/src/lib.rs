@@ -46,6 +46,7 @@ pub mod heartbeat;
 pub mod inject;
 mod logging;
 mod port;
+pub(crate) mod rebind;
 pub mod restart;
 pub mod select;
 pub mod shared;
@@ -343,7 +344,12 @@ impl Runtime {
     /// Takes the input port `name` (once).
     pub fn input(&mut self, name: &str) -> Result<InPort, PortError> {
         let (spec, fd) = self.take(name, Direction::In)?;
-        Ok(InPort::new(spec.name, fd, spec.max_frame))
+        Ok(InPort::new(
+            spec.name,
+            fd,
+            spec.max_frame,
+            self.mode == Mode::Replica,
+        ))
     }
 
     /// Takes the output port `name` (once).

@@ -9,7 +9,7 @@ use thiserror::Error;
 use crate::answers::{self, LastFrame};
 use crate::contract::FIRST_PORT_FD;
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
-use crate::{inject, restart, sys};
+use crate::{inject, rebind, restart, sys};
 
 /// Bytes asked for per `read`: large, so a burst of small frames costs one syscall.
 const READ_CHUNK: usize = 64 * 1024;
@@ -65,10 +65,23 @@ pub struct InPort {
     pub(crate) eof: bool,
     /// The step (see `answers`) at which the last frame was taken.
     pub(crate) taken_at: u64,
+    /// Under a voter (replica mode): an end of input without an `END` frame is the voter's
+    /// death, and the port rebinds to its successor (see `rebind`).
+    replica: bool,
+    /// Position in the port map (fd − 3).
+    position: Option<usize>,
+    /// The rebinds this port has caught up with (see `rebind::generation`).
+    generation: u64,
 }
 
 impl InPort {
-    pub(crate) fn new(name: String, fd: OwnedFd, max_frame: usize) -> Self {
+    pub(crate) fn new(name: String, fd: OwnedFd, max_frame: usize, replica: bool) -> Self {
+        let position = usize::try_from(fd.as_raw_fd() - FIRST_PORT_FD).ok();
+        if replica {
+            if let Some(p) = position {
+                rebind::register_input(p);
+            }
+        }
         InPort {
             name,
             fd,
@@ -77,7 +90,33 @@ impl InPort {
             frame: Vec::new(),
             eof: false,
             taken_at: 0,
+            replica,
+            position,
+            generation: rebind::generation(),
         }
+    }
+
+    /// A rebind happened that this port has not caught up with.
+    pub(crate) fn behind_a_rebind(&self) -> bool {
+        self.generation != rebind::generation()
+    }
+
+    /// After a rebind (this port's or another's): the whole frames left in the old pipe come
+    /// first, a frame the dead voter cut off is dropped, and the port reads its new pipe.
+    pub(crate) fn catch_up(&mut self) {
+        let now = rebind::generation();
+        if self.generation == now {
+            return;
+        }
+        self.generation = now;
+        if let Some(p) = self.position {
+            self.dec.push(&rebind::take_left_over(p));
+        }
+        let cut = self.dec.discard_partial();
+        if cut > 0 {
+            tracing::debug!(port = %self.name, bytes = cut, "dropped a frame the old voter cut off");
+        }
+        self.eof = false;
     }
 
     pub fn name(&self) -> &str {
@@ -101,6 +140,7 @@ impl InPort {
     /// the decoder's own borrow, which the read loop needs to mutate.)
     pub fn recv(&mut self) -> Result<Option<&[u8]>, RecvError> {
         note_fork();
+        self.catch_up();
         loop {
             if self.next_buffered()? {
                 return Ok(Some(&self.frame));
@@ -137,18 +177,34 @@ impl InPort {
         }
         if taken {
             self.taken_at = answers::step();
+            if let Some(p) = self.position.filter(|_| self.replica) {
+                rebind::count_taken(p, self.dec.taken());
+            }
         }
         Ok(taken)
     }
 
-    /// One `read` into the decoder; `false` at end of stream.
+    /// One `read` into the decoder; `false` at end of stream (a voter's death is not one: the
+    /// port rebinds to its successor and reads on).
     pub(crate) fn fill(&mut self) -> Result<bool, RecvError> {
+        self.catch_up();
         loop {
             let spare = self.dec.spare(READ_CHUNK);
             let got = sys::read(self.fd.as_fd(), spare);
             let filled = *got.as_ref().unwrap_or(&0);
             self.dec.commit(READ_CHUNK, filled);
             match got {
+                Ok(0) if self.replica && !self.dec.ended() => {
+                    if rebind::rebind().is_err() {
+                        tracing::info!(port = %self.name, "voter gone and no successor took this replica: ending");
+                        // Its cut frame is no error of the stream's: the writer died.
+                        self.dec.discard_partial();
+                        return Ok(false);
+                    }
+                    self.catch_up();
+                    // Whole frames may have come out of the old pipe.
+                    return Ok(true);
+                }
                 Ok(n) => return Ok(n > 0),
                 // Whoever made the pipe may have left it non-blocking; recv blocks regardless.
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
@@ -201,6 +257,9 @@ pub struct OutPort {
     /// Position in the port map (fd − 3), under which whole frames sent are counted for the
     /// restart handshake; `None` off the replica fd layout (standalone stdout).
     position: Option<usize>,
+    /// The rebinds this port has caught up with: after one, the next frame goes behind
+    /// `RESUME n` (see `rebind`).
+    generation: u64,
 }
 
 impl OutPort {
@@ -219,6 +278,7 @@ impl OutPort {
             replica,
             position: usize::try_from(fd.as_raw_fd() - FIRST_PORT_FD).ok(),
             fd,
+            generation: rebind::generation(),
         }
     }
 
@@ -248,7 +308,17 @@ impl OutPort {
         // A RESTART from here until the guard drops forks at the drop, once the frame is whole
         // and counted (no system call: see `restart`, "Output frames stay whole").
         let _deferred = self.replica.then(restart::RestartsHeld::new);
-        if let Err(e) = write_all(self.fd.as_fd(), &last.bytes) {
+        let replica = self.replica;
+        let fd = self.fd.as_fd();
+        let mut written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
+        if self.replica && matches!(&written, Err(e) if e.kind() == io::ErrorKind::BrokenPipe) {
+            // The voter died with our frame half-written, or before it: its successor gets
+            // all of it, on the new pipe, behind `RESUME`.
+            if rebind::rebind().is_ok() {
+                written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
+            }
+        }
+        if let Err(e) = written {
             drop(last);
             return Err(self.io_error(e));
         }
@@ -285,6 +355,28 @@ impl AsRawFd for OutPort {
     fn as_raw_fd(&self) -> RawFd {
         self.fd.as_raw_fd()
     }
+}
+
+/// Writes a whole frame (`bytes`, header included), numbered `number` on its port: after a
+/// rebind the port has not caught up with (`generation`), behind `RESUME number`, in the same
+/// write.
+fn write_frame(
+    fd: BorrowedFd<'_>,
+    replica: bool,
+    generation: &mut u64,
+    bytes: &[u8],
+    number: u64,
+) -> io::Result<()> {
+    let now = rebind::generation();
+    if !replica || *generation == now {
+        return write_all(fd, bytes);
+    }
+    let mut resumed = Vec::with_capacity(frame::RESUME_LEN + bytes.len());
+    resumed.extend_from_slice(&frame::resume_frame(number));
+    resumed.extend_from_slice(bytes);
+    write_all(fd, &resumed)?;
+    *generation = now;
+    Ok(())
 }
 
 /// Writes all of `bytes`, looping on partial writes (EINTR is retried inside `sys::write`).
@@ -337,7 +429,7 @@ mod tests {
         sys::set_nonblocking(r.as_fd(), true).unwrap();
         sys::set_nonblocking(w.as_fd(), true).unwrap();
         (
-            InPort::new("in".into(), r, max),
+            InPort::new("in".into(), r, max, false),
             OutPort::new("out".into(), w, max, false),
         )
     }

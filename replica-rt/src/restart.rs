@@ -126,6 +126,21 @@ struct VoterAddr {
 
 static VOTER_ADDR: OnceLock<VoterAddr> = OnceLock::new();
 
+/// Connects a new socket to the voter's address (prepared at init), with send and receive
+/// timeouts; `Err(())` without an address (not a replica) or when nobody listens.
+pub(crate) fn connect_voter(timeout: std::time::Duration) -> Result<Fd, ()> {
+    let addr = VOTER_ADDR.get().ok_or(())?;
+    let sock = Fd(socket()?);
+    sys::set_socket_timeouts(sock.0, timeout).map_err(|_| ())?;
+    connect(sock.0, addr)?;
+    Ok(sock)
+}
+
+/// Whole frames sent so far, by port position (see [`FRAMES_SENT`]).
+pub(crate) fn frames_sent() -> [u64; MAX_PORTS] {
+    std::array::from_fn(|k| FRAMES_SENT[k].load(Ordering::Relaxed))
+}
+
 /// Pid of the donor, set in a freshly forked child; the runtime logs it once on the next send or
 /// receive (the handler itself cannot log).
 static FORKED_FROM: AtomicI32 = AtomicI32::new(0);
@@ -467,7 +482,7 @@ fn join_voter(nonce: u32) -> Result<Fd, ()> {
 }
 
 /// Puts `fds[i]` on fd number `targets[i]` and closes `fds[i]`.
-fn place_fds(fds: &[libc::c_int], targets: &[libc::c_int]) -> Result<(), ()> {
+pub(crate) fn place_fds(fds: &[libc::c_int], targets: &[libc::c_int]) -> Result<(), ()> {
     // A received fd may sit on a target number (a port the component had closed), where a later
     // dup2 would clobber it, or on its own target, where dup2 is a no-op that keeps CLOEXEC and
     // the close below would lose it. So first move such fds above every target.
@@ -492,7 +507,7 @@ fn place_fds(fds: &[libc::c_int], targets: &[libc::c_int]) -> Result<(), ()> {
 }
 
 /// Receives the whole [`FdTransfer`] and the fds that came with it; returns how many fds.
-fn recv_transfer(
+pub(crate) fn recv_transfer(
     sock: libc::c_int,
     transfer: &mut FdTransfer,
     fds: &mut [libc::c_int; MAX_HANDED_FDS],
@@ -592,7 +607,7 @@ fn collect_fds(msg: &libc::msghdr, fds: &mut [libc::c_int; MAX_HANDED_FDS]) -> u
 }
 
 /// Closes the fd when dropped (also on the error paths of `join_voter`).
-struct Fd(libc::c_int);
+pub(crate) struct Fd(pub(crate) libc::c_int);
 
 impl Drop for Fd {
     fn drop(&mut self) {
@@ -643,7 +658,7 @@ fn recv(sock: libc::c_int, dst: *mut u8, len: usize) -> isize {
     }
 }
 
-fn send_all(sock: libc::c_int, bytes: &[u8]) -> Result<(), ()> {
+pub(crate) fn send_all(sock: libc::c_int, bytes: &[u8]) -> Result<(), ()> {
     let mut sent = 0;
     while sent < bytes.len() {
         // SAFETY: the range is inside `bytes`. MSG_NOSIGNAL: a voter that gave up must not
@@ -696,7 +711,7 @@ fn close(fd: libc::c_int) {
     unsafe { libc::close(fd) };
 }
 
-fn close_all(fds: &[libc::c_int]) {
+pub(crate) fn close_all(fds: &[libc::c_int]) {
     for &fd in fds {
         close(fd);
     }

@@ -68,7 +68,8 @@ pub fn wait_any(ports: &[&InPort], timeout: Option<Duration>) -> io::Result<Read
         // Frames already buffered (or a port already at its end) need no system call.
         let mut ready = 0u32;
         for (i, port) in ports.iter().enumerate() {
-            if port.dec.has_frame() || port.eof {
+            // A port behind a rebind has its old pipe's last frames to take (see `rebind`).
+            if port.dec.has_frame() || port.eof || port.behind_a_rebind() {
                 ready |= 1 << i;
             }
         }
@@ -131,6 +132,7 @@ impl InPort {
 
     /// `deadline`: CLOCK_MONOTONIC ns; `Some(0)` means "do not wait at all".
     fn recv_until(&mut self, deadline: Option<u64>) -> Result<TryRecv<'_>, RecvError> {
+        self.catch_up();
         loop {
             if self.next_buffered()? {
                 return Ok(TryRecv::Frame(&self.frame));
@@ -173,7 +175,7 @@ mod tests {
     fn channel() -> (InPort, OutPort) {
         let (r, w) = sys::pipe().unwrap();
         (
-            InPort::new("in".into(), r, 1024),
+            InPort::new("in".into(), r, 1024, false),
             OutPort::new("out".into(), w, 1024, false),
         )
     }

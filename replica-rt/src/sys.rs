@@ -935,6 +935,32 @@ pub fn tee(from: BorrowedFd<'_>, to: BorrowedFd<'_>, len: usize) -> io::Result<u
     }
 }
 
+/// Everything readable from `fd` now, without blocking: reads while a zero-timeout poll says
+/// there are bytes, until the end of the stream. For a pipe whose writer is gone (a dead
+/// voter's), that is all it holds.
+pub fn read_available(fd: RawFd) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut buf = [0u8; 16 * 1024];
+    loop {
+        let mut pfd = [libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        }];
+        if !matches!(ppoll(&mut pfd, Some(Duration::ZERO)), Ok(1))
+            || pfd[0].revents & libc::POLLIN == 0
+        {
+            return out;
+        }
+        // SAFETY: `buf` is valid for writes of its length; `fd` is the caller's open fd.
+        let n = unsafe { libc::read(fd, buf.as_mut_ptr().cast(), buf.len()) };
+        if n <= 0 {
+            return out;
+        }
+        out.extend_from_slice(&buf[..n as usize]);
+    }
+}
+
 /// Bytes waiting in a pipe (`FIONREAD`; works on either end).
 pub fn bytes_in_pipe(fd: BorrowedFd<'_>) -> io::Result<usize> {
     let mut n: libc::c_int = 0;

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, ensure, Context, Result};
 use replica_rt::contract::handshake::{
-    FdTransfer, Hello, Ready, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
+    FdTransfer, Hello, Ready, Rebind, HELLO_MAGIC, READY_MAGIC, REBIND_MAGIC, TRANSFER_MAGIC,
 };
 
 /// The nonce this test's "voter" sends with RESTART; the child must echo it.
@@ -29,6 +29,9 @@ const OUT_FD: i32 = 4;
 const MAX_FRAME: usize = 300_000;
 const STEP: Duration = Duration::from_secs(5);
 
+/// One test of this harness.
+type Test = fn() -> Result<()>;
+
 fn main() {
     if std::env::var_os(HELPER_ENV).is_some() {
         if let Err(e) = helper() {
@@ -37,17 +40,208 @@ fn main() {
         }
         return;
     }
+    let tests: [(&str, Test); 3] = [
+        ("restart_by_fork", restart_by_fork),
+        ("rebind_after_voter_death", rebind_after_voter_death),
+        (
+            "no_successor_ends_the_replica",
+            no_successor_ends_the_replica,
+        ),
+    ];
     if std::env::args().any(|a| a == "--list") {
-        println!("restart_by_fork: test");
+        for (name, _) in tests {
+            println!("{name}: test");
+        }
         return;
     }
-    match restart_by_fork() {
-        Ok(()) => println!("test restart_by_fork ... ok"),
-        Err(e) => {
-            eprintln!("test restart_by_fork ... FAILED: {e:#}");
-            std::process::exit(1);
+    let mut failed = false;
+    for (name, test) in tests {
+        match test() {
+            Ok(()) => println!("test {name} ... ok"),
+            Err(e) => {
+                eprintln!("test {name} ... FAILED: {e:#}");
+                failed = true;
+            }
         }
     }
+    if failed {
+        std::process::exit(1);
+    }
+}
+
+/// A listening socket in a fresh temp dir (kept alive by the returned dir), non-blocking.
+fn voter_socket() -> Result<(tempfile::TempDir, std::path::PathBuf, UnixListener)> {
+    let dir = tempfile::tempdir()?;
+    let path = dir.path().join("voter.sock");
+    let listener = UnixListener::bind(&path)?;
+    listener.set_nonblocking(true)?;
+    Ok((dir, path, listener))
+}
+
+/// Starts the helper replica on `p`'s replica ends, its voter socket at `sock`.
+fn spawn_helper(p: &Pipes, sock: &std::path::Path) -> Result<Child> {
+    let port = |name: &str, dir, fd| PortSpec {
+        name: name.into(),
+        dir,
+        fd,
+        max_frame: MAX_FRAME,
+    };
+    let map = PortMap {
+        ports: vec![
+            port("in", Direction::In, IN_FD),
+            port("out", Direction::Out, OUT_FD),
+        ],
+    };
+    let mut cmd = Command::new(std::env::current_exe()?);
+    cmd.env(HELPER_ENV, "1")
+        .env(contract::ENV_PORTS, map.to_env())
+        .env(contract::ENV_VOTER_SOCKET, sock)
+        .env(contract::ENV_REPLICA, "0")
+        .env(contract::ENV_COMPONENT, "helper")
+        .stdin(Stdio::null());
+    sys::map_fds_on_exec(
+        &mut cmd,
+        vec![
+            (p.replica_in.as_raw_fd(), IN_FD),
+            (p.replica_out.as_raw_fd(), OUT_FD),
+        ],
+    );
+    cmd.spawn().context("starting the helper replica")
+}
+
+/// The voter dies in the middle of a round (its pipe ends close with a frame in flight); the
+/// replica comes back to the successor through the rebind handshake, with its counts, takes
+/// fresh pipes, and the replayed round is answered once more from its last frame, not run
+/// again: the state moves once per input frame.
+fn rebind_after_voter_death() -> Result<()> {
+    sys::set_child_subreaper()?;
+    let (_dir, sock_path, listener) = voter_socket()?;
+    let first = pipes()?;
+    let helper = spawn_helper(&first, &sock_path)?;
+    let pid = helper.id() as libc::pid_t;
+    let mut guard = Guard {
+        donor: helper,
+        forked: Vec::new(),
+    };
+    drop((first.replica_in, first.replica_out));
+    ensure!(roundtrip(&first.to_replica, &first.from_replica, b"a")? == answer(0, b"a"));
+    ensure!(roundtrip(&first.to_replica, &first.from_replica, b"b")? == answer(1, b"b"));
+    // Frame 2 goes out, and the voter dies: both its ends close, whether or not the replica
+    // has read the frame or answered it yet.
+    write_frame(&first.to_replica, b"c")?;
+    drop((first.to_replica, first.from_replica));
+
+    let (mut stream, peer) = accept_peer(&listener)?;
+    ensure!(peer == pid, "rebind from {peer}, the replica is {pid}");
+    let mut hello = [0u8; Rebind::SIZE];
+    stream.read_exact(&mut hello).context("reading Rebind")?;
+    let hello = Rebind::from_bytes(hello);
+    ensure!(
+        hello.magic == REBIND_MAGIC,
+        "Rebind magic {:#x}",
+        hello.magic
+    );
+    ensure!(hello.pid == pid, "Rebind pid {}", hello.pid);
+    ensure!(
+        hello.frames_taken[0] == 3,
+        "frames taken {:?}",
+        &hello.frames_taken[..2]
+    );
+    let sent = hello.frames_sent[1];
+    ensure!((2..=3).contains(&sent), "frames sent {sent}");
+    let second = pipes()?;
+    sys::send_with_fds(
+        stream.as_fd(),
+        transfer(TRANSFER_MAGIC).as_bytes(),
+        &[
+            second.replica_in.as_raw_fd(),
+            second.replica_out.as_raw_fd(),
+        ],
+    )?;
+    drop((second.replica_in, second.replica_out));
+    let mut ready = [0u8; Ready::SIZE];
+    stream.read_exact(&mut ready).context("reading Ready")?;
+    ensure!(
+        Ready::from_bytes(ready).pid == pid,
+        "Ready from another pid"
+    );
+
+    // The successor replays round 2, then sends frame 3.
+    write_raw(&second.to_replica, &frame::resume_frame(2))?;
+    write_frame(&second.to_replica, b"c")?;
+    write_frame(&second.to_replica, b"d")?;
+    let mut dec = frame::FrameDecoder::resuming(MAX_FRAME);
+    let c = read_frame_with(&mut dec, second.from_replica.as_fd())?;
+    ensure!(c == answer(2, b"c"), "round 2 answered {c:?}");
+    let d = read_frame_with(&mut dec, second.from_replica.as_fd())?;
+    ensure!(
+        d == answer(3, b"d"),
+        "round 3 answered {d:?}: the replayed round ran twice"
+    );
+    // The end, on purpose: the replica exits at once.
+    write_raw(&second.to_replica, &frame::end_frame())?;
+    drop(second.to_replica);
+    let status = wait_exit(&mut guard.donor)?;
+    ensure!(status.success(), "replica ended with {status}");
+    drop(guard);
+    Ok(())
+}
+
+/// The voter dies and no successor comes (the socket is gone: the system is ending): the
+/// replica ends as at the end of its input, at once and cleanly.
+fn no_successor_ends_the_replica() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let sock_path = dir.path().join("voter.sock");
+    let listener = UnixListener::bind(&sock_path)?;
+    let first = pipes()?;
+    let helper = spawn_helper(&first, &sock_path)?;
+    let mut guard = Guard {
+        donor: helper,
+        forked: Vec::new(),
+    };
+    drop((first.replica_in, first.replica_out));
+    ensure!(roundtrip(&first.to_replica, &first.from_replica, b"a")? == answer(0, b"a"));
+    drop(listener);
+    drop((first.to_replica, first.from_replica));
+    let status = wait_exit(&mut guard.donor)?;
+    ensure!(status.success(), "replica ended with {status}");
+    drop(guard);
+    Ok(())
+}
+
+/// Waits (bounded) for `child` to exit.
+fn wait_exit(child: &mut Child) -> Result<std::process::ExitStatus> {
+    let deadline = Instant::now() + STEP;
+    loop {
+        if let Some(status) = child.try_wait()? {
+            return Ok(status);
+        }
+        ensure!(
+            Instant::now() < deadline,
+            "replica did not exit within {STEP:?}"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// Accepts one connection (bounded); the peer's pid.
+fn accept_peer(listener: &UnixListener) -> Result<(UnixStream, libc::pid_t)> {
+    listener.set_nonblocking(true)?;
+    ensure!(
+        sys::wait_readable(listener.as_fd(), STEP)?,
+        "no connection within {STEP:?}"
+    );
+    let (stream, _) = listener.accept()?;
+    stream.set_nonblocking(false)?;
+    stream.set_read_timeout(Some(STEP))?;
+    let pid = sys::peer_pid(stream.as_fd())?;
+    Ok((stream, pid))
+}
+
+fn write_raw(fd: &OwnedFd, bytes: &[u8]) -> Result<()> {
+    let n = sys::write(fd.as_fd(), bytes)?;
+    ensure!(n == bytes.len(), "short write to the replica");
+    Ok(())
 }
 
 /// The replica: a stateful echo (each answer is prefixed with the number of answers before it,
@@ -113,39 +307,10 @@ fn pipes() -> Result<Pipes> {
 fn restart_by_fork() -> Result<()> {
     // Orphans of a failed test (the donor's children) then come to us, for the guard to reap.
     sys::set_child_subreaper()?;
-    let dir = tempfile::tempdir()?;
-    let sock_path = dir.path().join("voter.sock");
-    let listener = UnixListener::bind(&sock_path)?;
-    listener.set_nonblocking(true)?;
+    let (_dir, sock_path, listener) = voter_socket()?;
 
     let first = pipes()?;
-    let port = |name: &str, dir, fd| PortSpec {
-        name: name.into(),
-        dir,
-        fd,
-        max_frame: MAX_FRAME,
-    };
-    let map = PortMap {
-        ports: vec![
-            port("in", Direction::In, IN_FD),
-            port("out", Direction::Out, OUT_FD),
-        ],
-    };
-    let mut cmd = Command::new(std::env::current_exe()?);
-    cmd.env(HELPER_ENV, "1")
-        .env(contract::ENV_PORTS, map.to_env())
-        .env(contract::ENV_VOTER_SOCKET, &sock_path)
-        .env(contract::ENV_REPLICA, "0")
-        .env(contract::ENV_COMPONENT, "helper")
-        .stdin(Stdio::null());
-    sys::map_fds_on_exec(
-        &mut cmd,
-        vec![
-            (first.replica_in.as_raw_fd(), IN_FD),
-            (first.replica_out.as_raw_fd(), OUT_FD),
-        ],
-    );
-    let donor = cmd.spawn().context("starting the helper replica")?;
+    let donor = spawn_helper(&first, &sock_path)?;
     let donor_pid = donor.id() as libc::pid_t;
     let mut guard = Guard {
         donor,
@@ -202,7 +367,10 @@ fn restart_by_fork() -> Result<()> {
     let a = roundtrip(&first.to_replica, &first.from_replica, b"donor")?;
     ensure!(a == answer(2, b"donor"), "donor answered {a:?}");
 
-    // End of input ends the child (the donor reaps it: SIGCHLD is ignored there).
+    // The end of input, on purpose (an END frame, as a voter ends it), ends the child (the
+    // donor reaps it: SIGCHLD is ignored there). Without END the child would take the closed
+    // pipe for its voter's death and look for a successor (see `rebind_after_voter_death`).
+    write_raw(&second.to_replica, &frame::end_frame())?;
     drop(second.to_replica);
     let pidfd = guard.forked.last().context("pidfd")?;
     ensure!(
@@ -371,8 +539,12 @@ fn roundtrip(to: &OwnedFd, from: &OwnedFd, payload: &[u8]) -> Result<Vec<u8>> {
 
 /// Reads exactly one frame, bounded by STEP.
 fn read_frame(fd: BorrowedFd<'_>) -> Result<Vec<u8>> {
+    read_frame_with(&mut frame::FrameDecoder::new(MAX_FRAME), fd)
+}
+
+/// The next frame `dec` decodes from `fd`, reading as needed, bounded by STEP.
+fn read_frame_with(dec: &mut frame::FrameDecoder, fd: BorrowedFd<'_>) -> Result<Vec<u8>> {
     let deadline = Instant::now() + STEP;
-    let mut dec = frame::FrameDecoder::new(MAX_FRAME);
     loop {
         if let Some(f) = dec.next_frame()? {
             return Ok(f.to_vec());
