@@ -9,6 +9,7 @@
 pub mod events;
 pub mod live;
 pub mod logging;
+pub mod respawn;
 pub mod run;
 pub mod sched;
 pub mod status;

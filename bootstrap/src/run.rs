@@ -5,7 +5,7 @@
 //! closes its copies right after the children have theirs, or end of stream never arrives.
 
 use std::fs::File;
-use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
 use std::os::unix::fs::DirBuilderExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -25,6 +25,7 @@ use s3res_protocol::plan::{ExternalPort, VoterPlan};
 use crate::events::{EventReader, EventSummary};
 use crate::live::LiveState;
 use crate::plan::{ComponentPlan, Endpoint, InjectPlan, SystemPlan};
+use crate::respawn::{self, RestartBudget, VoterSpawn};
 use crate::sched::SystemSched;
 use crate::status::{
     forward_stderr, read_injections, status_line, Console, ConsoleMode, Files, Injected, Tally,
@@ -191,6 +192,8 @@ struct Child {
     watch: Option<VoterWatch>,
     /// What bootstrap did to it and why, for the report.
     why: Option<String>,
+    /// A restartable voter: what it takes to start its successor (see `respawn`).
+    respawn: Option<VoterSpawn>,
 }
 
 /// Both ends of a channel until they are handed to the components.
@@ -318,22 +321,24 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     let mut children: Vec<Child> = Vec::with_capacity(plan.components.len());
     for (index, c) in plan.components.iter().enumerate() {
         let mut watch = None;
+        let mut respawn = None;
         let pid = match (&voter, &socket_dir, &events_write) {
             (Some(voter), Some(dir), Some(ev)) if c.is_protected() => {
                 let w = VoterWatch::new(c).map_err(RunError::Heartbeat)?;
-                let pid = spawn_voter(
+                let (pid, spawn) = spawn_voter(
                     plan,
                     c,
                     index,
                     &sched,
                     voter,
                     dir,
-                    ev.as_raw_fd(),
-                    w.page().as_fd().as_raw_fd(),
+                    ev.as_fd(),
+                    w.page().as_fd(),
                     &mut channels,
                     &out,
                 )?;
                 watch = Some(w);
+                respawn = spawn;
                 pid
             }
             _ if c.is_protected() => {
@@ -380,6 +385,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             told_to_stop: false,
             watch,
             why: None,
+            respawn,
         });
     }
     if let (Some((bin, inject, _)), Some(state), Some(log)) =
@@ -403,6 +409,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             told_to_stop: false,
             watch: None,
             why: None,
+            respawn: None,
         });
     }
     // Our copies of every pipe end must go, or readers never see end of stream.
@@ -434,6 +441,11 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             console.tick(|elapsed| status_line(plan, &snapshot, elapsed, last_count.1));
         },
     )?;
+    // What was kept for voters' successors: the events pipe (and the channels downstream)
+    // end only once these copies are gone.
+    for c in &mut children {
+        c.respawn = None;
+    }
     // Read before the private folder (which may hold it) goes.
     let injections = injections_file.as_ref().map(|p| {
         let (list, bad) = read_injections(p);
@@ -777,11 +789,11 @@ fn spawn_voter(
     sched: &SystemSched,
     voter: &Path,
     socket_dir: &Path,
-    events_fd: RawFd,
-    heartbeat_fd: RawFd,
+    events_fd: BorrowedFd<'_>,
+    heartbeat_fd: BorrowedFd<'_>,
     channels: &mut [ChannelEnds],
     out: &Outputs,
-) -> Result<libc::pid_t, RunError> {
+) -> Result<(libc::pid_t, Option<VoterSpawn>), RunError> {
     let spawn_err = |source| RunError::Spawn {
         component: c.name.clone(),
         exec: voter.to_path_buf(),
@@ -792,11 +804,38 @@ fn spawn_voter(
         return Err(RunError::SocketPathTooLong(socket_path));
     }
     let fds = take_port_fds(c, channels)?;
-    let mut mapping = fd_mapping(&fds);
-    let events_target = FIRST_PORT_FD + mapping.len() as RawFd;
-    mapping.push((events_fd, events_target));
+    // Every fd the voter gets, with the number it lands on.
+    let mut handed: Vec<(BorrowedFd, RawFd)> = fds
+        .iter()
+        .enumerate()
+        .map(|(i, fd)| (fd.as_fd(), FIRST_PORT_FD + i as RawFd))
+        .collect();
+    let events_target = FIRST_PORT_FD + handed.len() as RawFd;
+    handed.push((events_fd, events_target));
     let heartbeat_target = events_target + 1;
-    mapping.push((heartbeat_fd, heartbeat_target));
+    handed.push((heartbeat_fd, heartbeat_target));
+    // A restartable voter's socket and journal are bootstrap's: they outlive the voter.
+    let restartable = respawn::restartable(c);
+    let owned = if restartable {
+        let socket = respawn::bind_socket(&socket_path).map_err(|source| RunError::Spawn {
+            component: c.name.clone(),
+            exec: socket_path.clone(),
+            source,
+        })?;
+        let journal = replica_rt::shared::memfd(c"s3res-journal").map_err(spawn_err)?;
+        Some((socket, journal))
+    } else {
+        None
+    };
+    let (socket_fd, journal_fd) = match &owned {
+        Some((socket, journal)) => {
+            let socket_target = heartbeat_target + 1;
+            handed.push((socket.as_fd(), socket_target));
+            handed.push((journal.as_fd(), socket_target + 1));
+            (Some(socket_target), Some(socket_target + 1))
+        }
+        None => (None, None),
+    };
     let external = |ports: &[crate::plan::PortPlan], first: usize| -> Vec<ExternalPort> {
         ports
             .iter()
@@ -821,8 +860,8 @@ fn spawn_voter(
         events_fd: Some(events_target),
         heartbeat_fd: Some(heartbeat_target),
         socket_path,
-        socket_fd: None,
-        journal_fd: None,
+        socket_fd,
+        journal_fd,
         adopt: None,
         restart_timeout_ms: c.restart_timeout_ms,
         start_timeout_ms: c.start_timeout_ms,
@@ -841,15 +880,65 @@ fn spawn_voter(
         framing: c.framing,
         preload: c.preload.clone(),
     };
-    let mut cmd = base_command(voter, &c.name, out).map_err(spawn_err)?;
+    let mapping: Vec<(RawFd, RawFd)> = handed
+        .iter()
+        .map(|(fd, target)| (fd.as_raw_fd(), *target))
+        .collect();
+    let spawn = if restartable {
+        Some(VoterSpawn {
+            voter: voter.to_path_buf(),
+            plan: voter_plan.clone(),
+            kept: respawn::keep(&handed).map_err(spawn_err)?,
+            stderr: out
+                .stderr
+                .map(|fd| fd.try_clone_to_owned())
+                .transpose()
+                .map_err(spawn_err)?,
+            stdout_to_stderr: out.stdout_to_stderr,
+            log: out.log.map(str::to_owned),
+            budget: RestartBudget::new(c.max_restarts, Duration::from_millis(c.restart_window_ms)),
+            generation: 1,
+        })
+    } else {
+        None
+    };
+    let pid = start_voter(voter, &c.name, &voter_plan, mapping, out).map_err(spawn_err)?;
+    drop(fds);
+    drop(owned);
+    Ok((pid, spawn))
+}
+
+/// Starts `s3res-voter` with `plan`, its fds mapped as `mapping` says.
+fn start_voter(
+    voter: &Path,
+    component: &str,
+    plan: &VoterPlan,
+    mapping: Vec<(RawFd, RawFd)>,
+    out: &Outputs,
+) -> std::io::Result<libc::pid_t> {
+    let mut cmd = base_command(voter, component, out)?;
     // If bootstrap dies (even by SIGKILL), the voter is asked to stop: it kills its replicas
     // and everything re-parented to it, then exits.
     sys::die_with_parent(&mut cmd, libc::SIGTERM);
-    cmd.arg("--plan").arg(voter_plan.to_json());
+    cmd.arg("--plan").arg(plan.to_json());
     sys::map_fds_on_exec(&mut cmd, mapping);
-    let child = cmd.spawn().map_err(spawn_err)?;
-    drop(fds);
+    let child = cmd.spawn()?;
     Ok(child.id() as libc::pid_t)
+}
+
+/// Starts a successor to the voter of `c` that adopts its replicas (see `respawn`); its pid.
+fn restart_voter(c: &mut Child, why: &str) -> std::io::Result<libc::pid_t> {
+    let spawn = c
+        .respawn
+        .as_mut()
+        .ok_or_else(|| std::io::Error::other("not restartable"))?;
+    let plan = spawn.successor_plan(c.pid, why);
+    let out = Outputs {
+        stdout_to_stderr: spawn.stdout_to_stderr,
+        stderr: spawn.stderr.as_ref().map(|fd| fd.as_fd()),
+        log: spawn.log.as_deref(),
+    };
+    start_voter(&spawn.voter, &c.component, &plan, spawn.mapping(), &out)
 }
 
 /// Waits for every child, reaping as SIGCHLD arrives; on SIGINT/SIGTERM stops them: SIGTERM,
@@ -983,9 +1072,11 @@ fn supervise(
     })
 }
 
-/// A voter that ended the system's run: one that gave up on its component (its reason is
-/// already on stderr), died, or stopped making progress (then it is killed here). The text
-/// says which and why. Voters are not restarted yet: any of these stops the system.
+/// Looks at every voter: one that died is replaced by a successor that adopts its replicas,
+/// if its component is restartable and its restart budget allows; one that stands still is
+/// killed (and replaced once reaped). Returns why the system must stop, if it must: a voter
+/// gave up on its component (its reason is already on stderr), or died and cannot be
+/// replaced.
 fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
     for c in children.iter_mut().filter(|c| c.watch.is_some()) {
         match c.status {
@@ -996,12 +1087,46 @@ fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
                 ))
             }
             Some(status) if !status.success() => {
-                return Some(format!(
-                "the voter of component {} (pid {}) died: {status}; voters are not restarted yet",
-                c.component, c.pid
-            ))
+                let died = c.why.take().unwrap_or_else(|| status.to_string());
+                let Some(spawn) = c.respawn.as_mut() else {
+                    return Some(format!(
+                        "the voter of component {} (pid {}) died: {died}; a voter of a stream component or of an unmodified program is not restarted",
+                        c.component, c.pid
+                    ));
+                };
+                if !spawn.budget.take(now) {
+                    return Some(format!(
+                        "the voter of component {} (pid {}) died: {died}; its restart budget is spent ({})",
+                        c.component,
+                        c.pid,
+                        spawn.budget.describe()
+                    ));
+                }
+                let old = c.pid;
+                match restart_voter(c, &died) {
+                    Ok(pid) => {
+                        crate::logging::say(&format!(
+                            "the voter of component {} (pid {old}) died: {died}; started voter pid {pid} to adopt its replicas",
+                            c.component
+                        ));
+                        c.pid = pid;
+                        c.status = None;
+                        c.after_stop = false;
+                        if let Some(w) = c.watch.as_mut() {
+                            w.restart(now);
+                        }
+                    }
+                    Err(e) => {
+                        return Some(format!(
+                            "the voter of component {} (pid {old}) died: {died}; could not start its successor: {e}",
+                            c.component
+                        ))
+                    }
+                }
             }
-            Some(_) => {}
+            // It ended cleanly: what bootstrap kept for a successor must go, or the readers
+            // downstream of it would never see the end of their input.
+            Some(_) => c.respawn = None,
             None => {
                 let Some(still) = c.watch.as_mut().and_then(|w| w.stalled(now)) else {
                     continue;
@@ -1012,17 +1137,23 @@ fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
                     Some(_) => "it is stuck",
                     None => "it is gone",
                 };
-                let why = format!(
-                    "the voter of component {} (pid {}) made no progress for {:.1} s ({state}); killed it",
-                    c.component,
-                    c.pid,
+                let what = format!(
+                    "made no progress for {:.1} s ({state})",
                     still.as_secs_f64()
                 );
                 // Not reaped yet, so the pid is still the voter's. SIGKILL reaches a
                 // stopped process too.
                 let _ = sys::kill(c.pid, libc::SIGKILL);
+                if c.respawn.is_some() {
+                    // Replaced once reaped (above), with this as the reason.
+                    c.why = Some(what);
+                    continue;
+                }
                 c.why = Some(format!("made no progress for {:.1} s", still.as_secs_f64()));
-                return Some(why);
+                return Some(format!(
+                    "the voter of component {} (pid {}) {what}; killed it",
+                    c.component, c.pid
+                ));
             }
         }
     }

@@ -1,9 +1,9 @@
 //! Watching voters: each voter bumps a counter in a page it shares with bootstrap on every turn
 //! of its loop (`replica_rt::heartbeat`), and wakes at least every 100 ms to do so. A counter
 //! that stands still past a deadline derived from the component's plan means the voter is
-//! stopped (SIGSTOP, a debugger) or stuck. Voters are not restarted yet (see "When the voter
-//! itself dies" in docs/architecture.md), so bootstrap then stops the system with one line
-//! that says which voter and how long, rather than let it hang without a word.
+//! stopped (SIGSTOP, a debugger) or stuck: bootstrap kills it, and replaces it with a voter
+//! that adopts its replicas (`respawn.rs`), or, where that cannot be done, stops the system
+//! with one line that says which voter and how long.
 
 use std::time::{Duration, Instant};
 
@@ -37,6 +37,12 @@ impl VoterWatch {
     /// The page, to hand to the voter.
     pub fn page(&self) -> &Heartbeat {
         &self.page
+    }
+
+    /// A new voter took over the page: it is judged from `now` on.
+    pub fn restart(&mut self, now: Instant) {
+        self.last = self.page.read().beats;
+        self.since = now;
     }
 
     /// How long the voter has made no progress, once that is longer than its deadline;

@@ -6,10 +6,14 @@ use std::time::{Duration, Instant};
 
 use s3res_testkit::{assert_sink_whole, echo_pipeline, EventKind, Rng, System};
 
-/// A stateful TMR echo fed `count` frames at `hz`.
-fn stateful_echo(sys: &System, count: u32, hz: u32) -> String {
-    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 200000 }"#;
-    echo_pipeline(&sys.path("summary.json"), echo, count, hz)
+/// A stateful TMR echo fed `count` frames as fast as it takes them, each answer taking
+/// `work_us` of computation: the voter is nearly always in the middle of a round, so a kill
+/// lands there (a round to replay) far more often than between two.
+fn stateful_echo(sys: &System, count: u32, work_us: u32) -> String {
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful", "--work-us", "{work_us}"], "redundancy": "tmr", "timeout_us": 200000 }}"#
+    );
+    echo_pipeline(&sys.path("summary.json"), &echo, count, 0)
 }
 
 /// Waits until the system's one `s3res-voter` is a process other than `old`; its pid.
@@ -40,15 +44,16 @@ fn twenty_voter_kills_lose_and_repeat_no_frame_and_keep_the_state() {
     const COUNT: u32 = 4000;
     let mut rng = Rng::from_env();
     let sys = System::new();
-    let desc = stateful_echo(&sys, COUNT, 500);
+    let desc = stateful_echo(&sys, COUNT, 1000);
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
     let mut voter = run.process_named("s3res-voter").expect("the echo's voter");
     let mut restart_times = Vec::new();
     for kill in 0..KILLS {
-        // Between 20 and 220 ms after the last restart: anywhere in a round, or between.
-        std::thread::sleep(Duration::from_micros(20_000 + rng.below(200_000)));
+        // Between 110 and 310 ms after the last restart: anywhere in a round, or between; at
+        // most 9 kills a second, within the default restart budget (10 within 1 s).
+        std::thread::sleep(Duration::from_micros(110_000 + rng.below(200_000)));
         s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
         let killed = Instant::now();
         voter = next_voter(&mut run, voter, Duration::from_secs(10));
@@ -71,6 +76,16 @@ fn twenty_voter_kills_lose_and_repeat_no_frame_and_keep_the_state() {
         .filter(|e| e.kind == EventKind::VoterRestart)
         .collect();
     assert_eq!(restarts.len(), KILLS, "voter_restart events: {restarts:#?}");
+    let replayed = restarts
+        .iter()
+        .filter(|e| {
+            !e.detail
+                .as_deref()
+                .unwrap_or("")
+                .contains(" 0 bytes of input replayed")
+        })
+        .count();
+    eprintln!("{replayed} of {KILLS} restarts replayed an unfinished round");
     let mut took: Vec<u64> = restarts.iter().filter_map(|e| e.recovery_us).collect();
     took.sort_unstable();
     eprintln!(

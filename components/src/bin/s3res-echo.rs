@@ -27,6 +27,10 @@ struct Cli {
     /// replicas' memory, such as the copy-on-write break after a fork).
     #[arg(long, value_name = "MIB", default_value_t = 0)]
     heap_mib: usize,
+    /// Compute for this many microseconds (spinning on the CPU) before each answer, like a
+    /// component with real work to do (for tests that need rounds to take a while).
+    #[arg(long, value_name = "US", default_value_t = 0)]
+    work_us: u64,
 }
 
 fn main() -> Result<()> {
@@ -45,7 +49,12 @@ fn main() -> Result<()> {
     })?;
     let ballast = vec![0xa5u8; heap_bytes];
     let mut frames: u64 = 0;
+    let work = std::time::Duration::from_micros(cli.work_us);
     while let Some(frame) = input.recv().context("receiving")? {
+        let started = std::time::Instant::now();
+        while started.elapsed() < work {
+            std::hint::spin_loop();
+        }
         output.send(echo.answer(frame)).context("answering")?;
         frames += 1;
     }
