@@ -44,6 +44,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     let echo = common.bins.path("s3res-echo")?;
     let voter = common.bins.path("s3res-voter")?;
     let spec = |timeout_us| Spec {
+        journal: common.journal,
         exec: echo.clone(),
         args: Vec::new(),
         replicas: 3,

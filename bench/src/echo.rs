@@ -117,6 +117,7 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
             report::bytes_name(size as u64)
         ));
         let spec = Spec {
+            journal: common.journal,
             exec: echo.clone(),
             args: Vec::new(),
             replicas,

@@ -68,6 +68,10 @@ struct CommonArgs {
     /// No progress bar.
     #[arg(long, short, global = true)]
     quiet: bool,
+    /// Run the voter without its journal (what a successor needs when the voter dies; on by
+    /// default, as s3res-bootstrap runs a reactive component): to measure what it costs.
+    #[arg(long, global = true)]
+    no_journal: bool,
 }
 
 #[derive(Subcommand)]
@@ -156,6 +160,8 @@ enum Command {
 pub struct Common {
     pub bins: Bins,
     pub quiet: bool,
+    /// Whether the voter keeps its journal (see `--no-journal`).
+    pub journal: bool,
 }
 
 impl Common {
@@ -213,6 +219,7 @@ fn run() -> Result<()> {
     let common = Common {
         bins: Bins::locate(cli.common.bin_dir.clone())?,
         quiet: cli.common.quiet,
+        journal: !cli.common.no_journal,
     };
     let json = cli.common.json;
     // Taken before measuring: the load then is what the measurement competed with.

@@ -47,6 +47,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
     let ballast = common.bins.path("s3res-ballast")?;
     let mut rows = Vec::new();
     let base = |exec: &std::path::Path, args: Vec<String>, replicas| Spec {
+        journal: common.journal,
         exec: exec.to_path_buf(),
         args,
         replicas,

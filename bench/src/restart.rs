@@ -38,6 +38,7 @@ pub fn run(
     for &size in sizes {
         bar.set_message(report::bytes_name(size));
         let spec = Spec {
+            journal: common.journal,
             exec: ballast.clone(),
             args: vec!["--kib".into(), (size / 1024).to_string()],
             replicas: 3,

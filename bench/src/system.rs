@@ -79,6 +79,10 @@ pub struct Spec {
     pub setup: Setup,
     /// An unmodified program: the preload library and how its stdin/stdout are framed.
     pub preload: Option<(PathBuf, s3res_protocol::plan::Framing)>,
+    /// The voter keeps the journal a successor would take over from (as under
+    /// s3res-bootstrap, which gives one to every reactive component's voter whose replicas
+    /// link replica-rt; never to an unmodified program's).
+    pub journal: bool,
 }
 
 /// Name of the component in plans and events.
@@ -138,6 +142,12 @@ impl System {
                 .ok_or_else(|| anyhow!("no voter binary"))?;
             let (ev_r, ev_w) = rsys::pipe().context("events pipe")?;
             keep.push(ev_w);
+            let journal_fd = if spec.journal && spec.preload.is_none() {
+                keep.push(replica_rt::shared::memfd(c"s3res-journal").context("journal")?);
+                Some(FIRST_PORT_FD + 3)
+            } else {
+                None
+            };
             let sched = spec.setup.plan_fields(spec.replicas);
             let plan = VoterPlan {
                 system: "s3res-bench".into(),
@@ -164,7 +174,7 @@ impl System {
                 heartbeat_fd: None,
                 socket_path: workdir.path().join("v.sock"),
                 socket_fd: None,
-                journal_fd: None,
+                journal_fd,
                 adopt: None,
                 restart_timeout_ms: s3res_protocol::plan::default_restart_timeout_ms(),
                 priority: sched.priority,

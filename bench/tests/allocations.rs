@@ -180,7 +180,8 @@ fn steady_state(monitored: bool) {
         heartbeat_fd: None,
         socket_path: dir.path().join("v.sock"),
         socket_fd: None,
-        journal_fd: None,
+        // As s3res-bootstrap runs it: the journal's peek, take and commit are on every round.
+        journal_fd: Some(replica_rt::shared::memfd(c"journal").unwrap().into_raw_fd()),
         adopt: None,
         restart_timeout_ms: 1000,
         priority: None,

@@ -64,8 +64,14 @@ time, faults/recoveries per protected component and degraded components; at the 
 block shows the outcome, faults by kind, recoveries by method, withheld frames, what the
 injector did, false positives and where the files are (-q: neither).
 
-Everything is checked before anything starts. On SIGINT/SIGTERM every component gets SIGTERM,
-then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started outlives it.";
+A voter that dies, or stands still past its heartbeat deadline, is replaced by one that adopts
+its replicas (reactive components whose replicas link replica-rt; at most max_restarts within
+restart_window_ms): no frame is lost or repeated, the replicas keep their state. A stream
+component's voter, or an unmodified program's, stops the system instead.
+
+Everything is checked before anything starts. On SIGINT/SIGTERM/SIGHUP/SIGQUIT every component
+gets SIGTERM, then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started
+outlives it.";
 
 const EXIT_STATUSES: &str = "\
 Exit status:

@@ -1094,6 +1094,14 @@ fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
                         c.component, c.pid
                     ));
                 };
+                if let ExitStatus::Code(_) = status {
+                    // It ended itself with an error (said above): a successor would meet the
+                    // same one. Only a voter killed (or found standing still) is replaced.
+                    return Some(format!(
+                        "the voter of component {} (pid {}) failed: {died}",
+                        c.component, c.pid
+                    ));
+                }
                 if !spawn.budget.take(now) {
                     return Some(format!(
                         "the voter of component {} (pid {}) died: {died}; its restart budget is spent ({})",

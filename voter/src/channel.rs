@@ -51,9 +51,14 @@ impl FrameWriter {
     /// for all of it. A voter whose successor may write on the same pipe needs this: a cut
     /// frame followed by the successor's `RESUME` would be garbage to the reader. The pipe is
     /// made large enough for `max_frame` where the kernel allows.
-    pub fn write_whole_frames(&mut self, max_frame: usize) -> io::Result<()> {
+    ///
+    /// Not a pipe (a file, a terminal: bootstrap's own stdout): nothing to do, a write there
+    /// is not cut by the reader's pace; `Ok(false)`.
+    pub fn write_whole_frames(&mut self, max_frame: usize) -> io::Result<bool> {
         let want = (max_frame + 2 * frame::RESUME_LEN + frame::HEADER_LEN).next_power_of_two();
-        let mut capacity = sys::pipe_size(self.fd.as_fd())?;
+        let Ok(mut capacity) = sys::pipe_size(self.fd.as_fd()) else {
+            return Ok(false);
+        };
         if capacity < want {
             capacity = sys::set_pipe_size(self.fd.as_fd(), want).unwrap_or(capacity);
         }
@@ -62,7 +67,7 @@ impl FrameWriter {
             capacity,
             waiting_for_room: false,
         });
-        Ok(())
+        Ok(true)
     }
 
     /// The last flush left a frame queued because the pipe had no room for all of it: poll

@@ -210,6 +210,8 @@ pub(crate) struct Core {
     journaled_pids: Vec<libc::pid_t>,
     /// Rounds its predecessors started (an adopting voter numbers on from there).
     pub(crate) adopted_rounds: u64,
+    /// The state a commit records, kept for its capacity.
+    committing: Committed,
 }
 
 impl Core {
@@ -217,11 +219,6 @@ impl Core {
     /// `plan`, binds the socket, and starts the replicas.
     pub(crate) fn start(plan: VoterPlan) -> Result<Core, VoterError> {
         validate(&plan)?;
-        // Calibrated before the first round, so that it never eats into a deadline.
-        clock::init()?;
-        // Models are checked before any replica starts: a bad one is an error, not a surprise.
-        let monitors = Monitors::load(&plan)?;
-        let captures = Captures::open(&plan)?;
         let Endpoints {
             signals,
             mut inputs,
@@ -230,6 +227,16 @@ impl Core {
             listener,
             journal,
         } = Endpoints::open(&plan)?;
+        // Calibrated before the first round, so that it never eats into a deadline; a
+        // successor takes its predecessor's calibration over.
+        let inherited = journal
+            .as_ref()
+            .filter(|_| plan.adopt.is_some())
+            .and_then(|fd| journal::recorded_clock(fd.as_fd()));
+        let clock = clock::init_from(inherited)?;
+        // Models are checked before any replica starts: a bad one is an error, not a surprise.
+        let monitors = Monitors::load(&plan)?;
+        let captures = Captures::open(&plan)?;
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
@@ -252,6 +259,7 @@ impl Core {
                     Some(fd) => {
                         let journal = Journal::create(fd, &plan)
                             .map_err(|e| VoterError::Plan(e.to_string()))?;
+                        journal.record_clock(clock);
                         journaled_inputs(&mut inputs)?;
                         whole_frame_outputs(&mut outputs, &plan)?;
                         Some(journal)
@@ -292,6 +300,7 @@ impl Core {
             delivered,
             journaled_pids,
             adopted_rounds: 0,
+            committing: Committed::default(),
         };
         if let Some((found, lost)) = adoption {
             core.resume(found, lost);
@@ -426,10 +435,12 @@ impl Core {
         if queued {
             return;
         }
-        let state = Committed {
-            rounds_started,
-            inputs: self
-                .inputs
+        // Filled in place: a steady-state round allocates nothing.
+        let state = &mut self.committing;
+        state.rounds_started = rounds_started;
+        state.inputs.clear();
+        state.inputs.extend(
+            self.inputs
                 .iter()
                 .zip(&self.delivered)
                 .map(|(input, &delivered)| {
@@ -439,11 +450,11 @@ impl Core {
                         next_index,
                         delivered,
                     }
-                })
-                .collect(),
-            forwarded: self.outputs.iter().map(|o| o.sent).collect(),
-        };
-        journal.commit(&state);
+                }),
+        );
+        state.forwarded.clear();
+        state.forwarded.extend(self.outputs.iter().map(|o| o.sent));
+        journal.commit(state);
     }
 
     /// Takes the bytes input `i`'s decoder has passed since the last take off its channel,
@@ -1321,16 +1332,26 @@ fn drain_writer(writer: &mut crate::channel::FrameWriter, deadline: Instant) {
 /// the same pipes.
 fn whole_frame_outputs(outputs: &mut [ExternalOutput], plan: &VoterPlan) -> Result<(), VoterError> {
     for (out, port) in outputs.iter_mut().zip(&plan.outputs) {
-        out.writer
+        let whole = out
+            .writer
             .write_whole_frames(port.max_frame)
             .map_err(io_err(format!("output `{}`", out.name)))?;
+        if !whole {
+            tracing::debug!(output = %out.name, "output is not a pipe: written as it comes");
+        }
     }
     Ok(())
 }
 
-/// Makes every input peeked rather than read, for a journaled voter (see `journal.rs`).
+/// Makes every input peeked rather than read, for a journaled voter (see `journal.rs`). An
+/// input that is not a pipe (bootstrap's stdin from a file or a terminal) cannot be peeked:
+/// it is read as before, and what a voter that dies had read of it is lost (said once).
 fn journaled_inputs(inputs: &mut [ExternalInput]) -> Result<(), VoterError> {
     for input in inputs {
+        if sys::pipe_size(input.reader.as_fd()).is_err() {
+            tracing::info!(input = %input.name, "input is not a pipe: not journaled (a voter restart may lose what it had read of it)");
+            continue;
+        }
         let pipe = crate::channel::Peek::for_channel(input.reader.as_fd())
             .map_err(io_err(format!("peek pipe for input `{}`", input.name)))?;
         input.peek = Some(crate::ports::Peeked {

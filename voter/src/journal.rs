@@ -38,6 +38,7 @@ use std::sync::atomic::Ordering;
 
 use replica_rt::shared::SharedRegion;
 
+use crate::clock::{Clock, Source};
 use crate::plan::VoterPlan;
 use replica_rt::frame::{CONTROL_BIT, HEADER_LEN, RESUME, RESUME_LEN};
 
@@ -57,6 +58,10 @@ const OFF_OUTPUTS: usize = 24;
 const OFF_SLOTS: usize = 32;
 const OFF_LOG_CAP: usize = 40;
 const OFF_CURRENT: usize = 48;
+/// The deadline clock's calibration: source (0 none, 1 tsc, 2 cntvct), Hz and ppm as f64 bits.
+const OFF_CLOCK_SOURCE: usize = 56;
+const OFF_CLOCK_HZ: usize = 64;
+const OFF_CLOCK_PPM: usize = 72;
 const OFF_TABLE: usize = 256;
 /// Per slot: pid (0: none), start time (clock ticks since boot), flags.
 const SLOT_LEN: usize = 24;
@@ -290,6 +295,21 @@ impl Journal {
         bytes
     }
 
+    /// Records the deadline clock's calibration, for a successor to take over.
+    pub(crate) fn record_clock(&self, clock: &Clock) {
+        let source = match clock.source() {
+            Source::Tsc => 1,
+            Source::Cntvct => 2,
+            Source::Monotonic => 0,
+        };
+        let r = &self.region;
+        r.u64_at(OFF_CLOCK_HZ)
+            .store(clock.hz().to_bits(), Ordering::Relaxed);
+        r.u64_at(OFF_CLOCK_PPM)
+            .store(clock.error_ppm().to_bits(), Ordering::Relaxed);
+        r.u64_at(OFF_CLOCK_SOURCE).store(source, Ordering::Release);
+    }
+
     /// Whether log `i` has room for `n` more bytes (and the marker after them).
     pub(crate) fn has_room(&self, i: usize, n: usize) -> bool {
         self.log_len[i] + n + HEADER_LEN <= self.log_cap
@@ -392,6 +412,23 @@ impl Journal {
             proven: flags & FLAG_PROVEN != 0,
         })
     }
+}
+
+/// The deadline clock's calibration a predecessor recorded in the journal behind `fd`, if any
+/// (read before the journal is opened: the clock comes first).
+pub(crate) fn recorded_clock(fd: BorrowedFd<'_>) -> Option<(Source, f64, f64)> {
+    let region = SharedRegion::existing(fd.try_clone_to_owned().ok()?).ok()?;
+    if region.len() < HEADER || region.u64_at(OFF_MAGIC).load(Ordering::Acquire) != MAGIC {
+        return None;
+    }
+    let source = match region.u64_at(OFF_CLOCK_SOURCE).load(Ordering::Relaxed) {
+        1 => Source::Tsc,
+        2 => Source::Cntvct,
+        _ => return None,
+    };
+    let hz = f64::from_bits(region.u64_at(OFF_CLOCK_HZ).load(Ordering::Relaxed));
+    let ppm = f64::from_bits(region.u64_at(OFF_CLOCK_PPM).load(Ordering::Relaxed));
+    Some((source, hz, ppm))
 }
 
 /// A process's start time (field 22 of `/proc/PID/stat`, clock ticks since boot): with the

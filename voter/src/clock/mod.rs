@@ -154,6 +154,27 @@ impl Clock {
         }
     }
 
+    /// The clock a predecessor calibrated (`source`, `hz`, `error_ppm`), when the CPU's counter
+    /// is still the one it measured and still trusted; else calibrated afresh. A voter that
+    /// succeeds one that died saves the calibration's window (10 ms) this way.
+    pub fn inherit(choice: Choice, source: Source, hz: f64, error_ppm: f64) -> Clock {
+        let usable = choice == Choice::Counter
+            && source != Source::Monotonic
+            && PLAUSIBLE_HZ.contains(&hz)
+            && error_ppm.is_finite()
+            && (0.0..=MAX_ERROR_PPM).contains(&error_ppm);
+        if let (true, Ok(counter)) = (usable, sys::probe()) {
+            let same = matches!(
+                (counter, source),
+                (sys::Counter::Tsc, Source::Tsc) | (sys::Counter::Cntvct { .. }, Source::Cntvct)
+            );
+            if same && kernel_trusts(counter).is_ok() {
+                return Clock::from_rate(source, Some(counter), hz, error_ppm);
+            }
+        }
+        Clock::detect(choice)
+    }
+
     /// Picks and calibrates the clock (a few tens of milliseconds with the counter).
     pub fn detect(choice: Choice) -> Clock {
         if choice == Choice::Monotonic {
@@ -343,11 +364,20 @@ static CLOCK: OnceLock<Clock> = OnceLock::new();
 /// before any [`Instant`] is taken, so that a bad setting is an error and calibration does not
 /// fall into the first round.
 pub fn init() -> Result<&'static Clock, ClockError> {
+    init_from(None)
+}
+
+/// [`init`], taking over a predecessor's calibration (source, Hz, ppm) where it still holds
+/// (see [`Clock::inherit`]).
+pub fn init_from(inherited: Option<(Source, f64, f64)>) -> Result<&'static Clock, ClockError> {
     let choice = Choice::from_env()?;
     let mut fresh = false;
     let clock = CLOCK.get_or_init(|| {
         fresh = true;
-        Clock::detect(choice)
+        match inherited {
+            Some((source, hz, error_ppm)) => Clock::inherit(choice, source, hz, error_ppm),
+            None => Clock::detect(choice),
+        }
     });
     if fresh {
         clock.log();
