@@ -247,7 +247,7 @@ impl Core {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
                     Journal::open(fd, &plan).map_err(|e| VoterError::Plan(e.to_string()))?;
-                journaled_inputs(&mut inputs)?;
+                journaled_inputs(&mut inputs, &plan)?;
                 whole_frame_outputs(&mut outputs, &plan)?;
                 let adopted = adopt::replicas(&plan, &listener, &found.slots, |pid, slot| {
                     rt.apply_to_replica(pid, slot)
@@ -260,7 +260,7 @@ impl Core {
                         let journal = Journal::create(fd, &plan)
                             .map_err(|e| VoterError::Plan(e.to_string()))?;
                         journal.record_clock(clock);
-                        journaled_inputs(&mut inputs)?;
+                        journaled_inputs(&mut inputs, &plan)?;
                         whole_frame_outputs(&mut outputs, &plan)?;
                         Some(journal)
                     }
@@ -1346,11 +1346,24 @@ fn whole_frame_outputs(outputs: &mut [ExternalOutput], plan: &VoterPlan) -> Resu
 /// Makes every input peeked rather than read, for a journaled voter (see `journal.rs`). An
 /// input that is not a pipe (bootstrap's stdin from a file or a terminal) cannot be peeked:
 /// it is read as before, and what a voter that dies had read of it is lost (said once).
-fn journaled_inputs(inputs: &mut [ExternalInput]) -> Result<(), VoterError> {
-    for input in inputs {
-        if sys::pipe_size(input.reader.as_fd()).is_err() {
+///
+/// A frame is taken off the channel only once it is whole in it, so the channel must be able
+/// to hold the largest frame whole: it is made that large (`F_SETPIPE_SZ`). Where the kernel
+/// refuses (above `/proc/sys/fs/pipe-max-size`, 1 MiB, without privilege) the input is not
+/// journaled either.
+fn journaled_inputs(inputs: &mut [ExternalInput], plan: &VoterPlan) -> Result<(), VoterError> {
+    for (input, port) in inputs.iter_mut().zip(&plan.inputs) {
+        let fd = input.reader.as_fd();
+        let Ok(size) = sys::pipe_size(fd) else {
             tracing::info!(input = %input.name, "input is not a pipe: not journaled (a voter restart may lose what it had read of it)");
             continue;
+        };
+        let want = (port.max_frame + frame::HEADER_LEN + 2 * frame::RESUME_LEN).next_power_of_two();
+        if size < want {
+            if let Err(e) = sys::set_pipe_size(fd, want) {
+                tracing::warn!(input = %input.name, want, error = %e, "cannot make the input's pipe hold its largest frame: not journaled (a voter restart may lose what it had read of it)");
+                continue;
+            }
         }
         let pipe = crate::channel::Peek::for_channel(input.reader.as_fd())
             .map_err(io_err(format!("peek pipe for input `{}`", input.name)))?;

@@ -1,0 +1,143 @@
+#!/usr/bin/env python3
+"""voter-restart.py — how long a voter restart takes, and that it loses nothing.
+
+Runs s3res-bootstrap on a stateful TMR echo (source -> echo -> sink) and SIGKILLs the echo's
+voter KILLS times at seeded random moments, 120-320 ms apart (within the default restart
+budget, 10 within 1 s). Prints, from the `voter_restart` events, the time from bootstrap seeing
+the voter gone to its successor having adopted the replicas (median, p99, max), how many
+restarts found an unfinished round to replay, and the sink's verdict (every frame once, in
+order, the echo's count continuous).
+
+usage: scripts/voter-restart.py [--kills N] [--work-us US] [--seed S] [--bin-dir DIR]
+
+Needs the release binaries (cargo build --release). Run it on a quiet machine: it measures.
+"""
+
+import argparse
+import json
+import os
+import random
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--kills", type=int, default=200, help="voter kills (default 200)")
+    ap.add_argument("--work-us", type=int, default=500,
+                    help="computation per frame in each replica, us (default 500)")
+    ap.add_argument("--seed", type=int, default=None, help="seed of the kill times (printed)")
+    ap.add_argument("--bin-dir", default=os.path.join(os.path.dirname(__file__), "..", "target", "release"))
+    args = ap.parse_args()
+    seed = args.seed if args.seed is not None else int(time.time_ns() % (1 << 63))
+    print(f"seed = {seed}")
+    rng = random.Random(seed)
+    bins = os.path.abspath(args.bin_dir)
+    bootstrap = os.path.join(bins, "s3res-bootstrap")
+    if not os.access(bootstrap, os.X_OK):
+        sys.exit(f"voter-restart.py: no {bootstrap}; run cargo build --release first")
+
+    # Enough frames for every kill (at most ~320 ms apart) and some to spare, at 1 kHz.
+    count = int((args.kills * 0.33 + 3) * 1000)
+    with tempfile.TemporaryDirectory(prefix="s3res-voter-restart-") as tmp:
+        summary = os.path.join(tmp, "summary.json")
+        events = os.path.join(tmp, "events.jsonl")
+        desc = {
+            "name": "voter-restart",
+            "components": {
+                "source": {"exec": "s3res-source", "args": ["--count", str(count), "--hz", "1000"]},
+                "echo": {"exec": "s3res-echo", "args": ["--stateful", "--work-us", str(args.work_us)],
+                         "redundancy": "tmr", "timeout_us": 200000},
+                "sink": {"exec": "s3res-sink",
+                         "args": ["--stateful", "--expect", str(count), "--summary", summary]},
+            },
+            "channels": [
+                {"from": "source.out", "to": "echo.in"},
+                {"from": "echo.out", "to": "sink.in"},
+            ],
+        }
+        path = os.path.join(tmp, "system.json")
+        with open(path, "w") as f:
+            json.dump(desc, f)
+        run = subprocess.Popen([bootstrap, "-q", "--events", events, path],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+        try:
+            kills = kill_voters(run.pid, args.kills, rng)
+            _, err = run.communicate(timeout=count / 1000 + 60)
+        finally:
+            if run.poll() is None:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait()
+        restarts = []
+        with open(events) as f:
+            for line in f:
+                e = json.loads(line)
+                if e.get("kind") == "voter_restart":
+                    restarts.append(e)
+        with open(summary) as f:
+            sink = json.load(f)
+
+    took = sorted(e["recovery_us"] for e in restarts)
+    replayed = sum(1 for e in restarts if " 0 bytes of input replayed" not in e.get("detail", ""))
+    print(f"bootstrap exit status {run.returncode}; {kills} kills, {len(restarts)} voter_restart events, "
+          f"{replayed} replayed an unfinished round")
+    if took:
+        p99 = took[min(len(took) - 1, int(round(0.99 * (len(took) - 1))))]
+        print(f"voter restart (gone -> adopted), us: median {statistics.median(took):.0f}  "
+              f"p99 {p99}  max {took[-1]}  (n={len(took)})")
+    print("sink: " + ", ".join(f"{k} {sink.get(k)}" for k in
+                                ["frames", "missing", "duplicated", "reordered", "corrupt", "state_breaks", "ok"]))
+    ok = run.returncode == 0 and len(restarts) == kills and sink.get("ok") is True
+    if not ok:
+        print(err[-3000:], file=sys.stderr)
+    sys.exit(0 if ok else 1)
+
+
+def voter_of(bootstrap):
+    """The pid of bootstrap's s3res-voter child, if there is one."""
+    try:
+        with open(f"/proc/{bootstrap}/task/{bootstrap}/children") as f:
+            kids = [int(p) for p in f.read().split()]
+    except OSError:
+        return None
+    for pid in kids:
+        try:
+            with open(f"/proc/{pid}/comm") as f:
+                if f.read().strip() == "s3res-voter":
+                    return pid
+        except OSError:
+            continue
+    return None
+
+
+def kill_voters(bootstrap, kills, rng):
+    """SIGKILLs the voter `kills` times, each 120-320 ms after its successor appeared."""
+    done = 0
+    last = None
+    deadline = time.monotonic() + 30
+    while done < kills:
+        pid = voter_of(bootstrap)
+        if pid is None or pid == last:
+            if time.monotonic() > deadline:
+                print(f"no voter to kill after {done} kills", file=sys.stderr)
+                break
+            time.sleep(0.002)
+            continue
+        time.sleep(0.120 + rng.random() * 0.200)
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            continue
+        last = pid
+        done += 1
+        deadline = time.monotonic() + 30
+    return done
+
+
+if __name__ == "__main__":
+    main()
