@@ -41,15 +41,17 @@ def main():
     if not os.access(bootstrap, os.X_OK):
         sys.exit(f"voter-restart.py: no {bootstrap}; run cargo build --release first")
 
-    # Enough frames for every kill (at most ~320 ms apart) and some to spare, at 1 kHz.
-    count = int((args.kills * 0.33 + 3) * 1000)
+    # A rate the three replicas keep up with on two cores (1 kHz at most), and enough frames
+    # for every kill (at most ~320 ms apart) with some to spare.
+    hz = min(1000, 500_000 // max(args.work_us, 1))
+    count = int((args.kills * 0.33 + 3) * hz)
     with tempfile.TemporaryDirectory(prefix="s3res-voter-restart-") as tmp:
         summary = os.path.join(tmp, "summary.json")
         events = os.path.join(tmp, "events.jsonl")
         desc = {
             "name": "voter-restart",
             "components": {
-                "source": {"exec": "s3res-source", "args": ["--count", str(count), "--hz", "1000"]},
+                "source": {"exec": "s3res-source", "args": ["--count", str(count), "--hz", str(hz)]},
                 "echo": {"exec": "s3res-echo", "args": ["--stateful", "--work-us", str(args.work_us)],
                          "redundancy": "tmr", "timeout_us": 200000},
                 "sink": {"exec": "s3res-sink",
@@ -63,16 +65,22 @@ def main():
         path = os.path.join(tmp, "system.json")
         with open(path, "w") as f:
             json.dump(desc, f)
-        run = subprocess.Popen([bootstrap, "-q", "--events", events, path],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True)
-        try:
-            kills = kill_voters(run.pid, args.kills, rng)
-            _, err = run.communicate(timeout=count / 1000 + 60)
-        finally:
-            if run.poll() is None:
-                os.killpg(run.pid, signal.SIGKILL)
-                run.wait()
+        # stderr to a file, not a pipe nobody reads while the kills go on: a full pipe would
+        # block bootstrap and the voters on their next log line.
+        err_path = os.path.join(tmp, "stderr.log")
+        with open(err_path, "w") as err_file:
+            run = subprocess.Popen([bootstrap, "--events", events, path],
+                                   stdout=subprocess.DEVNULL, stderr=err_file,
+                                   start_new_session=True)
+            try:
+                kills = kill_voters(run.pid, args.kills, rng)
+                run.wait(timeout=count / hz + 60)
+            finally:
+                if run.poll() is None:
+                    os.killpg(run.pid, signal.SIGKILL)
+                    run.wait()
+        with open(err_path) as f:
+            err = f.read()
         restarts = []
         with open(events) as f:
             for line in f:
@@ -94,7 +102,11 @@ def main():
                                 ["frames", "missing", "duplicated", "reordered", "corrupt", "state_breaks", "ok"]))
     ok = run.returncode == 0 and len(restarts) == kills and sink.get("ok") is True
     if not ok:
+        log = os.path.abspath("voter-restart-failed.log")
+        with open(log, "w") as f:
+            f.write(err)
         print(err[-3000:], file=sys.stderr)
+        print(f"bootstrap's whole stderr: {log}", file=sys.stderr)
     sys.exit(0 if ok else 1)
 
 
