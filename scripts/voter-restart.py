@@ -2,13 +2,15 @@
 """voter-restart.py — how long a voter restart takes, and that it loses nothing.
 
 Runs s3res-bootstrap on a stateful TMR echo (source -> echo -> sink) and SIGKILLs the echo's
-voter KILLS times at seeded random moments, 120-320 ms apart (within the default restart
+voter KILLS times (with --stream: a stateful TMR `s3res-batch --vary` in stream mode instead,
+whose successor voters take the replicas' kept frames again), at seeded random moments, 120-320 ms apart (within the default restart
 budget, 10 within 1 s). Prints, from the `voter_restart` events, the time from bootstrap seeing
 the voter gone to its successor having adopted the replicas (median, p99, max), how many
 restarts found an unfinished round to replay, and the sink's verdict (every frame once, in
 order, the echo's count continuous).
 
-usage: scripts/voter-restart.py [--kills N] [--work-us US] [--seed S] [--bin-dir DIR]
+usage: scripts/voter-restart.py [--kills N] [--work-us US | --stream] [--hz HZ] [--seed S]
+                               [--bin-dir DIR]
 
 Needs the release binaries (cargo build --release). Run it on a quiet machine: it measures.
 """
@@ -30,6 +32,10 @@ def main():
     ap.add_argument("--kills", type=int, default=200, help="voter kills (default 200)")
     ap.add_argument("--work-us", type=int, default=500,
                     help="computation per frame in each replica, us (default 500)")
+    ap.add_argument("--stream", action="store_true",
+                    help="a stream component (s3res-batch --every 8 --vary --stateful) instead of the echo")
+    ap.add_argument("--hz", type=int, default=None,
+                    help="source rate (default: 1 kHz, or what the echo's work allows)")
     ap.add_argument("--seed", type=int, default=None, help="seed of the kill times (printed)")
     ap.add_argument("--bin-dir", default=os.path.join(os.path.dirname(__file__), "..", "target", "release"))
     args = ap.parse_args()
@@ -43,7 +49,9 @@ def main():
 
     # A rate the three replicas keep up with on two cores (1 kHz at most), and enough frames
     # for every kill (at most ~320 ms apart) with some to spare.
-    hz = min(1000, 500_000 // max(args.work_us, 1))
+    hz = args.hz or min(1000, 500_000 // max(args.work_us, 1))
+    if hz < 1:
+        sys.exit("voter-restart.py: --hz must be at least 1")
     count = int((args.kills * 0.33 + 3) * hz)
     with tempfile.TemporaryDirectory(prefix="s3res-voter-restart-") as tmp:
         summary = os.path.join(tmp, "summary.json")
@@ -52,8 +60,11 @@ def main():
             "name": "voter-restart",
             "components": {
                 "source": {"exec": "s3res-source", "args": ["--count", str(count), "--hz", str(hz)]},
-                "echo": {"exec": "s3res-echo", "args": ["--stateful", "--work-us", str(args.work_us)],
-                         "redundancy": "tmr", "timeout_us": 200000},
+                "echo": ({"exec": "s3res-batch", "args": ["--every", "8", "--vary", "--stateful"],
+                          "mode": "stream", "redundancy": "tmr", "timeout_us": 200000}
+                         if args.stream else
+                         {"exec": "s3res-echo", "args": ["--stateful", "--work-us", str(args.work_us)],
+                          "redundancy": "tmr", "timeout_us": 200000}),
                 "sink": {"exec": "s3res-sink",
                          "args": ["--stateful", "--expect", str(count), "--summary", summary]},
             },
@@ -93,7 +104,7 @@ def main():
     took = sorted(e["recovery_us"] for e in restarts)
     replayed = sum(1 for e in restarts if " 0 bytes of input replayed" not in e.get("detail", ""))
     print(f"bootstrap exit status {run.returncode}; {kills} kills, {len(restarts)} voter_restart events, "
-          f"{replayed} replayed an unfinished round")
+          f"{replayed} replayed input taken since the last commit")
     if took:
         p99 = took[min(len(took) - 1, int(round(0.99 * (len(took) - 1))))]
         print(f"voter restart (gone -> adopted), us: median {statistics.median(took):.0f}  "

@@ -3,10 +3,11 @@
 //! starts a successor on exactly the same fds, told to adopt (`plan.adopt`). The successor
 //! takes the live replicas over from the journal (`voter/src/adopt.rs`).
 //!
-//! Only a reactive component whose replicas link replica-rt is restartable
-//! ([`restartable`]): a stream component's frames are not tied to rounds, so there is no
-//! round to replay; an unmodified program (`preload`) cannot count its input, nor take fresh
-//! pipes. Their voter's death stops the system, as before.
+//! A component whose replicas link replica-rt is restartable ([`restartable`]), in either
+//! mode: a reactive successor replays the unfinished round; a stream successor has every
+//! replica send again the frames it kept since the last one committed (replica-rt's output
+//! history). An unmodified program (`preload`) cannot count its input, nor take fresh pipes:
+//! its voter's death stops the system, as before.
 
 use std::collections::VecDeque;
 use std::os::fd::{AsRawFd, BorrowedFd, OwnedFd, RawFd};
@@ -15,16 +16,13 @@ use std::os::unix::net::UnixListener;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use s3res_protocol::plan::{Adoption, Framing, Mode, VoterPlan};
+use s3res_protocol::plan::{Adoption, Framing, VoterPlan};
 
 use crate::plan::ComponentPlan;
 
 /// Whether the voter of `c` is restarted when it dies (see the module docs).
 pub fn restartable(c: &ComponentPlan) -> bool {
-    c.is_protected()
-        && c.mode == Mode::Reactive
-        && c.preload.is_none()
-        && c.framing == Framing::Frames
+    c.is_protected() && c.preload.is_none() && c.framing == Framing::Frames
 }
 
 /// The voter's socket, bound by bootstrap so that it outlives every voter: a replica whose

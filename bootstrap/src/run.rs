@@ -1090,7 +1090,7 @@ fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
                 let died = c.why.take().unwrap_or_else(|| status.to_string());
                 let Some(spawn) = c.respawn.as_mut() else {
                     return Some(format!(
-                        "the voter of component {} (pid {}) died: {died}; a voter of a stream component or of an unmodified program is not restarted",
+                        "the voter of component {} (pid {}) died: {died}; a voter of an unmodified program is not restarted",
                         c.component, c.pid
                     ));
                 };

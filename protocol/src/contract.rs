@@ -24,6 +24,13 @@ pub const ENV_COMPONENT: &str = "S3RES_COMPONENT";
 pub const ENV_STARTED_FD: &str = "S3RES_STARTED_FD";
 /// The byte of the start handshake.
 pub const STARTED: u8 = b'S';
+/// Output history for a stream replica whose voter may be replaced: `"FRAMES,BYTES"`. The
+/// replica keeps, per output, every frame its voter may not have decided yet — the newest
+/// `BYTES` worth (what can sit in the pipe and the voter's read buffer) and `FRAMES` frames
+/// older than those (what the voter may hold undecided: its window) — and sends them again to
+/// a voter's successor after a rebind, behind `RESUME` (see `contract::handshake::Rebind`).
+/// Absent: no history (a reactive replica answers a replayed round from its last frame).
+pub const ENV_OUTPUT_HISTORY: &str = "S3RES_OUTPUT_HISTORY";
 
 /// Largest number of ports one component may have (inputs plus outputs). The restart handler
 /// uses fixed-size arrays of this length, because it may not allocate.

@@ -20,6 +20,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, Weak};
 
 use crate::frame::resume_frame;
+use crate::history::History;
 use crate::restart;
 
 /// Orders every frame taken and every frame sent in this process.
@@ -40,6 +41,8 @@ pub(crate) struct LastFrame {
     /// Frames this port has sent: the last one is number `sent - 1` on its channel. A fork
     /// child inherits it with the port, as it inherits the channel's count.
     pub(crate) sent: u64,
+    /// A stream replica's frames its voter may not have decided (see `history`).
+    pub(crate) history: Option<History>,
 }
 
 /// An output port as this module sees it.
@@ -88,6 +91,30 @@ pub(crate) fn answer_again(taken: u64) -> io::Result<usize> {
         again += 1;
     }
     Ok(again)
+}
+
+/// After a rebind: every output that keeps a history sends it to its fresh pipe (see
+/// `history`). An output whose frame is being sent by this thread right now (its lock held:
+/// the send that met the voter's death) sends its own, from `OutPort::send`.
+pub(crate) fn resend_histories() {
+    let outputs = OUTPUTS.lock().unwrap_or_else(PoisonError::into_inner);
+    for out in outputs.iter() {
+        let Some(last) = out.last.upgrade() else {
+            continue;
+        };
+        let Ok(last) = last.try_lock() else {
+            continue;
+        };
+        let Some(history) = last.history.as_ref() else {
+            continue;
+        };
+        // SAFETY: `out.fd` is the fd of a live `OutPort` (its `LastFrame` was upgraded above,
+        // and the port owns both), so it is open for as long as this borrow is used.
+        let fd = unsafe { BorrowedFd::borrow_raw(out.fd) };
+        if let Err(e) = history.resend(fd) {
+            tracing::warn!(fd = out.fd, error = %e, "could not send the output history to the new voter");
+        }
+    }
 }
 
 /// Whether `fd` is an output this module would answer on (for tests).

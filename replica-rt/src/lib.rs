@@ -43,6 +43,7 @@
 mod answers;
 pub mod cow;
 pub mod heartbeat;
+mod history;
 pub mod inject;
 mod logging;
 mod port;
@@ -200,6 +201,7 @@ fn init_inner() -> Result<Runtime, InitError> {
     })?;
     if let Some(path) = &socket {
         restart::prepare(path)?;
+        history::configure_from_env();
         sys::ignore_signal(libc::SIGCHLD).map_err(|source| InitError::Signal {
             what: "SIGCHLD (ignore)",
             source,

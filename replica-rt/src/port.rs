@@ -9,7 +9,7 @@ use thiserror::Error;
 use crate::answers::{self, LastFrame};
 use crate::contract::FIRST_PORT_FD;
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
-use crate::{inject, rebind, restart, sys};
+use crate::{history, inject, rebind, restart, sys};
 
 /// Bytes asked for per `read`: large, so a burst of small frames costs one syscall.
 const READ_CHUNK: usize = 64 * 1024;
@@ -266,6 +266,11 @@ impl OutPort {
     pub(crate) fn new(name: String, fd: OwnedFd, max: usize, replica: bool) -> Self {
         let last = Arc::new(Mutex::new(LastFrame {
             bytes: Vec::with_capacity(HEADER_LEN + max.min(frame::DEFAULT_MAX_FRAME)),
+            history: if replica {
+                history::for_new_port()
+            } else {
+                None
+            },
             ..LastFrame::default()
         }));
         if replica {
@@ -313,8 +318,14 @@ impl OutPort {
         let mut written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
         if self.replica && matches!(&written, Err(e) if e.kind() == io::ErrorKind::BrokenPipe) {
             // The voter died with our frame half-written, or before it: its successor gets
-            // all of it, on the new pipe, behind `RESUME`.
+            // all of it, on the new pipe, behind `RESUME` (a stream replica's history first:
+            // the rebind sent every other port's, but this one's is locked here).
             if rebind::rebind().is_ok() {
+                if let Some(history) = last.history.as_ref() {
+                    if let Err(e) = history.resend(fd) {
+                        tracing::warn!(port = %self.name, error = %e, "could not send the output history to the new voter");
+                    }
+                }
                 written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
             }
         }
@@ -325,6 +336,10 @@ impl OutPort {
         // Still deferred: a fork sees the count and the pipe agree.
         if let Some(position) = self.position {
             restart::count_sent(position);
+        }
+        let last = &mut *last;
+        if let Some(history) = last.history.as_mut() {
+            history.record(last.sent, &last.bytes);
         }
         last.sent += 1;
         last.step = answers::step();

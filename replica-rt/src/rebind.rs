@@ -116,6 +116,8 @@ fn rebind_within(timeout: Duration) -> Result<(), NoSuccessor> {
     // The pipes are ours now; a voter that closed meanwhile will find us through them.
     let _ = restart::send_all(sock.0, &ready.to_bytes());
     drop::<Fd>(sock);
+    // A stream replica's frames the dead voter may not have decided (see `history`).
+    crate::answers::resend_histories();
     tracing::info!("voter replaced: took fresh channels from its successor");
     Ok(())
 }

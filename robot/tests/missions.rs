@@ -57,6 +57,19 @@ fn robot_system(sys: &System, level: &str, seed: u64, sim_extra: &[&str]) -> Val
     desc
 }
 
+/// Starts the TMR robot with the sim's `seed` and waits until `components` run three replicas
+/// each; the test's seeded random source with it.
+fn start_tmr_robot(seed: u64, components: &[&str]) -> (Rng, RunningSystem) {
+    let rng = Rng::from_env();
+    let sys = System::new();
+    let desc = robot_system(&sys, "tmr", seed, &[]);
+    let mut run = sys.start_json(&desc);
+    for c in components {
+        run.wait_for_replicas(c, 3);
+    }
+    (rng, run)
+}
+
 /// One injected fault: which component, which replica slot, which process, and what the
 /// injection returned.
 struct Injection<T> {
@@ -236,12 +249,7 @@ fn dmr_mission_reaches_the_goal() {
 #[test]
 fn tmr_mission_survives_navigator_kills() {
     let _robot = one_robot_at_a_time();
-    let mut rng = Rng::from_env();
-    let sys = System::new();
-    let desc = robot_system(&sys, "tmr", 1, &[]);
-    let mut run = sys.start_json(&desc);
-    run.wait_for_replicas("navigator", 3);
-    run.wait_for_replicas("filter", 3);
+    let (mut rng, mut run) = start_tmr_robot(1, &["navigator", "filter"]);
 
     let killed = inject_until_end(&mut run, &mut rng, &["navigator"], |_, pid| {
         s3res_testkit::kill_pid(pid, libc::SIGKILL).ok()
@@ -267,12 +275,7 @@ fn tmr_mission_survives_navigator_kills() {
 #[test]
 fn tmr_mission_survives_mapper_and_planner_kills() {
     let _robot = one_robot_at_a_time();
-    let mut rng = Rng::from_env();
-    let sys = System::new();
-    let desc = robot_system(&sys, "tmr", 5, &[]);
-    let mut run = sys.start_json(&desc);
-    run.wait_for_replicas("mapper", 3);
-    run.wait_for_replicas("planner", 3);
+    let (mut rng, mut run) = start_tmr_robot(5, &["mapper", "planner"]);
 
     let killed = inject_until_end(&mut run, &mut rng, &["mapper", "planner"], |_, pid| {
         s3res_testkit::kill_pid(pid, libc::SIGKILL).ok()
@@ -291,6 +294,77 @@ fn tmr_mission_survives_mapper_and_planner_kills() {
         "too few kills to mean anything"
     );
     assert_kills_recovered_by_fork(&out.events, &killed);
+    assert_eq!(m["success"], true, "{}", line(&m));
+    assert_eq!(m["collisions"], 0);
+    assert_no_sdc(&out.events);
+}
+
+/// The voters of the stream components are killed instead of their replicas: every 0.3–0.7 s
+/// (seeded) the mapper's or the planner's voter gets a SIGKILL, for the whole mission. Each is
+/// replaced by a voter that adopts the replicas (a `voter_restart` event per kill), no replica
+/// is restarted by exec (the state is kept), and the mission succeeds.
+#[test]
+fn tmr_mission_survives_its_stream_voters_killed() {
+    let _robot = one_robot_at_a_time();
+    let (mut rng, mut run) = start_tmr_robot(5, &["mapper", "planner"]);
+    let mut killed = Vec::new();
+    let started = Instant::now();
+    while run.try_status().is_none() && started.elapsed() < LIMIT {
+        std::thread::sleep(Duration::from_millis(rng.range(300, 700)));
+        let component = ["mapper", "planner"][rng.below(2) as usize];
+        let Some(voter) = run.voter_of(component) else {
+            continue;
+        };
+        if s3res_testkit::kill_pid(voter, libc::SIGKILL).is_err() {
+            continue;
+        }
+        killed.push(component);
+        // The next kill only once the successor runs (one fault at a time).
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while run.try_status().is_none()
+            && Instant::now() < deadline
+            && run.voter_of(component).is_none_or(|v| v == voter)
+        {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+    let out = run.wait_success(LIMIT);
+    let m = mission(&run);
+    let restarts = |c: &str| {
+        out.events
+            .iter()
+            .filter(|e| e.kind == EventKind::VoterRestart && e.component == c)
+            .count()
+    };
+    let count = |c: &str| killed.iter().filter(|&&k| k == c).count();
+    eprintln!(
+        "tmr, seed 5, {} mapper and {} planner voter kills, {} and {} restarts: {}",
+        count("mapper"),
+        count("planner"),
+        restarts("mapper"),
+        restarts("planner"),
+        line(&m)
+    );
+    assert!(
+        count("mapper") >= 3 && count("planner") >= 3,
+        "too few kills to mean anything"
+    );
+    // The last kill may race the end of the mission (a voter ending on its own is not
+    // replaced).
+    for c in ["mapper", "planner"] {
+        assert!(
+            restarts(c) + 1 >= count(c) && restarts(c) <= count(c),
+            "{c}: {} kills, {} voter restarts",
+            count(c),
+            restarts(c)
+        );
+    }
+    for e in &out.events {
+        assert!(
+            !(e.kind == EventKind::Recovery && e.method == Some(RecoveryMethod::Exec)),
+            "a replica was restarted by exec (state lost): {e:?}"
+        );
+    }
     assert_eq!(m["success"], true, "{}", line(&m));
     assert_eq!(m["collisions"], 0);
     assert_no_sdc(&out.events);

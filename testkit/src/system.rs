@@ -435,6 +435,20 @@ impl RunningSystem {
         found.next().is_none().then_some(first.pid)
     }
 
+    /// The pid of the voter of `component` in this system (its plan, on its command line,
+    /// names the component), if it runs.
+    pub fn voter_of(&self, component: &str) -> Option<i32> {
+        let needle = format!("\"component\":\"{component}\"");
+        crate::procs::in_group(self.pgid())
+            .into_iter()
+            .filter(|p| p.comm == "s3res-voter" && !p.is_zombie())
+            .find(|p| {
+                std::fs::read(format!("/proc/{}/cmdline", p.pid))
+                    .is_ok_and(|c| String::from_utf8_lossy(&c).contains(&needle))
+            })
+            .map(|p| p.pid)
+    }
+
     /// Asks bootstrap to stop the system (SIGTERM).
     pub fn stop(&mut self) {
         if self.try_status().is_none() {

@@ -170,40 +170,6 @@ fn a_stopped_voter_is_replaced_and_the_run_completes() {
     run.assert_nothing_left();
 }
 
-/// A stream component's voter is not restarted (there is no round to replay): its death stops
-/// the rest of the system at once, non-zero, with one line that says which voter died and
-/// how. Nothing is left.
-#[test]
-fn a_killed_stream_voter_stops_the_system_in_one_line() {
-    let sys = System::new();
-    let echo = format!(
-        r#"{{ "exec": "s3res-echo", "redundancy": "tmr", "mode": "stream", "timeout_us": {TIMEOUT_US} }}"#
-    );
-    let desc = echo_pipeline(&sys.path("summary.json"), &echo, 60_000, 1000);
-    let mut run = sys.start(&desc);
-    run.wait_for_replicas("echo", 3);
-    let voter = run.process_named("s3res-voter").expect("the echo's voter");
-    s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
-    let out = run.wait(Duration::from_secs(30));
-    assert_eq!(
-        out.status.code(),
-        Some(1),
-        "{}",
-        s3res_testkit::tail(&out.stderr, 30)
-    );
-    let line = format!(
-        "s3res-bootstrap: the voter of component echo (pid {voter}) died: killed by signal 9; a voter of a stream component"
-    );
-    // `contains`, not `starts_with`: bootstrap writes its line in one write, but a component
-    // dying of the broken pipe may have left half a line of its own on the shared stderr.
-    assert!(
-        out.stderr.lines().any(|l| l.contains(&line)),
-        "no line {line:?}:\n{}",
-        s3res_testkit::tail(&out.stderr, 30)
-    );
-    run.assert_nothing_left();
-}
-
 /// A fork child is its donor's child, not the voter's, so `waitpid` cannot tell the voter how
 /// it ended; its pidfd can (Linux 6.15+). Its crash event names the signal that killed it.
 #[test]

@@ -340,6 +340,41 @@ fn under_fire(program: Program, redundancy: &str, replicas: usize) {
     assert_sums_continuous(&run, NUMBERS);
 }
 
+/// An unmodified program cannot take fresh pipes from a new voter, so its voter is not
+/// restarted: its death stops the rest of the system at once, non-zero, with one line that
+/// says which voter died and how. Nothing is left.
+#[test]
+#[cfg_attr(not(s3res_python3), ignore = "needs python3")]
+fn a_killed_voter_of_an_unmodified_program_stops_the_system_in_one_line() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let sys = System::new();
+    let desc = pipeline(&sys, Program::Python.command(&sys), "tmr", NUMBERS);
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("sum", 3);
+    let voter = run
+        .process_named("s3res-voter")
+        .expect("the program's voter");
+    s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+    let out = run.wait(Duration::from_secs(30));
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    let line = format!(
+        "s3res-bootstrap: the voter of component sum (pid {voter}) died: killed by signal 9; a voter of an unmodified program is not restarted"
+    );
+    // `contains`, not `starts_with`: bootstrap writes its line in one write, but a component
+    // dying of the broken pipe may have left half a line of its own on the shared stderr.
+    assert!(
+        out.stderr.lines().any(|l| l.contains(&line)),
+        "no line {line:?}:\n{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    run.assert_nothing_left();
+}
+
 #[test]
 #[cfg_attr(not(all(s3res_awk, s3res_python3)), ignore = "needs awk and python3")]
 fn awk_keeps_its_running_sum_under_tmr() {

@@ -9,7 +9,7 @@ use replica_rt::frame::{self, FrameDecoder};
 use replica_rt::sys;
 
 /// Bytes read per `read(2)` call.
-const READ_CHUNK: usize = 64 * 1024;
+pub(crate) const READ_CHUNK: usize = 64 * 1024;
 
 /// The writing end of a pipe, with the frames that did not fit yet.
 #[derive(Debug)]
@@ -127,6 +127,16 @@ impl FrameWriter {
     /// Bytes queued and not yet written.
     pub fn unwritten(&self) -> &[u8] {
         &self.pending[self.start..]
+    }
+
+    /// Frames queued and not yet written whole, as far as the writer can tell: a writer of
+    /// whole frames counts them (control frames too); any other can only say "none" (`Some(0)`)
+    /// or "some part of a frame" (`None`).
+    pub fn queued_frames(&self) -> Option<usize> {
+        match &self.whole {
+            Some(whole) => Some(whole.ends.len()),
+            None => (!self.has_pending()).then_some(0),
+        }
     }
 
     pub fn has_pending(&self) -> bool {

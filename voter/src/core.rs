@@ -15,6 +15,7 @@ use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
 use nix::sys::signalfd::SignalFd;
+use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::{self, FrameError};
 use replica_rt::sys;
 use thiserror::Error;
@@ -212,6 +213,23 @@ pub(crate) struct Core {
     pub(crate) adopted_rounds: u64,
     /// The state a commit records, kept for its capacity.
     committing: Committed,
+    /// Per input: the bytes (header and payload) of the last frame delivered to the replicas.
+    last_delivered_len: Vec<usize>,
+    /// Stream mode: per slot, the number on each output of its process's frame 0 (kept up to
+    /// date by the stream voter, recorded in the journal with the slot).
+    pub(crate) slot_offsets: Vec<[u64; MAX_PORTS]>,
+    /// What an adopting voter found: the outputs' committed counts and, per slot, the
+    /// adopted replica's offsets (stream mode lines its ledger up with them).
+    pub(crate) adopted_streams: Option<AdoptedStreams>,
+}
+
+/// What a stream voter needs from its predecessor's journal (see [`Core::slot_offsets`]).
+#[derive(Debug, Clone)]
+pub(crate) struct AdoptedStreams {
+    /// Frames committed as forwarded, per output: the next frame to decide.
+    pub(crate) forwarded: Vec<u64>,
+    /// Per slot whose replica was adopted: its offsets.
+    pub(crate) offsets: Vec<Option<[u64; MAX_PORTS]>>,
 }
 
 impl Core {
@@ -240,10 +258,7 @@ impl Core {
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
-        // A stream component's frames are not tied to rounds: nothing to replay (yet), so its
-        // voter keeps no journal.
-        let journal_fd = journal.filter(|_| plan.mode == PlanMode::Reactive);
-        let (journal, slots, adoption) = match journal_fd {
+        let (journal, slots, adoption) = match journal {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
                     Journal::open(fd, &plan).map_err(|e| VoterError::Plan(e.to_string()))?;
@@ -301,7 +316,12 @@ impl Core {
             journaled_pids,
             adopted_rounds: 0,
             committing: Committed::default(),
+            slot_offsets: Vec::new(),
+            adopted_streams: None,
+            last_delivered_len: Vec::new(),
         };
+        core.last_delivered_len = vec![0; core.plan.inputs.len()];
+        core.slot_offsets = vec![[0; MAX_PORTS]; core.plan.replicas];
         if let Some((found, lost)) = adoption {
             core.resume(found, lost);
         }
@@ -317,6 +337,21 @@ impl Core {
     /// replica if one kept the state.
     fn resume(&mut self, found: journal::Found, lost: Vec<adopt::Lost>) {
         let committed = found.committed;
+        let offsets: Vec<_> = (0..self.slots.len())
+            .map(|s| {
+                self.slots[s].as_ref()?;
+                found.slots.get(s).copied().flatten().map(|e| e.offsets)
+            })
+            .collect();
+        for (slot, off) in offsets.iter().enumerate() {
+            if let Some(off) = off {
+                self.slot_offsets[slot] = *off;
+            }
+        }
+        self.adopted_streams = Some(AdoptedStreams {
+            forwarded: committed.forwarded.clone(),
+            offsets,
+        });
         for (i, input) in self.inputs.iter_mut().enumerate() {
             let at = committed.inputs[i];
             input.reader.decoder.set_position(at.taken, at.next_index);
@@ -409,6 +444,7 @@ impl Core {
                     start_time: journal::start_time(r.pid)?,
                     state_lost: r.state_lost,
                     proven: r.proven,
+                    offsets: self.slot_offsets[slot],
                 })
             });
             journal.set_slot(slot, entry);
@@ -423,38 +459,73 @@ impl Core {
         let Some(journal) = self.journal.as_mut() else {
             return;
         };
-        if !journal.uncommitted() {
+        // A replay not finished yet lives only in the decoder once the log is emptied: the
+        // next successor would find it neither in the journal nor in the channel.
+        if self
+            .inputs
+            .iter()
+            .any(|i| i.peek.as_ref().is_some_and(|p| p.replay_left > 0))
+        {
             return;
         }
-        let queued = self.outputs.iter().any(|o| o.writer.has_pending())
-            || self
+        // A stream voter seldom finds nothing queued anywhere while frames flow, so it commits
+        // around what is queued: an output's frames count once written whole, and an input
+        // frame not yet written whole to every replica (only the last one delivered can be:
+        // the stream voter delivers the next only when none is queued) is carried into the
+        // new log, the state recorded before it. A reactive voter commits between rounds,
+        // with nothing queued.
+        let stream = self.plan.mode == PlanMode::Stream;
+        let state = &mut self.committing;
+        state.forwarded.clear();
+        for out in &self.outputs {
+            let queued = if stream {
+                out.writer.queued_frames()
+            } else {
+                (!out.writer.has_pending()).then_some(0)
+            };
+            let Some(queued) = queued else { return };
+            state.forwarded.push(out.sent.saturating_sub(queued as u64));
+        }
+        let mut carry = [false; MAX_PORTS];
+        for (i, carried) in carry.iter_mut().enumerate().take(self.inputs.len()) {
+            let pending = self
                 .slots
                 .iter()
                 .flatten()
-                .any(|r| r.inputs.iter().any(|i| i.writer.has_pending()));
-        if queued {
+                .filter_map(|r| r.inputs.get(i))
+                .map(|input| input.writer.unwritten().len())
+                .max()
+                .unwrap_or(0);
+            if pending == 0 {
+                continue;
+            }
+            let last = self.last_delivered_len[i];
+            if !stream || pending > last || journal.last_take_len(i) != Some(last) {
+                return;
+            }
+            *carried = true;
+        }
+        let moved = (0..self.outputs.len()).any(|o| journal.forwarded_at(o) != state.forwarded[o]);
+        if !journal.uncommitted() && !moved {
             return;
         }
         // Filled in place: a steady-state round allocates nothing.
-        let state = &mut self.committing;
         state.rounds_started = rounds_started;
         state.inputs.clear();
-        state.inputs.extend(
-            self.inputs
-                .iter()
-                .zip(&self.delivered)
-                .map(|(input, &delivered)| {
+        state
+            .inputs
+            .extend(self.inputs.iter().zip(&self.delivered).zip(&carry).map(
+                |((input, &delivered), &carried)| {
                     let (taken, next_index) = input.reader.decoder.position();
+                    let back = u64::from(carried);
                     InputState {
-                        taken,
-                        next_index,
-                        delivered,
+                        taken: taken - back,
+                        next_index: next_index - back,
+                        delivered: delivered - back,
                     }
-                }),
-        );
-        state.forwarded.clear();
-        state.forwarded.extend(self.outputs.iter().map(|o| o.sent));
-        journal.commit(state);
+                },
+            ));
+        journal.commit_carrying(state, &carry[..self.inputs.len()]);
     }
 
     /// Takes the bytes input `i`'s decoder has passed since the last take off its channel,
@@ -747,6 +818,22 @@ impl Core {
 
     // ----- input -------------------------------------------------------------------------
 
+    /// Whether input `i`'s journal log has room for its largest frame (always, unjournaled,
+    /// or while the predecessor's log is replayed).
+    pub(crate) fn journal_has_room(&self, i: usize) -> bool {
+        let replaying = self.inputs[i]
+            .peek
+            .as_ref()
+            .is_some_and(|p| p.replay_left > 0);
+        // The next frame comes out of the replay, which is in the log already.
+        replaying
+            || self.journal.as_ref().is_none_or(|journal| {
+                let most =
+                    self.plan.inputs[i].max_frame + frame::HEADER_LEN + 2 * frame::RESUME_LEN;
+                journal.has_room(i, most)
+            })
+    }
+
     /// Copies the next whole frame buffered on input `i` to every trusted replica. `None` when
     /// no whole frame is buffered (or upstream broke the framing: the input is closed, since
     /// we cannot resynchronise). Replicas whose pipe broke, or that have not taken more than
@@ -756,12 +843,9 @@ impl Core {
         i: usize,
         backlog_limit: Option<usize>,
     ) -> Option<Delivery> {
-        if let Some(journal) = self.journal.as_ref() {
-            // Room for the largest frame and the resume frames before it, or wait for a commit.
-            let most = self.plan.inputs[i].max_frame + frame::HEADER_LEN + 2 * frame::RESUME_LEN;
-            if !journal.has_room(i, most) {
-                return None;
-            }
+        // Room for the largest frame and the resume frames before it, or wait for a commit.
+        if !self.journal_has_room(i) {
+            return None;
         }
         let delivery = self.deliver_decoded(i, backlog_limit);
         self.take_decoded(i);
@@ -779,6 +863,7 @@ impl Core {
                 return None;
             }
         };
+        let frame_len = frame.len();
         let mut delivery = Delivery::default();
         for (r, rep) in self.slots.iter_mut().enumerate() {
             let Some(rep) = rep else { continue };
@@ -805,6 +890,7 @@ impl Core {
             }
         }
         self.delivered[i] += 1;
+        self.last_delivered_len[i] = frame::HEADER_LEN + frame_len;
         Some(delivery)
     }
 

@@ -1,6 +1,7 @@
-//! The voter's journal: what a successor needs to take a reactive component over when this
-//! voter dies — the replicas (pid, start time, state kept or lost), and the input frames of
-//! the unfinished rounds together with where every channel stood before them.
+//! The voter's journal: what a successor needs to take a component over when this voter dies —
+//! the replicas (pid, start time, state kept or lost, and in stream mode where each one's
+//! frames stand on every output), and the input frames taken since the last commit together
+//! with where every channel stood then.
 //!
 //! It lives in a memfd that bootstrap made and keeps (`plan.journal_fd`), mapped shared
 //! ([`SharedRegion`]). Nothing in it needs the voter to be alive, or to have finished what it
@@ -40,12 +41,13 @@ use replica_rt::shared::SharedRegion;
 
 use crate::clock::{Clock, Source};
 use crate::plan::VoterPlan;
+use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::{CONTROL_BIT, HEADER_LEN, RESUME, RESUME_LEN};
 
 /// "s3resjnl", the header's first word.
 const MAGIC: u64 = u64::from_le_bytes(*b"s3resjnl");
 /// Layout version (a successor refuses a journal of another layout).
-const VERSION: u64 = 1;
+const VERSION: u64 = 2;
 /// What no frame header is: written where the next read into a log starts and ends.
 const MARKER: u32 = u32::MAX;
 const PAGE: usize = 4096;
@@ -67,6 +69,10 @@ const OFF_TABLE: usize = 256;
 const SLOT_LEN: usize = 24;
 const FLAG_STATE_LOST: u64 = 1;
 const FLAG_PROVEN: u64 = 2;
+/// Stream mode, per slot and output: the number on the output of the slot's process's frame 0
+/// (`Ledger`'s `pos - received`), written with the slot's entry.
+const OFF_OFFSETS: usize = 1024;
+const OFFSETS_LEN: usize = 8 * MAX_PORTS;
 
 /// Where one input stood at a commit.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -95,6 +101,9 @@ pub(crate) struct SlotEntry {
     pub start_time: u64,
     pub state_lost: bool,
     pub proven: bool,
+    /// Stream mode: per output, the number of the process's frame 0 on it (up to
+    /// `MAX_PORTS` outputs; unused in reactive mode).
+    pub offsets: [u64; MAX_PORTS],
 }
 
 /// What a successor finds.
@@ -118,6 +127,10 @@ pub(crate) struct Journal {
     current: usize,
     /// Per input: bytes in the current record's log.
     log_len: Vec<usize>,
+    /// Per input: where in the current record's log the last take began, and its length.
+    last_take: Vec<Option<(usize, usize)>>,
+    /// Bytes carried from one record's log to the next, kept for its capacity.
+    carry_buf: Vec<u8>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -148,6 +161,8 @@ impl Journal {
             state_len,
             current,
             log_len: vec![0; plan.inputs.len()],
+            last_take: vec![None; plan.inputs.len()],
+            carry_buf: Vec::new(),
         }
     }
 
@@ -172,6 +187,13 @@ impl Journal {
 
     /// A new journal in the (empty) memfd `fd`: nothing delivered, nothing forwarded.
     pub(crate) fn create(fd: OwnedFd, plan: &VoterPlan) -> Result<Journal, JournalError> {
+        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > HEADER || plan.outputs.len() > MAX_PORTS {
+            return Err(JournalError::Mismatch(format!(
+                "{} replicas and {} outputs do not fit a journal's header",
+                plan.replicas,
+                plan.outputs.len()
+            )));
+        }
         let (log_cap, state_len) = Self::layout(plan);
         let record_len = state_len + plan.inputs.len() * log_cap;
         let region = SharedRegion::sized(fd, HEADER + 2 * record_len)?;
@@ -339,12 +361,26 @@ impl Journal {
             }
             got += k;
         }
+        self.last_take[i] = Some((self.log_len[i], n));
         self.log_len[i] += n;
         Ok(())
     }
 
+    /// How many bytes the last take off input `i` since the commit moved (`None`: none since).
+    pub(crate) fn last_take_len(&self, i: usize) -> Option<usize> {
+        self.last_take[i].map(|(_, n)| n)
+    }
+
     /// Commits `state`: the other record gets it and empty logs, then becomes the one in force.
+    #[cfg(test)]
     pub(crate) fn commit(&mut self, state: &Committed) {
+        self.commit_carrying(state, &[]);
+    }
+
+    /// [`commit`](Self::commit), but the new record's log of every input `i` with `carry[i]`
+    /// starts with the bytes of the last take off it (a frame not yet written whole to every
+    /// replica: `state` must stand before it).
+    pub(crate) fn commit_carrying(&mut self, state: &Committed, carry: &[bool]) {
         let next = 1 - self.current;
         let base = self.record(next);
         let r = &self.region;
@@ -362,21 +398,49 @@ impl Journal {
             r.u64_at(base + 8 + 24 * self.inputs + 8 * o)
                 .store(n, Ordering::Relaxed);
         }
-        for i in 0..self.inputs {
+        // No allocation per commit: lengths on the stack, bytes in a buffer kept for it.
+        let mut carried = [0usize; MAX_PORTS];
+        let mut bytes = std::mem::take(&mut self.carry_buf);
+        for (i, len) in carried.iter_mut().enumerate().take(self.inputs) {
             let at = self.log(next, i);
-            self.region.write_bytes(at, &MARKER.to_le_bytes());
+            if let Some((from, n)) = self.last_take[i].filter(|_| carry.get(i) == Some(&true)) {
+                bytes.resize(n, 0);
+                self.region
+                    .read_bytes(self.log(self.current, i) + from, &mut bytes);
+                self.region.write_bytes(at + n, &MARKER.to_le_bytes());
+                self.region.write_bytes(at, &bytes);
+                *len = n;
+            } else {
+                self.region.write_bytes(at, &MARKER.to_le_bytes());
+            }
         }
         // The switch: one store.
         self.region
             .u64_at(OFF_CURRENT)
             .store(next as u64, Ordering::Release);
         self.current = next;
-        self.log_len.iter_mut().for_each(|n| *n = 0);
+        for ((n, take), c) in self
+            .log_len
+            .iter_mut()
+            .zip(&mut self.last_take)
+            .zip(carried)
+        {
+            *n = c;
+            // A carried frame is the new log's last take: still queued, it may be carried again.
+            *take = (c > 0).then_some((0, c));
+        }
+        self.carry_buf = bytes;
     }
 
     /// Whether anything was taken since the last commit.
     pub(crate) fn uncommitted(&self) -> bool {
         self.log_len.iter().any(|&n| n > 0)
+    }
+
+    /// The count of frames forwarded on output `o` that the record in force holds.
+    pub(crate) fn forwarded_at(&self, o: usize) -> u64 {
+        let base = self.record(self.current) + 8 + 24 * self.inputs;
+        self.region.u64_at(base + 8 * o).load(Ordering::Relaxed)
     }
 
     /// Records who is in `slot` (`None`: nobody).
@@ -392,6 +456,10 @@ impl Journal {
                 let flags = if e.state_lost { FLAG_STATE_LOST } else { 0 }
                     | if e.proven { FLAG_PROVEN } else { 0 };
                 r.u64_at(at + 16).store(flags, Ordering::Relaxed);
+                let offsets = OFF_OFFSETS + OFFSETS_LEN * slot;
+                for (o, &off) in e.offsets.iter().enumerate().take(self.outputs) {
+                    r.u64_at(offsets + 8 * o).store(off, Ordering::Relaxed);
+                }
                 r.u64_at(at).store(e.pid as u64, Ordering::Release);
             }
         }
@@ -405,12 +473,18 @@ impl Journal {
             return None;
         }
         let flags = r.u64_at(at + 16).load(Ordering::Relaxed);
-        Some(SlotEntry {
+        let offsets = OFF_OFFSETS + OFFSETS_LEN * slot;
+        let mut entry = SlotEntry {
             pid,
             start_time: r.u64_at(at + 8).load(Ordering::Relaxed),
             state_lost: flags & FLAG_STATE_LOST != 0,
             proven: flags & FLAG_PROVEN != 0,
-        })
+            offsets: [0; MAX_PORTS],
+        };
+        for (o, off) in entry.offsets.iter_mut().enumerate().take(self.outputs) {
+            *off = r.u64_at(offsets + 8 * o).load(Ordering::Relaxed);
+        }
+        Some(entry)
     }
 }
 
@@ -494,6 +568,7 @@ mod tests {
                 start_time: 99,
                 state_lost: true,
                 proven: true,
+                offsets: [7; MAX_PORTS],
             }),
         );
         let (_, found) = Journal::open(keep.try_clone().unwrap(), &plan).unwrap();
@@ -504,6 +579,8 @@ mod tests {
         assert_eq!(found.slots[0], None);
         assert_eq!(found.slots[1].unwrap().pid, 1234);
         assert!(found.slots[1].unwrap().state_lost);
+        assert_eq!(found.slots[1].unwrap().offsets[0], 7);
+        assert_eq!(journal.forwarded_at(0), 1);
         // A take that died between its markers and its read: the log ends where it was.
         let at = journal.log(journal.current, 0) + journal.log_len[0];
         journal.region.write_bytes(at + 12, &MARKER.to_le_bytes());

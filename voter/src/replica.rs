@@ -58,6 +58,32 @@ pub struct Replica {
     pub schedstat: SchedStat,
 }
 
+/// What a stream replica must keep of its outputs for a successor of this voter (see
+/// `contract::ENV_OUTPUT_HISTORY`): the voter's window of frames undecided, as many decided and
+/// still queued for downstream (reading stops while any are: `StreamVoter`), two more of each,
+/// and
+/// beyond them as many bytes as the pipe (its default size: the voter does not enlarge
+/// replicas' outputs), the voter's read buffer (a read on readiness and one more look before a
+/// deadline) and one cut frame may hold. `None`: no
+/// successor can come (no journal), or the replica answers rounds (reactive mode).
+fn output_history(plan: &VoterPlan) -> Option<String> {
+    if plan.mode != crate::plan::Mode::Stream
+        || plan.journal_fd.is_none()
+        || plan.framing == Framing::Lines
+    {
+        return None;
+    }
+    let largest = plan.outputs.iter().map(|p| p.max_frame).max().unwrap_or(0);
+    let bytes = DEFAULT_PIPE_SIZE
+        + 2 * crate::channel::READ_CHUNK
+        + largest
+        + replica_rt::frame::HEADER_LEN;
+    Some(format!("{},{bytes}", 2 * plan.window + 4))
+}
+
+/// A pipe's size unless someone changes it (Linux: 16 pages).
+const DEFAULT_PIPE_SIZE: usize = 64 * 1024;
+
 /// Fresh pipes for one replica: the replica's ends (in port order: inputs, then outputs, then
 /// its stderr) and the voter's ends.
 pub struct ReplicaPipes {
@@ -201,6 +227,9 @@ impl Replica {
             .env(ENV_REPLICA, slot.to_string())
             .env(ENV_COMPONENT, &plan.component)
             .stdin(Stdio::null());
+        if let Some(history) = output_history(plan) {
+            cmd.env(replica_rt::contract::ENV_OUTPUT_HISTORY, history);
+        }
         if let Some(library) = &plan.preload {
             // The library reads the contract above at load time, before the program's `main`.
             cmd.env("LD_PRELOAD", library);

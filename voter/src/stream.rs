@@ -33,6 +33,14 @@ use boost::Boost;
 use ledger::{Arrival, Decided, Ledger};
 use liveness::{Liveness, Sample};
 
+/// Whether replica `r`'s decoder of output `o` met a `RESUME` beyond the frames it had taken
+/// (the count is taken, so each gap is reported once).
+fn rep_skipped(core: &mut Core, r: usize, o: usize) -> bool {
+    core.slots[r]
+        .as_mut()
+        .is_some_and(|rep| rep.outputs[o].decoder.take_skipped() > 0)
+}
+
 /// How far decoding of a replica's output may go.
 #[derive(Debug, Clone, Copy)]
 enum Until {
@@ -59,6 +67,9 @@ pub struct StreamVoter {
     boosted: Option<(libc::pid_t, usize)>,
     /// Hangs no deadline sees: every replica stuck at once (see [`liveness`]).
     liveness: Liveness,
+    /// Since when downstream has frames queued that it did not take: meanwhile no replica
+    /// output is read (see [`StreamVoter::downstream_backlog`]).
+    held_by_downstream: Option<Instant>,
 }
 
 impl StreamVoter {
@@ -67,7 +78,7 @@ impl StreamVoter {
         let core = Core::start(plan)?;
         let n = core.plan.replicas;
         let timeout = Duration::from_micros(core.plan.timeout_us);
-        Ok(StreamVoter {
+        let mut voter = StreamVoter {
             boosted: None,
             timeout,
             ledger: Ledger::new(n, core.plan.outputs.len(), core.plan.window),
@@ -77,7 +88,52 @@ impl StreamVoter {
             delivered_all: true,
             ending: None,
             boost: Boost::default(),
-        })
+            held_by_downstream: None,
+        };
+        voter.take_over_streams();
+        Ok(voter)
+    }
+
+    /// An adopting voter lines the ledger up with its predecessor's journal: each output goes
+    /// on from the frame committed as forwarded, and each adopted replica's decoder drops the
+    /// frames of its history below it (`Ledger::resume`). The replayed input is delivered.
+    fn take_over_streams(&mut self) {
+        let Some(adopted) = self.core.adopted_streams.take() else {
+            return;
+        };
+        let outputs = self.core.outputs.len();
+        let offsets: Vec<Option<Vec<u64>>> = adopted
+            .offsets
+            .iter()
+            .map(|off| off.map(|o| o[..outputs].to_vec()))
+            .collect();
+        let skip = self.ledger.resume(&adopted.forwarded, &offsets);
+        for (slot, rep) in self.core.slots.iter_mut().enumerate() {
+            let Some(rep) = rep else { continue };
+            for (o, out) in rep.outputs.iter_mut().enumerate() {
+                out.decoder.set_position(skip[slot][o], skip[slot][o]);
+            }
+        }
+        self.delivered_all = false;
+    }
+
+    /// Records in the journal who is in each slot, with where its frames stand on every
+    /// output, and commits what was taken and forwarded (a journaled voter only).
+    fn keep_journal(&mut self) {
+        if self.core.journal.is_none() {
+            return;
+        }
+        for slot in 0..self.core.slots.len() {
+            if self.core.slots[slot].is_none() {
+                continue;
+            }
+            for o in 0..self.core.outputs.len() {
+                self.core.slot_offsets[slot][o] =
+                    self.ledger.pos(slot, o) - self.ledger.received(slot, o);
+            }
+        }
+        self.core.journal_slots();
+        self.core.commit(0);
     }
 
     /// Runs until the inputs close and the replicas have finished, or a stop is requested.
@@ -96,8 +152,10 @@ impl StreamVoter {
             let Some(rep) = rep else { continue };
             // Back-pressure: a replica far ahead is not read, so its pipe fills.
             let ledger = &self.ledger;
-            core.poll
-                .add_replica(r, rep, !self.exited[r], |o| ledger.may_read(r, o, alive));
+            let held = self.held_by_downstream.is_some();
+            core.poll.add_replica(r, rep, !self.exited[r], |o| {
+                !held && ledger.may_read(r, o, alive)
+            });
         }
     }
 
@@ -109,12 +167,14 @@ impl StreamVoter {
             .iter()
             .flatten()
             .filter_map(|rep| rep.output_closed_at.map(|t| t + EXIT_AFTER_EOF));
-        let look = self
-            .ending
-            .is_none()
-            .then(|| self.liveness.next_look(Instant::now()));
-        self.ledger
-            .next_deadline(self.core.alive(), self.timeout)
+        // Held by downstream, the replicas' clocks stand still: its pipe's room wakes the loop.
+        let held = self.held_by_downstream.is_some();
+        let look =
+            (self.ending.is_none() && !held).then(|| self.liveness.next_look(Instant::now()));
+        let deadline = (!held)
+            .then(|| self.ledger.next_deadline(self.core.alive(), self.timeout))
+            .flatten();
+        deadline
             .into_iter()
             .chain(graces)
             .chain(self.ending)
@@ -151,6 +211,17 @@ impl StreamVoter {
             loop {
                 if self.holding_input() {
                     return;
+                }
+                // Nothing queued for anyone, nothing out of step: the moment to commit (under a
+                // steady flood the top of the loop rarely finds one).
+                self.keep_journal();
+                if !self.core.journal_has_room(i) {
+                    // The log is full of frames delivered since the last commit: commit them
+                    // (once they are out of the voter), then go on.
+                    self.keep_journal();
+                    if !self.core.journal_has_room(i) {
+                        return;
+                    }
                 }
                 let Some(delivery) = self.core.deliver_next(i, None) else {
                     break;
@@ -206,7 +277,7 @@ impl StreamVoter {
         loop {
             let alive = self.core.alive();
             let go_on = match until {
-                Until::Window => self.ledger.may_read(r, o, alive),
+                Until::Window => !self.downstream_full() && self.ledger.may_read(r, o, alive),
                 Until::Received(n) => self.ledger.received(r, o) < n,
             };
             let Some(rep) = self.core.slots[r].as_mut().filter(|_| go_on) else {
@@ -237,6 +308,16 @@ impl StreamVoter {
                 let frame = self.ledger.pos(r, o).saturating_sub(1);
                 self.core
                     .anomaly_event(r, pid, o, At::Frame(frame), after_alarm);
+            }
+            if rep_skipped(&mut self.core, r, o) {
+                // Its history (after a voter restart) began beyond the last frame decided: the
+                // frame just taken is not the one the ledger numbered it.
+                let detail = format!(
+                    "output `{}` resumed beyond frame {} after the voter restart: it no longer held the frames in between",
+                    self.core.plan.outputs[o].name,
+                    self.ledger.next(o)
+                );
+                return self.fault(r, Cause::BadFrame, detail);
             }
             match arrival {
                 Arrival::Fine => {}
@@ -277,6 +358,29 @@ impl StreamVoter {
         for o in 0..self.core.outputs.len() {
             self.decide(o);
         }
+    }
+
+    /// Back-pressure from downstream: while an output has frames queued that its reader did
+    /// not take, no replica output is read (their pipes fill, and they block), so the frames
+    /// decided and not yet written stay few — the voter's memory is bounded, and the replicas'
+    /// output histories (a successor's only source for them) reach back over them. The
+    /// replicas' clocks stop meanwhile: a frame they could not deliver is not late.
+    fn downstream_backlog(&mut self) {
+        let backlog = self.downstream_full();
+        match (backlog, self.held_by_downstream) {
+            (true, None) => self.held_by_downstream = Some(Instant::now()),
+            (false, Some(since)) => {
+                self.held_by_downstream = None;
+                self.ledger.postpone(since.elapsed());
+                self.liveness.restart(Instant::now());
+            }
+            _ => {}
+        }
+    }
+
+    /// Some output has frames queued that its reader has not taken.
+    fn downstream_full(&self) -> bool {
+        self.core.outputs.iter().any(|o| o.writer.has_pending())
     }
 
     // ----- faults --------------------------------------------------------------------------
@@ -467,6 +571,12 @@ impl StreamVoter {
                 return Err(problem);
             }
         }
+        // The child's frames count on from its donor's: so does its decoder (a `RESUME` the
+        // child may start with, if its donor had not sent since a rebind, is no gap).
+        let mut forked = forked;
+        for (out, &sent) in forked.replica.outputs.iter_mut().zip(&forked.frames_sent) {
+            out.decoder.set_position(sent, sent);
+        }
         self.ledger.join_from(slot, d, &forked.frames_sent);
         let pid = forked.replica.pid;
         self.core.slots[slot] = Some(forked.replica);
@@ -573,6 +683,7 @@ impl Mode for StreamVoter {
             // At the end a replacement would only be closed again; the fault is recorded.
             let replace = self.core.stop.is_none() && self.ending.is_none();
             let recovered = core::recover_faulty(self, replace)?;
+            self.keep_journal();
             if recovered {
                 // Recovery blocks the loop (waiting for a death, the fork, the child's page
                 // walk); the laggards' clocks stop meanwhile.
@@ -599,9 +710,12 @@ impl Mode for StreamVoter {
             if self.ending.is_none() {
                 core::fault_closed_outputs(self);
             }
-            self.check_deadlines();
-            self.decode_all();
-            self.check_liveness();
+            self.downstream_backlog();
+            if self.held_by_downstream.is_none() {
+                self.check_deadlines();
+                self.decode_all();
+                self.check_liveness();
+            }
         }
     }
 

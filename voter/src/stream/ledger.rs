@@ -328,6 +328,31 @@ impl Ledger {
         }
     }
 
+    /// A voter that took over from one that died: every output goes on from the frame its
+    /// predecessor committed as forwarded (`next[o]`); each adopted slot's process, whose
+    /// frame 0 is frame `offsets[o]` of the output, sends again what it kept from there (see
+    /// `replica_rt`'s output history). Returns, per adopted slot and output, the count of the
+    /// process's frames already decided: its decoder drops those.
+    pub fn resume(&mut self, next: &[u64], offsets: &[Option<Vec<u64>>]) -> Vec<Vec<u64>> {
+        for (out, &n) in self.outputs.iter_mut().zip(next) {
+            out.next = n;
+            out.base = n;
+            out.entries.clear();
+        }
+        let mut skip = vec![vec![0; self.outputs.len()]; self.n];
+        for (slot, off) in offsets.iter().enumerate() {
+            let Some(off) = off else { continue };
+            for (o, &n) in next.iter().enumerate() {
+                let offset = off.get(o).copied().unwrap_or(0);
+                let pos = n.max(offset);
+                self.pos[slot][o] = pos;
+                self.received[slot][o] = pos - offset;
+                skip[slot][o] = pos - offset;
+            }
+        }
+        skip
+    }
+
     /// `slot` now holds a fresh process (exec, state lost): its first frame on each output is
     /// taken as the next one to decide.
     pub fn start_fresh(&mut self, slot: usize) {
@@ -603,6 +628,24 @@ mod tests {
         l.accept(2, 0, b"c", t);
         assert_eq!(decide_all(&mut l, 0, all).len(), 1);
         assert_eq!(l.next(0), 3);
+    }
+
+    /// A successor's ledger: output 0 goes on from frame 10 (committed); slot 0's process
+    /// started at frame 0, slot 1's (exec'd later) at frame 4, slot 2's at frame 12 (it started
+    /// after the commit). Each is told how many of its own frames are already decided.
+    #[test]
+    fn a_successor_goes_on_from_the_committed_frame() {
+        let mut l = Ledger::new(3, 1, 8);
+        let all = set(&[0, 1, 2]);
+        let skip = l.resume(&[10], &[Some(vec![0]), Some(vec![4]), Some(vec![12])]);
+        assert_eq!(skip, vec![vec![10], vec![6], vec![0]]);
+        assert_eq!((l.pos(0, 0), l.pos(1, 0), l.pos(2, 0)), (10, 10, 12));
+        assert_eq!(l.next(0), 10);
+        let t = Instant::now();
+        l.accept(0, 0, b"k", t);
+        l.accept(1, 0, b"k", t);
+        let d = decide_all(&mut l, 0, all);
+        assert_eq!(d, vec![forward(10, b"k", 0, ReplicaSet::EMPTY)]);
     }
 
     #[test]
