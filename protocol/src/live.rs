@@ -140,6 +140,16 @@ impl LiveView {
         let Some(c) = self.components.get_mut(&e.component) else {
             return false;
         };
+        if e.kind == EventKind::VoterRestart {
+            // About the voter, not a replica: its successor's pid.
+            return match e.pid.filter(|&pid| pid > 0 && c.protected) {
+                Some(pid) => {
+                    c.voter_pid = Some(pid);
+                    true
+                }
+                None => false,
+            };
+        }
         let Some(r) = e.replica.and_then(|slot| c.replicas.get_mut(slot)) else {
             return false;
         };
@@ -153,7 +163,6 @@ impl LiveView {
             EventKind::RecoveryFailed => (None, ReplicaState::Lost),
             // An alarm alone changes no replica's state (a fault it leads to is its own event).
             EventKind::Anomaly => return false,
-            // About the voter, not a replica (it names none).
             EventKind::VoterRestart => return false,
             EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
                 // An event about an older process of this slot changes nothing.
@@ -226,6 +235,14 @@ mod tests {
         assert!(!v.apply(&event(EventKind::Hang, 1, 101)));
         assert!(v.apply(&event(EventKind::RecoveryFailed, 0, 100)));
         assert_eq!(v.components["echo"].replicas[0].state, ReplicaState::Lost);
+        // A voter restart names the successor; the replicas stay as they were.
+        let mut restart = Event::new("s", "echo", EventKind::VoterRestart);
+        restart.pid = Some(200);
+        assert!(v.apply(&restart));
+        assert_eq!(v.components["echo"].voter_pid, Some(200));
+        assert_eq!(v.components["echo"].replicas[1].pid, Some(102));
+        restart.pid = Some(0);
+        assert!(!v.apply(&restart));
         // Unknown component or slot: ignored.
         let mut other = event(EventKind::Start, 5, 1);
         assert!(!v.apply(&other));
