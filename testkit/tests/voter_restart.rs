@@ -87,7 +87,8 @@ fn kill_voters_and_check(sys: System, desc: &str, count: u32, what: &str) {
             killed.elapsed()
         );
     }
-    let out = run.wait(Duration::from_secs(60));
+    // A bound, not a speed test: the flood takes about 13 s alone in a debug build.
+    let out = run.wait(Duration::from_secs(180));
     assert!(
         out.status.success(),
         "bootstrap: {}\nsink summary: {}\n{}",
