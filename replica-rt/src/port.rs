@@ -316,18 +316,20 @@ impl OutPort {
         let replica = self.replica;
         let fd = self.fd.as_fd();
         let mut written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
-        if self.replica && matches!(&written, Err(e) if e.kind() == io::ErrorKind::BrokenPipe) {
-            // The voter died with our frame half-written, or before it: its successor gets
-            // all of it, on the new pipe, behind `RESUME` (a stream replica's history first:
-            // the rebind sent every other port's, but this one's is locked here).
-            if rebind::rebind().is_ok() {
-                if let Some(history) = last.history.as_ref() {
-                    if let Err(e) = history.resend(fd) {
-                        tracing::warn!(port = %self.name, error = %e, "could not send the output history to the new voter");
-                    }
-                }
-                written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
+        // The voter died with our frame half-written, or before it: its successor gets all of
+        // it, on the new pipe, behind `RESUME` (a stream replica's history first: the rebind
+        // sent every other port's, but this one's is locked here). The successor may die in
+        // turn before the frame is through: then the next one, until no successor comes.
+        while self.replica && matches!(&written, Err(e) if e.kind() == io::ErrorKind::BrokenPipe) {
+            if rebind::rebind().is_err() {
+                break;
             }
+            // Forced behind `RESUME` again: this pipe is new whatever the count says.
+            self.generation = rebind::generation().wrapping_sub(1);
+            written = match last.history.as_ref().map(|h| h.resend(fd)) {
+                Some(Err(e)) => Err(e),
+                _ => write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent),
+            };
         }
         if let Err(e) = written {
             drop(last);

@@ -81,31 +81,60 @@ pub(crate) fn rebind() -> Result<(), NoSuccessor> {
 fn rebind_within(timeout: Duration) -> Result<(), NoSuccessor> {
     // No fork in the middle: a child would start with half our channels.
     let _held = RestartsHeld::new();
-    let sock = restart::connect_voter(timeout).map_err(|()| NoSuccessor::Gone)?;
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Err(NoSuccessor::Gone);
+        }
+        // No connection at all: nobody holds the socket any more (the system is ending).
+        let sock = restart::connect_voter(left).map_err(|()| NoSuccessor::Gone)?;
+        match handshake(&sock) {
+            Ok(()) => {
+                drop::<Fd>(sock);
+                tracing::info!("voter replaced: took fresh channels from its successor");
+                // A stream replica's frames the dead voter may not have decided (`history`).
+                crate::answers::resend_histories();
+                return Ok(());
+            }
+            // The successor died in the middle of the handshake (killed again, say): our old
+            // channels are untouched; wait for the next one in the socket's backlog.
+            Err(Retry) => {
+                drop::<Fd>(sock);
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        }
+    }
+}
+
+/// A handshake that broke off before our channels were replaced.
+struct Retry;
+
+/// `Rebind`, the fresh pipes, `Ready` (see the module docs).
+fn handshake(sock: &Fd) -> Result<(), Retry> {
     let hello = Rebind {
         magic: REBIND_MAGIC,
         pid: sys::getpid(),
         frames_taken: std::array::from_fn(|k| FRAMES_TAKEN[k].load(Ordering::Relaxed)),
         frames_sent: restart::frames_sent(),
     };
-    restart::send_all(sock.0, &hello.to_bytes()).map_err(|()| NoSuccessor::Gone)?;
+    restart::send_all(sock.0, &hello.to_bytes()).map_err(|()| Retry)?;
     let mut transfer = FdTransfer {
         magic: 0,
         count: 0,
         targets: [-1; MAX_HANDED_FDS],
     };
     let mut received = [-1 as libc::c_int; MAX_HANDED_FDS];
-    let n = restart::recv_transfer(sock.0, &mut transfer, &mut received)
-        .map_err(|()| NoSuccessor::Gone)?;
+    let n = restart::recv_transfer(sock.0, &mut transfer, &mut received).map_err(|()| Retry)?;
     let fds = &received[..n];
     if transfer.magic != TRANSFER_MAGIC || transfer.count as usize != n {
         restart::close_all(fds);
-        return Err(NoSuccessor::Gone);
+        return Err(Retry);
     }
     let targets = &transfer.targets[..n];
     read_out_old_inputs(targets);
     if restart::place_fds(fds, targets).is_err() {
-        return Err(NoSuccessor::Gone);
+        return Err(Retry);
     }
     GENERATION.fetch_add(1, Ordering::Release);
     let ready = Ready {
@@ -115,10 +144,6 @@ fn rebind_within(timeout: Duration) -> Result<(), NoSuccessor> {
     };
     // The pipes are ours now; a voter that closed meanwhile will find us through them.
     let _ = restart::send_all(sock.0, &ready.to_bytes());
-    drop::<Fd>(sock);
-    // A stream replica's frames the dead voter may not have decided (see `history`).
-    crate::answers::resend_histories();
-    tracing::info!("voter replaced: took fresh channels from its successor");
     Ok(())
 }
 

@@ -348,6 +348,16 @@ impl Core {
                 self.slot_offsets[slot] = *off;
             }
         }
+        let mut committed = committed;
+        if self.plan.mode == PlanMode::Stream {
+            // A stream voter records what it wrote downstream as it goes (`note_written`):
+            // its outputs go on from there, whatever its last commit of input said.
+            if let Some(journal) = self.journal.as_ref() {
+                for (o, n) in committed.forwarded.iter_mut().enumerate() {
+                    *n = (*n).max(journal.written(o));
+                }
+            }
+        }
         self.adopted_streams = Some(AdoptedStreams {
             forwarded: committed.forwarded.clone(),
             offsets,
@@ -526,6 +536,23 @@ impl Core {
                 },
             ));
         journal.commit_carrying(state, &carry[..self.inputs.len()]);
+    }
+
+    /// Stream mode: records, per output, the frames written whole downstream so far (a
+    /// successor's outputs go on from there; see [`Core::resume`]). Cheap: a load, and a store
+    /// when the count moved.
+    pub(crate) fn note_written(&mut self) {
+        let Some(journal) = self.journal.as_ref() else {
+            return;
+        };
+        for (o, out) in self.outputs.iter().enumerate() {
+            if let Some(queued) = out.writer.queued_frames() {
+                let written = out.sent.saturating_sub(queued as u64);
+                if journal.written(o) != written {
+                    journal.set_written(o, written);
+                }
+            }
+        }
     }
 
     /// Takes the bytes input `i`'s decoder has passed since the last take off its channel,

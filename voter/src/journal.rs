@@ -73,6 +73,9 @@ const FLAG_PROVEN: u64 = 2;
 /// (`Ledger`'s `pos - received`), written with the slot's entry.
 const OFF_OFFSETS: usize = 1024;
 const OFFSETS_LEN: usize = 8 * MAX_PORTS;
+/// Stream mode, per output: frames written whole downstream, updated as they go (not part of
+/// a record: a stream successor goes on from there whatever its input commit says).
+const OFF_WRITTEN: usize = 3072;
 
 /// Where one input stood at a commit.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -187,7 +190,8 @@ impl Journal {
 
     /// A new journal in the (empty) memfd `fd`: nothing delivered, nothing forwarded.
     pub(crate) fn create(fd: OwnedFd, plan: &VoterPlan) -> Result<Journal, JournalError> {
-        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > HEADER || plan.outputs.len() > MAX_PORTS {
+        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > OFF_WRITTEN || plan.outputs.len() > MAX_PORTS
+        {
             return Err(JournalError::Mismatch(format!(
                 "{} replicas and {} outputs do not fit a journal's header",
                 plan.replicas,
@@ -435,6 +439,20 @@ impl Journal {
     /// Whether anything was taken since the last commit.
     pub(crate) fn uncommitted(&self) -> bool {
         self.log_len.iter().any(|&n| n > 0)
+    }
+
+    /// Stream mode: `n` frames of output `o` are written whole downstream.
+    pub(crate) fn set_written(&self, o: usize, n: u64) {
+        self.region
+            .u64_at(OFF_WRITTEN + 8 * o)
+            .store(n, Ordering::Release);
+    }
+
+    /// Stream mode: frames of output `o` written whole downstream, as last recorded.
+    pub(crate) fn written(&self, o: usize) -> u64 {
+        self.region
+            .u64_at(OFF_WRITTEN + 8 * o)
+            .load(Ordering::Acquire)
     }
 
     /// The count of frames forwarded on output `o` that the record in force holds.

@@ -133,6 +133,7 @@ impl StreamVoter {
             }
         }
         self.core.journal_slots();
+        self.core.note_written();
         self.core.commit(0);
     }
 
