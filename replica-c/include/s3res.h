@@ -102,7 +102,9 @@ void s3res_out_close(s3res_out *port);
 /* The next whole frame, blocking. 1: *payload and *len set; the payload belongs to the port
  * and is valid until its next receive or close. 0: end of stream (the writer closed the
  * channel; the normal way for a component to end). -EPROTO: a bad frame stream (too large,
- * cut short). Other -errno: the read failed. */
+ * cut short). -EIO: input frames were lost with a voter that died, so this replica's state
+ * is no longer the component's: end (its voter rebuilds it from a sibling). Other -errno:
+ * the read failed. */
 int s3res_recv(s3res_in *port, const uint8_t **payload, size_t *len);
 
 /* As s3res_recv without blocking: -EAGAIN when no whole frame is there yet. */

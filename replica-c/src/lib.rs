@@ -161,6 +161,7 @@ fn recv_code(e: &RecvError) -> c_int {
     match e {
         RecvError::Frame { .. } => libc::EPROTO,
         RecvError::Io { source, .. } => os_code(source),
+        RecvError::InputLost { .. } => libc::EIO,
     }
 }
 

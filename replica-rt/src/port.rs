@@ -30,6 +30,12 @@ pub enum RecvError {
         #[source]
         source: io::Error,
     },
+    /// A voter's successor went on from a frame beyond the last one this replica took: input
+    /// it had been given was lost with the voter that died (taken back from its pipe for a
+    /// fork, say). Its state is no longer the component's; the component should end, and its
+    /// voter rebuilds it from a sibling.
+    #[error("input port {port:?}: {frames} input frame(s) were lost with a voter that died; this replica's state is no longer the component's")]
+    InputLost { port: String, frames: u64 },
 }
 
 /// Sending a frame failed.
@@ -158,6 +164,9 @@ impl InPort {
     /// Moves the next whole frame from the decoder into `self.frame`; `false` if none is
     /// buffered. A replayed round (its input frame repeated) is answered again on the way.
     pub(crate) fn next_buffered(&mut self) -> Result<bool, RecvError> {
+        // A replica started by exec is first told the number of its first frame (a jump from
+        // nothing taken); a jump from anything else is input lost.
+        let had = self.dec.taken();
         let taken = match self.dec.next_frame() {
             Ok(Some(payload)) => {
                 self.frame.clear();
@@ -167,6 +176,13 @@ impl InPort {
             Ok(None) => false,
             Err(e) => return Err(self.frame_error(e)),
         };
+        let skipped = self.dec.take_skipped();
+        if self.replica && skipped > 0 && had > 0 {
+            return Err(RecvError::InputLost {
+                port: self.name.clone(),
+                frames: skipped,
+            });
+        }
         if self.dec.take_repeats_of_last() > 0 {
             // Before the next frame is taken: the answers to the replayed one are the frames
             // sent after it. A failed write is the voter's end closing, which the next read
@@ -470,6 +486,27 @@ mod tests {
         writer.join().unwrap();
         assert_eq!(input.recv().unwrap(), None);
         assert_eq!(input.recv().unwrap(), None);
+    }
+
+    /// A replica told to go on from a frame beyond the last one it took lost input with a
+    /// dead voter: an error, not a silent jump. A replica that took nothing yet is only being
+    /// told where the numbering starts.
+    #[test]
+    fn a_replica_that_lost_input_says_so() {
+        let (r, w) = sys::pipe().unwrap();
+        let mut input = InPort::new("in".into(), r, 64, true);
+        let mut bytes = crate::frame::resume_frame(7).to_vec();
+        frame::encode_into(b"a", &mut bytes);
+        frame::encode_into(b"b", &mut bytes);
+        bytes.extend_from_slice(&crate::frame::resume_frame(12));
+        frame::encode_into(b"m", &mut bytes);
+        write_all(w.as_fd(), &bytes).unwrap();
+        assert_eq!(input.recv().unwrap(), Some(&b"a"[..]));
+        assert_eq!(input.recv().unwrap(), Some(&b"b"[..]));
+        match input.recv() {
+            Err(RecvError::InputLost { frames, .. }) => assert_eq!(frames, 3),
+            other => panic!("expected InputLost, got {other:?}"),
+        }
     }
 
     #[test]

@@ -164,8 +164,56 @@ fn read_out_old_inputs(targets: &[libc::c_int]) {
             continue;
         }
         let bytes = sys::read_available(fd);
-        if !bytes.is_empty() {
-            left.push((position, bytes));
+        if bytes.is_empty() {
+            continue;
         }
+        match left.iter_mut().find(|(p, _)| *p == position) {
+            // Rebound again before the port caught up (a successor that died in turn): what
+            // its pipe held comes after what the one before held, whose cut frame goes.
+            Some((_, earlier)) => {
+                earlier.truncate(whole_frames_len(earlier));
+                earlier.extend_from_slice(&bytes);
+            }
+            None => left.push((position, bytes)),
+        }
+    }
+}
+
+/// How many leading bytes of `bytes` are whole frames (data, `RESUME` or `END`): the rest is a
+/// frame its writer died in the middle of.
+fn whole_frames_len(bytes: &[u8]) -> usize {
+    use crate::frame::{CONTROL_BIT, END, END_LEN, HEADER_LEN, RESUME, RESUME_LEN};
+    let mut at = 0;
+    while let Some(head) = bytes.get(at..at + HEADER_LEN) {
+        let word = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+        let len = match word {
+            RESUME => RESUME_LEN,
+            END => END_LEN,
+            w if w & CONTROL_BIT != 0 => return at,
+            w => HEADER_LEN + w as usize,
+        };
+        if at + len > bytes.len() {
+            return at;
+        }
+        at += len;
+    }
+    at
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::{encode_into, resume_frame};
+
+    #[test]
+    fn a_cut_frame_is_not_whole() {
+        let mut bytes = resume_frame(3).to_vec();
+        encode_into(b"abc", &mut bytes);
+        let whole = bytes.len();
+        encode_into(b"defgh", &mut bytes);
+        assert_eq!(whole_frames_len(&bytes), bytes.len());
+        assert_eq!(whole_frames_len(&bytes[..bytes.len() - 2]), whole);
+        assert_eq!(whole_frames_len(&bytes[..whole + 2]), whole);
+        assert_eq!(whole_frames_len(&[]), 0);
     }
 }
