@@ -340,8 +340,6 @@ impl OutPort {
             if rebind::rebind().is_err() {
                 break;
             }
-            // Forced behind `RESUME` again: this pipe is new whatever the count says.
-            self.generation = rebind::generation().wrapping_sub(1);
             written = match last.history.as_ref().map(|h| h.resend(fd)) {
                 Some(Err(e)) => Err(e),
                 _ => write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent),

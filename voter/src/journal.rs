@@ -375,15 +375,10 @@ impl Journal {
         self.last_take[i].map(|(_, n)| n)
     }
 
-    /// Commits `state`: the other record gets it and empty logs, then becomes the one in force.
-    #[cfg(test)]
-    pub(crate) fn commit(&mut self, state: &Committed) {
-        self.commit_carrying(state, &[]);
-    }
-
-    /// [`commit`](Self::commit), but the new record's log of every input `i` with `carry[i]`
-    /// starts with the bytes of the last take off it (a frame not yet written whole to every
-    /// replica: `state` must stand before it).
+    /// Commits `state`: the other record gets it, with empty logs except that the log of every
+    /// input `i` with `carry[i]` starts with the bytes of the last take off it (a frame not yet
+    /// written whole to every replica: `state` must stand before it); then it becomes the one
+    /// in force.
     pub(crate) fn commit_carrying(&mut self, state: &Committed, carry: &[bool]) {
         let next = 1 - self.current;
         let base = self.record(next);
@@ -570,7 +565,7 @@ mod tests {
             }],
             forwarded: vec![1],
         };
-        journal.commit(&state);
+        journal.commit_carrying(&state, &[]);
         let mut more = resume_frame(1).to_vec();
         encode_into(b"one", &mut more);
         let mut two = Vec::new();
