@@ -358,6 +358,22 @@ impl TaskClock {
     /// Counts `pid`'s time on a CPU from now on. Refused where `perf_event_paranoid` does not
     /// allow watching a process of ours (above 2), and where the kernel has no perf events.
     pub fn open(pid: libc::pid_t) -> io::Result<TaskClock> {
+        TaskClock::open_with(pid, false)
+    }
+
+    /// A task clock on `pid` that does not count (created disabled): it only keeps the
+    /// kernel's perf accounting up. The first process-bound perf event of the whole machine
+    /// makes `perf_event_open` wait for an RCU grace period (the kernel switches its
+    /// context-switch hooks on, then waits until every CPU has seen that), and the last one
+    /// closed switches them off again a second later. RCU's grace-period thread is an
+    /// ordinary task, so on a machine whose every CPU runs a spinning real-time process the
+    /// wait lasts until the kernel's real-time throttling lets it run: about 200 ms,
+    /// measured. While one such event stays open, later opens do not wait.
+    pub fn open_idle(pid: libc::pid_t) -> io::Result<TaskClock> {
+        TaskClock::open_with(pid, true)
+    }
+
+    fn open_with(pid: libc::pid_t, disabled: bool) -> io::Result<TaskClock> {
         const PERF_TYPE_SOFTWARE: u32 = 1;
         const PERF_COUNT_SW_TASK_CLOCK: u64 = 1;
         /// `exclude_kernel | exclude_hv`: what `perf_event_paranoid` 2 asks of a user.
@@ -367,7 +383,7 @@ impl TaskClock {
             kind: PERF_TYPE_SOFTWARE,
             size: std::mem::size_of::<PerfEventAttr>() as u32,
             config: PERF_COUNT_SW_TASK_CLOCK,
-            flags: EXCLUDE_KERNEL_HV,
+            flags: EXCLUDE_KERNEL_HV | u64::from(disabled),
             ..PerfEventAttr::default()
         };
         // SAFETY: `attr` is a valid `perf_event_attr` of the size it declares, read by the

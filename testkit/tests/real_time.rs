@@ -546,3 +546,42 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     );
     assert_sink_whole(&summary, count);
 }
+
+/// The file descriptors of `pid` that are perf events.
+fn perf_events_of(pid: i32) -> usize {
+    std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .expect("the voter's fds")
+        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+        .filter(|target| target.to_string_lossy() == "anon_inode:[perf_event]")
+        .count()
+}
+
+/// A voter holds an idle task clock from its start, before any replica is late: the first
+/// process-bound perf event of a machine makes `perf_event_open` wait for an RCU grace
+/// period, which spinning real-time processes on every CPU stretched to 200 ms, and the
+/// first look at a hung replica, which opens its task clock, reported the hang that late
+/// (docs/architecture.md, "Late, or kept off its CPU"). Where perf events are refused there
+/// is nothing to hold, and nothing to wait for.
+#[test]
+fn a_voter_keeps_task_clocks_ready_before_any_replica_is_late() {
+    let perf = replica_rt::sys::TaskClock::open_idle(0);
+    if let Err(e) = &perf {
+        eprintln!("perf events refused here ({e}): nothing to check");
+        return;
+    }
+    drop(perf);
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 300000 }"#;
+    let desc = echo_pipeline(&summary, echo, 200, 100);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let voter = run.voter_of("echo").expect("the echo voter");
+    assert_eq!(
+        perf_events_of(voter),
+        1,
+        "the echo voter (pid {voter}) holds no task clock"
+    );
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, 200);
+}
