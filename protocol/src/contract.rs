@@ -195,10 +195,15 @@ pub mod handshake {
     pub struct Ready {
         pub magic: u32,
         pub pid: i32,
-        /// Whole frames this process (and the donor before the fork, since its exec) had sent on
-        /// each port at the moment of the fork, indexed by port position (fd − 3); 0 for inputs.
-        /// A stream-mode voter uses it to line the child's output up with the donor's: the
-        /// child's next frame on a port is number `frames_sent[port]` of that port.
+        /// At an output's position (fd − 3): whole frames this process (and the donor before the
+        /// fork, since its exec) had sent on it at the moment of the fork. A stream-mode voter
+        /// uses it to line the child's output up with the donor's: the child's next frame on a
+        /// port is number `frames_sent[port]` of that port.
+        ///
+        /// At an input's position, in a fork child's `Ready`: the bytes the donor had not read
+        /// yet from that input's pipe at the fork. They follow `Ready` on the connection, input
+        /// after input in port order, and the voter puts them at the head of the child's new
+        /// pipe (replica-rt's `restart`, "Unread input"). 0 in a rebound replica's `Ready`.
         pub frames_sent: [u64; MAX_PORTS],
     }
 

@@ -201,6 +201,11 @@ fn init_inner() -> Result<Runtime, InitError> {
     })?;
     if let Some(path) = &socket {
         restart::prepare(path)?;
+        for port in ports.ports.iter().filter(|p| p.dir == Direction::In) {
+            if let Ok(position) = usize::try_from(port.fd - contract::FIRST_PORT_FD) {
+                restart::register_input(position);
+            }
+        }
         history::configure_from_env();
         sys::ignore_signal(libc::SIGCHLD).map_err(|source| InitError::Signal {
             what: "SIGCHLD (ignore)",

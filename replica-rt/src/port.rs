@@ -31,9 +31,10 @@ pub enum RecvError {
         source: io::Error,
     },
     /// A voter's successor went on from a frame beyond the last one this replica took: input
-    /// it had been given was lost with the voter that died (taken back from its pipe for a
-    /// fork, say). Its state is no longer the component's; the component should end, and its
-    /// voter rebuilds it from a sibling.
+    /// it had been given was lost with the voter that died (no known path loses it since fork
+    /// recoveries stopped draining a donor's pipes, but a replica must not run on if one
+    /// does). Its state is no longer the component's; the component should end, and its voter
+    /// rebuilds it from a sibling.
     #[error("input port {port:?}: {frames} input frame(s) were lost with a voter that died; this replica's state is no longer the component's")]
     InputLost { port: String, frames: u64 },
 }

@@ -15,7 +15,20 @@
 //!
 //! # What the handler does
 //!
-//! In the donor: `_Fork`, then return. The donor carries on as if nothing happened.
+//! In the donor: copy what its input pipes hold (below), `_Fork`, close the copies, return.
+//! The donor carries on as if nothing happened.
+//!
+//! **Unread input.** The child must read exactly what the donor had not read yet at the fork,
+//! on its own new pipes. The donor copies each input pipe's content with `tee(2)` (the pipe
+//! keeps it; the donor reads it on as before) into a fresh pipe of the same size, right before
+//! `_Fork`, in the same handler: nothing is read in between, so the copy is exactly what the
+//! child has not read. The child sends the copies to the voter behind `Ready` (their lengths
+//! in `Ready::frames_sent` at the inputs' positions), and the voter writes them at the head of
+//! the child's new pipes. (The voter used to drain the donor's pipes into its own memory before
+//! the RESTART and give the bytes back after the fork: a voter killed in between took input it
+//! had committed long before with it, and the donor, finding its input short at the successor,
+//! ended.) A copy that comes out short (a pipe the same size could not be made) means no fork:
+//! the voter sees no child and tries again or starts a fresh replica.
 //!
 //! In the child:
 //! 1. connect to the voter's socket (address prepared at init, so nothing is allocated here);
@@ -27,14 +40,15 @@
 //!    every resident private writable page ([`crate::cow`]) so that the child has its own copy of
 //!    every page it shared with the donor. Both happen before `Ready`, so no physical page of
 //!    private writable memory is shared with the donor once the voter counts the child in;
-//! 4. answer [`Ready`] with its pid and the frames sent per port so far, and close the socket;
+//! 4. answer [`Ready`] with its pid, the frames sent per output and the bytes of unread input
+//!    per input so far, send those bytes (`splice` from the copies), and close the socket;
 //! 5. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
 //!    was interrupted is restarted (`SA_RESTART`), on the new fd with the same number.
 //!
 //! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
 //!
-//! Every call made is async-signal-safe: `_Fork`, `socket`, `connect`, `recvmsg`, `dup2`,
-//! `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `mincore`, `madvise`, `_exit`, plain
+//! Every call made is async-signal-safe: `_Fork`, `pipe2`, `tee`, `splice`, `ioctl(FIONREAD)`,
+//! `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `mincore`, `madvise`, `_exit`, plain
 //! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
 //!
@@ -100,13 +114,13 @@
 //! voter has drained enough of its output for the write to finish.
 
 use std::mem::{size_of, MaybeUninit};
-use std::sync::atomic::{AtomicI32, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicU32, AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 use crate::contract::handshake::{
     FdTransfer, Hello, Ready, CHILD_SOCKET_TIMEOUT_MS, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
 };
-use crate::contract::{signals, MAX_HANDED_FDS, MAX_PORTS};
+use crate::contract::{signals, FIRST_PORT_FD, MAX_HANDED_FDS, MAX_PORTS};
 use crate::sys;
 
 /// Exit status of a forked child that could not join the voter.
@@ -157,6 +171,143 @@ pub(crate) fn count_sent(port: usize) {
     if let Some(n) = FRAMES_SENT.get(port) {
         n.fetch_add(1, Ordering::Relaxed);
     }
+}
+
+/// Port positions that are inputs (set at init: the handler cannot read the port map).
+static INPUTS: [AtomicBool; MAX_PORTS] = [const { AtomicBool::new(false) }; MAX_PORTS];
+
+/// Notes that the port at `position` is an input, whose unread bytes a fork child is given.
+pub(crate) fn register_input(position: usize) {
+    if let Some(flag) = INPUTS.get(position) {
+        flag.store(true, Ordering::Relaxed);
+    }
+}
+
+/// What the donor's input pipes held at the fork, per port position: the read end of a pipe
+/// holding a copy (`-1`: nothing unread) and its length in bytes.
+struct UnreadInput {
+    copies: [libc::c_int; MAX_PORTS],
+    bytes: [u64; MAX_PORTS],
+}
+
+impl UnreadInput {
+    fn close(&self) {
+        for &fd in self.copies.iter().filter(|&&fd| fd >= 0) {
+            close(fd);
+        }
+    }
+}
+
+/// Copies what every input pipe holds (module docs, "Unread input"). `Err(())` if a copy came
+/// out short; whatever was made is closed then.
+fn copy_unread_input() -> Result<UnreadInput, ()> {
+    let mut unread = UnreadInput {
+        copies: [-1; MAX_PORTS],
+        bytes: [0; MAX_PORTS],
+    };
+    for (position, flag) in INPUTS.iter().enumerate() {
+        if !flag.load(Ordering::Relaxed) {
+            continue;
+        }
+        let fd = FIRST_PORT_FD + position as libc::c_int;
+        match copy_pipe(fd) {
+            Ok(Some((copy, bytes))) => {
+                unread.copies[position] = copy;
+                unread.bytes[position] = bytes;
+            }
+            Ok(None) => {}
+            Err(()) => {
+                unread.close();
+                return Err(());
+            }
+        }
+    }
+    Ok(unread)
+}
+
+/// A copy of what pipe `fd` holds, in a new pipe above the port numbers: its read end and
+/// length; `None` if `fd` holds nothing (or is no pipe: a port that is not one has no unread
+/// input to give).
+fn copy_pipe(fd: libc::c_int) -> Result<Option<(libc::c_int, u64)>, ()> {
+    let held = bytes_in_pipe(fd);
+    if held <= 0 {
+        return Ok(None);
+    }
+    let size = pipe_size(fd);
+    if size < 0 {
+        return Ok(None);
+    }
+    let mut ends = [-1 as libc::c_int; 2];
+    // SAFETY: `ends` is a valid array of two fds for the kernel to fill.
+    if unsafe { libc::pipe2(ends.as_mut_ptr(), libc::O_CLOEXEC) } != 0 {
+        return Err(());
+    }
+    let [read_end, write_end] = ends;
+    let copied = (|| {
+        // A pipe as large as the one copied takes all it holds.
+        if pipe_size(write_end) < size && set_pipe_size(write_end, size) < size {
+            return Err(());
+        }
+        // SAFETY: integer arguments only; `tee` copies pipe buffers without consuming them,
+        // and does not block (SPLICE_F_NONBLOCK).
+        let n = unsafe { libc::tee(fd, write_end, held as usize, libc::SPLICE_F_NONBLOCK) };
+        if n != held as isize {
+            return Err(());
+        }
+        // Above every port number, so that placing the new pipes cannot replace it.
+        dup_above(read_end, FIRST_PORT_FD + MAX_PORTS as libc::c_int)
+    })();
+    close(write_end);
+    close(read_end);
+    copied.map(|copy| Some((copy, held as u64)))
+}
+
+/// The capacity of pipe `fd` in bytes; negative if it is no pipe.
+fn pipe_size(fd: libc::c_int) -> libc::c_int {
+    // SAFETY: integer arguments only.
+    unsafe { libc::fcntl(fd, libc::F_GETPIPE_SZ) }
+}
+
+/// Sets the capacity of pipe `fd`; the capacity now, negative if refused.
+fn set_pipe_size(fd: libc::c_int, size: libc::c_int) -> libc::c_int {
+    // SAFETY: integer arguments only.
+    unsafe { libc::fcntl(fd, libc::F_SETPIPE_SZ, size) }
+}
+
+/// Bytes pipe `fd` holds now (`FIONREAD`); 0 where it cannot say.
+fn bytes_in_pipe(fd: libc::c_int) -> libc::c_int {
+    let mut held: libc::c_int = 0;
+    // SAFETY: FIONREAD writes one int through the valid pointer given.
+    let r = unsafe { libc::ioctl(fd, libc::FIONREAD, &mut held as *mut libc::c_int) };
+    if r < 0 {
+        0
+    } else {
+        held
+    }
+}
+
+/// Sends all `bytes` of pipe `from` to socket `to` (the unread input behind `Ready`).
+fn splice_all(from: libc::c_int, to: libc::c_int, bytes: u64) -> Result<(), ()> {
+    let mut left = bytes as usize;
+    while left > 0 {
+        // SAFETY: integer arguments and null offsets (both ends are a pipe and a socket).
+        let n = unsafe {
+            libc::splice(
+                from,
+                std::ptr::null_mut(),
+                to,
+                std::ptr::null_mut(),
+                left,
+                libc::SPLICE_F_MOVE,
+            )
+        };
+        match n {
+            n if n > 0 => left -= n as usize,
+            -1 if errno() == libc::EINTR => {}
+            _ => return Err(()),
+        }
+    }
+    Ok(())
 }
 
 /// A value of the pending nonce: a RESTART is pending, its nonce in the low 32 bits.
@@ -391,6 +542,14 @@ one, so it cannot be a recovery donor (refused)\n";
         set_errno(saved);
         return;
     }
+    let Ok(unread) = copy_unread_input() else {
+        const MSG: &[u8] = b"s3res: could not copy this replica's unread input for a fork \
+(a pipe as large as its input pipe was refused); not forking\n";
+        // SAFETY: write(2) of a static buffer to stderr, async-signal-safe.
+        unsafe { libc::write(libc::STDERR_FILENO, MSG.as_ptr().cast(), MSG.len()) };
+        set_errno(saved);
+        return;
+    };
     // SAFETY: components are single-threaded (module doc), and the child runs only
     // async-signal-safe code (`become_replacement`) before returning to the component.
     let pid = unsafe { raw_fork() };
@@ -398,14 +557,16 @@ one, so it cannot be a recovery donor (refused)\n";
         // A RESTART recorded in the donor after its nonce was taken was aimed at the donor,
         // which keeps its own copy and forks for it; it is not the child's.
         DEFERRAL.forget_pending();
-        become_replacement(nonce);
+        become_replacement(nonce, &unread);
     }
-    // In the donor: nothing else. A failed fork (-1) is seen by the voter as a connect timeout.
+    // In the donor: the copies were the child's. A failed fork (-1) is seen by the voter as a
+    // connect timeout.
+    unread.close();
     set_errno(saved);
 }
 
 /// The child's part. Returns only when it has taken the faulty replica's place.
-fn become_replacement(nonce: u32) {
+fn become_replacement(nonce: u32, unread: &UnreadInput) {
     let donor = getppid();
     crate::inject::clear_pending();
     let Ok(sock) = join_voter(nonce) else {
@@ -433,6 +594,12 @@ fn become_replacement(nonce: u32) {
     for (dst, n) in frames_sent.iter_mut().zip(&FRAMES_SENT) {
         *dst = n.load(Ordering::Relaxed);
     }
+    // At the inputs' positions: the bytes of unread input that follow `Ready`.
+    for (position, flag) in INPUTS.iter().enumerate() {
+        if flag.load(Ordering::Relaxed) {
+            frames_sent[position] = unread.bytes[position];
+        }
+    }
     let ready = Ready {
         magic: READY_MAGIC,
         pid: sys::getpid(),
@@ -442,6 +609,12 @@ fn become_replacement(nonce: u32) {
     if send_all(sock.0, &ready.to_bytes()).is_err() {
         sys::exit_now(CHILD_FAILED);
     }
+    for (position, &copy) in unread.copies.iter().enumerate() {
+        if copy >= 0 && splice_all(copy, sock.0, unread.bytes[position]).is_err() {
+            sys::exit_now(CHILD_FAILED);
+        }
+    }
+    unread.close();
     drop(sock);
     FORKED_FROM.store(donor, Ordering::Relaxed);
 }

@@ -151,3 +151,80 @@ fn kill_voters_and_check(sys: System, desc: &str, count: u32, what: &str) {
     assert_sink_whole(&summary, count);
     run.assert_nothing_left();
 }
+
+/// Whether `pid` has `signal` pending (process-directed, as `sigqueue` sends it).
+fn signal_pending(pid: i32, signal: i32) -> bool {
+    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
+        return false;
+    };
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("ShdPnd:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+        .is_some_and(|mask| mask & (1 << (signal - 1)) != 0)
+}
+
+/// A voter killed in the middle of a fork recovery takes no input with it. A stateful DMR
+/// stream batcher: replica 1 is stopped while frames flow (its input pipe fills), replica 0 is
+/// killed, and the voter forks replica 1, the one donor left, and waits for the child, which
+/// cannot come while its donor is stopped. Then the voter is killed, and the donor continued.
+/// The input the donor had not read is still in its pipe (the voter used to drain it into its
+/// own memory for the child and give it back after the fork: it died with the voter, the donor
+/// found its input short at the successor and ended, and with it the component's state). So
+/// the successor adopts the donor, rebuilds replica 0 from it, and every frame reaches the
+/// sink once, in order, with the batcher's count continuous.
+#[test]
+fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
+    const COUNT: u32 = 3000;
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let batch = r#"{ "exec": "s3res-batch", "args": ["--every", "8", "--vary", "--stateful"], "redundancy": "dmr", "mode": "stream", "timeout_us": 500000 }"#;
+    let desc = echo_pipeline(&summary, batch, COUNT, 1000);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 2);
+    std::thread::sleep(Duration::from_millis(300));
+    let pids = run.replica_pids("echo");
+    let (victim, donor) = (pids[&0], pids[&1]);
+    let voter = run.process_named("s3res-voter").expect("the echo's voter");
+    s3res_testkit::kill_pid(donor, libc::SIGSTOP).expect("stop the donor");
+    std::thread::sleep(Duration::from_millis(30));
+    s3res_testkit::kill_pid(victim, libc::SIGKILL).expect("kill replica 0");
+    // The voter has asked the stopped donor to fork, and waits for its child.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while !signal_pending(donor, libc::SIGUSR1) {
+        if Instant::now() >= deadline {
+            let _ = s3res_testkit::kill_pid(donor, libc::SIGCONT);
+            let out = run.wait(Duration::from_secs(30));
+            panic!(
+                "the voter never asked the stopped donor {donor} to fork:\n{}",
+                s3res_testkit::tail(&out.stderr, 30)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+    s3res_testkit::kill_pid(donor, libc::SIGCONT).expect("continue the donor");
+    let out = run.wait(Duration::from_secs(120));
+    assert!(
+        out.status.success(),
+        "bootstrap: {}\nsink summary: {}\n{}",
+        out.status,
+        std::fs::read_to_string(&summary).unwrap_or_default(),
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    let restarts = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::VoterRestart)
+        .count();
+    assert_eq!(restarts, 1, "{:#?}", out.events);
+    // The donor lived on: no fault names it, and no replica was rebuilt without the state.
+    for e in out.faults() {
+        assert_ne!(e.pid, Some(donor), "the donor was blamed: {e:?}");
+    }
+    for e in &out.events {
+        assert_ne!(e.state_lost, Some(true), "state lost: {e:?}");
+    }
+    assert_sink_whole(&summary, COUNT);
+    run.assert_nothing_left();
+}

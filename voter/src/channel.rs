@@ -114,16 +114,6 @@ impl FrameWriter {
         }
     }
 
-    /// Puts raw bytes in front of everything queued (input taken back from a pipe).
-    pub fn prepend_raw(&mut self, bytes: &[u8]) {
-        self.compact();
-        self.pending.splice(0..0, bytes.iter().copied());
-        if let Some(whole) = self.whole.as_mut() {
-            whole.ends.iter_mut().for_each(|e| *e += bytes.len());
-            whole.ends.push_front(bytes.len());
-        }
-    }
-
     /// Bytes queued and not yet written.
     pub fn unwritten(&self) -> &[u8] {
         &self.pending[self.start..]
@@ -375,24 +365,23 @@ impl AsFd for FrameReader {
     }
 }
 
-/// Reads whatever a pipe holds right now (used to take back input that a donor replica has not
-/// consumed, so that its fork child gets the same). `fd` must be non-blocking.
-pub fn drain(fd: BorrowedFd<'_>) -> io::Result<Vec<u8>> {
-    let mut out = Vec::new();
-    let mut buf = [0u8; 16 * 1024];
-    loop {
-        match sys::read(fd, &mut buf) {
-            Ok(0) => return Ok(out),
-            Ok(n) => out.extend_from_slice(&buf[..n]),
-            Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(out),
-            Err(e) => return Err(e),
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Reads whatever a pipe holds right now. `fd` must be non-blocking.
+    fn drain(fd: BorrowedFd<'_>) -> io::Result<Vec<u8>> {
+        let mut out = Vec::new();
+        let mut buf = [0u8; 16 * 1024];
+        loop {
+            match sys::read(fd, &mut buf) {
+                Ok(0) => return Ok(out),
+                Ok(n) => out.extend_from_slice(&buf[..n]),
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(out),
+                Err(e) => return Err(e),
+            }
+        }
+    }
 
     /// A frame larger than PIPE_BUF waits until the pipe has room for all of it, so a reader
     /// never holds part of one when its writer dies; smaller frames go as usual.

@@ -36,7 +36,6 @@ use replica_rt::contract::{signals, MAX_HANDED_FDS};
 use replica_rt::sys;
 use thiserror::Error;
 
-use crate::channel::drain;
 use crate::plan::VoterPlan;
 use crate::replica::{Replica, ReplicaPipes};
 
@@ -114,26 +113,10 @@ pub fn fork(
             }
         }
     }
-    let mut taken_back = Vec::with_capacity(donor.inputs.len());
-    for input in &donor.inputs {
-        match drain(input.read_end.as_fd()) {
-            Ok(bytes) => taken_back.push(bytes),
-            Err(e) => {
-                give_back(donor, &taken_back);
-                return Err(io_err("taking back input")(e));
-            }
-        }
-    }
-    // What the child must read from its new pipes: exactly what the donor has yet to read.
-    let child_streams: Vec<Vec<u8>> = donor
-        .inputs
-        .iter()
-        .zip(&taken_back)
-        .map(|(input, bytes)| [bytes.as_slice(), input.writer.unwritten()].concat())
-        .collect();
-
-    // 2.–5. The donor's input pipes stay empty until the fork is done: input it read between
-    // a give-back and the fork would reach the child twice (in its memory and in its pipe).
+    // What the donor has yet to read stays in its pipes: the donor copies it at the fork and
+    // the child sends us the copy behind `Ready` (replica-rt's `restart`, "Unread input"). So a
+    // voter killed during the fork takes no input with it. What is still queued here for the
+    // donor follows that copy in the child's pipe; nothing is written to the donor meanwhile.
     let mut refused = Refusals::default();
     refuse_backlog(listener, family, deadline, &mut refused);
     let joined = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
@@ -150,17 +133,18 @@ pub fn fork(
             accept_child(listener, donor, &attempt, &mut refused)
         });
     refused.report();
-    give_back(donor, &taken_back);
     let joined = joined?;
     let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
-    let (mut child, ready) = await_ready(joined, deadline).inspect_err(|_| {
-        // The child exists but will never be used: do not leave it behind.
-        let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
-    })?;
+    let (mut child, ready, unread) =
+        await_ready(joined, plan.inputs.len(), deadline).inspect_err(|_| {
+            // The child exists but will never be used: do not leave it behind.
+            let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
+        })?;
 
-    // 6.
-    for (input, stream) in child.inputs.iter_mut().zip(&child_streams) {
-        input.writer.queue_raw(stream);
+    // 6. Exactly what the donor had yet to read: its pipe's content, then our queue.
+    for ((input, copy), donors) in child.inputs.iter_mut().zip(&unread).zip(&donor.inputs) {
+        input.writer.queue_raw(copy);
+        input.writer.queue_raw(donors.writer.unwritten());
         let _ = input.writer.flush();
     }
     let first_output = plan.inputs.len();
@@ -177,14 +161,6 @@ pub fn fork(
         replica: child,
         frames_sent,
     })
-}
-
-/// Puts the taken-back input in front of whatever is still queued for the donor.
-fn give_back(donor: &mut Replica, taken_back: &[Vec<u8>]) {
-    for (input, bytes) in donor.inputs.iter_mut().zip(taken_back) {
-        input.writer.prepend_raw(bytes);
-        let _ = input.writer.flush();
-    }
 }
 
 /// At most this many connections are cleared from the socket before an attempt: a flood of
@@ -445,8 +421,28 @@ pub(crate) fn read_exact_by<const N: usize>(
     Ok(buf)
 }
 
-/// Waits for the confirmation of a child that has been sent its pipes.
-fn await_ready(joined: Joined, deadline: Instant) -> Result<(Replica, Ready), RecoveryError> {
+/// Fills `buf` from `conn` by `deadline`.
+fn read_exact_into(conn: &UnixStream, buf: &mut [u8], deadline: Instant) -> io::Result<()> {
+    if buf.is_empty() {
+        return Ok(());
+    }
+    let left = deadline.saturating_duration_since(Instant::now());
+    conn.set_nonblocking(false)?;
+    conn.set_read_timeout(Some(left.max(Duration::from_millis(1))))?;
+    (&*conn).read_exact(buf)
+}
+
+/// The child's unread input per input is at most this long: a pipe holds 64 KiB unless it
+/// was grown, and `/proc/sys/fs/pipe-max-size` is 1 MiB by default. More is a broken child.
+const MAX_UNREAD_INPUT: u64 = 1 << 24;
+
+/// Waits for the confirmation of a child that has been sent its pipes, and the unread input
+/// of each of the `inputs` that follows it.
+fn await_ready(
+    joined: Joined,
+    inputs_count: usize,
+    deadline: Instant,
+) -> Result<(Replica, Ready, Vec<Vec<u8>>), RecoveryError> {
     let Joined {
         conn,
         pid,
@@ -478,6 +474,20 @@ fn await_ready(joined: Joined, deadline: Instant) -> Result<(Replica, Ready), Re
             ready.magic, ready.pid
         )));
     }
+    let mut unread = Vec::with_capacity(inputs_count);
+    for &bytes in ready.frames_sent.iter().take(inputs_count) {
+        if bytes > MAX_UNREAD_INPUT {
+            return Err(RecoveryError::BadReady(format!(
+                "{bytes} bytes of unread input (at most {MAX_UNREAD_INPUT})"
+            )));
+        }
+        let mut copy = vec![0u8; bytes as usize];
+        read_exact_into(&conn, &mut copy, deadline).map_err(|e| match e.kind() {
+            io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut => RecoveryError::ReadyTimeout(pid),
+            _ => io_err("reading the child's unread input")(e),
+        })?;
+        unread.push(copy);
+    }
     let replica = Replica {
         pid,
         pidfd,
@@ -495,5 +505,5 @@ fn await_ready(joined: Joined, deadline: Instant) -> Result<(Replica, Ready), Re
         started: true,
         schedstat: crate::starvation::SchedStat::new(pid),
     };
-    Ok((replica, ready))
+    Ok((replica, ready, unread))
 }
