@@ -172,7 +172,7 @@ fn signal_pending(pid: i32, signal: i32) -> bool {
 /// own memory for the child and give it back after the fork: it died with the voter, the donor
 /// found its input short at the successor and ended, and with it the component's state). So
 /// the successor adopts the donor, rebuilds replica 0 from it, and every frame reaches the
-/// sink once, in order, with the batcher's count continuous.
+/// sink once, in order, with the batcher's count continuous, and the one fault is reported once.
 #[test]
 fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
     const COUNT: u32 = 3000;
@@ -219,9 +219,11 @@ fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
         .count();
     assert_eq!(restarts, 1, "{:#?}", out.events);
     // The donor lived on: no fault names it, and no replica was rebuilt without the state.
-    for e in out.faults() {
-        assert_ne!(e.pid, Some(donor), "the donor was blamed: {e:?}");
-    }
+    // One fault, reported once (by the voter that saw it; its successor found the slot empty
+    // in the journal): the replica killed.
+    let faults = out.faults();
+    assert_eq!(faults.len(), 1, "{faults:#?}");
+    assert_eq!(faults[0].pid, Some(victim), "{faults:#?}");
     for e in &out.events {
         assert_ne!(e.state_lost, Some(true), "state lost: {e:?}");
     }

@@ -731,6 +731,9 @@ impl Core {
         }
         let detected_ns = ev.ts_ns;
         self.emit(ev);
+        // The journal no longer names it: a successor that adopts the replicas while this one
+        // is being replaced refills the slot without reporting its fault a second time.
+        self.journal_slots();
         let pid = replica.pid;
         self.faults.push(Fault {
             slot: r,
