@@ -40,8 +40,12 @@ fn main() {
         }
         return;
     }
-    let tests: [(&str, Test); 3] = [
+    let tests: [(&str, Test); 4] = [
         ("restart_by_fork", restart_by_fork),
+        (
+            "unread_input_stays_and_the_child_gets_a_copy",
+            unread_input_stays_and_the_child_gets_a_copy,
+        ),
         ("rebind_after_voter_death", rebind_after_voter_death),
         (
             "no_successor_ends_the_replica",
@@ -429,18 +433,84 @@ fn restart_by_fork() -> Result<()> {
     Ok(())
 }
 
+/// A fork recovery leaves the donor's unread input in its pipe, and the child hands the voter
+/// a copy behind `Ready`: a frame written while the donor is stopped, with a RESTART pending,
+/// comes to the voter behind the child's `Ready` (its length at the input's position); the
+/// donor still answers it from its own pipe, and the child answers it from its new one.
+fn unread_input_stays_and_the_child_gets_a_copy() -> Result<()> {
+    sys::set_child_subreaper()?;
+    let (_dir, sock_path, listener) = voter_socket()?;
+    let first = pipes()?;
+    let donor = spawn_helper(&first, &sock_path)?;
+    let donor_pid = donor.id() as libc::pid_t;
+    let mut guard = Guard {
+        donor,
+        forked: Vec::new(),
+    };
+    drop((first.replica_in, first.replica_out));
+    let a = roundtrip(&first.to_replica, &first.from_replica, b"hello")?;
+    ensure!(a == answer(0, b"hello"), "first answer {a:?}");
+
+    // Stopped, the donor reads nothing: the frame is unread when the RESTART is handled (a
+    // continued process takes its pending signals before its read goes on).
+    sys::kill(donor_pid, libc::SIGSTOP)?;
+    let deadline = Instant::now() + STEP;
+    while sys::process_state(donor_pid) != Some('T') {
+        ensure!(Instant::now() < deadline, "the donor did not stop");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    write_frame(&first.to_replica, b"unread")?;
+    sys::sigqueue(donor_pid, signals::RESTART, NONCE as i32)?;
+    sys::kill(donor_pid, libc::SIGCONT)?;
+    let (child, _, ready, mut stream) = join_child_keeping(&listener, donor_pid, &mut guard)?;
+    let mut framed = Vec::new();
+    frame::encode_into(b"unread", &mut framed);
+    let in_position = (IN_FD - contract::FIRST_PORT_FD) as usize;
+    ensure!(
+        ready.frames_sent[in_position] == framed.len() as u64,
+        "Ready says {} bytes unread, the frame is {}",
+        ready.frames_sent[in_position],
+        framed.len()
+    );
+    let mut copy = vec![0u8; framed.len()];
+    stream
+        .read_exact(&mut copy)
+        .context("reading the unread input")?;
+    ensure!(copy == framed, "the copy is {copy:?}");
+    // The donor read it from its own pipe, which still held it.
+    let a = read_frame(first.from_replica.as_fd())?;
+    ensure!(a == answer(1, b"unread"), "donor answered {a:?}");
+    // The child gets it as the voter would give it: at the head of its new pipe.
+    let n = sys::write(child.to_replica.as_fd(), &copy)?;
+    ensure!(n == copy.len(), "short write to the child");
+    let a = read_frame(child.from_replica.as_fd())?;
+    ensure!(a == answer(1, b"unread"), "child answered {a:?}");
+    drop(guard);
+    Ok(())
+}
+
 /// Test side of a replacement's pipes.
 struct TestEnds {
     to_replica: OwnedFd,
     from_replica: OwnedFd,
 }
 
-/// Plays the voter's part of the handshake with the donor's child, after RESTART was sent.
+/// Plays the voter's part of the handshake with the donor's child, after RESTART was sent
+/// (the donor had no unread input: the connection is dropped after `Ready`).
 fn join_child(
     listener: &UnixListener,
     donor: libc::pid_t,
     guard: &mut Guard,
 ) -> Result<(TestEnds, libc::pid_t, Ready)> {
+    join_child_keeping(listener, donor, guard).map(|(ends, child, ready, _)| (ends, child, ready))
+}
+
+/// [`join_child`], and the connection, on which the donor's unread input follows `Ready`.
+fn join_child_keeping(
+    listener: &UnixListener,
+    donor: libc::pid_t,
+    guard: &mut Guard,
+) -> Result<(TestEnds, libc::pid_t, Ready, UnixStream)> {
     let (mut stream, child) = accept_child(listener, donor)?;
     guard.forked.push(sys::pidfd_open(child)?);
     let p = pipes()?;
@@ -467,6 +537,7 @@ fn join_child(
         },
         child,
         ready,
+        stream,
     ))
 }
 
