@@ -962,6 +962,14 @@ fn supervise(
         reap_all(children, stop.is_some());
         tick();
         if children.iter().all(|c| c.status.is_some()) {
+            // Everything ended in one pass: a voter killed first takes its neighbours with it
+            // (a broken pipe, an end of input), all reaped together. Its death is still why.
+            if stop.is_none() {
+                if let Some(why) = children.iter().find_map(unreplaced_voter_death) {
+                    crate::logging::say(&format!("{why}; stopping the system"));
+                    failed = true;
+                }
+            }
             break;
         }
         let now = Instant::now();
@@ -1072,6 +1080,26 @@ fn supervise(
     })
 }
 
+/// Why a voter's end stops the system, where nothing would replace it: it gave up on its
+/// component, or it died and its component's voter is not restarted (an unmodified program).
+fn unreplaced_voter_death(c: &Child) -> Option<String> {
+    c.watch.as_ref()?;
+    match c.status? {
+        ExitStatus::Code(VOTER_GAVE_UP) => Some(format!(
+            "component {} failed beyond recovery (its voter's reason is above)",
+            c.component
+        )),
+        status if !status.success() && c.respawn.is_none() => {
+            let died = c.why.clone().unwrap_or_else(|| status.to_string());
+            Some(format!(
+                "the voter of component {} (pid {}) died: {died}; a voter of an unmodified program is not restarted",
+                c.component, c.pid
+            ))
+        }
+        _ => None,
+    }
+}
+
 /// Looks at every voter: one that died is replaced by a successor that adopts its replicas,
 /// if its component is restartable and its restart budget allows; one that stands still is
 /// killed (and replaced once reaped). Returns why the system must stop, if it must: a voter
@@ -1080,20 +1108,12 @@ fn supervise(
 fn voter_failure(children: &mut [Child], now: Instant) -> Option<String> {
     for c in children.iter_mut().filter(|c| c.watch.is_some()) {
         match c.status {
-            Some(ExitStatus::Code(VOTER_GAVE_UP)) => {
-                return Some(format!(
-                    "component {} failed beyond recovery (its voter's reason is above)",
-                    c.component
-                ))
-            }
             Some(status) if !status.success() => {
+                if let Some(why) = unreplaced_voter_death(c) {
+                    return Some(why);
+                }
                 let died = c.why.take().unwrap_or_else(|| status.to_string());
-                let Some(spawn) = c.respawn.as_mut() else {
-                    return Some(format!(
-                        "the voter of component {} (pid {}) died: {died}; a voter of an unmodified program is not restarted",
-                        c.component, c.pid
-                    ));
-                };
+                let spawn = c.respawn.as_mut()?;
                 if let ExitStatus::Code(_) = status {
                     // It ended itself with an error (said above): a successor would meet the
                     // same one. Only a voter killed (or found standing still) is replaced.
