@@ -308,23 +308,53 @@ fn pipes() -> Result<Pipes> {
     })
 }
 
-fn restart_by_fork() -> Result<()> {
+/// A running helper replica (the donor) that has answered once, and the test's side of it.
+struct Donor {
+    /// Holds the socket's directory.
+    _dir: tempfile::TempDir,
+    listener: UnixListener,
+    /// The test's ends of the donor's pipes.
+    first: TestEnds,
+    donor_pid: libc::pid_t,
+    guard: Guard,
+}
+
+fn start_donor() -> Result<Donor> {
     // Orphans of a failed test (the donor's children) then come to us, for the guard to reap.
     sys::set_child_subreaper()?;
-    let (_dir, sock_path, listener) = voter_socket()?;
-
-    let first = pipes()?;
-    let donor = spawn_helper(&first, &sock_path)?;
+    let (dir, sock_path, listener) = voter_socket()?;
+    let p = pipes()?;
+    let donor = spawn_helper(&p, &sock_path)?;
     let donor_pid = donor.id() as libc::pid_t;
-    let mut guard = Guard {
+    let guard = Guard {
         donor,
         forked: Vec::new(),
     };
-    drop((first.replica_in, first.replica_out));
-
+    drop((p.replica_in, p.replica_out));
+    let first = TestEnds {
+        to_replica: p.to_replica,
+        from_replica: p.from_replica,
+    };
     // The first answer also proves init ran, so the handlers are in place before any signal.
     let a = roundtrip(&first.to_replica, &first.from_replica, b"hello")?;
     ensure!(a == answer(0, b"hello"), "first answer {a:?}");
+    Ok(Donor {
+        _dir: dir,
+        listener,
+        first,
+        donor_pid,
+        guard,
+    })
+}
+
+fn restart_by_fork() -> Result<()> {
+    let Donor {
+        _dir,
+        listener,
+        first,
+        donor_pid,
+        mut guard,
+    } = start_donor()?;
 
     // SDC injection with a chosen bit: bit 8 is the lowest bit of the answer's second byte.
     sys::sigqueue(donor_pid, signals::INJECT_SDC, 8)?;
@@ -438,18 +468,13 @@ fn restart_by_fork() -> Result<()> {
 /// comes to the voter behind the child's `Ready` (its length at the input's position); the
 /// donor still answers it from its own pipe, and the child answers it from its new one.
 fn unread_input_stays_and_the_child_gets_a_copy() -> Result<()> {
-    sys::set_child_subreaper()?;
-    let (_dir, sock_path, listener) = voter_socket()?;
-    let first = pipes()?;
-    let donor = spawn_helper(&first, &sock_path)?;
-    let donor_pid = donor.id() as libc::pid_t;
-    let mut guard = Guard {
-        donor,
-        forked: Vec::new(),
-    };
-    drop((first.replica_in, first.replica_out));
-    let a = roundtrip(&first.to_replica, &first.from_replica, b"hello")?;
-    ensure!(a == answer(0, b"hello"), "first answer {a:?}");
+    let Donor {
+        _dir,
+        listener,
+        first,
+        donor_pid,
+        mut guard,
+    } = start_donor()?;
 
     // Stopped, the donor reads nothing: the frame is unread when the RESTART is handled (a
     // continued process takes its pending signals before its read goes on).

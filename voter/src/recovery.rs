@@ -413,19 +413,13 @@ pub(crate) fn read_exact_by<const N: usize>(
     conn: &UnixStream,
     deadline: Instant,
 ) -> io::Result<[u8; N]> {
-    let left = deadline.saturating_duration_since(Instant::now());
-    conn.set_nonblocking(false)?;
-    conn.set_read_timeout(Some(left.max(Duration::from_millis(1))))?;
     let mut buf = [0u8; N];
-    (&*conn).read_exact(&mut buf)?;
+    read_exact_into(conn, &mut buf, deadline)?;
     Ok(buf)
 }
 
 /// Fills `buf` from `conn` by `deadline`.
 fn read_exact_into(conn: &UnixStream, buf: &mut [u8], deadline: Instant) -> io::Result<()> {
-    if buf.is_empty() {
-        return Ok(());
-    }
     let left = deadline.saturating_duration_since(Instant::now());
     conn.set_nonblocking(false)?;
     conn.set_read_timeout(Some(left.max(Duration::from_millis(1))))?;
