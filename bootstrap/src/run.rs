@@ -204,6 +204,27 @@ struct ChannelEnds {
 }
 
 /// Runs `plan` to the end. Every child is gone when this returns, whatever it returns.
+/// Keeps the voters' task clocks quick to open: a task clock that never counts, held by
+/// bootstrap on itself for the system's life (`sys::TaskClock::open_idle`). A voter opens a
+/// task clock on a late replica at its first look (`voter/src/starvation.rs`); without an
+/// event already open on the machine, that `perf_event_open` waits for an RCU grace period,
+/// and when spinning real-time replicas hold every CPU (a hung replica here, one of another
+/// component there) the wait took 200 ms: a hang was reported 300 ms late, and the maze robot
+/// drove a stale command into a wall. The event is bound to bootstrap, which mostly sleeps:
+/// every context switch of the task it is bound to passes through perf, and held by each
+/// voter on its parent (3bdcfd7) it was the bench harness's, in every round, for one-CPU round
+/// trips 1.0–1.5 µs slower. `None` where perf events are refused: the looks then have no
+/// task clock either.
+fn hold_task_clocks_ready() -> Option<sys::TaskClock> {
+    match sys::TaskClock::open_idle(0) {
+        Ok(clock) => Some(clock),
+        Err(e) => {
+            tracing::debug!(error = %e, "no idle task clock (perf events refused)");
+            None
+        }
+    }
+}
+
 pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> {
     // Before any thread: every thread inherits this mask, so the signals reach only the
     // signalfd. (std::process::Command clears the mask in children.)
@@ -230,6 +251,8 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     } else {
         None
     };
+
+    let _task_clocks_ready = voter.as_ref().and_then(|_| hold_task_clocks_ready());
 
     sys::set_child_subreaper().map_err(RunError::Subreaper)?;
     // From here on, whatever happens, the guard sweeps.

@@ -368,7 +368,9 @@ impl TaskClock {
     /// closed switches them off again a second later. RCU's grace-period thread is an
     /// ordinary task, so on a machine whose every CPU runs a spinning real-time process the
     /// wait lasts until the kernel's real-time throttling lets it run: about 200 ms,
-    /// measured. While one such event stays open, later opens do not wait.
+    /// measured. While one such event stays open, later opens do not wait. It costs the task
+    /// it is bound to: each of that task's context switches passes through perf, so it belongs
+    /// on a process that mostly sleeps (bootstrap holds one on itself).
     pub fn open_idle(pid: libc::pid_t) -> io::Result<TaskClock> {
         TaskClock::open_with(pid, true)
     }

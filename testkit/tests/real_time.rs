@@ -556,14 +556,16 @@ fn perf_events_of(pid: i32) -> usize {
         .count()
 }
 
-/// A voter holds an idle task clock from its start, before any replica is late: the first
+/// bootstrap holds an idle task clock from the start, before any replica is late: the first
 /// process-bound perf event of a machine makes `perf_event_open` wait for an RCU grace
 /// period, which spinning real-time processes on every CPU stretched to 200 ms, and the
 /// first look at a hung replica, which opens its task clock, reported the hang that late
-/// (docs/architecture.md, "Late, or kept off its CPU"). Where perf events are refused there
-/// is nothing to hold, and nothing to wait for.
+/// (docs/architecture.md, "Late, or kept off its CPU"). The voter holds none while every
+/// replica answers in time (each context switch of a task a perf event is bound to passes
+/// through perf), and a late replica's hang is reported with what the looks saw. Where perf
+/// events are refused there is nothing to hold, and nothing to wait for.
 #[test]
-fn a_voter_keeps_task_clocks_ready_before_any_replica_is_late() {
+fn bootstrap_keeps_task_clocks_ready_and_a_voter_holds_none_while_no_replica_is_late() {
     let perf = replica_rt::sys::TaskClock::open_idle(0);
     if let Err(e) = &perf {
         eprintln!("perf events refused here ({e}): nothing to check");
@@ -573,15 +575,34 @@ fn a_voter_keeps_task_clocks_ready_before_any_replica_is_late() {
     let sys = System::new();
     let summary = sys.path("summary.json");
     let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 300000 }"#;
-    let desc = echo_pipeline(&summary, echo, 200, 100);
+    let count = 300;
+    let desc = echo_pipeline(&summary, echo, count, 100);
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    assert_eq!(
+        perf_events_of(run.pid()),
+        1,
+        "bootstrap (pid {}) holds no idle task clock",
+        run.pid()
+    );
     let voter = run.voter_of("echo").expect("the echo voter");
     assert_eq!(
         perf_events_of(voter),
-        1,
-        "the echo voter (pid {voter}) holds no task clock"
+        0,
+        "the echo voter (pid {voter}) holds a perf event although no replica was late"
+    );
+    let pid = run.replica_pids("echo")[&1];
+    stop(pid);
+    let hang = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    let detail = hang.detail.clone().unwrap_or_default();
+    assert!(
+        detail.contains("in the last") && detail.contains("state T"),
+        "the hang of a stopped replica without what the looks saw: {hang:?}"
     );
     run.wait_success(LIMIT);
-    assert_sink_whole(&summary, 200);
+    assert_sink_whole(&summary, count);
 }

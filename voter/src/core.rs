@@ -36,7 +36,6 @@ use crate::ports::{
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
 use crate::replica::Replica;
 use crate::rt::RealTime;
-use crate::starvation;
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
 /// How long a replica whose output pipe closed may take to show up as dead before we call it a
@@ -222,9 +221,6 @@ pub(crate) struct Core {
     /// What an adopting voter found: the outputs' committed counts and, per slot, the
     /// adopted replica's offsets (stream mode lines its ledger up with them).
     pub(crate) adopted_streams: Option<AdoptedStreams>,
-    /// Held, never read: keeps the looks' task clocks quick to open (see
-    /// [`starvation::hold_task_clocks_ready`]).
-    _task_clocks_ready: Option<sys::TaskClock>,
 }
 
 /// What a stream voter needs from its predecessor's journal (see [`Core::slot_offsets`]).
@@ -262,7 +258,6 @@ impl Core {
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
-        let task_clocks_ready = starvation::hold_task_clocks_ready();
         let (journal, slots, adoption) = match journal {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
@@ -324,7 +319,6 @@ impl Core {
             slot_offsets: Vec::new(),
             adopted_streams: None,
             last_delivered_len: Vec::new(),
-            _task_clocks_ready: task_clocks_ready,
         };
         core.last_delivered_len = vec![0; core.plan.inputs.len()];
         core.slot_offsets = vec![[0; MAX_PORTS]; core.plan.replicas];

@@ -79,22 +79,6 @@ impl SchedTimes {
     }
 }
 
-/// Keeps the task clocks of the looks cheap to open: a task clock that never counts, opened
-/// once before the first round and held for the voter's life (see
-/// [`TaskClock::open_idle`]). Without it, the first look's `perf_event_open` could wait for
-/// an RCU grace period, and when spinning real-time replicas hold every CPU (a hung replica
-/// here, one of another component there) that wait took 200 ms: a hang was reported 300 ms
-/// late, and the maze robot drove a stale command into a wall. It is put on the voter's
-/// parent (bootstrap, which mostly sleeps), so that the voter's own context switches do not
-/// pass through perf; on the voter itself where the parent may not be watched. `None` where
-/// perf events are refused: the looks then have no task clock either.
-pub fn hold_task_clocks_ready() -> Option<TaskClock> {
-    let parent = std::os::unix::process::parent_id() as libc::pid_t;
-    TaskClock::open_idle(parent)
-        .or_else(|_| TaskClock::open_idle(0))
-        .ok()
-}
-
 /// Where a replica's times are read: its `/proc/PID/schedstat` (a read is one `pread`) and
 /// its task clock (`replica_rt::sys::TaskClock`), each opened at the first look, so that
 /// starting or recovering a replica costs nothing more.
