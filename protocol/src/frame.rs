@@ -333,6 +333,32 @@ impl FrameDecoder {
         self.next_index = next;
     }
 
+    /// Room the buffer has for a read without growing (after [`spare`](Self::spare) moves
+    /// the pending bytes to its front).
+    pub fn room(&self) -> usize {
+        self.buf.len() - (self.end - self.start)
+    }
+
+    /// Bytes still to come before the frame at the head is whole, when its length word has
+    /// arrived (0 otherwise: no length word yet, a control frame, an oversized length, lines).
+    /// A reader sizes its next read by it, so that a large frame takes one read without every
+    /// read reserving room for the largest.
+    pub fn missing(&self) -> usize {
+        if self.lines || self.ended {
+            return 0;
+        }
+        let avail = &self.buf[self.start..self.end];
+        let Some(word) = avail.first_chunk::<HEADER_LEN>() else {
+            return 0;
+        };
+        let word = u32::from_le_bytes(*word);
+        let len = word as usize;
+        if (self.resuming && word & CONTROL_BIT != 0) || len > self.max {
+            return 0;
+        }
+        (HEADER_LEN + len).saturating_sub(avail.len())
+    }
+
     /// Whether a whole frame (or an oversized header, which [`next_frame`](Self::next_frame)
     /// then reports) is waiting, so that the next `next_frame` returns without more bytes.
     pub fn has_frame(&self) -> bool {
@@ -595,6 +621,27 @@ mod tests {
             }
         }
         bytes
+    }
+
+    #[test]
+    fn missing_is_what_the_head_frame_still_lacks() {
+        let mut dec = FrameDecoder::resuming(100);
+        assert_eq!(dec.missing(), 0, "no length word yet");
+        dec.push(&[50, 0]);
+        assert_eq!(dec.missing(), 0, "half a length word");
+        dec.push(&[0, 0, 1, 2, 3]);
+        assert_eq!(dec.missing(), 47);
+        dec.push(&[0; 47]);
+        assert_eq!(dec.missing(), 0, "whole");
+        assert_eq!(dec.next_frame().unwrap().map(<[u8]>::len), Some(50));
+        dec.push(&resume_frame(7));
+        assert_eq!(dec.missing(), 0, "a control frame");
+        let mut big = FrameDecoder::new(10);
+        big.push(&[200, 0, 0, 0]);
+        assert_eq!(big.missing(), 0, "oversized: next_frame reports it");
+        let mut lines = FrameDecoder::lines(100);
+        lines.push(b"abc");
+        assert_eq!(lines.missing(), 0);
     }
 
     #[test]

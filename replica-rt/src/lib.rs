@@ -46,6 +46,7 @@ pub mod heartbeat;
 mod history;
 pub mod inject;
 mod logging;
+pub mod memory;
 mod port;
 pub(crate) mod rebind;
 pub mod restart;
@@ -215,12 +216,13 @@ fn init_inner() -> Result<Runtime, InitError> {
             what: "restart",
             source,
         })?;
-        if let Err(e) = sys::lock_all_memory() {
-            tracing::warn!(
+        match memory::lock() {
+            Ok(locked) => tracing::debug!(stack_on_fault = locked.stack_on_fault, "memory locked"),
+            Err(e) => tracing::warn!(
                 error = %e,
                 "mlockall refused (raise RLIMIT_MEMLOCK or run with CAP_IPC_LOCK); \
                  running with unlocked memory, so page faults may add latency"
-            );
+            ),
         }
     }
     say_started();

@@ -12,7 +12,13 @@ use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
 use crate::{history, inject, rebind, restart, sys};
 
 /// Bytes asked for per `read`: large, so a burst of small frames costs one syscall.
+/// The most one read takes.
 const READ_CHUNK: usize = 64 * 1024;
+/// What a read reserves room for unless the frame being read needs more, and what an output's
+/// send buffer starts with: buffers grow to the largest frame actually seen, not to the port's
+/// maximum. In a replica every byte of them is locked and resident, and copied at each fork
+/// recovery (see `memory`).
+const SMALL_BUFFER: usize = 8 * 1024;
 
 /// Receiving a frame failed.
 #[derive(Debug, Error)]
@@ -206,10 +212,17 @@ impl InPort {
     pub(crate) fn fill(&mut self) -> Result<bool, RecvError> {
         self.catch_up();
         loop {
-            let spare = self.dec.spare(READ_CHUNK);
+            // All the room the buffer has already (it only grows), and more only for a frame
+            // that needs it.
+            let want = self
+                .dec
+                .missing()
+                .max(self.dec.room())
+                .clamp(SMALL_BUFFER, READ_CHUNK);
+            let spare = self.dec.spare(want);
             let got = sys::read(self.fd.as_fd(), spare);
             let filled = *got.as_ref().unwrap_or(&0);
-            self.dec.commit(READ_CHUNK, filled);
+            self.dec.commit(want, filled);
             match got {
                 Ok(0) if self.replica && !self.dec.ended() => {
                     if rebind::rebind().is_err() {
@@ -282,7 +295,7 @@ pub struct OutPort {
 impl OutPort {
     pub(crate) fn new(name: String, fd: OwnedFd, max: usize, replica: bool) -> Self {
         let last = Arc::new(Mutex::new(LastFrame {
-            bytes: Vec::with_capacity(HEADER_LEN + max.min(frame::DEFAULT_MAX_FRAME)),
+            bytes: Vec::with_capacity(HEADER_LEN + max.min(SMALL_BUFFER)),
             history: if replica {
                 history::for_new_port()
             } else {

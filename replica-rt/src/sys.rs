@@ -558,6 +558,42 @@ pub fn lock_all_memory() -> io::Result<()> {
     Ok(())
 }
 
+/// Gives back malloc's slack above the heap's top beyond `pad` bytes, and keeps future growth
+/// to `pad` above what is asked (`M_TOP_PAD`; glibc's default is 128 KiB). Best effort: both
+/// calls only tune the allocator.
+pub fn trim_heap(pad: usize) {
+    let pad_int = libc::c_int::try_from(pad).unwrap_or(libc::c_int::MAX);
+    // SAFETY: allocator tuning with plain integers; called before the component starts any
+    // thread (replica-rt's `init` contract), and glibc's malloc locks its arena for both.
+    unsafe {
+        libc::mallopt(libc::M_TOP_PAD, pad_int);
+        libc::malloc_trim(pad);
+    }
+}
+
+/// `MLOCK_ONFAULT` for `mlock2` (Linux >= 4.4; not exported by the `libc` crate for every
+/// target).
+const MLOCK_ONFAULT: libc::c_uint = 1;
+
+/// Turns `len` bytes at `addr` (page-aligned, in a private anonymous mapping that holds no data
+/// the process needs: the unused part of its stack) from locked and populated into locked on
+/// fault: unlocks them, drops their pages, and locks the range again with `MLOCK_ONFAULT`, so
+/// that a page is locked when first touched. On an error the range may be left unlocked (a
+/// later touch is an ordinary fault).
+pub fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
+    let ptr = addr as *mut libc::c_void;
+    // SAFETY: unlocking has no memory-safety effect.
+    cvt(unsafe { libc::munlock(ptr, len) })?;
+    // SAFETY: the caller guarantees that nothing in `addr..addr + len` is in use (the part of
+    // the stack mapping below the current frames); MADV_DONTNEED on private anonymous memory
+    // makes the next touch read zeros, which is what an unused stack page holds.
+    cvt(unsafe { libc::madvise(ptr, len, libc::MADV_DONTNEED) })?;
+    // SAFETY: mlock2 with a range and a flag; locking has no memory-safety effect.
+    let r = unsafe { libc::syscall(libc::SYS_mlock2, ptr, len, MLOCK_ONFAULT) };
+    cvt(r as libc::c_int)?;
+    Ok(())
+}
+
 /// `MCL_ONFAULT` (Linux ≥ 4.4; the value is the same on every architecture Linux has, and glibc's
 /// `libc` crate does not export it for x86-64).
 const MCL_ONFAULT: libc::c_int = 4;

@@ -285,6 +285,135 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
     assert_sink_whole(&run.path("summary.json"), count);
 }
 
+/// One mapping of `/proc/PID/smaps`: its range, name, resident size and `VmFlags`.
+#[derive(Debug)]
+struct Smap {
+    start: u64,
+    end: u64,
+    name: String,
+    rss_kb: u64,
+    flags: Vec<String>,
+}
+
+fn smaps(pid: i32) -> Vec<Smap> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/smaps"))
+        .unwrap_or_else(|e| panic!("reading /proc/{pid}/smaps: {e}"));
+    let mut out: Vec<Smap> = Vec::new();
+    for line in text.lines() {
+        let mut f = line.split_whitespace();
+        let first = f.next().unwrap_or("");
+        if let Some((a, b)) = first.split_once('-').filter(|_| !first.ends_with(':')) {
+            out.push(Smap {
+                start: u64::from_str_radix(a, 16).expect("hex start"),
+                end: u64::from_str_radix(b, 16).expect("hex end"),
+                name: f.nth(4).unwrap_or("").to_owned(),
+                rss_kb: 0,
+                flags: Vec::new(),
+            });
+        } else if let Some(last) = out.last_mut() {
+            match first {
+                "Rss:" => last.rss_kb = f.next().and_then(|v| v.parse().ok()).unwrap_or(0),
+                "VmFlags:" => last.flags = f.map(str::to_owned).collect(),
+                _ => {}
+            }
+        }
+    }
+    out
+}
+
+/// `pid`'s stack: the `[stack]` mapping and the one right under it, if that one was split
+/// from it by a lock-on-fault flag (a fork child, which locks everything on fault, has them
+/// merged again); and the heap.
+fn stack_and_heap(pid: i32) -> (Vec<Smap>, Option<Smap>) {
+    let maps = smaps(pid);
+    let mut stack = Vec::new();
+    let mut heap = None;
+    if let Some(k) = maps.iter().position(|m| m.name == "[stack]") {
+        if k > 0 && maps[k - 1].end == maps[k].start && maps[k - 1].name.is_empty() {
+            stack.push(k - 1);
+        }
+        stack.push(k);
+    }
+    let mut stack_maps = Vec::new();
+    for (k, m) in maps.into_iter().enumerate() {
+        if stack.contains(&k) {
+            stack_maps.push(m);
+        } else if m.name == "[heap]" {
+            heap = Some(m);
+        }
+    }
+    (stack_maps, heap)
+}
+
+/// A replica locks its memory, but not what it never uses: the stack below the 32 KiB that
+/// replica-rt keeps (`memory::STACK_LOCKED`) is locked on fault and not resident, and the heap
+/// carries no 128 KiB malloc pad (every resident private page is copied at each fork recovery).
+/// A fork child, which locks on fault, keeps it so.
+#[test]
+fn a_replica_keeps_neither_unused_stack_nor_malloc_slack_resident() {
+    let count = 1500;
+    let sys = System::new();
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 1000000 }"#;
+    let desc = echo_pipeline(&sys.path("summary.json"), echo, count, 500);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let first = run.replica_pids("echo");
+    let pid = first[&0];
+    s3res_testkit::require(
+        locked_kb(pid) > 0,
+        "the replica's mlockall was refused (raise RLIMIT_MEMLOCK)",
+    );
+    let check = |pid: i32, who: &str| {
+        let (stack, heap) = stack_and_heap(pid);
+        let size_kb: u64 = stack.iter().map(|m| (m.end - m.start) / 1024).sum();
+        let rss_kb: u64 = stack.iter().map(|m| m.rss_kb).sum();
+        eprintln!(
+            "{who} {pid}: stack {size_kb} KiB mapped, {rss_kb} KiB resident ({:?}); heap {:?} KiB resident",
+            stack.iter().map(|m| (&m.name, m.rss_kb, m.flags.join(" "))).collect::<Vec<_>>(),
+            heap.as_ref().map(|h| h.rss_kb)
+        );
+        assert!(
+            stack
+                .first()
+                .is_some_and(|m| m.flags.iter().any(|f| f == "lf")),
+            "{who} {pid}: the bottom of the stack is not locked on fault: {stack:#?}"
+        );
+        assert!(
+            rss_kb <= 64,
+            "{who} {pid}: {rss_kb} of its {size_kb} KiB of stack are resident"
+        );
+        if let Some(heap) = heap {
+            assert!(
+                heap.rss_kb < 128,
+                "{who} {pid}: {} KiB of heap resident, the malloc pad is back",
+                heap.rss_kb
+            );
+        }
+    };
+    check(pid, "replica");
+
+    s3res_testkit::kill_pid(first[&2], libc::SIGKILL).unwrap();
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.pid == Some(first[&2]),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let child = rec.new_pid.expect("new pid");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while locked_kb(child) == 0 {
+        assert!(
+            Instant::now() < deadline,
+            "the fork child {child} never locked its memory (VmLck stays 0)"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    check(child, "fork child");
+
+    run.wait_success(LIMIT);
+    assert_sink_whole(&run.path("summary.json"), count);
+}
+
 fn which(tool: &str) -> Option<std::path::PathBuf> {
     std::env::var_os("PATH").and_then(|paths| {
         std::env::split_paths(&paths)

@@ -1,0 +1,123 @@
+//! What a replica keeps resident and locked.
+//!
+//! A replica locks its memory (`mlockall(MCL_CURRENT | MCL_FUTURE)`) so that no page fault
+//! adds latency to a round. Locking populates every page of every mapping, so whatever slack
+//! the process carries becomes resident — and every resident private page is a page that a
+//! fork recovery must copy (the child writes to each one, so that donor and child share no
+//! physical page: see [`crate::cow`]). Two kinds of slack are large and never used:
+//!
+//! - **malloc's top pad.** glibc grows the heap by what was asked plus `M_TOP_PAD` (128 KiB by
+//!   default) and keeps the rest for later. Locked, that pad is resident for the replica's
+//!   life. [`lock`] trims the heap to [`HEAP_PAD`] first and sets the pad to the same.
+//! - **the untouched part of the stack.** The kernel sets up the main thread's stack mapping
+//!   at 128 KiB and more; locking populates all of it, where a component uses a few pages.
+//!   [`lock`] keeps [`STACK_LOCKED`] below the current stack pointer locked and resident, and
+//!   locks the rest *on fault* (`mlock2(MLOCK_ONFAULT)`): a page there is zero-filled and
+//!   locked the first time the stack reaches it (a minor fault, no I/O), and is not resident
+//!   until then.
+//!
+//! Text and read-only data stay locked in full: a page of code not yet run would otherwise
+//! be read from disk the first time it runs, a major fault in the middle of a round.
+
+use std::io;
+
+use crate::sys;
+
+/// What malloc keeps above the heap's top, at most, once the replica is locked.
+pub const HEAP_PAD: usize = 16 * 1024;
+/// Stack kept locked and resident below the stack pointer at [`lock`].
+pub const STACK_LOCKED: usize = 32 * 1024;
+
+/// How locking went: what [`lock`] left unlocked, for the log.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Locked {
+    /// Bytes of the stack mapping locked on fault instead of populated.
+    pub stack_on_fault: usize,
+}
+
+/// Trims malloc's slack, locks all memory, and releases the stack below [`STACK_LOCKED`] to
+/// be locked on fault. An error is the `mlockall` refusal (nothing is locked then); trimming
+/// and the stack are best effort.
+pub fn lock() -> io::Result<Locked> {
+    sys::trim_heap(HEAP_PAD);
+    sys::lock_all_memory()?;
+    let mut locked = Locked::default();
+    if let Some((low, high)) = stack_mapping() {
+        let sp = stack_pointer();
+        if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
+            match sys::lock_on_fault_instead(range.0, range.1 - range.0) {
+                Ok(()) => locked.stack_on_fault = range.1 - range.0,
+                Err(e) => tracing::debug!(error = %e, "stack stays locked in full"),
+            }
+        }
+    }
+    Ok(locked)
+}
+
+/// An address in the current stack frame.
+#[inline(never)]
+fn stack_pointer() -> usize {
+    let here = 0u8;
+    std::hint::black_box(&here) as *const u8 as usize
+}
+
+/// The main thread's stack mapping (`[stack]` in `/proc/self/maps`): `(start, end)`.
+fn stack_mapping() -> Option<(usize, usize)> {
+    let maps = std::fs::read_to_string("/proc/self/maps").ok()?;
+    maps.lines()
+        .find(|l| l.ends_with("[stack]"))
+        .and_then(parse_range)
+}
+
+fn parse_range(line: &str) -> Option<(usize, usize)> {
+    let range = line.split_whitespace().next()?;
+    let (a, b) = range.split_once('-')?;
+    Some((
+        usize::from_str_radix(a, 16).ok()?,
+        usize::from_str_radix(b, 16).ok()?,
+    ))
+}
+
+/// The page-aligned part of the stack mapping `low..high` that lies more than `keep` below
+/// `sp`, if there is any (`sp` outside the mapping: none — this is not the main thread).
+fn unused_below(
+    low: usize,
+    high: usize,
+    sp: usize,
+    keep: usize,
+    page: usize,
+) -> Option<(usize, usize)> {
+    if sp < low || sp >= high {
+        return None;
+    }
+    let end = sp.checked_sub(keep)? & !(page - 1);
+    (end > low).then_some((low, end))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_stack_is_released_only_well_below_the_stack_pointer() {
+        let page = 4096;
+        let (low, high) = (0x7000_0000, 0x7002_1000);
+        // 100 KiB into a 132 KiB stack, 64 KiB kept: the lowest 36 KiB, page-aligned.
+        let sp = high - 32 * 1024 + 123;
+        let (a, b) = unused_below(low, high, sp, 64 * 1024, page).unwrap();
+        assert_eq!(a, low);
+        assert_eq!(b, (sp - 64 * 1024) & !(page - 1));
+        assert!(b <= sp - 64 * 1024);
+        // Too shallow a mapping: nothing to release.
+        assert_eq!(unused_below(low, high, low + 1000, 64 * 1024, page), None);
+        // Another thread's stack pointer: not this mapping.
+        assert_eq!(unused_below(low, high, high + 10, 64 * 1024, page), None);
+    }
+
+    #[test]
+    fn maps_lines_give_their_range() {
+        let l = "7ffd1c000000-7ffd1c021000 rw-p 00000000 00:00 0                          [stack]";
+        assert_eq!(parse_range(l), Some((0x7ffd_1c00_0000, 0x7ffd_1c02_1000)));
+        assert_eq!(parse_range("garbage"), None);
+    }
+}
