@@ -13,7 +13,8 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use s3res_testkit::{
-    assert_sink_whole, bin_path, echo_pipeline, EventKind, RecoveryMethod, System,
+    assert_sink_whole, bin_path, echo_pipeline, Event, EventKind, RecoveryMethod, RunningSystem,
+    System,
 };
 
 const LIMIT: Duration = Duration::from_secs(120);
@@ -109,6 +110,28 @@ fn locked_kb(pid: i32) -> u64 {
         .unwrap_or(0)
 }
 
+/// SIGKILLs replica `victim` and waits for its recovery by fork and for the fork child to
+/// have locked its memory (it does so right after its copy-on-write walk: `VmLck` turns
+/// non-zero). Returns the recovery event.
+fn kill_and_wait_for_locked_fork_child(run: &mut RunningSystem, victim: i32) -> Event {
+    s3res_testkit::kill_pid(victim, libc::SIGKILL).unwrap();
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.pid == Some(victim),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let child = rec.new_pid.expect("new pid");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while locked_kb(child) == 0 {
+        assert!(
+            Instant::now() < deadline,
+            "the fork child {child} never locked its memory (VmLck stays 0)"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    rec
+}
+
 /// Sends SIGCONT on drop, so a failed assertion never leaves the donor stopped.
 struct Stopped(i32);
 
@@ -151,23 +174,9 @@ fn donor_and_fork_child_share_no_private_page() {
     run.wait_for_replicas("echo", 3);
     let first = run.replica_pids("echo");
 
-    s3res_testkit::kill_pid(first[&2], libc::SIGKILL).unwrap();
-    let rec = run.wait_for_event(
-        |e| e.kind == EventKind::Recovery && e.pid == Some(first[&2]),
-        Duration::from_secs(20),
-    );
-    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let rec = kill_and_wait_for_locked_fork_child(&mut run, first[&2]);
     let child = rec.new_pid.expect("new pid");
     let donor = first[&rec.donor.expect("donor")];
-
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while locked_kb(child) == 0 {
-        assert!(
-            Instant::now() < deadline,
-            "the fork child {child} never locked its memory (VmLck stays 0)"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
 
     let (donor_private, child_private, donor_code, child_code) = {
         let _stopped = Stopped::new(donor);
@@ -393,21 +402,8 @@ fn a_replica_keeps_neither_unused_stack_nor_malloc_slack_resident() {
     };
     check(pid, "replica");
 
-    s3res_testkit::kill_pid(first[&2], libc::SIGKILL).unwrap();
-    let rec = run.wait_for_event(
-        |e| e.kind == EventKind::Recovery && e.pid == Some(first[&2]),
-        Duration::from_secs(20),
-    );
-    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let rec = kill_and_wait_for_locked_fork_child(&mut run, first[&2]);
     let child = rec.new_pid.expect("new pid");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while locked_kb(child) == 0 {
-        assert!(
-            Instant::now() < deadline,
-            "the fork child {child} never locked its memory (VmLck stays 0)"
-        );
-        std::thread::sleep(Duration::from_millis(5));
-    }
     check(child, "fork child");
 
     run.wait_success(LIMIT);
