@@ -11,8 +11,7 @@ use crate::contract::FIRST_PORT_FD;
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
 use crate::{history, inject, rebind, restart, sys};
 
-/// Bytes asked for per `read`: large, so a burst of small frames costs one syscall.
-/// The most one read takes.
+/// The most one `read` asks for: a burst of small frames, or a large frame, in one syscall.
 const READ_CHUNK: usize = 64 * 1024;
 /// What a read reserves room for unless the frame being read needs more, and what an output's
 /// send buffer starts with: buffers grow to the largest frame actually seen, not to the port's

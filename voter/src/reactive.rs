@@ -442,19 +442,18 @@ impl ReactiveVoter {
     /// Records what the replicas not done yet have run and waited so far (see
     /// `starvation.rs`).
     fn look_at_late(&mut self, now: Instant) {
-        // The window starts before the reads, although a replica on the voter's CPU cannot
-        // run while the voter reads (the first look of a replica opens its task clock and
-        // `/proc` file, tens of µs), so that a spinner there may look starved and get one
-        // more window (the hang p99's extra ~200 µs in `s3res-bench detect`). Starting it
-        // after the reads shortened the window so much that a replica that had just got its
-        // CPU back after milliseconds ran a quarter of it and was blamed (CI, 24e10d2:
-        // "in the last 55 µs it ran 23 µs and waited 4926 µs for a CPU").
+        // The window starts before the reads (the first look of a replica opens its task
+        // clock, 20–260 µs), and so does the wait it is judged by; its run time is judged
+        // over the span its clock was read over (see `starvation.rs`).
         let mut look = Look {
             at: now,
             times: [None; MAX_REPLICAS],
         };
         for r in self.timed().iter() {
-            look.times[r] = self.core.slots[r].as_ref().and_then(Replica::sched_times);
+            look.times[r] = self.core.slots[r]
+                .as_ref()
+                .and_then(Replica::sched_times)
+                .map(|t| (t, Instant::now()));
         }
         if let Some(round) = self.round.as_mut() {
             round.look = Some(look);
@@ -474,18 +473,20 @@ impl ReactiveVoter {
             let Some(rep) = self.core.slots[r].as_ref() else {
                 continue;
             };
-            let (Some(before), Some(after)) = (look.times[r], rep.sched_times()) else {
+            let (Some((before, before_at)), Some(after)) = (look.times[r], rep.sched_times())
+            else {
                 continue;
             };
+            let clocked = Instant::now().saturating_duration_since(before_at);
             let mut state = None;
             let runnable = || {
                 state = replica_rt::sys::process_state(rep.pid);
                 state == Some('R')
             };
-            let verdict = starvation::judge(before, after, span, runnable);
+            let verdict = starvation::judge(before, after, span, clocked, runnable);
             self.evidence[r] = Some(Seen {
                 state,
-                ..Seen::between(before, after, span)
+                ..Seen::between(before, after, span, clocked)
             });
             if verdict == Window::Starved {
                 starved = starved.with(r);

@@ -52,7 +52,8 @@ pub struct Round {
 #[derive(Debug, Clone, Copy)]
 pub struct Look {
     pub at: Instant,
-    pub times: [Option<SchedTimes>; MAX_REPLICAS],
+    /// Per replica, its times and when they were read (its clock counts from its first read).
+    pub times: [Option<(SchedTimes, Instant)>; MAX_REPLICAS],
 }
 
 impl Round {
