@@ -328,6 +328,19 @@ pub fn process_state(pid: libc::pid_t) -> Option<char> {
     with_proc_stat(pid, |rest| rest.trim_start().chars().next())
 }
 
+/// The system call `pid` is blocked in and its first argument (`/proc/PID/syscall`: number
+/// and arguments while it sleeps in one; `None` while it runs, or where the file cannot be
+/// read: it needs the right to ptrace the process).
+pub fn blocked_in(pid: libc::pid_t) -> Option<(i64, u64)> {
+    let mut buf = [0u8; 256];
+    let text = read_proc_small(&format!("/proc/{pid}/syscall"), &mut buf)?;
+    let mut fields = text.split_ascii_whitespace();
+    let nr = fields.next()?.parse::<i64>().ok()?;
+    let arg0 = fields.next()?;
+    let arg0 = u64::from_str_radix(arg0.strip_prefix("0x").unwrap_or(arg0), 16).ok()?;
+    Some((nr, arg0))
+}
+
 /// A counter of the time another process has spent on a CPU (the `task-clock` software
 /// event of `perf_event_open(2)`), exact to the moment it is read: reading a running
 /// process's count brings it up to date first, whereas `/proc/PID/schedstat` and `stat`, and

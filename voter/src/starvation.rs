@@ -158,6 +158,9 @@ pub struct Seen {
     pub waited_us: u64,
     /// Its state at the second look, where it was read.
     pub state: Option<char>,
+    /// Asleep: the system call it sleeps in and that call's first argument (an fd for the
+    /// calls that wait on one), from `/proc/PID/syscall`.
+    pub blocked_in: Option<(i64, u64)>,
 }
 
 impl Seen {
@@ -173,6 +176,7 @@ impl Seen {
             ran_us: after.run_ns.saturating_sub(before.run_ns) / 1000,
             waited_us: after.wait_ns.saturating_sub(before.wait_ns) / 1000,
             state: None,
+            blocked_in: None,
         }
     }
 }
@@ -187,8 +191,46 @@ impl std::fmt::Display for Seen {
         if let Some(s) = self.state {
             write!(f, "; state {s}")?;
         }
+        if let Some((nr, arg0)) = self.blocked_in {
+            match syscall_name(nr) {
+                Some((name, true)) => write!(f, ", in {name}(fd {arg0})")?,
+                Some((name, false)) => write!(f, ", in {name}")?,
+                None => write!(f, ", in system call {nr}")?,
+            }
+        }
         Ok(())
     }
+}
+
+/// The name of the x86-64 system calls a component is commonly found asleep in, and whether
+/// the first argument is an fd. (`/proc/PID/syscall` gives numbers; an asleep replica that
+/// missed its deadline is told apart by where it waits: in `read` of its input port, in
+/// `write` of a full output, on a lock.)
+fn syscall_name(nr: i64) -> Option<(&'static str, bool)> {
+    #[cfg(target_arch = "x86_64")]
+    let name = match nr {
+        0 => ("read", true),
+        1 => ("write", true),
+        7 => ("poll", false),
+        23 => ("select", false),
+        34 => ("pause", false),
+        35 => ("nanosleep", false),
+        61 => ("wait4", false),
+        130 => ("rt_sigsuspend", false),
+        202 => ("futex", false),
+        230 => ("clock_nanosleep", false),
+        232 => ("epoll_wait", true),
+        270 => ("pselect6", false),
+        271 => ("ppoll", false),
+        281 => ("epoll_pwait", true),
+        _ => return None,
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let name = {
+        let _ = nr;
+        return None;
+    };
+    Some(name)
 }
 
 /// What a late replica did over the window before its deadline.
@@ -345,6 +387,37 @@ mod tests {
         child.kill().unwrap();
         child.wait().unwrap();
         assert!(b.run_ns > a.run_ns, "{a:?} {b:?}");
+    }
+
+    #[test]
+    fn the_evidence_says_where_an_asleep_replica_waits() {
+        let seen = Seen {
+            state: Some('S'),
+            blocked_in: Some((0, 3)),
+            ..Seen::between(t(0, 0), t(16, 0), W, W)
+        };
+        assert_eq!(
+            seen.to_string(),
+            "in the last 200 µs it ran 16 µs (of 200 µs on its clock) and waited 0 µs for a \
+             CPU; state S, in read(fd 3)"
+        );
+        // A child asleep in a known call.
+        let mut sleeper = std::process::Command::new("sleep")
+            .arg("5")
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        let blocked = replica_rt::sys::blocked_in(sleeper.id() as libc::pid_t);
+        sleeper.kill().unwrap();
+        sleeper.wait().unwrap();
+        let (nr, _) = blocked.expect("a sleeping child's /proc/PID/syscall");
+        assert!(
+            matches!(
+                syscall_name(nr),
+                Some(("nanosleep" | "clock_nanosleep", false))
+            ),
+            "sleep(1) sleeps in system call {nr}"
+        );
     }
 
     #[test]
