@@ -45,7 +45,11 @@ pub fn lock() -> io::Result<Locked> {
     if let Some((low, high)) = stack_mapping() {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
-            match sys::lock_on_fault_instead(range.0, range.1 - range.0) {
+            // SAFETY: the range is the part of the main thread's stack mapping more than
+            // `STACK_LOCKED` below the current frame (`unused_below` checked that the stack
+            // pointer lies in that mapping): nothing lives below the stack pointer, and a
+            // signal handler that interrupts this call runs in the 32 KiB kept.
+            match unsafe { sys::lock_on_fault_instead(range.0, range.1 - range.0) } {
                 Ok(()) => locked.stack_on_fault = range.1 - range.0,
                 Err(e) => tracing::debug!(error = %e, "stack stays locked in full"),
             }

@@ -335,7 +335,8 @@ pub fn blocked_in(pid: libc::pid_t) -> Option<(i64, u64)> {
     let mut buf = [0u8; 256];
     let text = read_proc_small(&format!("/proc/{pid}/syscall"), &mut buf)?;
     let mut fields = text.split_ascii_whitespace();
-    let nr = fields.next()?.parse::<i64>().ok()?;
+    // "running", or -1 for a process blocked outside any system call.
+    let nr = fields.next()?.parse::<i64>().ok().filter(|&nr| nr >= 0)?;
     let arg0 = fields.next()?;
     let arg0 = u64::from_str_radix(arg0.strip_prefix("0x").unwrap_or(arg0), 16).ok()?;
     Some((nr, arg0))
@@ -593,13 +594,16 @@ const MLOCK_ONFAULT: libc::c_uint = 1;
 /// fault: unlocks them, drops their pages, and locks the range again with `MLOCK_ONFAULT`, so
 /// that a page is locked when first touched. On an error the range may be left unlocked (a
 /// later touch is an ordinary fault).
-pub fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
+///
+/// # Safety
+/// Nothing in `addr..addr + len` may be in use, now or by anything that runs before this
+/// returns: its pages are dropped, and read back as zeros.
+pub unsafe fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
     let ptr = addr as *mut libc::c_void;
     // SAFETY: unlocking has no memory-safety effect.
     cvt(unsafe { libc::munlock(ptr, len) })?;
-    // SAFETY: the caller guarantees that nothing in `addr..addr + len` is in use (the part of
-    // the stack mapping below the current frames); MADV_DONTNEED on private anonymous memory
-    // makes the next touch read zeros, which is what an unused stack page holds.
+    // SAFETY: the caller guarantees that nothing in `addr..addr + len` is in use;
+    // MADV_DONTNEED on private anonymous memory makes the next touch read zeros.
     cvt(unsafe { libc::madvise(ptr, len, libc::MADV_DONTNEED) })?;
     // SAFETY: mlock2 with a range and a flag; locking has no memory-safety effect.
     let r = unsafe { libc::syscall(libc::SYS_mlock2, ptr, len, MLOCK_ONFAULT) };
