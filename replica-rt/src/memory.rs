@@ -14,7 +14,9 @@
 //!   [`lock`] keeps [`STACK_LOCKED`] below the current stack pointer locked and resident, and
 //!   locks the rest *on fault* (`mlock2(MLOCK_ONFAULT)`): a page there is zero-filled and
 //!   locked the first time the stack reaches it (a minor fault, no I/O), and is not resident
-//!   until then.
+//!   until then. The split leaves only the upper part named `[stack]` in `/proc/self/maps`,
+//!   so what reads the main thread's stack size from there (`pthread_getattr_np`) sees about
+//!   the part kept; the stack can still grow through the rest as before.
 //!
 //! Text and read-only data stay locked in full: a page of code not yet run would otherwise
 //! be read from disk the first time it runs, a major fault in the middle of a round.
@@ -45,13 +47,19 @@ pub fn lock() -> io::Result<Locked> {
     if let Some((low, high)) = stack_mapping() {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
-            // SAFETY: the range is the part of the main thread's stack mapping more than
+            // SAFETY: the range is the part of this thread's stack mapping more than
             // `STACK_LOCKED` below the current frame (`unused_below` checked that the stack
-            // pointer lies in that mapping): nothing lives below the stack pointer, and a
-            // signal handler that interrupts this call runs in the 32 KiB kept.
+            // pointer lies in that mapping): memory below the stack pointer is dead, and a
+            // signal handler cannot run on this thread while it is in the system calls.
             match unsafe { sys::lock_on_fault_instead(range.0, range.1 - range.0) } {
                 Ok(()) => locked.stack_on_fault = range.1 - range.0,
-                Err(e) => tracing::debug!(error = %e, "stack stays locked in full"),
+                // munlock or madvise refused: nothing changed. mlock2 refused (a kernel before
+                // 4.4, a seccomp filter): that part of the stack is unlocked, a page fault the
+                // first time the stack reaches it.
+                Err(e) => tracing::warn!(
+                    error = %e,
+                    "could not lock the unused stack on fault; it may fault when first used"
+                ),
             }
         }
     }
@@ -106,7 +114,8 @@ mod tests {
     fn the_stack_is_released_only_well_below_the_stack_pointer() {
         let page = 4096;
         let (low, high) = (0x7000_0000, 0x7002_1000);
-        // 100 KiB into a 132 KiB stack, 64 KiB kept: the lowest 36 KiB, page-aligned.
+        // The stack pointer 32 KiB below the top of a 132 KiB stack, 64 KiB kept: the lowest
+        // 36 KiB are released, page-aligned.
         let sp = high - 32 * 1024 + 123;
         let (a, b) = unused_below(low, high, sp, 64 * 1024, page).unwrap();
         assert_eq!(a, low);

@@ -11,7 +11,9 @@ use crate::contract::FIRST_PORT_FD;
 use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
 use crate::{history, inject, rebind, restart, sys};
 
-/// The most one `read` asks for: a burst of small frames, or a large frame, in one syscall.
+/// The most one `read` asks for. A read asks for the room the buffer already has (at least
+/// [`SMALL_BUFFER`]), and for more only when the frame at its head needs it: a burst of small
+/// frames larger than that room takes more than one read.
 const READ_CHUNK: usize = 64 * 1024;
 /// What a read reserves room for unless the frame being read needs more, and what an output's
 /// send buffer starts with: buffers grow to the largest frame actually seen, not to the port's

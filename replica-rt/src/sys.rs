@@ -328,18 +328,46 @@ pub fn process_state(pid: libc::pid_t) -> Option<char> {
     with_proc_stat(pid, |rest| rest.trim_start().chars().next())
 }
 
-/// The system call `pid` is blocked in and its first argument (`/proc/PID/syscall`: number
-/// and arguments while it sleeps in one; `None` while it runs, or where the file cannot be
-/// read: it needs the right to ptrace the process).
-pub fn blocked_in(pid: libc::pid_t) -> Option<(i64, u64)> {
-    let mut buf = [0u8; 256];
-    let text = read_proc_small(&format!("/proc/{pid}/syscall"), &mut buf)?;
-    let mut fields = text.split_ascii_whitespace();
-    // "running", or -1 for a process blocked outside any system call.
-    let nr = fields.next()?.parse::<i64>().ok().filter(|&nr| nr >= 0)?;
-    let arg0 = fields.next()?;
-    let arg0 = u64::from_str_radix(arg0.strip_prefix("0x").unwrap_or(arg0), 16).ok()?;
-    Some((nr, arg0))
+/// The kernel function `pid` sleeps in (`/proc/PID/wchan`: `pipe_read`, `pipe_write`,
+/// `futex_wait_queue`, ...); `None` while it runs, or where the kernel does not say (it shows
+/// `0` to those who may not ptrace the process). Reading it never waits for the process,
+/// unlike `/proc/PID/syscall`.
+pub fn wchan(pid: libc::pid_t) -> Option<Wchan> {
+    let mut buf = [0u8; 64];
+    let text = read_proc_small(&format!("/proc/{pid}/wchan"), &mut buf)?.trim();
+    (!text.is_empty() && text != "0").then(|| Wchan::new(text))
+}
+
+/// A kernel function name, kept inline (cut at 31 bytes) so that it can be copied around.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub struct Wchan {
+    len: u8,
+    bytes: [u8; 31],
+}
+
+impl Wchan {
+    pub fn new(name: &str) -> Wchan {
+        let mut cut = name.len().min(31);
+        while !name.is_char_boundary(cut) {
+            cut -= 1;
+        }
+        let mut bytes = [0u8; 31];
+        bytes[..cut].copy_from_slice(&name.as_bytes()[..cut]);
+        Wchan {
+            len: cut as u8,
+            bytes,
+        }
+    }
+
+    pub fn as_str(&self) -> &str {
+        std::str::from_utf8(&self.bytes[..usize::from(self.len)]).unwrap_or("?")
+    }
+}
+
+impl std::fmt::Debug for Wchan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:?}", self.as_str())
+    }
 }
 
 /// A counter of the time another process has spent on a CPU (the `task-clock` software
@@ -573,17 +601,25 @@ pub fn lock_all_memory() -> io::Result<()> {
 }
 
 /// Gives back malloc's slack above the heap's top beyond `pad` bytes, and keeps future growth
-/// to `pad` above what is asked (`M_TOP_PAD`; glibc's default is 128 KiB). Best effort: both
-/// calls only tune the allocator.
+/// to `pad` above what is asked (`M_TOP_PAD`; glibc's default is 128 KiB). Setting it also
+/// freezes glibc's mmap and trim thresholds, which it would otherwise raise after the first
+/// large free (so that a buffer allocated and freed every round comes from the heap instead
+/// of a fresh, populated and locked, mapping each time): they are set here to what that
+/// raising would reach for blocks up to [`HEAP_MMAP_THRESHOLD`]. Best effort: the calls only
+/// tune the allocator.
 pub fn trim_heap(pad: usize) {
     let pad_int = libc::c_int::try_from(pad).unwrap_or(libc::c_int::MAX);
-    // SAFETY: allocator tuning with plain integers; called before the component starts any
-    // thread (replica-rt's `init` contract), and glibc's malloc locks its arena for both.
+    // SAFETY: allocator tuning with plain integers; glibc's malloc takes its own locks.
     unsafe {
         libc::mallopt(libc::M_TOP_PAD, pad_int);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 2 * HEAP_MMAP_THRESHOLD);
         libc::malloc_trim(pad);
     }
 }
+
+/// Blocks from this size on get a mapping of their own (and give it back when freed).
+pub const HEAP_MMAP_THRESHOLD: libc::c_int = 1 << 20;
 
 /// `MLOCK_ONFAULT` for `mlock2` (Linux >= 4.4; not exported by the `libc` crate for every
 /// target).

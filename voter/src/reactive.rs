@@ -485,13 +485,13 @@ impl ReactiveVoter {
             };
             let verdict = starvation::judge(before, after, span, clocked, runnable);
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
-            let blocked_in = match (verdict, state) {
-                (Window::HadItsChance, Some(s)) if s != 'R' => replica_rt::sys::blocked_in(rep.pid),
+            let wchan = match (verdict, state) {
+                (Window::HadItsChance, Some(s)) if s != 'R' => replica_rt::sys::wchan(rep.pid),
                 _ => None,
             };
             self.evidence[r] = Some(Seen {
                 state,
-                blocked_in,
+                wchan,
                 ..Seen::between(before, after, span, clocked)
             });
             if verdict == Window::Starved {

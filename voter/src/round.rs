@@ -52,7 +52,8 @@ pub struct Round {
 #[derive(Debug, Clone, Copy)]
 pub struct Look {
     pub at: Instant,
-    /// Per replica, its times and when they were read (its clock counts from its first read).
+    /// Per replica, its times and when they were read (its task clock counts only from its
+    /// opening, at the replica's first look: see `starvation.rs`).
     pub times: [Option<(SchedTimes, Instant)>; MAX_REPLICAS],
 }
 
