@@ -340,10 +340,9 @@ impl FrameDecoder {
     }
 
     /// Bytes still to come before the frame at the head is whole, when its length word has
-    /// arrived (0 otherwise: no length word yet or only part of it, a control frame, an
-    /// oversized length, lines; a reader then reads into the room it has).
-    /// A reader sizes its next read by it, so that a large frame takes one read without every
-    /// read reserving room for the largest.
+    /// arrived; 0 otherwise (no length word yet or only part of it, a control frame, an
+    /// oversized length, lines). A reader sizes its next read by it, so that a large frame
+    /// takes one read without every read reserving room for the largest.
     pub fn missing(&self) -> usize {
         if self.lines || self.ended {
             return 0;

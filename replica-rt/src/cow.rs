@@ -127,15 +127,15 @@ fn visit_line(line: &[u8], stats: &mut WalkStats) {
 }
 
 #[derive(Debug, PartialEq, Eq)]
-struct MapLine {
-    start: usize,
-    end: usize,
+pub(crate) struct MapLine {
+    pub(crate) start: usize,
+    pub(crate) end: usize,
     perms: [u8; 4],
     /// `[vsyscall]`, `[vvar]` (and `[vvar_vclock]`) or `[vdso]`: kernel pages, never touched.
     special: bool,
 }
 
-fn parse_line(line: &[u8]) -> Option<MapLine> {
+pub(crate) fn parse_line(line: &[u8]) -> Option<MapLine> {
     let dash = line.iter().position(|&b| b == b'-')?;
     let start = parse_hex(&line[..dash])?;
     let rest = &line[dash + 1..];

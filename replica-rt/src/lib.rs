@@ -217,7 +217,7 @@ fn init_inner() -> Result<Runtime, InitError> {
             source,
         })?;
         match memory::lock() {
-            Ok(locked) => tracing::debug!(stack_on_fault = locked.stack_on_fault, "memory locked"),
+            Ok(stack_on_fault) => tracing::debug!(stack_on_fault, "memory locked"),
             Err(e) => tracing::warn!(
                 error = %e,
                 "mlockall refused (raise RLIMIT_MEMLOCK or run with CAP_IPC_LOCK); \

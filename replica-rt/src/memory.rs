@@ -8,7 +8,8 @@
 //!
 //! - **malloc's top pad.** glibc grows the heap by what was asked plus `M_TOP_PAD` (128 KiB by
 //!   default) and keeps the rest for later. Locked, that pad is resident for the replica's
-//!   life. [`lock`] trims the heap to [`HEAP_PAD`] first and sets the pad to the same.
+//!   life. [`lock`] trims the heap to [`HEAP_PAD`] first and sets the pad to the same (and the
+//!   mmap threshold to [`HEAP_MMAP_THRESHOLD`], which setting the pad would freeze at 128 KiB).
 //! - **the untouched part of the stack.** The kernel sets up the main thread's stack mapping
 //!   at 128 KiB and more; locking populates all of it, where a component uses a few pages.
 //!   [`lock`] keeps [`STACK_LOCKED`] below the current stack pointer locked and resident, and
@@ -27,23 +28,19 @@ use crate::sys;
 
 /// What malloc keeps above the heap's top, at most, once the replica is locked.
 pub const HEAP_PAD: usize = 16 * 1024;
+/// Blocks from this size on get a mapping of their own, given back when freed (see
+/// `sys::trim_heap`: setting the pad freezes glibc's otherwise rising threshold).
+pub const HEAP_MMAP_THRESHOLD: usize = 1 << 20;
 /// Stack kept locked and resident below the stack pointer at [`lock`].
 pub const STACK_LOCKED: usize = 32 * 1024;
 
-/// How locking went: what [`lock`] left unlocked, for the log.
-#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub struct Locked {
-    /// Bytes of the stack mapping locked on fault instead of populated.
-    pub stack_on_fault: usize,
-}
-
 /// Trims malloc's slack, locks all memory, and releases the stack below [`STACK_LOCKED`] to
-/// be locked on fault. An error is the `mlockall` refusal (nothing is locked then); trimming
-/// and the stack are best effort.
-pub fn lock() -> io::Result<Locked> {
-    sys::trim_heap(HEAP_PAD);
+/// be locked on fault; returns the bytes of stack released so. An error is the `mlockall`
+/// refusal (nothing is locked then); trimming and the stack are best effort.
+pub fn lock() -> io::Result<usize> {
+    sys::trim_heap(HEAP_PAD, HEAP_MMAP_THRESHOLD);
     sys::lock_all_memory()?;
-    let mut locked = Locked::default();
+    let mut on_fault = 0;
     if let Some((low, high)) = stack_mapping() {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
@@ -52,7 +49,7 @@ pub fn lock() -> io::Result<Locked> {
             // pointer lies in that mapping): memory below the stack pointer is dead, and a
             // signal handler cannot run on this thread while it is in the system calls.
             match unsafe { sys::lock_on_fault_instead(range.0, range.1 - range.0) } {
-                Ok(()) => locked.stack_on_fault = range.1 - range.0,
+                Ok(()) => on_fault = range.1 - range.0,
                 // munlock or madvise refused: nothing changed. mlock2 refused (a kernel before
                 // 4.4, a seccomp filter): that part of the stack is unlocked, a page fault the
                 // first time the stack reaches it.
@@ -63,7 +60,7 @@ pub fn lock() -> io::Result<Locked> {
             }
         }
     }
-    Ok(locked)
+    Ok(on_fault)
 }
 
 /// An address in the current stack frame.
@@ -76,18 +73,8 @@ fn stack_pointer() -> usize {
 /// The main thread's stack mapping (`[stack]` in `/proc/self/maps`): `(start, end)`.
 fn stack_mapping() -> Option<(usize, usize)> {
     let maps = std::fs::read_to_string("/proc/self/maps").ok()?;
-    maps.lines()
-        .find(|l| l.ends_with("[stack]"))
-        .and_then(parse_range)
-}
-
-fn parse_range(line: &str) -> Option<(usize, usize)> {
-    let range = line.split_whitespace().next()?;
-    let (a, b) = range.split_once('-')?;
-    Some((
-        usize::from_str_radix(a, 16).ok()?,
-        usize::from_str_radix(b, 16).ok()?,
-    ))
+    let line = maps.lines().find(|l| l.ends_with("[stack]"))?;
+    crate::cow::parse_line(line.as_bytes()).map(|m| (m.start, m.end))
 }
 
 /// The page-aligned part of the stack mapping `low..high` that lies more than `keep` below
@@ -125,12 +112,5 @@ mod tests {
         assert_eq!(unused_below(low, high, low + 1000, 64 * 1024, page), None);
         // Another thread's stack pointer: not this mapping.
         assert_eq!(unused_below(low, high, high + 10, 64 * 1024, page), None);
-    }
-
-    #[test]
-    fn maps_lines_give_their_range() {
-        let l = "7ffd1c000000-7ffd1c021000 rw-p 00000000 00:00 0                          [stack]";
-        assert_eq!(parse_range(l), Some((0x7ffd_1c00_0000, 0x7ffd_1c02_1000)));
-        assert_eq!(parse_range("garbage"), None);
     }
 }

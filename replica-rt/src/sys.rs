@@ -605,21 +605,18 @@ pub fn lock_all_memory() -> io::Result<()> {
 /// freezes glibc's mmap and trim thresholds, which it would otherwise raise after the first
 /// large free (so that a buffer allocated and freed every round comes from the heap instead
 /// of a fresh, populated and locked, mapping each time): they are set here to what that
-/// raising would reach for blocks up to [`HEAP_MMAP_THRESHOLD`]. Best effort: the calls only
-/// tune the allocator.
-pub fn trim_heap(pad: usize) {
-    let pad_int = libc::c_int::try_from(pad).unwrap_or(libc::c_int::MAX);
+/// raising would reach for blocks below `mmap_threshold` (trimmed above twice that). Best
+/// effort: the calls only tune the allocator.
+pub fn trim_heap(pad: usize, mmap_threshold: usize) {
+    let int = |v: usize| libc::c_int::try_from(v).unwrap_or(libc::c_int::MAX);
     // SAFETY: allocator tuning with plain integers; glibc's malloc takes its own locks.
     unsafe {
-        libc::mallopt(libc::M_TOP_PAD, pad_int);
-        libc::mallopt(libc::M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 2 * HEAP_MMAP_THRESHOLD);
+        libc::mallopt(libc::M_TOP_PAD, int(pad));
+        libc::mallopt(libc::M_MMAP_THRESHOLD, int(mmap_threshold));
+        libc::mallopt(libc::M_TRIM_THRESHOLD, int(2 * mmap_threshold));
         libc::malloc_trim(pad);
     }
 }
-
-/// Blocks from this size on get a mapping of their own (and give it back when freed).
-pub const HEAP_MMAP_THRESHOLD: libc::c_int = 1 << 20;
 
 /// `MLOCK_ONFAULT` for `mlock2` (Linux >= 4.4; not exported by the `libc` crate for every
 /// target).

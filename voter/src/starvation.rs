@@ -24,10 +24,10 @@
 //!   window, and it is judged again then. The extensions of one round are bounded
 //!   ([`MAX_EXTENSION`]), so a replica that never gets a CPU is still blamed in the end.
 //!
-//! *The time its clock was read over*, at least half the window (over a shorter span the share
-//! run says little: a replica preempted just after getting its CPU), is shorter than the window: the first look opens the
+//! *The time its clock was read over* is shorter than the window: the first look opens the
 //! replica's task clock, which takes 20–260 µs (`perf_event_open`, measured), and the clock
-//! counts from its opening only. A spinner on another CPU ran the whole window, but its clock
+//! counts from its opening only. (It counts as at least half the window: over a shorter span
+//! the share run says little, as for a replica preempted just after it got its CPU.) A spinner on another CPU ran the whole window, but its clock
 //! saw only the part after the open: measured against the whole window it ran "less than a
 //! quarter" (48 of 218 µs) and, being `R`, looked starved, so every such hang got one window
 //! more (the hang p99 of `s3res-bench detect` 2–3 times its median). Its run time is measured
