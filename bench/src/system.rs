@@ -175,6 +175,7 @@ impl System {
                 socket_path: workdir.path().join("v.sock"),
                 socket_fd: None,
                 journal_fd,
+                park_fds: None,
                 adopt: None,
                 restart_timeout_ms: s3res_protocol::plan::default_restart_timeout_ms(),
                 priority: sched.priority,

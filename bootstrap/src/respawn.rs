@@ -3,11 +3,12 @@
 //! starts a successor on exactly the same fds, told to adopt (`plan.adopt`). The successor
 //! takes the live replicas over from the journal (`voter/src/adopt.rs`).
 //!
-//! A component whose replicas link replica-rt is restartable ([`restartable`]), in either
-//! mode: a reactive successor replays the unfinished round; a stream successor has every
-//! replica send again the frames it kept since the last one committed (replica-rt's output
-//! history). An unmodified program (`preload`) cannot count its input, nor take fresh pipes:
-//! its voter's death stops the system, as before.
+//! Every protected component is restartable ([`restartable`]), in either mode: a reactive
+//! successor replays the unfinished round; a stream successor has every replica send again
+//! the frames it kept since the last one committed (replica-rt's output history). An
+//! unmodified program (`preload`) can neither count its input nor take fresh pipes, so its
+//! voter parks its ends of the replicas' pipes in a socket pair bootstrap keeps
+//! ([`park_pair`], `voter/src/park.rs`), and the successor takes them over.
 
 use std::collections::VecDeque;
 use std::os::fd::{AsRawFd, BorrowedFd, OwnedFd, RawFd};
@@ -22,7 +23,26 @@ use crate::plan::ComponentPlan;
 
 /// Whether the voter of `c` is restarted when it dies (see the module docs).
 pub fn restartable(c: &ComponentPlan) -> bool {
-    c.is_protected() && c.preload.is_none() && c.framing == Framing::Frames
+    c.is_protected()
+}
+
+/// Whether the voter of `c` parks its replicas' pipes (an unmodified program's).
+pub fn parks_pipes(c: &ComponentPlan) -> bool {
+    restartable(c) && (c.preload.is_some() || c.framing == Framing::Lines)
+}
+
+/// The socket pair an unmodified program's voter parks its replicas' pipes in: fds sent from
+/// the first end wait in the second's queue for as long as bootstrap keeps it, whatever
+/// becomes of the voter. `SOCK_SEQPACKET`: each parked set is one message.
+pub fn park_pair() -> std::io::Result<(OwnedFd, OwnedFd)> {
+    let (a, b) = nix::sys::socket::socketpair(
+        nix::sys::socket::AddressFamily::Unix,
+        nix::sys::socket::SockType::SeqPacket,
+        None,
+        nix::sys::socket::SockFlag::SOCK_CLOEXEC,
+    )
+    .map_err(std::io::Error::from)?;
+    Ok((a, b))
 }
 
 /// The voter's socket, bound by bootstrap so that it outlives every voter: a replica whose

@@ -846,18 +846,28 @@ fn spawn_voter(
             source,
         })?;
         let journal = replica_rt::shared::memfd(c"s3res-journal").map_err(spawn_err)?;
-        Some((socket, journal))
+        let park = if respawn::parks_pipes(c) {
+            Some(respawn::park_pair().map_err(spawn_err)?)
+        } else {
+            None
+        };
+        Some((socket, journal, park))
     } else {
         None
     };
-    let (socket_fd, journal_fd) = match &owned {
-        Some((socket, journal)) => {
+    let (socket_fd, journal_fd, park_fds) = match &owned {
+        Some((socket, journal, park)) => {
             let socket_target = heartbeat_target + 1;
             handed.push((socket.as_fd(), socket_target));
             handed.push((journal.as_fd(), socket_target + 1));
-            (Some(socket_target), Some(socket_target + 1))
+            let park_fds = park.as_ref().map(|(tx, rx)| {
+                handed.push((tx.as_fd(), socket_target + 2));
+                handed.push((rx.as_fd(), socket_target + 3));
+                [socket_target + 2, socket_target + 3]
+            });
+            (Some(socket_target), Some(socket_target + 1), park_fds)
         }
-        None => (None, None),
+        None => (None, None, None),
     };
     let external = |ports: &[crate::plan::PortPlan], first: usize| -> Vec<ExternalPort> {
         ports
@@ -885,6 +895,7 @@ fn spawn_voter(
         socket_path,
         socket_fd,
         journal_fd,
+        park_fds,
         adopt: None,
         restart_timeout_ms: c.restart_timeout_ms,
         start_timeout_ms: c.start_timeout_ms,
@@ -1104,7 +1115,7 @@ fn supervise(
 }
 
 /// Why a voter's end stops the system, where nothing would replace it: it gave up on its
-/// component, or it died and its component's voter is not restarted (an unmodified program).
+/// component, or it died and nothing was kept to restart it with.
 fn unreplaced_voter_death(c: &Child) -> Option<String> {
     c.watch.as_ref()?;
     match c.status? {
@@ -1115,7 +1126,7 @@ fn unreplaced_voter_death(c: &Child) -> Option<String> {
         status if !status.success() && c.respawn.is_none() => {
             let died = c.why.clone().unwrap_or_else(|| status.to_string());
             Some(format!(
-                "the voter of component {} (pid {}) died: {died}; a voter of an unmodified program is not restarted",
+                "the voter of component {} (pid {}) died: {died}; nothing was kept to restart it with",
                 c.component, c.pid
             ))
         }

@@ -109,6 +109,12 @@ pub struct VoterPlan {
     /// successor needs to take the component over. `None`: no journal, no successor.
     #[serde(default)]
     pub journal_fd: Option<RawFd>,
+    /// An unmodified program's voter under a journal: the two ends of a socket pair
+    /// (`SOCK_SEQPACKET`, sending end first) that bootstrap made and keeps, in which the voter
+    /// parks the voter's ends of every replica's pipes (`voter/src/park.rs`), so that they
+    /// outlive it and its successor takes them over.
+    #[serde(default)]
+    pub park_fds: Option<[RawFd; 2]>,
     /// Set when this voter succeeds one that died or stopped: it adopts the replicas its
     /// journal names instead of starting new ones.
     #[serde(default)]

@@ -1039,6 +1039,33 @@ pub fn tee(from: BorrowedFd<'_>, to: BorrowedFd<'_>, len: usize) -> io::Result<u
     }
 }
 
+/// `splice(2)` between two pipes without blocking: moves up to `len` bytes from the head of
+/// pipe `from` to the tail of pipe `to` (the kernel moves its buffers: no copy). `Ok(0)`:
+/// `from` is empty and has no writer left; `WouldBlock`: `from` is empty, or `to` is full.
+pub fn splice_pipes(from: BorrowedFd<'_>, to: BorrowedFd<'_>, len: usize) -> io::Result<usize> {
+    loop {
+        // SAFETY: two pipe fds open for the borrow; null offsets are what splice takes for
+        // pipes; no memory of ours is touched.
+        let n = unsafe {
+            libc::splice(
+                from.as_raw_fd(),
+                std::ptr::null_mut(),
+                to.as_raw_fd(),
+                std::ptr::null_mut(),
+                len,
+                libc::SPLICE_F_NONBLOCK | libc::SPLICE_F_MOVE,
+            )
+        };
+        if n >= 0 {
+            return Ok(n as usize);
+        }
+        let e = io::Error::last_os_error();
+        if e.kind() != io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+}
+
 /// Everything readable from `fd` now, without blocking: reads while a zero-timeout poll says
 /// there are bytes, until the end of the stream. For a pipe whose writer is gone (a dead
 /// voter's), that is all it holds.

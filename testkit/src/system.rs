@@ -291,6 +291,26 @@ pub struct Outcome {
 }
 
 impl Outcome {
+    /// The `voter_restart` events, which must be `kills` (one per voter killed); prints how
+    /// long the restarts took (median, max).
+    pub fn voter_restarts(&self, kills: usize) -> Vec<&Event> {
+        use s3res_protocol::event::EventKind;
+        let restarts: Vec<&Event> = self
+            .events
+            .iter()
+            .filter(|e| e.kind == EventKind::VoterRestart)
+            .collect();
+        assert_eq!(restarts.len(), kills, "voter_restart events: {restarts:#?}");
+        let mut took: Vec<u64> = restarts.iter().filter_map(|e| e.recovery_us).collect();
+        took.sort_unstable();
+        if let (Some(median), Some(max)) = (took.get(took.len() / 2), took.last()) {
+            eprintln!(
+                "voter restart (bootstrap saw it gone -> adopted), us: median {median} max {max}"
+            );
+        }
+        restarts
+    }
+
     /// The fault events (everything but `start`, `recovery`, `anomaly` and `voter_restart`:
     /// an alarm is an opinion, what the voter concluded from it is a fault event of its own;
     /// a voter restart is about the voter, not a replica).
@@ -447,6 +467,51 @@ impl RunningSystem {
                     .is_ok_and(|c| String::from_utf8_lossy(&c).contains(&needle))
             })
             .map(|p| p.pid)
+    }
+
+    /// Waits until the system's one `s3res-voter` is a process other than `old` (the successor
+    /// bootstrap starts when a voter dies); its pid. Panics, with bootstrap's last lines, if
+    /// none comes within `timeout` or the system ends first.
+    pub fn next_voter(&mut self, old: i32, timeout: std::time::Duration) -> i32 {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            if let Some(pid) = self.process_named("s3res-voter").filter(|&p| p != old) {
+                return pid;
+            }
+            if self.try_status().is_some() || std::time::Instant::now() >= deadline {
+                let out = self.wait(std::time::Duration::from_secs(10));
+                panic!(
+                    "no new voter after {old} was killed (bootstrap: {}):\n{}",
+                    out.status,
+                    crate::tail(&out.stderr, 30)
+                );
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+    }
+
+    /// SIGKILLs the system's voter `kills` times, each at a seeded random moment 110–310 ms
+    /// after the last one's successor appeared (anywhere in a round, or between; at most 9 a
+    /// second, within the default restart budget of 10 within 1 s), waiting for each
+    /// successor. Panics if the system ends before the last kill (feed it more).
+    pub fn kill_voter_repeatedly(&mut self, rng: &mut crate::Rng, kills: usize) {
+        let mut voter = self.process_named("s3res-voter").expect("the voter");
+        for kill in 0..kills {
+            std::thread::sleep(std::time::Duration::from_micros(
+                110_000 + rng.below(200_000),
+            ));
+            assert!(
+                self.try_status().is_none(),
+                "the system ended before kill {kill}; feed it more"
+            );
+            crate::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+            let killed = std::time::Instant::now();
+            voter = self.next_voter(voter, std::time::Duration::from_secs(10));
+            eprintln!(
+                "kill {kill}: new voter {voter} after {:?}",
+                killed.elapsed()
+            );
+        }
     }
 
     /// Asks bootstrap to stop the system (SIGTERM).

@@ -16,25 +16,6 @@ fn stateful_echo(sys: &System, count: u32, work_us: u32) -> String {
     echo_pipeline(&sys.path("summary.json"), &echo, count, 0)
 }
 
-/// Waits until the system's one `s3res-voter` is a process other than `old`; its pid.
-fn next_voter(run: &mut s3res_testkit::RunningSystem, old: i32, timeout: Duration) -> i32 {
-    let deadline = Instant::now() + timeout;
-    loop {
-        if let Some(pid) = run.process_named("s3res-voter").filter(|&p| p != old) {
-            return pid;
-        }
-        if run.try_status().is_some() || Instant::now() >= deadline {
-            let out = run.wait(Duration::from_secs(10));
-            panic!(
-                "no new voter after {old} was killed (bootstrap: {}):\n{}",
-                out.status,
-                s3res_testkit::tail(&out.stderr, 30)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(2));
-    }
-}
-
 /// SIGKILL of the voter, 20 times while frames flow, each at a seeded random moment: every
 /// frame reaches the sink exactly once and in order, the echo's count never breaks, every
 /// kill is a `voter_restart` event, and the run ends cleanly with nothing left behind.
@@ -82,23 +63,7 @@ fn kill_voters_and_check(sys: System, desc: &str, count: u32, what: &str) {
     let summary = sys.path("summary.json");
     let mut run = sys.start(desc);
     run.wait_for_replicas("echo", 3);
-    let mut voter = run.process_named("s3res-voter").expect("the echo's voter");
-    for kill in 0..KILLS {
-        // Between 110 and 310 ms after the last restart: anywhere in a round, or between; at
-        // most 9 kills a second, within the default restart budget (10 within 1 s).
-        std::thread::sleep(Duration::from_micros(110_000 + rng.below(200_000)));
-        assert!(
-            run.try_status().is_none(),
-            "the system ended before kill {kill}; feed more frames"
-        );
-        s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
-        let killed = Instant::now();
-        voter = next_voter(&mut run, voter, Duration::from_secs(10));
-        eprintln!(
-            "kill {kill}: new voter {voter} after {:?}",
-            killed.elapsed()
-        );
-    }
+    run.kill_voter_repeatedly(&mut rng, KILLS);
     // A bound, not a speed test: the flood takes about 13 s alone in a debug build.
     let out = run.wait(Duration::from_secs(180));
     for e in out.events.iter().filter(|e| {
@@ -125,12 +90,7 @@ fn kill_voters_and_check(sys: System, desc: &str, count: u32, what: &str) {
         notable.join("\n"),
         s3res_testkit::tail(&out.stderr, 30)
     );
-    let restarts: Vec<_> = out
-        .events
-        .iter()
-        .filter(|e| e.kind == EventKind::VoterRestart)
-        .collect();
-    assert_eq!(restarts.len(), KILLS, "voter_restart events: {restarts:#?}");
+    let restarts = out.voter_restarts(KILLS);
     let replayed = restarts
         .iter()
         .filter(|e| {
@@ -141,13 +101,6 @@ fn kill_voters_and_check(sys: System, desc: &str, count: u32, what: &str) {
         })
         .count();
     eprintln!("{replayed} of {KILLS} restarts replayed input ({what})");
-    let mut took: Vec<u64> = restarts.iter().filter_map(|e| e.recovery_us).collect();
-    took.sort_unstable();
-    eprintln!(
-        "voter restart (bootstrap saw it gone -> adopted), us: median {} max {}",
-        took[took.len() / 2],
-        took[took.len() - 1]
-    );
     assert_sink_whole(&summary, count);
     run.assert_nothing_left();
 }

@@ -13,6 +13,7 @@ use replica_rt::sys;
 
 use crate::clock::Instant;
 use crate::journal::{self, SlotEntry};
+use crate::park::{Parked, ParkedSet, ParkingLot};
 use crate::plan::VoterPlan;
 use crate::recovery::{read_exact_by, send_pipes};
 use crate::replica::{Replica, ReplicaPipes};
@@ -23,6 +24,9 @@ pub(crate) struct Lost {
     pub(crate) pid: libc::pid_t,
     /// It was gone (`true`), or alive but did not rebind in time (killed).
     pub(crate) died: bool,
+    /// Why it was killed, if not for being late (an unmodified program's replica whose pipes
+    /// were not found parked).
+    pub(crate) why: Option<&'static str>,
 }
 
 /// What the adoption found.
@@ -57,6 +61,7 @@ pub(crate) fn replicas(
                 slot,
                 pid: 0,
                 died: true,
+                why: None,
             });
             continue;
         };
@@ -70,6 +75,7 @@ pub(crate) fn replicas(
                 slot,
                 pid: entry.pid,
                 died: true,
+                why: None,
             }),
         }
     }
@@ -100,6 +106,7 @@ pub(crate) fn replicas(
                     slot: gone.slot,
                     pid: gone.entry.pid,
                     died: true,
+                    why: None,
                 });
             }
         }
@@ -124,6 +131,7 @@ pub(crate) fn replicas(
             slot: late.slot,
             pid: late.entry.pid,
             died: false,
+            why: None,
         });
     }
     adopted
@@ -160,4 +168,106 @@ fn rebind(
     }
     let Awaited { slot, entry, pidfd } = awaited.remove(k);
     Ok((slot, Replica::adopted(pid, pidfd, pipes, entry)))
+}
+
+/// Takes over an unmodified program's replicas (see `lines.rs`): they cannot rebind, so each
+/// one the journal names comes back on the pipes its predecessor parked (`park.rs`), found
+/// by slot, pid and start time. A replica named but not parked (its voter died in between)
+/// has no pipes a successor could write to: it is killed, and its slot refilled. A parked set
+/// the journal does not name belongs to a replica started by a voter that died before it
+/// named it: that process, if it is still the one parked, is killed (nothing would ever end
+/// its input). The parking queue keeps the sets taken (see [`ParkingLot::rotate`]).
+pub(crate) fn parked_replicas(
+    plan: &VoterPlan,
+    park: &mut ParkingLot,
+    found: &journal::Found,
+    mut on_adopt: impl FnMut(libc::pid_t, usize),
+) -> Adopted {
+    let table = &found.slots;
+    let named = |who: &Parked| {
+        table
+            .get(who.slot)
+            .copied()
+            .flatten()
+            .is_some_and(|e| e.pid == who.pid && e.start_time == who.start_time)
+    };
+    let mut sets: Vec<Option<ParkedSet>> = (0..plan.replicas).map(|_| None).collect();
+    match park.rotate(named) {
+        Ok(rotation) => {
+            for stray in rotation.dropped {
+                kill_if_still(stray.pid, stray.start_time);
+            }
+            for set in rotation.kept {
+                let slot = set.who.slot;
+                if let Some(place) = sets.get_mut(slot) {
+                    *place = Some(set);
+                }
+            }
+        }
+        Err(e) => tracing::error!(error = %e, "could not read the parked pipes back"),
+    }
+    let mut adopted = Adopted {
+        slots: (0..plan.replicas).map(|_| None).collect(),
+        lost: Vec::new(),
+    };
+    for (slot, entry) in table.iter().enumerate() {
+        let lost = |pid, died, why| Lost {
+            slot,
+            pid,
+            died,
+            why,
+        };
+        let Some(entry) = *entry else {
+            adopted.lost.push(lost(0, true, None));
+            continue;
+        };
+        let pidfd = match sys::pidfd_open(entry.pid) {
+            Ok(pidfd) if journal::start_time(entry.pid) == Some(entry.start_time) => pidfd,
+            _ => {
+                adopted.lost.push(lost(entry.pid, true, None));
+                continue;
+            }
+        };
+        let Some(set) = sets[slot].take() else {
+            let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+            adopted.lost.push(lost(
+                entry.pid,
+                false,
+                Some("its pipes were not found parked by the voter that died; killed"),
+            ));
+            continue;
+        };
+        let counts = found.lines.get(slot).copied().unwrap_or_default();
+        match Replica::adopted_parked(plan, entry, pidfd, set.fds, counts) {
+            Ok(replica) => {
+                on_adopt(replica.pid, slot);
+                tracing::info!(
+                    replica = slot,
+                    pid = replica.pid,
+                    "adopted on its parked pipes"
+                );
+                adopted.slots[slot] = Some(replica);
+            }
+            Err((pidfd, e)) => {
+                tracing::warn!(replica = slot, pid = entry.pid, error = %e, "cannot take over its parked pipes");
+                let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+                adopted.lost.push(lost(
+                    entry.pid,
+                    false,
+                    Some("its parked pipes could not be taken over; killed"),
+                ));
+            }
+        }
+    }
+    adopted
+}
+
+/// SIGKILL to `pid` if it is still the process that started at `start_time`.
+fn kill_if_still(pid: libc::pid_t, start_time: u64) {
+    if let Ok(pidfd) = sys::pidfd_open(pid) {
+        if journal::start_time(pid) == Some(start_time) {
+            tracing::info!(pid, "killing a replica whose voter died before naming it");
+            let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+        }
+    }
 }

@@ -22,6 +22,56 @@ pub struct FrameWriter {
     start: usize,
     /// Frames go into the pipe whole or not at all (see [`FrameWriter::whole_frames`]).
     whole: Option<Whole>,
+    /// An unmodified program's stdin: lines pass through a staging pipe (see
+    /// [`FrameWriter::staged`]).
+    staging: Option<Staging>,
+}
+
+/// The staging pipe of an unmodified program's stdin: each line is written into it with one
+/// `write`, and moved on with `splice`, so that a voter's successor can tell a line given
+/// from one not written (see "Lines" in `journal.rs`).
+#[derive(Debug)]
+pub struct Staging {
+    r: OwnedFd,
+    w: OwnedFd,
+    /// Bytes in the staging pipe, not yet moved on.
+    held: usize,
+    capacity: usize,
+}
+
+impl Staging {
+    /// A fresh staging pipe with room for a line of `max_frame` bytes and its newline.
+    pub fn new(max_frame: usize) -> io::Result<Staging> {
+        let (r, w) = sys::pipe()?;
+        Self::adopt(r, w, max_frame)
+    }
+
+    /// A staging pipe a predecessor left (with whatever it still holds).
+    pub fn adopt(r: OwnedFd, w: OwnedFd, max_frame: usize) -> io::Result<Staging> {
+        sys::set_nonblocking(r.as_fd(), true)?;
+        sys::set_nonblocking(w.as_fd(), true)?;
+        let mut capacity = sys::pipe_size(w.as_fd())?;
+        if capacity < max_frame + 1 {
+            capacity = sys::set_pipe_size(w.as_fd(), max_frame + 1).unwrap_or(capacity);
+        }
+        let held = sys::bytes_in_pipe(r.as_fd())?;
+        Ok(Staging {
+            r,
+            w,
+            held,
+            capacity,
+        })
+    }
+
+    /// Bytes in it, not yet moved on.
+    pub fn held(&self) -> usize {
+        self.held
+    }
+
+    /// Its two ends (the read end first), for parking beside the program's pipes.
+    pub fn ends(&self) -> [BorrowedFd<'_>; 2] {
+        [self.r.as_fd(), self.w.as_fd()]
+    }
 }
 
 /// What a writer of whole frames keeps: where each queued frame ends, and the pipe's size.
@@ -43,7 +93,25 @@ impl FrameWriter {
             pending: Vec::new(),
             start: 0,
             whole: None,
+            staging: None,
         })
+    }
+
+    /// A writer of lines into an unmodified program's stdin through `staging`:
+    /// [`send`](Self::send) only writes the line into the staging pipe, and
+    /// [`flush`](Self::flush) moves it on; the caller journals in between (see
+    /// `Core::deliver_decoded`). Bytes queued raw (a fork child's unread input) go straight
+    /// into the pipe, before the staging pipe's.
+    pub fn staged(fd: OwnedFd, staging: Staging) -> io::Result<Self> {
+        Ok(FrameWriter {
+            staging: Some(staging),
+            ..FrameWriter::lines(fd)?
+        })
+    }
+
+    /// The staging pipe, if this writer has one.
+    pub fn staging(&self) -> Option<&Staging> {
+        self.staging.as_ref()
     }
 
     /// A writer that never leaves part of a frame in the pipe: a frame larger than `PIPE_BUF`
@@ -87,8 +155,12 @@ impl FrameWriter {
         })
     }
 
-    /// Queues a whole frame and writes as much as the pipe takes now.
+    /// Queues a whole frame and writes as much as the pipe takes now (a staged writer: writes
+    /// the line into its staging pipe, whole, and no further).
     pub fn send(&mut self, payload: &[u8]) -> io::Result<()> {
+        if let Some(staging) = self.staging.as_mut() {
+            return stage_line(staging, payload);
+        }
         self.compact();
         if self.lines {
             self.pending.extend_from_slice(payload);
@@ -119,6 +191,11 @@ impl FrameWriter {
         &self.pending[self.start..]
     }
 
+    /// How many bytes are not in the pipe yet: queued, or held in the staging pipe.
+    pub fn unwritten_len(&self) -> usize {
+        self.pending.len() - self.start + self.staging.as_ref().map_or(0, |s| s.held)
+    }
+
     /// Frames queued and not yet written whole, as far as the writer can tell: a writer of
     /// whole frames counts them (control frames too); any other can only say "none" (`Some(0)`)
     /// or "some part of a frame" (`None`).
@@ -130,7 +207,7 @@ impl FrameWriter {
     }
 
     pub fn has_pending(&self) -> bool {
-        self.start < self.pending.len()
+        self.start < self.pending.len() || self.staging.as_ref().is_some_and(|s| s.held > 0)
     }
 
     /// Drops everything queued (the reader is gone).
@@ -147,16 +224,27 @@ impl FrameWriter {
         if self.whole.is_some() {
             return self.flush_whole();
         }
-        while self.has_pending() {
+        while self.start < self.pending.len() {
             match sys::write(self.fd.as_fd(), &self.pending[self.start..]) {
                 Ok(n) => self.start += n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
                 Err(e) => return Err(e),
             }
         }
-        if !self.has_pending() {
-            self.pending.clear();
-            self.start = 0;
+        if self.start < self.pending.len() {
+            return Ok(());
+        }
+        self.pending.clear();
+        self.start = 0;
+        if let Some(staging) = self.staging.as_mut() {
+            while staging.held > 0 {
+                match sys::splice_pipes(staging.r.as_fd(), self.fd.as_fd(), staging.held) {
+                    Ok(0) => break,
+                    Ok(n) => staging.held -= n.min(staging.held),
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                    Err(e) => return Err(e),
+                }
+            }
         }
         Ok(())
     }
@@ -214,6 +302,35 @@ impl AsFd for FrameWriter {
     }
 }
 
+/// Writes `payload` and a newline into an empty staging pipe with one `write`.
+fn stage_line(staging: &mut Staging, payload: &[u8]) -> io::Result<()> {
+    if staging.held > 0 {
+        // Only a program that answered without reading its whole line leaves one here.
+        return Err(io::Error::other(
+            "the program has not read all of its previous line",
+        ));
+    }
+    let len = payload.len() + 1;
+    if len > staging.capacity {
+        return Err(io::Error::other(format!(
+            "a line of {len} bytes does not fit the staging pipe ({} bytes)",
+            staging.capacity
+        )));
+    }
+    let mut line = Vec::with_capacity(len);
+    line.extend_from_slice(payload);
+    line.push(b'\n');
+    // Into an empty pipe with room for all of it, a non-blocking write writes everything.
+    let n = sys::write(staging.w.as_fd(), &line)?;
+    staging.held = n;
+    if n != len {
+        return Err(io::Error::other(format!(
+            "wrote {n} of a line's {len} bytes into the staging pipe"
+        )));
+    }
+    Ok(())
+}
+
 /// What one [`FrameReader::fill`] saw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Fill {
@@ -229,6 +346,22 @@ pub struct FrameReader {
     fd: OwnedFd,
     pub decoder: FrameDecoder,
     closed: bool,
+    /// An unmodified program's stdout under a journaled voter: peeked, not read (see
+    /// [`FrameReader::peeked_lines`]).
+    lines_peek: Option<LinePeek>,
+}
+
+/// What a reader that peeks an unmodified program's answers keeps: the lines decoded but
+/// still in the pipe, taken off only once their round is committed (see "Lines" in
+/// `journal.rs`).
+#[derive(Debug)]
+struct LinePeek {
+    peek: Peek,
+    /// Lines decoded and not taken off the pipe yet, each with its newline, oldest first.
+    untaken: std::collections::VecDeque<Vec<u8>>,
+    /// Their bytes in all: what every fresh peek starts with.
+    untaken_bytes: usize,
+    buf: Vec<u8>,
 }
 
 impl FrameReader {
@@ -238,7 +371,59 @@ impl FrameReader {
             fd,
             decoder: FrameDecoder::new(max_frame),
             closed: false,
+            lines_peek: None,
         })
+    }
+
+    /// A reader of an unmodified program's stdout that leaves the answers in the pipe until
+    /// they are taken ([`take_line`](Self::front_line)): each fill peeks the pipe afresh
+    /// (`tee`) past the lines already decoded. Call [`decoded_line`](Self::decoded_line) with
+    /// every line the decoder returns.
+    pub fn peeked_lines(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
+        let mut reader = FrameReader::lines(fd, max_frame)?;
+        reader.lines_peek = Some(LinePeek {
+            peek: Peek::for_channel(reader.fd.as_fd())?,
+            untaken: Default::default(),
+            untaken_bytes: 0,
+            buf: Vec::new(),
+        });
+        Ok(reader)
+    }
+
+    /// A peeking reader: the decoder returned `line` (without its newline), which stays in
+    /// the pipe until taken.
+    pub fn decoded_line(&mut self, line: &[u8]) {
+        if let Some(lp) = self.lines_peek.as_mut() {
+            let mut raw = Vec::with_capacity(line.len() + 1);
+            raw.extend_from_slice(line);
+            raw.push(b'\n');
+            lp.untaken_bytes += raw.len();
+            lp.untaken.push_back(raw);
+        }
+    }
+
+    /// A peeking reader: the oldest line decoded and not taken yet, with its newline.
+    pub fn front_line(&self) -> Option<&[u8]> {
+        self.lines_peek.as_ref()?.untaken.front().map(Vec::as_slice)
+    }
+
+    /// A peeking reader: the oldest line decoded is off the pipe now.
+    pub fn took_front_line(&mut self) {
+        if let Some(lp) = self.lines_peek.as_mut() {
+            if let Some(raw) = lp.untaken.pop_front() {
+                lp.untaken_bytes -= raw.len();
+            }
+        }
+    }
+
+    /// A peeking reader: how many lines it decoded that are not taken yet.
+    pub fn untaken_lines(&self) -> usize {
+        self.lines_peek.as_ref().map_or(0, |lp| lp.untaken.len())
+    }
+
+    /// Whether this reader peeks (an unmodified program's stdout under a journaled voter).
+    pub fn peeks(&self) -> bool {
+        self.lines_peek.is_some()
     }
 
     /// A reader of a channel whose writer may be restarted and replay frames behind a resume
@@ -265,6 +450,9 @@ impl FrameReader {
     pub fn fill(&mut self) -> io::Result<Fill> {
         if self.closed {
             return Ok(Fill::Closed);
+        }
+        if self.lines_peek.is_some() {
+            return self.fill_peeked_lines();
         }
         // One read per call: a replica that floods its pipe gets decoded (and stopped at its
         // first bad or extra frame) before we read more, so memory stays bounded.
@@ -319,14 +507,10 @@ impl FrameReader {
         if self.closed {
             return Ok(Fill::Closed);
         }
-        let n = match sys::tee(self.fd.as_fd(), peek.w.as_fd(), peek.cap) {
-            Ok(0) => {
-                self.closed = true;
-                return Ok(Fill::Closed);
-            }
-            Ok(n) => n,
-            Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(Fill::Open),
-            Err(e) => return Err(e),
+        let n = match self.tee_all(peek)? {
+            Some(0) => return Ok(Fill::Open),
+            Some(n) => n,
+            None => return Ok(Fill::Closed),
         };
         self.decoder.keep_pending(keep);
         let mut left = n;
@@ -345,6 +529,63 @@ impl FrameReader {
             return Ok(Fill::Closed);
         }
         Ok(Fill::Open)
+    }
+
+    /// [`fill`](Self::fill) of a reader that peeks lines: everything in the pipe past the
+    /// lines decoded and not taken replaces what was peeked before.
+    fn fill_peeked_lines(&mut self) -> io::Result<Fill> {
+        let Some(mut lp) = self.lines_peek.take() else {
+            return Ok(Fill::Open);
+        };
+        let filled = self.fill_past_untaken(&mut lp);
+        self.lines_peek = Some(lp);
+        filled
+    }
+
+    fn fill_past_untaken(&mut self, lp: &mut LinePeek) -> io::Result<Fill> {
+        let n = match self.tee_all(&lp.peek)? {
+            Some(0) => return Ok(Fill::Open),
+            Some(n) => n,
+            None => return Ok(Fill::Closed),
+        };
+        lp.buf.resize(n, 0);
+        let mut got = 0;
+        while got < n {
+            match sys::read(lp.peek.r.as_fd(), &mut lp.buf[got..]) {
+                Ok(0) => break,
+                Ok(k) => got += k,
+                Err(e) => return Err(e),
+            }
+        }
+        if got < lp.untaken_bytes {
+            return Err(io::Error::other(format!(
+                "the pipe holds {got} bytes, less than the {} of its answers not taken",
+                lp.untaken_bytes
+            )));
+        }
+        self.decoder.keep_pending(0);
+        self.decoder.push(&lp.buf[lp.untaken_bytes..got]);
+        if !self.decoder.has_frame() && got == lp.untaken_bytes && self.hung_up()? {
+            // Nothing new, and the writer is gone: the lines decoded are all there is.
+            self.closed = true;
+            return Ok(Fill::Closed);
+        }
+        Ok(Fill::Open)
+    }
+
+    /// Copies everything the pipe holds into `peek` without taking it off: how many bytes
+    /// (`Some(0)`: none now), or `None` at the end (empty, and its writer gone: the reader is
+    /// closed).
+    fn tee_all(&mut self, peek: &Peek) -> io::Result<Option<usize>> {
+        match sys::tee(self.fd.as_fd(), peek.w.as_fd(), peek.cap) {
+            Ok(0) => {
+                self.closed = true;
+                Ok(None)
+            }
+            Ok(n) => Ok(Some(n)),
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(Some(0)),
+            Err(e) => Err(e),
+        }
     }
 
     /// Whether the writer has closed its end (the pipe may still hold bytes).
@@ -412,5 +653,79 @@ mod tests {
         dec.push(&drain(r.as_fd()).unwrap());
         assert_eq!(dec.next_frame().unwrap(), Some(&big[..]));
         assert_eq!(dec.next_frame().unwrap(), Some(&b"small"[..]));
+    }
+
+    /// A staged writer puts the line into its staging pipe only; a flush moves it on, as far
+    /// as the program's pipe takes it, and the rest waits in the staging pipe.
+    #[test]
+    fn a_staged_line_waits_in_its_staging_pipe_until_flushed() {
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        let mut writer = FrameWriter::staged(w, Staging::new(100_000).unwrap()).unwrap();
+        writer.send(b"abc").unwrap();
+        assert!(writer.has_pending());
+        assert_eq!(writer.unwritten_len(), 4);
+        assert_eq!(drain(r.as_fd()).unwrap(), b"");
+        writer.flush().unwrap();
+        assert!(!writer.has_pending());
+        assert_eq!(drain(r.as_fd()).unwrap(), b"abc\n");
+        // A line larger than the room left: part moves, the rest stays staged.
+        let capacity = sys::pipe_size(writer.as_fd()).unwrap();
+        let big = vec![b'x'; capacity + 1000];
+        writer.send(&big).unwrap();
+        writer.flush().unwrap();
+        assert!(writer.has_pending(), "the pipe cannot hold all of it");
+        assert!(writer.send(b"next").is_err(), "one line at a time");
+        let mut got = drain(r.as_fd()).unwrap();
+        writer.flush().unwrap();
+        got.extend(drain(r.as_fd()).unwrap());
+        assert!(!writer.has_pending());
+        assert_eq!(got.len(), big.len() + 1);
+    }
+
+    /// A peeking reader leaves the answers in the pipe: each fill decodes only what came after
+    /// the lines it decoded, until they are taken off.
+    #[test]
+    fn a_peeking_reader_decodes_each_line_once_and_leaves_it_in_the_pipe() {
+        let (r, w) = sys::pipe().unwrap();
+        let probe = r.try_clone().unwrap();
+        let mut reader = FrameReader::peeked_lines(r, 64).unwrap();
+        sys::write(w.as_fd(), b"1\n2\n3").unwrap();
+        assert_eq!(reader.fill().unwrap(), Fill::Open);
+        let mut seen = Vec::new();
+        while let Some(line) = reader.decoder.next_frame().unwrap() {
+            let line = line.to_vec();
+            reader.decoded_line(&line);
+            seen.push(line);
+        }
+        assert_eq!(seen, vec![b"1".to_vec(), b"2".to_vec()]);
+        assert_eq!(
+            sys::bytes_in_pipe(probe.as_fd()).unwrap(),
+            5,
+            "nothing taken"
+        );
+        sys::write(w.as_fd(), b"\n").unwrap();
+        reader.fill().unwrap();
+        assert_eq!(reader.decoder.next_frame().unwrap(), Some(&b"3"[..]));
+        reader.decoded_line(b"3");
+        assert_eq!(reader.decoder.next_frame().unwrap(), None);
+        assert_eq!(reader.front_line(), Some(&b"1\n"[..]));
+        // Taken off (as the journal does it), the next fill still decodes nothing twice.
+        let mut two = [0u8; 2];
+        assert_eq!(sys::read(probe.as_fd(), &mut two).unwrap(), 2);
+        reader.took_front_line();
+        assert_eq!(reader.untaken_lines(), 2);
+        reader.fill().unwrap();
+        assert_eq!(reader.decoder.next_frame().unwrap(), None);
+        drop(w);
+        let mut rest = [0u8; 4];
+        assert_eq!(sys::read(probe.as_fd(), &mut rest).unwrap(), 4);
+        reader.took_front_line();
+        reader.took_front_line();
+        assert_eq!(
+            reader.fill().unwrap(),
+            Fill::Closed,
+            "empty, and its writer gone"
+        );
     }
 }

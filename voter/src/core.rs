@@ -27,6 +27,7 @@ use crate::decision::Decision;
 use crate::event::{Cause, Event, EventKind, RecoveryMethod};
 use crate::journal::{self, Committed, InputState, Journal, SlotEntry};
 use crate::monitor::{Captures, Monitors};
+use crate::park::ParkingLot;
 use crate::plan::{Framing, Mode as PlanMode, VoterPlan};
 use crate::ports::{
     beat, heartbeat_ending, kill_all_children, reap_children, stop_requested, wait_until,
@@ -208,7 +209,7 @@ pub(crate) struct Core {
     /// their decoders count in (a replayed frame is sent behind `RESUME` with its number).
     pub(crate) delivered: Vec<u64>,
     /// The pid recorded in the journal's replica table, per slot.
-    journaled_pids: Vec<libc::pid_t>,
+    pub(crate) journaled_pids: Vec<libc::pid_t>,
     /// Rounds its predecessors started (an adopting voter numbers on from there).
     pub(crate) adopted_rounds: u64,
     /// The state a commit records, kept for its capacity.
@@ -221,6 +222,9 @@ pub(crate) struct Core {
     /// What an adopting voter found: the outputs' committed counts and, per slot, the
     /// adopted replica's offsets (stream mode lines its ledger up with them).
     pub(crate) adopted_streams: Option<AdoptedStreams>,
+    /// An unmodified program's voter under a journal: where its replicas' pipes are parked so
+    /// that they outlive it (`park.rs`, `lines.rs`).
+    pub(crate) park: Option<ParkingLot>,
 }
 
 /// What a stream voter needs from its predecessor's journal (see [`Core::slot_offsets`]).
@@ -244,7 +248,12 @@ impl Core {
             events,
             listener,
             journal,
+            park,
         } = Endpoints::open(&plan)?;
+        let mut park = match park {
+            Some((tx, rx)) => Some(ParkingLot::new(tx, rx).map_err(io_err("the parking socket"))?),
+            None => None,
+        };
         // Calibrated before the first round, so that it never eats into a deadline; a
         // successor takes its predecessor's calibration over.
         let inherited = journal
@@ -264,9 +273,11 @@ impl Core {
                     Journal::open(fd, &plan).map_err(|e| VoterError::Plan(e.to_string()))?;
                 journaled_inputs(&mut inputs, &plan)?;
                 whole_frame_outputs(&mut outputs, &plan)?;
-                let adopted = adopt::replicas(&plan, &listener, &found.slots, |pid, slot| {
-                    rt.apply_to_replica(pid, slot)
-                });
+                let on_adopt = |pid, slot| rt.apply_to_replica(pid, slot);
+                let adopted = match park.as_mut() {
+                    Some(park) => adopt::parked_replicas(&plan, park, &found, on_adopt),
+                    None => adopt::replicas(&plan, &listener, &found.slots, on_adopt),
+                };
                 (Some(journal), adopted.slots, Some((found, adopted.lost)))
             }
             journal_fd => {
@@ -319,6 +330,7 @@ impl Core {
             slot_offsets: Vec::new(),
             adopted_streams: None,
             last_delivered_len: Vec::new(),
+            park,
         };
         core.last_delivered_len = vec![0; core.plan.inputs.len()];
         core.slot_offsets = vec![[0; MAX_PORTS]; core.plan.replicas];
@@ -386,6 +398,13 @@ impl Core {
         for slot in 0..self.slots.len() {
             self.number_inputs_of(slot);
         }
+        let mut lost = lost;
+        let mut lines = None;
+        if self.park.is_some() {
+            let (gone, found) = self.resume_lines();
+            lost.extend(gone);
+            lines = Some(found);
+        }
         let now = Instant::now();
         for gone in lost {
             let cause = if gone.died {
@@ -397,7 +416,9 @@ impl Core {
                 let mut ev = Event::caused(&self.plan.system, &self.plan.component, cause);
                 ev.replica = Some(gone.slot);
                 ev.pid = Some(gone.pid);
-                ev.detail = Some(if gone.died {
+                ev.detail = Some(if let Some(why) = gone.why {
+                    why.into()
+                } else if gone.died {
                     "died while its voter was being replaced".into()
                 } else {
                     format!(
@@ -426,8 +447,9 @@ impl Core {
             Some(s3res_protocol::clock::monotonic_ns().saturating_sub(adoption.gone_ns) / 1000);
         let kept = self.slots.iter().flatten().count();
         let replayed: usize = found.logs.iter().map(Vec::len).sum();
+        let lines = lines.map(|l| format!("; {l}")).unwrap_or_default();
         ev.detail = Some(format!(
-            "voter {} ({}) replaced; {kept} of {} replicas adopted, {replayed} bytes of input replayed",
+            "voter {} ({}) replaced; {kept} of {} replicas adopted, {replayed} bytes of input replayed{lines}",
             adoption.previous_pid,
             adoption.why,
             self.slots.len()
@@ -440,24 +462,36 @@ impl Core {
     /// Brings the journal's replica table up to date with the slots (a `/proc` read for each
     /// slot whose process changed).
     pub(crate) fn journal_slots(&mut self) {
-        let Some(journal) = self.journal.as_ref() else {
+        if self.journal.is_none() {
             return;
-        };
-        for (slot, rep) in self.slots.iter().enumerate() {
-            let pid = rep.as_ref().map_or(0, |r| r.pid);
+        }
+        for slot in 0..self.slots.len() {
+            let pid = self.slots[slot].as_ref().map_or(0, |r| r.pid);
             if pid == self.journaled_pids[slot] {
                 continue;
             }
-            let entry = rep.as_ref().and_then(|r| {
+            let mut start_time = self.slots[slot]
+                .as_ref()
+                .and_then(|r| journal::start_time(r.pid));
+            // An unmodified program's pipes are parked first: a successor adopts a replica it
+            // finds both parked and named.
+            if let Some(t) = start_time.filter(|_| self.parks_lines()) {
+                if !self.park_new_replica(slot, t) {
+                    start_time = None;
+                }
+            }
+            let entry = self.slots[slot].as_ref().and_then(|r| {
                 Some(SlotEntry {
                     pid: r.pid,
-                    start_time: journal::start_time(r.pid)?,
+                    start_time: start_time?,
                     state_lost: r.state_lost,
                     proven: r.proven,
                     offsets: self.slot_offsets[slot],
                 })
             });
-            journal.set_slot(slot, entry);
+            if let Some(journal) = self.journal.as_ref() {
+                journal.set_slot(slot, entry);
+            }
             self.journaled_pids[slot] = pid;
         }
     }
@@ -503,7 +537,7 @@ impl Core {
                 .iter()
                 .flatten()
                 .filter_map(|r| r.inputs.get(i))
-                .map(|input| input.writer.unwritten().len())
+                .map(|input| input.writer.unwritten_len())
                 .max()
                 .unwrap_or(0);
             if pending == 0 {
@@ -597,6 +631,8 @@ impl Core {
     /// The end of the replicas' input, on purpose: an END frame (a replica tells it from its
     /// voter's death, after which it would wait for a successor), then our ends closed.
     pub(crate) fn end_replica_inputs(&mut self) {
+        // Nobody else may hold their pipes open now, or the program never sees its end.
+        self.release_parked();
         let frames = self.plan.framing != Framing::Lines;
         for rep in self.slots.iter_mut().flatten() {
             for input in &mut rep.inputs {
@@ -895,6 +931,27 @@ impl Core {
         };
         let frame_len = frame.len();
         let mut delivery = Delivery::default();
+        if self.park.is_some() {
+            // An unmodified program's lines, each given once (see `lines.rs`).
+            let frame = frame.to_vec();
+            let number = self.delivered[i] + 1;
+            for r in 0..self.slots.len() {
+                if self.slots[r].is_none() {
+                    continue;
+                }
+                match self.give_line(r, i, &frame, number) {
+                    Ok(()) => delivery.members = delivery.members.with(r),
+                    Err(e) => delivery.faulty.push((
+                        r,
+                        Cause::PipeError,
+                        format!("input pipe `{}` broke: {e}", self.inputs[i].name),
+                    )),
+                }
+            }
+            self.delivered[i] += 1;
+            self.last_delivered_len[i] = frame::HEADER_LEN + frame_len;
+            return Some(delivery);
+        }
         for (r, rep) in self.slots.iter_mut().enumerate() {
             let Some(rep) = rep else { continue };
             match rep.inputs[i].writer.send(frame) {
@@ -905,7 +962,7 @@ impl Core {
                     format!("input pipe `{}` broke: {e}", input.name),
                 )),
             }
-            let backlog = rep.inputs[i].writer.unwritten().len();
+            let backlog = rep.inputs[i].writer.unwritten_len();
             if let Some(limit) = backlog_limit.filter(|&l| backlog > l) {
                 // A replica that stopped reading an input no round waits on (stopped, spinning,
                 // stuck on another port) would make the voter queue for it without end.
@@ -1237,6 +1294,7 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
             }
             Token::ReplicaInputWritable(r, i) => {
                 let flushed = core.slots[r].as_mut().map(|rep| rep.flush_input(i));
+                core.note_moved(r);
                 if let Some(Err(e)) = flushed {
                     let detail = format!("input pipe `{}` broke: {e}", core.input_name(i));
                     m.fault(r, Cause::PipeError, detail);

@@ -32,6 +32,24 @@
 //! The replica table is not part of a record: each slot's entry is rewritten in place when
 //! the slot changes. An entry torn by a SIGKILL names a pid whose start time does not match,
 //! and the successor treats that slot as empty (it forks it from a sibling).
+//!
+//! **Lines (an unmodified program).** Its replicas neither count their input nor answer a
+//! replayed round again, so a successor must know, per replica, which lines it was given and
+//! which answers were taken off its stdout; their pipes outlive the voter (`park.rs`). Per
+//! slot the journal keeps three counts in the component's numbering of input frames:
+//! - *given*: lines written, each with one `write`, into a staging pipe beside the replica's
+//!   stdin (stored after the write); *moved*: lines moved whole from there into its stdin with
+//!   `splice` (stored once the staging pipe is empty). A successor that finds bytes in the
+//!   staging pipe moves them on: they are line `given + 1` if `moved == given` (the voter died
+//!   between the write and the store), else the rest of line `given`. One that finds it empty
+//!   with `moved < given` knows that line moved whole. No line is lost or given twice.
+//! - *taken*: answers read off the replica's stdout. The voter peeks answers (`tee`) and takes
+//!   one only once its round is committed, with one `read` straight into a journal slot it
+//!   filled beforehand with the complement of the bytes it peeked, a copy of which lies beside
+//!   it ([`Journal::take_line`]): a successor that finds the slot equal to the copy knows the
+//!   answer was taken, one that finds the complement knows it is still in the pipe (no byte
+//!   equals its complement). So a committed round's answers are dropped exactly once, and an
+//!   unfinished round's are still in the pipes for the successor to vote on.
 
 use std::io;
 use std::os::fd::{BorrowedFd, OwnedFd};
@@ -47,7 +65,7 @@ use replica_rt::frame::{CONTROL_BIT, HEADER_LEN, RESUME, RESUME_LEN};
 /// "s3resjnl", the header's first word.
 const MAGIC: u64 = u64::from_le_bytes(*b"s3resjnl");
 /// Layout version (a successor refuses a journal of another layout).
-const VERSION: u64 = 2;
+const VERSION: u64 = 3;
 /// What no frame header is: written where the next read into a log starts and ends.
 const MARKER: u32 = u32::MAX;
 const PAGE: usize = 4096;
@@ -73,6 +91,10 @@ const FLAG_PROVEN: u64 = 2;
 /// (`Ledger`'s `pos - received`), written with the slot's entry.
 const OFF_OFFSETS: usize = 1024;
 const OFFSETS_LEN: usize = 8 * MAX_PORTS;
+/// Lines, per slot: given, moved, taken, and the take in progress: its answer's number and
+/// length (see "Lines" above).
+const OFF_LINES: usize = 2048;
+const LINES_LEN: usize = 40;
 /// Stream mode, per output: frames written whole downstream, updated as they go (not part of
 /// a record: a stream successor goes on from there whatever its input commit says).
 const OFF_WRITTEN: usize = 3072;
@@ -109,6 +131,18 @@ pub(crate) struct SlotEntry {
     pub offsets: [u64; MAX_PORTS],
 }
 
+/// Where an unmodified program's replica stands, in the component's numbering of input
+/// frames (see "Lines" above).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LineCounts {
+    /// Lines written into its staging pipe.
+    pub given: u64,
+    /// Lines moved whole from the staging pipe into its stdin.
+    pub moved: u64,
+    /// Answers taken off its stdout.
+    pub taken: u64,
+}
+
 /// What a successor finds.
 #[derive(Debug)]
 pub(crate) struct Found {
@@ -116,6 +150,8 @@ pub(crate) struct Found {
     /// Per input: the bytes taken off the channel since the commit, whole frames.
     pub logs: Vec<Vec<u8>>,
     pub slots: Vec<Option<SlotEntry>>,
+    /// Lines: per slot, its counts, a take in progress resolved (empty for frames).
+    pub lines: Vec<LineCounts>,
 }
 
 /// The journal, mapped.
@@ -126,6 +162,9 @@ pub(crate) struct Journal {
     slots: usize,
     log_cap: usize,
     state_len: usize,
+    /// Lines: room for one answer and its newline (0 for frames); each slot has two, for the
+    /// copy and the take.
+    take_cap: usize,
     /// The record in force.
     current: usize,
     /// Per input: bytes in the current record's log.
@@ -162,6 +201,7 @@ impl Journal {
             slots: plan.replicas,
             log_cap,
             state_len,
+            take_cap: take_cap(plan),
             current,
             log_len: vec![0; plan.inputs.len()],
             last_take: vec![None; plan.inputs.len()],
@@ -184,13 +224,25 @@ impl Journal {
         HEADER + r * self.record_len()
     }
 
+    /// The whole journal's length.
+    fn len(&self) -> usize {
+        HEADER + 2 * self.record_len() + 2 * self.slots * self.take_cap
+    }
+
+    /// Where slot `s`'s copy of the answer being taken lies; the take itself follows it.
+    fn take_area(&self, s: usize) -> usize {
+        HEADER + 2 * self.record_len() + 2 * s * self.take_cap
+    }
+
     fn log(&self, r: usize, i: usize) -> usize {
         self.record(r) + self.state_len + i * self.log_cap
     }
 
     /// A new journal in the (empty) memfd `fd`: nothing delivered, nothing forwarded.
     pub(crate) fn create(fd: OwnedFd, plan: &VoterPlan) -> Result<Journal, JournalError> {
-        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > OFF_WRITTEN || plan.outputs.len() > MAX_PORTS
+        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > OFF_LINES
+            || OFF_LINES + LINES_LEN * plan.replicas > OFF_WRITTEN
+            || plan.outputs.len() > MAX_PORTS
         {
             return Err(JournalError::Mismatch(format!(
                 "{} replicas and {} outputs do not fit a journal's header",
@@ -200,7 +252,8 @@ impl Journal {
         }
         let (log_cap, state_len) = Self::layout(plan);
         let record_len = state_len + plan.inputs.len() * log_cap;
-        let region = SharedRegion::sized(fd, HEADER + 2 * record_len)?;
+        let takes = 2 * plan.replicas * take_cap(plan);
+        let region = SharedRegion::sized(fd, HEADER + 2 * record_len + takes)?;
         let mut journal = Self::shaped(region, plan, 0);
         let h = &journal.region;
         h.u64_at(OFF_VERSION).store(VERSION, Ordering::Relaxed);
@@ -253,7 +306,7 @@ impl Journal {
         }
         let current = (word(OFF_CURRENT) & 1) as usize;
         let mut journal = Self::shaped(region, plan, current);
-        if journal.region.len() < HEADER + 2 * journal.record_len() {
+        if journal.region.len() < journal.len() {
             return Err(JournalError::Mismatch("shorter than its layout".into()));
         }
         let committed = journal.read_state(current);
@@ -264,12 +317,18 @@ impl Journal {
             logs.push(bytes);
         }
         let slots = (0..journal.slots).map(|s| journal.slot(s)).collect();
+        let lines = if journal.take_cap > 0 {
+            (0..journal.slots).map(|s| journal.line_counts(s)).collect()
+        } else {
+            Vec::new()
+        };
         Ok((
             journal,
             Found {
                 committed,
                 logs,
                 slots,
+                lines,
             },
         ))
     }
@@ -456,6 +515,13 @@ impl Journal {
         self.region.u64_at(base + 8 * o).load(Ordering::Relaxed)
     }
 
+    /// Frames delivered on input `i` that the record in force holds: every round up to that
+    /// frame is committed.
+    pub(crate) fn delivered_at(&self, i: usize) -> u64 {
+        let base = self.record(self.current) + 24 + 24 * i;
+        self.region.u64_at(base).load(Ordering::Relaxed)
+    }
+
     /// Records who is in `slot` (`None`: nobody).
     pub(crate) fn set_slot(&self, slot: usize, entry: Option<SlotEntry>) {
         let at = OFF_TABLE + SLOT_LEN * slot;
@@ -476,6 +542,96 @@ impl Journal {
                 r.u64_at(at).store(e.pid as u64, Ordering::Release);
             }
         }
+    }
+
+    // ----- lines (see "Lines" in the module docs) --------------------------------------------
+
+    fn lines_word(&self, slot: usize, k: usize) -> &std::sync::atomic::AtomicU64 {
+        self.region.u64_at(OFF_LINES + LINES_LEN * slot + 8 * k)
+    }
+
+    /// Records where slot `slot`'s new replica starts (before [`set_slot`](Self::set_slot)
+    /// names it), with no take in progress.
+    pub(crate) fn set_lines(&self, slot: usize, at: LineCounts) {
+        self.lines_word(slot, 3).store(0, Ordering::Release);
+        self.lines_word(slot, 0).store(at.given, Ordering::Relaxed);
+        self.lines_word(slot, 1).store(at.moved, Ordering::Relaxed);
+        self.lines_word(slot, 2).store(at.taken, Ordering::Release);
+    }
+
+    /// Line `n` is in slot `slot`'s staging pipe, written whole.
+    pub(crate) fn set_given(&self, slot: usize, n: u64) {
+        self.lines_word(slot, 0).store(n, Ordering::Release);
+    }
+
+    /// Line `n` has left slot `slot`'s staging pipe, whole, for its stdin.
+    pub(crate) fn set_moved(&self, slot: usize, n: u64) {
+        self.lines_word(slot, 1).store(n, Ordering::Release);
+    }
+
+    /// Takes the next answer of slot `slot` (`line`: its bytes with the newline, as peeked)
+    /// off `fd`, with one `read` into the journal that a successor can tell from not having
+    /// happened (see "Lines" above). An answer longer than the slot's room cannot be one
+    /// (the reader refuses lines over `max_frame`).
+    pub(crate) fn take_line(
+        &mut self,
+        slot: usize,
+        fd: BorrowedFd<'_>,
+        line: &[u8],
+    ) -> io::Result<()> {
+        let n = line.len();
+        if n == 0 || n > self.take_cap {
+            return Err(io::Error::other(format!(
+                "an answer of {n} bytes does not fit the journal's {} bytes",
+                self.take_cap
+            )));
+        }
+        let copy = self.take_area(slot);
+        let body = copy + self.take_cap;
+        let number = self.lines_word(slot, 2).load(Ordering::Relaxed) + 1;
+        // Filled before the take is announced: a successor compares only announced takes.
+        self.region.write_bytes(copy, line);
+        let complement: Vec<u8> = line.iter().map(|b| !b).collect();
+        self.region.write_bytes(body, &complement);
+        let k = OFF_LINES + LINES_LEN * slot;
+        self.region
+            .u64_at(k + 32)
+            .store(n as u64, Ordering::Relaxed);
+        self.region.u64_at(k + 24).store(number, Ordering::Release);
+        let got = self.region.read_from(fd, body, n)?;
+        let mut took = vec![0u8; got];
+        self.region.read_bytes(body, &mut took);
+        if took != line[..got] || got != n {
+            // The pipe did not hold what was peeked: nothing a successor could replay.
+            return Err(io::Error::other(format!(
+                "took {got} bytes that differ from the {n} peeked"
+            )));
+        }
+        self.lines_word(slot, 2).store(number, Ordering::Release);
+        Ok(())
+    }
+
+    /// Slot `slot`'s counts, with a take that was in progress resolved: taken if the journal
+    /// holds the answer's bytes where the take went, not if it still holds their complement.
+    fn line_counts(&self, slot: usize) -> LineCounts {
+        let word = |k| self.lines_word(slot, k).load(Ordering::Acquire);
+        let mut at = LineCounts {
+            given: word(0),
+            moved: word(1),
+            taken: word(2),
+        };
+        let (number, n) = (word(3), word(4) as usize);
+        if number == at.taken + 1 && n > 0 && n <= self.take_cap {
+            let mut copy = vec![0u8; n];
+            let mut body = vec![0u8; n];
+            self.region.read_bytes(self.take_area(slot), &mut copy);
+            self.region
+                .read_bytes(self.take_area(slot) + self.take_cap, &mut body);
+            if copy == body {
+                at.taken = number;
+            }
+        }
+        at
     }
 
     fn slot(&self, slot: usize) -> Option<SlotEntry> {
@@ -499,6 +655,15 @@ impl Journal {
         }
         Some(entry)
     }
+}
+
+/// Room for one answer of an unmodified program and its newline (0 for frames).
+fn take_cap(plan: &VoterPlan) -> usize {
+    if plan.framing != crate::plan::Framing::Lines {
+        return 0;
+    }
+    let max = plan.outputs.iter().map(|p| p.max_frame).max().unwrap_or(0);
+    (max + 1).next_multiple_of(8)
 }
 
 /// The deadline clock's calibration a predecessor recorded in the journal behind `fd`, if any
@@ -600,6 +765,56 @@ mod tests {
         journal.region.write_bytes(at, &MARKER.to_le_bytes());
         let (_, found) = Journal::open(keep, &plan).unwrap();
         assert_eq!(found.logs[0].len(), more.len() + two.len());
+    }
+
+    /// An unmodified program's answer is taken into the journal with one `read`: a successor
+    /// tells a take that happened (the slot holds the answer) from one announced but not done
+    /// (the slot holds the complement), whether or not the count was stored after it.
+    #[test]
+    fn a_successor_tells_an_answer_taken_from_one_still_in_the_pipe() {
+        let mut plan = plan();
+        plan.framing = crate::plan::Framing::Lines;
+        let fd = memfd(c"journal").unwrap();
+        let keep = fd.try_clone().unwrap();
+        let mut journal = Journal::create(fd, &plan).unwrap();
+        let start = LineCounts {
+            given: 5,
+            moved: 5,
+            taken: 4,
+        };
+        journal.set_lines(2, start);
+        let (_, found) = Journal::open(keep.try_clone().unwrap(), &plan).unwrap();
+        assert_eq!(found.lines[2], start);
+        let (r, w) = nix::unistd::pipe().unwrap();
+        nix::unistd::write(&w, b"15\n21\n").unwrap();
+        journal.take_line(2, r.as_fd(), b"15\n").unwrap();
+        let (_, found) = Journal::open(keep.try_clone().unwrap(), &plan).unwrap();
+        assert_eq!(found.lines[2].taken, 5);
+        // Taken, and the voter died before it stored the count: still taken.
+        journal.lines_word(2, 2).store(4, Ordering::Release);
+        journal.lines_word(2, 3).store(5, Ordering::Release);
+        let (_, found) = Journal::open(keep.try_clone().unwrap(), &plan).unwrap();
+        assert_eq!(found.lines[2].taken, 5);
+        // Announced, and the voter died before the read: the complement is there; not taken.
+        journal.lines_word(2, 2).store(5, Ordering::Release);
+        let copy = journal.take_area(2);
+        journal.region.write_bytes(copy, b"21\n");
+        journal
+            .region
+            .write_bytes(copy + journal.take_cap, &[!b'2', !b'1', !b'\n']);
+        journal.lines_word(2, 4).store(3, Ordering::Relaxed);
+        journal.lines_word(2, 3).store(6, Ordering::Release);
+        let (_, found) = Journal::open(keep.try_clone().unwrap(), &plan).unwrap();
+        assert_eq!(found.lines[2].taken, 5);
+        let mut left = [0u8; 8];
+        assert_eq!(
+            nix::unistd::read(&r, &mut left).unwrap(),
+            3,
+            "21 is still in the pipe"
+        );
+        // A pipe that does not hold what was peeked is an error, not a take.
+        nix::unistd::write(&w, b"99\n").unwrap();
+        assert!(journal.take_line(2, r.as_fd(), b"98\n").is_err());
     }
 
     #[test]

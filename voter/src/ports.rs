@@ -364,6 +364,8 @@ pub(crate) struct Endpoints {
     pub(crate) listener: UnixListener,
     /// The journal's memfd, if bootstrap gave one (`journal.rs`).
     pub(crate) journal: Option<OwnedFd>,
+    /// Where an unmodified program's pipes are parked (`park.rs`), if bootstrap made it.
+    pub(crate) park: Option<(OwnedFd, OwnedFd)>,
 }
 
 impl Endpoints {
@@ -425,6 +427,10 @@ impl Endpoints {
             .journal_fd
             .map(|fd| adopted.take(fd, "journal"))
             .transpose()?;
+        let park = match plan.park_fds {
+            Some([tx, rx]) => Some((adopted.take(tx, "park")?, adopted.take(rx, "park")?)),
+            None => None,
+        };
         let listener = match plan.socket_fd {
             // Bound and listening already: bootstrap keeps it across voters.
             Some(fd) => UnixListener::from(adopted.take(fd, "socket")?),
@@ -448,6 +454,7 @@ impl Endpoints {
             events,
             listener,
             journal,
+            park,
         })
     }
 }

@@ -234,6 +234,11 @@ impl ReactiveVoter {
                 Some(check) => at.min(check),
                 None => at,
             };
+            let at = if self.untaken_pending(round) {
+                at.min(Instant::now() + UNTAKEN_LOOK)
+            } else {
+                at
+            };
             self.timers.set(Timer::Round(round.pair), at);
         }
         for (r, rep) in self.core.slots.iter().enumerate() {
@@ -251,6 +256,7 @@ impl ReactiveVoter {
     /// In a sequential round, moves the turn on instead (see [`ReactiveVoter::advance_turn`]).
     fn advance_round(&mut self) {
         self.read_unwatched();
+        self.read_untaken();
         let Some(round) = self.round.as_ref() else {
             return;
         };
@@ -273,6 +279,39 @@ impl ReactiveVoter {
             return;
         }
         self.close_round();
+    }
+
+    /// Whether a replica the open round waits for has answers not taken yet in its pipe (an
+    /// unmodified program's, after a round that could not be committed): the wait does not
+    /// watch that pipe (see `build_poll_set`).
+    fn untaken_pending(&self, round: &Round) -> bool {
+        self.core.parks_lines()
+            && self.pending(round).iter().any(|r| {
+                self.core.slots[r]
+                    .as_ref()
+                    .is_some_and(|rep| rep.outputs.iter().any(|o| o.untaken_lines() > 0))
+            })
+    }
+
+    /// Reads the pipes [`untaken_pending`](Self::untaken_pending) says the wait did not watch.
+    fn read_untaken(&mut self) {
+        let Some(round) = self.round.as_ref() else {
+            return;
+        };
+        if !self.untaken_pending(round) {
+            return;
+        }
+        for r in self.pending(round).iter() {
+            let untaken = self.core.slots[r]
+                .as_ref()
+                .is_some_and(|rep| rep.outputs.iter().any(|o| o.untaken_lines() > 0));
+            if untaken {
+                self.last_look(r);
+            }
+            if self.round.is_none() {
+                return;
+            }
+        }
     }
 
     /// Whose output pipes the next wait watches. Every replica's, except in a sequential
@@ -786,6 +825,9 @@ impl ReactiveVoter {
             return;
         };
         let fill = rep.outputs[o].fill();
+        if rep.outputs[o].peeks() && self.skip_committed_answers(r, o).is_err() {
+            return;
+        }
         loop {
             let problem = self.unexpected(r, o);
             let Some(rep) = self.core.slots[r].as_mut() else {
@@ -810,6 +852,8 @@ impl ReactiveVoter {
             let buf = &mut self.answers[r][o];
             buf.clear();
             buf.extend_from_slice(frame);
+            // A peeked answer stays in the pipe until its round is committed (`lines.rs`).
+            rep.outputs[o].decoded_line(buf);
             let round = self.round.as_mut().expect("unexpected() checked the round");
             round.answered[r] |= 1 << o;
             let number = round.number;
@@ -823,6 +867,30 @@ impl ReactiveVoter {
             self.try_forward(o);
         }
         core::after_read(self, r, o, fill);
+    }
+
+    /// An adopting voter of an unmodified program: the answers replica `r` gave to rounds its
+    /// predecessor committed are still in its pipe (they are taken after the commit); they
+    /// are passed over here, to be taken, never voted again.
+    fn skip_committed_answers(&mut self, r: usize, o: usize) -> Result<(), ()> {
+        let mut skip = self.core.answers_to_skip(r);
+        while skip > 0 {
+            let Some(rep) = self.core.slots[r].as_mut() else {
+                return Err(());
+            };
+            let line = match rep.outputs[o].decoder.next_frame() {
+                Ok(Some(f)) => f.to_vec(),
+                Ok(None) => return Ok(()),
+                Err(e) => {
+                    let detail = format!("output `{}`: {e}", self.core.plan.outputs[o].name);
+                    self.fault(r, Cause::BadFrame, detail);
+                    return Err(());
+                }
+            };
+            rep.outputs[o].decoded_line(&line);
+            skip -= 1;
+        }
+        Ok(())
     }
 }
 
@@ -838,6 +906,9 @@ impl Mode for ReactiveVoter {
                 core::recover_faulty(self, replace)?;
                 self.core.journal_slots();
                 self.core.commit(self.rounds_started);
+                if self.core.parks_lines() {
+                    self.core.take_committed_answers();
+                }
                 if self.core.stop == Some(Stop::Requested) {
                     return Ok(());
                 }
@@ -880,7 +951,12 @@ impl Mode for ReactiveVoter {
         let core = &mut self.core;
         for (r, rep) in core.slots.iter().enumerate() {
             if let Some(rep) = rep {
-                core.poll.add_replica(r, rep, true, |_| watched.contains(r));
+                // A pipe still holding answers not taken (an unmodified program's, see
+                // `lines.rs`) would wake the wait at once, every time: it is looked at on a
+                // timer instead (`wakeup`).
+                let may_read =
+                    |o: usize| watched.contains(r) && rep.outputs[o].untaken_lines() == 0;
+                core.poll.add_replica(r, rep, true, may_read);
             }
         }
     }
@@ -933,6 +1009,10 @@ fn shares_cpu(cpus: &[usize], voter_cpu: Option<usize>, replicas: usize) -> Repl
         })
         .fold(ReplicaSet::EMPTY, ReplicaSet::with)
 }
+
+/// How often a pipe the wait does not watch, because it holds answers not taken yet, is
+/// looked at while its replica's answer is awaited (see `ReactiveVoter::untaken_pending`).
+const UNTAKEN_LOOK: Duration = Duration::from_millis(1);
 
 /// How many bytes the voter queues for one replica input beyond what its pipe holds before
 /// the replica counts as not taking its input (a `hang`): 64 frames of the channel's maximum,

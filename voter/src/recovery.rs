@@ -498,6 +498,7 @@ fn await_ready(
         start_pipe: None,
         started: true,
         schedstat: crate::starvation::SchedStat::new(pid),
+        lines: None,
     };
     Ok((replica, ready, unread))
 }

@@ -12,7 +12,7 @@ use replica_rt::contract::{
 };
 use replica_rt::sys;
 
-use crate::channel::{FrameReader, FrameWriter};
+use crate::channel::{FrameReader, FrameWriter, Staging};
 use crate::plan::{Framing, VoterPlan};
 use crate::starvation::{SchedStat, SchedTimes};
 use crate::stderr::StderrRelay;
@@ -56,7 +56,13 @@ pub struct Replica {
     pub started: bool,
     /// Its times on and waiting for a CPU, to tell a late replica from one that could not run.
     pub schedstat: SchedStat,
+    /// An unmodified program's replica under a journaled voter: where it stands in lines
+    /// given and answers taken (`None` until the voter journals it; see "Lines" in
+    /// `journal.rs`).
+    pub lines: Option<LineCounts>,
 }
+
+pub use crate::journal::LineCounts;
 
 /// What a stream replica must keep of its outputs for a successor of this voter (see
 /// `contract::ENV_OUTPUT_HISTORY`): the voter's window of frames undecided, as many decided and
@@ -100,7 +106,11 @@ impl ReplicaPipes {
         let lines = plan.framing == Framing::Lines;
         let mut replica_ends = Vec::with_capacity(plan.inputs.len() + plan.outputs.len());
         let mut inputs = Vec::with_capacity(plan.inputs.len());
-        for _ in &plan.inputs {
+        // Its pipes outlive this voter (parked, `park.rs`): its stdin is written through a
+        // staging pipe and its stdout peeked, so that a successor can tell what was given
+        // and taken (see "Lines" in `journal.rs`).
+        let staged = lines && plan.park_fds.is_some();
+        for port in &plan.inputs {
             let (r, w) = sys::pipe()?;
             // The voter keeps a read end for taking input back. It must be a separate open file
             // description: O_NONBLOCK belongs to the description, and a dup shared with the
@@ -108,7 +118,9 @@ impl ReplicaPipes {
             let voter_r = reopen_nonblocking(&r)?;
             replica_ends.push(r);
             inputs.push(ReplicaInput {
-                writer: if lines {
+                writer: if staged {
+                    FrameWriter::staged(w, Staging::new(port.max_frame)?)?
+                } else if lines {
                     FrameWriter::lines(w)?
                 } else {
                     FrameWriter::new(w)?
@@ -120,7 +132,11 @@ impl ReplicaPipes {
         for port in &plan.outputs {
             let (r, w) = sys::pipe()?;
             replica_ends.push(w);
-            outputs.push(if lines {
+            outputs.push(if staged {
+                // Room for the answers of a round or two the voter has not taken yet.
+                let _ = sys::set_pipe_size(r.as_fd(), (4 * (port.max_frame + 1)).max(64 << 10));
+                FrameReader::peeked_lines(r, port.max_frame)?
+            } else if lines {
                 FrameReader::lines(r, port.max_frame)?
             } else {
                 // A replica that took over fresh pipes from a voter's successor starts each
@@ -200,21 +216,75 @@ impl Replica {
         pipes: ReplicaPipes,
         entry: crate::journal::SlotEntry,
     ) -> Replica {
+        Replica::taken_over(pid, pidfd, pipes.inputs, pipes.outputs, pipes.stderr, entry)
+    }
+
+    /// A replica another voter started, as its successor holds it: not its child, its runtime
+    /// started, proven or not and with its state kept or lost as the journal says.
+    fn taken_over(
+        pid: libc::pid_t,
+        pidfd: OwnedFd,
+        inputs: Vec<ReplicaInput>,
+        outputs: Vec<FrameReader>,
+        stderr: StderrRelay,
+        entry: crate::journal::SlotEntry,
+    ) -> Replica {
         Replica {
             pid,
             pidfd,
-            inputs: pipes.inputs,
-            outputs: pipes.outputs,
-            stderr: pipes.stderr,
+            inputs,
+            outputs,
+            stderr,
             our_child: false,
             proven: entry.proven,
             state_lost: entry.state_lost,
             output_closed_at: None,
             start_pipe: None,
-            // It rebound: its runtime runs.
             started: true,
             schedstat: SchedStat::new(pid),
+            lines: None,
         }
+    }
+
+    /// An unmodified program's replica a voter's successor took over on the pipes its
+    /// predecessor parked (`adopt::parked_replicas`): `fds` are the voter's ends of its stdin,
+    /// stdout and stderr, then the staging pipe's read and write ends. On failure the pidfd
+    /// comes back, to kill the replica with.
+    pub(crate) fn adopted_parked(
+        plan: &VoterPlan,
+        entry: crate::journal::SlotEntry,
+        pidfd: OwnedFd,
+        fds: Vec<OwnedFd>,
+        counts: LineCounts,
+    ) -> Result<Replica, (OwnedFd, io::Error)> {
+        let built = (|| {
+            let Ok([stdin, stdout, stderr, staging_r, staging_w]) = <[OwnedFd; 5]>::try_from(fds)
+            else {
+                return Err(io::Error::other(
+                    "a parked set of other than five pipe ends",
+                ));
+            };
+            let (Some(input), Some(output)) = (plan.inputs.first(), plan.outputs.first()) else {
+                return Err(io::Error::other(
+                    "an unmodified program has one input and one output",
+                ));
+            };
+            let staging = Staging::adopt(staging_r, staging_w, input.max_frame)?;
+            let read_end = reopen_nonblocking(&stdin)?;
+            let writer = FrameWriter::staged(stdin, staging)?;
+            let reader = FrameReader::peeked_lines(stdout, output.max_frame)?;
+            sys::set_nonblocking(stderr.as_fd(), true)?;
+            Ok((writer, read_end, reader, StderrRelay::new(stderr)))
+        })();
+        let (writer, read_end, reader, stderr) = match built {
+            Ok(parts) => parts,
+            Err(e) => return Err((pidfd, e)),
+        };
+        let inputs = vec![ReplicaInput { writer, read_end }];
+        let mut replica =
+            Replica::taken_over(entry.pid, pidfd, inputs, vec![reader], stderr, entry);
+        replica.lines = Some(counts);
+        Ok(replica)
     }
 
     /// Starts replica `slot` afresh by exec.
@@ -272,6 +342,7 @@ impl Replica {
             start_pipe: Some(start_r),
             started: false,
             schedstat: SchedStat::new(pid),
+            lines: None,
         })
     }
 
