@@ -142,9 +142,19 @@ impl System {
                 .ok_or_else(|| anyhow!("no voter binary"))?;
             let (ev_r, ev_w) = rsys::pipe().context("events pipe")?;
             keep.push(ev_w);
-            let journal_fd = if spec.journal && spec.preload.is_none() {
+            let journal_fd = if spec.journal {
                 keep.push(replica_rt::shared::memfd(c"s3res-journal").context("journal")?);
                 Some(FIRST_PORT_FD + 3)
+            } else {
+                None
+            };
+            // As s3res-bootstrap runs an unmodified program's voter: its replicas' pipes are
+            // parked in a socket pair, its lines staged and its answers peeked and taken.
+            let park_fds = if spec.journal && spec.preload.is_some() {
+                let (tx, rx) = rsys::seqpacket_pair().context("park socket pair")?;
+                keep.push(tx);
+                keep.push(rx);
+                Some([FIRST_PORT_FD + 4, FIRST_PORT_FD + 5])
             } else {
                 None
             };
@@ -175,7 +185,7 @@ impl System {
                 socket_path: workdir.path().join("v.sock"),
                 socket_fd: None,
                 journal_fd,
-                park_fds: None,
+                park_fds,
                 adopt: None,
                 restart_timeout_ms: s3res_protocol::plan::default_restart_timeout_ms(),
                 priority: sched.priority,

@@ -3,7 +3,7 @@
 //! starts a successor on exactly the same fds, told to adopt (`plan.adopt`). The successor
 //! takes the live replicas over from the journal (`voter/src/adopt.rs`).
 //!
-//! Every protected component is restartable ([`restartable`]), in either mode: a reactive
+//! Every protected component is restartable ([`restartable`]; one exception there), in either mode: a reactive
 //! successor replays the unfinished round; a stream successor has every replica send again
 //! the frames it kept since the last one committed (replica-rt's output history). An
 //! unmodified program (`preload`) can neither count its input nor take fresh pipes, so its
@@ -21,28 +21,23 @@ use s3res_protocol::plan::{Adoption, Framing, VoterPlan};
 
 use crate::plan::ComponentPlan;
 
-/// Whether the voter of `c` is restarted when it dies (see the module docs).
+/// Whether the voter of `c` is restarted when it dies (see the module docs): every protected
+/// component's but an unmodified program's that reads s3res frames itself (`framing:
+/// frames`), which could be told neither where a replay starts nor given its pipes back.
 pub fn restartable(c: &ComponentPlan) -> bool {
-    c.is_protected()
+    c.is_protected() && (c.preload.is_none() || c.framing == Framing::Lines)
 }
 
-/// Whether the voter of `c` parks its replicas' pipes (an unmodified program's).
+/// Whether the voter of `c` parks its replicas' pipes (an unmodified program's lines).
 pub fn parks_pipes(c: &ComponentPlan) -> bool {
-    restartable(c) && (c.preload.is_some() || c.framing == Framing::Lines)
+    restartable(c) && c.preload.is_some()
 }
 
 /// The socket pair an unmodified program's voter parks its replicas' pipes in: fds sent from
 /// the first end wait in the second's queue for as long as bootstrap keeps it, whatever
 /// becomes of the voter. `SOCK_SEQPACKET`: each parked set is one message.
 pub fn park_pair() -> std::io::Result<(OwnedFd, OwnedFd)> {
-    let (a, b) = nix::sys::socket::socketpair(
-        nix::sys::socket::AddressFamily::Unix,
-        nix::sys::socket::SockType::SeqPacket,
-        None,
-        nix::sys::socket::SockFlag::SOCK_CLOEXEC,
-    )
-    .map_err(std::io::Error::from)?;
-    Ok((a, b))
+    replica_rt::sys::seqpacket_pair()
 }
 
 /// The voter's socket, bound by bootstrap so that it outlives every voter: a replica whose

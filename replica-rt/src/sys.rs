@@ -526,6 +526,19 @@ fn read_proc_small<'a>(path: &str, buf: &'a mut [u8]) -> Option<&'a str> {
     std::str::from_utf8(&buf[..len]).ok()
 }
 
+/// A connected pair of Unix `SOCK_SEQPACKET` sockets, close-on-exec: each `send` is one
+/// message, and fds sent with it wait in the other end's queue for as long as that end lives.
+pub fn seqpacket_pair() -> io::Result<(OwnedFd, OwnedFd)> {
+    use nix::sys::socket::{socketpair, AddressFamily, SockFlag, SockType};
+    socketpair(
+        AddressFamily::Unix,
+        SockType::SeqPacket,
+        None,
+        SockFlag::SOCK_CLOEXEC,
+    )
+    .map_err(io::Error::from)
+}
+
 /// Sends a whole buffer plus `fds` as SCM_RIGHTS in one `sendmsg`.
 pub fn send_with_fds(sock: BorrowedFd<'_>, bytes: &[u8], fds: &[RawFd]) -> io::Result<()> {
     use nix::sys::socket::{sendmsg, ControlMessage, MsgFlags};

@@ -182,7 +182,7 @@ pub(crate) fn parked_replicas(
     park: &mut ParkingLot,
     found: &journal::Found,
     mut on_adopt: impl FnMut(libc::pid_t, usize),
-) -> Adopted {
+) -> io::Result<Adopted> {
     let table = &found.slots;
     let named = |who: &Parked| {
         table
@@ -192,19 +192,19 @@ pub(crate) fn parked_replicas(
             .is_some_and(|e| e.pid == who.pid && e.start_time == who.start_time)
     };
     let mut sets: Vec<Option<ParkedSet>> = (0..plan.replicas).map(|_| None).collect();
-    match park.rotate(named) {
-        Ok(rotation) => {
-            for stray in rotation.dropped {
-                kill_if_still(stray.pid, stray.start_time);
-            }
-            for set in rotation.kept {
-                let slot = set.who.slot;
-                if let Some(place) = sets.get_mut(slot) {
-                    *place = Some(set);
-                }
-            }
+    // Without the parked sets every replica would be killed, its state lost: better to fail
+    // (bootstrap tries another successor within the component's budget).
+    let rotation = park
+        .rotate(named)
+        .map_err(|e| io::Error::new(e.kind(), format!("reading the parked pipes back: {e}")))?;
+    for stray in rotation.dropped {
+        kill_if_still(stray.pid, stray.start_time);
+    }
+    for set in rotation.kept {
+        let slot = set.who.slot;
+        if let Some(place) = sets.get_mut(slot) {
+            *place = Some(set);
         }
-        Err(e) => tracing::error!(error = %e, "could not read the parked pipes back"),
     }
     let mut adopted = Adopted {
         slots: (0..plan.replicas).map(|_| None).collect(),
@@ -259,7 +259,7 @@ pub(crate) fn parked_replicas(
             }
         }
     }
-    adopted
+    Ok(adopted)
 }
 
 /// SIGKILL to `pid` if it is still the process that started at `start_time`.

@@ -50,10 +50,7 @@ impl Staging {
     pub fn adopt(r: OwnedFd, w: OwnedFd, max_frame: usize) -> io::Result<Staging> {
         sys::set_nonblocking(r.as_fd(), true)?;
         sys::set_nonblocking(w.as_fd(), true)?;
-        let mut capacity = sys::pipe_size(w.as_fd())?;
-        if capacity < max_frame + 1 {
-            capacity = sys::set_pipe_size(w.as_fd(), max_frame + 1).unwrap_or(capacity);
-        }
+        let capacity = room_for_lines(w.as_fd(), max_frame + 1, max_frame + 1)?;
         let held = sys::bytes_in_pipe(r.as_fd())?;
         Ok(Staging {
             r,
@@ -302,6 +299,29 @@ impl AsFd for FrameWriter {
     }
 }
 
+/// Makes the pipe behind `fd` hold `want` bytes, or at least `need` (a line of an unmodified
+/// program and its newline, which must fit whole): its size, or an error that says which limit
+/// stands in the way.
+pub fn room_for_lines(fd: BorrowedFd<'_>, want: usize, need: usize) -> io::Result<usize> {
+    let mut capacity = sys::pipe_size(fd)?;
+    for size in [want, need] {
+        if capacity < size {
+            capacity = sys::set_pipe_size(fd, size).unwrap_or(capacity);
+        }
+    }
+    if capacity < need {
+        let limit = std::fs::read_to_string("/proc/sys/fs/pipe-max-size").unwrap_or_default();
+        return Err(io::Error::other(format!(
+            "an unmodified program's line of up to {} bytes and its newline need a pipe of {need} \
+             bytes, and this system gives {capacity} (/proc/sys/fs/pipe-max-size: {}): lower the \
+             channel's max_frame",
+            need - 1,
+            limit.trim()
+        )));
+    }
+    Ok(capacity)
+}
+
 /// Writes `payload` and a newline into an empty staging pipe with one `write`.
 fn stage_line(staging: &mut Staging, payload: &[u8]) -> io::Result<()> {
     if staging.held > 0 {
@@ -381,8 +401,11 @@ impl FrameReader {
     /// every line the decoder returns.
     pub fn peeked_lines(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
         let mut reader = FrameReader::lines(fd, max_frame)?;
+        let mut peek = Peek::for_channel(reader.fd.as_fd())?;
+        // A whole answer must fit in one look.
+        peek.cap = room_for_lines(peek.w.as_fd(), peek.cap, max_frame + 1)?;
         reader.lines_peek = Some(LinePeek {
-            peek: Peek::for_channel(reader.fd.as_fd())?,
+            peek,
             untaken: Default::default(),
             untaken_bytes: 0,
             buf: Vec::new(),

@@ -241,6 +241,7 @@ impl Core {
     /// `plan`, binds the socket, and starts the replicas.
     pub(crate) fn start(plan: VoterPlan) -> Result<Core, VoterError> {
         validate(&plan)?;
+        crate::crashpoint::arm(plan.adopt.is_some());
         let Endpoints {
             signals,
             mut inputs,
@@ -275,7 +276,8 @@ impl Core {
                 whole_frame_outputs(&mut outputs, &plan)?;
                 let on_adopt = |pid, slot| rt.apply_to_replica(pid, slot);
                 let adopted = match park.as_mut() {
-                    Some(park) => adopt::parked_replicas(&plan, park, &found, on_adopt),
+                    Some(park) => adopt::parked_replicas(&plan, park, &found, on_adopt)
+                        .map_err(io_err("adopting an unmodified program's replicas"))?,
                     None => adopt::replicas(&plan, &listener, &found.slots, on_adopt),
                 };
                 (Some(journal), adopted.slots, Some((found, adopted.lost)))
@@ -884,6 +886,13 @@ impl Core {
 
     // ----- input -------------------------------------------------------------------------
 
+    /// Whether a predecessor's input is still being replayed.
+    pub(crate) fn replaying(&self) -> bool {
+        self.inputs
+            .iter()
+            .any(|i| i.peek.as_ref().is_some_and(|p| p.replay_left > 0))
+    }
+
     /// Whether input `i`'s journal log has room for its largest frame (always, unjournaled,
     /// or while the predecessor's log is replayed).
     pub(crate) fn journal_has_room(&self, i: usize) -> bool {
@@ -940,7 +949,8 @@ impl Core {
                     continue;
                 }
                 match self.give_line(r, i, &frame, number) {
-                    Ok(()) => delivery.members = delivery.members.with(r),
+                    Ok(true) => delivery.members = delivery.members.with(r),
+                    Ok(false) => {}
                     Err(e) => delivery.faulty.push((
                         r,
                         Cause::PipeError,
@@ -1405,6 +1415,10 @@ fn replace(
     detected_ns: u64,
     retry: bool,
 ) -> Result<bool, VoterError> {
+    if m.core().parks_lines() && !m.core().lines_quiet() {
+        // Not yet (see `Core::lines_quiet`): the slot is tried again with backoff.
+        return Ok(false);
+    }
     let patience = Duration::from_micros(m.core().plan.timeout_us);
     let mut failed = ReplicaSet::EMPTY;
     loop {

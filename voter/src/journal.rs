@@ -553,10 +553,13 @@ impl Journal {
     /// Records where slot `slot`'s new replica starts (before [`set_slot`](Self::set_slot)
     /// names it), with no take in progress.
     pub(crate) fn set_lines(&self, slot: usize, at: LineCounts) {
-        self.lines_word(slot, 3).store(0, Ordering::Release);
+        // The counts first, then the take cleared: a take a successor resolved as done stays
+        // counted whichever store a SIGKILL comes between (a new replica's slot is not named
+        // yet, so for it the order does not matter).
         self.lines_word(slot, 0).store(at.given, Ordering::Relaxed);
         self.lines_word(slot, 1).store(at.moved, Ordering::Relaxed);
         self.lines_word(slot, 2).store(at.taken, Ordering::Release);
+        self.lines_word(slot, 3).store(0, Ordering::Release);
     }
 
     /// Line `n` is in slot `slot`'s staging pipe, written whole.
@@ -598,7 +601,9 @@ impl Journal {
             .u64_at(k + 32)
             .store(n as u64, Ordering::Relaxed);
         self.region.u64_at(k + 24).store(number, Ordering::Release);
+        crate::crashpoint::reached("answer-announced");
         let got = self.region.read_from(fd, body, n)?;
+        crate::crashpoint::reached("answer-read");
         let mut took = vec![0u8; got];
         self.region.read_bytes(body, &mut took);
         if took != line[..got] || got != n {

@@ -18,6 +18,7 @@ mod adopt;
 pub mod channel;
 pub mod clock;
 mod core;
+pub mod crashpoint;
 pub mod decision;
 mod journal;
 mod lines;

@@ -23,6 +23,7 @@
 use std::os::fd::{AsFd, BorrowedFd};
 
 use crate::core::Core;
+use crate::crashpoint;
 use crate::event::Cause;
 use crate::journal::LineCounts;
 use crate::park::Parked;
@@ -122,32 +123,84 @@ impl Core {
     /// Gives line `number` (`frame`) to replica `r` on input `i`: into its staging pipe, the
     /// number journaled, then moved on into its stdin as far as it takes it now. A line it was
     /// given before (by a predecessor: a replayed round) is not given again.
+    ///
+    /// Returns whether the replica answers the line in the pipe this voter reads: not a
+    /// replica started after the line's round closed (a fork child has the line in its
+    /// donor's memory, and its answer lies in the donor's pipe), which a successor replaying
+    /// that round finds with the answer counted as taken.
     pub(crate) fn give_line(
         &mut self,
         r: usize,
         i: usize,
         frame: &[u8],
         number: u64,
-    ) -> std::io::Result<()> {
+    ) -> std::io::Result<bool> {
         let (Some(journal), Some(rep)) = (self.journal.as_ref(), self.slots[r].as_mut()) else {
-            return Ok(());
+            return Ok(false);
         };
         let Some(lines) = rep.lines.as_mut() else {
             return Err(std::io::Error::other("a replica not journaled yet"));
         };
         if lines.given >= number {
-            return Ok(());
+            return Ok(lines.taken < number);
         }
         let writer = &mut rep.inputs[i].writer;
         writer.send(frame)?;
+        crashpoint::reached("line-staged");
         journal.set_given(r, number);
         lines.given = number;
+        crashpoint::reached("line-given");
         writer.flush()?;
+        crashpoint::reached("line-moved");
         if !writer.has_pending() {
             journal.set_moved(r, number);
             lines.moved = number;
         }
-        Ok(())
+        Ok(true)
+    }
+
+    /// Whether every replica stands where a fork may copy it: given every line delivered,
+    /// moved whole into its stdin, and answered each (the answers decoded, nothing after
+    /// them). An adopting voter replaying its predecessor's unfinished round is not there
+    /// yet: a child forked then would be given a line its donor already has.
+    pub(crate) fn lines_quiet(&self) -> bool {
+        let delivered = self.delivered.first().copied().unwrap_or(0);
+        self.slots.iter().flatten().all(|rep| {
+            let (Some(at), Some(out)) = (rep.lines.as_ref(), rep.outputs.first()) else {
+                return true;
+            };
+            at.given == delivered
+                && at.moved == at.given
+                && at.taken + out.untaken_lines() as u64 == at.given
+                && out.decoder.pending() == 0
+        })
+    }
+
+    /// Whether some replica's stdout holds answers not taken yet: the last round was not
+    /// committed (downstream is slow, or a replay is under way). A new round waits for the
+    /// commit (unless the predecessor's input is still being replayed), so that a program's
+    /// stdout never fills with answers the voter holds.
+    pub(crate) fn answers_untaken(&self) -> bool {
+        self.slots
+            .iter()
+            .flatten()
+            .any(|rep| rep.outputs.iter().any(|o| o.untaken_lines() > 0))
+    }
+
+    /// Between rounds: a replica that answered its line without reading all of it (some is
+    /// still in its staging pipe or queued) is faulty; it would hold every commit back.
+    pub(crate) fn fault_unread_lines(&mut self) {
+        let unread: Vec<usize> = (0..self.slots.len())
+            .filter(|&r| {
+                self.slots[r]
+                    .as_ref()
+                    .is_some_and(|rep| rep.inputs.iter().any(|i| i.writer.has_pending()))
+            })
+            .collect();
+        for r in unread {
+            let detail = "answered its line without reading all of it".to_owned();
+            self.record_fault(r, Cause::UnexpectedFrame, detail, None);
+        }
     }
 
     /// After replica `r`'s stdin took more: journals the line in its staging pipe as moved

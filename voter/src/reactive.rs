@@ -84,6 +84,9 @@ impl ReactiveVoter {
         if !self.core.faults.is_empty() {
             return;
         }
+        if self.core.parks_lines() && self.core.answers_untaken() && !self.core.replaying() {
+            return;
+        }
         for i in 0..self.core.inputs.len() {
             while self.round.is_none() {
                 let limit = input_backlog_limit(self.core.plan.inputs[i].max_frame);
@@ -234,10 +237,9 @@ impl ReactiveVoter {
                 Some(check) => at.min(check),
                 None => at,
             };
-            let at = if self.untaken_pending(round) {
-                at.min(Instant::now() + UNTAKEN_LOOK)
-            } else {
-                at
+            let at = match self.untaken_pending(round) {
+                Some(look) => at.min(Instant::now() + look),
+                None => at,
             };
             self.timers.set(Timer::Round(round.pair), at);
         }
@@ -281,31 +283,32 @@ impl ReactiveVoter {
         self.close_round();
     }
 
-    /// Whether a replica the open round waits for has answers not taken yet in its pipe (an
-    /// unmodified program's, after a round that could not be committed): the wait does not
-    /// watch that pipe (see `build_poll_set`).
-    fn untaken_pending(&self, round: &Round) -> bool {
-        self.core.parks_lines()
-            && self.pending(round).iter().any(|r| {
-                self.core.slots[r]
-                    .as_ref()
-                    .is_some_and(|rep| rep.outputs.iter().any(|o| o.untaken_lines() > 0))
-            })
+    /// How soon the open round must look at a pipe the wait does not watch (see
+    /// [`unwatched_look`]) of a replica it waits for, if there is one.
+    fn untaken_pending(&self, round: &Round) -> Option<Duration> {
+        if !self.core.parks_lines() {
+            return None;
+        }
+        self.pending(round)
+            .iter()
+            .filter_map(|r| self.core.slots[r].as_ref())
+            .flat_map(|rep| rep.outputs.iter().filter_map(unwatched_look))
+            .min()
     }
 
-    /// Reads the pipes [`untaken_pending`](Self::untaken_pending) says the wait did not watch.
+    /// Reads the pipes [`untaken_pending`](Self::untaken_pending) is about.
     fn read_untaken(&mut self) {
         let Some(round) = self.round.as_ref() else {
             return;
         };
-        if !self.untaken_pending(round) {
+        if self.untaken_pending(round).is_none() {
             return;
         }
         for r in self.pending(round).iter() {
-            let untaken = self.core.slots[r]
+            let unwatched = self.core.slots[r]
                 .as_ref()
-                .is_some_and(|rep| rep.outputs.iter().any(|o| o.untaken_lines() > 0));
-            if untaken {
+                .is_some_and(|rep| rep.outputs.iter().any(|o| unwatched_look(o).is_some()));
+            if unwatched {
                 self.last_look(r);
             }
             if self.round.is_none() {
@@ -905,8 +908,14 @@ impl Mode for ReactiveVoter {
                 let replace = self.core.stop.is_none();
                 core::recover_faulty(self, replace)?;
                 self.core.journal_slots();
+                if self.core.parks_lines() {
+                    self.core.fault_unread_lines();
+                }
                 self.core.commit(self.rounds_started);
                 if self.core.parks_lines() {
+                    if self.core.answers_untaken() {
+                        crate::crashpoint::reached("round-committed");
+                    }
                     self.core.take_committed_answers();
                 }
                 if self.core.stop == Some(Stop::Requested) {
@@ -951,11 +960,10 @@ impl Mode for ReactiveVoter {
         let core = &mut self.core;
         for (r, rep) in core.slots.iter().enumerate() {
             if let Some(rep) = rep {
-                // A pipe still holding answers not taken (an unmodified program's, see
-                // `lines.rs`) would wake the wait at once, every time: it is looked at on a
-                // timer instead (`wakeup`).
+                // A peeked pipe holding what was seen already would wake the wait at once,
+                // every time: it is looked at on a timer instead (`unwatched_look`).
                 let may_read =
-                    |o: usize| watched.contains(r) && rep.outputs[o].untaken_lines() == 0;
+                    |o: usize| watched.contains(r) && unwatched_look(&rep.outputs[o]).is_none();
                 core.poll.add_replica(r, rep, true, may_read);
             }
         }
@@ -1010,8 +1018,25 @@ fn shares_cpu(cpus: &[usize], voter_cpu: Option<usize>, replicas: usize) -> Repl
         .fold(ReplicaSet::EMPTY, ReplicaSet::with)
 }
 
-/// How often a pipe the wait does not watch, because it holds answers not taken yet, is
-/// looked at while its replica's answer is awaited (see `ReactiveVoter::untaken_pending`).
+/// An unmodified program's stdout is peeked, not read (see `lines.rs`): what it holds stays
+/// there, and a pipe holding anything already seen would make every wait return at once. Such
+/// a pipe is not watched, and is looked at on a timer while its replica's answer is awaited:
+/// after [`PARTIAL_LOOK`] when it holds part of a line (the rest comes in microseconds:
+/// `print` in `python3 -u` writes the text and the newline apart), after [`UNTAKEN_LOOK`] when
+/// it holds whole answers not taken yet (a round replayed before its predecessor's commit).
+fn unwatched_look(out: &crate::channel::FrameReader) -> Option<Duration> {
+    if !out.peeks() {
+        None
+    } else if out.decoder.pending() > 0 {
+        Some(PARTIAL_LOOK)
+    } else if out.untaken_lines() > 0 {
+        Some(UNTAKEN_LOOK)
+    } else {
+        None
+    }
+}
+
+const PARTIAL_LOOK: Duration = Duration::from_micros(50);
 const UNTAKEN_LOOK: Duration = Duration::from_millis(1);
 
 /// How many bytes the voter queues for one replica input beyond what its pipe holds before

@@ -133,8 +133,9 @@ impl ReplicaPipes {
             let (r, w) = sys::pipe()?;
             replica_ends.push(w);
             outputs.push(if staged {
-                // Room for the answers of a round or two the voter has not taken yet.
-                let _ = sys::set_pipe_size(r.as_fd(), (4 * (port.max_frame + 1)).max(64 << 10));
+                // Room for an answer the voter has not taken yet and the next one.
+                let line = port.max_frame + 1;
+                crate::channel::room_for_lines(r.as_fd(), (2 * line).max(64 << 10), line)?;
                 FrameReader::peeked_lines(r, port.max_frame)?
             } else if lines {
                 FrameReader::lines(r, port.max_frame)?
