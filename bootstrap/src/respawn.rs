@@ -3,7 +3,7 @@
 //! starts a successor on exactly the same fds, told to adopt (`plan.adopt`). The successor
 //! takes the live replicas over from the journal (`voter/src/adopt.rs`).
 //!
-//! Every protected component is restartable ([`restartable`]; one exception there), in either mode: a reactive
+//! Every protected component is restartable ([`restartable`]), in either mode: a reactive
 //! successor replays the unfinished round; a stream successor has every replica send again
 //! the frames it kept since the last one committed (replica-rt's output history). An
 //! unmodified program (`preload`) can neither count its input nor take fresh pipes, so its
@@ -17,18 +17,16 @@ use std::os::unix::net::UnixListener;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use s3res_protocol::plan::{Adoption, Framing, VoterPlan};
+use s3res_protocol::plan::{Adoption, VoterPlan};
 
 use crate::plan::ComponentPlan;
 
-/// Whether the voter of `c` is restarted when it dies (see the module docs): every protected
-/// component's but an unmodified program's that reads s3res frames itself (`framing:
-/// frames`), which could be told neither where a replay starts nor given its pipes back.
+/// Whether the voter of `c` is restarted when it dies (see the module docs).
 pub fn restartable(c: &ComponentPlan) -> bool {
-    c.is_protected() && (c.preload.is_none() || c.framing == Framing::Lines)
+    c.is_protected()
 }
 
-/// Whether the voter of `c` parks its replicas' pipes (an unmodified program's lines).
+/// Whether the voter of `c` parks its replicas' pipes (an unmodified program's).
 pub fn parks_pipes(c: &ComponentPlan) -> bool {
     restartable(c) && c.preload.is_some()
 }

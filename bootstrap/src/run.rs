@@ -1115,8 +1115,7 @@ fn supervise(
 }
 
 /// Why a voter's end stops the system, where nothing would replace it: it gave up on its
-/// component, or it died and its component's voter is not restarted (an unmodified program
-/// with `framing: frames`).
+/// component, or it died and nothing was kept to restart it with.
 fn unreplaced_voter_death(c: &Child) -> Option<String> {
     c.watch.as_ref()?;
     match c.status? {
@@ -1127,7 +1126,7 @@ fn unreplaced_voter_death(c: &Child) -> Option<String> {
         status if !status.success() && c.respawn.is_none() => {
             let died = c.why.clone().unwrap_or_else(|| status.to_string());
             Some(format!(
-                "the voter of component {} (pid {}) died: {died}; it is not restarted (an unmodified program with \"framing\": \"frames\" can neither take its pipes back nor be told where a replay starts)",
+                "the voter of component {} (pid {}) died: {died}; nothing was kept to restart it with",
                 c.component, c.pid
             ))
         }

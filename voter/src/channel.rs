@@ -50,7 +50,8 @@ impl Staging {
     pub fn adopt(r: OwnedFd, w: OwnedFd, max_frame: usize) -> io::Result<Staging> {
         sys::set_nonblocking(r.as_fd(), true)?;
         sys::set_nonblocking(w.as_fd(), true)?;
-        let capacity = room_for_lines(w.as_fd(), max_frame + 1, max_frame + 1)?;
+        let whole = max_frame + frame::HEADER_LEN;
+        let capacity = room_for_lines(w.as_fd(), whole, whole)?;
         let held = sys::bytes_in_pipe(r.as_fd())?;
         Ok(Staging {
             r,
@@ -94,15 +95,17 @@ impl FrameWriter {
         })
     }
 
-    /// A writer of lines into an unmodified program's stdin through `staging`:
+    /// A writer of lines (`lines`; else s3res frames) into an unmodified program's stdin
+    /// through `staging`:
     /// [`send`](Self::send) only writes the line into the staging pipe, and
     /// [`flush`](Self::flush) moves it on; the caller journals in between (see
     /// `Core::deliver_decoded`). Bytes queued raw (a fork child's unread input) go straight
     /// into the pipe, before the staging pipe's.
-    pub fn staged(fd: OwnedFd, staging: Staging) -> io::Result<Self> {
+    pub fn staged(fd: OwnedFd, staging: Staging, lines: bool) -> io::Result<Self> {
         Ok(FrameWriter {
             staging: Some(staging),
-            ..FrameWriter::lines(fd)?
+            lines,
+            ..FrameWriter::new(fd)?
         })
     }
 
@@ -156,7 +159,7 @@ impl FrameWriter {
     /// the line into its staging pipe, whole, and no further).
     pub fn send(&mut self, payload: &[u8]) -> io::Result<()> {
         if let Some(staging) = self.staging.as_mut() {
-            return stage_line(staging, payload);
+            return stage_line(staging, payload, self.lines);
         }
         self.compact();
         if self.lines {
@@ -322,24 +325,29 @@ pub fn room_for_lines(fd: BorrowedFd<'_>, want: usize, need: usize) -> io::Resul
     Ok(capacity)
 }
 
-/// Writes `payload` and a newline into an empty staging pipe with one `write`.
-fn stage_line(staging: &mut Staging, payload: &[u8]) -> io::Result<()> {
+/// Writes `payload` as a line (`lines`: with its newline; else as an s3res frame) into an
+/// empty staging pipe with one `write`.
+fn stage_line(staging: &mut Staging, payload: &[u8], lines: bool) -> io::Result<()> {
     if staging.held > 0 {
         // Only a program that answered without reading its whole line leaves one here.
         return Err(io::Error::other(
             "the program has not read all of its previous line",
         ));
     }
-    let len = payload.len() + 1;
+    let mut line = Vec::with_capacity(payload.len() + frame::HEADER_LEN);
+    if lines {
+        line.extend_from_slice(payload);
+        line.push(b'\n');
+    } else {
+        frame::encode_into(payload, &mut line);
+    }
+    let len = line.len();
     if len > staging.capacity {
         return Err(io::Error::other(format!(
             "a line of {len} bytes does not fit the staging pipe ({} bytes)",
             staging.capacity
         )));
     }
-    let mut line = Vec::with_capacity(len);
-    line.extend_from_slice(payload);
-    line.push(b'\n');
     // Into an empty pipe with room for all of it, a non-blocking write writes everything.
     let n = sys::write(staging.w.as_fd(), &line)?;
     staging.held = n;
@@ -377,10 +385,13 @@ pub struct FrameReader {
 #[derive(Debug)]
 struct LinePeek {
     peek: Peek,
-    /// Lines decoded and not taken off the pipe yet, each with its newline, oldest first.
+    /// Lines decoded and not taken off the pipe yet, each as it was in the pipe (with its
+    /// newline, or its frame header), oldest first.
     untaken: std::collections::VecDeque<Vec<u8>>,
     /// Their bytes in all: what every fresh peek starts with.
     untaken_bytes: usize,
+    /// Newline-delimited (else s3res frames).
+    lines: bool,
     buf: Vec<u8>,
 }
 
@@ -399,15 +410,21 @@ impl FrameReader {
     /// they are taken ([`take_line`](Self::front_line)): each fill peeks the pipe afresh
     /// (`tee`) past the lines already decoded. Call [`decoded_line`](Self::decoded_line) with
     /// every line the decoder returns.
-    pub fn peeked_lines(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
-        let mut reader = FrameReader::lines(fd, max_frame)?;
+    pub fn peeked_lines(fd: OwnedFd, max_frame: usize, lines: bool) -> io::Result<Self> {
+        let mut reader = if lines {
+            FrameReader::lines(fd, max_frame)?
+        } else {
+            FrameReader::new(fd, max_frame)?
+        };
         let mut peek = Peek::for_channel(reader.fd.as_fd())?;
         // A whole answer must fit in one look.
-        peek.cap = room_for_lines(peek.w.as_fd(), peek.cap, max_frame + 1)?;
+        let whole = max_frame + frame::HEADER_LEN;
+        peek.cap = room_for_lines(peek.w.as_fd(), peek.cap.max(whole), whole)?;
         reader.lines_peek = Some(LinePeek {
             peek,
             untaken: Default::default(),
             untaken_bytes: 0,
+            lines,
             buf: Vec::new(),
         });
         Ok(reader)
@@ -417,9 +434,13 @@ impl FrameReader {
     /// the pipe until taken.
     pub fn decoded_line(&mut self, line: &[u8]) {
         if let Some(lp) = self.lines_peek.as_mut() {
-            let mut raw = Vec::with_capacity(line.len() + 1);
-            raw.extend_from_slice(line);
-            raw.push(b'\n');
+            let mut raw = Vec::with_capacity(line.len() + frame::HEADER_LEN);
+            if lp.lines {
+                raw.extend_from_slice(line);
+                raw.push(b'\n');
+            } else {
+                frame::encode_into(line, &mut raw);
+            }
             lp.untaken_bytes += raw.len();
             lp.untaken.push_back(raw);
         }
@@ -684,7 +705,7 @@ mod tests {
     fn a_staged_line_waits_in_its_staging_pipe_until_flushed() {
         let (r, w) = sys::pipe().unwrap();
         sys::set_nonblocking(r.as_fd(), true).unwrap();
-        let mut writer = FrameWriter::staged(w, Staging::new(100_000).unwrap()).unwrap();
+        let mut writer = FrameWriter::staged(w, Staging::new(100_000).unwrap(), true).unwrap();
         writer.send(b"abc").unwrap();
         assert!(writer.has_pending());
         assert_eq!(writer.unwritten_len(), 4);
@@ -712,7 +733,7 @@ mod tests {
     fn a_peeking_reader_decodes_each_line_once_and_leaves_it_in_the_pipe() {
         let (r, w) = sys::pipe().unwrap();
         let probe = r.try_clone().unwrap();
-        let mut reader = FrameReader::peeked_lines(r, 64).unwrap();
+        let mut reader = FrameReader::peeked_lines(r, 64, true).unwrap();
         sys::write(w.as_fd(), b"1\n2\n3").unwrap();
         assert_eq!(reader.fill().unwrap(), Fill::Open);
         let mut seen = Vec::new();

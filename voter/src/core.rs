@@ -618,7 +618,11 @@ impl Core {
     /// A replica started by exec counts its inputs from zero: tell it the number of the next
     /// frame, so that a replay after a voter restart lines up (journaled voters only).
     pub(crate) fn number_inputs_of(&mut self, slot: usize) {
-        if self.journal.is_none() || self.plan.framing == Framing::Lines {
+        // An unmodified program knows no control frames; its lines are counted for it.
+        if self.journal.is_none()
+            || self.plan.preload.is_some()
+            || self.plan.framing == Framing::Lines
+        {
             return;
         }
         let Some(rep) = self.slots[slot].as_mut() else {

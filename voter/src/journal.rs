@@ -150,7 +150,7 @@ pub(crate) struct Found {
     /// Per input: the bytes taken off the channel since the commit, whole frames.
     pub logs: Vec<Vec<u8>>,
     pub slots: Vec<Option<SlotEntry>>,
-    /// Lines: per slot, its counts, a take in progress resolved (empty for frames).
+    /// An unmodified program: per slot, its counts, a take in progress resolved (else empty).
     pub lines: Vec<LineCounts>,
 }
 
@@ -162,8 +162,8 @@ pub(crate) struct Journal {
     slots: usize,
     log_cap: usize,
     state_len: usize,
-    /// Lines: room for one answer and its newline (0 for frames); each slot has two, for the
-    /// copy and the take.
+    /// An unmodified program: room for one answer as it lies in the pipe (0 otherwise); each
+    /// slot has two, for the copy and the take.
     take_cap: usize,
     /// The record in force.
     current: usize,
@@ -662,13 +662,14 @@ impl Journal {
     }
 }
 
-/// Room for one answer of an unmodified program and its newline (0 for frames).
+/// Room for one answer of an unmodified program, with its newline or frame header (0 for a
+/// component whose replicas link replica-rt).
 fn take_cap(plan: &VoterPlan) -> usize {
-    if plan.framing != crate::plan::Framing::Lines {
+    if plan.preload.is_none() && plan.framing != crate::plan::Framing::Lines {
         return 0;
     }
     let max = plan.outputs.iter().map(|p| p.max_frame).max().unwrap_or(0);
-    (max + 1).next_multiple_of(8)
+    (max + HEADER_LEN).next_multiple_of(8)
 }
 
 /// The deadline clock's calibration a predecessor recorded in the journal behind `fd`, if any

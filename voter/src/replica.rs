@@ -109,7 +109,7 @@ impl ReplicaPipes {
         // Its pipes outlive this voter (parked, `park.rs`): its stdin is written through a
         // staging pipe and its stdout peeked, so that a successor can tell what was given
         // and taken (see "Lines" in `journal.rs`).
-        let staged = lines && plan.park_fds.is_some();
+        let staged = plan.preload.is_some() && plan.park_fds.is_some();
         for port in &plan.inputs {
             let (r, w) = sys::pipe()?;
             // The voter keeps a read end for taking input back. It must be a separate open file
@@ -119,7 +119,7 @@ impl ReplicaPipes {
             replica_ends.push(r);
             inputs.push(ReplicaInput {
                 writer: if staged {
-                    FrameWriter::staged(w, Staging::new(port.max_frame)?)?
+                    FrameWriter::staged(w, Staging::new(port.max_frame)?, lines)?
                 } else if lines {
                     FrameWriter::lines(w)?
                 } else {
@@ -134,9 +134,9 @@ impl ReplicaPipes {
             replica_ends.push(w);
             outputs.push(if staged {
                 // Room for an answer the voter has not taken yet and the next one.
-                let line = port.max_frame + 1;
-                crate::channel::room_for_lines(r.as_fd(), (2 * line).max(64 << 10), line)?;
-                FrameReader::peeked_lines(r, port.max_frame)?
+                let whole = port.max_frame + replica_rt::frame::HEADER_LEN;
+                crate::channel::room_for_lines(r.as_fd(), (2 * whole).max(64 << 10), whole)?;
+                FrameReader::peeked_lines(r, port.max_frame, lines)?
             } else if lines {
                 FrameReader::lines(r, port.max_frame)?
             } else {
@@ -272,8 +272,9 @@ impl Replica {
             };
             let staging = Staging::adopt(staging_r, staging_w, input.max_frame)?;
             let read_end = reopen_nonblocking(&stdin)?;
-            let writer = FrameWriter::staged(stdin, staging)?;
-            let reader = FrameReader::peeked_lines(stdout, output.max_frame)?;
+            let lines = plan.framing == Framing::Lines;
+            let writer = FrameWriter::staged(stdin, staging, lines)?;
+            let reader = FrameReader::peeked_lines(stdout, output.max_frame, lines)?;
             sys::set_nonblocking(stderr.as_fd(), true)?;
             Ok((writer, read_end, reader, StderrRelay::new(stderr)))
         })();
