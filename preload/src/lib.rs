@@ -26,9 +26,13 @@
 //! completes the line. The same place applies SDC injections to the outgoing line. (C stdio
 //! writes from inside libc and does not come here; line-buffered, it writes whole lines.)
 //!
+//! A program that writes s3res frames itself (`"framing": "frames"`: the voter says so with
+//! `S3RES_PRELOAD_FRAMES=1`) has its stdout followed frame by frame instead of line by line:
+//! restarts are held while the last `write` ended inside a frame.
+//!
 //! Outside s3res (no contract in the environment) the library does nothing.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 
 use replica_rt::contract::{ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET};
 use replica_rt::restart;
@@ -38,6 +42,18 @@ static ACTIVE: AtomicBool = AtomicBool::new(false);
 /// The last write to stdout ended in the middle of a line (restarts are held meanwhile: this
 /// library holds one `hold_restarts` exactly while this is set, or while in `write`).
 static MID_LINE: AtomicBool = AtomicBool::new(false);
+
+/// The program writes s3res frames (`framing: frames`), not lines.
+static FRAMES: AtomicBool = AtomicBool::new(false);
+/// `framing: frames`: where stdout stands in the frame being written — bytes of its 4-byte
+/// header seen so far (0–3) and their value, then the bytes of the frame still to come. Only
+/// the program's one thread writes them (`write`); the restart handler reads `MID_LINE` only.
+static HEADER_SEEN: AtomicU32 = AtomicU32::new(0);
+static HEADER_WORD: AtomicU32 = AtomicU32::new(0);
+static FRAME_LEFT: AtomicU64 = AtomicU64::new(0);
+
+/// The environment variable the voter sets for a program that writes s3res frames.
+const ENV_FRAMES: &str = "S3RES_PRELOAD_FRAMES";
 
 /// Exit status of a replica that cannot be protected this way (refused at load).
 const REFUSED: libc::c_int = 125;
@@ -88,6 +104,7 @@ extern "C" fn load() {
         Err(e) => refuse(&format!("replica-rt: {e}")),
     }
     replica_rt::restart::refuse_fork_when_threaded();
+    FRAMES.store(std::env::var_os(ENV_FRAMES).is_some(), Ordering::SeqCst);
     line_buffer_stdout();
     ACTIVE.store(true, Ordering::SeqCst);
 }
@@ -139,7 +156,12 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
     };
     if let Ok(written) = usize::try_from(n) {
         if written > 0 {
-            MID_LINE.store(bytes[written - 1] != b'\n', Ordering::SeqCst);
+            let mid = if FRAMES.load(Ordering::Relaxed) {
+                !frame_boundary_after(&bytes[..written])
+            } else {
+                bytes[written - 1] != b'\n'
+            };
+            MID_LINE.store(mid, Ordering::SeqCst);
         }
     }
     if !MID_LINE.load(Ordering::SeqCst) {
@@ -148,6 +170,45 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
         restart::release_restarts();
     }
     n
+}
+
+/// `framing: frames`: follows the frames in `bytes` (the next bytes written to stdout) and
+/// says whether they end at a frame's end.
+fn frame_boundary_after(bytes: &[u8]) -> bool {
+    let mut seen = HEADER_SEEN.load(Ordering::Relaxed);
+    let mut word = HEADER_WORD.load(Ordering::Relaxed);
+    let mut left = FRAME_LEFT.load(Ordering::Relaxed);
+    let mut at = 0;
+    while at < bytes.len() {
+        if left > 0 {
+            let take = left.min((bytes.len() - at) as u64);
+            left -= take;
+            at += take as usize;
+            continue;
+        }
+        word |= u32::from(bytes[at]) << (8 * seen);
+        seen += 1;
+        at += 1;
+        if seen == 4 {
+            left = frame_body_len(word);
+            seen = 0;
+            word = 0;
+        }
+    }
+    HEADER_SEEN.store(seen, Ordering::Relaxed);
+    HEADER_WORD.store(word, Ordering::Relaxed);
+    FRAME_LEFT.store(left, Ordering::Relaxed);
+    seen == 0 && left == 0
+}
+
+/// The bytes after a frame's header word: its payload, or a control frame's argument.
+fn frame_body_len(word: u32) -> u64 {
+    use replica_rt::frame::{CONTROL_BIT, HEADER_LEN, RESUME, RESUME_LEN};
+    match word {
+        RESUME => (RESUME_LEN - HEADER_LEN) as u64,
+        w if w & CONTROL_BIT != 0 => 0,
+        w => u64::from(w),
+    }
 }
 
 /// The `write` system call itself (libc's `write` is this library's, above).

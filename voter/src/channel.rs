@@ -315,10 +315,9 @@ pub fn room_for_lines(fd: BorrowedFd<'_>, want: usize, need: usize) -> io::Resul
     if capacity < need {
         let limit = std::fs::read_to_string("/proc/sys/fs/pipe-max-size").unwrap_or_default();
         return Err(io::Error::other(format!(
-            "an unmodified program's line of up to {} bytes and its newline need a pipe of {need} \
-             bytes, and this system gives {capacity} (/proc/sys/fs/pipe-max-size: {}): lower the \
-             channel's max_frame",
-            need - 1,
+            "an unmodified program's line (or frame) of up to the channel's max_frame, with its \
+             newline (or header), needs a pipe of {need} bytes, and this system gives {capacity} \
+             (/proc/sys/fs/pipe-max-size: {}): lower the channel's max_frame",
             limit.trim()
         )));
     }
@@ -392,6 +391,9 @@ struct LinePeek {
     untaken_bytes: usize,
     /// Newline-delimited (else s3res frames).
     lines: bool,
+    /// Bytes the pipe held at the last peek: while it holds as many, nothing came (a replica
+    /// stopped in the middle of a large line is looked at with one `ioctl`, not a copy).
+    seen: usize,
     buf: Vec<u8>,
 }
 
@@ -425,6 +427,7 @@ impl FrameReader {
             untaken: Default::default(),
             untaken_bytes: 0,
             lines,
+            seen: 0,
             buf: Vec::new(),
         });
         Ok(reader)
@@ -456,6 +459,7 @@ impl FrameReader {
         if let Some(lp) = self.lines_peek.as_mut() {
             if let Some(raw) = lp.untaken.pop_front() {
                 lp.untaken_bytes -= raw.len();
+                lp.seen = lp.seen.saturating_sub(raw.len());
             }
         }
     }
@@ -587,6 +591,9 @@ impl FrameReader {
     }
 
     fn fill_past_untaken(&mut self, lp: &mut LinePeek) -> io::Result<Fill> {
+        if lp.seen > 0 && sys::bytes_in_pipe(self.fd.as_fd())? == lp.seen {
+            return Ok(Fill::Open);
+        }
         let n = match self.tee_all(&lp.peek)? {
             Some(0) => return Ok(Fill::Open),
             Some(n) => n,
@@ -607,6 +614,7 @@ impl FrameReader {
                 lp.untaken_bytes
             )));
         }
+        lp.seen = got;
         self.decoder.keep_pending(0);
         self.decoder.push(&lp.buf[lp.untaken_bytes..got]);
         if !self.decoder.has_frame() && got == lp.untaken_bytes && self.hung_up()? {

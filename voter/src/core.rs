@@ -406,6 +406,7 @@ impl Core {
             let (gone, found) = self.resume_lines();
             lost.extend(gone);
             lines = Some(found);
+            self.take_answers_left_behind();
         }
         let now = Instant::now();
         for gone in lost {
@@ -1419,8 +1420,13 @@ fn replace(
     detected_ns: u64,
     retry: bool,
 ) -> Result<bool, VoterError> {
-    if m.core().parks_lines() && !m.core().lines_quiet() {
-        // Not yet (see `Core::lines_quiet`): the slot is tried again with backoff.
+    let waited_ms = s3res_protocol::clock::monotonic_ns().saturating_sub(detected_ns) / 1_000_000;
+    if m.core().parks_lines()
+        && !m.core().lines_quiet()
+        && waited_ms < m.core().plan.restart_timeout_ms
+    {
+        // Not yet (see `Core::lines_quiet`): the slot is tried again with backoff, for as long
+        // as a recovery may take; then as it can (a fork would fail, an exec loses the state).
         return Ok(false);
     }
     let patience = Duration::from_micros(m.core().plan.timeout_us);

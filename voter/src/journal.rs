@@ -92,8 +92,8 @@ const FLAG_PROVEN: u64 = 2;
 const OFF_OFFSETS: usize = 1024;
 const OFFSETS_LEN: usize = 8 * MAX_PORTS;
 /// Lines, per slot: given, moved, taken, and the take in progress: its answer's number and
-/// length (see "Lines" above).
-const OFF_LINES: usize = 2048;
+/// length (see "Lines" above). After the stream outputs' counts (`OFF_WRITTEN`).
+const OFF_LINES: usize = 3584;
 const LINES_LEN: usize = 40;
 /// Stream mode, per output: frames written whole downstream, updated as they go (not part of
 /// a record: a stream successor goes on from there whatever its input commit says).
@@ -240,8 +240,9 @@ impl Journal {
 
     /// A new journal in the (empty) memfd `fd`: nothing delivered, nothing forwarded.
     pub(crate) fn create(fd: OwnedFd, plan: &VoterPlan) -> Result<Journal, JournalError> {
-        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > OFF_LINES
-            || OFF_LINES + LINES_LEN * plan.replicas > OFF_WRITTEN
+        if OFF_OFFSETS + OFFSETS_LEN * plan.replicas > OFF_WRITTEN
+            || OFF_WRITTEN + 8 * MAX_PORTS > OFF_LINES
+            || OFF_LINES + LINES_LEN * plan.replicas > HEADER
             || plan.outputs.len() > MAX_PORTS
         {
             return Err(JournalError::Mismatch(format!(
@@ -821,6 +822,51 @@ mod tests {
         // A pipe that does not hold what was peeked is an error, not a take.
         nix::unistd::write(&w, b"99\n").unwrap();
         assert!(journal.take_line(2, r.as_fd(), b"98\n").is_err());
+    }
+
+    /// Every part of the header stays apart at the most replicas a journal takes (the lines
+    /// once overlapped the stream offsets of a fifth replica, and a 5-replica voter refused
+    /// its journal).
+    #[test]
+    fn eight_replicas_keep_their_entries_apart() {
+        let mut plan = plan();
+        plan.replicas = 8;
+        plan.framing = crate::plan::Framing::Lines;
+        let fd = memfd(c"journal").unwrap();
+        let keep = fd.try_clone().unwrap();
+        let journal = Journal::create(fd, &plan).unwrap();
+        for slot in 0..8 {
+            let n = slot as u64 + 1;
+            journal.set_slot(
+                slot,
+                Some(SlotEntry {
+                    pid: 100 + slot as i32,
+                    start_time: n,
+                    state_lost: false,
+                    proven: true,
+                    offsets: [n; MAX_PORTS],
+                }),
+            );
+            journal.set_lines(
+                slot,
+                LineCounts {
+                    given: 10 * n,
+                    moved: 10 * n,
+                    taken: 10 * n - 1,
+                },
+            );
+        }
+        journal.set_written(0, 77);
+        let (journal, found) = Journal::open(keep, &plan).unwrap();
+        for slot in 0..8 {
+            let n = slot as u64 + 1;
+            let entry = found.slots[slot].unwrap();
+            assert_eq!((entry.pid, entry.offsets[0]), (100 + slot as i32, n));
+            assert_eq!(found.lines[slot].taken, 10 * n - 1);
+        }
+        assert_eq!(journal.written(0), 77);
+        plan.replicas = 9;
+        assert!(Journal::create(memfd(c"journal").unwrap(), &plan).is_err());
     }
 
     #[test]

@@ -188,13 +188,22 @@ impl Core {
     }
 
     /// Between rounds: a replica that answered its line without reading all of it (some is
-    /// still in its staging pipe or queued) is faulty; it would hold every commit back.
+    /// still in its staging pipe or queued) is faulty; it would hold every commit back. (Not
+    /// while a predecessor's input is replayed: a line moved on at the adoption may still be
+    /// on its way into a replica that has not answered it.)
     pub(crate) fn fault_unread_lines(&mut self) {
+        if self.replaying() {
+            return;
+        }
         let unread: Vec<usize> = (0..self.slots.len())
             .filter(|&r| {
-                self.slots[r]
-                    .as_ref()
-                    .is_some_and(|rep| rep.inputs.iter().any(|i| i.writer.has_pending()))
+                self.slots[r].as_ref().is_some_and(|rep| {
+                    let answered = match (rep.lines.as_ref(), rep.outputs.first()) {
+                        (Some(at), Some(out)) => at.taken + out.untaken_lines() as u64 == at.given,
+                        _ => false,
+                    };
+                    answered && rep.inputs.iter().any(|i| i.writer.has_pending())
+                })
             })
             .collect();
         for r in unread {
@@ -232,6 +241,60 @@ impl Core {
         };
         let decoded = lines.taken + out.untaken_lines() as u64;
         journal.delivered_at(0).saturating_sub(decoded)
+    }
+
+    /// Passes over the answers replica `r` gave to rounds committed already (they are decoded,
+    /// for [`take_committed_answers`](Self::take_committed_answers) to take, never voted
+    /// again). `Err`: its stdout breaks the framing.
+    pub(crate) fn decode_committed_answers(&mut self, r: usize) -> Result<(), String> {
+        let mut skip = self.answers_to_skip(r);
+        while skip > 0 {
+            let Some(out) = self.slots[r]
+                .as_mut()
+                .and_then(|rep| rep.outputs.first_mut())
+            else {
+                return Ok(());
+            };
+            let line = match out.decoder.next_frame() {
+                Ok(Some(f)) => f.to_vec(),
+                Ok(None) => return Ok(()),
+                Err(e) => return Err(format!("output `{}`: {e}", self.plan.outputs[0].name)),
+            };
+            out.decoded_line(&line);
+            skip -= 1;
+        }
+        Ok(())
+    }
+
+    /// Whether replica `r`'s next answer is to a line it was given whose round is not open
+    /// (an adopting voter's replay opens it once it reads that line again): the answer stays
+    /// in the pipe until then, instead of counting as a frame outside any round.
+    pub(crate) fn answer_before_its_round(&self, r: usize) -> bool {
+        let Some(rep) = self.slots[r].as_ref() else {
+            return false;
+        };
+        let (Some(at), Some(out)) = (rep.lines.as_ref(), rep.outputs.first()) else {
+            return false;
+        };
+        at.taken + (out.untaken_lines() as u64) < at.given
+    }
+
+    /// An adopting voter: the answers to rounds its predecessor committed, still in the
+    /// pipes, are taken now, before any round opens (a program whose stdout holds one answer
+    /// only would otherwise block on the next).
+    pub(crate) fn take_answers_left_behind(&mut self) {
+        for r in 0..self.slots.len() {
+            let Some(rep) = self.slots[r].as_mut() else {
+                continue;
+            };
+            if let Some(out) = rep.outputs.first_mut() {
+                let _ = out.fill();
+            }
+            if let Err(detail) = self.decode_committed_answers(r) {
+                self.record_fault(r, Cause::BadFrame, detail, None);
+            }
+        }
+        self.take_committed_answers();
     }
 
     /// Takes off every replica's stdout the answers to committed rounds (into the journal,

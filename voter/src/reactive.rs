@@ -828,10 +828,14 @@ impl ReactiveVoter {
             return;
         };
         let fill = rep.outputs[o].fill();
-        if rep.outputs[o].peeks() && self.skip_committed_answers(r, o).is_err() {
+        let peeks = rep.outputs[o].peeks();
+        if peeks && self.skip_committed_answers(r).is_err() {
             return;
         }
         loop {
+            if peeks && self.round.is_none() && self.core.answer_before_its_round(r) {
+                break;
+            }
             let problem = self.unexpected(r, o);
             let Some(rep) = self.core.slots[r].as_mut() else {
                 return;
@@ -875,25 +879,10 @@ impl ReactiveVoter {
     /// An adopting voter of an unmodified program: the answers replica `r` gave to rounds its
     /// predecessor committed are still in its pipe (they are taken after the commit); they
     /// are passed over here, to be taken, never voted again.
-    fn skip_committed_answers(&mut self, r: usize, o: usize) -> Result<(), ()> {
-        let mut skip = self.core.answers_to_skip(r);
-        while skip > 0 {
-            let Some(rep) = self.core.slots[r].as_mut() else {
-                return Err(());
-            };
-            let line = match rep.outputs[o].decoder.next_frame() {
-                Ok(Some(f)) => f.to_vec(),
-                Ok(None) => return Ok(()),
-                Err(e) => {
-                    let detail = format!("output `{}`: {e}", self.core.plan.outputs[o].name);
-                    self.fault(r, Cause::BadFrame, detail);
-                    return Err(());
-                }
-            };
-            rep.outputs[o].decoded_line(&line);
-            skip -= 1;
-        }
-        Ok(())
+    fn skip_committed_answers(&mut self, r: usize) -> Result<(), ()> {
+        self.core
+            .decode_committed_answers(r)
+            .map_err(|detail| self.fault(r, Cause::BadFrame, detail))
     }
 }
 
@@ -906,11 +895,11 @@ impl Mode for ReactiveVoter {
         loop {
             if self.round.is_none() {
                 let replace = self.core.stop.is_none();
-                core::recover_faulty(self, replace)?;
-                self.core.journal_slots();
                 if self.core.parks_lines() {
                     self.core.fault_unread_lines();
                 }
+                core::recover_faulty(self, replace)?;
+                self.core.journal_slots();
                 self.core.commit(self.rounds_started);
                 if self.core.parks_lines() {
                     if self.core.answers_untaken() {

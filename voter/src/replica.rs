@@ -305,6 +305,10 @@ impl Replica {
         if let Some(library) = &plan.preload {
             // The library reads the contract above at load time, before the program's `main`.
             cmd.env("LD_PRELOAD", library);
+            if plan.framing == Framing::Frames {
+                // It follows the program's stdout frame by frame, not line by line.
+                cmd.env("S3RES_PRELOAD_FRAMES", "1");
+            }
         }
         // The start handshake's pipe goes on the first number after the ports.
         let (start_r, start_w) = sys::pipe()?;
