@@ -37,6 +37,8 @@ pub struct Staging {
     /// Bytes in the staging pipe, not yet moved on.
     held: usize,
     capacity: usize,
+    /// The line being staged, kept for its capacity (one `write` takes it whole).
+    line: Vec<u8>,
 }
 
 impl Staging {
@@ -51,13 +53,14 @@ impl Staging {
         sys::set_nonblocking(r.as_fd(), true)?;
         sys::set_nonblocking(w.as_fd(), true)?;
         let whole = max_frame + frame::HEADER_LEN;
-        let capacity = room_for_lines(w.as_fd(), whole, whole)?;
+        let capacity = pipe_room(w.as_fd(), whole, whole)?;
         let held = sys::bytes_in_pipe(r.as_fd())?;
         Ok(Staging {
             r,
             w,
             held,
             capacity,
+            line: Vec::new(),
         })
     }
 
@@ -305,7 +308,7 @@ impl AsFd for FrameWriter {
 /// Makes the pipe behind `fd` hold `want` bytes, or at least `need` (a line of an unmodified
 /// program and its newline, which must fit whole): its size, or an error that says which limit
 /// stands in the way.
-pub fn room_for_lines(fd: BorrowedFd<'_>, want: usize, need: usize) -> io::Result<usize> {
+pub fn pipe_room(fd: BorrowedFd<'_>, want: usize, need: usize) -> io::Result<usize> {
     let mut capacity = sys::pipe_size(fd)?;
     for size in [want, need] {
         if capacity < size {
@@ -333,7 +336,8 @@ fn stage_line(staging: &mut Staging, payload: &[u8], lines: bool) -> io::Result<
             "the program has not read all of its previous line",
         ));
     }
-    let mut line = Vec::with_capacity(payload.len() + frame::HEADER_LEN);
+    let mut line = std::mem::take(&mut staging.line);
+    line.clear();
     if lines {
         line.extend_from_slice(payload);
         line.push(b'\n');
@@ -348,7 +352,9 @@ fn stage_line(staging: &mut Staging, payload: &[u8], lines: bool) -> io::Result<
         )));
     }
     // Into an empty pipe with room for all of it, a non-blocking write writes everything.
-    let n = sys::write(staging.w.as_fd(), &line)?;
+    let written = sys::write(staging.w.as_fd(), &line);
+    staging.line = line;
+    let n = written?;
     staging.held = n;
     if n != len {
         return Err(io::Error::other(format!(
@@ -384,11 +390,12 @@ pub struct FrameReader {
 #[derive(Debug)]
 struct LinePeek {
     peek: Peek,
-    /// Lines decoded and not taken off the pipe yet, each as it was in the pipe (with its
-    /// newline, or its frame header), oldest first.
-    untaken: std::collections::VecDeque<Vec<u8>>,
-    /// Their bytes in all: what every fresh peek starts with.
-    untaken_bytes: usize,
+    /// The bytes of the lines decoded and not taken off the pipe yet, as they lie at the
+    /// pipe's head (each with its newline, or its frame header): what every fresh peek starts
+    /// with.
+    untaken: Vec<u8>,
+    /// Their lengths, oldest first.
+    untaken_lens: std::collections::VecDeque<usize>,
     /// Newline-delimited (else s3res frames).
     lines: bool,
     /// Bytes the pipe held at the last peek: while it holds as many, nothing came (a replica
@@ -409,9 +416,9 @@ impl FrameReader {
     }
 
     /// A reader of an unmodified program's stdout that leaves the answers in the pipe until
-    /// they are taken ([`take_line`](Self::front_line)): each fill peeks the pipe afresh
-    /// (`tee`) past the lines already decoded. Call [`decoded_line`](Self::decoded_line) with
-    /// every line the decoder returns.
+    /// they are taken ([`front_line`](Self::front_line)): each fill peeks the pipe afresh
+    /// (`tee`) past the lines already decoded. Its answers are decoded with
+    /// [`next_answer`](Self::next_answer), which keeps count of them.
     pub fn peeked_lines(fd: OwnedFd, max_frame: usize, lines: bool) -> io::Result<Self> {
         let mut reader = if lines {
             FrameReader::lines(fd, max_frame)?
@@ -421,11 +428,11 @@ impl FrameReader {
         let mut peek = Peek::for_channel(reader.fd.as_fd())?;
         // A whole answer must fit in one look.
         let whole = max_frame + frame::HEADER_LEN;
-        peek.cap = room_for_lines(peek.w.as_fd(), peek.cap.max(whole), whole)?;
+        peek.cap = pipe_room(peek.w.as_fd(), peek.cap.max(whole), whole)?;
         reader.lines_peek = Some(LinePeek {
             peek,
-            untaken: Default::default(),
-            untaken_bytes: 0,
+            untaken: Vec::new(),
+            untaken_lens: Default::default(),
             lines,
             seen: 0,
             buf: Vec::new(),
@@ -433,40 +440,46 @@ impl FrameReader {
         Ok(reader)
     }
 
-    /// A peeking reader: the decoder returned `line` (without its newline), which stays in
-    /// the pipe until taken.
-    pub fn decoded_line(&mut self, line: &[u8]) {
+    /// The next whole frame (line) decoded, if one has arrived. A peeking reader also counts
+    /// it as decoded and not taken: it stays in the pipe until taken.
+    pub fn next_answer(&mut self) -> Result<Option<&[u8]>, replica_rt::frame::FrameError> {
+        let Some(answer) = self.decoder.next_frame()? else {
+            return Ok(None);
+        };
         if let Some(lp) = self.lines_peek.as_mut() {
-            let mut raw = Vec::with_capacity(line.len() + frame::HEADER_LEN);
+            let before = lp.untaken.len();
             if lp.lines {
-                raw.extend_from_slice(line);
-                raw.push(b'\n');
+                lp.untaken.extend_from_slice(answer);
+                lp.untaken.push(b'\n');
             } else {
-                frame::encode_into(line, &mut raw);
+                frame::encode_into(answer, &mut lp.untaken);
             }
-            lp.untaken_bytes += raw.len();
-            lp.untaken.push_back(raw);
+            lp.untaken_lens.push_back(lp.untaken.len() - before);
         }
+        Ok(Some(answer))
     }
 
-    /// A peeking reader: the oldest line decoded and not taken yet, with its newline.
+    /// A peeking reader: the oldest line decoded and not taken yet, as it lies in the pipe.
     pub fn front_line(&self) -> Option<&[u8]> {
-        self.lines_peek.as_ref()?.untaken.front().map(Vec::as_slice)
+        let lp = self.lines_peek.as_ref()?;
+        lp.untaken_lens.front().map(|&n| &lp.untaken[..n])
     }
 
     /// A peeking reader: the oldest line decoded is off the pipe now.
     pub fn took_front_line(&mut self) {
         if let Some(lp) = self.lines_peek.as_mut() {
-            if let Some(raw) = lp.untaken.pop_front() {
-                lp.untaken_bytes -= raw.len();
-                lp.seen = lp.seen.saturating_sub(raw.len());
+            if let Some(n) = lp.untaken_lens.pop_front() {
+                lp.untaken.drain(..n);
+                lp.seen = lp.seen.saturating_sub(n);
             }
         }
     }
 
     /// A peeking reader: how many lines it decoded that are not taken yet.
     pub fn untaken_lines(&self) -> usize {
-        self.lines_peek.as_ref().map_or(0, |lp| lp.untaken.len())
+        self.lines_peek
+            .as_ref()
+            .map_or(0, |lp| lp.untaken_lens.len())
     }
 
     /// Whether this reader peeks (an unmodified program's stdout under a journaled voter).
@@ -608,16 +621,16 @@ impl FrameReader {
                 Err(e) => return Err(e),
             }
         }
-        if got < lp.untaken_bytes {
+        let untaken = lp.untaken.len();
+        if got < untaken {
             return Err(io::Error::other(format!(
-                "the pipe holds {got} bytes, less than the {} of its answers not taken",
-                lp.untaken_bytes
+                "the pipe holds {got} bytes, less than the {untaken} of its answers not taken"
             )));
         }
         lp.seen = got;
         self.decoder.keep_pending(0);
-        self.decoder.push(&lp.buf[lp.untaken_bytes..got]);
-        if !self.decoder.has_frame() && got == lp.untaken_bytes && self.hung_up()? {
+        self.decoder.push(&lp.buf[untaken..got]);
+        if !self.decoder.has_frame() && got == untaken && self.hung_up()? {
             // Nothing new, and the writer is gone: the lines decoded are all there is.
             self.closed = true;
             return Ok(Fill::Closed);
@@ -745,10 +758,8 @@ mod tests {
         sys::write(w.as_fd(), b"1\n2\n3").unwrap();
         assert_eq!(reader.fill().unwrap(), Fill::Open);
         let mut seen = Vec::new();
-        while let Some(line) = reader.decoder.next_frame().unwrap() {
-            let line = line.to_vec();
-            reader.decoded_line(&line);
-            seen.push(line);
+        while let Some(line) = reader.next_answer().unwrap() {
+            seen.push(line.to_vec());
         }
         assert_eq!(seen, vec![b"1".to_vec(), b"2".to_vec()]);
         assert_eq!(
@@ -758,9 +769,8 @@ mod tests {
         );
         sys::write(w.as_fd(), b"\n").unwrap();
         reader.fill().unwrap();
-        assert_eq!(reader.decoder.next_frame().unwrap(), Some(&b"3"[..]));
-        reader.decoded_line(b"3");
-        assert_eq!(reader.decoder.next_frame().unwrap(), None);
+        assert_eq!(reader.next_answer().unwrap(), Some(&b"3"[..]));
+        assert_eq!(reader.next_answer().unwrap(), None);
         assert_eq!(reader.front_line(), Some(&b"1\n"[..]));
         // Taken off (as the journal does it), the next fill still decodes nothing twice.
         let mut two = [0u8; 2];
@@ -768,7 +778,7 @@ mod tests {
         reader.took_front_line();
         assert_eq!(reader.untaken_lines(), 2);
         reader.fill().unwrap();
-        assert_eq!(reader.decoder.next_frame().unwrap(), None);
+        assert_eq!(reader.next_answer().unwrap(), None);
         drop(w);
         let mut rest = [0u8; 4];
         assert_eq!(sys::read(probe.as_fd(), &mut rest).unwrap(), 4);

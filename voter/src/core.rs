@@ -945,32 +945,18 @@ impl Core {
         };
         let frame_len = frame.len();
         let mut delivery = Delivery::default();
-        if self.park.is_some() {
-            // An unmodified program's lines, each given once (see `lines.rs`).
-            let frame = frame.to_vec();
-            let number = self.delivered[i] + 1;
-            for r in 0..self.slots.len() {
-                if self.slots[r].is_none() {
-                    continue;
-                }
-                match self.give_line(r, i, &frame, number) {
-                    Ok(true) => delivery.members = delivery.members.with(r),
-                    Ok(false) => {}
-                    Err(e) => delivery.faulty.push((
-                        r,
-                        Cause::PipeError,
-                        format!("input pipe `{}` broke: {e}", self.inputs[i].name),
-                    )),
-                }
-            }
-            self.delivered[i] += 1;
-            self.last_delivered_len[i] = frame::HEADER_LEN + frame_len;
-            return Some(delivery);
-        }
+        let number = self.delivered[i] + 1;
+        // An unmodified program's lines are each given once (see `lines.rs`).
+        let lines = self.journal.as_ref().filter(|_| self.park.is_some());
         for (r, rep) in self.slots.iter_mut().enumerate() {
             let Some(rep) = rep else { continue };
-            match rep.inputs[i].writer.send(frame) {
-                Ok(()) => delivery.members = delivery.members.with(r),
+            let given = match lines {
+                Some(journal) => crate::lines::give_line(journal, r, rep, i, frame, number),
+                None => rep.inputs[i].writer.send(frame).map(|()| true),
+            };
+            match given {
+                Ok(true) => delivery.members = delivery.members.with(r),
+                Ok(false) => {}
                 Err(e) => delivery.faulty.push((
                     r,
                     Cause::PipeError,

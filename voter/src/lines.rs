@@ -9,7 +9,7 @@
 //!   stdout and stderr, and of the staging pipe beside its stdin. A successor takes them over
 //!   ([`crate::adopt::parked_replicas`]);
 //! - **each line** goes through the staging pipe, journaled between the `write` into it and
-//!   the `splice` out of it ([`Core::give_line`]), so that a successor gives every line once;
+//!   the `splice` out of it ([`give_line`]), so that a successor gives every line once;
 //! - **each answer** stays in the program's stdout until its round is committed, and is then
 //!   taken with one `read` into the journal ([`Core::take_committed_answers`]), so that a
 //!   successor finds the answers of an unfinished round still there, and drops those of a
@@ -25,8 +25,9 @@ use std::os::fd::{AsFd, BorrowedFd};
 use crate::core::Core;
 use crate::crashpoint;
 use crate::event::Cause;
-use crate::journal::LineCounts;
+use crate::journal::{Journal, LineCounts};
 use crate::park::Parked;
+use crate::replica::Replica;
 
 /// What an adopting voter found of its predecessor's lines, for its `voter_restart` event.
 #[derive(Debug, Default, Clone, Copy)]
@@ -120,45 +121,6 @@ impl Core {
         }
     }
 
-    /// Gives line `number` (`frame`) to replica `r` on input `i`: into its staging pipe, the
-    /// number journaled, then moved on into its stdin as far as it takes it now. A line it was
-    /// given before (by a predecessor: a replayed round) is not given again.
-    ///
-    /// Returns whether the replica answers the line in the pipe this voter reads: not a
-    /// replica started after the line's round closed (a fork child has the line in its
-    /// donor's memory, and its answer lies in the donor's pipe), which a successor replaying
-    /// that round finds with the answer counted as taken.
-    pub(crate) fn give_line(
-        &mut self,
-        r: usize,
-        i: usize,
-        frame: &[u8],
-        number: u64,
-    ) -> std::io::Result<bool> {
-        let (Some(journal), Some(rep)) = (self.journal.as_ref(), self.slots[r].as_mut()) else {
-            return Ok(false);
-        };
-        let Some(lines) = rep.lines.as_mut() else {
-            return Err(std::io::Error::other("a replica not journaled yet"));
-        };
-        if lines.given >= number {
-            return Ok(lines.taken < number);
-        }
-        let writer = &mut rep.inputs[i].writer;
-        writer.send(frame)?;
-        crashpoint::reached("line-staged");
-        journal.set_given(r, number);
-        lines.given = number;
-        crashpoint::reached("line-given");
-        writer.flush()?;
-        crashpoint::reached("line-moved");
-        if !writer.has_pending() {
-            journal.set_moved(r, number);
-            lines.moved = number;
-        }
-        Ok(true)
-    }
-
     /// Whether every replica stands where a fork may copy it: given every line delivered,
     /// moved whole into its stdin, and answered each (the answers decoded, nothing after
     /// them). An adopting voter replaying its predecessor's unfinished round is not there
@@ -166,12 +128,16 @@ impl Core {
     pub(crate) fn lines_quiet(&self) -> bool {
         let delivered = self.delivered.first().copied().unwrap_or(0);
         self.slots.iter().flatten().all(|rep| {
-            let (Some(at), Some(out)) = (rep.lines.as_ref(), rep.outputs.first()) else {
+            let (Some(at), Some(decoded), Some(out)) = (
+                rep.lines.as_ref(),
+                rep.answers_decoded(),
+                rep.outputs.first(),
+            ) else {
                 return true;
             };
             at.given == delivered
                 && at.moved == at.given
-                && at.taken + out.untaken_lines() as u64 == at.given
+                && decoded == at.given
                 && out.decoder.pending() == 0
         })
     }
@@ -198,10 +164,10 @@ impl Core {
         let unread: Vec<usize> = (0..self.slots.len())
             .filter(|&r| {
                 self.slots[r].as_ref().is_some_and(|rep| {
-                    let answered = match (rep.lines.as_ref(), rep.outputs.first()) {
-                        (Some(at), Some(out)) => at.taken + out.untaken_lines() as u64 == at.given,
-                        _ => false,
-                    };
+                    let answered = rep
+                        .lines
+                        .as_ref()
+                        .is_some_and(|at| rep.answers_decoded() == Some(at.given));
                     answered && rep.inputs.iter().any(|i| i.writer.has_pending())
                 })
             })
@@ -233,13 +199,12 @@ impl Core {
     /// Answers of replica `r` to skip before a round may take one: those to rounds committed
     /// already (a successor finds them still in the pipe; they were voted before).
     pub(crate) fn answers_to_skip(&self, r: usize) -> u64 {
-        let (Some(journal), Some(rep)) = (self.journal.as_ref(), self.slots[r].as_ref()) else {
+        let (Some(journal), Some(decoded)) = (
+            self.journal.as_ref(),
+            self.slots[r].as_ref().and_then(Replica::answers_decoded),
+        ) else {
             return 0;
         };
-        let (Some(lines), Some(out)) = (rep.lines.as_ref(), rep.outputs.first()) else {
-            return 0;
-        };
-        let decoded = lines.taken + out.untaken_lines() as u64;
         journal.delivered_at(0).saturating_sub(decoded)
     }
 
@@ -255,13 +220,11 @@ impl Core {
             else {
                 return Ok(());
             };
-            let line = match out.decoder.next_frame() {
-                Ok(Some(f)) => f.to_vec(),
+            match out.next_answer() {
+                Ok(Some(_)) => skip -= 1,
                 Ok(None) => return Ok(()),
                 Err(e) => return Err(format!("output `{}`: {e}", self.plan.outputs[0].name)),
-            };
-            out.decoded_line(&line);
-            skip -= 1;
+            }
         }
         Ok(())
     }
@@ -273,10 +236,10 @@ impl Core {
         let Some(rep) = self.slots[r].as_ref() else {
             return false;
         };
-        let (Some(at), Some(out)) = (rep.lines.as_ref(), rep.outputs.first()) else {
-            return false;
-        };
-        at.taken + (out.untaken_lines() as u64) < at.given
+        match (rep.lines.as_ref(), rep.answers_decoded()) {
+            (Some(at), Some(decoded)) => decoded < at.given,
+            _ => false,
+        }
     }
 
     /// An adopting voter: the answers to rounds its predecessor committed, still in the
@@ -399,4 +362,41 @@ impl Core {
             }
         }
     }
+}
+
+/// Gives line `number` (`frame`) to replica `r` on input `i`: into its staging pipe, the
+/// number journaled, then moved on into its stdin as far as it takes it now. A line it was
+/// given before (by a predecessor: a replayed round) is not given again.
+///
+/// Returns whether the replica answers the line in the pipe this voter reads: not a
+/// replica started after the line's round closed (a fork child has the line in its
+/// donor's memory, and its answer lies in the donor's pipe), which a successor replaying
+/// that round finds with the answer counted as taken.
+pub(crate) fn give_line(
+    journal: &Journal,
+    r: usize,
+    rep: &mut Replica,
+    i: usize,
+    frame: &[u8],
+    number: u64,
+) -> std::io::Result<bool> {
+    let Some(lines) = rep.lines.as_mut() else {
+        return Err(std::io::Error::other("a replica not journaled yet"));
+    };
+    if lines.given >= number {
+        return Ok(lines.taken < number);
+    }
+    let writer = &mut rep.inputs[i].writer;
+    writer.send(frame)?;
+    crashpoint::reached("line-staged");
+    journal.set_given(r, number);
+    lines.given = number;
+    crashpoint::reached("line-given");
+    writer.flush()?;
+    crashpoint::reached("line-moved");
+    if !writer.has_pending() {
+        journal.set_moved(r, number);
+        lines.moved = number;
+    }
+    Ok(true)
 }

@@ -281,14 +281,11 @@ fn encode(kind: u32, slot: u32, pid: libc::pid_t, start_time: u64, nonce: u64) -
     h
 }
 
-/// A nonce no other rotation has: this process's pid, the time and the rotation count, mixed
-/// (splitmix64) so that nearby inputs give far-apart nonces.
+/// A nonce no other rotation has: this process's pid and the time, and the rotation count,
+/// spread by the project's SplitMix64 so that nearby inputs give far-apart nonces.
 fn sentinel_nonce(rotation: u64) -> u64 {
-    let seed = sys::monotonic_ns() ^ ((sys::getpid() as u64) << 40) ^ rotation.rotate_left(20);
-    let mut z = seed.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
+    let seed = sys::monotonic_ns() ^ ((sys::getpid() as u64) << 40);
+    s3res_protocol::rng::derive(seed, rotation)
 }
 
 fn send(sock: BorrowedFd<'_>, bytes: &[u8], fds: &[RawFd]) -> io::Result<()> {
@@ -436,18 +433,11 @@ fn installed_fds(msg: &libc::msghdr) -> Vec<OwnedFd> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nix::sys::socket::{socketpair, AddressFamily, SockFlag, SockType};
 
     /// The lot, plus "bootstrap's" copies of both ends, which keep the queue alive and let a
     /// test write into it by hand.
     fn lot() -> (ParkingLot, OwnedFd, OwnedFd) {
-        let (tx, rx) = socketpair(
-            AddressFamily::Unix,
-            SockType::SeqPacket,
-            None,
-            SockFlag::SOCK_CLOEXEC,
-        )
-        .unwrap();
+        let (tx, rx) = sys::seqpacket_pair().unwrap();
         let (tx2, rx2) = (tx.try_clone().unwrap(), rx.try_clone().unwrap());
         (ParkingLot::new(tx, rx).unwrap(), tx2, rx2)
     }

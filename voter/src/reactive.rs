@@ -237,7 +237,7 @@ impl ReactiveVoter {
                 Some(check) => at.min(check),
                 None => at,
             };
-            let at = match self.untaken_pending(round) {
+            let at = match self.unwatched_peek_due(round) {
                 Some(look) => at.min(Instant::now() + look),
                 None => at,
             };
@@ -258,7 +258,7 @@ impl ReactiveVoter {
     /// In a sequential round, moves the turn on instead (see [`ReactiveVoter::advance_turn`]).
     fn advance_round(&mut self) {
         self.read_unwatched();
-        self.read_untaken();
+        self.read_unwatched_peeks();
         let Some(round) = self.round.as_ref() else {
             return;
         };
@@ -285,7 +285,7 @@ impl ReactiveVoter {
 
     /// How soon the open round must look at a pipe the wait does not watch (see
     /// [`unwatched_look`]) of a replica it waits for, if there is one.
-    fn untaken_pending(&self, round: &Round) -> Option<Duration> {
+    fn unwatched_peek_due(&self, round: &Round) -> Option<Duration> {
         if !self.core.parks_lines() {
             return None;
         }
@@ -296,12 +296,12 @@ impl ReactiveVoter {
             .min()
     }
 
-    /// Reads the pipes [`untaken_pending`](Self::untaken_pending) is about.
-    fn read_untaken(&mut self) {
+    /// Reads the pipes [`unwatched_peek_due`](Self::unwatched_peek_due) is about.
+    fn read_unwatched_peeks(&mut self) {
         let Some(round) = self.round.as_ref() else {
             return;
         };
-        if self.untaken_pending(round).is_none() {
+        if self.unwatched_peek_due(round).is_none() {
             return;
         }
         for r in self.pending(round).iter() {
@@ -840,7 +840,7 @@ impl ReactiveVoter {
             let Some(rep) = self.core.slots[r].as_mut() else {
                 return;
             };
-            let frame = match rep.outputs[o].decoder.next_frame() {
+            let frame = match rep.outputs[o].next_answer() {
                 Ok(Some(f)) => f,
                 Ok(None) => break,
                 Err(e) => {
@@ -859,8 +859,6 @@ impl ReactiveVoter {
             let buf = &mut self.answers[r][o];
             buf.clear();
             buf.extend_from_slice(frame);
-            // A peeked answer stays in the pipe until its round is committed (`lines.rs`).
-            rep.outputs[o].decoded_line(buf);
             let round = self.round.as_mut().expect("unexpected() checked the round");
             round.answered[r] |= 1 << o;
             let number = round.number;

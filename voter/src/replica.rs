@@ -135,7 +135,7 @@ impl ReplicaPipes {
             outputs.push(if staged {
                 // Room for an answer the voter has not taken yet and the next one.
                 let whole = port.max_frame + replica_rt::frame::HEADER_LEN;
-                crate::channel::room_for_lines(r.as_fd(), (2 * whole).max(64 << 10), whole)?;
+                crate::channel::pipe_room(r.as_fd(), (2 * whole).max(64 << 10), whole)?;
                 FrameReader::peeked_lines(r, port.max_frame, lines)?
             } else if lines {
                 FrameReader::lines(r, port.max_frame)?
@@ -382,6 +382,14 @@ impl Replica {
         self.output_closed_at
             .get_or_insert_with(crate::clock::Instant::now);
         false
+    }
+
+    /// An unmodified program's replica under a journaled voter: the answers it gave that this
+    /// voter has counted, taken or decoded (`None` otherwise). Its next answer is to line
+    /// `answers_decoded + 1`.
+    pub fn answers_decoded(&self) -> Option<u64> {
+        let (at, out) = (self.lines.as_ref()?, self.outputs.first()?);
+        Some(at.taken + out.untaken_lines() as u64)
     }
 
     /// Writes what is queued for input `i`, as far as the pipe takes it now.
