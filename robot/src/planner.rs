@@ -7,6 +7,9 @@
 //! middle of corridors, where the robot's body clears both walls.
 //!
 //! [`Planner`] answers requests and replans when a map update blocks the path it last sent.
+//! When the map has no way to the goal, it plans through the occupied blocks the robot does not
+//! see now ([`Grid::unseen_from`]), and failing that through all but the nearest
+//! ([`Grid::near_only`]): the robot goes to look again rather than wait for ever.
 //! It must see map updates and requests in `seq` order (an update of `seq` v before a request
 //! of `seq` k ≥ v); [`Planner::needs_map_before`] tells the component which input to read next,
 //! so that the order — and with it every output — is the same in every replica whatever the
@@ -15,6 +18,7 @@
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
+use crate::mapper::MAX_RANGE;
 use crate::msg::{Cell, MapUpdate, Request, Waypoints};
 
 pub const STRAIGHT: u32 = 1000;
@@ -23,6 +27,9 @@ pub const DIAGONAL: u32 = 1414;
 pub const INFLATED_COST: u32 = 4000;
 /// Extra cost of entering a cell nobody has seen.
 pub const UNKNOWN_COST: u32 = 200;
+/// Occupied blocks within this distance of the robot, metres, stay walls whatever the map
+/// says elsewhere ([`Grid::near_only`]).
+pub const NEAR: f64 = 0.5;
 
 /// An occupancy grid to plan on.
 #[derive(Debug, Clone, PartialEq)]
@@ -57,6 +64,67 @@ impl Grid {
             }
         }
         g
+    }
+
+    /// This grid with the occupied blocks the robot at `(x, y)` does not see now taken as
+    /// unknown: every one farther than `range`, or hidden behind another occupied block.
+    ///
+    /// Why: the mapper can mark a block occupied that is not (a spurious echo the filter let
+    /// through). If such a ghost closes the only way to the goal, A* finds no path, the
+    /// navigator keeps the plan it has, and a robot that stands where it cannot see the ghost
+    /// waits for a plan until the time limit: nothing ever makes the mapper look again.
+    /// Planning through what the robot cannot see sends it to look (a mobile robot's
+    /// "conservative reset" of its obstacle map when it is stuck). The blocks in sight stay
+    /// walls, so a real wall is approached only until it is in sight.
+    pub fn unseen_from(&self, x: f64, y: f64, block: f64, range: f64) -> Grid {
+        self.forgetting(x, y, block, |cell, d| {
+            d <= range && self.in_sight(x, y, block, cell)
+        })
+    }
+
+    /// This grid with every occupied block farther than `near` from `(x, y)` taken as unknown:
+    /// the last resort when even [`Grid::unseen_from`] leaves no way (a ghost in sight that no
+    /// beam of a robot standing still crosses). The robot moves, and its beams sweep what lies
+    /// on its way.
+    pub fn near_only(&self, x: f64, y: f64, block: f64, near: f64) -> Grid {
+        self.forgetting(x, y, block, |_, d| d <= near)
+    }
+
+    /// A copy in which every occupied block for which `keep(block, distance of its centre
+    /// from (x, y))` is false is unknown.
+    fn forgetting(
+        &self,
+        x: f64,
+        y: f64,
+        block: f64,
+        keep: impl Fn((usize, usize), f64) -> bool,
+    ) -> Grid {
+        let mut g = self.clone();
+        for (i, c) in g.cells.iter_mut().enumerate() {
+            let cell = (i % self.w, i / self.w);
+            let (dx, dy) = (
+                (cell.0 as f64 + 0.5) * block - x,
+                (cell.1 as f64 + 0.5) * block - y,
+            );
+            if *c == Cell::Occupied && !keep(cell, (dx * dx + dy * dy).sqrt()) {
+                *c = Cell::Unknown;
+            }
+        }
+        g
+    }
+
+    /// Whether the straight line from `(x, y)` to the centre of `cell` crosses no other
+    /// occupied block (sampled every quarter block, as the mapper traces its beams).
+    fn in_sight(&self, x: f64, y: f64, block: f64, cell: (usize, usize)) -> bool {
+        let (tx, ty) = ((cell.0 as f64 + 0.5) * block, (cell.1 as f64 + 0.5) * block);
+        let d = ((tx - x).powi(2) + (ty - y).powi(2)).sqrt();
+        let steps = (d / (block / 4.0)) as usize;
+        (0..steps).all(|k| {
+            let t = k as f64 / steps as f64;
+            let (px, py) = ((x + t * (tx - x)) / block, (y + t * (ty - y)) / block);
+            let (cx, cy) = (px.floor() as i64, py.floor() as i64);
+            (cx, cy) == (cell.0 as i64, cell.1 as i64) || self.at(cx, cy) != Cell::Occupied
+        })
     }
 
     fn at(&self, cx: i64, cy: i64) -> Cell {
@@ -260,7 +328,9 @@ impl Planner {
         };
         let start = cell(x, y)?;
         let goal = cell(self.goal.0, self.goal.1)?;
-        let (path, _) = astar(grid, start, goal)?;
+        let (path, _) = astar(grid, start, goal)
+            .or_else(|| astar(&grid.unseen_from(x, y, *block, MAX_RANGE), start, goal))
+            .or_else(|| astar(&grid.near_only(x, y, *block, NEAR), start, goal))?;
         let points = path
             .iter()
             .skip(1)
@@ -419,6 +489,77 @@ mod tests {
         let after = fresh.on_request(&req(4)).unwrap().plan;
         assert!(after > before, "{after} > {before}");
         assert!(plan_id(0, PlanCause::Map) > 0);
+    }
+
+    /// What the robot "sees" for the planner's fallbacks: blocks within range and not behind
+    /// another occupied block.
+    #[test]
+    fn blocks_out_of_range_or_hidden_are_forgotten_first_and_all_but_the_nearest_last() {
+        // 0.25 m blocks; the robot in block (0, 1). Walls at (1, 0) (0.35 m away), (5, 1)
+        // (1.25 m), (6, 1) (behind the last) and (10, 1) (2.5 m: out of range).
+        let g = Grid::from_rows(&[
+            "............", //
+            ".....##...#.",
+            ".#..........",
+        ]);
+        let (x, y) = (0.125, 0.375);
+        let kept = |g: &Grid| -> Vec<(usize, usize)> {
+            (0..g.w * g.h)
+                .map(|i| (i % g.w, i / g.w))
+                .filter(|&(cx, cy)| g.at(cx as i64, cy as i64) == Cell::Occupied)
+                .collect()
+        };
+        assert_eq!(
+            kept(&g),
+            vec![(1, 0), (5, 1), (6, 1), (10, 1)],
+            "the map as drawn"
+        );
+        assert_eq!(
+            kept(&g.unseen_from(x, y, 0.25, MAX_RANGE)),
+            vec![(1, 0), (5, 1)]
+        );
+        assert_eq!(kept(&g.near_only(x, y, 0.25, NEAR)), vec![(1, 0)]);
+    }
+
+    /// A wall across the whole map whose only gap the mapper has marked occupied: the planner
+    /// does not leave the robot without a plan, but keeps a wall right in front of it a wall,
+    /// and takes any real way around first.
+    #[test]
+    fn a_map_without_a_way_to_the_goal_is_planned_through_where_the_robot_cannot_see() {
+        let rows = ["..........#.", "..........#.", "..........#."];
+        let mut m = MapUpdate {
+            block: 0.25,
+            w: 12,
+            x: 0.125,
+            y: 0.375,
+            goal_x: 2.875,
+            goal_y: 0.375,
+            cells: Grid::from_rows(&rows).cells,
+            ..open_map()
+        };
+        let at = |x: f64| Request {
+            x,
+            y: 0.375,
+            goal_x: 2.875,
+            goal_y: 0.375,
+            ..request(1)
+        };
+        let mut p = Planner::new();
+        p.on_map(&m);
+        for x in [0.125, 1.125, 2.125] {
+            let w = p
+                .on_request(&at(x))
+                .expect("a plan through the wall not in front");
+            assert_eq!(*w.points.last().unwrap(), (2.875, 0.375));
+        }
+        // 0.375 m from the wall: it stays a wall (the navigator keeps the plan it has).
+        assert_eq!(p.on_request(&at(2.25)), None);
+        // A way around, even a long one, is taken before any occupied block.
+        m.h = 4;
+        m.cells = Grid::from_rows(&["............", rows[0], rows[1], rows[2]]).cells;
+        p.on_map(&m);
+        let w = p.on_request(&at(0.125)).unwrap();
+        assert!(w.points.iter().any(|&(_, y)| y > 0.75), "{:?}", w.points);
     }
 
     #[test]
