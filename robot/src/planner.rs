@@ -102,10 +102,8 @@ impl Grid {
         let mut g = self.clone();
         for (i, c) in g.cells.iter_mut().enumerate() {
             let cell = (i % self.w, i / self.w);
-            let (dx, dy) = (
-                (cell.0 as f64 + 0.5) * block - x,
-                (cell.1 as f64 + 0.5) * block - y,
-            );
+            let (cx, cy) = centre(cell, block);
+            let (dx, dy) = (cx - x, cy - y);
             if *c == Cell::Occupied && !keep(cell, (dx * dx + dy * dy).sqrt()) {
                 *c = Cell::Unknown;
             }
@@ -116,7 +114,7 @@ impl Grid {
     /// Whether the straight line from `(x, y)` to the centre of `cell` crosses no other
     /// occupied block (sampled every quarter block, as the mapper traces its beams).
     fn in_sight(&self, x: f64, y: f64, block: f64, cell: (usize, usize)) -> bool {
-        let (tx, ty) = ((cell.0 as f64 + 0.5) * block, (cell.1 as f64 + 0.5) * block);
+        let (tx, ty) = centre(cell, block);
         let d = ((tx - x).powi(2) + (ty - y).powi(2)).sqrt();
         let steps = (d / (block / 4.0)) as usize;
         (0..steps).all(|k| {
@@ -158,6 +156,11 @@ impl Grid {
         }
         c
     }
+}
+
+/// The centre of block `cell`, metres.
+fn centre(cell: (usize, usize), block: f64) -> (f64, f64) {
+    ((cell.0 as f64 + 0.5) * block, (cell.1 as f64 + 0.5) * block)
 }
 
 /// Octile distance: admissible for the step costs above (extra costs only add).
@@ -334,7 +337,7 @@ impl Planner {
         let points = path
             .iter()
             .skip(1)
-            .map(|&(cx, cy)| ((cx as f64 + 0.5) * block, (cy as f64 + 0.5) * block))
+            .map(|&cell| centre(cell, *block))
             .collect();
         self.plans += 1;
         self.last_path = path;
