@@ -99,7 +99,18 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
     let mut detection: Vec<Option<&Event>> = vec![None; fired.len()];
     let mut false_positives = 0;
 
-    for e in events.iter().filter(|e| is_fault(e.kind)) {
+    // Events that name a replica are matched first, unattributed ones after them: when two
+    // replicas of a component are hit before one frame (two flips, one per replica, so all
+    // three frames differ), the voter reports a "no majority" event and then one event per
+    // faulty replica. Taken in time order alone, the "no majority" event would take the
+    // injection its replica's own event explains, leaving that injection unrecovered and the
+    // replica's event a false positive.
+    let (attributed, unattributed): (Vec<&Event>, Vec<&Event>) = events
+        .iter()
+        .copied()
+        .filter(|e| is_fault(e.kind))
+        .partition(|e| e.replica.is_some());
+    for e in attributed.into_iter().chain(unattributed) {
         let in_window = |f: &Fired| e.ts_ns >= f.ts_ns && e.ts_ns - f.ts_ns <= window_ns;
         let can_explain = |i: usize, f: &Fired| {
             detection[i].is_none()
@@ -284,5 +295,35 @@ mod tests {
         assert_eq!(m.per_injection[1].1.already_hit_by, Some(0));
         assert_eq!(m.false_positives, 0);
         assert!(Outcome::Undetected.is_error() && !Outcome::Benign.is_error());
+    }
+
+    /// A TMR stream component, two replicas flipped before the same frame (campaign TMR sdc,
+    /// run 39): the voter reports "no majority" first, then each faulty replica, and replaces
+    /// both. Both injections are recovered and nothing is a false positive; before, the "no
+    /// majority" event took the later injection (unrecovered) and its replica's own event
+    /// counted as a false positive.
+    #[test]
+    fn two_replicas_hit_before_one_frame_are_both_recovered_despite_the_no_majority_event() {
+        let recovery = |ts_ms, slot, pid| {
+            let mut r = ev(ts_ms, EventKind::Recovery, Some(slot), pid);
+            r.new_pid = Some(pid + 100);
+            r
+        };
+        let events = vec![
+            ev(334, EventKind::Sdc, None, 0),
+            ev(334, EventKind::Sdc, Some(1), 101),
+            ev(335, EventKind::Sdc, Some(2), 102),
+            recovery(336, 2, 102),
+            recovery(337, 1, 101),
+        ];
+        let m = match_run(
+            &[fired(0, 1, 101), fired(200, 2, 102)],
+            &events,
+            2000 * MS,
+            true,
+        );
+        let outcomes: Vec<Outcome> = m.per_injection.iter().map(|x| x.0).collect();
+        assert_eq!(outcomes, vec![Outcome::Recovered, Outcome::Recovered]);
+        assert_eq!(m.false_positives, 0);
     }
 }
