@@ -63,8 +63,9 @@ fn dmr_survives_fifty_kills_with_state() {
     survive_repeated_kills("dmr", 2, 50);
 }
 
-/// Injects one fault into one TMR replica and checks it is recorded as `kind` and repaired.
-fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
+/// Injects one fault into one TMR replica and checks it is recorded as `kind` and repaired;
+/// returns the fault event.
+fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) -> Event {
     let count = 1500;
     let sys = System::new();
     let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 500);
@@ -83,6 +84,7 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) {
 
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
+    fault
 }
 
 #[test]
@@ -101,11 +103,20 @@ fn tmr_detects_a_control_flow_error_as_a_hang() {
     );
 }
 
+/// A stopped replica is blamed at its deadline, and the `hang` says where its frames stood:
+/// the voter read everything it wrote (it answers nothing while stopped), and how much of its
+/// input it left in its pipe (one frame, or none if it stopped between reading and answering).
 #[test]
 fn tmr_detects_a_stopped_replica_as_a_hang() {
-    tmr_single_fault(
+    let hang = tmr_single_fault(
         |pid| s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("kill"),
         EventKind::Hang,
+    );
+    let detail = hang.detail.as_deref().unwrap_or_default();
+    eprintln!("hang detail: {detail}");
+    assert!(
+        detail.contains("its input: ") && detail.contains("its output: 0 B unread in the pipe"),
+        "{hang:?}"
     );
 }
 

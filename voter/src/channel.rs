@@ -507,6 +507,12 @@ impl FrameReader {
         self.closed
     }
 
+    /// Bytes the replica wrote that the voter has not read off the pipe yet (`FIONREAD`);
+    /// `None` where the kernel does not say.
+    pub fn unread(&self) -> Option<usize> {
+        sys::bytes_in_pipe(self.fd.as_fd()).ok()
+    }
+
     /// Reads everything available now into the decoder.
     pub fn fill(&mut self) -> io::Result<Fill> {
         if self.closed {

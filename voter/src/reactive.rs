@@ -587,8 +587,9 @@ impl ReactiveVoter {
         );
         // Blamed at the deadline, as without the look: those that had their chance.
         let on_turn = self.core.plan.schedule == Schedule::Sequential;
+        let deadline = self.round.as_ref().map_or(now, |rd| rd.deadline);
         for r in late.iter().filter(|&r| !starved.contains(r)) {
-            self.blame_late(r, number, on_turn);
+            self.blame_late(r, number, on_turn, deadline);
         }
         self.look_at_late(now);
         if let Some(round) = self.round.as_mut() {
@@ -618,8 +619,8 @@ impl ReactiveVoter {
                 }
                 self.last_look(t);
                 if let Some(round) = self.round.as_ref().filter(|rd| !rd.is_done_by(t)) {
-                    let number = round.number;
-                    self.blame_late(t, number, true);
+                    let (number, deadline) = (round.number, round.deadline);
+                    self.blame_late(t, number, true, deadline);
                 }
             }
         }
@@ -731,7 +732,7 @@ impl ReactiveVoter {
 
     /// Blames replica `r`, late in round `number` (`on_turn`: at the deadline of its own
     /// turn): `protocol` with a partial frame in its pipe, else `hang`.
-    fn blame_late(&mut self, r: usize, number: u64, on_turn: bool) {
+    fn blame_late(&mut self, r: usize, number: u64, on_turn: bool, deadline: Instant) {
         let Some(rep) = self.core.slots[r].as_mut() else {
             return;
         };
@@ -742,6 +743,11 @@ impl ReactiveVoter {
             " (its runtime never started: no s3res start handshake)"
         };
         let turn = if on_turn { " of its turn" } else { "" };
+        let backlog = rep.pipe_backlog();
+        // How late the voter itself came to the deadline: a stalled voter, not the replica.
+        let voter_late = Instant::now()
+            .saturating_duration_since(deadline)
+            .as_micros();
         let plan = &self.core.plan;
         let hang = match (proven, on_turn) {
             (false, _) => Cause::StartDeadline,
@@ -760,7 +766,8 @@ impl ReactiveVoter {
                     None => String::new(),
                 };
                 format!(
-                    "no answer within {} µs{turn} in round {number}{seen}",
+                    "no answer within {} µs{turn} in round {number}{seen}; {backlog}; the voter \
+                     blamed it {voter_late} µs after the deadline",
                     plan.timeout_us
                 )
             }
@@ -797,7 +804,7 @@ impl ReactiveVoter {
         // below already count them.
         self.closing = Some(round.number);
         for r in close.late.iter() {
-            self.blame_late(r, round.number, round.turn == Some(r));
+            self.blame_late(r, round.number, round.turn == Some(r), round.deadline);
         }
         for d in &close.decisions {
             self.apply(d.output, round.number, &d.decision, d.sent);

@@ -25,6 +25,29 @@ pub struct ReplicaInput {
     pub read_end: OwnedFd,
 }
 
+/// A late replica's pipes at its deadline (see [`Replica::pipe_backlog`]); `None`: the kernel
+/// did not say.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PipeBacklog {
+    pub input_unread: Option<usize>,
+    pub input_queued: usize,
+    pub output_unread: Option<usize>,
+}
+
+impl std::fmt::Display for PipeBacklog {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let bytes = |n: Option<usize>| n.map_or_else(|| "?".to_owned(), |n| n.to_string());
+        write!(
+            f,
+            "its input: {} B unread in the pipe, {} B queued in the voter; its output: {} B \
+             unread in the pipe",
+            bytes(self.input_unread),
+            self.input_queued,
+            bytes(self.output_unread)
+        )
+    }
+}
+
 #[derive(Debug)]
 pub struct Replica {
     pub pid: libc::pid_t,
@@ -409,6 +432,23 @@ impl Replica {
     /// Its time on a CPU and waiting for one so far; `None` if `/proc` does not say.
     pub fn sched_times(&self) -> Option<SchedTimes> {
         self.schedstat.read()
+    }
+
+    /// Where its frames stand in its pipes, for a late replica's `hang` detail: input the
+    /// replica has not read (in its pipes, and still queued in the voter for lack of room), and
+    /// output the voter has not read off its pipes. A replica asleep on its input with its
+    /// input unread, or with its answer unread in its output pipe, tells a late delivery or a
+    /// missed read apart from a replica that took its input and did not answer.
+    pub fn pipe_backlog(&self) -> PipeBacklog {
+        PipeBacklog {
+            input_unread: self
+                .inputs
+                .iter()
+                .map(|i| sys::bytes_in_pipe(i.read_end.as_fd()).ok())
+                .sum(),
+            input_queued: self.inputs.iter().map(|i| i.writer.unwritten_len()).sum(),
+            output_unread: self.outputs.iter().map(FrameReader::unread).sum(),
+        }
     }
 
     /// Whether the process has exited (its pidfd is readable), waiting up to `timeout`.
