@@ -124,6 +124,13 @@ pub fn draw_injection(
             bits: choose_bits(&params.var, rng),
         },
         FaultKind::Reg => Action::Reg { seed: rng.gen() },
+        FaultKind::Mixed => match rng.gen_range(0..3) {
+            0 => Action::Exec,
+            1 => Action::Sdc {
+                value: rng.gen_range(0..=i32::MAX as u32),
+            },
+            _ => Action::Cfe,
+        },
         FaultKind::None => return None,
     };
     Some(Planned {
@@ -187,6 +194,24 @@ mod tests {
             vec![500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000]
         );
         assert!(plan_run(&params(FaultKind::None), 0, 0).is_empty());
+    }
+
+    #[test]
+    fn mixed_draws_exec_sdc_and_cfe_about_equally() {
+        let p = params(FaultKind::Mixed);
+        let mut counts = std::collections::BTreeMap::new();
+        for run in 0..30 {
+            for pl in plan_run(&p, 9, run) {
+                *counts.entry(pl.action.kind()).or_insert(0u32) += 1;
+            }
+        }
+        // 30 runs × 10 s × 20 Hz = 6000 injections, about 2000 of each kind.
+        let kinds: Vec<FaultKind> = counts.keys().copied().collect();
+        assert_eq!(kinds, vec![FaultKind::Exec, FaultKind::Sdc, FaultKind::Cfe]);
+        assert!(
+            counts.values().all(|&n| (1800..2200).contains(&n)),
+            "{counts:?}"
+        );
     }
 
     #[test]

@@ -61,6 +61,8 @@ pub enum StormError {
     NoFaults,
     #[error("fault kind `none` cannot be part of a storm")]
     NoneKind,
+    #[error("a storm mixes the kinds it is given: name them (--faults exec,sdc,cfe), not `mixed`")]
+    MixedKind,
     #[error("cannot write the injection log {path}: {source}")]
     Log {
         path: PathBuf,
@@ -112,6 +114,9 @@ pub fn run(o: &StormOptions, stop: &dyn Fn() -> bool) -> Result<u64, StormError>
     }
     if o.faults.contains(&FaultKind::None) {
         return Err(StormError::NoneKind);
+    }
+    if o.faults.contains(&FaultKind::Mixed) {
+        return Err(StormError::MixedKind);
     }
     let mut out: Box<dyn std::io::Write> = match &o.log {
         Some(path) => Box::new(File::create(path).map_err(|source| StormError::Log {

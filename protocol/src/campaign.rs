@@ -32,6 +32,9 @@ pub enum FaultKind {
     Var,
     /// Register bit flip through ptrace (the s3res-regflip crate).
     Reg,
+    /// Exec, sdc or cfe, drawn for each injection, each equally likely (the storm's mix, for a
+    /// campaign: each injection's record says which it was).
+    Mixed,
 }
 
 impl FaultKind {
@@ -43,6 +46,7 @@ impl FaultKind {
             FaultKind::Cfe => "cfe",
             FaultKind::Var => "var",
             FaultKind::Reg => "reg",
+            FaultKind::Mixed => "mixed",
         }
     }
 }
