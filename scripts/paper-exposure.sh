@@ -1,0 +1,84 @@
+#!/bin/bash
+# paper-exposure.sh — the maze-robot campaign at the S³RES paper's exposure, cell by cell.
+# See docs/results.md, "At the paper's exposure".
+set -uo pipefail
+
+usage() {
+  cat <<'EOF'
+usage: scripts/paper-exposure.sh [-h|--help] CELL...
+
+Runs each CELL of the maze-robot campaign at the paper's exposure: faults at 2 Hz through
+the whole of every mission of the 8 x 8 campaign robot (examples/robot/campaign-8x8/, about
+65 simulated seconds and 15 s of wall time a mission), into the filter, navigator, mapper
+and planner, in SHARDS shards run one after another (each resumable), then merged.
+
+CELL is LEVEL-FAULT: tmr-exec, tmr-sdc, tmr-cfe, dmr-exec, dmr-cfe (210 missions each,
+about 6,000 injections), none-none and smr-none (105 missions, nothing injected), tmr-none
+and dmr-none (70 missions, nothing injected: false positives of a quiet system), or
+tmr-mixed (10 Hz, exec/sdc/cfe drawn per injection, 30 missions: the harsher cell).
+
+Environment:
+  OUT=DIR     where the cells go (default target/paper-exposure); a cell's shards are
+              OUT/CELL-shard-K-of-N, merged into OUT/CELL
+  SHARDS=N    shards per cell (default 3); run several of this script with SHARD=K to
+              split a cell across machines, then merge by hand
+  SHARD=K     run only shard K of each cell (no merge)
+  BIN=DIR     the s3res binaries (default target/release next to this script's repository)
+  KEEP=1      keep every run's folder (events, stderr) under the shard: needed to look into
+              an error or a false positive afterwards (about 40 MB a cell)
+Run as root (SCHED_RR), on an otherwise quiet machine: the figures record the load.
+Example, the whole of issue 16's item 2, one cell after another (about 5 hours):
+  scripts/paper-exposure.sh tmr-exec tmr-sdc tmr-cfe dmr-exec dmr-cfe none-none smr-none \
+    tmr-none dmr-none
+EOF
+}
+case "${1:-}" in
+  -h|--help) usage; exit 0;;
+  "") usage >&2; exit 2;;
+esac
+
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+BIN=${BIN:-$ROOT/target/release}
+OUT=${OUT:-$ROOT/target/paper-exposure}
+SHARDS=${SHARDS:-3}
+SHARD=${SHARD:-}
+INJECT=$BIN/s3res-inject
+if [ ! -x "$INJECT" ]; then
+  echo "paper-exposure: no $INJECT (build with cargo build --release, or set BIN=dir)" >&2
+  exit 2
+fi
+mkdir -p "$OUT"
+keep=()
+[ "${KEEP:-0}" = 1 ] && keep=(--keep-runs)
+
+status=0
+for cell in "$@"; do
+  level=${cell%-*}
+  fault=${cell#*-}
+  rate=2 runs=210
+  case "$cell" in
+    tmr-exec|tmr-sdc|tmr-cfe|dmr-exec|dmr-cfe) ;;
+    none-none|smr-none) runs=105 ;;
+    tmr-none|dmr-none) runs=70 ;;
+    tmr-mixed) rate=10 runs=30 ;;
+    *) echo "paper-exposure: unknown cell '$cell' (see --help)" >&2; exit 2 ;;
+  esac
+  label=$(echo "$level" | tr a-z A-Z)
+  if [ -n "$SHARD" ]; then shards=$SHARD; else shards=$(seq 1 "$SHARDS"); fi
+  parts=()
+  for k in $shards; do
+    dir=$OUT/$cell-shard-$k-of-$SHARDS
+    parts+=("$dir")
+    echo "$(date -u +%FT%TZ) $cell shard $k/$SHARDS -> $dir (load $(cut -d' ' -f1-3 /proc/loadavg))"
+    # From the repository root: the system descriptions name the robot's files relative to it.
+    (cd "$ROOT" && "$INJECT" -q campaign --system "examples/robot/campaign-8x8/$level.json" \
+      --fault "$fault" --rate "$rate" --runs "$runs" --seed 1 --duration 60 --run-timeout 120 \
+      --components filter,navigator,mapper,planner --label "$label" --shard "$k/$SHARDS" \
+      --resume "${keep[@]}" --out "$dir") || { status=1; echo "paper-exposure: $cell shard $k failed" >&2; }
+  done
+  if [ -z "$SHARD" ]; then
+    rm -rf "$OUT/$cell"
+    "$INJECT" merge --out "$OUT/$cell" "${parts[@]}" || status=1
+  fi
+done
+exit $status
