@@ -24,19 +24,26 @@ pub enum FireError {
     #[error("register injection: {0}")]
     RegOptions(String),
     #[error(
-        "register injection: process {pid} stayed blocked in system calls for all {attempts} \
-         attempts (its registers were in kernel memory, not in the CPU)"
+        "register injection: process {pid} was not seen running outside a system call within \
+         {patience_ms} ms ({attempts} attempts while it ran; a process blocked in a system call \
+         has its registers in kernel memory, not in the CPU)"
     )]
-    RegAlwaysInSyscall { pid: i32, attempts: u32 },
+    RegAlwaysInSyscall {
+        pid: i32,
+        attempts: u32,
+        patience_ms: u64,
+    },
 }
 
-/// How often a register flip is tried again when the target is blocked in a system call (a
-/// component waiting on its input spends most of its time there), and how long apart: the
-/// flip lands at the first instant within `REG_ATTEMPTS × REG_RETRY` (1 s) at which it is
-/// running. (200 attempts, 100 ms, missed an echo at 500 Hz about one time in ten: it runs for
-/// ~1 % of the time.)
-const REG_ATTEMPTS: u32 = 2000;
-const REG_RETRY: std::time::Duration = std::time::Duration::from_micros(500);
+/// How long a register flip waits for its target to run: a component waiting on its input
+/// spends most of its time blocked in a system call, with its registers in kernel memory. The
+/// flip lands at the first instant within this time at which the target is seen running.
+const REG_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
+/// How often the target's state is looked at meanwhile (`/proc/PID/stat`, no ptrace): only a
+/// target seen running (`R`) is stopped for an attempt. Stopping a blocked target every 500 µs
+/// instead (the way before) held a robot's navigator, which runs for about 1 % of the time,
+/// through ~2,000 stops over more than a second, and its voter rightly called that a hang.
+const REG_POLL: std::time::Duration = std::time::Duration::from_micros(50);
 
 /// The register injector's spec from `reg`'s options, or a clear error naming the bad option.
 pub fn reg_spec(reg: &RegOptions) -> Result<s3res_regflip::RegFlipSpec, FireError> {
@@ -115,35 +122,58 @@ pub fn fire(
 }
 
 /// One register flip into `pid` (s3res-regflip), the register and bits drawn from `seed`. A
-/// target blocked in a system call has its registers in kernel memory: the flip is tried again
-/// a moment later (up to [`REG_ATTEMPTS`] times), so it lands while the component computes.
-/// Returns the injector's record, with the seed and the number of attempts.
+/// target blocked in a system call has its registers in kernel memory: the flip waits (up to
+/// [`REG_PATIENCE`]) until the target is seen running, so that it lands while the component
+/// computes, and stops the target only then. Returns the injector's record, with the seed,
+/// the attempts (stops), the looks at its state and how long it waited.
 fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, FireError> {
     use rand::SeedableRng;
     use s3res_regflip::RegFlipError;
     let spec = reg_spec(reg)?;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    for attempt in 1..=REG_ATTEMPTS {
-        match s3res_regflip::inject(pid, &spec, &mut rng) {
-            Ok(mut record) => {
-                record.seed = Some(seed);
-                let mut value = serde_json::to_value(&record).map_err(|e| {
-                    FireError::RegOptions(format!("cannot serialise the record: {e}"))
-                })?;
-                if let Some(obj) = value.as_object_mut() {
-                    obj.insert("attempts".to_owned(), attempt.into());
+    let started = std::time::Instant::now();
+    let mut attempts = 0u32;
+    let mut looks = 0u64;
+    loop {
+        looks += 1;
+        match replica_rt::sys::process_state(pid) {
+            None => return Err(FireError::Gone(pid)),
+            Some('R') => {
+                attempts += 1;
+                match s3res_regflip::inject(pid, &spec, &mut rng) {
+                    Ok(mut record) => {
+                        record.seed = Some(seed);
+                        let mut value = serde_json::to_value(&record).map_err(|e| {
+                            FireError::RegOptions(format!("cannot serialise the record: {e}"))
+                        })?;
+                        if let Some(obj) = value.as_object_mut() {
+                            obj.insert("attempts".to_owned(), attempts.into());
+                            obj.insert("looks".to_owned(), looks.into());
+                            obj.insert(
+                                "waited_us".to_owned(),
+                                (started.elapsed().as_micros() as u64).into(),
+                            );
+                        }
+                        return Ok(value);
+                    }
+                    // It blocked again between the look and the stop.
+                    Err(RegFlipError::InSyscall { .. }) => {}
+                    Err(RegFlipError::Gone { .. }) => return Err(FireError::Gone(pid)),
+                    Err(e) => return Err(e.into()),
                 }
-                return Ok(value);
             }
-            Err(RegFlipError::InSyscall { .. }) => std::thread::sleep(REG_RETRY),
-            Err(RegFlipError::Gone { .. }) => return Err(FireError::Gone(pid)),
-            Err(e) => return Err(e.into()),
+            // Asleep, stopped, a zombie: not running its code now.
+            Some(_) => {}
         }
+        if started.elapsed() >= REG_PATIENCE {
+            return Err(FireError::RegAlwaysInSyscall {
+                pid,
+                attempts,
+                patience_ms: REG_PATIENCE.as_millis() as u64,
+            });
+        }
+        std::thread::sleep(REG_POLL);
     }
-    Err(FireError::RegAlwaysInSyscall {
-        pid,
-        attempts: REG_ATTEMPTS,
-    })
 }
 
 #[cfg(test)]
