@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::fault::FaultKind;
 use crate::interval::Rate;
 use crate::outcome::{Match, Outcome};
+use crate::runner::SYSTEM_ENDED;
 
 pub use s3res_protocol::campaign::{CampaignInfo, InjectionRecord, MachineInfo, RunRecord};
 
@@ -74,6 +75,10 @@ pub struct Summary {
     /// Delivered injections (planned minus missed).
     pub injected: u64,
     pub missed: u64,
+    /// Of the missed: planned after the run had ended (a window longer than the mission). Not
+    /// a miss of the target; the table's "Missed" leaves them out.
+    #[serde(default)]
+    pub after_end: u64,
     pub recovered: u64,
     pub unrecovered: u64,
     pub undetected: u64,
@@ -100,6 +105,10 @@ pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord
     let count = |o: Outcome| inj.iter().filter(|r| r.outcome == o).count() as u64;
     let missed = count(Outcome::Missed);
     let injected = inj.len() as u64 - missed;
+    let after_end = inj
+        .iter()
+        .filter(|r| r.outcome == Outcome::Missed && r.miss.as_deref() == Some(SYSTEM_ENDED))
+        .count() as u64;
     let (recovered, unrecovered, undetected, benign) = (
         count(Outcome::Recovered),
         count(Outcome::Unrecovered),
@@ -122,6 +131,7 @@ pub fn summarise(info: &CampaignInfo, runs: &[RunRecord], inj: &[InjectionRecord
         planned: inj.len() as u64,
         injected,
         missed,
+        after_end,
         recovered,
         unrecovered,
         undetected,
@@ -149,13 +159,17 @@ pub fn markdown(summaries: &[Summary]) -> String {
         "Injections (S³RES Table 2 layout): % error = injections not followed by a recovery of \
          the injected replica (undetected in a failed run, or detected and not recovered), \
          over delivered injections, with its exact 95 % (Clopper–Pearson) interval and the \
-         count it rests on.\n"
+         count it rests on. Missed: not delivered (the replica was being replaced or gone); \
+         after end: planned after the run had ended (neither injected nor missed).\n"
     );
     let _ = writeln!(
         s,
-        "| Config | Fault | Runs | Injected | % Error [95 % CI] of injected | F Pos. | Recovered | Unrecovered | Undetected | Benign | Missed | Detect p50 / p99 (ms) | Recovery p50 / p99 (ms) |"
+        "| Config | Fault | Runs | Injected | % Error [95 % CI] of injected | F Pos. | Recovered | Unrecovered | Undetected | Benign | Missed | After end | Detect p50 / p99 (ms) | Recovery p50 / p99 (ms) |"
     );
-    let _ = writeln!(s, "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|");
+    let _ = writeln!(
+        s,
+        "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"
+    );
     for x in summaries {
         let pct = x
             .error_rate
@@ -169,7 +183,7 @@ pub fn markdown(summaries: &[Summary]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             x.config,
             x.fault,
             x.runs_done,
@@ -180,7 +194,8 @@ pub fn markdown(summaries: &[Summary]) -> String {
             x.unrecovered,
             x.undetected,
             x.benign,
-            x.missed,
+            x.missed - x.after_end,
+            x.after_end,
             lat(&x.detection_latency_us),
             lat(&x.recovery_us),
         );
@@ -522,9 +537,14 @@ mod tests {
             inj(0, Outcome::Benign, None),
             inj(1, Outcome::Undetected, None),
             inj(1, Outcome::Missed, None),
+            InjectionRecord {
+                miss: Some(SYSTEM_ENDED.into()),
+                ..inj(1, Outcome::Missed, None)
+            },
         ];
         let s = summarise(&info(None), &runs, &injs);
-        assert_eq!((s.injected, s.missed, s.false_positives), (3, 1, 2));
+        assert_eq!((s.injected, s.missed, s.false_positives), (3, 2, 2));
+        assert_eq!(s.after_end, 1);
         assert!((s.pct_error.unwrap() - 100.0 / 3.0).abs() < 1e-9);
         assert_eq!(s.successful_runs, 1);
         assert_eq!(s.detection_latency_us.p50, 1000);
@@ -542,7 +562,9 @@ mod tests {
         }
         let md = markdown(&[s]);
         assert!(
-            md.contains("| tmr | exec | 2 | 3 | 33.33 % [0.84, 90.57] of 3 | 2 |"),
+            md.contains(
+                "| tmr | exec | 2 | 3 | 33.33 % [0.84, 90.57] of 3 | 2 | 1 | 0 | 1 | 1 | 1 | 1 |"
+            ),
             "{md}"
         );
         assert!(md.contains("| exec | 1/2: 50.00 % [1.26, 98.74] |"), "{md}");

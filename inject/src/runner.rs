@@ -23,6 +23,10 @@ use crate::fault::{fire, FireError, RegOptions};
 use crate::schedule::Planned;
 use crate::target::{resolve, Pick};
 
+/// Why an injection planned after its run had ended was not delivered (`miss`): not a miss of
+/// the target, so the tables count these apart (`after_end`).
+pub const SYSTEM_ENDED: &str = "the system had ended (or hit the time limit)";
+
 /// Environment variable carrying the run's mark; inherited by every process of the run.
 pub const MARK_ENV: &str = "S3RES_INJECT_RUN";
 /// How long bootstrap gets after SIGTERM (at the time limit) before its group is killed.
@@ -135,9 +139,7 @@ pub fn run_once(setup: &RunSetup, schedule: &[Planned], stop: &dyn Fn() -> bool)
         }
         let due = window_start + Duration::from_nanos(p.at_ns);
         if !sleep_until_or_exit(&mut child, due.min(deadline), stop) || Instant::now() >= deadline {
-            result
-                .attempts
-                .push(missed(p, "the system had ended (or hit the time limit)"));
+            result.attempts.push(missed(p, SYSTEM_ENDED));
             continue;
         }
         result.attempts.push(inject_now(setup, &state_path, p));
