@@ -15,7 +15,7 @@ and planner, in SHARDS shards run one after another (each resumable), then merge
 CELL is LEVEL-FAULT: tmr-exec, tmr-sdc, tmr-cfe, dmr-exec, dmr-cfe (210 missions each,
 about 6,000 injections), none-none and smr-none (105 missions, nothing injected), tmr-none
 and dmr-none (70 missions, nothing injected: false positives of a quiet system), or
-tmr-mixed (10 Hz, exec/sdc/cfe drawn per injection, 30 missions: the harsher cell).
+tmr-mixed (10 Hz, exec/sdc/cfe drawn per injection, 20 missions: the harsher cell).
 
 Environment:
   OUT=DIR     where the cells go (default target/paper-exposure); a cell's shards are
@@ -60,7 +60,7 @@ for cell in "$@"; do
     tmr-exec|tmr-sdc|tmr-cfe|dmr-exec|dmr-cfe) ;;
     none-none|smr-none) runs=105 ;;
     tmr-none|dmr-none) runs=70 ;;
-    tmr-mixed) rate=10 runs=30 ;;
+    tmr-mixed) rate=10 runs=20 ;;
     *) echo "paper-exposure: unknown cell '$cell' (see --help)" >&2; exit 2 ;;
   esac
   label=$(echo "$level" | tr a-z A-Z)
