@@ -38,8 +38,9 @@ case "${1:-}" in
 esac
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
-BIN=${BIN:-$ROOT/target/release}
-OUT=${OUT:-$ROOT/target/paper-exposure}
+# Absolute: the campaigns run from the repository root.
+BIN=$(realpath -m "${BIN:-$ROOT/target/release}")
+OUT=$(realpath -m "${OUT:-$ROOT/target/paper-exposure}")
 SHARDS=${SHARDS:-3}
 SHARD=${SHARD:-}
 INJECT=$BIN/s3res-inject
@@ -47,6 +48,26 @@ if [ ! -x "$INJECT" ]; then
   echo "paper-exposure: no $INJECT (build with cargo build --release, or set BIN=dir)" >&2
   exit 2
 fi
+case "$SHARDS" in ''|*[!0-9]*|0) echo "paper-exposure: SHARDS=$SHARDS is not a count" >&2; exit 2;; esac
+if [ -n "$SHARD" ] && { [[ "$SHARD" == *[!0-9]* ]] || [ "$SHARD" -lt 1 ] || [ "$SHARD" -gt "$SHARDS" ]; }; then
+  echo "paper-exposure: SHARD=$SHARD is not one of 1..$SHARDS" >&2
+  exit 2
+fi
+
+# rate and missions of a cell; every cell is checked before the first one starts (a cell
+# runs for most of an hour: a misspelled last one must not wait that long to fail).
+cell_params() {
+  case "$1" in
+    tmr-exec|tmr-sdc|tmr-cfe|dmr-exec|dmr-cfe) echo "2 210" ;;
+    none-none|smr-none) echo "2 105" ;;
+    tmr-none|dmr-none) echo "2 70" ;;
+    tmr-mixed) echo "10 20" ;;
+    *) return 1 ;;
+  esac
+}
+for cell in "$@"; do
+  cell_params "$cell" > /dev/null || { echo "paper-exposure: unknown cell '$cell' (see --help)" >&2; exit 2; }
+done
 mkdir -p "$OUT"
 keep=()
 [ "${KEEP:-0}" = 1 ] && keep=(--keep-runs)
@@ -55,17 +76,11 @@ status=0
 for cell in "$@"; do
   level=${cell%-*}
   fault=${cell#*-}
-  rate=2 runs=210
-  case "$cell" in
-    tmr-exec|tmr-sdc|tmr-cfe|dmr-exec|dmr-cfe) ;;
-    none-none|smr-none) runs=105 ;;
-    tmr-none|dmr-none) runs=70 ;;
-    tmr-mixed) rate=10 runs=20 ;;
-    *) echo "paper-exposure: unknown cell '$cell' (see --help)" >&2; exit 2 ;;
-  esac
+  read -r rate runs < <(cell_params "$cell")
   label=$(echo "$level" | tr a-z A-Z)
   if [ -n "$SHARD" ]; then shards=$SHARD; else shards=$(seq 1 "$SHARDS"); fi
   parts=()
+  whole=1
   for k in $shards; do
     dir=$OUT/$cell-shard-$k-of-$SHARDS
     parts+=("$dir")
@@ -74,9 +89,18 @@ for cell in "$@"; do
     (cd "$ROOT" && "$INJECT" -q campaign --system "examples/robot/campaign-8x8/$level.json" \
       --fault "$fault" --rate "$rate" --runs "$runs" --seed 1 --duration 60 --run-timeout 120 \
       --components filter,navigator,mapper,planner --label "$label" --shard "$k/$SHARDS" \
-      --resume "${keep[@]}" --out "$dir") || { status=1; echo "paper-exposure: $cell shard $k failed" >&2; }
+      --resume "${keep[@]}" --out "$dir")
+    code=$?
+    if [ "$code" -ge 128 ]; then
+      # Stopped by a signal (Ctrl-C, a batch system's kill): stop here; --resume goes on.
+      echo "paper-exposure: stopped during $cell shard $k (give the same command to resume)" >&2
+      exit "$code"
+    elif [ "$code" -ne 0 ]; then
+      echo "paper-exposure: $cell shard $k failed (exit $code); not merged" >&2
+      status=1 whole=0
+    fi
   done
-  if [ -z "$SHARD" ]; then
+  if [ -z "$SHARD" ] && [ "$whole" = 1 ]; then
     rm -rf "$OUT/$cell"
     "$INJECT" merge --out "$OUT/$cell" "${parts[@]}" || status=1
   fi

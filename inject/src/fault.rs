@@ -137,8 +137,16 @@ fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, 
     loop {
         looks += 1;
         match replica_rt::sys::process_state(pid) {
-            None => return Err(FireError::Gone(pid)),
-            Some('R') => {
+            // Dead and reaped, or a zombie: nothing runs there any more.
+            Some('Z' | 'X') => return Err(FireError::Gone(pid)),
+            None if matches!(replica_rt::sys::kill(pid, 0),
+                Err(e) if e.raw_os_error() == Some(libc::ESRCH)) =>
+            {
+                return Err(FireError::Gone(pid))
+            }
+            // `/proc` did not say, but the process is there: stop it and see (as before this
+            // look existed).
+            None | Some('R') => {
                 attempts += 1;
                 match s3res_regflip::inject(pid, &spec, &mut rng) {
                     Ok(mut record) => {

@@ -39,6 +39,8 @@ Fault kinds (--fault):
   var   variable-level flip: chosen bits at a chosen byte offset of the next frame
         (--var-offset, --var-field, --var-flips, --var-bits; SIGRTMIN+3)
   reg   register bit flip through ptrace (provided by the s3res-regflip crate)
+  mixed exec, sdc or cfe, drawn for each injection, equally likely (campaign and inject;
+        each injection's record says which it was)
   none  nothing (campaign baseline: false positives and task success without faults)
 
 Targets are found in bootstrap's live view (s3res-bootstrap --state FILE), never by name
@@ -497,7 +499,10 @@ fn targets(
 
 fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     if a.fault == FaultKind::None {
-        bail!("--fault none injects nothing; choose exec, sdc, cfe, var or reg");
+        bail!("--fault none injects nothing; choose exec, sdc, cfe, var, reg or mixed");
+    }
+    if a.bit.is_some() && a.fault != FaultKind::Sdc {
+        bail!("--bit chooses the bit of an sdc flip; it goes with --fault sdc only");
     }
     let seed = a.seed.unwrap_or_else(replica_rt::sys::monotonic_ns);
     let view = LiveView::read(&a.state).map_err(anyhow::Error::msg)?;
@@ -673,6 +678,12 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
 fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     if a.fault == FaultKind::None {
         bail!("--fault none injects nothing; choose exec, sdc, cfe, var or reg");
+    }
+    if a.fault == FaultKind::Mixed {
+        bail!(
+            "classify gives each fault kind its own row; run it once per kind (exec, sdc, cfe) \
+             instead of --fault mixed"
+        );
     }
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {

@@ -76,7 +76,8 @@ pub struct Summary {
     pub injected: u64,
     pub missed: u64,
     /// Of the missed: planned after the run had ended (a window longer than the mission). Not
-    /// a miss of the target; the table's "Missed" leaves them out.
+    /// a miss of the target; the table's "Missed" leaves them out (this count's `missed`
+    /// holds them). Found by their reason, [`SYSTEM_ENDED`], word for word.
     #[serde(default)]
     pub after_end: u64,
     pub recovered: u64,
@@ -159,7 +160,8 @@ pub fn markdown(summaries: &[Summary]) -> String {
         "Injections (S³RES Table 2 layout): % error = injections not followed by a recovery of \
          the injected replica (undetected in a failed run, or detected and not recovered), \
          over delivered injections, with its exact 95 % (Clopper–Pearson) interval and the \
-         count it rests on. Missed: not delivered (the replica was being replaced or gone); \
+         count it rests on. Missed: not delivered (the replica was being replaced or gone, \
+         already hit and not yet found faulty, or never seen running by a register flip); \
          after end: planned after the run had ended (neither injected nor missed).\n"
     );
     let _ = writeln!(
@@ -194,7 +196,7 @@ pub fn markdown(summaries: &[Summary]) -> String {
             x.unrecovered,
             x.undetected,
             x.benign,
-            x.missed - x.after_end,
+            x.missed.saturating_sub(x.after_end),
             x.after_end,
             lat(&x.detection_latency_us),
             lat(&x.recovery_us),
@@ -545,6 +547,9 @@ mod tests {
         let s = summarise(&info(None), &runs, &injs);
         assert_eq!((s.injected, s.missed, s.false_positives), (3, 2, 2));
         assert_eq!(s.after_end, 1);
+        // Campaign folders already written hold this reason word for word: `merge` finds
+        // their after-the-end injections by it.
+        assert_eq!(SYSTEM_ENDED, "the system had ended (or hit the time limit)");
         assert!((s.pct_error.unwrap() - 100.0 / 3.0).abs() < 1e-9);
         assert_eq!(s.successful_runs, 1);
         assert_eq!(s.detection_latency_us.p50, 1000);

@@ -211,7 +211,18 @@ pub fn inject_now(setup: &RunSetup, state_path: &Path, p: &Planned) -> Attempt {
         injector: None,
     };
     match fire(&p.action, target.pid, &setup.reg) {
-        Ok(rep) => a.injector = rep,
+        Ok(rep) => {
+            // A register flip waits for its target to run (up to a second): it happened when
+            // the injector says it flipped, not when it began to wait.
+            if let Some(flipped) = rep
+                .as_ref()
+                .and_then(|r| r.get("time_ns"))
+                .and_then(serde_json::Value::as_u64)
+            {
+                a.ts_ns = Some(flipped);
+            }
+            a.injector = rep;
+        }
         Err(e @ FireError::Gone(_)) | Err(e @ FireError::Signal { .. }) => {
             a.ts_ns = None;
             a.miss = Some(e.to_string());

@@ -508,9 +508,12 @@ impl FrameReader {
     }
 
     /// Bytes the replica wrote that the voter has not read off the pipe yet (`FIONREAD`);
-    /// `None` where the kernel does not say.
+    /// `None` where the kernel does not say. A peeking reader leaves the answers it decoded in
+    /// the pipe until they are taken: those are not counted.
     pub fn unread(&self) -> Option<usize> {
-        sys::bytes_in_pipe(self.fd.as_fd()).ok()
+        let held = sys::bytes_in_pipe(self.fd.as_fd()).ok()?;
+        let decoded = self.lines_peek.as_ref().map_or(0, |lp| lp.untaken.len());
+        Some(held.saturating_sub(decoded))
     }
 
     /// Reads everything available now into the decoder.
