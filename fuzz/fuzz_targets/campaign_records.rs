@@ -23,6 +23,7 @@ fuzz_target!(|data: &[u8]| {
     let summaries: Vec<_> = merged.iter().map(CampaignOutput::summary).collect();
     for s in &summaries {
         assert_eq!(s.injected + s.missed, s.planned);
+        assert!(s.after_end <= s.missed, "{s:?}");
         assert!(s.successful_runs <= s.runs_done);
         for r in [s.error_rate, s.success_rate].into_iter().flatten() {
             assert!(r.k <= r.n && r.n > 0);
