@@ -170,7 +170,7 @@ fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, 
                     Err(e) => return Err(e.into()),
                 }
             }
-            // Asleep, stopped, a zombie: not running its code now.
+            // Asleep or stopped: not running its code now.
             Some(_) => {}
         }
         if started.elapsed() >= REG_PATIENCE {

@@ -113,7 +113,12 @@ pub fn draw_injection(
     }
     let component = params.components[rng.gen_range(0..params.components.len())].clone();
     let draw = rng.gen::<f64>();
-    let action = match params.fault {
+    // `mixed` is one of exec, sdc and cfe, drawn first; the action is then drawn as for it.
+    let kind = match params.fault {
+        FaultKind::Mixed => [FaultKind::Exec, FaultKind::Sdc, FaultKind::Cfe][rng.gen_range(0..3)],
+        kind => kind,
+    };
+    let action = match kind {
         FaultKind::Exec => Action::Exec,
         FaultKind::Cfe => Action::Cfe,
         FaultKind::Sdc => Action::Sdc {
@@ -124,14 +129,7 @@ pub fn draw_injection(
             bits: choose_bits(&params.var, rng),
         },
         FaultKind::Reg => Action::Reg { seed: rng.gen() },
-        FaultKind::Mixed => match rng.gen_range(0..3) {
-            0 => Action::Exec,
-            1 => Action::Sdc {
-                value: rng.gen_range(0..=i32::MAX as u32),
-            },
-            _ => Action::Cfe,
-        },
-        FaultKind::None => return None,
+        FaultKind::None | FaultKind::Mixed => return None,
     };
     Some(Planned {
         index,

@@ -743,11 +743,6 @@ impl ReactiveVoter {
             " (its runtime never started: no s3res start handshake)"
         };
         let turn = if on_turn { " of its turn" } else { "" };
-        let backlog = rep.pipe_backlog();
-        // How late the voter itself came to the deadline: a stalled voter, not the replica.
-        let voter_late = Instant::now()
-            .saturating_duration_since(deadline)
-            .as_micros();
         let plan = &self.core.plan;
         let hang = match (proven, on_turn) {
             (false, _) => Cause::StartDeadline,
@@ -761,12 +756,21 @@ impl ReactiveVoter {
                 plan.outputs[o].name
             ),
             (Cause::Deadline | Cause::TurnDeadline, None) => {
+                let backlog = self.core.slots[r]
+                    .as_ref()
+                    .map(|rep| format!("; {}", rep.pipe_backlog()))
+                    .unwrap_or_default();
+                // How late the voter itself came to the deadline: a stalled voter, not the
+                // replica.
+                let voter_late = Instant::now()
+                    .saturating_duration_since(deadline)
+                    .as_micros();
                 let seen = match self.evidence[r] {
                     Some(seen) => format!(" ({seen})"),
                     None => String::new(),
                 };
                 format!(
-                    "no answer within {} µs{turn} in round {number}{seen}; {backlog}; the voter \
+                    "no answer within {} µs{turn} in round {number}{seen}{backlog}; the voter \
                      blamed it {voter_late} µs after the deadline",
                     plan.timeout_us
                 )
