@@ -72,6 +72,9 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) -> Event {
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
+    // Installed handlers are not a finished start handshake: fault a replica only once all
+    // three have answered, so the fault is met by the round deadline, not the start-up one.
+    run.wait_for_answers("echo");
 
     let slot = 1;
     let pid = run.replica_pids("echo")[&slot];
