@@ -24,9 +24,9 @@ pub enum FireError {
     #[error("register injection: {0}")]
     RegOptions(String),
     #[error(
-        "register injection: process {pid} was not seen running outside a system call within \
-         {patience_ms} ms ({attempts} attempts while it ran; a process blocked in a system call \
-         has its registers in kernel memory, not in the CPU)"
+        "register injection: process {pid} was not seen running outside a system call, nor did \
+         a system call of it return, within {patience_ms} ms ({attempts} attempts; a process \
+         blocked in a system call has its registers in kernel memory, not in the CPU)"
     )]
     RegAlwaysInSyscall {
         pid: i32,
@@ -35,10 +35,19 @@ pub enum FireError {
     },
 }
 
-/// How long a register flip waits for its target to run: a component waiting on its input
-/// spends most of its time blocked in a system call, with its registers in kernel memory. The
-/// flip lands at the first instant within this time at which the target is seen running.
-const REG_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
+/// How long a register flip waits for its target to be seen running: a component waiting on
+/// its input spends most of its time blocked in a system call, with its registers in kernel
+/// memory. The flip lands at the first instant within this time at which the target is seen
+/// running. A component that runs only in short bursts may never be seen so (a C filter that
+/// adds one number per frame): then the flip follows it out of its next system call instead
+/// (see [`REG_FOLLOW_PATIENCE`]).
+const REG_PATIENCE: std::time::Duration = std::time::Duration::from_millis(200);
+/// How long a flip that follows its target to a system call's return waits for one.
+const REG_FOLLOW_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
+/// At most this many instructions after that return are single-stepped before the flip
+/// (drawn uniformly): the instant falls in the component's burst, not always on the first
+/// instruction after the call.
+const REG_FOLLOW_SKIP: u32 = 64;
 /// How often the target's state is looked at meanwhile (`/proc/PID/stat`, no ptrace): only a
 /// target seen running (`R`) is stopped for an attempt. Stopping a blocked target every 500 µs
 /// instead (the way before) held a robot's navigator, which runs for about 1 % of the time,
@@ -124,7 +133,8 @@ pub fn fire(
 /// One register flip into `pid` (s3res-regflip), the register and bits drawn from `seed`. A
 /// target blocked in a system call has its registers in kernel memory: the flip waits (up to
 /// [`REG_PATIENCE`]) until the target is seen running, so that it lands while the component
-/// computes, and stops the target only then. Returns the injector's record, with the seed,
+/// computes, and stops the target only then; a target never seen so is followed out of its
+/// next system call instead (up to [`REG_FOLLOW_PATIENCE`]). Returns the injector's record, with the seed,
 /// the attempts (stops), the looks at its state and how long it waited.
 fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, FireError> {
     use rand::SeedableRng;
@@ -149,21 +159,7 @@ fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, 
             None | Some('R') => {
                 attempts += 1;
                 match s3res_regflip::inject(pid, &spec, &mut rng) {
-                    Ok(mut record) => {
-                        record.seed = Some(seed);
-                        let mut value = serde_json::to_value(&record).map_err(|e| {
-                            FireError::RegOptions(format!("cannot serialise the record: {e}"))
-                        })?;
-                        if let Some(obj) = value.as_object_mut() {
-                            obj.insert("attempts".to_owned(), attempts.into());
-                            obj.insert("looks".to_owned(), looks.into());
-                            obj.insert(
-                                "waited_us".to_owned(),
-                                (started.elapsed().as_micros() as u64).into(),
-                            );
-                        }
-                        return Ok(value);
-                    }
+                    Ok(record) => return with_wait(record, seed, attempts, looks, started),
                     // It blocked again between the look and the stop.
                     Err(RegFlipError::InSyscall { .. }) => {}
                     Err(RegFlipError::Gone { .. }) => return Err(FireError::Gone(pid)),
@@ -174,14 +170,51 @@ fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, 
             Some(_) => {}
         }
         if started.elapsed() >= REG_PATIENCE {
-            return Err(FireError::RegAlwaysInSyscall {
-                pid,
-                attempts,
-                patience_ms: REG_PATIENCE.as_millis() as u64,
-            });
+            break;
         }
         std::thread::sleep(REG_POLL);
     }
+    // Never seen running between its system calls: follow it out of the next one.
+    attempts += 1;
+    match s3res_regflip::inject_after_syscall(
+        pid,
+        &spec,
+        &mut rng,
+        REG_FOLLOW_PATIENCE,
+        REG_FOLLOW_SKIP,
+    ) {
+        Ok(record) => with_wait(record, seed, attempts, looks, started),
+        Err(RegFlipError::InSyscall { .. }) => Err(FireError::RegAlwaysInSyscall {
+            pid,
+            attempts,
+            patience_ms: (REG_PATIENCE + REG_FOLLOW_PATIENCE).as_millis() as u64,
+        }),
+        Err(RegFlipError::Gone { .. }) => Err(FireError::Gone(pid)),
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// The injector's record as JSON, with the seed, the attempts (stops), the looks at the
+/// target's state and how long the flip waited.
+fn with_wait(
+    mut record: s3res_regflip::RegFlipRecord,
+    seed: u64,
+    attempts: u32,
+    looks: u64,
+    started: std::time::Instant,
+) -> Result<serde_json::Value, FireError> {
+    record.seed = Some(seed);
+    let mut value = serde_json::to_value(&record)
+        .map_err(|e| FireError::RegOptions(format!("cannot serialise the record: {e}")))?;
+    if let Some(obj) = value.as_object_mut() {
+        obj.insert("attempts".to_owned(), attempts.into());
+        obj.insert("looks".to_owned(), looks.into());
+        obj.insert(
+            "waited_us".to_owned(),
+            (started.elapsed().as_micros() as u64).into(),
+        );
+    }
+    Ok(value)
 }
 
 #[cfg(test)]

@@ -25,10 +25,29 @@ fn ptrace_err(op: &'static str, tid: Tid) -> impl FnOnce(io::Error) -> RegFlipEr
     }
 }
 
+/// How [`inject_with`] reaches its instant.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Landing {
+    /// Where the thread is stopped first (an error if that is inside a blocking call).
+    Now,
+    /// If the thread is blocked in a system call, wherever it is once a call returns (up to
+    /// `patience_ns`), `skip` instructions after it at most (drawn uniformly from `0..=skip`).
+    AfterSyscall { patience_ns: u64, skip: u32 },
+}
+
 pub(crate) fn inject(
     pid: i32,
     spec: &RegFlipSpec,
     rng: &mut impl Rng,
+) -> Result<RegFlipRecord, RegFlipError> {
+    inject_with(pid, spec, rng, Landing::Now)
+}
+
+pub(crate) fn inject_with(
+    pid: i32,
+    spec: &RegFlipSpec,
+    rng: &mut impl Rng,
+    landing: Landing,
 ) -> Result<RegFlipRecord, RegFlipError> {
     let filter = validate(spec)?;
     let tid = spec.tid.unwrap_or(pid);
@@ -49,8 +68,17 @@ pub(crate) fn inject(
     };
     let start = replica_rt::sys::monotonic_ns();
     let mut stop_ns = 0;
+    let mut syscall_stops = 0;
+    let mut skipped = 0;
     let outcome = traced.interrupt().and_then(|()| {
         stop_ns = replica_rt::sys::monotonic_ns().saturating_sub(start);
+        if let Landing::AfterSyscall { patience_ns, skip } = landing {
+            let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+            if restartable_syscall(&regs) {
+                syscall_stops = traced.follow_to_syscall_exit(start.saturating_add(patience_ns))?;
+                skipped = traced.skip_instructions(rng.gen_range(0..=skip))?;
+            }
+        }
         traced.flip(spec, &filter, rng)
     });
     let deferred: Vec<i32> = traced.deferred.iter().map(|i| i.si_signo).collect();
@@ -61,6 +89,8 @@ pub(crate) fn inject(
     record.pid = pid;
     record.pause_ns = pause_ns;
     record.stop_ns = stop_ns;
+    record.syscall_stops = syscall_stops;
+    record.skipped = skipped;
     record.signals_deferred = deferred;
     tracing::debug!(?record, "register flip injected");
     Ok(record)
@@ -141,7 +171,8 @@ impl Traced {
                 Stop::Event { sig } => return Err(RegFlipError::JobControlStopped { tid, sig }),
                 Stop::Signal { sig } => self.pass_on(sig)?,
                 Stop::Trap => self.pass_on(libc::SIGTRAP)?,
-                Stop::OtherEvent { .. } => self.pass_on(0)?,
+                // A syscall-stop of `follow_to_syscall_exit`'s, met on the way to the event-stop.
+                Stop::OtherEvent { .. } | Stop::Syscall => self.pass_on(0)?,
                 Stop::Exited { .. } | Stop::Killed { .. } => {
                     self.attached = false;
                     return Err(RegFlipError::Gone { tid });
@@ -208,7 +239,7 @@ impl Traced {
                 }
                 // A second PTRACE_INTERRUPT left pending by `interrupt`; the step has not run.
                 Stop::Event { sig } if sig == libc::SIGTRAP => {}
-                Stop::OtherEvent { .. } => {}
+                Stop::OtherEvent { .. } | Stop::Syscall => {}
                 // Stopped by job control meanwhile (nothing has been flipped yet).
                 Stop::Event { sig } => return Err(RegFlipError::JobControlStopped { tid, sig }),
                 Stop::Exited { .. } | Stop::Killed { .. } => {
@@ -223,6 +254,70 @@ impl Traced {
             tid,
             source: io::Error::other("the thread kept receiving signals instead of stepping"),
         })
+    }
+
+    /// The thread is stopped inside a blocking system call, with its registers in kernel
+    /// memory: lets it run until a system call returns (that one, once its input comes, or a
+    /// later one) and stops it there, before its first user instruction after the call.
+    /// Returns how many syscall-stops that took. At `deadline_ns` (monotonic) it gives up,
+    /// stops the thread where it is (so it can be detached) and says it stayed in its call.
+    fn follow_to_syscall_exit(&mut self, deadline_ns: u64) -> Result<u32, RegFlipError> {
+        let tid = self.tid;
+        let mut sig = 0;
+        let mut stops = 0;
+        loop {
+            sys::resume_to_syscall(tid, sig).map_err(ptrace_err("SYSCALL", tid))?;
+            sig = 0;
+            let stop =
+                sys::wait_stop_until(tid, deadline_ns).map_err(ptrace_err("waitpid", tid))?;
+            let Some(stop) = stop else {
+                self.interrupt()?;
+                let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+                return Err(RegFlipError::InSyscall {
+                    tid,
+                    ip: regs.rip,
+                    syscall: regs.orig_rax,
+                });
+            };
+            match stop {
+                Stop::Syscall => {
+                    stops += 1;
+                    let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+                    // At a syscall-entry-stop the kernel has set RAX to -ENOSYS; at an exit it
+                    // holds the result. A call that a signal interrupted is restarted: not yet.
+                    let entry = regs.rax as i64 == -(libc::ENOSYS as i64);
+                    if !entry && !restartable_syscall(&regs) {
+                        return Ok(stops);
+                    }
+                }
+                // Delivered as the thread resumes, as it would have been untraced.
+                Stop::Signal { sig: s } => sig = s,
+                Stop::Trap => sig = libc::SIGTRAP,
+                // A PTRACE_INTERRUPT of `interrupt` that was still pending.
+                Stop::Event { sig } if sig == libc::SIGTRAP => {}
+                Stop::Event { sig } => return Err(RegFlipError::JobControlStopped { tid, sig }),
+                Stop::OtherEvent { .. } => {}
+                Stop::Exited { .. } | Stop::Killed { .. } => {
+                    self.attached = false;
+                    return Err(RegFlipError::Gone { tid });
+                }
+            }
+        }
+    }
+
+    /// Single-steps up to `n` instructions, stopping before one that enters the kernel (a
+    /// system call stepped over could block). Returns how many it stepped.
+    fn skip_instructions(&mut self, n: u32) -> Result<u32, RegFlipError> {
+        let tid = self.tid;
+        for done in 0..n {
+            let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
+            let code = read_code(tid, regs.rip)?;
+            if enters_kernel(&decode(&code, regs.rip)?) {
+                return Ok(done);
+            }
+            self.step(regs.rip)?;
+        }
+        Ok(n)
     }
 
     /// Finds the instruction, chooses register and bits, flips them. The thread is stopped.
@@ -324,6 +419,8 @@ impl Traced {
             pause_ns: 0,
             stop_ns: 0,
             signals_deferred: Vec::new(),
+            syscall_stops: 0,
+            skipped: 0,
         })
     }
 

@@ -187,6 +187,14 @@ pub struct RegFlipRecord {
     /// Signals that reached the thread during single-steps despite the blocked mask (sent as
     /// SEGV/BUS/ILL/FPE/TRAP by another process) and were re-sent after the injection.
     pub signals_deferred: Vec<i32>,
+    /// [`inject_after_syscall`]: the syscall-stops it took for a blocked thread's call to
+    /// return (0: the thread was not blocked, and the flip landed where it was stopped).
+    #[serde(default)]
+    pub syscall_stops: u32,
+    /// [`inject_after_syscall`]: instructions single-stepped after that return, before the
+    /// instant of the flip (drawn uniformly up to the caller's bound).
+    #[serde(default)]
+    pub skipped: u32,
 }
 
 impl RegFlipRecord {
@@ -273,6 +281,40 @@ pub fn inject(
     #[cfg(not(all(target_os = "linux", target_arch = "x86_64")))]
     {
         let _ = (pid, spec, rng);
+        Err(RegFlipError::Unsupported)
+    }
+}
+
+/// Injects one register bit-flip into thread `spec.tid` (default: `pid`) of process `pid` at
+/// the next instant it runs its own code.
+///
+/// A thread blocked in a system call has its registers in kernel memory, and most components
+/// spend most of their time so, waiting for input. Then the thread is let run until a system
+/// call returns (its input came; up to `patience`), and is stopped there; a number of its
+/// instructions drawn uniformly from `0..=skip` is single-stepped (never into a system call),
+/// and the flip lands at the next candidate instruction. `syscall_stops` and `skipped` in the
+/// record say how it got there. A thread that is running when stopped is flipped where it is,
+/// as [`inject`] does. [`RegFlipError::InSyscall`] if no call returned within `patience`.
+pub fn inject_after_syscall(
+    pid: i32,
+    spec: &RegFlipSpec,
+    rng: &mut impl Rng,
+    patience: std::time::Duration,
+    skip: u32,
+) -> Result<RegFlipRecord, RegFlipError> {
+    #[cfg(all(target_os = "linux", target_arch = "x86_64"))]
+    return engine::inject_with(
+        pid,
+        spec,
+        rng,
+        engine::Landing::AfterSyscall {
+            patience_ns: patience.as_nanos().min(u64::MAX as u128) as u64,
+            skip,
+        },
+    );
+    #[cfg(not(all(target_os = "linux", target_arch = "x86_64")))]
+    {
+        let _ = (pid, spec, rng, patience, skip);
         Err(RegFlipError::Unsupported)
     }
 }

@@ -20,10 +20,26 @@ fn cvt(ret: libc::c_long) -> io::Result<libc::c_long> {
 }
 
 /// `PTRACE_SEIZE`: become the tracer of `tid` without stopping it (no SIGSTOP is sent, so the
-/// thread's parent sees nothing).
+/// thread's parent sees nothing). With `PTRACE_O_TRACESYSGOOD`, so that a syscall-stop (only
+/// ever asked for with [`resume_to_syscall`]) tells itself apart from a SIGTRAP.
 pub fn seize(tid: Tid) -> io::Result<()> {
-    // SAFETY: PTRACE_SEIZE reads no memory of ours; addr must be 0 and data is the option mask (0).
-    cvt(unsafe { libc::ptrace(libc::PTRACE_SEIZE, tid, 0usize, 0usize) })?;
+    // SAFETY: PTRACE_SEIZE reads no memory of ours; addr must be 0 and data is the option mask.
+    cvt(unsafe {
+        libc::ptrace(
+            libc::PTRACE_SEIZE,
+            tid,
+            0usize,
+            libc::PTRACE_O_TRACESYSGOOD as usize,
+        )
+    })?;
+    Ok(())
+}
+
+/// `PTRACE_SYSCALL`, delivering `sig` (0 = none): run until the next system call is entered
+/// or left (a [`Stop::Syscall`]).
+pub fn resume_to_syscall(tid: Tid, sig: libc::c_int) -> io::Result<()> {
+    // SAFETY: PTRACE_SYSCALL takes a signal number in `data`, no pointers.
+    cvt(unsafe { libc::ptrace(libc::PTRACE_SYSCALL, tid, 0usize, sig as usize) })?;
     Ok(())
 }
 
@@ -175,6 +191,8 @@ pub enum Stop {
     Event { sig: libc::c_int },
     /// A SIGTRAP stop that is not an event (single-step completed, or a breakpoint).
     Trap,
+    /// A syscall-entry- or syscall-exit-stop (after [`resume_to_syscall`]).
+    Syscall,
     /// A signal-delivery-stop: the thread is about to receive `sig`.
     Signal { sig: libc::c_int },
     /// Any other ptrace event (`status >> 16`).
@@ -203,6 +221,30 @@ pub fn wait_stop(tid: Tid) -> io::Result<Stop> {
     Ok(decode_status(status))
 }
 
+/// `waitpid(tid, __WALL | WNOHANG)` until the thread changes state or `deadline` (monotonic
+/// ns) passes (`Ok(None)`): for a thread that runs, or waits on its input, for as long as it
+/// likes. Looks every 20 µs.
+pub fn wait_stop_until(tid: Tid, deadline_ns: u64) -> io::Result<Option<Stop>> {
+    let mut status: libc::c_int = 0;
+    loop {
+        // SAFETY: waitpid writes one c_int to `status`, which is a valid local.
+        let ret = unsafe { libc::waitpid(tid, &mut status, libc::__WALL | libc::WNOHANG) };
+        if ret > 0 {
+            return Ok(Some(decode_status(status)));
+        }
+        if ret < 0 {
+            let err = io::Error::last_os_error();
+            if err.kind() != io::ErrorKind::Interrupted {
+                return Err(err);
+            }
+        }
+        if replica_rt::sys::monotonic_ns() >= deadline_ns {
+            return Ok(None);
+        }
+        std::thread::sleep(std::time::Duration::from_micros(20));
+    }
+}
+
 fn decode_status(status: libc::c_int) -> Stop {
     if libc::WIFEXITED(status) {
         return Stop::Exited {
@@ -216,6 +258,7 @@ fn decode_status(status: libc::c_int) -> Stop {
     }
     let sig = libc::WSTOPSIG(status);
     match status >> 16 {
+        0 if sig == libc::SIGTRAP | 0x80 => Stop::Syscall,
         0 if sig == libc::SIGTRAP => Stop::Trap,
         0 => Stop::Signal { sig },
         libc::PTRACE_EVENT_STOP => Stop::Event { sig },
@@ -243,6 +286,10 @@ mod tests {
             Stop::Killed { sig: libc::SIGKILL }
         );
         assert_eq!(decode_status((libc::SIGTRAP << 8) | 0x7f), Stop::Trap);
+        assert_eq!(
+            decode_status(((libc::SIGTRAP | 0x80) << 8) | 0x7f),
+            Stop::Syscall
+        );
         assert_eq!(
             decode_status((libc::SIGUSR1 << 8) | 0x7f),
             Stop::Signal { sig: libc::SIGUSR1 }

@@ -374,6 +374,77 @@ fn a_thread_blocked_in_a_system_call_is_left_untouched() -> Result<()> {
     Ok(())
 }
 
+/// `inject_after_syscall` follows a thread blocked in `read` out of it once its input comes,
+/// and flips a register of its own code; the process is left running, not traced.
+#[test]
+fn a_blocked_thread_is_followed_out_of_its_system_call() -> Result<()> {
+    use std::io::Write;
+    let mut rng = rng("follow", 9);
+    let mut cat = KillOnDrop(
+        Command::new("cat")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::null())
+            .spawn()?,
+    );
+    let pid = cat.0.id() as i32;
+    let reading =
+        || proc_syscall(pid).split(' ').next() == Some("0") && proc_state(pid) == Some('S');
+    assert!(wait_for(reading), "cat never blocked in read");
+    let mut stdin = cat.0.stdin.take().expect("piped");
+    // Its input comes 150 ms after the injection begins, from another thread.
+    let writer = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(150));
+        let _ = stdin.write_all(b"line\n");
+        stdin
+    });
+    let rec = s3res_regflip::inject_after_syscall(
+        pid,
+        &RegFlipSpec::default(),
+        &mut rng,
+        Duration::from_secs(5),
+        32,
+    )?;
+    let _stdin = writer.join().expect("writer thread");
+    check_record(&rec, 1);
+    assert!(rec.syscall_stops >= 1, "it was followed: {rec:?}");
+    assert!(rec.skipped <= 32, "{rec:?}");
+    assert!(
+        rec.pause_ns >= 100_000_000,
+        "it waited for the input: {rec:?}"
+    );
+    // Released: running or asleep again, or dead of the flip, but never left in a trace stop.
+    assert!(
+        wait_for(|| !matches!(proc_state(pid), Some('t' | 'T'))),
+        "left stopped: {:?}",
+        proc_state(pid)
+    );
+    Ok(())
+}
+
+/// A thread whose system call does not return within the patience is stopped where it is,
+/// reported as blocked, and released back into its call.
+#[test]
+fn a_call_that_does_not_return_in_time_is_reported_and_left_asleep() -> Result<()> {
+    let mut rng = rng("follow-timeout", 10);
+    let sleeper = KillOnDrop(Command::new("sleep").arg("30").spawn()?);
+    let pid = sleeper.0.id() as i32;
+    let asleep = || proc_state(pid) == Some('S');
+    assert!(wait_for(asleep), "sleep never slept");
+    let result = s3res_regflip::inject_after_syscall(
+        pid,
+        &RegFlipSpec::default(),
+        &mut rng,
+        Duration::from_millis(200),
+        8,
+    );
+    assert!(
+        matches!(result, Err(RegFlipError::InSyscall { .. })),
+        "expected InSyscall, got {result:?}"
+    );
+    assert!(wait_for(asleep), "not back asleep: {:?}", proc_state(pid));
+    Ok(())
+}
+
 #[test]
 fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
     let mut rng = rng("errors", 9);
