@@ -1,12 +1,15 @@
 //! The bench's own ends of the pipes into and out of the system under test: whole frames
-//! (4-byte little-endian length, then the payload), non-blocking fds, every wait bounded by a
-//! deadline so a stuck system can never hang the bench.
+//! (4-byte little-endian length, then the payload), every wait bounded by a deadline so a stuck
+//! system can never hang the bench. Writes are non-blocking and wait with `ppoll`; reads block
+//! in `read`, as the peers' harnesses do, bounded by `crate::sys::read_deadline`.
 
 use std::io;
 use std::os::fd::{AsFd, AsRawFd, OwnedFd};
 use std::time::{Duration, Instant};
 
 use replica_rt::sys;
+
+use crate::sys::read_deadline;
 use thiserror::Error;
 
 #[derive(Debug, Error)]
@@ -102,7 +105,8 @@ pub struct FrameIn {
 
 impl FrameIn {
     pub fn new(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
-        sys::set_nonblocking(fd.as_fd(), true)?;
+        // Blocking: `recv` waits in `read`, bounded by `crate::sys::read_deadline`.
+        sys::set_nonblocking(fd.as_fd(), false)?;
         Ok(FrameIn {
             fd,
             max_frame,
@@ -126,9 +130,12 @@ impl FrameIn {
         Ok((have >= 4 + len).then_some(len))
     }
 
-    /// The next whole frame's payload, waiting up to `timeout`.
+    /// The next whole frame's payload, waiting up to `timeout` (and at most
+    /// [`read_deadline::WATCHDOG_PERIOD`] more).
     pub fn recv(&mut self, timeout: Duration) -> Result<&[u8], FrameIoError> {
-        let deadline = Instant::now() + timeout;
+        let deadline = read_deadline::Armed::new(
+            s3res_protocol::clock::monotonic_ns().saturating_add(timeout.as_nanos() as u64),
+        )?;
         loop {
             if let Some(len) = self.whole_frame()? {
                 let at = self.start + 4;
@@ -141,13 +148,14 @@ impl FrameIn {
                 self.end -= self.start;
                 self.start = 0;
             }
-            // Wait first: a round trip's answer is never there the moment the bench asks
-            // (on one CPU the system runs only once the bench sleeps), so reading first cost
-            // every round an `EAGAIN` read the peers' harnesses do not make.
-            wait(&self.fd, libc::POLLIN, deadline).map_err(|e| match e {
-                FrameIoError::Timeout(_) => FrameIoError::Timeout(timeout),
-                e => e,
-            })?;
+            if crate::sys::interrupted() {
+                return Err(FrameIoError::Interrupted);
+            }
+            if deadline.expired() {
+                return Err(FrameIoError::Timeout(timeout));
+            }
+            // One blocking read, as the peers' harnesses wait: no `ppoll` (and its timer)
+            // before it. The watchdog interrupts it once the deadline has passed.
             match sys::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
                 Ok(0) => return Err(FrameIoError::Closed),
                 Ok(n) => self.end += n,

@@ -160,3 +160,104 @@ pub fn install_interrupt_handler() -> io::Result<()> {
 pub fn is_root() -> bool {
     replica_rt::sys::effective_uid() == 0
 }
+
+/// Blocking reads with a deadline, without a timed wait per read.
+///
+/// The peers' harnesses wait for a round trip's answer in a blocking `read`; a `ppoll` with a
+/// timeout before each read costs the bench's side of every round a system call and a kernel
+/// timer that theirs do not pay. So [`crate::frames::FrameIn`] reads blocking, and this
+/// watchdog bounds the wait instead: a reader publishes its deadline (an atomic store, no
+/// system call) and its thread; a thread that wakes every [`WATCHDOG_PERIOD`] sends that
+/// thread [`WAKE_SIGNAL`] while the deadline has passed. The handler does nothing and is
+/// installed without `SA_RESTART`, so the read returns `EINTR` and the reader sees its deadline.
+/// A signal that arrives just before the read blocks is followed by another a period later.
+pub mod read_deadline {
+    use std::sync::atomic::{AtomicI32, AtomicU64, Ordering};
+    use std::sync::OnceLock;
+    use std::time::Duration;
+
+    /// The signal that interrupts a read past its deadline.
+    pub const WAKE_SIGNAL: libc::c_int = libc::SIGALRM;
+    /// How often the watchdog looks: a timed-out read returns within this of its deadline.
+    pub const WATCHDOG_PERIOD: Duration = Duration::from_millis(20);
+
+    /// The deadline of the read in progress (CLOCK_MONOTONIC ns), 0 when none is.
+    static DEADLINE_NS: AtomicU64 = AtomicU64::new(0);
+    /// The thread that reads (its kernel thread id).
+    static READER: AtomicI32 = AtomicI32::new(0);
+    static STARTED: OnceLock<std::io::Result<()>> = OnceLock::new();
+
+    extern "C" fn on_wake(_sig: libc::c_int, _info: *mut libc::siginfo_t, _: *mut libc::c_void) {
+        // Nothing: being delivered is the point (the read returns EINTR).
+    }
+
+    fn now_ns() -> u64 {
+        s3res_protocol::clock::monotonic_ns()
+    }
+
+    thread_local! {
+        /// This thread's kernel id, asked once (a read must not cost a system call more).
+        static THIS_THREAD: libc::pid_t =
+            // SAFETY: gettid takes no arguments and cannot fail.
+            unsafe { libc::syscall(libc::SYS_gettid) as libc::pid_t };
+    }
+
+    fn this_thread() -> libc::pid_t {
+        THIS_THREAD.with(|tid| *tid)
+    }
+
+    /// Installs the handler and starts the watchdog thread, once per process.
+    fn start() -> std::io::Result<()> {
+        let started = STARTED.get_or_init(|| {
+            // SAFETY: on_wake does nothing, which is async-signal-safe.
+            unsafe { replica_rt::sys::install_siginfo_handler(WAKE_SIGNAL, on_wake, 0)? };
+            std::thread::Builder::new()
+                .name("read-deadline".into())
+                .spawn(watch)?;
+            Ok(())
+        });
+        match started {
+            Ok(()) => Ok(()),
+            Err(e) => Err(std::io::Error::new(e.kind(), e.to_string())),
+        }
+    }
+
+    fn watch() {
+        // SAFETY: getpid cannot fail.
+        let pid = unsafe { libc::getpid() };
+        loop {
+            std::thread::sleep(WATCHDOG_PERIOD);
+            let deadline = DEADLINE_NS.load(Ordering::SeqCst);
+            let reader = READER.load(Ordering::SeqCst);
+            if deadline != 0 && reader != 0 && now_ns() >= deadline {
+                // SAFETY: tgkill takes plain integers; a thread that has gone makes it fail
+                // with ESRCH, which is harmless.
+                unsafe { libc::syscall(libc::SYS_tgkill, pid, reader, WAKE_SIGNAL) };
+            }
+        }
+    }
+
+    /// While it lives, the calling thread's blocking reads are interrupted once `deadline`
+    /// (CLOCK_MONOTONIC ns) has passed. One reader at a time.
+    pub struct Armed(());
+
+    impl Armed {
+        pub fn new(deadline_ns: u64) -> std::io::Result<Armed> {
+            start()?;
+            READER.store(this_thread(), Ordering::SeqCst);
+            DEADLINE_NS.store(deadline_ns.max(1), Ordering::SeqCst);
+            Ok(Armed(()))
+        }
+
+        /// Whether the deadline has passed.
+        pub fn expired(&self) -> bool {
+            now_ns() >= DEADLINE_NS.load(Ordering::SeqCst)
+        }
+    }
+
+    impl Drop for Armed {
+        fn drop(&mut self) {
+            DEADLINE_NS.store(0, Ordering::SeqCst);
+        }
+    }
+}
