@@ -31,15 +31,17 @@
 //! the voter sees no child and tries again or starts a fresh replica.
 //!
 //! In the child:
-//! 1. connect to the voter's socket (address prepared at init, so nothing is allocated here);
-//! 2. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its
+//! 1. connect to the voter's socket (address prepared at init, so nothing is allocated here)
+//!    and send [`Hello`] with the attempt's nonce;
+//! 2. while the voter checks who it is and sends its pipes, `mlockall` again, on fault (locks
+//!    are not inherited over fork; see [`sys::lock_memory_on_fault`] and the trade-off in
+//!    `become_replacement`), and write-fault every resident private writable page
+//!    ([`crate::cow`]) so that the child has its own copy of every page it shared with the
+//!    donor. Both happen before `Ready`, so no physical page of private writable memory is
+//!    shared with the donor once the voter counts the child in;
+//! 3. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its
 //!    target number and close the received copy: the component's ports keep their numbers, now on
 //!    the new pipes;
-//! 3. `mlockall` again, on fault (locks are not inherited over fork; see
-//!    [`sys::lock_memory_on_fault`] and the trade-off in `become_replacement`), and write-fault
-//!    every resident private writable page ([`crate::cow`]) so that the child has its own copy of
-//!    every page it shared with the donor. Both happen before `Ready`, so no physical page of
-//!    private writable memory is shared with the donor once the voter counts the child in;
 //! 4. answer [`Ready`] with its pid, the frames sent per output and the bytes of unread input
 //!    per input so far, send those bytes (`splice` from the copies), and close the socket;
 //! 5. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
@@ -572,7 +574,10 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     let Ok(sock) = join_voter(nonce) else {
         sys::exit_now(CHILD_FAILED);
     };
-    // Own pages and locked memory *before* `Ready`: the voter counts us as a member of the next
+    // The voter now checks who we are and sends our pipes; meanwhile we do the part of the
+    // restart that does not need them (on two CPUs the two overlap, and on one the voter,
+    // which outranks us, does its part as soon as it is woken). Own pages and locked memory
+    // *before* `Ready`: the voter counts us as a member of the next
     // round from `Ready` on, and a page walk after it (milliseconds for a few MiB, tens of ms
     // for tens of MiB) would make us miss that round's deadline and be killed as hung, again
     // and again. It also makes the voter's recovery time the time to a replica that can answer.
@@ -588,6 +593,11 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     // Then break the sharing of every resident private writable page (locked as it is copied).
     // SAFETY: the fork child has a single thread.
     let _ = unsafe { crate::cow::break_cow_sharing() };
+    // Our pipes, onto the donor's fd numbers (nothing has used the donor's copies meanwhile:
+    // this runs in the restart handler, before the component's code).
+    if take_pipes(&sock).is_err() {
+        sys::exit_now(CHILD_FAILED);
+    }
     // Whole frames the donor had sent per port at the fork (stream mode lines our output up
     // with the donor's from these).
     let mut frames_sent = [0u64; MAX_PORTS];
@@ -619,8 +629,9 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     FORKED_FROM.store(donor, Ordering::Relaxed);
 }
 
-/// Steps 1–3 of the handshake, up to (not including) `Ready`; returns the connection.
-/// `Err(())` carries no detail: there is nobody to tell but the voter, which sees the exit.
+/// Steps 1–2 of the handshake: connect, and say which attempt we are (`Hello`); returns the
+/// connection. `Err(())` carries no detail: there is nobody to tell but the voter, which sees
+/// the exit.
 fn join_voter(nonce: u32) -> Result<Fd, ()> {
     let addr = VOTER_ADDR.get().ok_or(())?;
     let sock = Fd(socket()?);
@@ -637,6 +648,11 @@ fn join_voter(nonce: u32) -> Result<Fd, ()> {
         }
         .to_bytes(),
     )?;
+    Ok(sock)
+}
+
+/// Step 3: receive our pipes and put them on their fd numbers.
+fn take_pipes(sock: &Fd) -> Result<(), ()> {
     let mut transfer = FdTransfer {
         magic: 0,
         count: 0,
@@ -650,8 +666,7 @@ fn join_voter(nonce: u32) -> Result<Fd, ()> {
         close_all(fds);
         return Err(());
     }
-    place_fds(fds, &transfer.targets[..n])?;
-    Ok(sock)
+    place_fds(fds, &transfer.targets[..n])
 }
 
 /// Puts `fds[i]` on fd number `targets[i]` and closes `fds[i]`.

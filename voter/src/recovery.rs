@@ -9,10 +9,10 @@
 //! 3. send the donor [`signals::RESTART`] with a fresh nonce; its handler forks; meanwhile,
 //!    make the child's fresh pipes;
 //! 4. accept the child: `SO_PEERCRED` must name a child of the donor (anyone else is refused
-//!    before anything is sent); send it the pipes by `SCM_RIGHTS` at once, which it puts on the
-//!    donor's fd numbers before it breaks its copy-on-write sharing; then, while it does, check
-//!    that its `Hello` carries this attempt's nonce (a late child of an earlier attempt has an
-//!    older state). One that fails is refused (killed) and its pipes are dropped; the next
+//!    before anything is sent); send it the pipes by `SCM_RIGHTS` at once (it breaks its
+//!    copy-on-write sharing meanwhile, and puts them on the donor's fd numbers after); then
+//!    check that its `Hello` carries this attempt's nonce (a late child of an earlier attempt
+//!    has an older state). One that fails is refused (killed) and its pipes are dropped; the next
 //!    connection gets a new set;
 //! 5. wait for its `Ready`;
 //! 6. give the taken-back input, followed by whatever is still queued for the donor, to both
