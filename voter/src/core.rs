@@ -195,6 +195,8 @@ pub(crate) struct Core {
     events: Option<OwnedFd>,
     pub(crate) stop: Option<Stop>,
     pub(crate) poll: PollSet,
+    /// The quiet fds ready in this turn of the loop (reused: a turn allocates nothing).
+    pub(crate) quiet_ready: Vec<Token>,
     /// Wakes the loop at the mode's next deadline (see [`WakeTimer`]).
     pub(crate) timer: WakeTimer,
     /// Priorities, pinning and the raising of turns.
@@ -320,6 +322,7 @@ impl Core {
             events,
             stop: None,
             poll: PollSet::default(),
+            quiet_ready: Vec::new(),
             timer: WakeTimer::new()?,
             rt,
             monitors,
@@ -1246,18 +1249,18 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
         .chain(stalled_input)
         .chain(output_room)
         .min();
-    let wake = match (m.next_wakeup(), retry) {
-        (Some(a), Some(b)) => Some(a.min(b)),
-        (a, b) => a.or(b),
-    };
-    if let Some(at) = wake {
-        m.core().timer.wake_by(at)?;
-    }
-    // Never asleep longer than a heartbeat period: bootstrap must see the loop turn. (A
-    // timeout that far ahead lies beyond the next tick and costs no timer reprogramming.)
-    beat();
+    // Never asleep longer than a heartbeat period: bootstrap must see the loop turn. That bound
+    // is the wake timer's too, so the wait itself has no timeout: a `ppoll` timeout arms and
+    // cancels a kernel timer on every wait, twice per round for nothing.
     let heartbeat = Instant::now() + HEARTBEAT_PERIOD;
-    let ready = wait_until(&mut m.core().poll.fds, Some(heartbeat))?;
+    let wake = [m.next_wakeup(), retry]
+        .into_iter()
+        .flatten()
+        .fold(heartbeat, Instant::min);
+    m.core().timer.wake_by(wake)?;
+    beat();
+    m.core().poll.seal();
+    let ready = wait_until(&mut m.core().poll.fds, None)?;
     for out in &mut m.core().outputs {
         if out.writer.waiting_for_room() {
             out.flush();
@@ -1266,44 +1269,62 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     if ready == 0 {
         return Ok(());
     }
+    let mut quiet = std::mem::take(&mut m.core().quiet_ready);
     for k in 0..m.core().poll.fds.len() {
         let core = m.core();
         if core.poll.fds[k].revents == 0 {
             continue;
         }
-        match core.poll.tokens[k] {
-            Token::Signal => {
-                if stop_requested(&core.signals) {
-                    core.stop = Some(Stop::Requested);
-                }
+        if core.poll.tokens[k] == Token::Quiet {
+            core.poll.ready_quiet(&mut quiet);
+            for &token in &quiet {
+                dispatch(m, token);
             }
-            Token::Input(i) => m.on_input_readable(i),
-            Token::OutputWritable(o) => core.outputs[o].flush(),
-            Token::Timer => core.timer.expired(),
-            Token::ReplicaExit(r) => m.on_replica_exit(r),
-            Token::ReplicaOutput(r, o) => m.on_replica_output(r, o),
-            Token::ReplicaStderr(r) => {
-                let component = &core.plan.component;
-                if let Some(rep) = core.slots[r].as_mut() {
-                    rep.relay_stderr(component, r);
-                }
-            }
-            Token::ReplicaStarted(r) => {
-                if core.slots[r].as_mut().is_some_and(Replica::read_started) {
-                    core.runtime_started = true;
-                }
-            }
-            Token::ReplicaInputWritable(r, i) => {
-                let flushed = core.slots[r].as_mut().map(|rep| rep.flush_input(i));
-                core.note_moved(r);
-                if let Some(Err(e)) = flushed {
-                    let detail = format!("input pipe `{}` broke: {e}", core.input_name(i));
-                    m.fault(r, Cause::PipeError, detail);
-                }
-            }
+        } else {
+            let token = core.poll.tokens[k];
+            dispatch(m, token);
         }
     }
+    m.core().quiet_ready = quiet;
     Ok(())
+}
+
+/// Hands one ready fd to the core or the mode.
+fn dispatch(m: &mut impl Mode, token: Token) {
+    let core = m.core();
+    match token {
+        Token::Signal => {
+            if stop_requested(&core.signals) {
+                core.stop = Some(Stop::Requested);
+            }
+        }
+        Token::Input(i) => m.on_input_readable(i),
+        Token::OutputWritable(o) => core.outputs[o].flush(),
+        Token::Timer => core.timer.expired(),
+        Token::ReplicaExit(r) => m.on_replica_exit(r),
+        Token::ReplicaOutput(r, o) => m.on_replica_output(r, o),
+        Token::ReplicaStderr(r) => {
+            let component = &core.plan.component;
+            if let Some(rep) = core.slots[r].as_mut() {
+                rep.relay_stderr(component, r);
+            }
+        }
+        Token::ReplicaStarted(r) => {
+            if core.slots[r].as_mut().is_some_and(Replica::read_started) {
+                core.runtime_started = true;
+            }
+        }
+        Token::ReplicaInputWritable(r, i) => {
+            let flushed = core.slots[r].as_mut().map(|rep| rep.flush_input(i));
+            core.note_moved(r);
+            if let Some(Err(e)) = flushed {
+                let detail = format!("input pipe `{}` broke: {e}", core.input_name(i));
+                m.fault(r, Cause::PipeError, detail);
+            }
+        }
+        // Handled by `wait_and_dispatch`, which asks the poll set which quiet fds are ready.
+        Token::Quiet => {}
+    }
 }
 
 /// A replica closed an output. The kernel closes a dying process's fds just before it

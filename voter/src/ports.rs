@@ -2,11 +2,12 @@
 //! with queues), the fds it inherits from bootstrap, the signalfd, the poll set one wait of
 //! the event loop watches, the event writer, and the sweep of children at the end.
 
-use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
+use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags, EpollTimeout};
 use nix::sys::signal::Signal;
 use nix::sys::signalfd::SignalFd;
 use nix::sys::time::TimeSpec;
@@ -105,7 +106,7 @@ impl ExternalOutput {
 }
 
 /// What a slot of the poll set stands for.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Token {
     Signal,
     Input(usize),
@@ -117,15 +118,63 @@ pub(crate) enum Token {
     ReplicaStarted(usize),
     /// The loop's [`WakeTimer`] expired.
     Timer,
+    /// One of the quiet fds is ready (see [`PollSet`]): [`PollSet::ready_quiet`] says which.
+    Quiet,
 }
 
 /// The fds one wait of an event loop watches, each with the [`Token`] saying what it stands
 /// for. Rebuilt before every wait from the loop's state; the vectors keep their capacity, so
 /// a steady-state round allocates nothing.
+///
+/// **Quiet fds** are those watched all the time that are rarely ready: the signalfd, the wake
+/// timer, and each replica's pidfd and stderr pipe. They sit in an epoll instance, and the
+/// wait watches that one fd instead of all of them: `ppoll` pays per fd it watches, twice
+/// (onto each fd's wait queue and off it again), and in a TMR round the voter waits three
+/// times. The epoll instance is made afresh whenever the quiet set changes (a replica
+/// replaced, a stderr pipe closed): a new instance holds no registration of a file that an
+/// old fd number once named, so no stale event can reach a new replica's slot.
 #[derive(Debug, Default)]
 pub(crate) struct PollSet {
     pub(crate) fds: Vec<libc::pollfd>,
     pub(crate) tokens: Vec<Token>,
+    /// The quiet fds wanted for this wait, in dispatch order.
+    quiet_wanted: Vec<QuietFd>,
+    /// The epoll instance and what it holds (`None`: none made yet, or making one failed, and
+    /// the quiet fds are watched by `ppoll` directly).
+    quiet: Option<QuietSet>,
+    /// What `epoll_wait` found, reused.
+    quiet_events: Vec<EpollEvent>,
+}
+
+/// A quiet fd, with the token it stands for and the pid of the replica it belongs to (0 for
+/// the voter's own): a replaced replica's fds may come back under the same numbers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct QuietFd {
+    fd: RawFd,
+    token: Token,
+    owner: libc::pid_t,
+}
+
+#[derive(Debug)]
+struct QuietSet {
+    epoll: Epoll,
+    members: Vec<QuietFd>,
+}
+
+impl QuietSet {
+    fn new(members: &[QuietFd]) -> nix::Result<QuietSet> {
+        let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC)?;
+        for (k, q) in members.iter().enumerate() {
+            // SAFETY: `q.fd` is open: it was taken from a live object of the loop's state in
+            // this same turn of the loop, before anything could close it.
+            let fd = unsafe { BorrowedFd::borrow_raw(q.fd) };
+            epoll.add(fd, EpollEvent::new(EpollFlags::EPOLLIN, k as u64))?;
+        }
+        Ok(QuietSet {
+            epoll,
+            members: members.to_vec(),
+        })
+    }
 }
 
 impl PollSet {
@@ -136,6 +185,63 @@ impl PollSet {
             revents: 0,
         });
         self.tokens.push(token);
+    }
+
+    fn add_quiet(&mut self, fd: RawFd, token: Token, owner: libc::pid_t) {
+        self.quiet_wanted.push(QuietFd { fd, token, owner });
+    }
+
+    /// Ends the set: the quiet fds go into the epoll instance (a new one if they changed),
+    /// watched as one fd at the front, so they are dispatched first, as they always were.
+    /// If no instance can be made, they are watched one by one instead.
+    pub(crate) fn seal(&mut self) {
+        let current = self
+            .quiet
+            .as_ref()
+            .is_some_and(|q| q.members == self.quiet_wanted);
+        if !current {
+            self.quiet = match QuietSet::new(&self.quiet_wanted) {
+                Ok(set) => Some(set),
+                Err(e) => {
+                    tracing::warn!("epoll for the quiet fds: {e}; watching them one by one");
+                    None
+                }
+            };
+        }
+        let pollfd = |fd: RawFd| libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        match &self.quiet {
+            Some(q) => {
+                self.fds.insert(0, pollfd(q.epoll.0.as_raw_fd()));
+                self.tokens.insert(0, Token::Quiet);
+            }
+            None => {
+                for (k, q) in self.quiet_wanted.iter().enumerate() {
+                    self.fds.insert(k, pollfd(q.fd));
+                    self.tokens.insert(k, q.token);
+                }
+            }
+        }
+    }
+
+    /// The quiet fds that are ready now, in dispatch order, into `out` (cleared first).
+    pub(crate) fn ready_quiet(&mut self, out: &mut Vec<Token>) {
+        out.clear();
+        let Some(q) = &self.quiet else { return };
+        self.quiet_events
+            .resize(q.members.len().max(1), EpollEvent::empty());
+        let Ok(n) = q.epoll.wait(&mut self.quiet_events, EpollTimeout::ZERO) else {
+            return;
+        };
+        // In the order they were added (the kernel reports them in its own).
+        for (k, member) in q.members.iter().enumerate() {
+            if self.quiet_events[..n].iter().any(|e| e.data() == k as u64) {
+                out.push(member.token);
+            }
+        }
     }
 
     /// Starts a new set: the signalfd, the wake-up timer, the external inputs (if
@@ -150,8 +256,9 @@ impl PollSet {
     ) {
         self.fds.clear();
         self.tokens.clear();
-        self.add(signals.as_raw_fd(), libc::POLLIN, Token::Signal);
-        self.add(timer.fd.as_fd().as_raw_fd(), libc::POLLIN, Token::Timer);
+        self.quiet_wanted.clear();
+        self.add_quiet(signals.as_raw_fd(), Token::Signal, 0);
+        self.add_quiet(timer.fd.as_fd().as_raw_fd(), Token::Timer, 0);
         let now = Instant::now();
         for (i, input) in inputs.iter().enumerate() {
             let stalled = input
@@ -189,7 +296,7 @@ impl PollSet {
         may_read: impl Fn(usize) -> bool,
     ) {
         if watch_exit {
-            self.add(rep.pidfd.as_raw_fd(), libc::POLLIN, Token::ReplicaExit(r));
+            self.add_quiet(rep.pidfd.as_raw_fd(), Token::ReplicaExit(r), rep.pid);
         }
         for (o, out) in rep.outputs.iter().enumerate() {
             if !out.is_closed() && may_read(o) {
@@ -201,7 +308,7 @@ impl PollSet {
             }
         }
         if let Some(fd) = rep.stderr.fd() {
-            self.add(fd.as_raw_fd(), libc::POLLIN, Token::ReplicaStderr(r));
+            self.add_quiet(fd.as_raw_fd(), Token::ReplicaStderr(r), rep.pid);
         }
         if let Some(fd) = rep.start_pipe.as_ref() {
             self.add(fd.as_raw_fd(), libc::POLLIN, Token::ReplicaStarted(r));
@@ -593,5 +700,70 @@ mod tests {
         // A wake-up already due fires at once.
         timer.wake_by(Instant::now()).unwrap();
         assert!(readable(&timer, Duration::from_secs(2)));
+    }
+
+    /// The quiet fds the wait found ready, through the one epoll fd.
+    fn quiet_ready(set: &mut PollSet) -> Vec<Token> {
+        set.fds.clear();
+        set.tokens.clear();
+        set.seal();
+        assert_eq!(
+            set.tokens,
+            [Token::Quiet],
+            "the quiet fds are one fd in the wait"
+        );
+        let ready = sys::ppoll(&mut set.fds, Some(Duration::ZERO)).unwrap();
+        let mut out = Vec::new();
+        if ready > 0 {
+            set.ready_quiet(&mut out);
+        }
+        out
+    }
+
+    #[test]
+    fn quiet_fds_are_watched_through_one_epoll_fd_and_never_for_a_replaced_owner() {
+        let (r1, w1) = sys::pipe().unwrap();
+        let (r2, w2) = sys::pipe().unwrap();
+        let mut set = PollSet::default();
+        let want = |set: &mut PollSet, r1: RawFd, r2: RawFd, owner2: libc::pid_t| {
+            set.quiet_wanted.clear();
+            set.add_quiet(r1, Token::ReplicaExit(0), 100);
+            set.add_quiet(r2, Token::ReplicaStderr(1), owner2);
+        };
+        want(&mut set, r1.as_raw_fd(), r2.as_raw_fd(), 200);
+        assert!(quiet_ready(&mut set).is_empty(), "nothing written yet");
+        sys::write(w2.as_fd(), b"x").unwrap();
+        sys::write(w1.as_fd(), b"x").unwrap();
+        // Both, in the order they were added, whatever order the kernel saw them in.
+        assert_eq!(
+            quiet_ready(&mut set),
+            [Token::ReplicaExit(0), Token::ReplicaStderr(1)]
+        );
+        let epoll_before = set.quiet.as_ref().unwrap().epoll.0.as_raw_fd();
+        want(&mut set, r1.as_raw_fd(), r2.as_raw_fd(), 200);
+        quiet_ready(&mut set);
+        assert_eq!(
+            set.quiet.as_ref().unwrap().epoll.0.as_raw_fd(),
+            epoll_before,
+            "an unchanged set keeps its epoll instance"
+        );
+
+        // Replica 1 is replaced: its pipe closes and a new one comes, most often under the
+        // same fd number. A new owner means a new epoll instance, so the old file (which a
+        // stale registration would keep watching under the number) is not, and the new one is.
+        drop(r2);
+        drop(w2);
+        let (r3, w3) = sys::pipe().unwrap();
+        want(&mut set, r1.as_raw_fd(), r3.as_raw_fd(), 300);
+        let mut buf = [0u8; 8];
+        sys::read(r1.as_fd(), &mut buf).unwrap();
+        assert!(quiet_ready(&mut set).is_empty(), "the new pipe is empty");
+        assert_ne!(
+            set.quiet.as_ref().unwrap().epoll.0.as_raw_fd(),
+            epoll_before,
+            "a new owner, a new epoll instance"
+        );
+        sys::write(w3.as_fd(), b"y").unwrap();
+        assert_eq!(quiet_ready(&mut set), [Token::ReplicaStderr(1)]);
     }
 }
