@@ -195,8 +195,6 @@ pub(crate) struct Core {
     events: Option<OwnedFd>,
     pub(crate) stop: Option<Stop>,
     pub(crate) poll: PollSet,
-    /// The quiet fds ready in this turn of the loop (reused: a turn allocates nothing).
-    pub(crate) quiet_ready: Vec<Token>,
     /// Wakes the loop at the mode's next deadline (see [`WakeTimer`]).
     pub(crate) timer: WakeTimer,
     /// Priorities, pinning and the raising of turns.
@@ -322,7 +320,6 @@ impl Core {
             events,
             stop: None,
             poll: PollSet::default(),
-            quiet_ready: Vec::new(),
             timer: WakeTimer::new()?,
             rt,
             monitors,
@@ -1269,23 +1266,25 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     if ready == 0 {
         return Ok(());
     }
-    let mut quiet = std::mem::take(&mut m.core().quiet_ready);
     for k in 0..m.core().poll.fds.len() {
         let core = m.core();
         if core.poll.fds[k].revents == 0 {
             continue;
         }
         if core.poll.tokens[k] == Token::Quiet {
-            core.poll.ready_quiet(&mut quiet);
+            core.poll.ready_quiet();
+            // Taken out while dispatched (a handler may use the core), and put back with its
+            // capacity.
+            let quiet = std::mem::take(&mut core.poll.quiet_ready);
             for &token in &quiet {
                 dispatch(m, token);
             }
+            m.core().poll.quiet_ready = quiet;
         } else {
             let token = core.poll.tokens[k];
             dispatch(m, token);
         }
     }
-    m.core().quiet_ready = quiet;
     Ok(())
 }
 

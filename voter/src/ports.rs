@@ -144,6 +144,8 @@ pub(crate) struct PollSet {
     quiet: Option<QuietSet>,
     /// What `epoll_wait` found, reused.
     quiet_events: Vec<EpollEvent>,
+    /// The quiet fds found ready, in dispatch order (see [`PollSet::ready_quiet`]).
+    pub(crate) quiet_ready: Vec<Token>,
 }
 
 /// A quiet fd, with the token it stands for and the pid of the replica it belongs to (0 for
@@ -200,6 +202,10 @@ impl PollSet {
             .as_ref()
             .is_some_and(|q| q.members == self.quiet_wanted);
         if !current {
+            // Sized now, while the set changes: a steady-state round allocates nothing.
+            let n = self.quiet_wanted.len().max(1);
+            self.quiet_events.resize(n, EpollEvent::empty());
+            self.quiet_ready.reserve(n);
             self.quiet = match QuietSet::new(&self.quiet_wanted) {
                 Ok(set) => Some(set),
                 Err(e) => {
@@ -227,19 +233,17 @@ impl PollSet {
         }
     }
 
-    /// The quiet fds that are ready now, in dispatch order, into `out` (cleared first).
-    pub(crate) fn ready_quiet(&mut self, out: &mut Vec<Token>) {
-        out.clear();
+    /// The quiet fds that are ready now, in dispatch order, into [`PollSet::quiet_ready`].
+    pub(crate) fn ready_quiet(&mut self) {
+        self.quiet_ready.clear();
         let Some(q) = &self.quiet else { return };
-        self.quiet_events
-            .resize(q.members.len().max(1), EpollEvent::empty());
         let Ok(n) = q.epoll.wait(&mut self.quiet_events, EpollTimeout::ZERO) else {
             return;
         };
         // In the order they were added (the kernel reports them in its own).
         for (k, member) in q.members.iter().enumerate() {
             if self.quiet_events[..n].iter().any(|e| e.data() == k as u64) {
-                out.push(member.token);
+                self.quiet_ready.push(member.token);
             }
         }
     }
@@ -713,11 +717,11 @@ mod tests {
             "the quiet fds are one fd in the wait"
         );
         let ready = sys::ppoll(&mut set.fds, Some(Duration::ZERO)).unwrap();
-        let mut out = Vec::new();
+        set.quiet_ready.clear();
         if ready > 0 {
-            set.ready_quiet(&mut out);
+            set.ready_quiet();
         }
-        out
+        set.quiet_ready.clone()
     }
 
     #[test]
