@@ -16,6 +16,9 @@ CELL is LEVEL-FAULT: tmr-exec, tmr-sdc, tmr-cfe, dmr-exec, dmr-cfe (210 missions
 about 6,000 injections), none-none and smr-none (105 missions, nothing injected), tmr-none
 and dmr-none (70 missions, nothing injected: false positives of a quiet system), or
 tmr-mixed (10 Hz, exec/sdc/cfe drawn per injection, 20 missions: the harsher cell).
+MAVFI's register table under TMR: tmr-regN-COMPONENT, N bits flipped in a register of
+COMPONENT (navigator or planner) at each injection, N = 1, 3 or 5 (48 missions, about
+1,000 injections; issue 16, item 4).
 
 Environment:
   OUT=DIR     where the cells go (default target/paper-exposure); a cell's shards are
@@ -62,6 +65,7 @@ cell_params() {
     none-none|smr-none) echo "2 105" ;;
     tmr-none|dmr-none) echo "2 70" ;;
     tmr-mixed) echo "10 20" ;;
+    tmr-reg[135]-navigator|tmr-reg[135]-planner) echo "2 48" ;;
     *) return 1 ;;
   esac
 }
@@ -74,8 +78,20 @@ keep=()
 
 status=0
 for cell in "$@"; do
-  level=${cell%-*}
+  level=${cell%%-*}
   fault=${cell#*-}
+  components=filter,navigator,mapper,planner
+  extra=()
+  case "$fault" in
+    reg[135]-*)
+      # regN-COMPONENT: N bits into COMPONENT only.
+      bits=${fault%%-*}
+      bits=${bits#reg}
+      components=${fault#*-}
+      fault=reg
+      extra=(--reg-bits "$bits")
+      ;;
+  esac
   read -r rate runs < <(cell_params "$cell")
   label=$(echo "$level" | tr a-z A-Z)
   if [ -n "$SHARD" ]; then shards=$SHARD; else shards=$(seq 1 "$SHARDS"); fi
@@ -88,8 +104,8 @@ for cell in "$@"; do
     # From the repository root: the system descriptions name the robot's files relative to it.
     (cd "$ROOT" && "$INJECT" -q campaign --system "examples/robot/campaign-8x8/$level.json" \
       --fault "$fault" --rate "$rate" --runs "$runs" --seed 1 --duration 60 --run-timeout 120 \
-      --components filter,navigator,mapper,planner --label "$label" --shard "$k/$SHARDS" \
-      --resume "${keep[@]}" --out "$dir")
+      --components "$components" --label "$label" --shard "$k/$SHARDS" \
+      --resume "${keep[@]}" "${extra[@]}" --out "$dir")
     code=$?
     if [ "$code" -ge 128 ]; then
       # Stopped by a signal (Ctrl-C, a batch system's kill): stop here; --resume goes on.

@@ -55,6 +55,11 @@ pub(crate) fn inject_with(
         return Err(RegFlipError::NotAThreadOf { pid, tid });
     }
     sys::seize(tid).map_err(|source| match source.raw_os_error() {
+        // The kernel refuses to attach to a thread that is exiting with EPERM too: a target
+        // that an earlier flip crashed, still named by whoever picked it.
+        Some(libc::EPERM) if !matches!(replica_rt::sys::process_state(tid), Some(s) if s != 'Z' && s != 'X') => {
+            RegFlipError::Gone { tid }
+        }
         Some(libc::EPERM) => RegFlipError::Permission { tid, source },
         _ => ptrace_err("SEIZE", tid)(source),
     })?;

@@ -448,9 +448,16 @@ fn a_call_that_does_not_return_in_time_is_reported_and_left_asleep() -> Result<(
 #[test]
 fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
     let mut rng = rng("errors", 9);
-    let mut child = Command::new("true").spawn()?;
-    let pid = child.id() as i32;
-    child.wait()?;
+    let mut child = KillOnDrop(Command::new("true").spawn()?);
+    let pid = child.0.id() as i32;
+    // Dead and not yet reaped (a replica an earlier flip crashed): the kernel refuses to
+    // attach with EPERM, which must read as gone, not as a missing privilege.
+    assert!(wait_for(|| proc_state(pid) == Some('Z')), "true never exited");
+    assert!(matches!(
+        inject(pid, &RegFlipSpec::default(), &mut rng),
+        Err(RegFlipError::Gone { tid }) if tid == pid
+    ));
+    child.0.wait()?;
     assert!(matches!(
         inject(pid, &RegFlipSpec::default(), &mut rng),
         Err(RegFlipError::Gone { tid }) if tid == pid
