@@ -133,8 +133,9 @@ impl FrameIn {
     /// The next whole frame's payload, waiting up to `timeout` (and at most
     /// [`read_deadline::WATCHDOG_PERIOD`] more).
     pub fn recv(&mut self, timeout: Duration) -> Result<&[u8], FrameIoError> {
+        let timeout_ns = timeout.as_nanos().min(u64::MAX as u128) as u64;
         let deadline = read_deadline::Armed::new(
-            s3res_protocol::clock::monotonic_ns().saturating_add(timeout.as_nanos() as u64),
+            s3res_protocol::clock::monotonic_ns().saturating_add(timeout_ns),
         )?;
         loop {
             if let Some(len) = self.whole_frame()? {
@@ -157,6 +158,8 @@ impl FrameIn {
             // One blocking read, as the peers' harnesses wait: no `ppoll` (and its timer)
             // before it. The watchdog interrupts it once the deadline has passed.
             match sys::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
+                // After Ctrl-C the handler killed the system, which closed the pipe.
+                Ok(0) if crate::sys::interrupted() => return Err(FrameIoError::Interrupted),
                 Ok(0) => return Err(FrameIoError::Closed),
                 Ok(n) => self.end += n,
                 Err(e)

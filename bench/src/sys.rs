@@ -223,6 +223,13 @@ pub mod read_deadline {
     }
 
     fn watch() {
+        // Whatever the bench's thread had when this one was spawned (a setup's SCHED_RR and
+        // pinning, or none), the watchdog must run whatever the system under test does: at the
+        // top real-time priority where that is allowed, on every CPU. (A watchdog starved by
+        // a spinning SCHED_RR system would let a read block for good.)
+        let _ = replica_rt::sys::set_round_robin(0, 99);
+        let all: Vec<usize> = (0..replica_rt::sys::online_cpus()).collect();
+        let _ = replica_rt::sys::set_cpu_affinity(0, &all);
         // SAFETY: getpid cannot fail.
         let pid = unsafe { libc::getpid() };
         loop {

@@ -290,8 +290,12 @@ impl Traced {
                     let regs = sys::get_regs(tid).map_err(ptrace_err("GETREGS", tid))?;
                     // At a syscall-entry-stop the kernel has set RAX to -ENOSYS; at an exit it
                     // holds the result. A call that a signal interrupted is restarted: not yet.
+                    // Nor is the exit of `rt_sigreturn`, the end of a signal handler that
+                    // interrupted the call: it leaves the thread on the `syscall` instruction,
+                    // about to restart the call, not in the component's own work.
                     let entry = regs.rax as i64 == -(libc::ENOSYS as i64);
-                    if !entry && !restartable_syscall(&regs) {
+                    let sigreturn = regs.orig_rax == libc::SYS_rt_sigreturn as u64;
+                    if !entry && !sigreturn && !restartable_syscall(&regs) {
                         return Ok(stops);
                     }
                 }

@@ -452,7 +452,10 @@ fn bad_specs_and_missing_processes_are_clean_errors() -> Result<()> {
     let pid = child.0.id() as i32;
     // Dead and not yet reaped (a replica an earlier flip crashed): the kernel refuses to
     // attach with EPERM, which must read as gone, not as a missing privilege.
-    assert!(wait_for(|| proc_state(pid) == Some('Z')), "true never exited");
+    assert!(
+        wait_for(|| proc_state(pid) == Some('Z')),
+        "true never exited"
+    );
     assert!(matches!(
         inject(pid, &RegFlipSpec::default(), &mut rng),
         Err(RegFlipError::Gone { tid }) if tid == pid

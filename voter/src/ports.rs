@@ -144,6 +144,9 @@ pub(crate) struct PollSet {
     quiet: Option<QuietSet>,
     /// What `epoll_wait` found, reused.
     quiet_events: Vec<EpollEvent>,
+    /// No epoll instance could be made (reported once): the quiet fds are watched one by one
+    /// from then on, instead of trying again at every wait.
+    quiet_refused: bool,
     /// The quiet fds found ready, in dispatch order (see [`PollSet::ready_quiet`]).
     pub(crate) quiet_ready: Vec<Token>,
 }
@@ -201,7 +204,7 @@ impl PollSet {
             .quiet
             .as_ref()
             .is_some_and(|q| q.members == self.quiet_wanted);
-        if !current {
+        if !current && !self.quiet_refused {
             // Sized now, while the set changes: a steady-state round allocates nothing.
             let n = self.quiet_wanted.len().max(1);
             self.quiet_events.resize(n, EpollEvent::empty());
@@ -210,6 +213,7 @@ impl PollSet {
                 Ok(set) => Some(set),
                 Err(e) => {
                     tracing::warn!("epoll for the quiet fds: {e}; watching them one by one");
+                    self.quiet_refused = true;
                     None
                 }
             };
@@ -237,8 +241,17 @@ impl PollSet {
     pub(crate) fn ready_quiet(&mut self) {
         self.quiet_ready.clear();
         let Some(q) = &self.quiet else { return };
-        let Ok(n) = q.epoll.wait(&mut self.quiet_events, EpollTimeout::ZERO) else {
-            return;
+        let n = match q.epoll.wait(&mut self.quiet_events, EpollTimeout::ZERO) {
+            Ok(n) => n,
+            // Still ready: the next wait returns at once and asks again.
+            Err(nix::errno::Errno::EINTR) => return,
+            Err(e) => {
+                // Nothing else is expected of an epoll fd we own; watch them one by one.
+                tracing::warn!("epoll_wait on the quiet fds: {e}; watching them one by one");
+                self.quiet = None;
+                self.quiet_refused = true;
+                return;
+            }
         };
         // In the order they were added (the kernel reports them in its own).
         for (k, member) in q.members.iter().enumerate() {
