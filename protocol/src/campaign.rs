@@ -74,7 +74,10 @@ pub enum Action {
         bits: Vec<u32>,
     },
     /// A register flip; `seed` seeds the ChaCha8 generator handed to the register injector.
+    /// Written `reg_seed`: an injection record carries the campaign's `seed` beside its action,
+    /// and a second `seed` made every line of a register campaign unreadable to `merge`.
     Reg {
+        #[serde(rename = "reg_seed")]
         seed: u64,
     },
 }
@@ -358,6 +361,12 @@ mod tests {
         same::<InjectionRecord>(
             r#"{"config":"tmr","seed":1,"run":1,"index":2,"at_ns":5,"ts_ns":null,"kind":"sdc","value":3,"component":"echo","replica":null,"pid":null,"outcome":"missed","miss":"target busy"}"#,
         );
+        // A register flip's own seed beside the campaign's (once both were `seed`, and no
+        // line of a register campaign could be read back).
+        let reg: InjectionRecord = same(
+            r#"{"config":"tmr","seed":1,"run":0,"index":0,"at_ns":5,"ts_ns":7,"kind":"reg","reg_seed":1594,"component":"navigator","replica":1,"pid":42,"outcome":"benign","injector":{"register":"rdx","seed":1594}}"#,
+        );
+        assert_eq!((reg.seed, reg.action), (1, Action::Reg { seed: 1594 }));
         same::<RunRecord>(
             r#"{"config":"tmr","seed":1,"run":0,"run_seed":99,"exit_code":0,"exit_signal":null,"timed_out":false,"ready":true,"task_summary_ok":null,"task_ok":true,"planned":3,"injected":2,"false_positives":0,"events":4,"duration_ms":1500,"load_before":{"one":0.5,"five":0.25,"fifteen":0.125}}"#,
         );
