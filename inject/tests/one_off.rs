@@ -177,8 +177,10 @@ fn a_register_flip_is_logged_whole_and_tmr_carries_on() {
     );
     let flip = &rec["injector"];
     assert_eq!(flip["pid"].as_i64(), Some(pid), "{rec}");
-    // The injection's own seed (drawn from --seed), the one that replays this flip.
-    assert_eq!(flip["seed"], rec["seed"], "{rec}");
+    // The injection's own seed (drawn from --seed), the one that replays this flip: written
+    // `reg_seed` beside the line's `seed` (the --seed given).
+    assert_eq!(flip["seed"], rec["reg_seed"], "{rec}");
+    assert_eq!(rec["seed"], 5, "{rec}");
     assert!(flip["attempts"].as_u64().unwrap() >= 1, "{rec}");
     assert!(!flip["instruction"].as_str().unwrap().is_empty(), "{rec}");
     assert!(!flip["register"].as_str().unwrap().is_empty(), "{rec}");
