@@ -157,7 +157,7 @@ impl FrameIn {
             }
             // One blocking read, as the peers' harnesses wait: no `ppoll` (and its timer)
             // before it. The watchdog interrupts it once the deadline has passed.
-            match sys::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
+            match read_deadline::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
                 // After Ctrl-C the handler killed the system, which closed the pipe.
                 Ok(0) if crate::sys::interrupted() => return Err(FrameIoError::Interrupted),
                 Ok(0) => return Err(FrameIoError::Closed),
@@ -170,5 +170,44 @@ impl FrameIn {
                 Err(e) => return Err(e.into()),
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A system that never answers: the blocking read is ended by the watchdog and reported as
+    /// a timeout, not left blocked; a partial frame does not count as an answer; a closed pipe
+    /// is `Closed`. Run on a thread of its own, so that a read left blocked fails the test
+    /// instead of hanging it.
+    #[test]
+    fn a_silent_pipe_times_out_and_a_closed_one_says_so() {
+        let (done, finished) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            silent_then_closed();
+            let _ = done.send(());
+        });
+        finished
+            .recv_timeout(Duration::from_secs(30))
+            .expect("a read was left blocked past its deadline (or the checks failed)");
+    }
+
+    fn silent_then_closed() {
+        let (r, w) = sys::pipe().unwrap();
+        let mut input = FrameIn::new(r, 64).unwrap();
+        let timeout = Duration::from_millis(50);
+        assert!(matches!(
+            input.recv(timeout),
+            Err(FrameIoError::Timeout(t)) if t == timeout
+        ));
+        // Half a frame: its header says 8 bytes, 3 come.
+        sys::write(w.as_fd(), &[8, 0, 0, 0, 1, 2, 3]).unwrap();
+        assert!(matches!(input.recv(timeout), Err(FrameIoError::Timeout(_))));
+        // The rest, and the frame is whole.
+        sys::write(w.as_fd(), &[4, 5, 6, 7, 8]).unwrap();
+        assert_eq!(input.recv(timeout).unwrap(), [1, 2, 3, 4, 5, 6, 7, 8]);
+        drop(w);
+        assert!(matches!(input.recv(timeout), Err(FrameIoError::Closed)));
     }
 }

@@ -244,6 +244,18 @@ pub mod read_deadline {
         }
     }
 
+    /// One `read(2)`, **not** retried on EINTR (`replica_rt::sys::read` retries it, which would
+    /// swallow the watchdog's wake-up and block for good on a system that never answers).
+    pub fn read(fd: std::os::fd::BorrowedFd<'_>, buf: &mut [u8]) -> std::io::Result<usize> {
+        use std::os::fd::AsRawFd;
+        // SAFETY: `buf` is valid for writes of `buf.len()` bytes for the duration of the call.
+        let n = unsafe { libc::read(fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
+        if n < 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(n as usize)
+    }
+
     /// While it lives, the calling thread's blocking reads are interrupted once `deadline`
     /// (CLOCK_MONOTONIC ns) has passed. One reader at a time.
     pub struct Armed(());
