@@ -134,8 +134,8 @@ pub fn fire(
 /// target blocked in a system call has its registers in kernel memory: the flip waits (up to
 /// [`REG_PATIENCE`]) until the target is seen running, so that it lands while the component
 /// computes, and stops the target only then; a target never seen so is followed out of its
-/// next system call instead (up to [`REG_FOLLOW_PATIENCE`]). Returns the injector's record, with the seed,
-/// the attempts (stops), the looks at its state and how long it waited.
+/// next system call instead (up to [`REG_FOLLOW_PATIENCE`]). Returns the injector's record,
+/// with the seed, the attempts (stops), the looks at its state and how long it waited.
 fn fire_reg(pid: i32, seed: u64, reg: &RegOptions) -> Result<serde_json::Value, FireError> {
     use rand::SeedableRng;
     use s3res_regflip::RegFlipError;
