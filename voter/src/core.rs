@@ -176,6 +176,10 @@ pub(crate) struct Core {
     /// One per replica slot; `None` while the slot's replica is faulty and not yet replaced.
     pub(crate) slots: Vec<Option<Replica>>,
     pub(crate) faults: Vec<Fault>,
+    /// The faulty replica being replaced, until it is retired ([`Fault::retire`]): while its
+    /// donor forks, if the slot is filled by fork (see [`Core::fork`]), else before anything
+    /// else is tried.
+    pub(crate) retiring: Option<Fault>,
     /// Slots whose replacement failed, tried again with backoff.
     pub(crate) vacant: Vec<Vacancy>,
     /// When replicas were started by exec after a fault, within the restart window.
@@ -308,6 +312,7 @@ impl Core {
             outputs,
             slots,
             faults: Vec::new(),
+            retiring: None,
             vacant: Vec::new(),
             exec_restarts: std::collections::VecDeque::new(),
             exec_restarts_total: 0,
@@ -985,13 +990,23 @@ impl Core {
     // ----- recovery ----------------------------------------------------------------------
 
     /// Forks `d` for a new replica: the donor runs above its siblings while it forks (S³RES
-    /// §4.4), and goes back to rest after.
+    /// §4.4), and goes back to rest after. The replica being replaced is retired while the
+    /// donor forks: waiting for it to finish dying (its memory torn down, milliseconds for a
+    /// large state after a hang's SIGKILL), relaying its last words and reaping it need not
+    /// hold up the fork.
     pub(crate) fn fork(&mut self, d: usize, state: DonorState) -> Result<Forked, RecoveryError> {
         let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
         self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
         let donor = self.slots[d].as_mut().expect("donor slot is filled");
         let donor_pid = donor.pid;
         self.rt.raise(donor_pid);
+        let mut retiring = self.retiring.take();
+        let component = &self.plan.component;
+        let mut retire = || {
+            if let Some(fault) = retiring.take() {
+                fault.retire(component);
+            }
+        };
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
@@ -999,9 +1014,19 @@ impl Core {
             self.restart_nonce,
             &family,
             state,
+            &mut retire,
         );
+        // The attempt failed before the donor was signalled.
+        retire();
         self.rt.rest(donor_pid, d);
         forked
+    }
+
+    /// Retires the replica being replaced now, if that has not happened yet.
+    pub(crate) fn retire_pending(&mut self) {
+        if let Some(fault) = self.retiring.take() {
+            fault.retire(&self.plan.component);
+        }
     }
 
     /// A `recovery` event: `slot` went from `old_pid` to `new_pid`, `detected_ns` after the
@@ -1372,9 +1397,12 @@ pub(crate) fn recover_faulty(m: &mut impl Mode, replace_them: bool) -> Result<bo
         if !replace_them {
             continue;
         }
-        let component = m.core().plan.component.clone();
-        let (slot, old_pid, detected_ns) = fault.retire(&component);
-        if !replace(m, slot, old_pid, detected_ns, false)? {
+        let (slot, old_pid, detected_ns) = (fault.slot, fault.replica.pid, fault.detected_ns);
+        // Retired while a donor forks for it, or before whatever else fills the slot.
+        m.core().retiring = Some(fault);
+        let filled = replace(m, slot, old_pid, detected_ns, false);
+        m.core().retire_pending();
+        if !filled? {
             m.core().vacant.push(Vacancy {
                 slot,
                 old_pid,
@@ -1433,6 +1461,7 @@ fn replace(
     {
         // Not yet (see `Core::lines_quiet`): the slot is tried again with backoff, for as long
         // as a recovery may take; then as it can (a fork would fail, an exec loses the state).
+        m.core().retire_pending();
         return Ok(false);
     }
     let patience = Duration::from_micros(m.core().plan.timeout_us);
@@ -1473,6 +1502,7 @@ fn replace(
             }
         }
     }
+    m.core().retire_pending();
     let started = m
         .core()
         .replace_by_exec(slot, old_pid, detected_ns, retry)?;
@@ -1483,13 +1513,12 @@ fn replace(
 }
 
 impl Fault {
-    /// Makes sure the killed replica is gone (bounded) and reaped; returns its slot, pid and
-    /// when it was found faulty.
-    pub(crate) fn retire(self, component: &str) -> (usize, i32, u64) {
+    /// Makes sure the killed replica is gone (bounded) and reaped.
+    pub(crate) fn retire(self, component: &str) {
         let Fault {
             slot,
             replica: mut old,
-            detected_ns,
+            ..
         } = self;
         if !old.exited_within(DEATH_WAIT) {
             tracing::warn!(pid = old.pid, "killed replica has not exited yet");
@@ -1501,7 +1530,6 @@ impl Fault {
         }
         drop(old.pidfd);
         reap_children();
-        (slot, old.pid, detected_ns)
     }
 }
 

@@ -93,6 +93,8 @@ pub struct Forked {
 }
 
 /// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
+/// `meanwhile` runs once the donor has been asked to fork, while it does (not at all if it
+/// could not be asked).
 pub fn fork(
     plan: &VoterPlan,
     listener: &UnixListener,
@@ -100,6 +102,7 @@ pub fn fork(
     nonce: u32,
     family: &[libc::pid_t],
     state: DonorState,
+    meanwhile: &mut dyn FnMut(),
 ) -> Result<Forked, RecoveryError> {
     let timeout = Duration::from_millis(plan.restart_timeout_ms);
     let deadline = Instant::now() + timeout;
@@ -119,19 +122,26 @@ pub fn fork(
     // donor follows that copy in the child's pipe; nothing is written to the donor meanwhile.
     let mut refused = Refusals::default();
     refuse_backlog(listener, family, deadline, &mut refused);
-    let joined = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
-        .map_err(io_err("signalling the donor"))
-        .and_then(|()| {
-            let attempt = Attempt {
-                plan,
-                nonce,
-                family,
-                deadline,
-                timeout,
-                state,
-            };
-            accept_child(listener, donor, &attempt, &mut refused)
-        });
+    let signalled = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
+        .map_err(io_err("signalling the donor"));
+    // The caller's work while the donor forks does not count against the child's time.
+    let deadline = if signalled.is_ok() {
+        meanwhile();
+        Instant::now() + timeout
+    } else {
+        deadline
+    };
+    let joined = signalled.and_then(|()| {
+        let attempt = Attempt {
+            plan,
+            nonce,
+            family,
+            deadline,
+            timeout,
+            state,
+        };
+        accept_child(listener, donor, &attempt, &mut refused)
+    });
     refused.report();
     let joined = joined?;
     let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
