@@ -50,6 +50,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     let voter = common.bins.path("s3res-voter")?;
     let spec = |timeout_us| Spec {
         journal: common.journal,
+        lock_memory: common.lock_memory,
         exec: echo.clone(),
         args: Vec::new(),
         replicas: 3,

@@ -118,6 +118,7 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
         ));
         let spec = Spec {
             journal: common.journal,
+            lock_memory: common.lock_memory,
             exec: echo.clone(),
             args: Vec::new(),
             replicas,

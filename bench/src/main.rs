@@ -17,6 +17,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use s3res_protocol::plan::LockMemory;
 
 use crate::system::{Bins, Setup};
 
@@ -72,6 +73,15 @@ struct CommonArgs {
     /// default, as s3res-bootstrap runs a reactive component): to measure what it costs.
     #[arg(long, global = true)]
     no_journal: bool,
+    /// How much of its memory each replica locks: `all` (every page of the binary and its
+    /// libraries, populated at start: the default, as in a system description) or `used` (the
+    /// pages it touches, locked on fault): to measure what either costs.
+    #[arg(long, global = true, value_name = "all|used", default_value = "all", value_parser = parse_lock_memory)]
+    lock_memory: LockMemory,
+}
+
+fn parse_lock_memory(s: &str) -> Result<LockMemory, String> {
+    LockMemory::parse(s).ok_or_else(|| format!("`{s}` is neither `all` nor `used`"))
 }
 
 #[derive(Subcommand)]
@@ -162,6 +172,8 @@ pub struct Common {
     pub quiet: bool,
     /// Whether the voter keeps its journal (see `--no-journal`).
     pub journal: bool,
+    /// What the replicas lock (see `--lock-memory`).
+    pub lock_memory: LockMemory,
 }
 
 impl Common {
@@ -220,6 +232,7 @@ fn run() -> Result<()> {
         bins: Bins::locate(cli.common.bin_dir.clone())?,
         quiet: cli.common.quiet,
         journal: !cli.common.no_journal,
+        lock_memory: cli.common.lock_memory,
     };
     let json = cli.common.json;
     // Taken before measuring: the load then is what the measurement competed with.

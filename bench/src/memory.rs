@@ -48,6 +48,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
     let mut rows = Vec::new();
     let base = |exec: &std::path::Path, args: Vec<String>, replicas| Spec {
         journal: common.journal,
+        lock_memory: common.lock_memory,
         exec: exec.to_path_buf(),
         args,
         replicas,

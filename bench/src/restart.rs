@@ -39,6 +39,7 @@ pub fn run(
         bar.set_message(report::bytes_name(size));
         let spec = Spec {
             journal: common.journal,
+            lock_memory: common.lock_memory,
             exec: ballast.clone(),
             args: vec!["--kib".into(), (size / 1024).to_string()],
             replicas: 3,

@@ -83,6 +83,8 @@ pub struct Spec {
     /// s3res-bootstrap, which gives one to every reactive component's voter whose replicas
     /// link replica-rt; never to an unmodified program's).
     pub journal: bool,
+    /// What the replicas lock (the voter passes it on).
+    pub lock_memory: s3res_protocol::plan::LockMemory,
 }
 
 /// Name of the component in plans and events.
@@ -202,6 +204,7 @@ impl System {
                 monitors: Vec::new(),
                 captures: Vec::new(),
                 framing: spec.preload.as_ref().map(|p| p.1).unwrap_or_default(),
+                lock_memory: spec.lock_memory,
                 preload: spec.preload.as_ref().map(|p| p.0.clone()),
             };
             cmd = Command::new(voter);

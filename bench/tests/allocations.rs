@@ -199,6 +199,7 @@ fn steady_state(monitored: bool) {
         monitors: Vec::new(),
         captures: Vec::new(),
         framing: Default::default(),
+        lock_memory: Default::default(),
         preload: None,
     };
     let mut plan = plan;

@@ -912,6 +912,7 @@ fn spawn_voter(
         monitors: c.monitors.clone(),
         captures: c.captures.clone(),
         framing: c.framing,
+        lock_memory: c.lock_memory,
         preload: c.preload.clone(),
     };
     let mapping: Vec<(RawFd, RawFd)> = handed

@@ -15,8 +15,8 @@ use s3res_protocol::contract::MAX_PORTS;
 use s3res_protocol::frame::DEFAULT_MAX_FRAME;
 use s3res_protocol::plan::{
     default_max_restarts, default_restart_timeout_ms, default_restart_window_ms,
-    default_start_timeout_ms, default_stream_window, CapturePlan, Framing, Mode, MonitorPlan,
-    RoundTrigger,
+    default_start_timeout_ms, default_stream_window, CapturePlan, Framing, LockMemory, Mode,
+    MonitorPlan, RoundTrigger,
 };
 use s3res_protocol::sched::{self, Schedule};
 
@@ -305,6 +305,8 @@ struct ComponentDesc {
     runtime: Option<RuntimeChoice>,
     /// An unmodified program's stdin/stdout: lines (the default) or s3res frames.
     framing: Option<Framing>,
+    /// What each replica keeps locked in memory: `used` (default) or `all`.
+    lock_memory: Option<LockMemory>,
 }
 
 /// `runtime` as written.
@@ -846,6 +848,7 @@ impl Checker<'_> {
             for (present, what) in [
                 (desc.schedule.is_some(), "schedule"),
                 (desc.voter_cpu.is_some(), "voter_cpu"),
+                (desc.lock_memory.is_some(), "lock_memory"),
             ] {
                 if present {
                     warnings.push(format!(
@@ -858,6 +861,12 @@ impl Checker<'_> {
         let exec = exec::resolve(&desc.exec, &self.ctx.base_dir, &self.ctx.search)
             .map_err(|what| self.err(&field("exec"), what))?;
         let (framing, preload) = self.check_runtime(&at, &desc, &exec, protected)?;
+        if preload.is_some() && desc.lock_memory.is_some() {
+            warnings.push(format!(
+                "component {name}: `lock_memory` is ignored for an unmodified program (the \
+                 preload library does not lock its memory)"
+            ));
+        }
 
         Ok(Draft {
             name,
@@ -1262,6 +1271,7 @@ impl Checker<'_> {
             monitors: Vec::new(),
             captures: Vec::new(),
             framing: d.framing,
+            lock_memory: d.desc.lock_memory.unwrap_or_default(),
             preload: d.preload,
         })
     }

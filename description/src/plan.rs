@@ -4,7 +4,7 @@
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
-use s3res_protocol::plan::{CapturePlan, Framing, Mode, MonitorPlan, RoundTrigger};
+use s3res_protocol::plan::{CapturePlan, Framing, LockMemory, Mode, MonitorPlan, RoundTrigger};
 use s3res_protocol::sched::Schedule;
 use serde::Deserialize;
 
@@ -125,6 +125,8 @@ pub struct ComponentPlan {
     pub captures: Vec<CapturePlan>,
     /// How the replicas' stdin/stdout or ports are framed.
     pub framing: Framing,
+    /// What each replica keeps locked in memory.
+    pub lock_memory: LockMemory,
     /// An unmodified program: the library put in its `LD_PRELOAD`.
     pub preload: Option<PathBuf>,
 }

@@ -31,6 +31,9 @@ pub const STARTED: u8 = b'S';
 /// a voter's successor after a rebind, behind `RESUME` (see `contract::handshake::Rebind`).
 /// Absent: no history (a reactive replica answers a replayed round from its last frame).
 pub const ENV_OUTPUT_HISTORY: &str = "S3RES_OUTPUT_HISTORY";
+/// How much of its memory the replica locks: `all` or `used` (see [`crate::plan::LockMemory`]).
+/// Absent: `all`.
+pub const ENV_LOCK_MEMORY: &str = "S3RES_LOCK_MEMORY";
 
 /// Largest number of ports one component may have (inputs plus outputs). The restart handler
 /// uses fixed-size arrays of this length, because it may not allocate.

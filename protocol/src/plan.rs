@@ -170,6 +170,10 @@ pub struct VoterPlan {
     /// How the replicas' own pipes are framed; the channels outside stay in s3res frames.
     #[serde(default)]
     pub framing: Framing,
+    /// How much of its memory each replica keeps locked (passed on in
+    /// [`crate::contract::ENV_LOCK_MEMORY`]).
+    #[serde(default)]
+    pub lock_memory: LockMemory,
     /// An unmodified program: this library is put in its `LD_PRELOAD` (it installs the restart
     /// handler and the injection hooks), and its one input and one output are its stdin and
     /// stdout. `None`: the component links replica-rt itself and finds its ports on fd 3, 4, ...
@@ -201,6 +205,42 @@ pub enum Framing {
     /// Newline-delimited text: each line (without its `\n`) is one frame. The voter writes
     /// each frame reaching the component as one line and votes the k-th line of each replica.
     Lines,
+}
+
+/// How much of its memory a replica locks (`mlockall`), so that no page fault adds latency to a
+/// round. The component's `lock_memory` in the system description.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LockMemory {
+    /// Every page of every mapping, populated at start (`MCL_CURRENT | MCL_FUTURE`): no page
+    /// fault in a round, ever, at the price of the whole binary and its libraries resident in
+    /// every replica (about 4.4 MiB for the smallest Rust component).
+    #[default]
+    All,
+    /// The pages the replica uses: locked when first touched (`MCL_ONFAULT`), nothing
+    /// populated up front (about 3.0 MiB for the smallest component). Code first run later (an
+    /// error path, the restart handler at the first fork) takes a page fault then, which reads
+    /// from disk if no process kept that page of the file in memory.
+    Used,
+}
+
+impl LockMemory {
+    /// The value of [`crate::contract::ENV_LOCK_MEMORY`].
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LockMemory::Used => "used",
+            LockMemory::All => "all",
+        }
+    }
+
+    /// Reads [`crate::contract::ENV_LOCK_MEMORY`]'s value.
+    pub fn parse(s: &str) -> Option<LockMemory> {
+        match s {
+            "used" => Some(LockMemory::Used),
+            "all" => Some(LockMemory::All),
+            _ => None,
+        }
+    }
 }
 
 /// Nice values used instead of SCHED_RR priorities, chosen by bootstrap so that the order of

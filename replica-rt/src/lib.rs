@@ -216,8 +216,12 @@ fn init_inner() -> Result<Runtime, InitError> {
             what: "restart",
             source,
         })?;
-        match memory::lock() {
-            Ok(stack_on_fault) => tracing::debug!(stack_on_fault, "memory locked"),
+        match memory::lock(memory::policy_from_env()) {
+            Ok(done) => tracing::debug!(
+                policy = ?done.policy,
+                stack_on_fault = done.stack_on_fault,
+                "memory locked"
+            ),
             Err(e) => tracing::warn!(
                 error = %e,
                 "mlockall refused (raise RLIMIT_MEMLOCK or run with CAP_IPC_LOCK); \

@@ -1,10 +1,25 @@
 //! What a replica keeps resident and locked.
 //!
-//! A replica locks its memory (`mlockall(MCL_CURRENT | MCL_FUTURE)`) so that no page fault
-//! adds latency to a round. Locking populates every page of every mapping, so whatever slack
-//! the process carries becomes resident — and every resident private page is a page that a
-//! fork recovery must copy (the child writes to each one, so that donor and child share no
-//! physical page: see [`crate::cow`]). Two kinds of slack are large and never used:
+//! A replica locks its memory so that no page fault adds latency to a round. How much is the
+//! component's `lock_memory` ([`LockMemory`], passed on in `contract::ENV_LOCK_MEMORY`):
+//!
+//! - **`all`** (the default): every page of every mapping, populated at start
+//!   (`mlockall(MCL_CURRENT | MCL_FUTURE)`): no page fault in a round, ever, at the price of the
+//!   whole binary and its libraries resident in every replica (about 4.4 MiB for `s3res-echo`).
+//! - **`used`**: the pages the replica uses. Memory is locked *on fault* (`mlockall(MCL_CURRENT
+//!   | MCL_FUTURE | MCL_ONFAULT)`): the pages present now are locked, every other page the
+//!   first time it is touched, and nothing is populated up front (about 3.0 MiB for
+//!   `s3res-echo`; glibc's `.bss` and the libraries' unused text stay out). Code first run
+//!   later — an error path, the restart handler at the first fork — takes a page fault then,
+//!   a read from disk if no process kept that page of the file in memory. For boards short of
+//!   memory; a fork recovery also has fewer private pages to copy (see below).
+//!
+//! Giving back, before locking on fault, the file pages that only start-up used would bring
+//! `s3res-echo` to about 1.3 MiB; it was tried and left out: on the machine of
+//! docs/results.md it made every 4 KiB round 1–4 µs slower for good (without a single page
+//! fault in the rounds, and even when the pages were populated again), for a reason not found.
+//!
+//! Either way, two kinds of slack are large and never used, and are kept out:
 //!
 //! - **malloc's top pad.** glibc grows the heap by what was asked plus `M_TOP_PAD` (128 KiB by
 //!   default) and keeps the rest for later. Locked, that pad is resident for the replica's
@@ -19,11 +34,16 @@
 //!   so what reads the main thread's stack size from there (`pthread_getattr_np`) sees about
 //!   the part kept; the stack can still grow through the rest as before.
 //!
-//! Text and read-only data stay locked in full: a page of code not yet run would otherwise
-//! be read from disk the first time it runs, a major fault in the middle of a round.
+//! Every resident private page is one that a fork recovery must copy (the child writes to each
+//! one, so that donor and child share no physical page: see [`crate::cow`]), which is why
+//! the pages `all` populates and never uses cost restart time too.
 
 use std::io;
+use std::sync::atomic::{AtomicBool, Ordering};
 
+pub use s3res_protocol::plan::LockMemory;
+
+use crate::contract::ENV_LOCK_MEMORY;
 use crate::sys;
 
 /// What malloc keeps above the heap's top, at most, once the replica is locked.
@@ -34,13 +54,49 @@ pub const HEAP_MMAP_THRESHOLD: usize = 1 << 20;
 /// Stack kept locked and resident below the stack pointer at [`lock`].
 pub const STACK_LOCKED: usize = 32 * 1024;
 
-/// Trims malloc's slack, locks all memory, and releases the stack below [`STACK_LOCKED`] to
-/// be locked on fault; returns the bytes of stack released so. An error is the `mlockall`
-/// refusal (nothing is locked then); trimming and the stack are best effort.
-pub fn lock() -> io::Result<usize> {
+/// Set when the replica locks everything (`all`): a fork child locks as its donor did.
+static LOCK_ALL: AtomicBool = AtomicBool::new(false);
+
+/// What [`lock`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Locked {
+    pub policy: LockMemory,
+    /// Bytes of stack turned from locked and resident into locked on fault.
+    pub stack_on_fault: usize,
+}
+
+/// The policy the voter asked for in [`ENV_LOCK_MEMORY`]; the default (`all`) when absent. A
+/// value that does not parse is reported and taken as the default.
+pub fn policy_from_env() -> LockMemory {
+    match std::env::var(ENV_LOCK_MEMORY) {
+        Err(_) => LockMemory::default(),
+        Ok(v) => LockMemory::parse(&v).unwrap_or_else(|| {
+            let default = LockMemory::default().as_str();
+            tracing::warn!(value = %v, "{ENV_LOCK_MEMORY} is neither `all` nor `used`: locking `{default}`");
+            LockMemory::default()
+        }),
+    }
+}
+
+/// Trims malloc's slack, locks memory as `policy` says, and releases the stack below
+/// [`STACK_LOCKED`] to be locked on fault. An error is the `mlockall` refusal (nothing is
+/// locked then); trimming and the stack are best effort.
+pub fn lock(policy: LockMemory) -> io::Result<Locked> {
     sys::trim_heap(HEAP_PAD, HEAP_MMAP_THRESHOLD);
-    sys::lock_all_memory()?;
-    let mut on_fault = 0;
+    let mut done = Locked {
+        policy,
+        stack_on_fault: 0,
+    };
+    match policy {
+        LockMemory::All => {
+            LOCK_ALL.store(true, Ordering::Relaxed);
+            sys::lock_all_memory()?;
+        }
+        LockMemory::Used => {
+            LOCK_ALL.store(false, Ordering::Relaxed);
+            sys::lock_used_memory()?;
+        }
+    }
     if let Some((low, high)) = stack_mapping() {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
@@ -49,7 +105,7 @@ pub fn lock() -> io::Result<usize> {
             // pointer lies in that mapping): memory below the stack pointer is dead, and a
             // signal handler cannot run on this thread while it is in the system calls.
             match unsafe { sys::lock_on_fault_instead(range.0, range.1 - range.0) } {
-                Ok(()) => on_fault = range.1 - range.0,
+                Ok(()) => done.stack_on_fault = range.1 - range.0,
                 // munlock or madvise refused: nothing changed. mlock2 refused (a kernel before
                 // 4.4, a seccomp filter): that part of the stack is unlocked, a page fault the
                 // first time the stack reaches it.
@@ -60,7 +116,21 @@ pub fn lock() -> io::Result<usize> {
             }
         }
     }
-    Ok(on_fault)
+    Ok(done)
+}
+
+/// Locks a fork child's memory as its donor's was (locks are not inherited over fork), on
+/// fault either way: a plain `mlockall(MCL_CURRENT)` would populate every mapping up front,
+/// most of a small component's restart time. With `all` the donor had every page locked, so
+/// the child's first touch of a page is a minor fault, never I/O; future mappings are then
+/// populated in full, as the donor's were. Async-signal-safe (an atomic load, two or three
+/// system calls).
+pub(crate) fn lock_fork_child() -> io::Result<()> {
+    if LOCK_ALL.load(Ordering::Relaxed) {
+        sys::lock_memory_on_fault()
+    } else {
+        sys::lock_used_memory()
+    }
 }
 
 /// An address in the current stack frame.

@@ -34,8 +34,7 @@
 //! 1. connect to the voter's socket (address prepared at init, so nothing is allocated here)
 //!    and send [`Hello`] with the attempt's nonce;
 //! 2. while the voter checks who it is and sends its pipes, `mlockall` again, on fault (locks
-//!    are not inherited over fork; see [`sys::lock_memory_on_fault`] and the trade-off in
-//!    `become_replacement`), and write-fault every resident private writable page
+//!    are not inherited over fork; see [`crate::memory::lock_fork_child`]), and write-fault every resident private writable page
 //!    ([`crate::cow`]) so that the child has its own copy of every page it shared with the
 //!    donor. Both happen before `Ready`, so no physical page of private writable memory is
 //!    shared with the donor once the voter counts the child in;
@@ -582,14 +581,12 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     // for tens of MiB) would make us miss that round's deadline and be killed as hung, again
     // and again. It also makes the voter's recovery time the time to a replica that can answer.
     //
-    // Locks are not inherited over fork, so lock again, on fault: a plain `mlockall(MCL_CURRENT)`
-    // would populate every mapping up front, ~4.5 MiB of library text and data for the smallest
-    // component, most of a small component's restart time. Locked on fault, the pages the donor
-    // had mapped are locked now and the others (text the child has not touched yet; fork does
-    // not copy those page tables) when first used: a minor fault each, never I/O, since the
-    // other replicas keep the same file pages locked. A failure cannot be logged here; the donor
-    // already logged it at init if it was refused.
-    let _ = sys::lock_memory_on_fault();
+    // Locks are not inherited over fork, so lock again, on fault (see
+    // `memory::lock_fork_child`): the pages the donor had mapped are locked now and the others
+    // (text the child has not touched yet; fork does not copy those page tables) when first
+    // used. A failure cannot be logged here; the donor already logged it at init if it was
+    // refused.
+    let _ = crate::memory::lock_fork_child();
     // Then break the sharing of every resident private writable page (locked as it is copied).
     // SAFETY: the fork child has a single thread.
     let _ = unsafe { crate::cow::break_cow_sharing() };

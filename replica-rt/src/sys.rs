@@ -677,6 +677,17 @@ pub fn lock_memory_on_fault() -> io::Result<()> {
     Ok(())
 }
 
+/// Locks every page, present or future, as it is faulted in (`mlockall(MCL_CURRENT |
+/// MCL_FUTURE | MCL_ONFAULT)`): nothing is populated up front. A kernel without `MCL_ONFAULT`
+/// (EINVAL) gets [`lock_all_memory`] instead. Async-signal-safe: one or two system calls.
+pub fn lock_used_memory() -> io::Result<()> {
+    // SAFETY: flags only; locking memory has no memory-safety effect.
+    match cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE | MCL_ONFAULT) }) {
+        Err(e) if e.raw_os_error() == Some(libc::EINVAL) => lock_all_memory(),
+        r => r.map(drop),
+    }
+}
+
 /// A path as a C string (for the few calls made without std).
 pub fn cstring(s: &str) -> io::Result<CString> {
     CString::new(s).map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "NUL in path"))

@@ -5,6 +5,8 @@
 //!   from `/proc/PID/pagemap`, which shows them only to CAP_SYS_ADMIN: without it the test is
 //!   listed as ignored, with the reason (see `build.rs`).
 //! - A refused `mlockall` is reported once per replica process and the system runs on.
+//! - `lock_memory: used` locks on fault: a replica holds only what it touched, far less than
+//!   under `all`, and a fork child locks too.
 
 use std::collections::HashSet;
 use std::fs::File;
@@ -361,18 +363,8 @@ fn stack_and_heap(pid: i32) -> (Vec<Smap>, Option<Smap>) {
 #[test]
 fn a_replica_keeps_neither_unused_stack_nor_malloc_slack_resident() {
     let count = 1500;
-    let sys = System::new();
-    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 1000000 }"#;
-    let desc = echo_pipeline(&sys.path("summary.json"), echo, count, 500);
-    let mut run = sys.start(&desc);
-    run.wait_for_replicas("echo", 3);
-    run.wait_for_answers("echo");
-    let first = run.replica_pids("echo");
+    let (mut run, first) = start_locked_echo("all", count);
     let pid = first[&0];
-    s3res_testkit::require(
-        locked_kb(pid) > 0,
-        "the replica's mlockall was refused (raise RLIMIT_MEMLOCK)",
-    );
     let check = |pid: i32, who: &str| {
         let (stack, heap) = stack_and_heap(pid);
         let size_kb: u64 = stack.iter().map(|m| (m.end - m.start) / 1024).sum();
@@ -410,6 +402,97 @@ fn a_replica_keeps_neither_unused_stack_nor_malloc_slack_resident() {
 
     run.wait_success(LIMIT);
     assert_sink_whole(&run.path("summary.json"), count);
+}
+
+/// `VmRSS` of `pid` in kB (0 if unreadable).
+fn resident_kb(pid: i32) -> u64 {
+    status_kb(pid, "VmRSS:")
+}
+
+fn status_kb(pid: i32, key: &str) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix(key))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        })
+        .unwrap_or(0)
+}
+
+/// Starts a TMR stateful echo of `count` frames whose replicas lock `lock_memory` in a new
+/// system's folder, and waits
+/// until all three have answered; the pids by slot. Skips the test if locking is refused.
+fn start_locked_echo(
+    lock_memory: &str,
+    count: u32,
+) -> (RunningSystem, std::collections::BTreeMap<usize, i32>) {
+    let sys = System::new();
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 1000000, "lock_memory": "{lock_memory}" }}"#
+    );
+    let desc = echo_pipeline(&sys.path("summary.json"), &echo, count, 500);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let first = run.replica_pids("echo");
+    s3res_testkit::require(
+        locked_kb(first[&0]) > 0,
+        "the replica's mlockall was refused (raise RLIMIT_MEMLOCK)",
+    );
+    (run, first)
+}
+
+/// A TMR echo whose replicas lock `lock_memory` (`all` or `used`): the resident and locked
+/// sizes of one replica once all have answered, and of a fork child after a crash; every
+/// frame gets through.
+fn echo_memory(lock_memory: &str) -> [(u64, u64); 2] {
+    let count = 1000;
+    let (mut run, first) = start_locked_echo(lock_memory, count);
+    let pid = first[&0];
+    let replica = (resident_kb(pid), locked_kb(pid));
+    let rec = kill_and_wait_for_locked_fork_child(&mut run, first[&1]);
+    let child = rec.new_pid.expect("new pid");
+    let forked = (resident_kb(child), locked_kb(child));
+    eprintln!(
+        "lock_memory {lock_memory}: replica {pid} {} KiB resident of {} KiB locked; fork child \
+         {child} {} of {}",
+        replica.0, replica.1, forked.0, forked.1
+    );
+    run.wait_success(LIMIT);
+    assert_sink_whole(&run.path("summary.json"), count);
+    [replica, forked]
+}
+
+/// `lock_memory: all` (the default) makes every locked page resident at start; `used` locks
+/// the same mappings on fault, so that a replica holds only what it touched: a good deal less
+/// of the same binary. A fork child locks as its donor did, and the system loses nothing.
+#[test]
+fn lock_memory_used_keeps_only_touched_pages_resident() {
+    let [all, _] = echo_memory("all");
+    let [used, used_child] = echo_memory("used");
+    // `all`: everything locked is resident but the stack below what replica-rt keeps
+    // (locked on fault, 100-odd KiB) and the odd guard.
+    assert!(
+        all.0 + 512 >= all.1,
+        "lock_memory all: only {} of {} KiB locked are resident",
+        all.0,
+        all.1
+    );
+    // `used`: the same binary, with the text and data it never touched left out.
+    assert!(
+        used.0 + 512 < all.0,
+        "lock_memory used: {} KiB resident, against {} KiB with all",
+        used.0,
+        all.0
+    );
+    assert!(
+        used.0 + 512 < used.1,
+        "lock_memory used: {} of {} KiB locked are resident, as if populated",
+        used.0,
+        used.1
+    );
+    assert!(used_child.1 > 0, "the fork child did not lock its memory");
 }
 
 fn which(tool: &str) -> Option<std::path::PathBuf> {

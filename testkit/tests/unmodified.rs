@@ -617,6 +617,18 @@ fn a_c_filter_keeps_its_sum_under_dmr() {
     under_fire(Program::C, "dmr", 2);
 }
 
+/// `s3res-bootstrap --check` of `desc`, written to the system's folder.
+fn check(sys: &System, desc: &Value) -> std::process::Output {
+    let path = sys.path("system.json");
+    std::fs::write(&path, serde_json::to_string_pretty(desc).unwrap()).unwrap();
+    Command::new(bin_path("s3res-bootstrap"))
+        .arg("--check")
+        .arg(&path)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap()
+}
+
 /// `--check` refuses a statically linked program with the reason, naming the field.
 #[test]
 #[cfg_attr(not(s3res_cc_static), ignore = "needs a C compiler with a static libc")]
@@ -624,18 +636,32 @@ fn a_statically_linked_program_is_refused_at_check() {
     let sys = System::new();
     let exe = compile_c(&sys, "static-sum", SUM_C, &["-static"]);
     let desc = pipeline(&sys, (exe, Vec::new()), "tmr", 10);
-    let path = sys.path("system.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&desc).unwrap()).unwrap();
-    let out = Command::new(bin_path("s3res-bootstrap"))
-        .arg("--check")
-        .arg(&path)
-        .stdin(Stdio::null())
-        .output()
-        .unwrap();
+    let out = check(&sys, &desc);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{stderr}");
     assert!(stderr.contains("statically linked"), "{stderr}");
     assert!(stderr.contains("components.sum.exec"), "{stderr}");
+}
+
+/// `lock_memory` does nothing for an unmodified program (the preload library locks nothing):
+/// `--check` says so, and accepts the description.
+#[test]
+#[cfg_attr(not(s3res_python3), ignore = "needs python3")]
+fn lock_memory_of_an_unmodified_program_is_reported_as_ignored() {
+    let sys = System::new();
+    let mut desc = pipeline(&sys, (python3(), vec!["-u".into()]), "tmr", 10);
+    desc["components"]["sum"]["lock_memory"] = json!("used");
+    let out = check(&sys, &desc);
+    let all = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{all}");
+    assert!(
+        all.contains("component sum: `lock_memory` is ignored for an unmodified program"),
+        "{all}"
+    );
 }
 
 /// A program that starts a second thread is never forked: at its first recovery every donor

@@ -321,6 +321,10 @@ impl Replica {
             .env(ENV_VOTER_SOCKET, &plan.socket_path)
             .env(ENV_REPLICA, slot.to_string())
             .env(ENV_COMPONENT, &plan.component)
+            .env(
+                replica_rt::contract::ENV_LOCK_MEMORY,
+                plan.lock_memory.as_str(),
+            )
             .stdin(Stdio::null());
         if let Some(history) = output_history(plan) {
             cmd.env(replica_rt::contract::ENV_OUTPUT_HISTORY, history);

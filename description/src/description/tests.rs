@@ -1045,3 +1045,36 @@ fn inject_errors_name_the_field() {
         "unknown field `after`",
     );
 }
+
+#[test]
+fn lock_memory_is_passed_on_and_checked() {
+    let f = fixture();
+    let plan = f.ok(r#"{ "name": "n", "components": {
+  "s": { "exec": "run.sh" },
+  "a": { "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10 },
+  "u": { "exec": "run.sh", "redundancy": "dmr", "timeout_us": 10, "lock_memory": "used" } },
+  "channels": [ { "from": "s.out", "to": "a.in" }, { "from": "a.out", "to": "u.in" } ] }"#);
+    let lock = |name: &str| {
+        plan.components
+            .iter()
+            .find(|c| c.name == name)
+            .unwrap()
+            .lock_memory
+    };
+    assert_eq!(lock("a"), LockMemory::All, "the default locks every page");
+    assert_eq!(lock("u"), LockMemory::Used);
+    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
+
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"redundancy\": \"tmr\", \"lock_memory\": \"some\"}}}",
+        3,
+        "components.a.lock_memory",
+        "unknown variant `some`, expected `all` or `used`",
+    );
+    let plan = f.ok(r#"{ "name": "n", "components": {
+  "s": { "exec": "run.sh", "lock_memory": "used" } } }"#);
+    assert_eq!(
+        plan.warnings,
+        vec!["component s: `lock_memory` is ignored without redundancy".to_string()]
+    );
+}
