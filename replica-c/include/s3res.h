@@ -148,8 +148,10 @@ int s3res_in_has_frame(const s3res_in *port);
 
 /* ---- memory and signals ---------------------------------------------------------------- */
 
-/* mlockall(MCL_CURRENT | MCL_FUTURE). s3res_init does it in a replica already. 0 or -errno
- * (-ENOMEM / -EPERM: raise RLIMIT_MEMLOCK or grant CAP_IPC_LOCK). */
+/* mlockall(MCL_CURRENT | MCL_FUTURE): every page, populated. s3res_init already locks a
+ * replica's memory as the component's lock_memory says (all, the default, the same as this;
+ * used: on fault), so calling this under lock_memory "used" populates everything after all.
+ * 0 or -errno (-ENOMEM / -EPERM: raise RLIMIT_MEMLOCK or grant CAP_IPC_LOCK). */
 int s3res_lock_memory(void);
 
 /* The signals the runtime handles (for injectors and tests; never handle them yourself):

@@ -819,9 +819,10 @@ pub unsafe extern "C" fn s3res_in_has_frame(port: *const S3resIn) -> c_int {
 // Memory and signals
 // ---------------------------------------------------------------------------------------------
 
-/// `mlockall(MCL_CURRENT | MCL_FUTURE)`: keeps every page resident. [`s3res_init`] does it
-/// already in a replica (and says so in the log if it is refused); for other modes, or again
-/// after mapping much memory. 0 or `-errno` (`-ENOMEM`/`-EPERM`: raise RLIMIT_MEMLOCK or grant
+/// `mlockall(MCL_CURRENT | MCL_FUTURE)`: keeps every page resident. [`s3res_init`] already
+/// locks a replica's memory as the component's `lock_memory` says (`all`, the default, is this
+/// call; `used` locks on fault), and says so in the log if it is refused; this is for other
+/// modes, or again after mapping much memory (under `used` it populates everything). 0 or `-errno` (`-ENOMEM`/`-EPERM`: raise RLIMIT_MEMLOCK or grant
 /// CAP_IPC_LOCK).
 #[no_mangle]
 pub extern "C" fn s3res_lock_memory() -> c_int {

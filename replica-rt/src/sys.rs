@@ -688,6 +688,20 @@ pub fn lock_used_memory() -> io::Result<()> {
     }
 }
 
+/// Locks the pages of the current mappings (`mlockall(MCL_CURRENT)`, populating them all, or
+/// with `on_fault` `MCL_CURRENT | MCL_ONFAULT`, locking each when first touched), but not those
+/// of later mappings: under a `RLIMIT_MEMLOCK` (8 MiB for a user by default) `MCL_FUTURE` would
+/// make every later allocation past the limit fail. A kernel without `MCL_ONFAULT` (EINVAL)
+/// gets plain `MCL_CURRENT`.
+pub fn lock_current_memory(on_fault: bool) -> io::Result<()> {
+    let flags = libc::MCL_CURRENT | if on_fault { MCL_ONFAULT } else { 0 };
+    // SAFETY: flags only; locking memory has no memory-safety effect.
+    match cvt(unsafe { libc::mlockall(flags) }) {
+        Err(e) if on_fault && e.raw_os_error() == Some(libc::EINVAL) => lock_current_memory(false),
+        r => r.map(drop),
+    }
+}
+
 /// A path as a C string (for the few calls made without std).
 pub fn cstring(s: &str) -> io::Result<CString> {
     CString::new(s).map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "NUL in path"))

@@ -4,7 +4,8 @@
 //!   writable memory (replica-rt's copy-on-write break). Checked by comparing page frame numbers
 //!   from `/proc/PID/pagemap`, which shows them only to CAP_SYS_ADMIN: without it the test is
 //!   listed as ignored, with the reason (see `build.rs`).
-//! - A refused `mlockall` is reported once per replica process and the system runs on.
+//! - A refused `mlockall` is reported once per replica process and once by the voter, and the
+//!   system runs on.
 //! - `lock_memory: used` locks on fault: a replica holds only what it touched, far less than
 //!   under `all`, and a fork child locks too.
 
@@ -228,9 +229,9 @@ fn donor_and_fork_child_share_no_private_page() {
 }
 
 /// Runs bootstrap under `RLIMIT_MEMLOCK=0` (and, as root, without CAP_IPC_LOCK, which would
-/// ignore the limit): every replica's `mlockall` is refused. Each replica process says so once
-/// (fork children, which lock again inside the restart handler, stay quiet), a crash is still
-/// recovered by fork, and every frame gets through.
+/// ignore the limit): every replica's `mlockall` is refused, and the voter's. Each replica
+/// process says so once (fork children, which lock again inside the restart handler, stay
+/// quiet), the voter once, a crash is still recovered by fork, and every frame gets through.
 #[test]
 #[cfg_attr(
     not(s3res_prlimit),
@@ -291,6 +292,17 @@ fn refused_mlockall_is_reported_once_and_the_system_runs_on() {
         reports,
         3,
         "one report per replica started, none from the fork child; stderr:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    let voter_reports = out
+        .stderr
+        .matches("the voter could not lock its memory")
+        .count();
+    assert_eq!(
+        voter_reports,
+        1,
+        "the echo's voter says once that it runs unlocked (the others, unprotected, have no \
+         voter); stderr:\n{}",
         s3res_testkit::tail(&out.stderr, 40)
     );
     assert_sink_whole(&run.path("summary.json"), count);
@@ -451,6 +463,11 @@ fn echo_memory(lock_memory: &str) -> [(u64, u64); 2] {
     let (mut run, first) = start_locked_echo(lock_memory, count);
     let pid = first[&0];
     let replica = (resident_kb(pid), locked_kb(pid));
+    let voter = run.voter_of("echo").expect("the echo's voter");
+    assert!(
+        locked_kb(voter) > 0,
+        "lock_memory {lock_memory}: the voter {voter} locked nothing"
+    );
     let rec = kill_and_wait_for_locked_fork_child(&mut run, first[&1]);
     let child = rec.new_pid.expect("new pid");
     let forked = (resident_kb(child), locked_kb(child));
@@ -466,7 +483,8 @@ fn echo_memory(lock_memory: &str) -> [(u64, u64); 2] {
 
 /// `lock_memory: all` (the default) makes every locked page resident at start; `used` locks
 /// the same mappings on fault, so that a replica holds only what it touched: a good deal less
-/// of the same binary. A fork child locks as its donor did, and the system loses nothing.
+/// of the same binary. A fork child locks as its donor did, the voter locks too, and the
+/// system loses nothing.
 #[test]
 fn lock_memory_used_keeps_only_touched_pages_resident() {
     let [all, _] = echo_memory("all");

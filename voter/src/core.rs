@@ -345,6 +345,9 @@ impl Core {
             core.resume(found, lost);
         }
         core.journal_slots();
+        // Last: a successor has adopted the replicas by now, and locking (populating some MiB)
+        // does not lengthen its takeover.
+        crate::rt::lock_voter_memory(core.plan.lock_memory);
         Ok(core)
     }
 

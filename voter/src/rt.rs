@@ -7,7 +7,7 @@ use std::io;
 
 use replica_rt::sys;
 
-use crate::plan::{NiceFallback, VoterPlan};
+use crate::plan::{LockMemory, NiceFallback, VoterPlan};
 use crate::sched::{self, Schedule};
 
 /// What the voter may do to priorities, learned by trying.
@@ -19,6 +19,26 @@ enum Mode {
     RoundRobin(u8),
     /// SCHED_RR refused: fixed nice values (no raising).
     Nice(NiceFallback),
+}
+
+/// Locks the voter's memory as the component's replicas lock theirs (`lock_memory`: every
+/// page of its current mappings, or those it touches), so that no page fault delays a round — the voter is in every
+/// one — and no page of its recovery code, run seldom, is reclaimed meanwhile and read back
+/// from disk in the middle of a recovery. Neither flag is inherited by the replicas it
+/// starts (cleared at `execve`). Called once the voter is set up (and, for a successor, has
+/// adopted the replicas). A refusal is said once; the voter runs on unlocked.
+pub fn lock_voter_memory(policy: LockMemory) {
+    // Current mappings only: the voter sizes its buffers before its first round, and a later
+    // allocation must not fail for passing a user's RLIMIT_MEMLOCK (`MCL_FUTURE` would).
+    let locked = sys::lock_current_memory(policy == LockMemory::Used);
+    match locked {
+        Ok(()) => tracing::debug!(policy = policy.as_str(), "voter memory locked"),
+        Err(e) => tracing::warn!(
+            error = %e,
+            "the voter could not lock its memory (raise RLIMIT_MEMLOCK or run with \
+             CAP_IPC_LOCK); it runs unlocked, so page faults may delay rounds"
+        ),
+    }
 }
 
 #[derive(Debug)]
