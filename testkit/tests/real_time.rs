@@ -510,21 +510,18 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     run.wait_for_replicas("echo", 3);
     for _ in 0..5 {
         std::thread::sleep(Duration::from_millis(200));
-        // `timeout` (SCHED_RR 99, any CPU) ends the loop (SCHED_RR 98, on `b`) after 30 ms.
-        // At the loop's own priority and CPU, `timeout` would wait for the loop's round-robin
-        // slice (100 ms) before it could end it.
-        let hog = Command::new("chrt")
-            .args(["-r", "99", "timeout", "0.03", "chrt", "-r", "98"])
-            .args([
-                "taskset",
-                "-c",
-                &b.to_string(),
-                "sh",
-                "-c",
-                "while :; do :; done",
-            ])
+        // `timeout` (SCHED_RR 99) ends the loop (SCHED_RR 98) after 30 ms, preempting it: at
+        // the loop's own priority it would wait for the loop's round-robin slice (100 ms).
+        // Every process of the chain is on `b` from the start: before, `taskset` came last,
+        // and the chain's exec and linking at SCHED_RR 98–99 ran wherever they landed —
+        // on `a` now and then, holding up the voter and replicas 0 and 2 for a millisecond
+        // (a replica on `a` was once blamed, the voter 1062 µs late at the deadline).
+        let hog = Command::new("taskset")
+            .args(["-c", &b.to_string()])
+            .args(["chrt", "-r", "99", "timeout", "0.03", "chrt", "-r", "98"])
+            .args(["sh", "-c", "while :; do :; done"])
             .status()
-            .expect("running chrt, taskset and timeout");
+            .expect("running taskset, chrt and timeout");
         // 124: `timeout` ended the loop, as meant.
         assert_eq!(hog.code(), Some(124), "the hog: {hog}");
     }
