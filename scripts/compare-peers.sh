@@ -93,6 +93,9 @@ done
 # Replica resident size. s3res: s3res-bench memory (TMR s3res-echo, idle after 1000 rounds).
 echo "compare-peers: resident sizes" >&2
 run_session target/release/s3res-bench memory --size 0 --json --quiet > "$RES/s3res-memory.jsonl" 2>>"$RES/rss-stderr.log"
+# The same with the replicas locking only what they touch (a component's `lock_memory: used`).
+run_session target/release/s3res-bench memory --size 0 --json --quiet --lock-memory used \
+  > "$RES/s3res-memory-used.jsonl" 2>>"$RES/rss-stderr.log"
 # S³RES: a TMR GenericEmpty under VoterM (pinned build), one round a millisecond; VmRSS of
 # each process once the rounds run.
 GE=${OUT:-$ROOT/target/s3res-peer}/pinned/test

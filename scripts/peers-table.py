@@ -216,6 +216,14 @@ def main():
         rows.append((f"{what} resident size (VmRSS, KiB; TMR, idle echo)", "—",
                      "—" if o is None else f"{o:.0f}", "—" if s is None else f"{s}",
                      f"{s / o:.1f}" if o and s else "—", "—"))
+    # Runs before `lock_memory` existed have no such file.
+    used = [json.loads(l) for l in R.text("s3res-memory-used.jsonl").splitlines() if l.startswith("{")]
+    u = next((m["rss_kib"] for m in used
+              if m["component"] == "s3res-echo" and m["replicas"] == 3 and m["what"] == "replica"), None)
+    o = med(orig_rss.get("GenericEmpty", []))
+    if u is not None:
+        rows.append(("replica resident size, `lock_memory: used` (locked on fault)", "—",
+                     "—" if o is None else f"{o:.0f}", f"{u}", f"{u / o:.1f}" if o else "—", "—"))
 
     print("| | C floor | S³RES | s3res | s3res / S³RES | s3res / C floor |")
     print("|---|---|---|---|---|---|")
