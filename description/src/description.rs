@@ -305,7 +305,7 @@ struct ComponentDesc {
     runtime: Option<RuntimeChoice>,
     /// An unmodified program's stdin/stdout: lines (the default) or s3res frames.
     framing: Option<Framing>,
-    /// What each replica keeps locked in memory: `used` (default) or `all`.
+    /// What each replica keeps locked in memory: `all` (default) or `used`.
     lock_memory: Option<LockMemory>,
 }
 

@@ -216,12 +216,11 @@ fn init_inner() -> Result<Runtime, InitError> {
             what: "restart",
             source,
         })?;
-        match memory::lock(memory::policy_from_env()) {
-            Ok(done) => tracing::debug!(
-                policy = ?done.policy,
-                stack_on_fault = done.stack_on_fault,
-                "memory locked"
-            ),
+        let policy = memory::policy_from_env();
+        match memory::lock(policy) {
+            Ok(stack_on_fault) => {
+                tracing::debug!(policy = policy.as_str(), stack_on_fault, "memory locked")
+            }
             Err(e) => tracing::warn!(
                 error = %e,
                 "mlockall refused (raise RLIMIT_MEMLOCK or run with CAP_IPC_LOCK); \

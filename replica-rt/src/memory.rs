@@ -57,14 +57,6 @@ pub const STACK_LOCKED: usize = 32 * 1024;
 /// Set when the replica locks everything (`all`): a fork child locks as its donor did.
 static LOCK_ALL: AtomicBool = AtomicBool::new(false);
 
-/// What [`lock`] did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Locked {
-    pub policy: LockMemory,
-    /// Bytes of stack turned from locked and resident into locked on fault.
-    pub stack_on_fault: usize,
-}
-
 /// The policy the voter asked for in [`ENV_LOCK_MEMORY`]; the default (`all`) when absent. A
 /// value that does not parse is reported and taken as the default.
 pub fn policy_from_env() -> LockMemory {
@@ -79,14 +71,10 @@ pub fn policy_from_env() -> LockMemory {
 }
 
 /// Trims malloc's slack, locks memory as `policy` says, and releases the stack below
-/// [`STACK_LOCKED`] to be locked on fault. An error is the `mlockall` refusal (nothing is
-/// locked then); trimming and the stack are best effort.
-pub fn lock(policy: LockMemory) -> io::Result<Locked> {
+/// [`STACK_LOCKED`] to be locked on fault; returns the bytes of stack released so. An error is
+/// the `mlockall` refusal (nothing is locked then); trimming and the stack are best effort.
+pub fn lock(policy: LockMemory) -> io::Result<usize> {
     sys::trim_heap(HEAP_PAD, HEAP_MMAP_THRESHOLD);
-    let mut done = Locked {
-        policy,
-        stack_on_fault: 0,
-    };
     match policy {
         LockMemory::All => {
             LOCK_ALL.store(true, Ordering::Relaxed);
@@ -97,6 +85,7 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
             sys::lock_used_memory()?;
         }
     }
+    let mut on_fault = 0;
     if let Some((low, high)) = stack_mapping() {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
@@ -105,7 +94,7 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
             // pointer lies in that mapping): memory below the stack pointer is dead, and a
             // signal handler cannot run on this thread while it is in the system calls.
             match unsafe { sys::lock_on_fault_instead(range.0, range.1 - range.0) } {
-                Ok(()) => done.stack_on_fault = range.1 - range.0,
+                Ok(()) => on_fault = range.1 - range.0,
                 // munlock or madvise refused: nothing changed. mlock2 refused (a kernel before
                 // 4.4, a seccomp filter): that part of the stack is unlocked, a page fault the
                 // first time the stack reaches it.
@@ -116,7 +105,7 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
             }
         }
     }
-    Ok(done)
+    Ok(on_fault)
 }
 
 /// Locks a fork child's memory as its donor's was (locks are not inherited over fork), on

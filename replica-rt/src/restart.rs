@@ -34,8 +34,8 @@
 //! 1. connect to the voter's socket (address prepared at init, so nothing is allocated here)
 //!    and send [`Hello`] with the attempt's nonce;
 //! 2. while the voter checks who it is and sends its pipes, `mlockall` again, on fault (locks
-//!    are not inherited over fork; see [`crate::memory::lock_fork_child`]), and write-fault every resident private writable page
-//!    ([`crate::cow`]) so that the child has its own copy of every page it shared with the
+//!    are not inherited over fork; see [`crate::memory::lock_fork_child`]), and write-fault
+//!    every resident private writable page ([`crate::cow`]) so that the child has its own copy of every page it shared with the
 //!    donor. Both happen before `Ready`, so no physical page of private writable memory is
 //!    shared with the donor once the voter counts the child in;
 //! 3. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its

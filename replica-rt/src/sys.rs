@@ -608,9 +608,7 @@ pub fn die_with_parent(cmd: &mut Command, sig: libc::c_int) {
 
 /// `mlockall(MCL_CURRENT | MCL_FUTURE)`.
 pub fn lock_all_memory() -> io::Result<()> {
-    // SAFETY: flags only; locking memory has no memory-safety effect.
-    cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) })?;
-    Ok(())
+    mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE)
 }
 
 /// Gives back malloc's slack above the heap's top beyond `pad` bytes, and keeps future growth
@@ -665,27 +663,19 @@ const MCL_ONFAULT: libc::c_int = 4;
 /// MCL_ONFAULT)`: pages present now are locked at once, the others when first touched, nothing
 /// is populated up front), and every future mapping in full (`mlockall(MCL_FUTURE)`, which
 /// leaves the current mappings as they are). A kernel without `MCL_ONFAULT` (EINVAL) gets
-/// [`lock_all_memory`] instead. Async-signal-safe: two or three system calls, no allocation.
+/// both populated, as [`lock_all_memory`] does. Async-signal-safe: two or three system calls,
+/// no allocation.
 pub fn lock_memory_on_fault() -> io::Result<()> {
-    // SAFETY: flags only; locking memory has no memory-safety effect.
-    match cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | MCL_ONFAULT) }) {
-        Err(e) if e.raw_os_error() == Some(libc::EINVAL) => return lock_all_memory(),
-        r => r?,
-    };
-    // SAFETY: as above. MCL_FUTURE alone only sets the flags for future mappings.
-    cvt(unsafe { libc::mlockall(libc::MCL_FUTURE) })?;
-    Ok(())
+    mlockall_on_fault(libc::MCL_CURRENT)?;
+    // MCL_FUTURE alone only sets the flags for future mappings.
+    mlockall(libc::MCL_FUTURE)
 }
 
 /// Locks every page, present or future, as it is faulted in (`mlockall(MCL_CURRENT |
 /// MCL_FUTURE | MCL_ONFAULT)`): nothing is populated up front. A kernel without `MCL_ONFAULT`
 /// (EINVAL) gets [`lock_all_memory`] instead. Async-signal-safe: one or two system calls.
 pub fn lock_used_memory() -> io::Result<()> {
-    // SAFETY: flags only; locking memory has no memory-safety effect.
-    match cvt(unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE | MCL_ONFAULT) }) {
-        Err(e) if e.raw_os_error() == Some(libc::EINVAL) => lock_all_memory(),
-        r => r.map(drop),
-    }
+    mlockall_on_fault(libc::MCL_CURRENT | libc::MCL_FUTURE)
 }
 
 /// Locks the pages of the current mappings (`mlockall(MCL_CURRENT)`, populating them all, or
@@ -694,12 +684,26 @@ pub fn lock_used_memory() -> io::Result<()> {
 /// make every later allocation past the limit fail. A kernel without `MCL_ONFAULT` (EINVAL)
 /// gets plain `MCL_CURRENT`.
 pub fn lock_current_memory(on_fault: bool) -> io::Result<()> {
-    let flags = libc::MCL_CURRENT | if on_fault { MCL_ONFAULT } else { 0 };
-    // SAFETY: flags only; locking memory has no memory-safety effect.
-    match cvt(unsafe { libc::mlockall(flags) }) {
-        Err(e) if on_fault && e.raw_os_error() == Some(libc::EINVAL) => lock_current_memory(false),
-        r => r.map(drop),
+    if on_fault {
+        mlockall_on_fault(libc::MCL_CURRENT)
+    } else {
+        mlockall(libc::MCL_CURRENT)
     }
+}
+
+/// `mlockall(flags | MCL_ONFAULT)`, or `mlockall(flags)` on a kernel without `MCL_ONFAULT`
+/// (EINVAL).
+fn mlockall_on_fault(flags: libc::c_int) -> io::Result<()> {
+    match mlockall(flags | MCL_ONFAULT) {
+        Err(e) if e.raw_os_error() == Some(libc::EINVAL) => mlockall(flags),
+        r => r,
+    }
+}
+
+fn mlockall(flags: libc::c_int) -> io::Result<()> {
+    // SAFETY: flags only; locking memory has no memory-safety effect.
+    cvt(unsafe { libc::mlockall(flags) })?;
+    Ok(())
 }
 
 /// A path as a C string (for the few calls made without std).

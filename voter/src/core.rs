@@ -1005,11 +1005,7 @@ impl Core {
         self.rt.raise(donor_pid);
         let mut retiring = self.retiring.take();
         let component = &self.plan.component;
-        let mut retire = || {
-            if let Some(fault) = retiring.take() {
-                fault.retire(component);
-            }
-        };
+        let mut retire = || Fault::retire_if_any(&mut retiring, component);
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
@@ -1027,9 +1023,7 @@ impl Core {
 
     /// Retires the replica being replaced now, if that has not happened yet.
     pub(crate) fn retire_pending(&mut self) {
-        if let Some(fault) = self.retiring.take() {
-            fault.retire(&self.plan.component);
-        }
+        Fault::retire_if_any(&mut self.retiring, &self.plan.component);
     }
 
     /// A `recovery` event: `slot` went from `old_pid` to `new_pid`, `detected_ns` after the
@@ -1516,6 +1510,13 @@ fn replace(
 }
 
 impl Fault {
+    /// Retires the fault `pending` holds, if any, and leaves it empty.
+    fn retire_if_any(pending: &mut Option<Fault>, component: &str) {
+        if let Some(fault) = pending.take() {
+            fault.retire(component);
+        }
+    }
+
     /// Makes sure the killed replica is gone (bounded) and reaped.
     pub(crate) fn retire(self, component: &str) {
         let Fault {

@@ -22,9 +22,9 @@ enum Mode {
 }
 
 /// Locks the voter's memory as the component's replicas lock theirs (`lock_memory`: every
-/// page of its current mappings, or those it touches), so that no page fault delays a round — the voter is in every
-/// one — and no page of its recovery code, run seldom, is reclaimed meanwhile and read back
-/// from disk in the middle of a recovery. Neither flag is inherited by the replicas it
+/// page of its current mappings, or those it touches), so that no page fault delays a round
+/// (the voter is in every one) and no page of its recovery code, run seldom, is reclaimed
+/// meanwhile and read back from disk in the middle of a recovery. Neither flag is inherited by the replicas it
 /// starts (cleared at `execve`). Called once the voter is set up (and, for a successor, has
 /// adopted the replicas). A refusal is said once; the voter runs on unlocked.
 pub fn lock_voter_memory(policy: LockMemory) {
