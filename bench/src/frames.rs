@@ -7,6 +7,7 @@ use std::io;
 use std::os::fd::{AsFd, AsRawFd, OwnedFd};
 use std::time::{Duration, Instant};
 
+use replica_rt::frame::{FrameBuf, COPY_ALIGN};
 use replica_rt::sys;
 
 use crate::sys::read_deadline;
@@ -53,7 +54,8 @@ fn wait(fd: &OwnedFd, events: libc::c_short, deadline: Instant) -> Result<(), Fr
 /// Writes frames into a pipe.
 pub struct FrameOut {
     fd: OwnedFd,
-    buf: Vec<u8>,
+    /// The frame being sent, from a page boundary on (see `frame::COPY_ALIGN`).
+    buf: FrameBuf,
 }
 
 impl FrameOut {
@@ -61,20 +63,18 @@ impl FrameOut {
         sys::set_nonblocking(fd.as_fd(), true)?;
         Ok(FrameOut {
             fd,
-            buf: Vec::new(),
+            buf: FrameBuf::default(),
         })
     }
 
     /// Writes one whole frame, waiting for room until `timeout` has passed.
     pub fn send(&mut self, payload: &[u8], timeout: Duration) -> Result<(), FrameIoError> {
-        self.buf.clear();
-        self.buf
-            .extend_from_slice(&(payload.len() as u32).to_le_bytes());
-        self.buf.extend_from_slice(payload);
+        self.buf.encode(payload);
+        let frame = self.buf.as_slice();
         let deadline = Instant::now() + timeout;
         let mut done = 0;
-        while done < self.buf.len() {
-            match sys::write(self.fd.as_fd(), &self.buf[done..]) {
+        while done < frame.len() {
+            match sys::write(self.fd.as_fd(), &frame[done..]) {
                 Ok(n) => done += n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
                     wait(&self.fd, libc::POLLOUT, deadline).map_err(|e| match e {
@@ -98,6 +98,9 @@ pub struct FrameIn {
     fd: OwnedFd,
     max_frame: usize,
     buf: Vec<u8>,
+    /// Where in `buf` the first page begins: frames are read from there (see
+    /// `frame::COPY_ALIGN`).
+    base: usize,
     /// Bytes `start..end` of `buf` are received and not yet returned.
     start: usize,
     end: usize,
@@ -107,12 +110,15 @@ impl FrameIn {
     pub fn new(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
         // Blocking: `recv` waits in `read`, bounded by `crate::sys::read_deadline`.
         sys::set_nonblocking(fd.as_fd(), false)?;
+        let buf = vec![0; COPY_ALIGN + 2 * (max_frame + 4)];
+        let base = buf.as_ptr().align_offset(COPY_ALIGN);
         Ok(FrameIn {
             fd,
             max_frame,
-            buf: vec![0; 2 * (max_frame + 4)],
-            start: 0,
-            end: 0,
+            buf,
+            base,
+            start: base,
+            end: base,
         })
     }
 
@@ -144,10 +150,10 @@ impl FrameIn {
                 return Ok(&self.buf[at..at + len]);
             }
             // Keep the partial frame at the front so the rest fits behind it.
-            if self.start > 0 {
-                self.buf.copy_within(self.start..self.end, 0);
-                self.end -= self.start;
-                self.start = 0;
+            if self.start > self.base {
+                self.buf.copy_within(self.start..self.end, self.base);
+                self.end = self.base + (self.end - self.start);
+                self.start = self.base;
             }
             if crate::sys::interrupted() {
                 return Err(FrameIoError::Interrupted);

@@ -18,6 +18,18 @@ pub const HEADER_LEN: usize = 4;
 /// Default maximum payload size of a channel (64 KiB).
 pub const DEFAULT_MAX_FRAME: usize = 64 * 1024;
 
+/// The alignment a frame buffer keeps its first frame at: a page.
+///
+/// Why: on the CPUs this was measured on (AMD EPYC, Zen 4), copying 4 KiB from `src` to
+/// `dst` where `dst - src` is a few bytes past a multiple of 4 KiB (4-aliasing: each load
+/// looks like it depends on the store just before it) takes 5–25 times as long: 1.2 µs
+/// instead of 0.1 for `memcpy`, 2.2 µs instead of 0.4 for a pipe `read` into the buffer. A
+/// pipe keeps a frame written whole at the start of its own page, so a reader whose frame
+/// lies at a page boundary copies with `dst - src` a multiple of 4 KiB; one a header's
+/// length off (a payload copied to a fresh buffer, or a buffer 16 bytes into its
+/// allocation) does not.
+pub const COPY_ALIGN: usize = 4096;
+
 /// Top bit of a length word: the frame is a control frame. No channel's maximum reaches it.
 pub const CONTROL_BIT: u32 = 1 << 31;
 
@@ -76,6 +88,42 @@ pub fn encode_into(payload: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(payload);
 }
 
+/// One frame's bytes, header and payload, kept from a page boundary on (see
+/// [`COPY_ALIGN`]) and reused from frame to frame: a writer's copy of the frame it sends.
+#[derive(Debug, Default)]
+pub struct FrameBuf {
+    buf: Vec<u8>,
+    /// Where in `buf` the first page begins: the frame starts there.
+    base: usize,
+    len: usize,
+}
+
+impl FrameBuf {
+    /// Replaces the contents with `payload` behind its header.
+    pub fn encode(&mut self, payload: &[u8]) {
+        let len = HEADER_LEN + payload.len();
+        if self.buf.len() < self.base + len {
+            self.buf.resize(COPY_ALIGN - 1 + len, 0);
+            self.base = self.buf.as_ptr().align_offset(COPY_ALIGN);
+        }
+        let at = self.base;
+        self.buf[at..at + HEADER_LEN].copy_from_slice(&header(payload.len()));
+        self.buf[at + HEADER_LEN..at + len].copy_from_slice(payload);
+        self.len = len;
+    }
+
+    /// The frame: header and payload.
+    pub fn as_slice(&self) -> &[u8] {
+        &self.buf[self.base..self.base + self.len]
+    }
+
+    /// The payload, to change in place.
+    pub fn payload_mut(&mut self) -> &mut [u8] {
+        let at = self.base + HEADER_LEN.min(self.len);
+        &mut self.buf[at..self.base + self.len]
+    }
+}
+
 /// What a decoder finds at the head of its bytes.
 enum Head {
     /// Not enough bytes yet for what the length word announces.
@@ -103,6 +151,9 @@ pub struct FrameDecoder {
     /// Storage. Its length only grows (zero-filled once); `start..end` are the bytes received
     /// and not yet decoded, so a read into the spare room costs no memset in steady state.
     buf: Vec<u8>,
+    /// Where in `buf` the first page begins: undecoded bytes are kept from there (see
+    /// [`COPY_ALIGN`]).
+    base: usize,
     start: usize,
     end: usize,
     /// Whether resume frames are understood (see [`FrameDecoder::resuming`]); otherwise their
@@ -133,6 +184,7 @@ impl FrameDecoder {
             max,
             lines: false,
             buf: Vec::new(),
+            base: 0,
             start: 0,
             end: 0,
             resuming: false,
@@ -267,10 +319,13 @@ impl FrameDecoder {
     /// [`commit`](Self::commit) with how many were filled. Saves the copy of
     /// [`push`](Self::push) on the hot path.
     pub fn spare(&mut self, want: usize) -> &mut [u8] {
-        self.compact();
-        if self.buf.len() < self.end + want {
-            self.buf.resize(self.end + want, 0);
+        let pending = self.end - self.start;
+        if self.buf.len() < self.base + pending + want {
+            // Room for the worst alignment a reallocation can bring.
+            self.buf.resize(COPY_ALIGN - 1 + pending + want, 0);
+            self.base = self.buf.as_ptr().align_offset(COPY_ALIGN);
         }
+        self.compact();
         &mut self.buf[self.end..self.end + want]
     }
 
@@ -282,6 +337,47 @@ impl FrameDecoder {
 
     /// The next whole frame's payload, if one has arrived.
     pub fn next_frame(&mut self) -> Result<Option<&[u8]>, FrameError> {
+        Ok(self.next_range()?.map(|at| &self.buf[at]))
+    }
+
+    /// The next whole frame's payload, as [`next_frame`](Self::next_frame), handed over
+    /// into `into` and located by the range returned, without a copy where it can be: when
+    /// the frame is the last byte the decoder holds (a replica's answer, read whole), the
+    /// decoder's storage and `into` trade places, and the decoder reads on into what `into`
+    /// was. Otherwise the payload is copied into `into` at the same offset in a page (see
+    /// [`COPY_ALIGN`]). `into` keeps its length from call to call; only the range counts.
+    pub fn next_frame_into(
+        &mut self,
+        into: &mut Vec<u8>,
+    ) -> Result<Option<std::ops::Range<usize>>, FrameError> {
+        let Some(at) = self.next_range()? else {
+            return Ok(None);
+        };
+        if self.start == self.end {
+            std::mem::swap(&mut self.buf, into);
+            // A storage too short for a page: `spare` grows and aligns it.
+            self.base = if self.buf.len() >= COPY_ALIGN {
+                self.buf.as_ptr().align_offset(COPY_ALIGN)
+            } else {
+                0
+            };
+            self.start = self.base;
+            self.end = self.base;
+            return Ok(Some(at));
+        }
+        let len = at.len();
+        let offset = self.buf[at.start..].as_ptr().align_offset(COPY_ALIGN);
+        let in_page = (COPY_ALIGN - offset) % COPY_ALIGN;
+        if into.len() < 2 * COPY_ALIGN + len {
+            into.resize(2 * COPY_ALIGN + len, 0);
+        }
+        let from = into.as_ptr().align_offset(COPY_ALIGN) + in_page;
+        into[from..from + len].copy_from_slice(&self.buf[at]);
+        Ok(Some(from..from + len))
+    }
+
+    /// Where in `buf` the next whole frame's payload lies, if one has arrived.
+    fn next_range(&mut self) -> Result<Option<std::ops::Range<usize>>, FrameError> {
         if self.lines {
             return self.next_line();
         }
@@ -320,7 +416,7 @@ impl FrameDecoder {
                 continue;
             }
             self.taken = self.next_index;
-            return Ok(Some(&self.buf[from..from + len]));
+            return Ok(Some(from..from + len));
         }
     }
 
@@ -336,7 +432,7 @@ impl FrameDecoder {
     /// Room the buffer has for a read without growing (after [`spare`](Self::spare) moves
     /// the pending bytes to its front).
     pub fn room(&self) -> usize {
-        self.buf.len() - (self.end - self.start)
+        self.buf.len() - self.base - (self.end - self.start)
     }
 
     /// Bytes still to come before the frame at the head is whole, when its length word has
@@ -449,8 +545,8 @@ impl FrameDecoder {
         }
     }
 
-    /// The next whole line (see [`FrameDecoder::lines`]).
-    fn next_line(&mut self) -> Result<Option<&[u8]>, FrameError> {
+    /// Where the next whole line lies (see [`FrameDecoder::lines`]).
+    fn next_line(&mut self) -> Result<Option<std::ops::Range<usize>>, FrameError> {
         let avail = &self.buf[self.start..self.end];
         // A line may be `max` bytes long, and its newline comes after it.
         let look = &avail[..avail.len().min(self.max.saturating_add(1))];
@@ -458,7 +554,7 @@ impl FrameDecoder {
             Some(len) => {
                 let from = self.start;
                 self.start = from + len + 1;
-                Ok(Some(&self.buf[from..from + len]))
+                Ok(Some(from..from + len))
             }
             None if avail.len() > self.max => Err(FrameError::Oversized {
                 len: avail.len(),
@@ -471,19 +567,21 @@ impl FrameDecoder {
     /// Takes every byte not yet decoded (used when a stream changes hands).
     pub fn take_pending(&mut self) -> Vec<u8> {
         let rest = self.buf[self.start..self.end].to_vec();
-        self.start = 0;
-        self.end = 0;
+        self.start = self.base;
+        self.end = self.base;
         rest
     }
 
-    /// Moves the undecoded bytes to the front, so the storage does not grow with the stream.
+    /// Moves the undecoded bytes to the first page boundary, so the storage does not grow
+    /// with the stream, and a frame read whole off a pipe lies at the same offset in a page
+    /// as it did in the pipe's own page.
     fn compact(&mut self) {
-        if self.start == 0 {
+        if self.start == self.base {
             return;
         }
-        self.buf.copy_within(self.start..self.end, 0);
-        self.end -= self.start;
-        self.start = 0;
+        self.buf.copy_within(self.start..self.end, self.base);
+        self.end = self.base + (self.end - self.start);
+        self.start = self.base;
     }
 }
 
@@ -529,6 +627,70 @@ mod tests {
         out
     }
 
+    fn page_offset(p: *const u8) -> usize {
+        p as usize % COPY_ALIGN
+    }
+
+    /// A reader's room starts at a page boundary, also after a partial frame was moved to the
+    /// front and after the storage grew; a frame read whole then has its payload a header past
+    /// a page boundary, where a pipe has it, and is handed over without a copy.
+    #[test]
+    fn frames_are_read_at_a_page_boundary_and_handed_over_in_place() {
+        let mut dec = FrameDecoder::new(64 * 1024);
+        assert_eq!(page_offset(dec.spare(100).as_ptr()), 0);
+        dec.push(&header(5000));
+        dec.push(&[1; 10]);
+        // The partial frame moved to the front as the storage grows for the rest.
+        let spare = dec.spare(60 * 1024);
+        assert_eq!(page_offset(spare.as_ptr()), HEADER_LEN + 10);
+        spare[..4990].fill(1);
+        dec.commit(60 * 1024, 4990);
+        let read_into = dec.buf.as_ptr();
+        let mut into = Vec::new();
+        let at = dec.next_frame_into(&mut into).unwrap().unwrap();
+        assert_eq!(&into[at.clone()], &[1; 5000][..]);
+        assert_eq!(
+            into.as_ptr(),
+            read_into,
+            "the read buffer itself, not a copy"
+        );
+        assert_eq!(page_offset(into[at].as_ptr()), HEADER_LEN);
+        // The decoder reads on into the buffer it got, from a page boundary once it is large.
+        assert_eq!(page_offset(dec.spare(60 * 1024).as_ptr()), 0);
+        // A frame with more bytes behind it is copied, to the same offset in a page.
+        let mut two = Vec::new();
+        encode_into(b"first", &mut two);
+        encode_into(b"second", &mut two);
+        let n = two.len();
+        dec.spare(n).copy_from_slice(&two);
+        dec.commit(n, n);
+        let mut other = Vec::new();
+        let at = dec.next_frame_into(&mut other).unwrap().unwrap();
+        assert_eq!(&other[at.clone()], b"first");
+        assert_eq!(page_offset(other[at].as_ptr()), HEADER_LEN);
+        let at = dec.next_frame_into(&mut into).unwrap().unwrap();
+        assert_eq!(&into[at], b"second");
+        assert_eq!(dec.next_frame_into(&mut into).unwrap(), None);
+    }
+
+    /// A writer's frame starts at a page boundary however it grows, header first.
+    #[test]
+    fn a_frame_buffer_keeps_its_frame_at_a_page_boundary() {
+        let mut buf = FrameBuf::default();
+        for len in [0, 8, 4096, 100, 70_000, 3] {
+            let payload: Vec<u8> = (0..len).map(|i| i as u8).collect();
+            buf.encode(&payload);
+            assert_eq!(page_offset(buf.as_slice().as_ptr()), 0);
+            assert_eq!(buf.as_slice()[..HEADER_LEN], header(len));
+            assert_eq!(&buf.as_slice()[HEADER_LEN..], &payload[..]);
+            buf.payload_mut().iter_mut().for_each(|b| *b ^= 0xff);
+            assert!(buf.as_slice()[HEADER_LEN..]
+                .iter()
+                .zip(&payload)
+                .all(|(a, b)| *a == !b));
+        }
+    }
+
     proptest! {
         /// Any split of a valid stream decodes to the same frames.
         #[test]
@@ -539,6 +701,34 @@ mod tests {
             let bytes = encode_all(&frames);
             let mut dec = FrameDecoder::new(1024);
             let got = decode_in_pieces(&mut dec, &bytes, cuts);
+            prop_assert_eq!(got, frames);
+            prop_assert!(dec.finish().is_ok());
+        }
+
+        /// Frames handed over (`next_frame_into`, the decoder's storage trading places with two
+        /// buffers in turn) are the frames `next_frame` gives, however the bytes arrive through
+        /// `spare`/`commit` as a reader's do; each one lies where its page offset says.
+        #[test]
+        fn frames_handed_over_are_the_frames_decoded(
+            frames in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..5000), 0..12),
+            cuts in proptest::collection::vec(1usize..9000, 0..30),
+        ) {
+            let bytes = encode_all(&frames);
+            let mut dec = FrameDecoder::new(8192);
+            let mut pool = [Vec::new(), Vec::new()];
+            let mut got = Vec::new();
+            let (mut pos, mut cuts) = (0, cuts.into_iter());
+            while pos < bytes.len() {
+                let step = cuts.next().unwrap_or(bytes.len()).min(bytes.len() - pos);
+                let spare = dec.spare(step);
+                spare.copy_from_slice(&bytes[pos..pos + step]);
+                dec.commit(step, step);
+                pos += step;
+                while let Some(at) = dec.next_frame_into(&mut pool[got.len() % 2]).unwrap() {
+                    let buf = &pool[got.len() % 2];
+                    got.push(buf[at].to_vec());
+                }
+            }
             prop_assert_eq!(got, frames);
             prop_assert!(dec.finish().is_ok());
         }

@@ -19,7 +19,7 @@ use std::os::fd::{BorrowedFd, RawFd};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, Weak};
 
-use crate::frame::resume_frame;
+use crate::frame::{resume_frame, FrameBuf};
 use crate::history::History;
 use crate::restart;
 
@@ -35,7 +35,7 @@ pub(crate) fn step() -> u64 {
 /// buffer itself.
 #[derive(Debug, Default)]
 pub(crate) struct LastFrame {
-    pub(crate) bytes: Vec<u8>,
+    pub(crate) bytes: FrameBuf,
     /// The step at which it was sent (0: nothing sent yet).
     pub(crate) step: u64,
     /// Frames this port has sent: the last one is number `sent - 1` on its channel. A fork
@@ -81,7 +81,7 @@ pub(crate) fn answer_again(taken: u64) -> io::Result<usize> {
         }
         bytes.clear();
         bytes.extend_from_slice(&resume_frame(last.sent.saturating_sub(1)));
-        bytes.extend_from_slice(&last.bytes);
+        bytes.extend_from_slice(last.bytes.as_slice());
         // One write for both, and no fork in the middle of it (as for `OutPort::send`).
         let _held = restart::RestartsHeld::new();
         // SAFETY: `out.fd` is the fd of a live `OutPort` (its `LastFrame` was upgraded above,

@@ -8,7 +8,7 @@ use thiserror::Error;
 
 use crate::answers::{self, LastFrame};
 use crate::contract::FIRST_PORT_FD;
-use crate::frame::{self, FrameDecoder, FrameError, HEADER_LEN};
+use crate::frame::{self, FrameBuf, FrameDecoder, FrameError};
 use crate::{history, inject, rebind, restart, sys};
 
 /// The most one `read` asks for. A read asks for the room the buffer already has (at least
@@ -74,8 +74,10 @@ pub struct InPort {
     name: String,
     pub(crate) fd: OwnedFd,
     pub(crate) dec: FrameDecoder,
-    /// The payload last returned by `recv`, copied out of the decoder.
+    /// Where the payload last returned by `recv` lies: handed over by the decoder (see
+    /// [`FrameDecoder::next_frame_into`]), in `frame` at `at`.
     pub(crate) frame: Vec<u8>,
+    pub(crate) at: std::ops::Range<usize>,
     pub(crate) eof: bool,
     /// The step (see `answers`) at which the last frame was taken.
     pub(crate) taken_at: u64,
@@ -102,6 +104,7 @@ impl InPort {
             // A voter restarted mid-round replays it behind a resume frame (see `answers`).
             dec: FrameDecoder::resuming(max_frame),
             frame: Vec::new(),
+            at: 0..0,
             eof: false,
             taken_at: 0,
             replica,
@@ -149,15 +152,16 @@ impl InPort {
     /// The next frame's payload, blocking until it has arrived whole. `Ok(None)` at end of
     /// stream; an error for a frame above the port maximum or a stream cut inside a frame.
     ///
-    /// The payload is copied once out of the read buffer into a buffer the port reuses, so
-    /// steady state allocates nothing. (The copy is what lets the borrow returned here outlive
-    /// the decoder's own borrow, which the read loop needs to mutate.)
+    /// The payload is handed over from the read buffer without a copy where it is the last
+    /// byte read (the two buffers trade places, see [`FrameDecoder::next_frame_into`]), so
+    /// steady state allocates nothing; the hand-over is what lets the borrow returned here
+    /// outlive the decoder's own, which the read loop needs to mutate.
     pub fn recv(&mut self) -> Result<Option<&[u8]>, RecvError> {
         note_fork();
         self.catch_up();
         loop {
             if self.next_buffered()? {
-                return Ok(Some(&self.frame));
+                return Ok(Some(&self.frame[self.at.clone()]));
             }
             if self.eof || !self.fill()? {
                 self.eof = true;
@@ -175,10 +179,9 @@ impl InPort {
         // A replica started by exec is first told the number of its first frame (a jump from
         // nothing taken); a jump from anything else is input lost.
         let had = self.dec.taken();
-        let taken = match self.dec.next_frame() {
-            Ok(Some(payload)) => {
-                self.frame.clear();
-                self.frame.extend_from_slice(payload);
+        let taken = match self.dec.next_frame_into(&mut self.frame) {
+            Ok(Some(at)) => {
+                self.at = at;
                 true
             }
             Ok(None) => false,
@@ -296,7 +299,7 @@ pub struct OutPort {
 impl OutPort {
     pub(crate) fn new(name: String, fd: OwnedFd, max: usize, replica: bool) -> Self {
         let last = Arc::new(Mutex::new(LastFrame {
-            bytes: Vec::with_capacity(HEADER_LEN + max.min(SMALL_BUFFER)),
+            bytes: FrameBuf::default(),
             history: if replica {
                 history::for_new_port()
             } else {
@@ -338,15 +341,20 @@ impl OutPort {
             });
         }
         let mut last = self.last.lock().unwrap_or_else(PoisonError::into_inner);
-        last.bytes.clear();
-        frame::encode_into(payload, &mut last.bytes);
-        inject::apply_pending(&self.name, &mut last.bytes[HEADER_LEN..]);
+        last.bytes.encode(payload);
+        inject::apply_pending(&self.name, last.bytes.payload_mut());
         // A RESTART from here until the guard drops forks at the drop, once the frame is whole
         // and counted (no system call: see `restart`, "Output frames stay whole").
         let _deferred = self.replica.then(restart::RestartsHeld::new);
         let replica = self.replica;
         let fd = self.fd.as_fd();
-        let mut written = write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent);
+        let mut written = write_frame(
+            fd,
+            replica,
+            &mut self.generation,
+            last.bytes.as_slice(),
+            last.sent,
+        );
         // The voter died with our frame half-written, or before it: its successor gets all of
         // it, on the new pipe, behind `RESUME` (a stream replica's history first: the rebind
         // sent every other port's, but this one's is locked here). The successor may die in
@@ -357,7 +365,13 @@ impl OutPort {
             }
             written = match last.history.as_ref().map(|h| h.resend(fd)) {
                 Some(Err(e)) => Err(e),
-                _ => write_frame(fd, replica, &mut self.generation, &last.bytes, last.sent),
+                _ => write_frame(
+                    fd,
+                    replica,
+                    &mut self.generation,
+                    last.bytes.as_slice(),
+                    last.sent,
+                ),
             };
         }
         if let Err(e) = written {
@@ -370,7 +384,7 @@ impl OutPort {
         }
         let last = &mut *last;
         if let Some(history) = last.history.as_mut() {
-            history.record(last.sent, &last.bytes);
+            history.record(last.sent, last.bytes.as_slice());
         }
         last.sent += 1;
         last.step = answers::step();

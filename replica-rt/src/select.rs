@@ -135,7 +135,7 @@ impl InPort {
         self.catch_up();
         loop {
             if self.next_buffered()? {
-                return Ok(TryRecv::Frame(&self.frame));
+                return Ok(TryRecv::Frame(&self.frame[self.at.clone()]));
             }
             if self.eof {
                 return match self.dec.finish() {

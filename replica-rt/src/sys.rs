@@ -70,6 +70,33 @@ pub fn write(fd: BorrowedFd<'_>, buf: &[u8]) -> io::Result<usize> {
     }
 }
 
+/// `writev(2)` of `head` then `body`, as if they were one buffer; may write less than all of
+/// it. EINTR is retried. (A frame's header and its payload, without copying them together.)
+pub fn write2(fd: BorrowedFd<'_>, head: &[u8], body: &[u8]) -> io::Result<usize> {
+    let iov = [
+        libc::iovec {
+            iov_base: head.as_ptr().cast_mut().cast(),
+            iov_len: head.len(),
+        },
+        libc::iovec {
+            iov_base: body.as_ptr().cast_mut().cast(),
+            iov_len: body.len(),
+        },
+    ];
+    loop {
+        // SAFETY: both iovecs describe live slices, valid for reads of their lengths for the
+        // duration of the call; `writev` only reads through them.
+        let n = unsafe { libc::writev(fd.as_raw_fd(), iov.as_ptr(), 2) };
+        if n >= 0 {
+            return Ok(n as usize);
+        }
+        let e = io::Error::last_os_error();
+        if e.kind() != io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+}
+
 /// A pidfd for `pid`: readable once the process has exited, usable for signals without pid
 /// reuse races. Works for any process we may signal, not only our children.
 pub fn pidfd_open(pid: libc::pid_t) -> io::Result<OwnedFd> {

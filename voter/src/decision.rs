@@ -185,11 +185,43 @@ pub struct RoundBallot<'a> {
     /// `answered[r]`: the outputs replica `r` answered.
     pub answered: &'a [OutputSet],
     /// `answers[r][o]`: replica `r`'s frame on output `o` (meaningful where it answered).
-    pub answers: &'a [Vec<Vec<u8>>],
+    pub answers: &'a [Vec<Answer>],
     /// `alarmed[r]`: the outputs on which replica `r`'s frame alarmed its detector.
     pub alarmed: &'a [OutputSet],
     /// Replicas whose state is lost (see the module's rules).
     pub fresh: ReplicaSet,
+}
+
+/// One replica's frame on one output, where the voter read it: in a buffer that was its
+/// pipe's read buffer a moment before (see `FrameDecoder::next_frame_into`), so that the
+/// frame is voted, scored and forwarded in place, never copied.
+#[derive(Debug, Clone, Default)]
+pub struct Answer {
+    buf: Vec<u8>,
+    at: std::ops::Range<usize>,
+}
+
+impl Answer {
+    pub fn as_slice(&self) -> &[u8] {
+        &self.buf[self.at.clone()]
+    }
+
+    /// The storage to decode the next frame into; [`set`](Self::set) says where it landed.
+    pub fn storage(&mut self) -> &mut Vec<u8> {
+        &mut self.buf
+    }
+
+    pub fn set(&mut self, at: std::ops::Range<usize>) {
+        debug_assert!(at.end <= self.buf.len());
+        self.at = at;
+    }
+}
+
+impl From<Vec<u8>> for Answer {
+    fn from(buf: Vec<u8>) -> Self {
+        let at = 0..buf.len();
+        Answer { buf, at }
+    }
 }
 
 /// One decision of a closing round.
@@ -561,7 +593,7 @@ mod tests {
     /// A round over `outputs` outputs: `answers[r]` is replica r's frames (None: no answer).
     struct Fixture {
         answered: Vec<OutputSet>,
-        answers: Vec<Vec<Vec<u8>>>,
+        answers: Vec<Vec<Answer>>,
         alarmed: Vec<OutputSet>,
     }
 
@@ -578,7 +610,7 @@ mod tests {
                     if a.is_some() {
                         fx.answered[r] |= 1 << o;
                     }
-                    row.push(a.unwrap_or("").as_bytes().to_vec());
+                    row.push(Answer::from(a.unwrap_or("").as_bytes().to_vec()));
                 }
                 fx.answers.push(row);
             }

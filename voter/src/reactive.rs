@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use crate::clock::{Deadlines, Instant, Timer};
 use crate::core::{self, At, Core, Mode, Stop, VoterError, EXIT_AFTER_EOF};
-use crate::decision::{decide_round, Decision, RoundBallot, RoundClose};
+use crate::decision::{decide_round, Answer, Decision, RoundBallot, RoundClose};
 use crate::event::Cause;
 use crate::plan::VoterPlan;
 use crate::recovery::DonorState;
@@ -27,8 +27,13 @@ use replica_rt::contract::MAX_PORTS;
 
 pub struct ReactiveVoter {
     core: Core,
-    /// `answers[slot][output]`: buffers reused from round to round.
-    answers: Vec<Vec<Vec<u8>>>,
+    /// `answers[slot][output]`: where each replica's last frame on each output was read,
+    /// voted in place (the buffers trade places with the pipes' read buffers, see
+    /// [`Answer`]).
+    answers: Vec<Vec<Answer>>,
+    /// Where a frame that is itself a fault (an extra one, one before its round) is decoded,
+    /// so that it overwrites no answer.
+    set_aside: Vec<u8>,
     round: Option<Round>,
     rounds_started: u64,
     /// Every deadline the loop waits for (refilled from the state before each wait).
@@ -58,7 +63,8 @@ impl ReactiveVoter {
         let shares_cpu = shares_cpu(&core.plan.cpus, core.plan.voter_cpu, n);
         let rounds_started = core.adopted_rounds;
         Ok(ReactiveVoter {
-            answers: vec![vec![Vec::new(); core.plan.outputs.len()]; n],
+            answers: vec![vec![Answer::default(); core.plan.outputs.len()]; n],
+            set_aside: Vec::new(),
             timers: Deadlines::new(core.plan.inputs.len(), n),
             core,
             round: None,
@@ -851,8 +857,13 @@ impl ReactiveVoter {
             let Some(rep) = self.core.slots[r].as_mut() else {
                 return;
             };
-            let frame = match rep.outputs[o].next_answer() {
-                Ok(Some(f)) => f,
+            // A frame that is a fault is decoded aside: the replica's answer stays as it was.
+            let into = match problem {
+                Some(_) => &mut self.set_aside,
+                None => self.answers[r][o].storage(),
+            };
+            let at = match rep.outputs[o].next_answer_into(into) {
+                Ok(Some(at)) => at,
                 Ok(None) => break,
                 Err(e) => {
                     let detail = format!("output `{}`: {e}", self.core.plan.outputs[o].name);
@@ -867,15 +878,17 @@ impl ReactiveVoter {
             // The program speaks the protocol (the restart budget's message says otherwise).
             self.core.exec_answered = true;
             let pid = rep.pid;
-            let buf = &mut self.answers[r][o];
-            buf.clear();
-            buf.extend_from_slice(frame);
+            self.answers[r][o].set(at);
             let round = self.round.as_mut().expect("unexpected() checked the round");
             round.answered[r] |= 1 << o;
             let number = round.number;
             // Every answer is scored, also when all agree: each replica's stream of frames
             // must be complete for the next delta to be meaningful.
-            if let Some(verdict) = self.core.monitors.observe(r, o, &self.answers[r][o]) {
+            if let Some(verdict) = self
+                .core
+                .monitors
+                .observe(r, o, self.answers[r][o].as_slice())
+            {
                 if verdict.alarm {
                     self.core.anomaly_event(r, pid, o, At::Round(number), false);
                 }
