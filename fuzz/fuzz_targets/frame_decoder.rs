@@ -24,6 +24,8 @@ enum Op {
     /// A resume frame announcing frame `next` (small, so that repeats and gaps both occur).
     Resume(u8),
     Next,
+    /// `next_frame_into` one of two buffers, which trade places with the decoder's storage.
+    NextInto(bool),
     Take,
     Finish,
 }
@@ -91,6 +93,7 @@ fuzz_target!(|input: Input| {
     } else {
         FrameDecoder::new(max)
     };
+    let mut pool = [Vec::new(), Vec::new()];
     let mut model = Model {
         max,
         resuming: input.resuming,
@@ -122,6 +125,17 @@ fuzz_target!(|input: Input| {
                 let waiting = dec.has_frame();
                 let want = model.next();
                 let got = dec.next_frame().map(|f| f.map(<[u8]>::to_vec));
+                assert_eq!(got, want);
+                assert_eq!(dec.taken(), model.taken);
+                assert_eq!(waiting, !matches!(got, Ok(None)));
+            }
+            Op::NextInto(which) => {
+                let waiting = dec.has_frame();
+                let want = model.next();
+                let into = &mut pool[usize::from(which)];
+                let got = dec
+                    .next_frame_into(into)
+                    .map(|at| at.map(|at| into[at].to_vec()));
                 assert_eq!(got, want);
                 assert_eq!(dec.taken(), model.taken);
                 assert_eq!(waiting, !matches!(got, Ok(None)));
