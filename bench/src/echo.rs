@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
-use replica_rt::frame::{COPY_ALIGN, HEADER_LEN};
+use replica_rt::frame::{frame_start, FRAME_SLACK, HEADER_LEN};
 
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};
@@ -171,10 +171,10 @@ fn measure(
 ) -> Result<Row> {
     let mut system = System::start(spec)?;
     setup.apply(&system)?;
-    // The payload lies a header's length past a page boundary, where a frame read off a pipe
-    // has it: copied behind its header, it does not alias (see `frame::COPY_ALIGN`).
-    let mut storage = vec![0u8; COPY_ALIGN + HEADER_LEN + size];
-    let at = storage.as_ptr().align_offset(COPY_ALIGN) + HEADER_LEN;
+    // The payload lies where a frame buffer keeps one: copied behind its header, it does not
+    // alias (see `frame::COPY_ALIGN`).
+    let mut storage = vec![0u8; FRAME_SLACK + HEADER_LEN + size];
+    let at = frame_start(&storage) + HEADER_LEN;
     let frame = &mut storage[at..at + size];
     let mut h = histogram();
     let total = o.warmup + o.count;

@@ -7,7 +7,7 @@ use std::io;
 use std::os::fd::{AsFd, AsRawFd, OwnedFd};
 use std::time::{Duration, Instant};
 
-use replica_rt::frame::{FrameBuf, COPY_ALIGN};
+use replica_rt::frame::{frame_start, FrameBuf, FRAME_SLACK};
 use replica_rt::sys;
 
 use crate::sys::read_deadline;
@@ -54,7 +54,7 @@ fn wait(fd: &OwnedFd, events: libc::c_short, deadline: Instant) -> Result<(), Fr
 /// Writes frames into a pipe.
 pub struct FrameOut {
     fd: OwnedFd,
-    /// The frame being sent, from a page boundary on (see `frame::COPY_ALIGN`).
+    /// The frame being sent, placed in a page as `frame::COPY_ALIGN` says.
     buf: FrameBuf,
 }
 
@@ -98,8 +98,7 @@ pub struct FrameIn {
     fd: OwnedFd,
     max_frame: usize,
     buf: Vec<u8>,
-    /// Where in `buf` the first page begins: frames are read from there (see
-    /// `frame::COPY_ALIGN`).
+    /// Where in `buf` frames are read from ([`frame_start`], see `frame::COPY_ALIGN`).
     base: usize,
     /// Bytes `start..end` of `buf` are received and not yet returned.
     start: usize,
@@ -110,8 +109,8 @@ impl FrameIn {
     pub fn new(fd: OwnedFd, max_frame: usize) -> io::Result<Self> {
         // Blocking: `recv` waits in `read`, bounded by `crate::sys::read_deadline`.
         sys::set_nonblocking(fd.as_fd(), false)?;
-        let buf = vec![0; COPY_ALIGN + 2 * (max_frame + 4)];
-        let base = buf.as_ptr().align_offset(COPY_ALIGN);
+        let buf = vec![0; FRAME_SLACK + 2 * (max_frame + 4)];
+        let base = frame_start(&buf);
         Ok(FrameIn {
             fd,
             max_frame,

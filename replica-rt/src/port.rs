@@ -15,9 +15,9 @@ use crate::{history, inject, rebind, restart, sys};
 /// [`SMALL_BUFFER`]), and for more only when the frame at its head needs it: a burst of small
 /// frames larger than that room takes more than one read.
 const READ_CHUNK: usize = 64 * 1024;
-/// What a read reserves room for unless the frame being read needs more, and what an output's
-/// send buffer starts with: buffers grow to the largest frame actually seen, not to the port's
-/// maximum. In a replica every byte of them is locked and resident, and copied at each fork
+/// What a read reserves room for unless the frame being read needs more: buffers grow to the
+/// largest frame actually seen, not to the port's maximum (an output's copy of its frame, a
+/// `FrameBuf`, too). In a replica every byte of them is locked and resident, and copied at each fork
 /// recovery (see `memory`).
 const SMALL_BUFFER: usize = 8 * 1024;
 

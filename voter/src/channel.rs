@@ -198,11 +198,15 @@ impl FrameWriter {
             }
             _ => true,
         };
+        let mut failed = None;
         let written = if fits {
             match sys::write2(self.fd.as_fd(), &header, payload) {
                 Ok(n) => n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => 0,
-                Err(e) => return Err(e),
+                Err(e) => {
+                    failed = Some(e);
+                    0
+                }
             }
         } else {
             0
@@ -219,10 +223,20 @@ impl FrameWriter {
                 .extend_from_slice(&payload[written - frame::HEADER_LEN..]);
         }
         self.frame_queued();
-        if let Some(whole) = self.whole.as_mut() {
-            whole.waiting_for_room = !fits;
+        // As `send` always did: a frame the pipe refused stays queued behind the error.
+        if let Some(e) = failed {
+            return Err(e);
         }
-        Ok(())
+        match self.whole.as_mut() {
+            // A frame larger than the pipe, written in part: the rest goes as a whole frame
+            // would, only into room for all of it.
+            Some(_) if written > 0 => self.flush_whole(),
+            Some(whole) => {
+                whole.waiting_for_room = !fits;
+                Ok(())
+            }
+            None => Ok(()),
+        }
     }
 
     /// Queues raw bytes (already framed: whole frames) without writing them yet.
