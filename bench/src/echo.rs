@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
-use replica_rt::frame::{frame_start, FRAME_SLACK, HEADER_LEN};
+use replica_rt::frame::FrameBuf;
 
 use crate::report::{self, histogram, Row, Summary};
 use crate::system::{Setup, Spec, System};
@@ -173,20 +173,19 @@ fn measure(
     setup.apply(&system)?;
     // The payload lies where a frame buffer keeps one: copied behind its header, it does not
     // alias (see `frame::COPY_ALIGN`).
-    let mut storage = vec![0u8; FRAME_SLACK + HEADER_LEN + size];
-    let at = frame_start(&storage) + HEADER_LEN;
-    let frame = &mut storage[at..at + size];
+    let mut storage = FrameBuf::default();
+    storage.encode(&vec![0u8; size]);
     let mut h = histogram();
     let total = o.warmup + o.count;
     for seq in 0..total {
         if o.program == Program::PreloadLines {
-            fill_line(seq, frame);
+            fill_line(seq, storage.payload_mut());
         } else {
-            fill_frame(seq, frame);
+            fill_frame(seq, storage.payload_mut());
         }
         let t0 = replica_rt::sys::monotonic_ns();
         let answered = system
-            .echo_round(frame, ROUND_LIMIT)
+            .echo_round(storage.payload(), ROUND_LIMIT)
             .with_context(|| format!("round trip {seq}"))?;
         if let (Some(t1), true) = (answered, seq >= o.warmup) {
             h.record(t1 - t0).context("recording")?;

@@ -56,6 +56,17 @@ pub fn frame_start(buf: &[u8]) -> usize {
     buf.as_ptr().align_offset(COPY_ALIGN) + FRAME_OFFSET
 }
 
+/// Makes room in `buf` for `need` bytes from `start`, the frame buffer's current start: as
+/// it is, or grown (zero-filled) with the start placed afresh, since growing may move it.
+/// Returns the start to use.
+fn room_from(buf: &mut Vec<u8>, start: usize, need: usize) -> usize {
+    if buf.len() >= start + need {
+        return start;
+    }
+    buf.resize(FRAME_SLACK + need, 0);
+    frame_start(buf)
+}
+
 /// Top bit of a length word: the frame is a control frame. No channel's maximum reaches it.
 pub const CONTROL_BIT: u32 = 1 << 31;
 
@@ -128,10 +139,7 @@ impl FrameBuf {
     /// Replaces the contents with `payload` behind its header.
     pub fn encode(&mut self, payload: &[u8]) {
         let len = HEADER_LEN + payload.len();
-        if self.buf.len() < self.base + len {
-            self.buf.resize(FRAME_SLACK + len, 0);
-            self.base = frame_start(&self.buf);
-        }
+        self.base = room_from(&mut self.buf, self.base, len);
         let at = self.base;
         self.buf[at..at + HEADER_LEN].copy_from_slice(&header(payload.len()));
         self.buf[at + HEADER_LEN..at + len].copy_from_slice(payload);
@@ -141,6 +149,11 @@ impl FrameBuf {
     /// The frame: header and payload.
     pub fn as_slice(&self) -> &[u8] {
         &self.buf[self.base..self.base + self.len]
+    }
+
+    /// The payload.
+    pub fn payload(&self) -> &[u8] {
+        &self.as_slice()[HEADER_LEN.min(self.len)..]
     }
 
     /// The payload, to change in place.
@@ -347,12 +360,8 @@ impl FrameDecoder {
     /// [`commit`](Self::commit) with how many were filled. Saves the copy of
     /// [`push`](Self::push) on the hot path.
     pub fn spare(&mut self, want: usize) -> &mut [u8] {
-        let pending = self.end - self.start;
-        if self.buf.len() < self.base + pending + want {
-            // Room for the worst alignment a reallocation can bring.
-            self.buf.resize(FRAME_SLACK + pending + want, 0);
-            self.base = frame_start(&self.buf);
-        }
+        // Where the pending bytes go, with room behind them (`compact` moves them there).
+        self.base = room_from(&mut self.buf, self.base, self.end - self.start + want);
         self.compact();
         &mut self.buf[self.end..self.end + want]
     }
@@ -611,9 +620,8 @@ impl FrameDecoder {
         rest
     }
 
-    /// Moves the undecoded bytes to the first page boundary, so the storage does not grow
-    /// with the stream, and a frame read whole off a pipe lies at the same offset in a page
-    /// as it did in the pipe's own page.
+    /// Moves the undecoded bytes to `base`, so the storage does not grow with the stream, and
+    /// a frame read whole off a pipe lies where [`COPY_ALIGN`] says.
     fn compact(&mut self) {
         if self.start == self.base {
             return;
@@ -674,7 +682,7 @@ mod tests {
     /// to the front and after the storage grew; a frame read whole then has its payload
     /// aligned and is handed over without a copy.
     #[test]
-    fn frames_are_read_at_a_page_boundary_and_handed_over_in_place() {
+    fn frames_are_read_where_copy_align_says_and_handed_over_in_place() {
         let mut dec = FrameDecoder::new(64 * 1024);
         assert_eq!(page_offset(dec.spare(100).as_ptr()), FRAME_OFFSET);
         dec.push(&header(5000));
@@ -694,10 +702,10 @@ mod tests {
             "the read buffer itself, not a copy"
         );
         assert_eq!(page_offset(into[at].as_ptr()), PAYLOAD_ALIGN);
-        // The decoder reads on into the buffer it got, from a page boundary once it is large.
+        // The decoder reads on into the buffer it got, placed once it is large enough.
         assert_eq!(page_offset(dec.spare(60 * 1024).as_ptr()), FRAME_OFFSET);
-        // A frame with more bytes behind it is copied, to the same offset in a page; a small
-        // one to the front of a buffer that does not shrink.
+        // A frame with more bytes behind it is copied, to its page offset rounded down to
+        // PAYLOAD_ALIGN; a small one to the front of a buffer that does not shrink.
         let (first, second) = ([2; COPY_UP_TO + 1], *b"second");
         let mut three = Vec::new();
         encode_into(&first, &mut three);
@@ -727,7 +735,7 @@ mod tests {
 
     /// A writer's frame stays where `COPY_ALIGN` says however it grows, its payload aligned.
     #[test]
-    fn a_frame_buffer_keeps_its_frame_at_a_page_boundary() {
+    fn a_frame_buffer_keeps_its_frame_where_copy_align_says() {
         let mut buf = FrameBuf::default();
         for len in [0, 8, 4096, 100, 70_000, 3] {
             let payload: Vec<u8> = (0..len).map(|i| i as u8).collect();

@@ -90,6 +90,18 @@ struct Whole {
     waiting_for_room: bool,
 }
 
+impl Whole {
+    /// Whether a frame of `len` bytes may be written into the pipe now. Up to PIPE_BUF a write
+    /// is all or nothing anyway, and a frame larger than the pipe can only go in parts; any
+    /// other only into room for all of it (one `FIONREAD`).
+    fn has_room_for(&self, fd: BorrowedFd<'_>, len: usize) -> io::Result<bool> {
+        if len <= libc::PIPE_BUF || len > self.capacity {
+            return Ok(true);
+        }
+        Ok(self.capacity.saturating_sub(sys::bytes_in_pipe(fd)?) >= len)
+    }
+}
+
 impl FrameWriter {
     pub fn new(fd: OwnedFd) -> io::Result<Self> {
         sys::set_nonblocking(fd.as_fd(), true)?;
@@ -191,12 +203,8 @@ impl FrameWriter {
         let header = frame::header(payload.len());
         let total = frame::HEADER_LEN + payload.len();
         let fits = match &self.whole {
-            // Up to PIPE_BUF a write is all or nothing anyway; above it, only into room for all.
-            Some(whole) if total > libc::PIPE_BUF && total <= whole.capacity => {
-                let held = sys::bytes_in_pipe(self.fd.as_fd())?;
-                whole.capacity.saturating_sub(held) >= total
-            }
-            _ => true,
+            Some(whole) => whole.has_room_for(self.fd.as_fd(), total)?,
+            None => true,
         };
         let mut failed = None;
         let written = if fits {
@@ -325,15 +333,9 @@ impl FrameWriter {
         whole.waiting_for_room = false;
         while let Some(&end) = whole.ends.front() {
             let frame = &self.pending[self.start..end];
-            // Up to PIPE_BUF a write is all or nothing anyway; above it, only into room for all.
-            if frame.len() > libc::PIPE_BUF && frame.len() <= whole.capacity {
-                let room = whole
-                    .capacity
-                    .saturating_sub(sys::bytes_in_pipe(self.fd.as_fd())?);
-                if room < frame.len() {
-                    whole.waiting_for_room = true;
-                    break;
-                }
+            if !whole.has_room_for(self.fd.as_fd(), frame.len())? {
+                whole.waiting_for_room = true;
+                break;
             }
             match sys::write(self.fd.as_fd(), frame) {
                 Ok(n) => self.start += n,
