@@ -1,6 +1,11 @@
 //! Unprotected outcome classification (after MAVFI's Fig. 5): run the system once without
 //! injection (the golden run), then N times with exactly one injection each, and sort every
 //! run into benign / SDC / crash / hang by comparing its output with the golden one.
+//!
+//! A system whose output is not the same from one fault-free run to the next (a robot in
+//! closed loop with a simulator: its poses depend on timing) is classified by its mission
+//! instead ([`MissionVerdict`], `--mission FILE`): what the simulator says of the mission is
+//! the output, as MAVFI's end-to-end analysis takes flight success and time (its Table 2).
 
 use std::fmt::Write as _;
 use std::io::Write as _;
@@ -11,22 +16,27 @@ use anyhow::{bail, Context as _};
 use serde::{Deserialize, Serialize};
 
 use crate::fault::{Action, RegOptions};
+use crate::interval::Rate;
 use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_single, ScheduleParams};
 use crate::stop::StopSignals;
 use crate::target::Pick;
 
-/// The class of one run.
+/// The class of one run. By output (the default), or by mission (`--mission`, see
+/// [`mission_class`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Class {
-    /// Exit status 0 and output identical to the golden run's.
+    /// Exit status 0 and output identical to the golden run's (by mission: the goal reached).
     Benign,
-    /// Exit status 0 but the output differs: silent data corruption.
+    /// Exit status 0 but the output differs: silent data corruption (by mission: the robot
+    /// collided, every component running).
     Sdc,
-    /// The system exited with a failure (a component died or reported an error).
+    /// The system exited with a failure (a component died or reported an error; by mission:
+    /// the mission was aborted or left no verdict).
     Crash,
-    /// The system did not finish within the limit.
+    /// The system did not finish within the limit (by mission: also the simulator's own time
+    /// limit passed before the goal).
     Hang,
     /// The injection could not be delivered (not counted).
     Missed,
@@ -93,6 +103,80 @@ fn first_difference(out: &[u8], golden: &[u8], golden_frames: &[&[u8]]) -> Optio
     None
 }
 
+/// What a simulator says of its mission: the fields of the summary it writes in the run's
+/// folder (the maze robot's `s3res-sim --summary mission.json`) that classification reads.
+/// Other fields are ignored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MissionVerdict {
+    /// The goal was reached without collision.
+    pub success: bool,
+    /// `goal`, `collision`, `time_limit`, `aborted` (the robot's words; any other is taken as
+    /// an abort).
+    pub outcome: String,
+    /// Simulated time from start to the end of the mission.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mission_time_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub collisions: Option<u64>,
+}
+
+impl MissionVerdict {
+    /// Reads `path`; `None` if it is missing or is not such a summary (the simulator was
+    /// stopped before it could write one).
+    pub fn read(path: &Path) -> Option<MissionVerdict> {
+        let text = std::fs::read_to_string(path).ok()?;
+        serde_json::from_str(&text).ok()
+    }
+}
+
+/// The class of a run by its mission. `timed_out`: killed at the run's limit; `failed`: the
+/// injected component failed (bootstrap said so: [`component_failure`]); `exit_ok`: bootstrap
+/// exited 0. What happened to the injected process comes first, as in MAVFI's classes: a
+/// component that died is a crash, whatever the robot then did on its last command. Then the
+/// mission is the output: the goal reached is benign; a collision, every component running, is
+/// a silent corruption of the commands; a mission that never ended (the simulator's time
+/// limit: the robot stood still or wandered) is a hang; an aborted mission or none at all is
+/// a crash, and so is a goal reached by a system that then failed.
+pub fn mission_class(
+    exit_ok: bool,
+    timed_out: bool,
+    failed: bool,
+    verdict: Option<&MissionVerdict>,
+) -> Class {
+    if timed_out {
+        return Class::Hang;
+    }
+    if failed {
+        return Class::Crash;
+    }
+    match verdict {
+        None => Class::Crash,
+        Some(v) if v.success => {
+            if exit_ok {
+                Class::Benign
+            } else {
+                Class::Crash
+            }
+        }
+        Some(v) => match v.outcome.as_str() {
+            "collision" => Class::Sdc,
+            "time_limit" => Class::Hang,
+            _ => Class::Crash,
+        },
+    }
+}
+
+/// How `component` failed, if bootstrap's stderr says it did: bootstrap ends with one line
+/// `s3res-bootstrap: component NAME failed: STATUS` per component that failed before any stop
+/// (its documented exit contract), e.g. `killed by signal 11`.
+pub fn component_failure(stderr: &str, component: &str) -> Option<String> {
+    let head = format!("s3res-bootstrap: component {component} failed: ");
+    stderr
+        .lines()
+        .find_map(|l| l.strip_prefix(&head))
+        .map(str::to_owned)
+}
+
 /// Splits a byte stream into frames (a trailing partial frame is one more "frame").
 fn frames(mut s: &[u8]) -> Vec<&[u8]> {
     let mut out = Vec::new();
@@ -129,6 +213,12 @@ pub struct ClassRecord {
     pub exit_signal: Option<i32>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub miss: Option<String>,
+    /// How the injected component failed, as bootstrap reported it (`killed by signal 11`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<String>,
+    /// By mission (`--mission`): the simulator's verdict, `None` if it wrote none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mission: Option<MissionVerdict>,
     pub diff: OutputDiff,
 }
 
@@ -149,6 +239,40 @@ pub struct ClassSummary {
     pub pct_sdc: f64,
     pub pct_crash: f64,
     pub pct_hang: f64,
+    /// Each class among the classified runs, with its 95 % interval (absent with none).
+    #[serde(default)]
+    pub rates: ClassRates,
+    /// The components injected into.
+    #[serde(default)]
+    pub components: Vec<String>,
+    /// Bits flipped per injection (`--fault reg`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reg_bits: Option<u32>,
+    /// By mission (`--mission`): missions and their times.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub missions: Option<MissionSummary>,
+}
+
+/// The rate of each class among the classified runs.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ClassRates {
+    pub benign: Option<Rate>,
+    pub sdc: Option<Rate>,
+    pub crash: Option<Rate>,
+    pub hang: Option<Rate>,
+}
+
+/// Missions of a classification by mission, as MAVFI's Table 2 gives flights: how many
+/// succeeded, and how long the successful ones took against the golden run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MissionSummary {
+    /// The golden run's verdict.
+    pub golden: MissionVerdict,
+    /// Successful missions among the classified runs.
+    pub successful: Option<Rate>,
+    /// Mission time of the successful injected runs: mean and longest, simulated seconds.
+    pub time_mean_s: Option<f64>,
+    pub time_max_s: Option<f64>,
 }
 
 /// What `classify` needs.
@@ -164,6 +288,8 @@ pub struct ClassifyRun {
     pub reg: RegOptions,
     /// The file holding the output, relative to the run's folder; `stdout` = bootstrap's.
     pub output: String,
+    /// Classify by the mission summary this file in the run's folder holds, not by output.
+    pub mission: Option<String>,
     pub limit: Duration,
     pub ready_limit: Duration,
 }
@@ -225,6 +351,21 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
             std::fs::read_to_string(golden_dir.path().join("stderr")).unwrap_or_default()
         );
     }
+    let golden_mission = match &c.mission {
+        None => None,
+        Some(file) => match MissionVerdict::read(&golden_dir.path().join(file)) {
+            Some(v) if v.success => Some(v),
+            Some(v) => bail!(
+                "the golden run's mission did not succeed (outcome `{}`): runs with a fault \
+                 cannot be told from it",
+                v.outcome
+            ),
+            None => bail!(
+                "the golden run wrote no mission summary {file} (or not one with `success` \
+                 and `outcome`) in its folder; give --mission the file the simulator writes"
+            ),
+        },
+    };
     let golden_out = c.output_of(golden_dir.path());
     std::fs::write(c.out.join("golden.out"), &golden_out)?;
     tracing::info!(bytes = golden_out.len(), "golden run done");
@@ -251,8 +392,16 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
         let attempt = result.attempts.first();
         let delivered = attempt.is_some_and(|a| a.ts_ns.is_some());
         let ok = result.status.is_some_and(|s| s.success());
+        let stderr = std::fs::read_to_string(dir.path().join("stderr")).unwrap_or_default();
+        let failure = component_failure(&stderr, &planned.component);
+        let mission = c
+            .mission
+            .as_ref()
+            .and_then(|file| MissionVerdict::read(&dir.path().join(file)));
         let class = if !delivered {
             Class::Missed
+        } else if c.mission.is_some() {
+            mission_class(ok, result.timed_out, failure.is_some(), mission.as_ref())
         } else if result.timed_out {
             Class::Hang
         } else if !ok {
@@ -279,6 +428,8 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
             exit_code: status.and_then(|s| s.0),
             exit_signal: status.and_then(|s| s.1),
             miss: attempt.and_then(|a| a.miss.clone()),
+            failure,
+            mission,
             diff: diff(&out, &golden_out),
         };
         writeln!(file, "{}", serde_json::to_string(&rec)?)?;
@@ -287,7 +438,7 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
         }
         records.push(rec);
     }
-    let summary = summarise(c, &records);
+    let summary = summarise(c, &records, golden_mission);
     std::fs::write(
         c.out.join("classify.json"),
         serde_json::to_string_pretty(&summary)? + "\n",
@@ -299,7 +450,11 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
     Ok(summary)
 }
 
-fn summarise(c: &ClassifyRun, recs: &[ClassRecord]) -> ClassSummary {
+fn summarise(
+    c: &ClassifyRun,
+    recs: &[ClassRecord],
+    golden_mission: Option<MissionVerdict>,
+) -> ClassSummary {
     let n = |k: Class| recs.iter().filter(|r| r.class == k).count() as u64;
     let classified = recs.len() as u64 - n(Class::Missed);
     let pct = |k: Class| {
@@ -309,6 +464,26 @@ fn summarise(c: &ClassifyRun, recs: &[ClassRecord]) -> ClassSummary {
             n(k) as f64 * 100.0 / classified as f64
         }
     };
+    let missions = golden_mission.map(|golden| {
+        let done: Vec<f64> = recs
+            .iter()
+            .filter(|r| r.class != Class::Missed)
+            .filter_map(|r| r.mission.as_ref())
+            .filter(|m| m.success)
+            .filter_map(|m| m.mission_time_s)
+            .collect();
+        let successful = recs
+            .iter()
+            .filter(|r| r.class != Class::Missed)
+            .filter(|r| r.mission.as_ref().is_some_and(|m| m.success))
+            .count() as u64;
+        MissionSummary {
+            golden,
+            successful: Rate::of(successful, classified),
+            time_mean_s: (!done.is_empty()).then(|| done.iter().sum::<f64>() / done.len() as f64),
+            time_max_s: done.iter().copied().reduce(f64::max),
+        }
+    });
     ClassSummary {
         system: c.system.clone(),
         fault: c.params.fault,
@@ -324,27 +499,74 @@ fn summarise(c: &ClassifyRun, recs: &[ClassRecord]) -> ClassSummary {
         pct_sdc: pct(Class::Sdc),
         pct_crash: pct(Class::Crash),
         pct_hang: pct(Class::Hang),
+        rates: ClassRates {
+            benign: Rate::of(n(Class::Benign), classified),
+            sdc: Rate::of(n(Class::Sdc), classified),
+            crash: Rate::of(n(Class::Crash), classified),
+            hang: Rate::of(n(Class::Hang), classified),
+        },
+        components: c.params.components.clone(),
+        reg_bits: (c.params.fault == crate::fault::FaultKind::Reg).then_some(c.reg.bits),
+        missions,
     }
 }
 
-/// A markdown table, one row per classification.
+/// A markdown table, one row per classification: each class's share of the classified runs
+/// with its 95 % interval, and, by mission, the successful missions and their times.
 pub fn markdown(rows: &[ClassSummary]) -> String {
+    let by_mission = rows.iter().any(|r| r.missions.is_some());
     let mut s = String::from(
-        "| System | Fault | Runs | Benign % | SDC % | Crash % | Hang % | Missed |\n|---|---|--:|--:|--:|--:|--:|--:|\n",
+        "| System | Into | Fault | Runs | Benign % | SDC % | Crash % | Hang % | Missed |",
     );
+    if by_mission {
+        s.push_str(" Successful missions | Mission time, s: golden / mean / max |");
+    }
+    s.push_str("\n|---|---|---|--:|--:|--:|--:|--:|--:|");
+    if by_mission {
+        s.push_str("--:|--:|");
+    }
+    s.push('\n');
+    let rate = |r: &Option<Rate>| match r {
+        Some(r) => format!("{:.1} {}", r.pct, r.interval()),
+        None => "–".to_owned(),
+    };
+    let secs = |t: Option<f64>| t.map_or("–".to_owned(), |t| format!("{t:.1}"));
     for r in rows {
-        let _ = writeln!(
+        let fault = match r.reg_bits {
+            Some(b) => format!("{} ({b} bit{})", r.fault, if b == 1 { "" } else { "s" }),
+            None => r.fault.to_string(),
+        };
+        let _ = write!(
             s,
-            "| {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.1} | {} |",
+            "| {} | {} | {fault} | {} | {} | {} | {} | {} | {} |",
             r.system.display(),
-            r.fault,
+            r.components.join(", "),
             r.classified,
-            r.pct_benign,
-            r.pct_sdc,
-            r.pct_crash,
-            r.pct_hang,
+            rate(&r.rates.benign),
+            rate(&r.rates.sdc),
+            rate(&r.rates.crash),
+            rate(&r.rates.hang),
             r.missed
         );
+        if by_mission {
+            match &r.missions {
+                Some(m) => {
+                    let ok = match &m.successful {
+                        Some(x) => format!("{}/{} {}", x.k, x.n, x.interval()),
+                        None => "–".to_owned(),
+                    };
+                    let _ = write!(
+                        s,
+                        " {ok} | {} / {} / {} |",
+                        secs(m.golden.mission_time_s),
+                        secs(m.time_mean_s),
+                        secs(m.time_max_s)
+                    );
+                }
+                None => s.push_str(" – | – |"),
+            }
+        }
+        s.push('\n');
     }
     s
 }
@@ -357,6 +579,163 @@ mod tests {
         let mut v = (p.len() as u32).to_le_bytes().to_vec();
         v.extend_from_slice(p);
         v
+    }
+
+    fn verdict(success: bool, outcome: &str) -> MissionVerdict {
+        MissionVerdict {
+            success,
+            outcome: outcome.to_owned(),
+            mission_time_s: Some(20.0),
+            collisions: None,
+        }
+    }
+
+    #[test]
+    fn a_mission_is_classified_by_its_outcome() {
+        let goal = verdict(true, "goal");
+        assert_eq!(
+            mission_class(true, false, false, Some(&goal)),
+            Class::Benign
+        );
+        // The goal reached, then a component failed: the system did not come through.
+        assert_eq!(
+            mission_class(false, false, false, Some(&goal)),
+            Class::Crash
+        );
+        // The simulator exits 1 on a failed mission: the exit status says nothing more.
+        for exit_ok in [true, false] {
+            let c = |o| mission_class(exit_ok, false, false, Some(&verdict(false, o)));
+            assert_eq!(c("collision"), Class::Sdc);
+            assert_eq!(c("time_limit"), Class::Hang);
+            assert_eq!(c("aborted"), Class::Crash);
+            assert_eq!(c("something new"), Class::Crash);
+            assert_eq!(mission_class(exit_ok, false, false, None), Class::Crash);
+            // The injected component died: a crash, though the robot then hit a wall on its
+            // last command (or even reached the goal).
+            let collision = verdict(false, "collision");
+            assert_eq!(
+                mission_class(exit_ok, false, true, Some(&collision)),
+                Class::Crash
+            );
+            assert_eq!(
+                mission_class(exit_ok, false, true, Some(&goal)),
+                Class::Crash
+            );
+            // Killed at the run's limit: a hang, whatever was written before.
+            assert_eq!(
+                mission_class(exit_ok, true, false, Some(&goal)),
+                Class::Hang
+            );
+            assert_eq!(mission_class(exit_ok, true, true, None), Class::Hang);
+        }
+    }
+
+    #[test]
+    fn a_failure_is_read_from_bootstraps_last_lines() {
+        let stderr = "2026-11-27T06:28:30Z  WARN failed: killed by signal 9 component=navigator\n\
+                      s3res-bootstrap: component sim failed: exit status 1\n\
+                      s3res-bootstrap: component navigator failed: killed by signal 9\n";
+        assert_eq!(
+            component_failure(stderr, "navigator").as_deref(),
+            Some("killed by signal 9")
+        );
+        assert_eq!(
+            component_failure(stderr, "sim").as_deref(),
+            Some("exit status 1")
+        );
+        // A name that is a prefix of another's is not taken for it.
+        assert_eq!(component_failure(stderr, "nav"), None);
+        assert_eq!(component_failure(stderr, "planner"), None);
+    }
+
+    #[test]
+    fn a_mission_summary_is_read_from_the_simulators_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mission.json");
+        assert_eq!(MissionVerdict::read(&path), None, "missing");
+        std::fs::write(
+            &path,
+            r#"{"success":false,"outcome":"collision","periods":12,"mission_time_s":0.6,
+               "collisions":1,"trajectory":[[0.1,0.2,0.3]]}"#,
+        )
+        .unwrap();
+        let v = MissionVerdict::read(&path).unwrap();
+        assert_eq!((v.success, v.outcome.as_str()), (false, "collision"));
+        assert_eq!((v.mission_time_s, v.collisions), (Some(0.6), Some(1)));
+        std::fs::write(&path, r#"{"success":true"#).unwrap();
+        assert_eq!(MissionVerdict::read(&path), None, "truncated");
+        std::fs::write(&path, r#"{"ok":true}"#).unwrap();
+        assert_eq!(MissionVerdict::read(&path), None, "not a mission summary");
+    }
+
+    #[test]
+    fn the_table_gives_every_rate_with_its_interval() {
+        let rec = |class, mission: Option<MissionVerdict>| ClassRecord {
+            seed: 1,
+            run: 0,
+            at_ns: 0,
+            ts_ns: Some(1),
+            action: Action::Exec,
+            component: "navigator".into(),
+            replica: None,
+            pid: None,
+            class,
+            exit_code: None,
+            exit_signal: None,
+            miss: None,
+            failure: None,
+            mission,
+            diff: OutputDiff::default(),
+        };
+        let mut fast = verdict(true, "goal");
+        fast.mission_time_s = Some(19.0);
+        let recs = [
+            rec(Class::Benign, Some(fast)),
+            rec(Class::Benign, Some(verdict(true, "goal"))),
+            rec(Class::Sdc, Some(verdict(false, "collision"))),
+            rec(Class::Crash, None),
+            rec(Class::Missed, Some(verdict(true, "goal"))),
+        ];
+        let c = ClassifyRun {
+            system: "robot.json".into(),
+            bootstrap: "s3res-bootstrap".into(),
+            out: "out".into(),
+            params: ScheduleParams {
+                fault: crate::fault::FaultKind::Exec,
+                rate_hz: 1.0,
+                arrival: crate::schedule::Arrival::Fixed,
+                window: Duration::from_secs(1),
+                components: vec!["navigator".into()],
+                var: s3res_protocol::campaign::VarSpec {
+                    offset: 0,
+                    field: s3res_protocol::campaign::VarField::Byte,
+                    flips: 1,
+                    bits: None,
+                },
+            },
+            seed: 1,
+            runs: 5,
+            pick: Pick::Uniform,
+            reg: RegOptions::default(),
+            output: "stdout".into(),
+            mission: Some("mission.json".into()),
+            limit: Duration::from_secs(1),
+            ready_limit: Duration::from_secs(1),
+        };
+        let s = summarise(&c, &recs, Some(verdict(true, "goal")));
+        assert_eq!((s.classified, s.missed, s.benign), (4, 1, 2));
+        let m = s.missions.as_ref().unwrap();
+        // The missed run's mission is not counted: it had no fault.
+        assert_eq!(m.successful.map(|r| (r.k, r.n)), Some((2, 4)));
+        assert_eq!((m.time_mean_s, m.time_max_s), (Some(19.5), Some(20.0)));
+        let table = markdown(&[s]);
+        let row = table.lines().nth(2).unwrap();
+        assert!(row.contains("| 50.0 [6.76, 93.24] |"), "{row}");
+        assert!(
+            row.contains("| 2/4 [6.76, 93.24] | 20.0 / 19.5 / 20.0 |"),
+            "{row}"
+        );
+        assert!(row.contains("| navigator | exec | 4 |"), "{row}");
     }
 
     #[test]

@@ -123,6 +123,15 @@ enum Command {
     ///
     ///     s3res-inject classify --system echo-none.json --components echo --fault sdc \
     ///         --runs 100 --seed 1 --out out/classify-sdc
+    ///
+    /// A robot's output differs from run to run without a fault (it runs in closed loop with
+    /// its simulator): classify it by the mission summary its simulator writes instead. Goal
+    /// = benign, collision = SDC, time limit = hang, aborted = crash; classify.json also
+    /// counts the successful missions and their times:
+    ///
+    ///     s3res-inject classify --system examples/robot/campaign/none.json \
+    ///         --components navigator --fault reg --reg-bits 3 --duration 4 \
+    ///         --mission mission.json --runs 1000 --seed 1 --out out/classify-nav-reg3
     #[command(verbatim_doc_comment)]
     Classify(ClassifyArgs),
     /// Combine campaign outputs: shards of one campaign become the whole campaign; different
@@ -353,6 +362,10 @@ struct ClassifyArgs {
     /// writes in its run folder.
     #[arg(long, value_name = "FILE", default_value = "stdout")]
     output: String,
+    /// Classify by the mission summary the system writes in its run folder (JSON with
+    /// `success` and `outcome`, as `s3res-sim --summary FILE`), not by --output.
+    #[arg(long, value_name = "FILE")]
+    mission: Option<String>,
     /// A run longer than this is killed and classified as a hang.
     #[arg(long, value_name = "SECS", default_value_t = 30.0)]
     run_timeout: f64,
@@ -706,6 +719,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
         pick: a.pick,
         reg: a.reg.options(),
         output: a.output.clone(),
+        mission: a.mission.clone(),
         limit: seconds("--run-timeout", a.run_timeout)?,
         ready_limit: Duration::from_secs(30),
     };

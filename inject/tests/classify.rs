@@ -100,3 +100,55 @@ fn exec_is_a_crash_and_cfe_a_hang() {
     assert_eq!(s["hang"], 2, "{s}");
     assert_eq!(s["pct_hang"], 100.0, "{s}");
 }
+
+/// The unprotected maze robot, classified by its mission: the sim's summary is the output.
+/// SIGKILL to the navigator is a crash, and no successful mission (nothing replaces the
+/// navigator: the robot drives on its last command into a wall); the golden mission is kept.
+#[test]
+fn a_robot_is_classified_by_its_mission() {
+    let dir = tempfile::tempdir().unwrap();
+    let system = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/robot/campaign/none.json");
+    let out = dir.path().join("out");
+    let seed = Rng::from_env().next_u64().to_string();
+    let f = inject(
+        &[
+            "-q",
+            "classify",
+            "--system",
+            system.to_str().unwrap(),
+            "--components",
+            "navigator",
+            "--fault",
+            "exec",
+            "--runs",
+            "2",
+            "--seed",
+            &seed,
+            "--out",
+            out.to_str().unwrap(),
+            "--duration",
+            "1",
+            "--mission",
+            "mission.json",
+            "--run-timeout",
+            "60",
+        ],
+        Duration::from_secs(300),
+    );
+    assert!(f.success, "{}", f.stderr);
+    assert!(f.stdout.contains("| Successful missions |"), "{}", f.stdout);
+    let s = read_json(&out.join("classify.json"));
+    assert_eq!(
+        (s["classified"].as_u64(), s["crash"].as_u64()),
+        (Some(2), Some(2)),
+        "{s}"
+    );
+    assert_eq!(s["missions"]["golden"]["outcome"], "goal", "{s}");
+    assert_eq!(s["missions"]["successful"]["k"], 0, "{s}");
+    assert_eq!(s["rates"]["crash"]["pct"], 100.0, "{s}");
+    for r in read_jsonl(&out.join("classify.jsonl")) {
+        assert_eq!(r["class"], "crash", "{r}");
+        assert_eq!(r["failure"], "killed by signal 9", "{r}");
+        assert_ne!(r["mission"]["success"], true, "{r}");
+    }
+}
