@@ -21,6 +21,7 @@ use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_single, ScheduleParams};
 use crate::stop::StopSignals;
 use crate::target::Pick;
+use s3res_protocol::campaign::VarSpec;
 
 /// The class of one run. By output (the default), or by mission (`--mission`, see
 /// [`mission_class`]).
@@ -275,22 +276,75 @@ pub struct MissionSummary {
     pub time_max_s: Option<f64>,
 }
 
-/// What `classify` needs.
-#[derive(Debug, Clone)]
-pub struct ClassifyRun {
+/// `classify-run.json`: what a classification (or a shard of one) runs with, and what its
+/// golden run gave. `merge` joins the shards of one classification by it, and `--resume`
+/// checks it before it continues a folder.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClassifyInfo {
     pub system: PathBuf,
-    pub bootstrap: PathBuf,
-    pub out: PathBuf,
-    pub params: ScheduleParams,
+    pub fault: crate::fault::FaultKind,
+    pub components: Vec<String>,
     pub seed: u64,
+    /// Runs of the whole classification (all shards).
     pub runs: u64,
-    pub pick: Pick,
-    pub reg: RegOptions,
+    /// `(K, N)`: only the runs `r` with `r mod N = K − 1`.
+    #[serde(default)]
+    pub shard: Option<(u64, u64)>,
+    /// The injection instant is uniform in this long after every target runs.
+    pub window_ms: u64,
     /// The file holding the output, relative to the run's folder; `stdout` = bootstrap's.
     pub output: String,
     /// Classify by the mission summary this file in the run's folder holds, not by output.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mission: Option<String>,
-    pub limit: Duration,
+    pub pick: Pick,
+    pub var: VarSpec,
+    pub reg: RegOptions,
+    /// A run longer than this is killed: a hang.
+    pub run_limit_ms: u64,
+    /// The golden run's mission (by mission), once it ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub golden_mission: Option<MissionVerdict>,
+}
+
+impl ClassifyInfo {
+    /// The runs this shard (or the whole classification) does.
+    pub fn run_indices(&self) -> impl Iterator<Item = u64> + '_ {
+        (0..self.runs).filter(|r| match self.shard {
+            Some((k, n)) => r % n == k - 1,
+            None => true,
+        })
+    }
+
+    fn params(&self) -> ScheduleParams {
+        ScheduleParams {
+            fault: self.fault,
+            rate_hz: 1.0,
+            arrival: crate::schedule::Arrival::Fixed,
+            window: Duration::from_millis(self.window_ms),
+            components: self.components.clone(),
+            var: self.var.clone(),
+        }
+    }
+
+    /// The same classification, whatever shard and golden run: what shards share.
+    fn whole(&self) -> ClassifyInfo {
+        ClassifyInfo {
+            shard: None,
+            golden_mission: None,
+            ..self.clone()
+        }
+    }
+}
+
+/// What `classify` needs.
+#[derive(Debug, Clone)]
+pub struct ClassifyRun {
+    pub info: ClassifyInfo,
+    pub bootstrap: PathBuf,
+    pub out: PathBuf,
+    /// Continue the classification `out` holds (the same parameters): run its missing runs.
+    pub resume: bool,
     pub ready_limit: Duration,
 }
 
@@ -298,47 +352,184 @@ impl ClassifyRun {
     fn setup(&self, dir: &Path, mark: String) -> RunSetup {
         RunSetup {
             bootstrap: self.bootstrap.clone(),
-            system: self.system.clone(),
+            system: self.info.system.clone(),
             dir: dir.to_path_buf(),
             mark,
-            targets: self.params.components.clone(),
-            pick: self.pick,
-            reg: self.reg.clone(),
-            limit: self.limit,
+            targets: self.info.components.clone(),
+            pick: self.info.pick,
+            reg: self.info.reg.clone(),
+            limit: Duration::from_millis(self.info.run_limit_ms),
             ready_limit: self.ready_limit,
         }
     }
 
     fn output_of(&self, dir: &Path) -> Vec<u8> {
-        let path = if self.output == "stdout" {
+        let path = if self.info.output == "stdout" {
             RunResult::stdout_path(dir)
         } else {
-            dir.join(&self.output)
+            dir.join(&self.info.output)
         };
         std::fs::read(path).unwrap_or_default()
     }
 }
 
-/// Runs the golden run and the N injected runs; writes `classify.jsonl`, `classify.json` and
-/// `classify.md` into `c.out`.
+/// The files of a classification's folder.
+const INFO_FILE: &str = "classify-run.json";
+const RECORDS_FILE: &str = "classify.jsonl";
+const GOLDEN_FILE: &str = "golden.out";
+const OUTPUT_FILES: [&str; 5] = [
+    INFO_FILE,
+    RECORDS_FILE,
+    GOLDEN_FILE,
+    "classify.json",
+    "classify.md",
+];
+
+/// What a classification folder holds: its parameters, the golden output and the records of
+/// the runs done (a record cut short by a kill is left out).
+#[derive(Debug, Clone)]
+pub struct ClassifyOutput {
+    pub info: ClassifyInfo,
+    pub golden: Vec<u8>,
+    pub records: Vec<ClassRecord>,
+}
+
+impl ClassifyOutput {
+    /// Reads `dir`; `None` if it holds no classification (no `classify-run.json`).
+    pub fn read(dir: &Path) -> Result<Option<ClassifyOutput>, String> {
+        let info_path = dir.join(INFO_FILE);
+        let text = match std::fs::read_to_string(&info_path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("cannot read {}: {e}", info_path.display())),
+        };
+        let info = serde_json::from_str(&text).map_err(|e| {
+            format!(
+                "{}: not a classification's parameters: {e}",
+                info_path.display()
+            )
+        })?;
+        let golden = std::fs::read(dir.join(GOLDEN_FILE)).unwrap_or_default();
+        let path = dir.join(RECORDS_FILE);
+        let records = match std::fs::read_to_string(&path) {
+            Ok(t) => crate::report::parse_jsonl(&path.display().to_string(), &t, true)?,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+            Err(e) => return Err(format!("cannot read {}: {e}", path.display())),
+        };
+        Ok(Some(ClassifyOutput {
+            info,
+            golden,
+            records,
+        }))
+    }
+
+    /// Writes the folder: parameters, golden output, records (by run), summary and table.
+    pub fn write(&self, dir: &Path) -> anyhow::Result<ClassSummary> {
+        std::fs::write(
+            dir.join(INFO_FILE),
+            serde_json::to_string_pretty(&self.info)? + "\n",
+        )?;
+        std::fs::write(dir.join(GOLDEN_FILE), &self.golden)?;
+        let mut records = self.records.clone();
+        records.sort_by_key(|r| r.run);
+        let mut text = String::new();
+        for r in &records {
+            text.push_str(&serde_json::to_string(r)?);
+            text.push('\n');
+        }
+        std::fs::write(dir.join(RECORDS_FILE), text)?;
+        let summary = summarise(&self.info, &records);
+        std::fs::write(
+            dir.join("classify.json"),
+            serde_json::to_string_pretty(&summary)? + "\n",
+        )?;
+        std::fs::write(
+            dir.join("classify.md"),
+            markdown(std::slice::from_ref(&summary)),
+        )?;
+        Ok(summary)
+    }
+}
+
+/// Runs the golden run and the injected runs of `c.info` (its shard); writes
+/// `classify-run.json`, `golden.out`, `classify.jsonl`, `classify.json` and `classify.md`
+/// into `c.out`. With `c.resume`, a folder holding the same classification keeps its golden
+/// run and the runs it completed, and only the missing ones are run.
 pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> {
     let stop = || stop.requested().is_some();
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
-    if c.out.join("classify.jsonl").exists() {
-        bail!(
-            "{} already holds a classification; give a new --out folder",
-            c.out.display()
-        );
-    }
+    let found = if c.resume {
+        ClassifyOutput::read(&c.out).map_err(anyhow::Error::msg)?
+    } else {
+        None
+    };
     let _ = replica_rt::sys::set_child_subreaper();
     let stamp = std::process::id();
+    let mut output = match found {
+        Some(old) => resumed(c, old)?,
+        None => {
+            if let Some(f) = OUTPUT_FILES.iter().find(|f| c.out.join(f).exists()) {
+                bail!(
+                    "{} already holds a classification ({f}); give a new --out folder, or \
+                     --resume (with the same parameters) to finish its missing runs",
+                    c.out.display()
+                );
+            }
+            golden_run(c, stamp, &stop)?
+        }
+    };
+    let records_path = c.out.join(RECORDS_FILE);
+    let mut file = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&records_path)
+        .with_context(|| format!("cannot open {}", records_path.display()))?;
+    let done: std::collections::BTreeSet<u64> = output.records.iter().map(|r| r.run).collect();
+    let todo: Vec<u64> = c.info.run_indices().filter(|r| !done.contains(r)).collect();
+    let params = c.info.params();
+    for (i, &r) in todo.iter().enumerate() {
+        let Some(planned) = plan_single(&params, c.info.seed, r) else {
+            bail!("fault `none` or no component: nothing to classify");
+        };
+        let dir = tempfile::Builder::new()
+            .prefix("s3res-classify-")
+            .tempdir()?;
+        let result = run_once(
+            &c.setup(dir.path(), format!("{stamp}-{}-{r}", c.info.seed)),
+            std::slice::from_ref(&planned),
+            &stop,
+        );
+        if result.interrupted {
+            eprintln!(
+                "s3res-inject: stopped by signal; the {} completed run(s) are kept (the same \
+                 command with --resume runs the rest)",
+                output.records.len()
+            );
+            break;
+        }
+        let rec = record(c, &output, r, &planned, &result, dir.path());
+        writeln!(file, "{}", serde_json::to_string(&rec)?)?;
+        if (i + 1) % 10 == 0 || i + 1 == todo.len() {
+            eprintln!("s3res-inject: classify: run {}/{}", i + 1, todo.len());
+        }
+        output.records.push(rec);
+    }
+    drop(file);
+    output.write(&c.out)
+}
 
+/// The golden run: its output (and mission) become the reference, written to `c.out` with the
+/// parameters and an empty record file.
+fn golden_run(
+    c: &ClassifyRun,
+    stamp: u32,
+    stop: &dyn Fn() -> bool,
+) -> anyhow::Result<ClassifyOutput> {
     let golden_dir = tempfile::Builder::new().prefix("s3res-golden-").tempdir()?;
     let golden = run_once(
         &c.setup(golden_dir.path(), format!("{stamp}-golden")),
         &[],
-        &stop,
+        stop,
     );
     if golden.interrupted {
         bail!("stopped by signal during the golden run");
@@ -351,7 +542,8 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
             std::fs::read_to_string(golden_dir.path().join("stderr")).unwrap_or_default()
         );
     }
-    let golden_mission = match &c.mission {
+    let mut info = c.info.clone();
+    info.golden_mission = match &c.info.mission {
         None => None,
         Some(file) => match MissionVerdict::read(&golden_dir.path().join(file)) {
             Some(v) if v.success => Some(v),
@@ -366,95 +558,150 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
             ),
         },
     };
-    let golden_out = c.output_of(golden_dir.path());
-    std::fs::write(c.out.join("golden.out"), &golden_out)?;
-    tracing::info!(bytes = golden_out.len(), "golden run done");
-
-    let mut file = std::fs::File::create(c.out.join("classify.jsonl"))?;
-    let mut records = Vec::new();
-    for r in 0..c.runs {
-        let Some(planned) = plan_single(&c.params, c.seed, r) else {
-            bail!("fault `none` or no component: nothing to classify");
-        };
-        let dir = tempfile::Builder::new()
-            .prefix("s3res-classify-")
-            .tempdir()?;
-        let result = run_once(
-            &c.setup(dir.path(), format!("{stamp}-{}-{r}", c.seed)),
-            std::slice::from_ref(&planned),
-            &stop,
-        );
-        if result.interrupted {
-            eprintln!("s3res-inject: stopped by signal; the {r} completed run(s) are kept");
-            break;
-        }
-        let out = c.output_of(dir.path());
-        let attempt = result.attempts.first();
-        let delivered = attempt.is_some_and(|a| a.ts_ns.is_some());
-        let ok = result.status.is_some_and(|s| s.success());
-        let stderr = std::fs::read_to_string(dir.path().join("stderr")).unwrap_or_default();
-        let failure = component_failure(&stderr, &planned.component);
-        let mission = c
-            .mission
-            .as_ref()
-            .and_then(|file| MissionVerdict::read(&dir.path().join(file)));
-        let class = if !delivered {
-            Class::Missed
-        } else if c.mission.is_some() {
-            mission_class(ok, result.timed_out, failure.is_some(), mission.as_ref())
-        } else if result.timed_out {
-            Class::Hang
-        } else if !ok {
-            Class::Crash
-        } else if out != golden_out {
-            Class::Sdc
-        } else {
-            Class::Benign
-        };
-        let status = result.status.map(|s| {
-            use std::os::unix::process::ExitStatusExt as _;
-            (s.code(), s.signal())
-        });
-        let rec = ClassRecord {
-            seed: c.seed,
-            run: r,
-            at_ns: planned.at_ns,
-            ts_ns: attempt.and_then(|a| a.ts_ns),
-            action: planned.action.clone(),
-            component: planned.component.clone(),
-            replica: attempt.and_then(|a| a.slot),
-            pid: attempt.and_then(|a| a.pid),
-            class,
-            exit_code: status.and_then(|s| s.0),
-            exit_signal: status.and_then(|s| s.1),
-            miss: attempt.and_then(|a| a.miss.clone()),
-            failure,
-            mission,
-            diff: diff(&out, &golden_out),
-        };
-        writeln!(file, "{}", serde_json::to_string(&rec)?)?;
-        if (r + 1) % 10 == 0 || r + 1 == c.runs {
-            eprintln!("s3res-inject: classify: run {}/{}", r + 1, c.runs);
-        }
-        records.push(rec);
-    }
-    let summary = summarise(c, &records, golden_mission);
-    std::fs::write(
-        c.out.join("classify.json"),
-        serde_json::to_string_pretty(&summary)? + "\n",
-    )?;
-    std::fs::write(
-        c.out.join("classify.md"),
-        markdown(std::slice::from_ref(&summary)),
-    )?;
-    Ok(summary)
+    let output = ClassifyOutput {
+        info,
+        golden: c.output_of(golden_dir.path()),
+        records: Vec::new(),
+    };
+    output.write(&c.out)?;
+    tracing::info!(bytes = output.golden.len(), "golden run done");
+    Ok(output)
 }
 
-fn summarise(
+/// The classification `old` found in `c.out`, to be continued: the same parameters, its
+/// golden run, and the records of this shard's runs (each once).
+fn resumed(c: &ClassifyRun, mut old: ClassifyOutput) -> anyhow::Result<ClassifyOutput> {
+    if old.info.whole() != c.info.whole() || old.info.shard != c.info.shard {
+        bail!(
+            "{} holds another classification ({} vs the command line's), so --resume cannot \
+             continue it; resume with the command that started it, or give a new --out folder",
+            c.out.display(),
+            describe(&old.info),
+        );
+    }
+    let wanted: std::collections::BTreeSet<u64> = c.info.run_indices().collect();
+    let mut kept = std::collections::BTreeSet::new();
+    old.records
+        .retain(|r| wanted.contains(&r.run) && kept.insert(r.run));
+    eprintln!(
+        "s3res-inject: resuming: {} run(s) already done in {}, {} to go",
+        old.records.len(),
+        c.out.display(),
+        wanted.len() - old.records.len()
+    );
+    old.write(&c.out)?;
+    Ok(old)
+}
+
+/// `reg into navigator, seed 1, 1000 runs, shard 2/4`: a classification in a few words.
+fn describe(i: &ClassifyInfo) -> String {
+    let mut s = format!(
+        "{} into {}, seed {}, {} runs",
+        i.fault,
+        i.components.join(","),
+        i.seed,
+        i.runs
+    );
+    if let Some((k, n)) = i.shard {
+        let _ = write!(s, ", shard {k}/{n}");
+    }
+    s
+}
+
+/// The record of run `r`.
+fn record(
     c: &ClassifyRun,
-    recs: &[ClassRecord],
-    golden_mission: Option<MissionVerdict>,
-) -> ClassSummary {
+    output: &ClassifyOutput,
+    r: u64,
+    planned: &crate::schedule::Planned,
+    result: &RunResult,
+    dir: &Path,
+) -> ClassRecord {
+    let out = c.output_of(dir);
+    let attempt = result.attempts.first();
+    let delivered = attempt.is_some_and(|a| a.ts_ns.is_some());
+    let ok = result.status.is_some_and(|s| s.success());
+    let stderr = std::fs::read_to_string(dir.join("stderr")).unwrap_or_default();
+    let failure = component_failure(&stderr, &planned.component);
+    let mission = c
+        .info
+        .mission
+        .as_ref()
+        .and_then(|file| MissionVerdict::read(&dir.join(file)));
+    let class = if !delivered {
+        Class::Missed
+    } else if c.info.mission.is_some() {
+        mission_class(ok, result.timed_out, failure.is_some(), mission.as_ref())
+    } else if result.timed_out {
+        Class::Hang
+    } else if !ok {
+        Class::Crash
+    } else if out != output.golden {
+        Class::Sdc
+    } else {
+        Class::Benign
+    };
+    let status = result.status.map(|s| {
+        use std::os::unix::process::ExitStatusExt as _;
+        (s.code(), s.signal())
+    });
+    ClassRecord {
+        seed: c.info.seed,
+        run: r,
+        at_ns: planned.at_ns,
+        ts_ns: attempt.and_then(|a| a.ts_ns),
+        action: planned.action.clone(),
+        component: planned.component.clone(),
+        replica: attempt.and_then(|a| a.slot),
+        pid: attempt.and_then(|a| a.pid),
+        class,
+        exit_code: status.and_then(|s| s.0),
+        exit_signal: status.and_then(|s| s.1),
+        miss: attempt.and_then(|a| a.miss.clone()),
+        failure,
+        mission,
+        diff: diff(&out, &output.golden),
+    }
+}
+
+/// Joins the shards of one classification (folders `classify` wrote) into the whole: the
+/// records of every shard, each run once, the first shard's golden run. Refuses shards of
+/// different classifications and a run present twice; returns the joined output and the runs
+/// missing from it.
+pub fn merge(parts: Vec<ClassifyOutput>) -> Result<(ClassifyOutput, Vec<u64>), String> {
+    let mut parts = parts.into_iter();
+    let first = parts.next().ok_or("nothing to merge")?;
+    let whole = first.info.whole();
+    let mut merged = ClassifyOutput {
+        info: ClassifyInfo {
+            golden_mission: first.info.golden_mission.clone(),
+            ..whole.clone()
+        },
+        golden: first.golden,
+        records: first.records,
+    };
+    for p in parts {
+        if p.info.whole() != whole {
+            return Err(format!(
+                "not shards of one classification: {} and {}; merge each one's shards apart",
+                describe(&whole),
+                describe(&p.info.whole())
+            ));
+        }
+        merged.records.extend(p.records);
+    }
+    let mut seen = std::collections::BTreeSet::new();
+    if let Some(r) = merged.records.iter().find(|r| !seen.insert(r.run)) {
+        return Err(format!(
+            "run {} is in more than one input (the same shard twice?)",
+            r.run
+        ));
+    }
+    let missing = (0..whole.runs).filter(|r| !seen.contains(r)).collect();
+    Ok((merged, missing))
+}
+
+fn summarise(info: &ClassifyInfo, recs: &[ClassRecord]) -> ClassSummary {
     let n = |k: Class| recs.iter().filter(|r| r.class == k).count() as u64;
     let classified = recs.len() as u64 - n(Class::Missed);
     let pct = |k: Class| {
@@ -464,7 +711,7 @@ fn summarise(
             n(k) as f64 * 100.0 / classified as f64
         }
     };
-    let missions = golden_mission.map(|golden| {
+    let missions = info.golden_mission.clone().map(|golden| {
         let done: Vec<f64> = recs
             .iter()
             .filter(|r| r.class != Class::Missed)
@@ -485,9 +732,9 @@ fn summarise(
         }
     });
     ClassSummary {
-        system: c.system.clone(),
-        fault: c.params.fault,
-        seed: c.seed,
+        system: info.system.clone(),
+        fault: info.fault,
+        seed: info.seed,
         runs: recs.len() as u64,
         classified,
         benign: n(Class::Benign),
@@ -505,8 +752,8 @@ fn summarise(
             crash: Rate::of(n(Class::Crash), classified),
             hang: Rate::of(n(Class::Hang), classified),
         },
-        components: c.params.components.clone(),
-        reg_bits: (c.params.fault == crate::fault::FaultKind::Reg).then_some(c.reg.bits),
+        components: info.components.clone(),
+        reg_bits: (info.fault == crate::fault::FaultKind::Reg).then_some(info.reg.bits),
         missions,
     }
 }
@@ -579,6 +826,30 @@ mod tests {
         let mut v = (p.len() as u32).to_le_bytes().to_vec();
         v.extend_from_slice(p);
         v
+    }
+
+    fn info(golden_mission: Option<MissionVerdict>) -> ClassifyInfo {
+        ClassifyInfo {
+            system: "robot.json".into(),
+            fault: crate::fault::FaultKind::Exec,
+            components: vec!["navigator".into()],
+            seed: 1,
+            runs: 5,
+            shard: None,
+            window_ms: 1000,
+            output: "stdout".into(),
+            mission: Some("mission.json".into()),
+            pick: Pick::Uniform,
+            var: VarSpec {
+                offset: 0,
+                field: s3res_protocol::campaign::VarField::Byte,
+                flips: 1,
+                bits: None,
+            },
+            reg: RegOptions::default(),
+            run_limit_ms: 1000,
+            golden_mission,
+        }
     }
 
     fn verdict(success: bool, outcome: &str) -> MissionVerdict {
@@ -696,33 +967,8 @@ mod tests {
             rec(Class::Crash, None),
             rec(Class::Missed, Some(verdict(true, "goal"))),
         ];
-        let c = ClassifyRun {
-            system: "robot.json".into(),
-            bootstrap: "s3res-bootstrap".into(),
-            out: "out".into(),
-            params: ScheduleParams {
-                fault: crate::fault::FaultKind::Exec,
-                rate_hz: 1.0,
-                arrival: crate::schedule::Arrival::Fixed,
-                window: Duration::from_secs(1),
-                components: vec!["navigator".into()],
-                var: s3res_protocol::campaign::VarSpec {
-                    offset: 0,
-                    field: s3res_protocol::campaign::VarField::Byte,
-                    flips: 1,
-                    bits: None,
-                },
-            },
-            seed: 1,
-            runs: 5,
-            pick: Pick::Uniform,
-            reg: RegOptions::default(),
-            output: "stdout".into(),
-            mission: Some("mission.json".into()),
-            limit: Duration::from_secs(1),
-            ready_limit: Duration::from_secs(1),
-        };
-        let s = summarise(&c, &recs, Some(verdict(true, "goal")));
+        let info = info(Some(verdict(true, "goal")));
+        let s = summarise(&info, &recs);
         assert_eq!((s.classified, s.missed, s.benign), (4, 1, 2));
         let m = s.missions.as_ref().unwrap();
         // The missed run's mission is not counted: it had no fault.

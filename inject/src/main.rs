@@ -15,7 +15,7 @@ use s3res_description::description::{self, HostContext};
 use s3res_description::exec;
 use s3res_description::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
-use s3res_inject::classify::{self, ClassifyRun};
+use s3res_inject::classify::{self, ClassifyInfo, ClassifyRun};
 use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
 use s3res_inject::report::{self, CampaignInfo, CampaignOutput, MachineInfo};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
@@ -135,7 +135,8 @@ enum Command {
     #[command(verbatim_doc_comment)]
     Classify(ClassifyArgs),
     /// Combine campaign outputs: shards of one campaign become the whole campaign; different
-    /// campaigns become rows of one table.
+    /// campaigns become rows of one table. Shards of one classification (`classify --shard`)
+    /// become the whole classification.
     ///
     ///     s3res-inject merge --out out/all out/shard-*
     #[command(verbatim_doc_comment)]
@@ -371,6 +372,13 @@ struct ClassifyArgs {
     run_timeout: f64,
     #[arg(long, value_enum, default_value_t = Pick::Uniform)]
     pick: Pick,
+    /// Do runs r with r % N == K-1 only (K in 1..=N), for job arrays; `merge` joins shards.
+    #[arg(long, value_name = "K/N", value_parser = parse_shard)]
+    shard: Option<(u64, u64)>,
+    /// Finish the classification --out holds (the same command): keep its golden run and
+    /// completed runs, run the missing ones. If --out holds none, start one.
+    #[arg(long)]
+    resume: bool,
     #[command(flatten)]
     var: VarArgs,
     #[command(flatten)]
@@ -382,7 +390,8 @@ struct MergeArgs {
     /// Output folder (new or empty).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Campaign output folders (shards or whole campaigns).
+    /// Campaign output folders (shards or whole campaigns), or the shards of one
+    /// classification.
     #[arg(value_name = "DIR", required = true)]
     inputs: Vec<PathBuf>,
 }
@@ -702,25 +711,28 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     let components = targets(&plan, &a.components, |p| {
         p.components.iter().map(|c| c.name.clone()).collect()
     })?;
+    let window = seconds("--duration", a.duration)?;
+    let limit = seconds("--run-timeout", a.run_timeout)?;
     let c = ClassifyRun {
-        system,
+        info: ClassifyInfo {
+            system,
+            fault: a.fault,
+            components,
+            seed: a.seed,
+            runs: a.runs,
+            shard: a.shard,
+            window_ms: window.as_millis() as u64,
+            output: a.output.clone(),
+            mission: a.mission.clone(),
+            pick: a.pick,
+            var: a.var.spec()?,
+            reg: a.reg.options(),
+            run_limit_ms: limit.as_millis() as u64,
+            golden_mission: None,
+        },
         bootstrap: find_bootstrap()?,
         out: exec::absolute(&a.out),
-        params: ScheduleParams {
-            fault: a.fault,
-            rate_hz: 1.0,
-            arrival: Arrival::Fixed,
-            window: seconds("--duration", a.duration)?,
-            components,
-            var: a.var.spec()?,
-        },
-        seed: a.seed,
-        runs: a.runs,
-        pick: a.pick,
-        reg: a.reg.options(),
-        output: a.output.clone(),
-        mission: a.mission.clone(),
-        limit: seconds("--run-timeout", a.run_timeout)?,
+        resume: a.resume,
         ready_limit: Duration::from_secs(30),
     };
     let s = classify::run(&c, stop)?;
@@ -746,12 +758,59 @@ fn cmd_storm(a: &StormArgs, stop: &StopSignals) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `merge` of `classify` folders: the shards of one classification become the whole.
+fn merge_classifications(
+    a: &MergeArgs,
+    parts: Vec<Option<classify::ClassifyOutput>>,
+) -> anyhow::Result<()> {
+    let parts = parts
+        .into_iter()
+        .zip(&a.inputs)
+        .map(|(p, dir)| {
+            p.ok_or_else(|| {
+                anyhow::anyhow!(
+                    "{} holds no classification (no classify-run.json): classifications and \
+                     campaigns are merged apart",
+                    dir.display()
+                )
+            })
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    if a.out.join("classify-run.json").exists() {
+        bail!(
+            "{} already holds a classification; give a new --out folder",
+            a.out.display()
+        );
+    }
+    let (merged, missing) = classify::merge(parts).map_err(anyhow::Error::msg)?;
+    if !missing.is_empty() {
+        eprintln!(
+            "s3res-inject: warning: the classification has {} of its {} runs (shards missing?)",
+            merged.info.runs - missing.len() as u64,
+            merged.info.runs
+        );
+    }
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
+    let summary = merged.write(&a.out)?;
+    print!("{}", classify::markdown(&[summary]));
+    Ok(())
+}
+
 fn cmd_merge(a: &MergeArgs) -> anyhow::Result<()> {
     if a.out.join("summary.json").exists() {
         bail!(
             "{} already holds results; give a new --out folder",
             a.out.display()
         );
+    }
+    let classifications = a
+        .inputs
+        .iter()
+        .map(|d| classify::ClassifyOutput::read(d).map_err(anyhow::Error::msg))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    if classifications.iter().any(Option::is_some) {
+        return merge_classifications(a, classifications);
     }
     let parts = a
         .inputs

@@ -261,7 +261,7 @@ fn read_text(path: &Path) -> Result<String, String> {
 /// One record per non-blank line of `text`; `label` names the file in errors. With `cut_ok`, a
 /// last line that is not a whole record (the writer was killed in the middle of it: no
 /// newline after it) is left out.
-fn parse_jsonl<T: serde::de::DeserializeOwned>(
+pub(crate) fn parse_jsonl<T: serde::de::DeserializeOwned>(
     label: &str,
     text: &str,
     cut_ok: bool,

@@ -7,7 +7,7 @@ mod common;
 use std::path::Path;
 use std::time::Duration;
 
-use common::{inject, read_json, read_jsonl};
+use common::{inject, read_json, read_jsonl, spawn};
 use s3res_testkit::Rng;
 
 const DESCRIPTION: &str = r#"{
@@ -22,18 +22,40 @@ const DESCRIPTION: &str = r#"{
   ]
 }"#;
 
+/// `classify` of the echo description in `dir` with `fault`, into `dir/out-FAULT` (plus
+/// `extra` arguments), with a fresh seed.
 fn classify(
     dir: &Path,
     fault: &str,
     runs: u64,
     extra: &[&str],
 ) -> (serde_json::Value, Vec<serde_json::Value>) {
-    let system = dir.join("system.json");
-    std::fs::write(&system, DESCRIPTION).unwrap();
     let out = dir.join(format!("out-{fault}"));
     let seed = Rng::from_env().next_u64().to_string();
-    let runs = runs.to_string();
-    let mut args = vec![
+    let f = inject(
+        &strs(&classify_args(dir, fault, runs, &seed, &out, extra)),
+        Duration::from_secs(240),
+    );
+    assert!(f.success, "{}", f.stderr);
+    assert!(f.stdout.contains("| Benign % |"), "{}", f.stdout);
+    (
+        read_json(&out.join("classify.json")),
+        read_jsonl(&out.join("classify.jsonl")),
+    )
+}
+
+/// The arguments of a `classify` of the echo description (written into `dir`).
+fn classify_args(
+    dir: &Path,
+    fault: &str,
+    runs: u64,
+    seed: &str,
+    out: &Path,
+    extra: &[&str],
+) -> Vec<String> {
+    let system = dir.join("system.json");
+    std::fs::write(&system, DESCRIPTION).unwrap();
+    let mut args: Vec<String> = [
         "-q",
         "classify",
         "--system",
@@ -43,24 +65,24 @@ fn classify(
         "--fault",
         fault,
         "--runs",
-        &runs,
+        &runs.to_string(),
         "--seed",
-        &seed,
+        seed,
         "--out",
         out.to_str().unwrap(),
         "--duration",
         "0.5",
         "--run-timeout",
         "6",
-    ];
-    args.extend_from_slice(extra);
-    let f = inject(&args, Duration::from_secs(240));
-    assert!(f.success, "{}", f.stderr);
-    assert!(f.stdout.contains("| Benign % |"), "{}", f.stdout);
-    (
-        read_json(&out.join("classify.json")),
-        read_jsonl(&out.join("classify.jsonl")),
-    )
+    ]
+    .map(str::to_owned)
+    .to_vec();
+    args.extend(extra.iter().map(|a| a.to_string()));
+    args
+}
+
+fn strs(args: &[String]) -> Vec<&str> {
+    args.iter().map(String::as_str).collect()
 }
 
 #[test]
@@ -151,4 +173,131 @@ fn a_robot_is_classified_by_its_mission() {
         assert_eq!(r["failure"], "killed by signal 9", "{r}");
         assert_ne!(r["mission"]["success"], true, "{r}");
     }
+}
+
+/// What a classification did, run by run, independent of timing: the schedule and the class.
+fn per_run(out: &Path) -> Vec<String> {
+    read_jsonl(&out.join("classify.jsonl"))
+        .iter()
+        .map(|r| {
+            format!(
+                "{} {} {} {} {}",
+                r["run"], r["at_ns"], r["kind"], r["value"], r["class"]
+            )
+        })
+        .collect()
+}
+
+/// Shards merge into what one machine classifies, run for run; a classification stopped by
+/// SIGTERM keeps its finished runs and `--resume` completes it the same way.
+#[test]
+fn shards_merge_into_the_whole_and_a_stopped_classification_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let seed = Rng::from_env().next_u64().to_string();
+    let args = |out: &Path, extra: &[&str]| classify_args(dir.path(), "sdc", 4, &seed, out, extra);
+    let limit = Duration::from_secs(240);
+
+    let whole = dir.path().join("whole");
+    let f = inject(&strs(&args(&whole, &[])), limit);
+    assert!(f.success, "{}", f.stderr);
+    let expected = per_run(&whole);
+    assert_eq!(expected.len(), 4);
+
+    let mut shards = Vec::new();
+    for k in ["1/2", "2/2"] {
+        let out = dir.path().join(format!("shard-{}", &k[..1]));
+        let f = inject(&strs(&args(&out, &["--shard", k])), limit);
+        assert!(f.success, "{}", f.stderr);
+        assert_eq!(per_run(&out).len(), 2, "{k}");
+        shards.push(out);
+    }
+    let merged = dir.path().join("merged");
+    let mut merge = vec!["-q", "merge", "--out", merged.to_str().unwrap()];
+    merge.push(shards[0].to_str().unwrap());
+    let f = inject(&merge, limit);
+    assert!(f.success, "{}", f.stderr);
+    assert!(f.stderr.contains("has 2 of its 4 runs"), "{}", f.stderr);
+    let merged = dir.path().join("merged-all");
+    let mut merge = vec!["-q", "merge", "--out", merged.to_str().unwrap()];
+    merge.extend(shards.iter().map(|p| p.to_str().unwrap()));
+    let f = inject(&merge, limit);
+    assert!(f.success, "{}", f.stderr);
+    assert_eq!(per_run(&merged), expected);
+    let (a, b) = (
+        read_json(&whole.join("classify.json")),
+        read_json(&merged.join("classify.json")),
+    );
+    for k in [
+        "runs",
+        "classified",
+        "sdc",
+        "benign",
+        "crash",
+        "hang",
+        "seed",
+    ] {
+        assert_eq!(a[k], b[k], "{k}");
+    }
+    // A shard twice, or a shard of another classification, is refused.
+    let twice = dir.path().join("twice");
+    let f = inject(
+        &[
+            "-q",
+            "merge",
+            "--out",
+            twice.to_str().unwrap(),
+            shards[0].to_str().unwrap(),
+            shards[0].to_str().unwrap(),
+        ],
+        limit,
+    );
+    assert!(
+        f.code == Some(1) && f.stderr.contains("more than one input"),
+        "{}",
+        f.stderr
+    );
+
+    // Stopped after a run or two: the finished runs are kept, and the stop says how to go on.
+    let stopped = dir.path().join("stopped");
+    let p = spawn(&strs(&args(&stopped, &[])));
+    let deadline = std::time::Instant::now() + limit;
+    while std::fs::read_to_string(stopped.join("classify.jsonl")).map_or(0, |t| t.lines().count())
+        < 1
+    {
+        assert!(std::time::Instant::now() < deadline, "no run finished");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    s3res_testkit::kill_pid(p.child.id() as i32, libc::SIGTERM).unwrap();
+    let f = p.wait(limit);
+    assert_eq!(f.code, Some(143), "{}", f.stderr);
+    assert!(f.stderr.contains("--resume"), "{}", f.stderr);
+    let kept = per_run(&stopped);
+    assert!((1..4).contains(&kept.len()), "{kept:?}");
+    assert_eq!(kept[..], expected[..kept.len()]);
+
+    // Not overwritten without --resume; not resumed with other parameters.
+    let f = inject(&strs(&args(&stopped, &[])), limit);
+    assert!(
+        f.code == Some(1) && f.stderr.contains("already holds a classification"),
+        "{}",
+        f.stderr
+    );
+    let other = classify_args(dir.path(), "sdc", 5, &seed, &stopped, &["--resume"]);
+    let f = inject(&strs(&other), limit);
+    assert!(
+        f.code == Some(1) && f.stderr.contains("another classification"),
+        "{}",
+        f.stderr
+    );
+    assert_eq!(
+        per_run(&stopped),
+        kept,
+        "a refused resume changed the records"
+    );
+
+    let f = inject(&strs(&args(&stopped, &["--resume"])), limit);
+    assert!(f.success, "{}", f.stderr);
+    let said = format!("resuming: {} run(s) already done", kept.len());
+    assert!(f.stderr.contains(&said), "{}", f.stderr);
+    assert_eq!(per_run(&stopped), expected);
 }
