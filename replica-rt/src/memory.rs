@@ -60,9 +60,14 @@ static LOCK_ALL: AtomicBool = AtomicBool::new(false);
 /// The policy the voter asked for in [`ENV_LOCK_MEMORY`]; the default (`all`) when absent. A
 /// value that does not parse is reported and taken as the default.
 pub fn policy_from_env() -> LockMemory {
-    match std::env::var(ENV_LOCK_MEMORY) {
-        Err(_) => LockMemory::default(),
-        Ok(v) => LockMemory::parse(&v).unwrap_or_else(|| {
+    policy_from(std::env::var(ENV_LOCK_MEMORY).ok().as_deref())
+}
+
+/// [`policy_from_env`] for the variable's value (`None`: not set).
+fn policy_from(value: Option<&str>) -> LockMemory {
+    match value {
+        None => LockMemory::default(),
+        Some(v) => LockMemory::parse(v).unwrap_or_else(|| {
             let default = LockMemory::default().as_str();
             tracing::warn!(value = %v, "{ENV_LOCK_MEMORY} is neither `all` nor `used`: locking `{default}`");
             LockMemory::default()
@@ -155,6 +160,16 @@ fn unused_below(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_unreadable_policy_locks_everything() {
+        assert_eq!(policy_from(None), LockMemory::All);
+        assert_eq!(policy_from(Some("used")), LockMemory::Used);
+        assert_eq!(policy_from(Some("all")), LockMemory::All);
+        for bad in ["", "USED", "used ", "none", "all,used", "\u{0}"] {
+            assert_eq!(policy_from(Some(bad)), LockMemory::All, "{bad:?}");
+        }
+    }
 
     #[test]
     fn the_stack_is_released_only_well_below_the_stack_pointer() {
