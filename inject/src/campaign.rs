@@ -208,19 +208,7 @@ fn differences(old: &CampaignInfo, new: &CampaignInfo) -> anyhow::Result<Vec<Str
             ..i.clone()
         })
     };
-    let (old, new) = (value(old)?, value(new)?);
-    let (Some(o), Some(n)) = (old.as_object(), new.as_object()) else {
-        bail!("a campaign's parameters are a JSON object");
-    };
-    let keys: BTreeSet<&String> = o.keys().chain(n.keys()).collect();
-    Ok(keys
-        .into_iter()
-        .filter(|k| o.get(*k) != n.get(*k))
-        .map(|k| {
-            let show = |v: Option<&serde_json::Value>| v.map_or("-".to_owned(), |v| v.to_string());
-            format!("{k}: {} vs {}", show(o.get(k)), show(n.get(k)))
-        })
-        .collect())
+    Ok(report::field_differences(&value(old)?, &value(new)?))
 }
 
 /// Replaces the records files with `runs` and `injections` (each written whole, then renamed).
@@ -233,9 +221,7 @@ fn write_records(
         ("injections.jsonl", report::jsonl(injections)?),
         ("runs.jsonl", report::jsonl(runs)?),
     ] {
-        let tmp = out.join(format!("{name}.tmp"));
-        std::fs::write(&tmp, text)?;
-        std::fs::rename(&tmp, out.join(name))?;
+        report::write_whole(&out.join(name), text.as_bytes())?;
     }
     Ok(())
 }

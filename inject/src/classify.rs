@@ -31,7 +31,7 @@ pub enum Class {
     /// Exit status 0 and output identical to the golden run's (by mission: the goal reached).
     Benign,
     /// Exit status 0 but the output differs: silent data corruption (by mission: the robot
-    /// collided, every component running).
+    /// collided, the injected component still running).
     Sdc,
     /// The system exited with a failure (a component died or reported an error; by mission:
     /// the mission was aborted or left no verdict).
@@ -122,11 +122,13 @@ pub struct MissionVerdict {
 }
 
 impl MissionVerdict {
-    /// Reads `path`; `None` if it is missing or is not such a summary (the simulator was
-    /// stopped before it could write one).
-    pub fn read(path: &Path) -> Option<MissionVerdict> {
-        let text = std::fs::read_to_string(path).ok()?;
-        serde_json::from_str(&text).ok()
+    /// Reads `path`; why not if it is missing (the simulator was stopped before it could write
+    /// one) or is not such a summary.
+    pub fn read(path: &Path) -> Result<MissionVerdict, String> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        serde_json::from_str(&text)
+            .map_err(|e| format!("{}: not a mission summary: {e}", path.display()))
     }
 }
 
@@ -134,8 +136,8 @@ impl MissionVerdict {
 /// injected component failed (bootstrap said so: [`component_failure`]); `exit_ok`: bootstrap
 /// exited 0. What happened to the injected process comes first, as in MAVFI's classes: a
 /// component that died is a crash, whatever the robot then did on its last command. Then the
-/// mission is the output: the goal reached is benign; a collision, every component running, is
-/// a silent corruption of the commands; a mission that never ended (the simulator's time
+/// mission is the output: the goal reached is benign; a collision, the injected component
+/// still running, is a silent corruption of the commands; a mission that never ended (the simulator's time
 /// limit: the robot stood still or wandered) is a hang; an aborted mission or none at all is
 /// a crash, and so is a goal reached by a system that then failed.
 pub fn mission_class(
@@ -169,12 +171,15 @@ pub fn mission_class(
 
 /// How `component` failed, if bootstrap's stderr says it did: bootstrap ends with one line
 /// `s3res-bootstrap: component NAME failed: STATUS` per component that failed before any stop
-/// (its documented exit contract), e.g. `killed by signal 11`.
+/// (its documented exit contract), e.g. `killed by signal 11`. The components share that
+/// stderr, so the line is looked for anywhere in a line (a component that died in the middle
+/// of a line of its own leaves no newline before it), and the last one counts.
 pub fn component_failure(stderr: &str, component: &str) -> Option<String> {
     let head = format!("s3res-bootstrap: component {component} failed: ");
     stderr
         .lines()
-        .find_map(|l| l.strip_prefix(&head))
+        .rev()
+        .find_map(|l| l.rfind(&head).map(|at| &l[at + head.len()..]))
         .map(str::to_owned)
 }
 
@@ -409,7 +414,15 @@ impl ClassifyOutput {
                 info_path.display()
             )
         })?;
-        let golden = std::fs::read(dir.join(GOLDEN_FILE)).unwrap_or_default();
+        // Written before classify-run.json: missing, the folder was cut or copied in part.
+        let golden_path = dir.join(GOLDEN_FILE);
+        let golden = std::fs::read(&golden_path).map_err(|e| {
+            format!(
+                "cannot read {} ({e}): the folder holds a classification without its golden \
+                 output",
+                golden_path.display()
+            )
+        })?;
         let path = dir.join(RECORDS_FILE);
         let records = match std::fs::read_to_string(&path) {
             Ok(t) => crate::report::parse_jsonl(&path.display().to_string(), &t, true)?,
@@ -423,13 +436,12 @@ impl ClassifyOutput {
         }))
     }
 
-    /// Writes the folder: parameters, golden output, records (by run), summary and table.
+    /// Writes the folder, each file whole (a kill leaves the old file or the new one): golden
+    /// output, records (by run), summary and table, and the parameters last, so that a folder
+    /// with `classify-run.json` has its golden output.
     pub fn write(&self, dir: &Path) -> anyhow::Result<ClassSummary> {
-        std::fs::write(
-            dir.join(INFO_FILE),
-            serde_json::to_string_pretty(&self.info)? + "\n",
-        )?;
-        std::fs::write(dir.join(GOLDEN_FILE), &self.golden)?;
+        use crate::report::write_whole;
+        write_whole(&dir.join(GOLDEN_FILE), &self.golden)?;
         let mut records = self.records.clone();
         records.sort_by_key(|r| r.run);
         let mut text = String::new();
@@ -437,16 +449,14 @@ impl ClassifyOutput {
             text.push_str(&serde_json::to_string(r)?);
             text.push('\n');
         }
-        std::fs::write(dir.join(RECORDS_FILE), text)?;
+        write_whole(&dir.join(RECORDS_FILE), text.as_bytes())?;
         let summary = summarise(&self.info, &records);
-        std::fs::write(
-            dir.join("classify.json"),
-            serde_json::to_string_pretty(&summary)? + "\n",
-        )?;
-        std::fs::write(
-            dir.join("classify.md"),
-            markdown(std::slice::from_ref(&summary)),
-        )?;
+        let json = serde_json::to_string_pretty(&summary)? + "\n";
+        write_whole(&dir.join("classify.json"), json.as_bytes())?;
+        let table = markdown(std::slice::from_ref(&summary));
+        write_whole(&dir.join("classify.md"), table.as_bytes())?;
+        let info = serde_json::to_string_pretty(&self.info)? + "\n";
+        write_whole(&dir.join(INFO_FILE), info.as_bytes())?;
         Ok(summary)
     }
 }
@@ -470,6 +480,14 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
         Some(old) => resumed(c, old)?,
         None => {
             if let Some(f) = OUTPUT_FILES.iter().find(|f| c.out.join(f).exists()) {
+                if c.resume {
+                    bail!(
+                        "{} holds {f} but no {INFO_FILE}: a classification whose golden run did \
+                         not finish, or one written before classifications could be resumed; \
+                         it cannot be resumed (give a new --out folder)",
+                        c.out.display()
+                    );
+                }
                 bail!(
                     "{} already holds a classification ({f}); give a new --out folder, or \
                      --resume (with the same parameters) to finish its missing runs",
@@ -535,26 +553,31 @@ fn golden_run(
         bail!("stopped by signal during the golden run");
     }
     if !golden.status.is_some_and(|s| s.success()) || golden.timed_out {
+        let stderr = std::fs::read(golden_dir.path().join("stderr")).unwrap_or_default();
+        let stderr = String::from_utf8_lossy(&stderr);
+        let lines: Vec<&str> = stderr.lines().collect();
         bail!(
-            "the golden run (no injection) did not succeed ({:?}, timed out: {}); stderr:\n{}",
+            "the golden run (no injection) did not succeed ({:?}, timed out: {}); the last \
+             lines of its stderr:\n{}",
             golden.status,
             golden.timed_out,
-            std::fs::read_to_string(golden_dir.path().join("stderr")).unwrap_or_default()
+            lines[lines.len().saturating_sub(40)..].join("\n")
         );
     }
     let mut info = c.info.clone();
     info.golden_mission = match &c.info.mission {
         None => None,
         Some(file) => match MissionVerdict::read(&golden_dir.path().join(file)) {
-            Some(v) if v.success => Some(v),
-            Some(v) => bail!(
+            Ok(v) if v.success => Some(v),
+            Ok(v) => bail!(
                 "the golden run's mission did not succeed (outcome `{}`): runs with a fault \
                  cannot be told from it",
                 v.outcome
             ),
-            None => bail!(
-                "the golden run wrote no mission summary {file} (or not one with `success` \
-                 and `outcome`) in its folder; give --mission the file the simulator writes"
+            Err(e) => bail!(
+                "the golden run left no mission summary that --mission {file} can read ({e}); \
+                 give --mission the file the simulator writes in its folder, a JSON object \
+                 with `success` and `outcome`"
             ),
         },
     };
@@ -571,12 +594,13 @@ fn golden_run(
 /// The classification `old` found in `c.out`, to be continued: the same parameters, its
 /// golden run, and the records of this shard's runs (each once).
 fn resumed(c: &ClassifyRun, mut old: ClassifyOutput) -> anyhow::Result<ClassifyOutput> {
-    if old.info.whole() != c.info.whole() || old.info.shard != c.info.shard {
+    let differ = differences(&old.info, &c.info, true)?;
+    if !differ.is_empty() {
         bail!(
-            "{} holds another classification ({} vs the command line's), so --resume cannot \
-             continue it; resume with the command that started it, or give a new --out folder",
+            "{} holds another classification, so --resume cannot continue it: {} (folder vs \
+             command line); resume with the command that started it, or give a new --out folder",
             c.out.display(),
-            describe(&old.info),
+            differ.join(", ")
         );
     }
     let wanted: std::collections::BTreeSet<u64> = c.info.run_indices().collect();
@@ -593,19 +617,21 @@ fn resumed(c: &ClassifyRun, mut old: ClassifyOutput) -> anyhow::Result<ClassifyO
     Ok(old)
 }
 
-/// `reg into navigator, seed 1, 1000 runs, shard 2/4`: a classification in a few words.
-fn describe(i: &ClassifyInfo) -> String {
-    let mut s = format!(
-        "{} into {}, seed {}, {} runs",
-        i.fault,
-        i.components.join(","),
-        i.seed,
-        i.runs
-    );
-    if let Some((k, n)) = i.shard {
-        let _ = write!(s, ", shard {k}/{n}");
-    }
-    s
+/// The parameters in which `a` and `b` differ (`key: A vs B`), their shards too if
+/// `with_shard`; never their golden runs.
+fn differences(
+    a: &ClassifyInfo,
+    b: &ClassifyInfo,
+    with_shard: bool,
+) -> anyhow::Result<Vec<String>> {
+    let value = |i: &ClassifyInfo| {
+        let mut w = i.whole();
+        if with_shard {
+            w.shard = i.shard;
+        }
+        serde_json::to_value(w)
+    };
+    Ok(crate::report::field_differences(&value(a)?, &value(b)?))
 }
 
 /// The record of run `r`.
@@ -621,13 +647,14 @@ fn record(
     let attempt = result.attempts.first();
     let delivered = attempt.is_some_and(|a| a.ts_ns.is_some());
     let ok = result.status.is_some_and(|s| s.success());
-    let stderr = std::fs::read_to_string(dir.join("stderr")).unwrap_or_default();
-    let failure = component_failure(&stderr, &planned.component);
+    // The components share this file with bootstrap: a flipped one may write anything.
+    let stderr = std::fs::read(dir.join("stderr")).unwrap_or_default();
+    let failure = component_failure(&String::from_utf8_lossy(&stderr), &planned.component);
     let mission = c
         .info
         .mission
         .as_ref()
-        .and_then(|file| MissionVerdict::read(&dir.join(file)));
+        .and_then(|file| MissionVerdict::read(&dir.join(file)).ok());
     let class = if !delivered {
         Class::Missed
     } else if c.info.mission.is_some() {
@@ -664,31 +691,62 @@ fn record(
     }
 }
 
-/// Joins the shards of one classification (folders `classify` wrote) into the whole: the
-/// records of every shard, each run once, the first shard's golden run. Refuses shards of
-/// different classifications and a run present twice; returns the joined output and the runs
-/// missing from it.
-pub fn merge(parts: Vec<ClassifyOutput>) -> Result<(ClassifyOutput, Vec<u64>), String> {
+/// What [`merge`] made: the whole classification, and what it left out.
+#[derive(Debug)]
+pub struct Merged {
+    pub output: ClassifyOutput,
+    /// Runs of the classification in no input.
+    pub missing: Vec<u64>,
+    /// Records dropped: a run not of its folder's shard, or beyond the classification's runs.
+    pub stray: usize,
+}
+
+/// Joins the shards of one classification (folders `classify` wrote, named for errors) into
+/// the whole: the records of every shard, each run once, and the first shard's golden run.
+/// Refuses shards of different classifications, shards whose golden outputs differ (a run is
+/// classified against its shard's golden output), and a run present twice.
+pub fn merge(parts: Vec<(PathBuf, ClassifyOutput)>) -> Result<Merged, String> {
     let mut parts = parts.into_iter();
-    let first = parts.next().ok_or("nothing to merge")?;
-    let whole = first.info.whole();
+    let (first_dir, first) = parts.next().ok_or("nothing to merge")?;
+    let mut stray = 0;
+    let mut keep = |info: &ClassifyInfo, records: Vec<ClassRecord>| -> Vec<ClassRecord> {
+        let wanted: std::collections::BTreeSet<u64> = info.run_indices().collect();
+        let (kept, dropped): (Vec<_>, Vec<_>) =
+            records.into_iter().partition(|r| wanted.contains(&r.run));
+        stray += dropped.len();
+        kept
+    };
+    let records = keep(&first.info, first.records);
     let mut merged = ClassifyOutput {
         info: ClassifyInfo {
-            golden_mission: first.info.golden_mission.clone(),
-            ..whole.clone()
+            shard: None,
+            ..first.info.clone()
         },
         golden: first.golden,
-        records: first.records,
+        records,
     };
-    for p in parts {
-        if p.info.whole() != whole {
+    for (dir, p) in parts {
+        let differ = differences(&first.info, &p.info, false).map_err(|e| e.to_string())?;
+        if !differ.is_empty() {
             return Err(format!(
-                "not shards of one classification: {} and {}; merge each one's shards apart",
-                describe(&whole),
-                describe(&p.info.whole())
+                "{} and {} are not shards of one classification: {}; merge each one's shards \
+                 apart",
+                first_dir.display(),
+                dir.display(),
+                differ.join(", ")
             ));
         }
-        merged.records.extend(p.records);
+        if merged.info.mission.is_none() && p.golden != merged.golden {
+            return Err(format!(
+                "{} and {} made different golden outputs, so their runs were classified \
+                 against different references; the system's output is not the same from one \
+                 fault-free run to the next (classify it --mission, or keep the shards apart)",
+                first_dir.display(),
+                dir.display()
+            ));
+        }
+        let records = keep(&p.info, p.records);
+        merged.records.extend(records);
     }
     let mut seen = std::collections::BTreeSet::new();
     if let Some(r) = merged.records.iter().find(|r| !seen.insert(r.run)) {
@@ -697,8 +755,16 @@ pub fn merge(parts: Vec<ClassifyOutput>) -> Result<(ClassifyOutput, Vec<u64>), S
             r.run
         ));
     }
-    let missing = (0..whole.runs).filter(|r| !seen.contains(r)).collect();
-    Ok((merged, missing))
+    let missing = merged
+        .info
+        .run_indices()
+        .filter(|r| !seen.contains(r))
+        .collect();
+    Ok(Merged {
+        output: merged,
+        missing,
+        stray,
+    })
 }
 
 fn summarise(info: &ClassifyInfo, recs: &[ClassRecord]) -> ClassSummary {
@@ -917,13 +983,144 @@ mod tests {
         // A name that is a prefix of another's is not taken for it.
         assert_eq!(component_failure(stderr, "nav"), None);
         assert_eq!(component_failure(stderr, "planner"), None);
+        // Behind a line a dying component left without its newline; the last one counts.
+        let cut = "s3res-bootstrap: component planner failed: exit status 101\n\
+                   {\"x\":1.5, partials3res-bootstrap: component planner failed: killed by signal 7\n";
+        assert_eq!(
+            component_failure(cut, "planner").as_deref(),
+            Some("killed by signal 7")
+        );
+        let bytes = b"\xff\xfe garbage\ns3res-bootstrap: component sim failed: exit status 1\n";
+        let text = String::from_utf8_lossy(bytes);
+        assert_eq!(
+            component_failure(&text, "sim").as_deref(),
+            Some("exit status 1")
+        );
+    }
+
+    fn output(info: ClassifyInfo, golden: &[u8], runs: &[u64]) -> (PathBuf, ClassifyOutput) {
+        let records = runs
+            .iter()
+            .map(|&run| ClassRecord {
+                seed: info.seed,
+                run,
+                at_ns: run * 10,
+                ts_ns: Some(1),
+                action: Action::Exec,
+                component: "navigator".into(),
+                replica: None,
+                pid: None,
+                class: Class::Crash,
+                exit_code: Some(1),
+                exit_signal: None,
+                miss: None,
+                failure: Some("killed by signal 9".into()),
+                mission: None,
+                diff: OutputDiff::default(),
+            })
+            .collect();
+        let dir = PathBuf::from(format!("shard-{:?}", info.shard));
+        (
+            dir,
+            ClassifyOutput {
+                info,
+                golden: golden.to_vec(),
+                records,
+            },
+        )
+    }
+
+    fn shard(k: u64, n: u64) -> ClassifyInfo {
+        ClassifyInfo {
+            shard: Some((k, n)),
+            mission: None,
+            ..info(None)
+        }
+    }
+
+    #[test]
+    fn shards_merge_into_the_whole_and_nothing_else() {
+        // Runs 0..5 in two shards: 0, 2, 4 and 1, 3. Run 3 in the first shard's folder is not
+        // its run: left out, not counted.
+        let a = output(shard(1, 2), b"golden", &[0, 2, 4, 3]);
+        let b = output(shard(2, 2), b"golden", &[1]);
+        let m = merge(vec![a.clone(), b.clone()]).unwrap();
+        let runs: Vec<u64> = m.output.records.iter().map(|r| r.run).collect();
+        assert_eq!(runs, [0, 2, 4, 1]);
+        assert_eq!((m.missing, m.stray), (vec![3], 1));
+        assert_eq!(m.output.info.shard, None);
+        assert_eq!(summarise(&m.output.info, &m.output.records).crash, 4);
+
+        let twice = merge(vec![a.clone(), a.clone()]).unwrap_err();
+        assert!(twice.contains("run 0 is in more than one input"), "{twice}");
+
+        let other = ClassifyInfo {
+            seed: 2,
+            window_ms: 500,
+            ..shard(2, 2)
+        };
+        let e = merge(vec![a.clone(), output(other, b"golden", &[1])]).unwrap_err();
+        assert!(
+            e.contains("seed: 1 vs 2") && e.contains("window_ms: 1000 vs 500"),
+            "{e}"
+        );
+
+        let e = merge(vec![a.clone(), output(shard(2, 2), b"other", &[1])]).unwrap_err();
+        assert!(e.contains("different golden outputs"), "{e}");
+        // By mission, the goldens' outputs may differ: the mission is the reference.
+        let by_mission = |k| ClassifyInfo {
+            mission: Some("mission.json".into()),
+            golden_mission: Some(verdict(true, "goal")),
+            ..shard(k, 2)
+        };
+        let m = merge(vec![
+            output(by_mission(1), b"one", &[0, 2, 4]),
+            output(by_mission(2), b"two", &[1, 3]),
+        ])
+        .unwrap();
+        assert!(m.missing.is_empty());
+        assert_eq!(m.output.golden, b"one");
+    }
+
+    #[test]
+    fn a_folder_is_read_back_as_written_and_refused_without_its_golden_output() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(ClassifyOutput::read(dir.path()).unwrap().is_none());
+        let (_, out) = output(shard(1, 2), b"golden", &[2, 0]);
+        let s = out.write(dir.path()).unwrap();
+        assert_eq!((s.runs, s.crash), (2, 2));
+        let back = ClassifyOutput::read(dir.path()).unwrap().unwrap();
+        assert_eq!(back.info, out.info);
+        assert_eq!(back.golden, b"golden");
+        let runs: Vec<u64> = back.records.iter().map(|r| r.run).collect();
+        assert_eq!(runs, [0, 2], "written in run order");
+
+        // A record cut short by a kill is left out; a folder without its golden output is not
+        // taken for one with an empty output.
+        let path = dir.path().join(RECORDS_FILE);
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        text.push_str("{\"seed\":1,\"run\":4,");
+        std::fs::write(&path, text).unwrap();
+        assert_eq!(
+            ClassifyOutput::read(dir.path())
+                .unwrap()
+                .unwrap()
+                .records
+                .len(),
+            2
+        );
+        std::fs::remove_file(dir.path().join(GOLDEN_FILE)).unwrap();
+        let e = ClassifyOutput::read(dir.path()).unwrap_err();
+        assert!(e.contains("without its golden output"), "{e}");
     }
 
     #[test]
     fn a_mission_summary_is_read_from_the_simulators_file() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("mission.json");
-        assert_eq!(MissionVerdict::read(&path), None, "missing");
+        assert!(MissionVerdict::read(&path)
+            .unwrap_err()
+            .contains("cannot read"));
         std::fs::write(
             &path,
             r#"{"success":false,"outcome":"collision","periods":12,"mission_time_s":0.6,
@@ -934,9 +1131,13 @@ mod tests {
         assert_eq!((v.success, v.outcome.as_str()), (false, "collision"));
         assert_eq!((v.mission_time_s, v.collisions), (Some(0.6), Some(1)));
         std::fs::write(&path, r#"{"success":true"#).unwrap();
-        assert_eq!(MissionVerdict::read(&path), None, "truncated");
+        assert!(MissionVerdict::read(&path).is_err(), "truncated");
         std::fs::write(&path, r#"{"ok":true}"#).unwrap();
-        assert_eq!(MissionVerdict::read(&path), None, "not a mission summary");
+        let e = MissionVerdict::read(&path).unwrap_err();
+        assert!(
+            e.contains("not a mission summary") && e.contains("success"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -129,9 +129,12 @@ enum Command {
     /// = benign, collision = SDC, time limit = hang, aborted = crash; classify.json also
     /// counts the successful missions and their times:
     ///
-    ///     s3res-inject classify --system examples/robot/campaign/none.json \
+    ///     s3res-inject classify --system examples/robot/campaign/none-classify.json \
     ///         --components navigator --fault reg --reg-bits 3 --duration 4 \
-    ///         --mission mission.json --runs 1000 --seed 1 --out out/classify-nav-reg3
+    ///         --run-timeout 30 --mission mission.json --runs 1000 --seed 1 \
+    ///         --out out/classify-nav-reg3
+    ///
+    /// --shard K/N, --resume and `merge` work as for a campaign.
     #[command(verbatim_doc_comment)]
     Classify(ClassifyArgs),
     /// Combine campaign outputs: shards of one campaign become the whole campaign; different
@@ -365,7 +368,7 @@ struct ClassifyArgs {
     output: String,
     /// Classify by the mission summary the system writes in its run folder (JSON with
     /// `success` and `outcome`, as `s3res-sim --summary FILE`), not by --output.
-    #[arg(long, value_name = "FILE")]
+    #[arg(long, value_name = "FILE", conflicts_with = "output")]
     mission: Option<String>,
     /// A run longer than this is killed and classified as a hang.
     #[arg(long, value_name = "SECS", default_value_t = 30.0)]
@@ -707,6 +710,23 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
              instead of --fault mixed"
         );
     }
+    for (flag, file) in [
+        ("--output", Some(&a.output)),
+        ("--mission", a.mission.as_ref()),
+    ] {
+        let Some(file) = file else { continue };
+        let path = Path::new(file);
+        if path.is_absolute()
+            || path
+                .components()
+                .any(|c| c == std::path::Component::ParentDir)
+        {
+            bail!(
+                "{flag} {file}: give a file in the run's folder (a relative path without `..`): \
+                 each run has a folder of its own"
+            );
+        }
+    }
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
         p.components.iter().map(|c| c.name.clone()).collect()
@@ -766,14 +786,17 @@ fn merge_classifications(
     let parts = parts
         .into_iter()
         .zip(&a.inputs)
-        .map(|(p, dir)| {
-            p.ok_or_else(|| {
-                anyhow::anyhow!(
-                    "{} holds no classification (no classify-run.json): classifications and \
-                     campaigns are merged apart",
-                    dir.display()
-                )
-            })
+        .map(|(p, dir)| match p {
+            Some(p) => Ok((dir.clone(), p)),
+            None if dir.join("campaign.json").exists() => bail!(
+                "{} holds a campaign, the other inputs classifications: the two are merged apart",
+                dir.display()
+            ),
+            None => bail!(
+                "{} holds no classification (no classify-run.json: a shard whose golden run \
+                 never finished?); leave it out, or run it again with --resume",
+                dir.display()
+            ),
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
     if a.out.join("classify-run.json").exists() {
@@ -782,17 +805,23 @@ fn merge_classifications(
             a.out.display()
         );
     }
-    let (merged, missing) = classify::merge(parts).map_err(anyhow::Error::msg)?;
-    if !missing.is_empty() {
+    let merged = classify::merge(parts).map_err(anyhow::Error::msg)?;
+    if merged.stray > 0 {
+        eprintln!(
+            "s3res-inject: warning: {} record(s) left out: runs not of their folder's shard",
+            merged.stray
+        );
+    }
+    if !merged.missing.is_empty() {
         eprintln!(
             "s3res-inject: warning: the classification has {} of its {} runs (shards missing?)",
-            merged.info.runs - missing.len() as u64,
-            merged.info.runs
+            merged.output.info.runs - merged.missing.len() as u64,
+            merged.output.info.runs
         );
     }
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create the output folder {}", a.out.display()))?;
-    let summary = merged.write(&a.out)?;
+    let summary = merged.output.write(&a.out)?;
     print!("{}", classify::markdown(&[summary]));
     Ok(())
 }

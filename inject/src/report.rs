@@ -258,6 +258,33 @@ fn read_text(path: &Path) -> Result<String, String> {
     std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
 }
 
+/// The fields of two JSON objects that differ, as `key: OLD vs NEW` (`-`: absent), in key
+/// order; what a refused `--resume` or `merge` names. Values that are not objects differ as
+/// a whole (`value: OLD vs NEW`).
+pub(crate) fn field_differences(old: &serde_json::Value, new: &serde_json::Value) -> Vec<String> {
+    let show = |v: Option<&serde_json::Value>| v.map_or("-".to_owned(), |v| v.to_string());
+    let (Some(o), Some(n)) = (old.as_object(), new.as_object()) else {
+        if old == new {
+            return Vec::new();
+        }
+        return vec![format!("value: {} vs {}", show(Some(old)), show(Some(new)))];
+    };
+    let keys: std::collections::BTreeSet<&String> = o.keys().chain(n.keys()).collect();
+    keys.into_iter()
+        .filter(|k| o.get(*k) != n.get(*k))
+        .map(|k| format!("{k}: {} vs {}", show(o.get(k)), show(n.get(k))))
+        .collect()
+}
+
+/// Replaces `path` with `bytes` whole: written beside it, then renamed over it, so that a
+/// kill or a full disk leaves the old file or the new one, never a cut one.
+pub(crate) fn write_whole(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(&tmp, path)
+}
+
 /// One record per non-blank line of `text`; `label` names the file in errors. With `cut_ok`, a
 /// last line that is not a whole record (the writer was killed in the middle of it: no
 /// newline after it) is left out.

@@ -1,5 +1,5 @@
-//! What a user gets wrong with `--fault mixed` and `--bit` is refused in one line, before
-//! anything is started or written.
+//! What a user gets wrong with `--fault mixed`, `--bit` and classify's files is refused in
+//! one line, before anything is started or written.
 
 mod common;
 
@@ -70,4 +70,68 @@ fn classify_and_storm_refuse_mixed_and_name_the_kinds() {
         ],
         "name them (--faults exec,sdc,cfe), not `mixed`",
     );
+}
+
+#[test]
+fn classify_refuses_a_mission_or_output_outside_the_run_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let args = |flag: &str, file: &str| {
+        inject(
+            &[
+                "classify",
+                "--system",
+                "no-such-system.json",
+                "--fault",
+                "exec",
+                "--runs",
+                "1",
+                "--seed",
+                "1",
+                "--out",
+                out.to_str().unwrap(),
+                flag,
+                file,
+            ],
+            LIMIT,
+        )
+    };
+    for (flag, file) in [
+        ("--mission", "/tmp/mission.json"),
+        ("--mission", "../mission.json"),
+        ("--output", "/etc/hostname"),
+    ] {
+        let f = args(flag, file);
+        assert_eq!(f.code, Some(1), "{flag} {file}: {}", f.stderr);
+        assert!(
+            f.stderr
+                .contains(&format!("{flag} {file}: give a file in the run's folder")),
+            "{}",
+            f.stderr
+        );
+    }
+    // Both at once: one of them would be ignored.
+    let f = inject(
+        &[
+            "classify",
+            "--system",
+            "s.json",
+            "--fault",
+            "exec",
+            "--runs",
+            "1",
+            "--seed",
+            "1",
+            "--out",
+            "o",
+            "--mission",
+            "m.json",
+            "--output",
+            "stdout",
+        ],
+        LIMIT,
+    );
+    assert_eq!(f.code, Some(2), "{}", f.stderr);
+    assert!(f.stderr.contains("cannot be used with"), "{}", f.stderr);
+    assert!(!out.exists(), "classify wrote {out:?}");
 }
