@@ -76,62 +76,29 @@ fn classify_and_storm_refuse_mixed_and_name_the_kinds() {
 fn classify_refuses_a_mission_or_output_outside_the_run_folder() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let args = |flag: &str, file: &str| {
-        inject(
-            &[
-                "classify",
-                "--system",
-                "no-such-system.json",
-                "--fault",
-                "exec",
-                "--runs",
-                "1",
-                "--seed",
-                "1",
-                "--out",
-                out.to_str().unwrap(),
-                flag,
-                file,
-            ],
-            LIMIT,
-        )
+    let out = out.to_str().unwrap();
+    let classify = |extra: &[&str]| {
+        let mut args = vec!["classify", "--system", "s.json", "--fault", "exec"];
+        args.extend_from_slice(&["--runs", "1", "--seed", "1", "--out", out]);
+        args.extend_from_slice(extra);
+        inject(&args, LIMIT)
     };
     for (flag, file) in [
         ("--mission", "/tmp/mission.json"),
         ("--mission", "../mission.json"),
         ("--output", "/etc/hostname"),
     ] {
-        let f = args(flag, file);
+        let f = classify(&[flag, file]);
         assert_eq!(f.code, Some(1), "{flag} {file}: {}", f.stderr);
-        assert!(
-            f.stderr
-                .contains(&format!("{flag} {file}: give a file in the run's folder")),
-            "{}",
-            f.stderr
-        );
+        let want = format!("{flag} {file}: give a file in the run's folder");
+        assert!(f.stderr.contains(&want), "{}", f.stderr);
     }
     // Both at once: one of them would be ignored.
-    let f = inject(
-        &[
-            "classify",
-            "--system",
-            "s.json",
-            "--fault",
-            "exec",
-            "--runs",
-            "1",
-            "--seed",
-            "1",
-            "--out",
-            "o",
-            "--mission",
-            "m.json",
-            "--output",
-            "stdout",
-        ],
-        LIMIT,
-    );
+    let f = classify(&["--mission", "m.json", "--output", "stdout"]);
     assert_eq!(f.code, Some(2), "{}", f.stderr);
     assert!(f.stderr.contains("cannot be used with"), "{}", f.stderr);
-    assert!(!out.exists(), "classify wrote {out:?}");
+    assert!(
+        !dir.path().join("out").exists(),
+        "classify wrote its folder"
+    );
 }
