@@ -18,7 +18,10 @@ and dmr-none (70 missions, nothing injected: false positives of a quiet system),
 tmr-mixed (10 Hz, exec/sdc/cfe drawn per injection, 20 missions: the harsher cell).
 MAVFI's register table under TMR: tmr-regN-COMPONENT, N bits flipped in a register of
 COMPONENT (navigator or planner) at each injection, N = 1, 3 or 5 (48 missions, about
-1,000 injections; issue 16, item 4).
+1,000 injections; issue 16, item 4). The same without protection: none-regN-COMPONENT,
+`classify` by mission of the unprotected 4 x 4 campaign robot
+(examples/robot/campaign/none-classify.json), one flip per mission, 1,030 missions of about
+4.5 s (the planner's take longer: a robot without a planner waits for the 60 s limit).
 
 Environment:
   OUT=DIR     where the cells go (default target/paper-exposure); a cell's shards are
@@ -66,6 +69,7 @@ cell_params() {
     tmr-none|dmr-none) echo "2 70" ;;
     tmr-mixed) echo "10 20" ;;
     tmr-reg[135]-navigator|tmr-reg[135]-planner) echo "2 48" ;;
+    none-reg[135]-navigator|none-reg[135]-planner) echo "- 1030" ;;
     *) return 1 ;;
   esac
 }
@@ -102,10 +106,18 @@ for cell in "$@"; do
     parts+=("$dir")
     echo "$(date -u +%FT%TZ) $cell shard $k/$SHARDS -> $dir (load $(cut -d' ' -f1-3 /proc/loadavg))"
     # From the repository root: the system descriptions name the robot's files relative to it.
+    if [ "$level" = none ] && [ "$fault" = reg ]; then
+      # One flip per mission, unprotected: classified by the mission (issue 16, item 4).
+      (cd "$ROOT" && "$INJECT" -q classify --system examples/robot/campaign/none-classify.json \
+        --components "$components" --fault reg "${extra[@]}" --duration 4 --run-timeout 30 \
+        --mission mission.json --runs "$runs" --seed 1 --shard "$k/$SHARDS" --resume \
+        --out "$dir")
+    else
     (cd "$ROOT" && "$INJECT" -q campaign --system "examples/robot/campaign-8x8/$level.json" \
       --fault "$fault" --rate "$rate" --runs "$runs" --seed 1 --duration 60 --run-timeout 120 \
       --components "$components" --label "$label" --shard "$k/$SHARDS" \
       --resume "${keep[@]}" "${extra[@]}" --out "$dir")
+    fi
     code=$?
     if [ "$code" -ge 128 ]; then
       # Stopped by a signal (Ctrl-C, a batch system's kill): stop here; --resume goes on.
