@@ -26,14 +26,7 @@ fuzz_target!(|data: &[u8]| {
         assert!(s.after_end <= s.missed, "{s:?}");
         assert!(s.successful_runs <= s.runs_done);
         for r in [s.error_rate, s.success_rate].into_iter().flatten() {
-            assert!(r.k <= r.n && r.n > 0);
-            assert!(
-                0.0 <= r.lower_pct
-                    && r.lower_pct <= r.pct
-                    && r.pct <= r.upper_pct
-                    && r.upper_pct <= 100.0,
-                "{r:?}"
-            );
+            assert!(r.holds(), "{r:?}");
         }
         let _ = serde_json::to_string(s).unwrap();
     }

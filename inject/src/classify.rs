@@ -315,10 +315,25 @@ pub struct ClassifyInfo {
 impl ClassifyInfo {
     /// The runs this shard (or the whole classification) does.
     pub fn run_indices(&self) -> impl Iterator<Item = u64> + '_ {
-        (0..self.runs).filter(|r| match self.shard {
-            Some((k, n)) => r % n == k - 1,
-            None => true,
-        })
+        (0..self.runs).filter(|&r| self.has_run(r))
+    }
+
+    /// Run `r` is one of this shard's (or of the whole classification's).
+    pub fn has_run(&self, r: u64) -> bool {
+        r < self.runs
+            && match self.shard {
+                Some((k, n)) => n > 0 && r % n == k.wrapping_sub(1),
+                None => true,
+            }
+    }
+
+    /// How many runs this shard (or the whole classification) does.
+    pub fn run_count(&self) -> u64 {
+        match self.shard {
+            Some((k, n)) if (1..=n).contains(&k) => self.runs / n + u64::from(self.runs % n >= k),
+            Some(_) => 0,
+            None => self.runs,
+        }
     }
 
     fn params(&self) -> ScheduleParams {
@@ -403,17 +418,11 @@ impl ClassifyOutput {
     /// Reads `dir`; `None` if it holds no classification (no `classify-run.json`).
     pub fn read(dir: &Path) -> Result<Option<ClassifyOutput>, String> {
         let info_path = dir.join(INFO_FILE);
-        let text = match std::fs::read_to_string(&info_path) {
+        let info = match std::fs::read_to_string(&info_path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(format!("cannot read {}: {e}", info_path.display())),
         };
-        let info = serde_json::from_str(&text).map_err(|e| {
-            format!(
-                "{}: not a classification's parameters: {e}",
-                info_path.display()
-            )
-        })?;
         // Written before classify-run.json: missing, the folder was cut or copied in part.
         let golden_path = dir.join(GOLDEN_FILE);
         let golden = std::fs::read(&golden_path).map_err(|e| {
@@ -425,15 +434,38 @@ impl ClassifyOutput {
         })?;
         let path = dir.join(RECORDS_FILE);
         let records = match std::fs::read_to_string(&path) {
-            Ok(t) => crate::report::parse_jsonl(&path.display().to_string(), &t, true)?,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
             Err(e) => return Err(format!("cannot read {}: {e}", path.display())),
         };
-        Ok(Some(ClassifyOutput {
+        let labels = [&info_path, &path].map(|p| p.display().to_string());
+        ClassifyOutput::parse(labels, [&info, &records], golden).map(Some)
+    }
+
+    /// The same from the texts of `classify-run.json` and `classify.jsonl` (`labels` name
+    /// them in errors) and the golden output. A last record cut short by a kill is left out.
+    pub fn parse(
+        labels: [String; 2],
+        texts: [&String; 2],
+        golden: Vec<u8>,
+    ) -> Result<ClassifyOutput, String> {
+        let info: ClassifyInfo = serde_json::from_str(texts[0])
+            .map_err(|e| format!("{}: not a classification's parameters: {e}", labels[0]))?;
+        if let Some((k, n)) = info.shard {
+            if n == 0 || k == 0 || k > n {
+                return Err(format!("{}: shard {k}/{n} is not one of 1..=N", labels[0]));
+            }
+        }
+        Ok(ClassifyOutput {
             info,
             golden,
-            records,
-        }))
+            records: crate::report::parse_jsonl(&labels[1], texts[1], true)?,
+        })
+    }
+
+    /// The summary of the records (as `classify.json` has it).
+    pub fn summary(&self) -> ClassSummary {
+        summarise(&self.info, &self.records)
     }
 
     /// Writes the folder, each file whole (a kill leaves the old file or the new one): golden
@@ -603,15 +635,14 @@ fn resumed(c: &ClassifyRun, mut old: ClassifyOutput) -> anyhow::Result<ClassifyO
             differ.join(", ")
         );
     }
-    let wanted: std::collections::BTreeSet<u64> = c.info.run_indices().collect();
     let mut kept = std::collections::BTreeSet::new();
     old.records
-        .retain(|r| wanted.contains(&r.run) && kept.insert(r.run));
+        .retain(|r| c.info.has_run(r.run) && kept.insert(r.run));
     eprintln!(
         "s3res-inject: resuming: {} run(s) already done in {}, {} to go",
         old.records.len(),
         c.out.display(),
-        wanted.len() - old.records.len()
+        c.info.run_count() - old.records.len() as u64
     );
     old.write(&c.out)?;
     Ok(old)
@@ -696,7 +727,7 @@ fn record(
 pub struct Merged {
     pub output: ClassifyOutput,
     /// Runs of the classification in no input.
-    pub missing: Vec<u64>,
+    pub missing: u64,
     /// Records dropped: a run not of its folder's shard, or beyond the classification's runs.
     pub stray: usize,
 }
@@ -710,9 +741,8 @@ pub fn merge(parts: Vec<(PathBuf, ClassifyOutput)>) -> Result<Merged, String> {
     let (first_dir, first) = parts.next().ok_or("nothing to merge")?;
     let mut stray = 0;
     let mut keep = |info: &ClassifyInfo, records: Vec<ClassRecord>| -> Vec<ClassRecord> {
-        let wanted: std::collections::BTreeSet<u64> = info.run_indices().collect();
         let (kept, dropped): (Vec<_>, Vec<_>) =
-            records.into_iter().partition(|r| wanted.contains(&r.run));
+            records.into_iter().partition(|r| info.has_run(r.run));
         stray += dropped.len();
         kept
     };
@@ -755,11 +785,8 @@ pub fn merge(parts: Vec<(PathBuf, ClassifyOutput)>) -> Result<Merged, String> {
             r.run
         ));
     }
-    let missing = merged
-        .info
-        .run_indices()
-        .filter(|r| !seen.contains(r))
-        .collect();
+    // Every record is of a run of the whole, each once.
+    let missing = merged.info.run_count() - merged.records.len() as u64;
     Ok(Merged {
         output: merged,
         missing,
@@ -1039,6 +1066,33 @@ mod tests {
     }
 
     #[test]
+    fn a_shard_counts_the_runs_it_does() {
+        for runs in 0..12 {
+            for n in 1..5 {
+                for k in 1..=n {
+                    let i = ClassifyInfo {
+                        runs,
+                        ..shard(k, n)
+                    };
+                    assert_eq!(
+                        i.run_count(),
+                        i.run_indices().count() as u64,
+                        "{runs} {k}/{n}"
+                    );
+                    assert!(!i.has_run(runs), "{runs} {k}/{n}");
+                }
+            }
+            let whole = ClassifyInfo { runs, ..info(None) };
+            assert_eq!(whole.run_count(), runs);
+        }
+        // A shard that is not one (only a hand-edited file has it) does no run.
+        let odd = shard(3, 2);
+        assert_eq!((odd.run_count(), odd.has_run(2)), (0, false));
+        let zero = shard(0, 0);
+        assert_eq!((zero.run_count(), zero.has_run(0)), (0, false));
+    }
+
+    #[test]
     fn shards_merge_into_the_whole_and_nothing_else() {
         // Runs 0..5 in two shards: 0, 2, 4 and 1, 3. Run 3 in the first shard's folder is not
         // its run: left out, not counted.
@@ -1047,7 +1101,7 @@ mod tests {
         let m = merge(vec![a.clone(), b.clone()]).unwrap();
         let runs: Vec<u64> = m.output.records.iter().map(|r| r.run).collect();
         assert_eq!(runs, [0, 2, 4, 1]);
-        assert_eq!((m.missing, m.stray), (vec![3], 1));
+        assert_eq!((m.missing, m.stray), (1, 1));
         assert_eq!(m.output.info.shard, None);
         assert_eq!(summarise(&m.output.info, &m.output.records).crash, 4);
 
@@ -1078,7 +1132,7 @@ mod tests {
             output(by_mission(2), b"two", &[1, 3]),
         ])
         .unwrap();
-        assert!(m.missing.is_empty());
+        assert_eq!(m.missing, 0);
         assert_eq!(m.output.golden, b"one");
     }
 

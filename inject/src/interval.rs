@@ -46,6 +46,16 @@ impl Rate {
         })
     }
 
+    /// The rate is one: `k` of `n > 0`, and its interval holds it within [0, 100] %.
+    pub fn holds(&self) -> bool {
+        self.k <= self.n
+            && self.n > 0
+            && 0.0 <= self.lower_pct
+            && self.lower_pct <= self.pct
+            && self.pct <= self.upper_pct
+            && self.upper_pct <= 100.0
+    }
+
     /// The interval as tables print it: `[0, 0.64]` (percent, two decimals, the ends 0 and 100
     /// exact).
     pub fn interval(&self) -> String {

@@ -812,10 +812,10 @@ fn merge_classifications(
             merged.stray
         );
     }
-    if !merged.missing.is_empty() {
+    if merged.missing > 0 {
         eprintln!(
             "s3res-inject: warning: the classification has {} of its {} runs (shards missing?)",
-            merged.output.info.runs - merged.missing.len() as u64,
+            merged.output.info.runs - merged.missing,
             merged.output.info.runs
         );
     }
