@@ -21,7 +21,7 @@ use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_single, ScheduleParams};
 use crate::stop::StopSignals;
 use crate::target::Pick;
-use s3res_protocol::campaign::VarSpec;
+use s3res_protocol::campaign::{in_shard, runs_in_shard, VarSpec};
 
 /// The class of one run. By output (the default), or by mission (`--mission`, see
 /// [`mission_class`]).
@@ -320,20 +320,12 @@ impl ClassifyInfo {
 
     /// Run `r` is one of this shard's (or of the whole classification's).
     pub fn has_run(&self, r: u64) -> bool {
-        r < self.runs
-            && match self.shard {
-                Some((k, n)) => n > 0 && r % n == k.wrapping_sub(1),
-                None => true,
-            }
+        r < self.runs && in_shard(self.shard, r)
     }
 
     /// How many runs this shard (or the whole classification) does.
     pub fn run_count(&self) -> u64 {
-        match self.shard {
-            Some((k, n)) if (1..=n).contains(&k) => self.runs / n + u64::from(self.runs % n >= k),
-            Some(_) => 0,
-            None => self.runs,
-        }
+        runs_in_shard(self.shard, self.runs)
     }
 
     fn params(&self) -> ScheduleParams {
@@ -796,30 +788,33 @@ pub fn merge(parts: Vec<(PathBuf, ClassifyOutput)>) -> Result<Merged, String> {
 
 fn summarise(info: &ClassifyInfo, recs: &[ClassRecord]) -> ClassSummary {
     let n = |k: Class| recs.iter().filter(|r| r.class == k).count() as u64;
-    let classified = recs.len() as u64 - n(Class::Missed);
-    let pct = |k: Class| {
-        if classified == 0 {
-            0.0
-        } else {
-            n(k) as f64 * 100.0 / classified as f64
-        }
+    let (benign, sdc, crash, hang, missed) = (
+        n(Class::Benign),
+        n(Class::Sdc),
+        n(Class::Crash),
+        n(Class::Hang),
+        n(Class::Missed),
+    );
+    let classified = recs.len() as u64 - missed;
+    let rates = ClassRates {
+        benign: Rate::of(benign, classified),
+        sdc: Rate::of(sdc, classified),
+        crash: Rate::of(crash, classified),
+        hang: Rate::of(hang, classified),
     };
+    // The plain percentages of earlier files: the rates', 0 with nothing classified.
+    let pct = |r: Option<Rate>| r.map_or(0.0, |r| r.pct);
     let missions = info.golden_mission.clone().map(|golden| {
-        let done: Vec<f64> = recs
+        let succeeded: Vec<&MissionVerdict> = recs
             .iter()
             .filter(|r| r.class != Class::Missed)
             .filter_map(|r| r.mission.as_ref())
             .filter(|m| m.success)
-            .filter_map(|m| m.mission_time_s)
             .collect();
-        let successful = recs
-            .iter()
-            .filter(|r| r.class != Class::Missed)
-            .filter(|r| r.mission.as_ref().is_some_and(|m| m.success))
-            .count() as u64;
+        let done: Vec<f64> = succeeded.iter().filter_map(|m| m.mission_time_s).collect();
         MissionSummary {
             golden,
-            successful: Rate::of(successful, classified),
+            successful: Rate::of(succeeded.len() as u64, classified),
             time_mean_s: (!done.is_empty()).then(|| done.iter().sum::<f64>() / done.len() as f64),
             time_max_s: done.iter().copied().reduce(f64::max),
         }
@@ -830,21 +825,16 @@ fn summarise(info: &ClassifyInfo, recs: &[ClassRecord]) -> ClassSummary {
         seed: info.seed,
         runs: recs.len() as u64,
         classified,
-        benign: n(Class::Benign),
-        sdc: n(Class::Sdc),
-        crash: n(Class::Crash),
-        hang: n(Class::Hang),
-        missed: n(Class::Missed),
-        pct_benign: pct(Class::Benign),
-        pct_sdc: pct(Class::Sdc),
-        pct_crash: pct(Class::Crash),
-        pct_hang: pct(Class::Hang),
-        rates: ClassRates {
-            benign: Rate::of(n(Class::Benign), classified),
-            sdc: Rate::of(n(Class::Sdc), classified),
-            crash: Rate::of(n(Class::Crash), classified),
-            hang: Rate::of(n(Class::Hang), classified),
-        },
+        benign,
+        sdc,
+        crash,
+        hang,
+        missed,
+        pct_benign: pct(rates.benign),
+        pct_sdc: pct(rates.sdc),
+        pct_crash: pct(rates.crash),
+        pct_hang: pct(rates.hang),
+        rates,
         components: info.components.clone(),
         reg_bits: (info.fault == crate::fault::FaultKind::Reg).then_some(info.reg.bits),
         missions,

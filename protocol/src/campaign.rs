@@ -263,10 +263,25 @@ impl CampaignInfo {
 
     /// The runs this shard (or the whole campaign) does.
     pub fn run_indices(&self) -> impl Iterator<Item = u64> + '_ {
-        (0..self.runs).filter(|r| match self.shard {
-            Some((k, n)) => r % n == k - 1,
-            None => true,
-        })
+        (0..self.runs).filter(|&r| in_shard(self.shard, r))
+    }
+}
+
+/// Run `r` is one of shard `(K, N)`'s (`r mod N = K − 1`), or there is no shard. A shard that
+/// is not one (`K` outside `1..=N`, only a hand-edited file has it) has no run.
+pub fn in_shard(shard: Option<(u64, u64)>, r: u64) -> bool {
+    match shard {
+        Some((k, n)) => (1..=n).contains(&k) && r % n == k - 1,
+        None => true,
+    }
+}
+
+/// How many of the runs `0..runs` are in `shard` (see [`in_shard`]), without listing them.
+pub fn runs_in_shard(shard: Option<(u64, u64)>, runs: u64) -> u64 {
+    match shard {
+        Some((k, n)) if (1..=n).contains(&k) => runs / n + u64::from(runs % n >= k),
+        Some(_) => 0,
+        None => runs,
     }
 }
 

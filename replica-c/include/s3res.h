@@ -101,8 +101,8 @@ void s3res_out_close(s3res_out *port);
 
 /* The next whole frame, blocking. 1: *payload and *len set; the payload belongs to the port
  * and is valid until its next receive or close, and is aligned as malloc's memory is (16
- * bytes; 64 for a payload above 512 bytes), so it may be read as a struct. 0: end of stream (the writer closed the
- * channel; the normal way for a component to end). -EPROTO: a bad frame stream (too large,
+ * bytes; 64 for a payload above 512 bytes), so it may be read as a struct. 0: end of stream
+ * (the writer closed the channel; the normal way for a component to end). -EPROTO: a bad frame stream (too large,
  * cut short). -EIO: input frames were lost with a voter that died, so this replica's state
  * is no longer the component's: end (its voter rebuilds it from a sibling). Other -errno:
  * the read failed. */

@@ -194,8 +194,8 @@ pub struct RoundBallot<'a> {
 
 /// One replica's frame on one output, where the voter read it: in a buffer that was its
 /// pipe's read buffer a moment before (see `FrameDecoder::next_frame_into`), so that the
-/// frame is voted, scored and forwarded in place. (A payload of at most 512 bytes, or one
-/// read together with more bytes behind it, is copied there instead.)
+/// frame is voted, scored and forwarded in place. (A payload of at most `frame::COPY_UP_TO`
+/// bytes, or one read together with more bytes behind it, is copied there instead.)
 #[derive(Debug, Clone, Default)]
 pub struct Answer {
     buf: Vec<u8>,
