@@ -18,6 +18,12 @@ Environment:
               S³RES's build on first use)
   RES=DIR     raw results (default target/s3res-peer/results/<UTC time>)
   COUNT=N     round trips per configuration (default 20000, compare.sh's)
+  CPU_IDLE=M  what idle CPUs do (docs/benchmarks.md, "Idle CPUs"):
+              halt  the machine as it is: idle CPUs sleep as the kernel decides (default)
+              s3res s3res's voters keep idle CPUs polling while s3res-bench runs (a
+                    component's `cpu_idle: poll`); the C floor and S³RES run as before
+              all   this script keeps idle CPUs polling for the whole comparison (a PM QoS
+                    request on /dev/cpu_dma_latency): every implementation alike
 Run as root (SCHED_RR). The table alone, again, from saved results:
   python3 scripts/peers-table.py RES_DIR
 EOF
@@ -36,6 +42,11 @@ if [ ! -f "$PEERS/s3res/compare.sh" ]; then
 fi
 PEERS=$(cd "$PEERS" && pwd)
 REPS=${REPS:-3}
+CPU_IDLE=${CPU_IDLE:-halt}
+case "$CPU_IDLE" in
+  halt|s3res|all) ;;
+  *) echo "compare-peers: CPU_IDLE=$CPU_IDLE is none of halt, s3res, all" >&2; exit 2;;
+esac
 RES=${RES:-$ROOT/target/s3res-peer/results/$(date -u +%Y%m%dT%H%M%SZ)}
 mkdir -p "$RES"
 RES=$(cd "$RES" && pwd)
@@ -65,6 +76,12 @@ run_session() { # runs "$@" in a new session and waits for it
   wait $!
 }
 
+if [ "$CPU_IDLE" = all ]; then
+  # Held on fd 4 until this script exits; the kernel drops the request when it closes.
+  exec 4>/dev/cpu_dma_latency && printf '\0\0\0\0' >&4 ||
+    { echo "compare-peers: CPU_IDLE=all needs root (writing /dev/cpu_dma_latency)" >&2; exit 2; }
+fi
+
 echo "compare-peers: cargo build --release" >&2
 cargo build --release -q || { echo "compare-peers: cargo build --release failed" >&2; exit 1; }
 
@@ -73,12 +90,19 @@ cargo build --release -q || { echo "compare-peers: cargo build --release failed"
   echo "branch $(git rev-parse --abbrev-ref HEAD)"
   echo "started $(date -u '+%Y-%m-%d %H:%M:%S UTC')"
   echo "reps $REPS"
+  echo "cpu_idle $CPU_IDLE"
   echo "load_start $(cut -d' ' -f1-3 /proc/loadavg)"
   echo "machine $(nproc) CPUs, $(uname -r), $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //')"
 } > "$RES/meta.txt"
 
 echo "compare-peers: $PEERS/s3res/compare.sh, REPS=$REPS, raw results in $RES" >&2
 export REPS RES
+if [ "$CPU_IDLE" = s3res ]; then
+  # compare.sh runs $BENCH; this one adds the option to every s3res-bench it runs.
+  printf '#!/bin/sh\nexec "%s" "$@" --cpu-idle poll\n' "$ROOT/target/release/s3res-bench" > "$RES/s3res-bench-poll"
+  chmod +x "$RES/s3res-bench-poll"
+  export BENCH=$RES/s3res-bench-poll
+fi
 # compare.sh works in target/s3res-peer (its OUT) and does not create it: on a fresh checkout
 # its `cd` failed and the C floor was compiled nowhere, leaving that column empty.
 mkdir -p "${OUT:-$PWD/target/s3res-peer}"

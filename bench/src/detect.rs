@@ -51,6 +51,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     let spec = |timeout_us| Spec {
         journal: common.journal,
         lock_memory: common.lock_memory,
+        cpu_idle: common.cpu_idle,
         exec: echo.clone(),
         args: Vec::new(),
         replicas: 3,

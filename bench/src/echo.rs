@@ -120,6 +120,7 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
         let spec = Spec {
             journal: common.journal,
             lock_memory: common.lock_memory,
+            cpu_idle: common.cpu_idle,
             exec: echo.clone(),
             args: Vec::new(),
             replicas,

@@ -17,7 +17,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use s3res_protocol::plan::LockMemory;
+use s3res_protocol::plan::{CpuIdle, LockMemory};
 
 use crate::system::{Bins, Setup};
 
@@ -78,6 +78,16 @@ struct CommonArgs {
     /// pages it touches, locked on fault): to measure what either costs.
     #[arg(long, global = true, value_name = "all|used", default_value = "all", value_parser = parse_lock_memory)]
     lock_memory: LockMemory,
+    /// What idle CPUs do while a voter runs: `halt` (the kernel's choice: the default, as in a
+    /// system description) or `poll` (the voters keep every CPU polling when idle, as a
+    /// component's `cpu_idle: poll` does; needs root): to measure what a wake-up from idle
+    /// costs.
+    #[arg(long, global = true, value_name = "halt|poll", default_value = "halt", value_parser = parse_cpu_idle)]
+    cpu_idle: CpuIdle,
+}
+
+fn parse_cpu_idle(s: &str) -> Result<CpuIdle, String> {
+    CpuIdle::parse(s).ok_or_else(|| format!("`{s}` is neither `halt` nor `poll`"))
 }
 
 fn parse_lock_memory(s: &str) -> Result<LockMemory, String> {
@@ -174,6 +184,8 @@ pub struct Common {
     pub journal: bool,
     /// What the replicas lock (see `--lock-memory`).
     pub lock_memory: LockMemory,
+    /// What idle CPUs do while a voter runs (see `--cpu-idle`).
+    pub cpu_idle: CpuIdle,
 }
 
 impl Common {
@@ -233,13 +245,16 @@ fn run() -> Result<()> {
         quiet: cli.common.quiet,
         journal: !cli.common.no_journal,
         lock_memory: cli.common.lock_memory,
+        cpu_idle: cli.common.cpu_idle,
     };
     let json = cli.common.json;
     // Taken before measuring: the load then is what the measurement competed with.
     let machine = replica_rt::machine::Machine::probe().one_line();
+    let cpu_idle = (common.cpu_idle == CpuIdle::Poll).then_some(common.cpu_idle.as_str());
     let stamp = |mut rows: Vec<report::Row>| {
         for r in &mut rows {
             r.machine = Some(machine.clone());
+            r.cpu_idle = cpu_idle;
         }
         rows
     };

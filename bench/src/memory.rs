@@ -49,6 +49,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
     let base = |exec: &std::path::Path, args: Vec<String>, replicas| Spec {
         journal: common.journal,
         lock_memory: common.lock_memory,
+        cpu_idle: common.cpu_idle,
         exec: exec.to_path_buf(),
         args,
         replicas,

@@ -75,6 +75,9 @@ pub struct Row {
     /// bench's start); figures print it in their subtitle.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub machine: Option<String>,
+    /// `poll` when the voters kept idle CPUs polling (`--cpu-idle poll`); absent: `halt`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cpu_idle: Option<&'static str>,
 }
 
 impl Row {
@@ -97,6 +100,7 @@ impl Row {
             faults: None,
             extra: None,
             machine: None,
+            cpu_idle: None,
         }
     }
 

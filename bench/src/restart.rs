@@ -40,6 +40,7 @@ pub fn run(
         let spec = Spec {
             journal: common.journal,
             lock_memory: common.lock_memory,
+            cpu_idle: common.cpu_idle,
             exec: ballast.clone(),
             args: vec!["--kib".into(), (size / 1024).to_string()],
             replicas: 3,

@@ -85,6 +85,8 @@ pub struct Spec {
     pub journal: bool,
     /// What the replicas lock (the voter passes it on).
     pub lock_memory: s3res_protocol::plan::LockMemory,
+    /// What idle CPUs do while the voter runs.
+    pub cpu_idle: s3res_protocol::plan::CpuIdle,
 }
 
 /// Name of the component in plans and events.
@@ -205,6 +207,7 @@ impl System {
                 captures: Vec::new(),
                 framing: spec.preload.as_ref().map(|p| p.1).unwrap_or_default(),
                 lock_memory: spec.lock_memory,
+                cpu_idle: spec.cpu_idle,
                 preload: spec.preload.as_ref().map(|p| p.0.clone()),
             };
             cmd = Command::new(voter);

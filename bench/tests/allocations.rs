@@ -200,6 +200,7 @@ fn steady_state(monitored: bool) {
         captures: Vec::new(),
         framing: Default::default(),
         lock_memory: Default::default(),
+        cpu_idle: Default::default(),
         preload: None,
     };
     let mut plan = plan;

@@ -913,6 +913,7 @@ fn spawn_voter(
         captures: c.captures.clone(),
         framing: c.framing,
         lock_memory: c.lock_memory,
+        cpu_idle: c.cpu_idle,
         preload: c.preload.clone(),
     };
     let mapping: Vec<(RawFd, RawFd)> = handed

@@ -15,8 +15,8 @@ use s3res_protocol::contract::MAX_PORTS;
 use s3res_protocol::frame::DEFAULT_MAX_FRAME;
 use s3res_protocol::plan::{
     default_max_restarts, default_restart_timeout_ms, default_restart_window_ms,
-    default_start_timeout_ms, default_stream_window, CapturePlan, Framing, LockMemory, Mode,
-    MonitorPlan, RoundTrigger,
+    default_start_timeout_ms, default_stream_window, CapturePlan, CpuIdle, Framing, LockMemory,
+    Mode, MonitorPlan, RoundTrigger,
 };
 use s3res_protocol::sched::{self, Schedule};
 
@@ -307,6 +307,8 @@ struct ComponentDesc {
     framing: Option<Framing>,
     /// What each replica keeps locked in memory: `all` (default) or `used`.
     lock_memory: Option<LockMemory>,
+    /// Whether idle CPUs may sleep while the voter runs: `halt` (default) or `poll`.
+    cpu_idle: Option<CpuIdle>,
 }
 
 /// `runtime` as written.
@@ -849,6 +851,7 @@ impl Checker<'_> {
                 (desc.schedule.is_some(), "schedule"),
                 (desc.voter_cpu.is_some(), "voter_cpu"),
                 (desc.lock_memory.is_some(), "lock_memory"),
+                (desc.cpu_idle.is_some(), "cpu_idle"),
             ] {
                 if present {
                     warnings.push(format!(
@@ -1272,6 +1275,7 @@ impl Checker<'_> {
             captures: Vec::new(),
             framing: d.framing,
             lock_memory: d.desc.lock_memory.unwrap_or_default(),
+            cpu_idle: d.desc.cpu_idle.unwrap_or_default(),
             preload: d.preload,
         })
     }

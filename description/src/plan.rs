@@ -4,7 +4,9 @@
 use std::fmt::{self, Write as _};
 use std::path::PathBuf;
 
-use s3res_protocol::plan::{CapturePlan, Framing, LockMemory, Mode, MonitorPlan, RoundTrigger};
+use s3res_protocol::plan::{
+    CapturePlan, CpuIdle, Framing, LockMemory, Mode, MonitorPlan, RoundTrigger,
+};
 use s3res_protocol::sched::Schedule;
 use serde::Deserialize;
 
@@ -127,6 +129,8 @@ pub struct ComponentPlan {
     pub framing: Framing,
     /// What each replica keeps locked in memory.
     pub lock_memory: LockMemory,
+    /// Whether idle CPUs may sleep while the voter runs.
+    pub cpu_idle: CpuIdle,
     /// An unmodified program: the library put in its `LD_PRELOAD`.
     pub preload: Option<PathBuf>,
 }

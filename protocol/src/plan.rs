@@ -174,6 +174,9 @@ pub struct VoterPlan {
     /// [`crate::contract::ENV_LOCK_MEMORY`]).
     #[serde(default)]
     pub lock_memory: LockMemory,
+    /// Whether idle CPUs may sleep while this voter runs (see [`CpuIdle`]).
+    #[serde(default)]
+    pub cpu_idle: CpuIdle,
     /// An unmodified program: this library is put in its `LD_PRELOAD` (it installs the restart
     /// handler and the injection hooks), and its one input and one output are its stdin and
     /// stdout. `None`: the component links replica-rt itself and finds its ports on fd 3, 4, ...
@@ -238,6 +241,45 @@ impl LockMemory {
         match s {
             "used" => Some(LockMemory::Used),
             "all" => Some(LockMemory::All),
+            _ => None,
+        }
+    }
+}
+
+/// What an idle CPU does while the voter runs: the component's `cpu_idle` in the system
+/// description.
+///
+/// An idle CPU normally halts; on a virtual machine a halted vCPU is given back to the host,
+/// and the wake-up that ends a round's wait (a replica's answer, the voter's next input) then
+/// takes tens of µs. `poll` asks the kernel to keep every CPU polling when idle instead, for
+/// as long as the voter runs: a PM QoS CPU latency request of 0 µs on `/dev/cpu_dma_latency`,
+/// as cyclictest makes, which the kernel drops when the voter's file closes (also when it
+/// dies). The request is machine-wide, needs root, and costs power: an idle CPU keeps
+/// running.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CpuIdle {
+    /// The kernel's choice: idle CPUs sleep as deep as its governor decides.
+    #[default]
+    Halt,
+    /// Idle CPUs poll (no sleep state) while the voter runs.
+    Poll,
+}
+
+impl CpuIdle {
+    /// The name used in a system description.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CpuIdle::Halt => "halt",
+            CpuIdle::Poll => "poll",
+        }
+    }
+
+    /// Reads a name written by [`as_str`](Self::as_str).
+    pub fn parse(s: &str) -> Option<CpuIdle> {
+        match s {
+            "halt" => Some(CpuIdle::Halt),
+            "poll" => Some(CpuIdle::Poll),
             _ => None,
         }
     }

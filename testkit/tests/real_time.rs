@@ -603,3 +603,94 @@ fn bootstrap_keeps_task_clocks_ready_and_a_voter_holds_none_while_no_replica_is_
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }
+
+/// The kernel's PM QoS CPU latency file, which `cpu_idle: poll` holds a request on.
+const CPU_LATENCY_QOS: &str = "/dev/cpu_dma_latency";
+/// What the voter says, once, when it may not keep idle CPUs polling.
+const POLL_REFUSED: &str = "`cpu_idle: poll` could not be applied";
+
+/// The machine's current CPU latency limit, µs (reading needs root): 0 while some process
+/// holds a request of 0.
+fn cpu_latency_limit() -> Option<i32> {
+    let bytes = std::fs::read(CPU_LATENCY_QOS).ok()?;
+    Some(i32::from_ne_bytes(bytes.get(..4)?.try_into().ok()?))
+}
+
+/// Whether `pid` has the PM QoS file open.
+fn holds_cpu_latency_request(pid: i32) -> bool {
+    std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .unwrap_or_else(|e| panic!("the fds of {pid}: {e}"))
+        .filter_map(|fd| std::fs::read_link(fd.ok()?.path()).ok())
+        .any(|target| target == std::path::Path::new(CPU_LATENCY_QOS))
+}
+
+/// A TMR echo with `cpu_idle: poll`. Where the system may write the PM QoS file (root), the
+/// voter holds a request that makes the machine's CPU latency limit 0 for its life; a voter
+/// killed takes its request with it and its successor asks again; when the system ends the
+/// limit is what it was before. Unprivileged, the voter says once that it cannot, and the
+/// system runs on. Either way every frame arrives.
+fn cpu_idle_poll(unprivileged: bool) {
+    let _turn = one_system_at_a_time();
+    let mut sys = System::new();
+    if unprivileged {
+        sys = sys.unprivileged();
+    }
+    // `nobody` may not open the root-only file; a non-root user running the tests neither.
+    let allowed = !unprivileged && s3res_testkit::is_root();
+    let before = cpu_latency_limit();
+    eprintln!("CPU latency limit before: {before:?} µs; the voter may request: {allowed}");
+    let summary = sys.path("summary.json");
+    let count = 3000;
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+             "timeout_us": {TIMEOUT_US}, "priority": 30, "cpu_idle": "poll" }}"#
+    );
+    let mut run = sys.start(&echo_pipeline(&summary, &echo, count, 1000));
+    run.wait_for_replicas("echo", 3);
+    let voter = run.voter_of("echo").expect("the echo's voter");
+    assert_eq!(holds_cpu_latency_request(voter), allowed, "voter {voter}");
+    if allowed {
+        assert_eq!(cpu_latency_limit(), Some(0), "the request is not in force");
+        s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+        let successor = run.next_voter(voter, Duration::from_secs(30));
+        // The successor asks once it has adopted the replicas: wait for its request.
+        let deadline = std::time::Instant::now() + Duration::from_secs(30);
+        while !holds_cpu_latency_request(successor) && std::time::Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        assert!(
+            holds_cpu_latency_request(successor),
+            "the successor voter {successor} did not ask again"
+        );
+    }
+    let out = run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+    assert_eq!(
+        occurrences(&out.stderr, POLL_REFUSED),
+        usize::from(!allowed),
+        "{}",
+        out.stderr
+    );
+    if allowed {
+        out.voter_restarts(1);
+    }
+    // With no other holder of a 0 µs request, the limit is back where it was.
+    if let Some(b) = before.filter(|&b| b != 0) {
+        assert_eq!(
+            cpu_latency_limit(),
+            Some(b),
+            "a request outlived the system"
+        );
+    }
+    run.assert_nothing_left();
+}
+
+#[test]
+fn cpu_idle_poll_is_requested_by_every_voter_for_its_life() {
+    cpu_idle_poll(false);
+}
+
+#[test]
+fn unprivileged_cpu_idle_poll_is_refused_once_and_the_system_runs_on() {
+    cpu_idle_poll(true);
+}

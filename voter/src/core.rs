@@ -229,6 +229,8 @@ pub(crate) struct Core {
     /// An unmodified program's voter under a journal: where its replicas' pipes are parked so
     /// that they outlive it (`park.rs`, `lines.rs`).
     pub(crate) park: Option<ParkingLot>,
+    /// `cpu_idle: poll`: the open PM QoS request that keeps idle CPUs polling (`rt.rs`).
+    _cpu_latency: Option<std::fs::File>,
 }
 
 /// What a stream voter needs from its predecessor's journal (see [`Core::slot_offsets`]).
@@ -272,6 +274,7 @@ impl Core {
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
+        let cpu_latency = crate::rt::keep_cpus_polling(plan.cpu_idle);
         let (journal, slots, adoption) = match journal {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
@@ -338,6 +341,7 @@ impl Core {
             adopted_streams: None,
             last_delivered_len: Vec::new(),
             park,
+            _cpu_latency: cpu_latency,
         };
         core.last_delivered_len = vec![0; core.plan.inputs.len()];
         core.slot_offsets = vec![[0; MAX_PORTS]; core.plan.replicas];

@@ -3,11 +3,13 @@
 //! turn it is. A refusal is said once, with what to do about it, and the voter runs on with
 //! what it has.
 
-use std::io;
+use std::fs::File;
+use std::io::{self, Write};
+use std::path::Path;
 
 use replica_rt::sys;
 
-use crate::plan::{LockMemory, NiceFallback, VoterPlan};
+use crate::plan::{CpuIdle, LockMemory, NiceFallback, VoterPlan};
 use crate::sched::{self, Schedule};
 
 /// What the voter may do to priorities, learned by trying.
@@ -39,6 +41,41 @@ pub fn lock_voter_memory(policy: LockMemory) {
              CAP_IPC_LOCK); it runs unlocked, so page faults may delay rounds"
         ),
     }
+}
+
+/// The kernel's PM QoS CPU latency file: a request written here holds while the file stays open.
+pub const CPU_LATENCY_QOS: &str = "/dev/cpu_dma_latency";
+
+/// Keeps every CPU from sleeping when idle, for as long as the returned file stays open
+/// (`cpu_idle: poll`; `halt`: nothing is asked, `None`). The voter holds it for its life and the
+/// kernel withdraws the request when the file closes, so a voter that dies leaves no setting
+/// behind, and its successor asks again. A refusal (not root, no such file) is said once; the
+/// voter runs on and idle CPUs sleep as the kernel decides.
+pub fn keep_cpus_polling(policy: CpuIdle) -> Option<File> {
+    if policy == CpuIdle::Halt {
+        return None;
+    }
+    match request_cpu_latency(Path::new(CPU_LATENCY_QOS), 0) {
+        Ok(file) => {
+            tracing::debug!("idle CPUs poll while the voter runs (cpu_idle: poll)");
+            Some(file)
+        }
+        Err(e) => {
+            tracing::warn!(
+                error = %e,
+                "`cpu_idle: poll` could not be applied: writing {CPU_LATENCY_QOS} needs root;                  idle CPUs sleep as the kernel decides, so a wake-up after idle may take longer"
+            );
+            None
+        }
+    }
+}
+
+/// Asks for a CPU wake-up latency of at most `max_us` through the PM QoS file at `path` (its
+/// binary interface: one native-endian `i32`). 0 µs leaves cpuidle no state but polling.
+fn request_cpu_latency(path: &Path, max_us: i32) -> io::Result<File> {
+    let mut file = File::options().write(true).open(path)?;
+    file.write_all(&max_us.to_ne_bytes())?;
+    Ok(file)
 }
 
 #[derive(Debug)]
@@ -202,4 +239,27 @@ impl RealTime {
 /// The process is gone already (its death is reported through its pidfd, not here).
 fn gone(e: &io::Error) -> bool {
     e.raw_os_error() == Some(libc::ESRCH)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_cpu_latency_request_is_one_native_i32_held_open() {
+        let dir = std::env::temp_dir().join(format!("s3res-qos-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("qos");
+        std::fs::write(&path, b"").unwrap();
+        let held = request_cpu_latency(&path, 0).expect("request");
+        assert_eq!(std::fs::read(&path).unwrap(), 0i32.to_ne_bytes());
+        drop(held);
+        let refused = request_cpu_latency(&dir.join("absent"), 0).unwrap_err();
+        assert_eq!(refused.kind(), io::ErrorKind::NotFound);
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert!(
+            keep_cpus_polling(CpuIdle::Halt).is_none(),
+            "halt asks for nothing"
+        );
+    }
 }

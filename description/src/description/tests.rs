@@ -1047,6 +1047,39 @@ fn inject_errors_name_the_field() {
 }
 
 #[test]
+fn cpu_idle_is_passed_on_and_checked() {
+    let f = fixture();
+    let plan = f.ok(r#"{ "name": "n", "components": {
+  "s": { "exec": "run.sh" },
+  "a": { "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10 },
+  "p": { "exec": "run.sh", "redundancy": "dmr", "timeout_us": 10, "cpu_idle": "poll" } },
+  "channels": [ { "from": "s.out", "to": "a.in" }, { "from": "a.out", "to": "p.in" } ] }"#);
+    let idle = |name: &str| {
+        plan.components
+            .iter()
+            .find(|c| c.name == name)
+            .unwrap()
+            .cpu_idle
+    };
+    assert_eq!(idle("a"), CpuIdle::Halt, "idle CPUs sleep by default");
+    assert_eq!(idle("p"), CpuIdle::Poll);
+    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
+
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"redundancy\": \"tmr\", \"cpu_idle\": \"spin\"}}}",
+        3,
+        "components.a.cpu_idle",
+        "unknown variant `spin`, expected `halt` or `poll`",
+    );
+    let plan = f.ok(r#"{ "name": "n", "components": {
+  "s": { "exec": "run.sh", "cpu_idle": "poll" } } }"#);
+    assert_eq!(
+        plan.warnings,
+        vec!["component s: `cpu_idle` is ignored without redundancy".to_string()]
+    );
+}
+
+#[test]
 fn lock_memory_is_passed_on_and_checked() {
     let f = fixture();
     let plan = f.ok(r#"{ "name": "n", "components": {
