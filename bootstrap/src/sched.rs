@@ -6,7 +6,7 @@
 use std::fmt::Write as _;
 
 use replica_rt::sys;
-use s3res_protocol::plan::NiceFallback;
+use s3res_protocol::plan::{CpuIdle, NiceFallback};
 use s3res_protocol::sched::{self, Schedule};
 
 use crate::plan::{ComponentPlan, SchedLines, SystemPlan};
@@ -161,9 +161,13 @@ impl SystemSched {
         let _ = writeln!(out, "  schedule  {}{why}", c.schedule);
         let voter = self.describe_priority(c.priority, nice.map(|n| n.voter), None);
         let voter_cpus = sched::voter_cpus(&c.cpus, c.voter_cpu);
+        let idle = match c.cpu_idle {
+            CpuIdle::Poll => "; keeps idle CPUs polling (cpu_idle: poll, needs root)",
+            CpuIdle::Halt => "",
+        };
         let _ = writeln!(
             out,
-            "  process   voter      {voter}, {}",
+            "  process   voter      {voter}, {}{idle}",
             cpu_text(&voter_cpus)
         );
         for slot in 0..c.replicas {
@@ -269,7 +273,7 @@ mod tests {
     const SYSTEM: &str = r#"{ "name": "n", "components": {
         "a": { "exec": "./run.sh", "priority": 40 },
         "b": { "exec": "./run.sh", "redundancy": "tmr", "timeout_us": 100, "priority": 30,
-               "cpus": [0, 1], "voter_cpu": 1 },
+               "cpus": [0, 1], "voter_cpu": 1, "cpu_idle": "poll" },
         "c": { "exec": "./run.sh" } },
       "channels": [ { "from": "a.out", "to": "b.in" }, { "from": "b.out", "to": "c.in" } ] }"#;
 
@@ -299,7 +303,9 @@ mod tests {
             "{out}"
         );
         assert!(
-            out.contains("process   voter      SCHED_RR 30, CPU 1"),
+            out.contains(
+                "process   voter      SCHED_RR 30, CPU 1; keeps idle CPUs polling (cpu_idle: poll, needs root)"
+            ),
             "{out}"
         );
         assert!(
