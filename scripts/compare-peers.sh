@@ -20,7 +20,7 @@ Environment:
   COUNT=N     round trips per configuration (default 20000, compare.sh's)
   CPU_IDLE=M  what idle CPUs do (docs/benchmarks.md, "Idle CPUs"):
               halt  the machine as it is: idle CPUs sleep as the kernel decides (default)
-              s3res s3res's voters keep idle CPUs polling while s3res-bench runs (a
+              s3res s3res's voters keep idle CPUs polling while each of them runs (a
                     component's `cpu_idle: poll`); the C floor and S³RES run as before
               all   this script keeps idle CPUs polling for the whole comparison (a PM QoS
                     request on /dev/cpu_dma_latency): every implementation alike
@@ -76,10 +76,9 @@ run_session() { # runs "$@" in a new session and waits for it
   wait $!
 }
 
-if [ "$CPU_IDLE" = all ]; then
-  # Held on fd 4 until this script exits; the kernel drops the request when it closes.
-  exec 4>/dev/cpu_dma_latency && printf '\0\0\0\0' >&4 ||
-    { echo "compare-peers: CPU_IDLE=all needs root (writing /dev/cpu_dma_latency)" >&2; exit 2; }
+if [ "$CPU_IDLE" != halt ] && ! [ -w /dev/cpu_dma_latency ]; then
+  echo "compare-peers: CPU_IDLE=$CPU_IDLE needs root (writing /dev/cpu_dma_latency)" >&2
+  exit 2
 fi
 
 echo "compare-peers: cargo build --release" >&2
@@ -95,11 +94,17 @@ cargo build --release -q || { echo "compare-peers: cargo build --release failed"
   echo "machine $(nproc) CPUs, $(uname -r), $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //')"
 } > "$RES/meta.txt"
 
+if [ "$CPU_IDLE" = all ]; then
+  # Held on fd 4 until this script exits (the kernel drops the request when the last copy of
+  # the fd closes): opened only now, so that nothing started before (cargo, git) inherits it.
+  exec 4>/dev/cpu_dma_latency && printf '\0\0\0\0' >&4 ||
+    { echo "compare-peers: CPU_IDLE=all: could not write /dev/cpu_dma_latency" >&2; exit 2; }
+fi
 echo "compare-peers: $PEERS/s3res/compare.sh, REPS=$REPS, raw results in $RES" >&2
 export REPS RES
 if [ "$CPU_IDLE" = s3res ]; then
   # compare.sh runs $BENCH; this one adds the option to every s3res-bench it runs.
-  printf '#!/bin/sh\nexec "%s" "$@" --cpu-idle poll\n' "$ROOT/target/release/s3res-bench" > "$RES/s3res-bench-poll"
+  printf '#!/bin/bash\nexec %q --cpu-idle poll "$@"\n' "$ROOT/target/release/s3res-bench" > "$RES/s3res-bench-poll"
   chmod +x "$RES/s3res-bench-poll"
   export BENCH=$RES/s3res-bench-poll
 fi

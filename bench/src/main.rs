@@ -81,7 +81,7 @@ struct CommonArgs {
     /// What idle CPUs do while a voter runs: `halt` (the kernel's choice: the default, as in a
     /// system description) or `poll` (the voters keep every CPU polling when idle, as a
     /// component's `cpu_idle: poll` does; needs root): to measure what a wake-up from idle
-    /// costs.
+    /// costs. Rows without a voter (`--replicas 0`) run without the request either way.
     #[arg(long, global = true, value_name = "halt|poll", default_value = "halt", value_parser = parse_cpu_idle)]
     cpu_idle: CpuIdle,
 }
@@ -250,11 +250,24 @@ fn run() -> Result<()> {
     let json = cli.common.json;
     // Taken before measuring: the load then is what the measurement competed with.
     let machine = replica_rt::machine::Machine::probe().one_line();
+    if common.cpu_idle == CpuIdle::Poll {
+        // What the voters will open; opening it without writing asks for nothing. Refused
+        // here, every voter would run on sleeping CPUs and the rows would say otherwise.
+        const QOS: &str = "/dev/cpu_dma_latency";
+        std::fs::File::options()
+            .write(true)
+            .open(QOS)
+            .with_context(|| {
+                format!("--cpu-idle poll: the voters could not open {QOS} (run as root)")
+            })?;
+    }
     let cpu_idle = (common.cpu_idle == CpuIdle::Poll).then_some(common.cpu_idle.as_str());
     let stamp = |mut rows: Vec<report::Row>| {
         for r in &mut rows {
             r.machine = Some(machine.clone());
-            r.cpu_idle = cpu_idle;
+            // Only a voter holds the request: a row without one (the no-voter baseline) ran
+            // on CPUs that sleep when idle.
+            r.cpu_idle = cpu_idle.filter(|_| r.replicas > 0);
         }
         rows
     };

@@ -61,9 +61,14 @@ pub fn keep_cpus_polling(policy: CpuIdle) -> Option<File> {
             Some(file)
         }
         Err(e) => {
+            let why = if e.kind() == io::ErrorKind::PermissionDenied {
+                format!("writing {CPU_LATENCY_QOS} needs root")
+            } else {
+                format!("{CPU_LATENCY_QOS}: {e}")
+            };
             tracing::warn!(
-                error = %e,
-                "`cpu_idle: poll` could not be applied: writing {CPU_LATENCY_QOS} needs root;                  idle CPUs sleep as the kernel decides, so a wake-up after idle may take longer"
+                "`cpu_idle: poll` could not be applied: {why}; idle CPUs sleep as the kernel \
+                 decides, so a wake-up after idle may take longer"
             );
             None
         }
