@@ -689,7 +689,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         run.info.config,
         run.info.fault,
         run.info.system_name,
-        run.info.run_indices().count(),
+        s3res_protocol::campaign::runs_in_shard(run.info.shard, run.info.runs),
         a.shard
             .map_or(String::new(), |(k, n)| format!(" (shard {k}/{n})")),
         a.seed
