@@ -17,7 +17,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use s3res_protocol::plan::{CpuIdle, LockMemory};
+use s3res_protocol::plan::{CpuIdle, LockMemory, CPU_LATENCY_QOS};
 
 use crate::system::{Bins, Setup};
 
@@ -253,12 +253,13 @@ fn run() -> Result<()> {
     if common.cpu_idle == CpuIdle::Poll {
         // What the voters will open; opening it without writing asks for nothing. Refused
         // here, every voter would run on sleeping CPUs and the rows would say otherwise.
-        const QOS: &str = "/dev/cpu_dma_latency";
         std::fs::File::options()
             .write(true)
-            .open(QOS)
+            .open(CPU_LATENCY_QOS)
             .with_context(|| {
-                format!("--cpu-idle poll: the voters could not open {QOS} (run as root)")
+                format!(
+                    "--cpu-idle poll: the voters could not open {CPU_LATENCY_QOS} (run as root)"
+                )
             })?;
     }
     let cpu_idle = (common.cpu_idle == CpuIdle::Poll).then_some(common.cpu_idle.as_str());

@@ -246,6 +246,10 @@ impl LockMemory {
     }
 }
 
+/// The kernel's PM QoS CPU latency file, through which `cpu_idle: poll` asks (see [`CpuIdle`]):
+/// a request written here holds while the file stays open. Root's alone.
+pub const CPU_LATENCY_QOS: &str = "/dev/cpu_dma_latency";
+
 /// What an idle CPU does while the voter runs: the component's `cpu_idle` in the system
 /// description.
 ///

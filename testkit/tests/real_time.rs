@@ -10,6 +10,7 @@ use std::process::Command;
 use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
+use s3res_protocol::plan::CPU_LATENCY_QOS;
 use s3res_testkit::procs::{self, Scheduling};
 use s3res_testkit::{
     assert_sink_whole, bin_path, echo_pipeline, signals, Cause, EventKind, RecoveryMethod,
@@ -604,8 +605,6 @@ fn bootstrap_keeps_task_clocks_ready_and_a_voter_holds_none_while_no_replica_is_
     assert_sink_whole(&summary, count);
 }
 
-/// The kernel's PM QoS CPU latency file, which `cpu_idle: poll` holds a request on.
-const CPU_LATENCY_QOS: &str = "/dev/cpu_dma_latency";
 /// What the voter says, once, when it may not keep idle CPUs polling.
 const POLL_REFUSED: &str = "`cpu_idle: poll` could not be applied";
 

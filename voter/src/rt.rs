@@ -9,7 +9,7 @@ use std::path::Path;
 
 use replica_rt::sys;
 
-use crate::plan::{CpuIdle, LockMemory, NiceFallback, VoterPlan};
+use crate::plan::{CpuIdle, LockMemory, NiceFallback, VoterPlan, CPU_LATENCY_QOS};
 use crate::sched::{self, Schedule};
 
 /// What the voter may do to priorities, learned by trying.
@@ -42,9 +42,6 @@ pub fn lock_voter_memory(policy: LockMemory) {
         ),
     }
 }
-
-/// The kernel's PM QoS CPU latency file: a request written here holds while the file stays open.
-pub const CPU_LATENCY_QOS: &str = "/dev/cpu_dma_latency";
 
 /// Keeps every CPU from sleeping when idle, for as long as the returned file stays open
 /// (`cpu_idle: poll`; `halt`: nothing is asked, `None`). The voter holds it for its life and the
