@@ -271,3 +271,53 @@ fn ctrl_c_stops_and_reaps_everything() {
     );
     assert_nothing_left();
 }
+
+/// `--cpu-idle poll`: rows measured under a voter say so and the no-voter baseline does not;
+/// where the voters could not open the PM QoS file (as `nobody` when the tests run as root,
+/// else as the user running them), the bench stops at once with a one-line error, starting
+/// nothing.
+#[test]
+fn cpu_idle_poll_labels_voter_rows_and_stops_without_the_right() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let qos = s3res_protocol::plan::CPU_LATENCY_QOS;
+    let args = ["echo", "--replicas", "0,3", "--size", "8", "--count", "50"];
+    let can_open = std::fs::File::options().write(true).open(qos).is_ok();
+    if can_open {
+        let mut cmd = bench();
+        cmd.args(args)
+            .args(["--warmup", "5", "--json", "--cpu-idle", "poll"]);
+        let rows = json_lines(&run(cmd));
+        assert_eq!(rows.len(), 2, "{rows:?}");
+        for r in &rows {
+            let expected = (r["replicas"] != 0).then_some("poll");
+            assert_eq!(r["cpu_idle"].as_str(), expected, "{r}");
+        }
+    }
+    let refused = if s3res_testkit::is_root() {
+        // The test binaries are readable by everyone, as the unprivileged system tests need.
+        let mut cmd = Command::new("setpriv");
+        cmd.args(["--reuid=65534", "--regid=65534", "--clear-groups", "--"])
+            .arg(env!("CARGO_BIN_EXE_s3res-bench"))
+            .arg("--bin-dir")
+            .arg(s3res_testkit::bin_dir())
+            .arg("--quiet")
+            .stdin(Stdio::null());
+        Some(cmd)
+    } else {
+        (!can_open).then(bench)
+    };
+    let Some(mut cmd) = refused else {
+        eprintln!("{qos} is open to this user: no refusal to check");
+        return;
+    };
+    cmd.args(args).args(["--cpu-idle", "poll"]);
+    let out = run(cmd);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(out.stdout.is_empty(), "rows were measured");
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(
+        stderr.contains(&format!("--cpu-idle poll: the voters could not open {qos}")),
+        "{stderr}"
+    );
+}
