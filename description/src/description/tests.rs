@@ -1046,68 +1046,67 @@ fn inject_errors_name_the_field() {
     );
 }
 
-#[test]
-fn cpu_idle_is_passed_on_and_checked() {
+/// A protected component's choice `field`, as the plan has it (`value`): `default` when
+/// absent, `set` when given; a value none of `variants` refused with its line; a warning
+/// without redundancy.
+fn component_choice_is_passed_on_and_checked(
+    field: &str,
+    (default, set): (&str, &str),
+    bad: &str,
+    variants: &str,
+    value: impl Fn(&ComponentPlan) -> &'static str,
+) {
     let f = fixture();
-    let plan = f.ok(r#"{ "name": "n", "components": {
-  "s": { "exec": "run.sh" },
-  "a": { "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10 },
-  "p": { "exec": "run.sh", "redundancy": "dmr", "timeout_us": 10, "cpu_idle": "poll" } },
-  "channels": [ { "from": "s.out", "to": "a.in" }, { "from": "a.out", "to": "p.in" } ] }"#);
-    let idle = |name: &str| {
-        plan.components
-            .iter()
-            .find(|c| c.name == name)
-            .unwrap()
-            .cpu_idle
-    };
-    assert_eq!(idle("a"), CpuIdle::Halt, "idle CPUs sleep by default");
-    assert_eq!(idle("p"), CpuIdle::Poll);
+    let plan = f.ok(&format!(
+        r#"{{ "name": "n", "components": {{
+  "s": {{ "exec": "run.sh" }},
+  "a": {{ "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10 }},
+  "u": {{ "exec": "run.sh", "redundancy": "dmr", "timeout_us": 10, "{field}": "{set}" }} }},
+  "channels": [ {{ "from": "s.out", "to": "a.in" }}, {{ "from": "a.out", "to": "u.in" }} ] }}"#
+    ));
+    let of = |name: &str| value(plan.components.iter().find(|c| c.name == name).unwrap());
+    assert_eq!(of("a"), default, "{field}'s default");
+    assert_eq!(of("u"), set);
     assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
 
     f.fails(
-        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"redundancy\": \"tmr\", \"cpu_idle\": \"spin\"}}}",
+        &format!("{{\"name\": \"x\", \"components\": {{\n \"a\": {{\"exec\": \"run.sh\",\n \"redundancy\": \"tmr\", \"{field}\": \"{bad}\"}}}}}}"),
         3,
-        "components.a.cpu_idle",
-        "unknown variant `spin`, expected `halt` or `poll`",
+        &format!("components.a.{field}"),
+        &format!("unknown variant `{bad}`, expected {variants}"),
     );
-    let plan = f.ok(r#"{ "name": "n", "components": {
-  "s": { "exec": "run.sh", "cpu_idle": "poll" } } }"#);
+    let plan = f.ok(&format!(
+        r#"{{ "name": "n", "components": {{
+  "s": {{ "exec": "run.sh", "{field}": "{set}" }} }} }}"#
+    ));
     assert_eq!(
         plan.warnings,
-        vec!["component s: `cpu_idle` is ignored without redundancy".to_string()]
+        vec![format!(
+            "component s: `{field}` is ignored without redundancy"
+        )]
+    );
+}
+
+#[test]
+fn cpu_idle_is_passed_on_and_checked() {
+    // Idle CPUs sleep by default.
+    component_choice_is_passed_on_and_checked(
+        "cpu_idle",
+        ("halt", "poll"),
+        "spin",
+        "`halt` or `poll`",
+        |c| c.cpu_idle.as_str(),
     );
 }
 
 #[test]
 fn lock_memory_is_passed_on_and_checked() {
-    let f = fixture();
-    let plan = f.ok(r#"{ "name": "n", "components": {
-  "s": { "exec": "run.sh" },
-  "a": { "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10 },
-  "u": { "exec": "run.sh", "redundancy": "dmr", "timeout_us": 10, "lock_memory": "used" } },
-  "channels": [ { "from": "s.out", "to": "a.in" }, { "from": "a.out", "to": "u.in" } ] }"#);
-    let lock = |name: &str| {
-        plan.components
-            .iter()
-            .find(|c| c.name == name)
-            .unwrap()
-            .lock_memory
-    };
-    assert_eq!(lock("a"), LockMemory::All, "the default locks every page");
-    assert_eq!(lock("u"), LockMemory::Used);
-    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
-
-    f.fails(
-        "{\"name\": \"x\", \"components\": {\n \"a\": {\"exec\": \"run.sh\",\n \"redundancy\": \"tmr\", \"lock_memory\": \"some\"}}}",
-        3,
-        "components.a.lock_memory",
-        "unknown variant `some`, expected `all` or `used`",
-    );
-    let plan = f.ok(r#"{ "name": "n", "components": {
-  "s": { "exec": "run.sh", "lock_memory": "used" } } }"#);
-    assert_eq!(
-        plan.warnings,
-        vec!["component s: `lock_memory` is ignored without redundancy".to_string()]
+    // The default locks every page.
+    component_choice_is_passed_on_and_checked(
+        "lock_memory",
+        ("all", "used"),
+        "some",
+        "`all` or `used`",
+        |c| c.lock_memory.as_str(),
     );
 }
