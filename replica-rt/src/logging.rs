@@ -7,6 +7,7 @@ use std::fmt;
 use std::io::IsTerminal;
 
 use tracing::{Event, Subscriber};
+use tracing_subscriber::filter::Targets;
 use tracing_subscriber::fmt::format::{Format, Full, Writer};
 use tracing_subscriber::fmt::{FmtContext, FormatEvent, FormatFields};
 use tracing_subscriber::prelude::*;
@@ -16,8 +17,9 @@ use tracing_subscriber::EnvFilter;
 use crate::contract::{ENV_COMPONENT, ENV_REPLICA, ENV_VOTER_SOCKET};
 
 /// Installs a `tracing` subscriber that writes to stderr, filtered by `RUST_LOG` (default
-/// `info`; bootstrap passes its `-q`/`-v` on through it), each line prefixed with
-/// `[component#replica pid N]`, and a panic hook that prefixes a panic's lines the same way.
+/// `info`; bootstrap passes its `-q`/`-v` on through it: see [`component_filter`]), each line
+/// prefixed with `[component#replica pid N]`, and a panic hook that prefixes a panic's lines
+/// the same way.
 ///
 /// The component name is `S3RES_COMPONENT`, or `component_default` when the process was not
 /// started by s3res (by hand, in a shell pipeline). A replica (started by a voter) writes no
@@ -34,7 +36,7 @@ pub fn init_logging(component_default: &str) {
         Ok(r) => Some(format!("{component}#{r}")),
         Err(_) => Some(component),
     };
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let filter = component_filter(std::env::var("RUST_LOG").ok().as_deref());
     install_panic_hook(prefix.clone());
     let layer = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
@@ -48,6 +50,20 @@ pub fn init_logging(component_default: &str) {
         .with(filter)
         .with(layer)
         .try_init();
+}
+
+/// A component's log filter from `RUST_LOG`: a level (`warn`, `debug`, what bootstrap passes
+/// on for `-q`/`-v`), and optionally levels per target (`info,replica_rt=debug`). A value that
+/// does not parse, or none, is `info`.
+///
+/// Components take `Targets`, not the `EnvFilter` of the voter and the tools: its span and
+/// field directives need a regular-expression engine, about 250 KiB of machine code that every
+/// replica would otherwise map, lock and keep resident (`s3res-echo`: 4,388 KiB resident under
+/// `lock_memory: all` with it, 3,748 KiB without; docs/results.md).
+pub fn component_filter(rust_log: Option<&str>) -> Targets {
+    rust_log
+        .and_then(|v| v.parse::<Targets>().ok())
+        .unwrap_or_else(|| Targets::new().with_default(tracing::Level::INFO))
 }
 
 /// A panic is reported like a log line: every line of the message (and of the backtrace, with
@@ -154,7 +170,30 @@ pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::{error_chain, prefix_lines};
+    use super::{component_filter, error_chain, prefix_lines};
+    use tracing::Level;
+
+    #[test]
+    fn a_components_filter_takes_levels_and_targets_and_defaults_to_info() {
+        let info = component_filter(None);
+        assert!(info.would_enable("s3res_echo", &Level::INFO));
+        assert!(!info.would_enable("s3res_echo", &Level::DEBUG));
+        // What bootstrap passes on for -q and -v.
+        let warn = component_filter(Some("warn"));
+        assert!(warn.would_enable("replica_rt", &Level::WARN));
+        assert!(!warn.would_enable("replica_rt", &Level::INFO));
+        assert!(component_filter(Some("trace")).would_enable("replica_rt", &Level::TRACE));
+        // Per target.
+        let mixed = component_filter(Some("warn,replica_rt=debug"));
+        assert!(mixed.would_enable("replica_rt::port", &Level::DEBUG));
+        assert!(!mixed.would_enable("s3res_echo", &Level::INFO));
+        // Unreadable: the default.
+        for bad in ["replica_rt=loud", "a=b=c"] {
+            let f = component_filter(Some(bad));
+            assert!(f.would_enable("s3res_echo", &Level::INFO), "{bad}");
+            assert!(!f.would_enable("s3res_echo", &Level::DEBUG), "{bad}");
+        }
+    }
 
     #[test]
     fn every_line_is_prefixed_and_ends() {
