@@ -46,7 +46,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
     // the bench in its place. Not in `echo`: no replica is late there, and the harness pays
     // perf's context-switch hook for as long as it holds one.
     let _task_clocks_ready = replica_rt::sys::TaskClock::open_idle(0).ok();
-    let echo = common.bins.path("s3res-echo")?;
+    let echo = common.bins.component("s3res-echo")?;
     let voter = common.bins.path("s3res-voter")?;
     let spec = |timeout_us| Spec {
         journal: common.journal,

@@ -73,7 +73,7 @@ pub fn fill_line(seq: u64, buf: &mut [u8]) {
 
 pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
     let (echo, preload) = match o.program {
-        Program::Linked => (common.bins.path("s3res-echo")?, None),
+        Program::Linked => (common.bins.component("s3res-echo")?, None),
         Program::PreloadFrames | Program::PreloadLines => {
             if o.replicas.contains(&0) {
                 anyhow::bail!(

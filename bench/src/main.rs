@@ -2,6 +2,7 @@
 
 mod detect;
 mod echo;
+mod elf;
 mod frames;
 mod memory;
 mod plot;
@@ -66,6 +67,12 @@ struct CommonArgs {
     /// Folder of the s3res executables (default: the folder of s3res-bench).
     #[arg(long, value_name = "DIR", global = true)]
     bin_dir: Option<PathBuf>,
+    /// Folder of the measured components, s3res-echo and s3res-ballast (default: the
+    /// --bin-dir folder): to measure another build of them, such as a statically linked one
+    /// (docs/writing-a-component.md, "Statically linked"). Rows measured with statically
+    /// linked components carry `"linking": "static"`.
+    #[arg(long, value_name = "DIR", global = true)]
+    component_dir: Option<PathBuf>,
     /// No progress bar.
     #[arg(long, short, global = true)]
     quiet: bool,
@@ -241,7 +248,7 @@ fn run() -> Result<()> {
     // Replicas whose voter died come to us, so they are reaped here.
     replica_rt::sys::set_child_subreaper().context("becoming a child subreaper")?;
     let common = Common {
-        bins: Bins::locate(cli.common.bin_dir.clone())?,
+        bins: Bins::locate(cli.common.bin_dir.clone(), cli.common.component_dir.clone())?,
         quiet: cli.common.quiet,
         journal: !cli.common.no_journal,
         lock_memory: cli.common.lock_memory,
@@ -263,12 +270,19 @@ fn run() -> Result<()> {
             })?;
     }
     let cpu_idle = (common.cpu_idle == CpuIdle::Poll).then_some(common.cpu_idle.as_str());
+    let linking = common.bins.component_linking()?;
+    if linking.is_some() {
+        eprintln!("s3res-bench: the components measured are statically linked");
+    }
     let stamp = |mut rows: Vec<report::Row>| {
         for r in &mut rows {
             r.machine = Some(machine.clone());
             // Only a voter holds the request: a row without one (the no-voter baseline) ran
             // on CPUs that sleep when idle.
             r.cpu_idle = cpu_idle.filter(|_| r.replicas > 0);
+            // An unmodified program's rows ran `cat`, not a component of the folder.
+            let preloaded = r.what.as_deref().is_some_and(|w| w.starts_with("preload"));
+            r.linking = linking.filter(|_| !preloaded);
         }
         rows
     };

@@ -39,12 +39,16 @@ pub struct MemRow {
     pub private_kib: u64,
     /// `rss_kib` − the state, for components.
     pub beyond_state_kib: Option<i64>,
+    /// `static` for a statically linked component (`--component-dir`; see `report::Row`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub linking: Option<&'static str>,
 }
 
 pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
     let voter = common.bins.path("s3res-voter")?;
-    let echo = common.bins.path("s3res-echo")?;
-    let ballast = common.bins.path("s3res-ballast")?;
+    let echo = common.bins.component("s3res-echo")?;
+    let ballast = common.bins.component("s3res-ballast")?;
+    let linking = common.bins.component_linking()?;
     let mut rows = Vec::new();
     let base = |exec: &std::path::Path, args: Vec<String>, replicas| Spec {
         journal: common.journal,
@@ -100,6 +104,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
                 private_kib: m.private_kib,
                 beyond_state_kib: (what != "voter")
                     .then(|| m.rss_kib as i64 - (state / 1024) as i64),
+                linking: linking.filter(|_| what != "voter"),
             });
             Ok(())
         };
@@ -158,7 +163,10 @@ pub fn emit(rows: &[MemRow], json: bool) {
         .iter()
         .map(|r| {
             vec![
-                r.component.clone(),
+                match r.linking {
+                    Some(how) => format!("{} ({how})", r.component),
+                    None => r.component.clone(),
+                },
                 report::level_name(r.replicas),
                 r.what.clone(),
                 r.rss_kib.to_string(),

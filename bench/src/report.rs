@@ -78,6 +78,10 @@ pub struct Row {
     /// `poll` when the voters kept idle CPUs polling (`--cpu-idle poll`); absent: `halt`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cpu_idle: Option<&'static str>,
+    /// `static` when the component measured (`s3res-echo`, `s3res-ballast`) was statically
+    /// linked (`--component-dir`); absent: dynamically, as the workspace builds it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub linking: Option<&'static str>,
 }
 
 impl Row {
@@ -101,6 +105,7 @@ impl Row {
             extra: None,
             machine: None,
             cpu_idle: None,
+            linking: None,
         }
     }
 

@@ -31,7 +31,7 @@ pub fn run(
     timeout_us: u64,
     setup: Setup,
 ) -> Result<Vec<Row>> {
-    let ballast = common.bins.path("s3res-ballast")?;
+    let ballast = common.bins.component("s3res-ballast")?;
     let voter = common.bins.path("s3res-voter")?;
     let bar = common.progress(sizes.len() as u64 * count * 3, "restart");
     let mut rows = Vec::new();

@@ -34,12 +34,18 @@ use crate::sys;
 #[derive(Debug, Clone)]
 pub struct Bins {
     dir: PathBuf,
+    /// Where the measured components (`s3res-echo`, `s3res-ballast`) are: `dir` unless
+    /// `--component-dir` names another build of them.
+    components: PathBuf,
 }
+
+/// The components a bench measures, looked up with [`Bins::component`].
+const COMPONENTS: [&str; 2] = ["s3res-echo", "s3res-ballast"];
 
 impl Bins {
     /// `dir` if given, else the folder of the running `s3res-bench` (as bootstrap finds the
-    /// voter beside itself).
-    pub fn locate(dir: Option<PathBuf>) -> Result<Bins> {
+    /// voter beside itself); the components in `components` if given, else there too.
+    pub fn locate(dir: Option<PathBuf>, components: Option<PathBuf>) -> Result<Bins> {
         let dir = match dir {
             Some(d) => d,
             None => std::env::current_exe()
@@ -48,7 +54,8 @@ impl Bins {
                 .ok_or_else(|| anyhow!("the running executable has no folder"))?
                 .to_path_buf(),
         };
-        Ok(Bins { dir })
+        let components = components.unwrap_or_else(|| dir.clone());
+        Ok(Bins { dir, components })
     }
 
     pub fn path(&self, name: &str) -> Result<PathBuf> {
@@ -61,6 +68,47 @@ impl Bins {
             );
         }
         Ok(p)
+    }
+
+    /// A measured component's executable (one of [`COMPONENTS`]).
+    pub fn component(&self, name: &str) -> Result<PathBuf> {
+        debug_assert!(
+            COMPONENTS.contains(&name),
+            "{name} is not a measured component"
+        );
+        let p = self.components.join(name);
+        if !p.is_file() {
+            bail!(
+                "{} not found (build the workspace first: cargo build --release; or name the \
+                 folder with --component-dir)",
+                p.display()
+            );
+        }
+        Ok(p)
+    }
+
+    /// `Some("static")` when the measured components are statically linked, `None` when they
+    /// are dynamically linked (the workspace's own build); an error if the folder holds one
+    /// of each, whose rows could not say which they measured.
+    pub fn component_linking(&self) -> Result<Option<&'static str>> {
+        let mut seen: Vec<(&str, bool)> = Vec::new();
+        for name in COMPONENTS {
+            let p = self.components.join(name);
+            if p.is_file() {
+                let dynamic = crate::elf::is_dynamically_linked(&p)
+                    .with_context(|| format!("reading the ELF header of {}", p.display()))?;
+                seen.push((name, dynamic));
+            }
+        }
+        if let (Some(a), Some(b)) = (seen.iter().find(|c| c.1), seen.iter().find(|c| !c.1)) {
+            bail!(
+                "in {}, {} is dynamically linked and {} statically: build both the same way",
+                self.components.display(),
+                a.0,
+                b.0
+            );
+        }
+        Ok(seen.first().filter(|c| !c.1).map(|_| "static"))
     }
 }
 
