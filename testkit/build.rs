@@ -43,6 +43,10 @@ fn main() {
         println!("cargo::rustc-check-cfg=cfg({cfg})");
     }
     println!("cargo::rerun-if-changed=build.rs");
+    // The triple the tests are built for: `bins::static_component_dir` builds for it.
+    if let Ok(target) = std::env::var("TARGET") {
+        println!("cargo::rustc-env=S3RES_TESTKIT_TARGET={target}");
+    }
     // A change of user (sudo, su) probes again.
     for var in ["USER", "SUDO_USER", "HOME", "PATH", UNPRIVILEGED_ENV] {
         println!("cargo::rerun-if-env-changed={var}");

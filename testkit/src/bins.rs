@@ -10,6 +10,10 @@
 //!
 //! `S3RES_BIN_DIR=/path` skips the build and uses the executables found there (for example
 //! `target/release`, to run the end-to-end tests against a release build).
+//!
+//! [`static_component_dir`] builds the example components again, statically linked, as
+//! docs/writing-a-component.md ("Statically linked") tells a user to: for the tests that run
+//! such a build.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -65,6 +69,62 @@ fn find_or_build() -> Result<PathBuf, String> {
         .args(layout.cargo_args())
         .stdin(Stdio::null());
     eprintln!("s3res-testkit: building the workspace's binaries: {cmd:?}");
+    run_cargo(cmd)?;
+    Ok(layout.profile_dir)
+}
+
+/// The folder of the `s3res-components` executables (`s3res-echo`, `s3res-sink`, ...) built
+/// statically linked (`RUSTFLAGS=-C target-feature=+crt-static`, with the target named, so
+/// that build scripts and proc macros stay dynamic) for the triple and profile of the tests,
+/// into a target folder of their own beside the workspace's (`static-components`). Built on
+/// first use in each test process; a no-op when current. Needs a static C library (Debian's
+/// `libc6-dev`): the tests that call it are ignored without one (`s3res_cc_static`).
+pub fn static_component_dir() -> &'static Path {
+    static DIR: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    match DIR.get_or_init(build_static_components) {
+        Ok(p) => p,
+        Err(e) => panic!("{e}"),
+    }
+}
+
+fn build_static_components() -> Result<PathBuf, String> {
+    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
+    let layout = Layout::from_test_exe(&exe)?;
+    let triple = layout
+        .triple
+        .clone()
+        .unwrap_or_else(|| env!("S3RES_TESTKIT_TARGET").to_owned());
+    let target_dir = layout.target_dir.join("static-components");
+    let static_layout = Layout {
+        target_dir: target_dir.clone(),
+        triple: Some(triple.clone()),
+        profile: layout.profile.clone(),
+        profile_dir: target_dir.join(&triple).join(&layout.profile),
+    };
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .ok_or("the testkit crate has no parent directory")?
+        .join("Cargo.toml");
+    let mut cmd = Command::new(env!("CARGO"));
+    cmd.arg("build")
+        .args(["--package", "s3res-components", "--bins", "--locked"])
+        .arg("--manifest-path")
+        .arg(&manifest)
+        .arg("--target-dir")
+        .arg(&target_dir)
+        .args(static_layout.cargo_args())
+        // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
+        // scripts and proc macros (which cannot be linked statically).
+        .env("RUSTFLAGS", "-C target-feature=+crt-static")
+        .env_remove("CARGO_ENCODED_RUSTFLAGS")
+        .stdin(Stdio::null());
+    eprintln!("s3res-testkit: building the components statically linked: {cmd:?}");
+    run_cargo(cmd)?;
+    Ok(static_layout.profile_dir)
+}
+
+/// Runs a `cargo build`, within [`BUILD_LIMIT`], its output kept for the error.
+fn run_cargo(mut cmd: Command) -> Result<(), String> {
     // Output to a file, not a pipe, so a chatty build can never block on a full pipe.
     let log = tempfile::tempfile().map_err(|e| format!("temp file for cargo's output: {e}"))?;
     let log_err = log.try_clone().map_err(|e| format!("dup: {e}"))?;
@@ -91,7 +151,7 @@ fn find_or_build() -> Result<PathBuf, String> {
     if !status.success() {
         return Err(format!("{cmd:?} failed ({status}):\n{}", read_all(log)));
     }
-    Ok(layout.profile_dir)
+    Ok(())
 }
 
 fn read_all(mut f: std::fs::File) -> String {

@@ -525,3 +525,72 @@ fn make_executable(path: &Path) {
     use std::os::unix::fs::PermissionsExt;
     std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o755)).unwrap();
 }
+
+/// The shared libraries that process `pid` maps (none for a statically linked executable).
+fn shared_libraries(pid: i32) -> Vec<String> {
+    let mut libs: Vec<String> = maps(pid)
+        .into_iter()
+        .map(|m| m.path)
+        .filter(|p| p.contains(".so"))
+        .collect();
+    libs.dedup();
+    libs
+}
+
+/// A statically linked replica (docs/writing-a-component.md, "Statically linked"), built as
+/// that section says: kill two replicas of a TMR stateful echo built so, one after the other.
+/// Each is recovered by fork into a new process of the same executable, which maps no shared
+/// library, as its donor did, and carries on counting: every frame gets through with the
+/// echo's count unbroken.
+#[test]
+#[cfg_attr(
+    not(s3res_cc_static),
+    ignore = "needs a static C library (Debian's libc6-dev) to link a static executable"
+)]
+fn a_statically_linked_replica_is_recovered_by_fork_with_its_state() {
+    let exe = s3res_testkit::bins::static_component_dir().join("s3res-echo");
+    let exe = std::fs::canonicalize(&exe)
+        .unwrap_or_else(|e| panic!("{} after the static build: {e}", exe.display()));
+    let count = 2000;
+    let sys = System::new();
+    let echo = format!(
+        r#"{{ "exec": "{}", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 1000000 }}"#,
+        exe.display()
+    );
+    let desc = echo_pipeline(&sys.path("summary.json"), &echo, count, 500);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let runs_static_echo = |pid: i32, who: &str| {
+        let running = std::fs::read_link(format!("/proc/{pid}/exe"))
+            .unwrap_or_else(|e| panic!("{who} {pid}: /proc/{pid}/exe: {e}"));
+        assert_eq!(running, exe, "{who} {pid} runs another executable");
+        let libs = shared_libraries(pid);
+        assert!(
+            libs.is_empty(),
+            "{who} {pid} maps shared libraries: {libs:?}"
+        );
+    };
+    for (slot, pid) in run.replica_pids("echo") {
+        runs_static_echo(pid, &format!("replica {slot}"));
+    }
+    for slot in [2, 0] {
+        let victim = run.replica_pids("echo")[&slot];
+        s3res_testkit::kill_pid(victim, libc::SIGKILL).unwrap();
+        let rec = run.wait_for_event(
+            |e| e.kind == EventKind::Recovery && e.pid == Some(victim),
+            Duration::from_secs(20),
+        );
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+        let child = rec.new_pid.expect("new pid");
+        assert_ne!(child, victim);
+        runs_static_echo(child, &format!("the fork child in slot {slot}"));
+        eprintln!(
+            "slot {slot}: {victim} killed, {child} forked from slot {:?}",
+            rec.donor
+        );
+    }
+    run.wait_success(LIMIT);
+    assert_sink_whole(&run.path("summary.json"), count);
+}
