@@ -39,6 +39,20 @@ pub struct Bins {
     components: PathBuf,
 }
 
+/// `dir/name`, if it is a file; else an error that says how to get it (`option`: the one that
+/// names `dir`).
+fn existing(dir: &Path, name: &str, option: &str) -> Result<PathBuf> {
+    let p = dir.join(name);
+    if !p.is_file() {
+        bail!(
+            "{} not found (build the workspace first: cargo build --release; or name the \
+             folder with {option})",
+            p.display()
+        );
+    }
+    Ok(p)
+}
+
 /// The components a bench measures, looked up with [`Bins::component`].
 const COMPONENTS: [&str; 2] = ["s3res-echo", "s3res-ballast"];
 
@@ -59,15 +73,7 @@ impl Bins {
     }
 
     pub fn path(&self, name: &str) -> Result<PathBuf> {
-        let p = self.dir.join(name);
-        if !p.is_file() {
-            bail!(
-                "{} not found (build the workspace first: cargo build --release; or name the \
-                 folder with --bin-dir)",
-                p.display()
-            );
-        }
-        Ok(p)
+        existing(&self.dir, name, "--bin-dir")
     }
 
     /// A measured component's executable (one of [`COMPONENTS`]).
@@ -76,15 +82,7 @@ impl Bins {
             COMPONENTS.contains(&name),
             "{name} is not a measured component"
         );
-        let p = self.components.join(name);
-        if !p.is_file() {
-            bail!(
-                "{} not found (build the workspace first: cargo build --release; or name the \
-                 folder with --component-dir)",
-                p.display()
-            );
-        }
-        Ok(p)
+        existing(&self.components, name, "--component-dir")
     }
 
     /// `Some("static")` when the measured components are statically linked, `None` when they

@@ -40,7 +40,16 @@ pub fn bin_path(name: &str) -> PathBuf {
 /// The directory holding the workspace's executables (built on first use, see module docs).
 pub fn bin_dir() -> &'static Path {
     static DIR: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    match DIR.get_or_init(find_or_build) {
+    once(&DIR, find_or_build)
+}
+
+/// What `init` finds, the first time it is asked for in this process (a build, say); a
+/// failure panics, every time it is asked for.
+fn once(
+    cell: &'static OnceLock<Result<PathBuf, String>>,
+    init: fn() -> Result<PathBuf, String>,
+) -> &'static Path {
+    match cell.get_or_init(init) {
         Ok(p) => p,
         Err(e) => panic!("{e}"),
     }
@@ -52,22 +61,11 @@ fn find_or_build() -> Result<PathBuf, String> {
     }
     let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
     let layout = Layout::from_test_exe(&exe)?;
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .ok_or("the testkit crate has no parent directory")?
-        .join("Cargo.toml");
-    let mut cmd = Command::new(env!("CARGO"));
-    cmd.arg("build")
-        .arg("--workspace")
+    let mut cmd = cargo_build(&layout)?;
+    cmd.arg("--workspace")
         .arg("--bins")
         // The libraries too: the preload library (a cdylib) is not a bin, and no bin needs it.
-        .arg("--lib")
-        .arg("--manifest-path")
-        .arg(&workspace)
-        .arg("--target-dir")
-        .arg(&layout.target_dir)
-        .args(layout.cargo_args())
-        .stdin(Stdio::null());
+        .arg("--lib");
     eprintln!("s3res-testkit: building the workspace's binaries: {cmd:?}");
     run_cargo(cmd)?;
     Ok(layout.profile_dir)
@@ -81,10 +79,7 @@ fn find_or_build() -> Result<PathBuf, String> {
 /// `libc6-dev`): the tests that call it are ignored without one (`s3res_cc_static`).
 pub fn static_component_dir() -> &'static Path {
     static DIR: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    match DIR.get_or_init(build_static_components) {
-        Ok(p) => p,
-        Err(e) => panic!("{e}"),
-    }
+    once(&DIR, build_static_components)
 }
 
 fn build_static_components() -> Result<PathBuf, String> {
@@ -101,26 +96,33 @@ fn build_static_components() -> Result<PathBuf, String> {
         profile: layout.profile.clone(),
         profile_dir: target_dir.join(&triple).join(&layout.profile),
     };
+    let mut cmd = cargo_build(&static_layout)?;
+    cmd.args(["--package", "s3res-components", "--bins", "--locked"])
+        // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
+        // scripts and proc macros (which cannot be linked statically).
+        .env("RUSTFLAGS", "-C target-feature=+crt-static")
+        .env_remove("CARGO_ENCODED_RUSTFLAGS");
+    eprintln!("s3res-testkit: building the components statically linked: {cmd:?}");
+    run_cargo(cmd)?;
+    Ok(static_layout.profile_dir)
+}
+
+/// A `cargo build` of this workspace into `layout`'s target folder, for its profile and
+/// triple, by the cargo that builds the tests; what to build is the caller's to add.
+fn cargo_build(layout: &Layout) -> Result<Command, String> {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR"))
         .parent()
         .ok_or("the testkit crate has no parent directory")?
         .join("Cargo.toml");
     let mut cmd = Command::new(env!("CARGO"));
     cmd.arg("build")
-        .args(["--package", "s3res-components", "--bins", "--locked"])
         .arg("--manifest-path")
         .arg(&manifest)
         .arg("--target-dir")
-        .arg(&target_dir)
-        .args(static_layout.cargo_args())
-        // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
-        // scripts and proc macros (which cannot be linked statically).
-        .env("RUSTFLAGS", "-C target-feature=+crt-static")
-        .env_remove("CARGO_ENCODED_RUSTFLAGS")
+        .arg(&layout.target_dir)
+        .args(layout.cargo_args())
         .stdin(Stdio::null());
-    eprintln!("s3res-testkit: building the components statically linked: {cmd:?}");
-    run_cargo(cmd)?;
-    Ok(static_layout.profile_dir)
+    Ok(cmd)
 }
 
 /// Runs a `cargo build`, within [`BUILD_LIMIT`], its output kept for the error.
