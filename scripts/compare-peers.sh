@@ -24,6 +24,10 @@ Environment:
                     component's `cpu_idle: poll`); the C floor and S³RES run as before
               all   this script keeps idle CPUs polling for the whole comparison (a PM QoS
                     request on /dev/cpu_dma_latency): every implementation alike
+  COMPONENTS=L  how s3res's measured components (s3res-echo, s3res-ballast) are linked:
+              dynamic  as `cargo build --release` builds them (default)
+              static   built again statically linked, as docs/writing-a-component.md
+                       ("Statically linked") says, and measured with --component-dir
 Run as root (SCHED_RR). The table alone, again, from saved results:
   python3 scripts/peers-table.py RES_DIR
 EOF
@@ -46,6 +50,11 @@ CPU_IDLE=${CPU_IDLE:-halt}
 case "$CPU_IDLE" in
   halt|s3res|all) ;;
   *) echo "compare-peers: CPU_IDLE=$CPU_IDLE is none of halt, s3res, all" >&2; exit 2;;
+esac
+COMPONENTS=${COMPONENTS:-dynamic}
+case "$COMPONENTS" in
+  dynamic|static) ;;
+  *) echo "compare-peers: COMPONENTS=$COMPONENTS is neither dynamic nor static" >&2; exit 2;;
 esac
 RES=${RES:-$ROOT/target/s3res-peer/results/$(date -u +%Y%m%dT%H%M%SZ)}
 mkdir -p "$RES"
@@ -83,6 +92,15 @@ fi
 
 echo "compare-peers: cargo build --release" >&2
 cargo build --release -q || { echo "compare-peers: cargo build --release failed" >&2; exit 1; }
+# What every s3res-bench run gets besides its own arguments.
+BENCH_ARGS=()
+if [ "$COMPONENTS" = static ]; then
+  triple=$(rustc -vV | sed -n 's/^host: //p')
+  echo "compare-peers: the components again, statically linked, for $triple" >&2
+  RUSTFLAGS="-C target-feature=+crt-static" cargo build --release --locked -q --target "$triple" \
+    -p s3res-components || { echo "compare-peers: the static build of s3res-components failed" >&2; exit 1; }
+  BENCH_ARGS+=(--component-dir "$ROOT/target/$triple/release")
+fi
 
 {
   echo "commit $(git rev-parse --short HEAD)$(git diff --quiet HEAD -- . ':!docs' ':!scripts' 2>/dev/null || echo ' (with uncommitted changes outside docs/ and scripts/)')"
@@ -90,6 +108,7 @@ cargo build --release -q || { echo "compare-peers: cargo build --release failed"
   echo "started $(date -u '+%Y-%m-%d %H:%M:%S UTC')"
   echo "reps $REPS"
   echo "cpu_idle $CPU_IDLE"
+  echo "components $COMPONENTS"
   echo "load_start $(cut -d' ' -f1-3 /proc/loadavg)"
   echo "machine $(nproc) CPUs, $(uname -r), $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //')"
 } > "$RES/meta.txt"
@@ -102,11 +121,14 @@ if [ "$CPU_IDLE" = all ]; then
 fi
 echo "compare-peers: $PEERS/s3res/compare.sh, REPS=$REPS, raw results in $RES" >&2
 export REPS RES
-if [ "$CPU_IDLE" = s3res ]; then
-  # compare.sh runs $BENCH; this one adds the option to every s3res-bench it runs.
-  printf '#!/bin/bash\nexec %q --cpu-idle poll "$@"\n' "$ROOT/target/release/s3res-bench" > "$RES/s3res-bench-poll"
-  chmod +x "$RES/s3res-bench-poll"
-  export BENCH=$RES/s3res-bench-poll
+RUN_ARGS=("${BENCH_ARGS[@]}")
+[ "$CPU_IDLE" = s3res ] && RUN_ARGS+=(--cpu-idle poll)
+if [ ${#RUN_ARGS[@]} -gt 0 ]; then
+  # compare.sh runs $BENCH; this one adds the options to every s3res-bench it runs.
+  printf '#!/bin/bash\nexec %q%s "$@"\n' "$ROOT/target/release/s3res-bench" "$(printf ' %q' "${RUN_ARGS[@]}")" \
+    > "$RES/s3res-bench-with-options"
+  chmod +x "$RES/s3res-bench-with-options"
+  export BENCH=$RES/s3res-bench-with-options
 fi
 # compare.sh works in target/s3res-peer (its OUT) and does not create it: on a fresh checkout
 # its `cd` failed and the C floor was compiled nowhere, leaving that column empty.
@@ -121,9 +143,10 @@ done
 
 # Replica resident size. s3res: s3res-bench memory (TMR s3res-echo, idle after 1000 rounds).
 echo "compare-peers: resident sizes" >&2
-run_session target/release/s3res-bench memory --size 0 --json --quiet > "$RES/s3res-memory.jsonl" 2>>"$RES/rss-stderr.log"
+run_session target/release/s3res-bench "${BENCH_ARGS[@]}" memory --size 0 --json --quiet \
+  > "$RES/s3res-memory.jsonl" 2>>"$RES/rss-stderr.log"
 # The same with the replicas locking only what they touch (a component's `lock_memory: used`).
-run_session target/release/s3res-bench memory --size 0 --json --quiet --lock-memory used \
+run_session target/release/s3res-bench "${BENCH_ARGS[@]}" memory --size 0 --json --quiet --lock-memory used \
   > "$RES/s3res-memory-used.jsonl" 2>>"$RES/rss-stderr.log"
 # S³RES: a TMR GenericEmpty under VoterM (pinned build), one round a millisecond; VmRSS of
 # each process once the rounds run.
