@@ -5,13 +5,17 @@
 //! vote could not see it. [`break_cow_sharing`] writes once to every resident page of every
 //! private writable mapping, so the kernel gives the caller its own copy of each.
 //!
-//! Each run of resident pages is broken with one `madvise(MADV_POPULATE_WRITE)` (Linux ≥ 5.14):
-//! the kernel write-faults the run in one call instead of one trap per page. Older kernels answer
-//! EINVAL, and the walk then writes to the pages one by one.
+//! The private writable mappings are found with the `PROCMAP_QUERY` ioctl on `/proc/self/maps`
+//! (Linux ≥ 6.11): one call per mapping, the kernel skipping to the next readable and writable
+//! one, with no text to format and parse. Older kernels answer ENOTTY (or EINVAL), and the walk
+//! then reads the file's text, as it did before (`/proc/self/maps` parsed in place from a fixed
+//! stack buffer). Each run of resident pages is broken with one `madvise(MADV_POPULATE_WRITE)`
+//! (Linux ≥ 5.14): the kernel write-faults the run in one call instead of one trap per page.
+//! Older kernels answer EINVAL, and the walk then writes to the pages one by one.
 //!
 //! It runs inside the restart signal handler, so it allocates nothing, takes no lock and makes
-//! only system calls that touch no user-space state (`open`, `read`, `close`, `mincore`,
-//! `madvise`); `/proc/self/maps` is parsed in place from a fixed stack buffer.
+//! only system calls that touch no user-space state (`open`, `ioctl`, `read`, `close`,
+//! `mincore`, `madvise`).
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
@@ -81,8 +85,131 @@ pub unsafe fn break_cow_sharing() -> Result<WalkStats, WalkError> {
 
 fn walk_maps(fd: libc::c_int) -> Result<WalkStats, WalkError> {
     let mut stats = WalkStats::default();
-    for_each_line(|buf| read(fd, buf), |line| visit_line(line, &mut stats))?;
+    for_each_private_writable(fd, |start, end| {
+        stats.mappings += 1;
+        stats.pages_touched += touch_resident(start, end);
+    })?;
     Ok(stats)
+}
+
+/// Calls `visit(start, end)` for each private, readable and writable, not executable mapping
+/// (`rw-p` in `/proc/self/maps`; the kernel's `[vsyscall]`, `[vvar]` and `[vdso]` are never
+/// such) of the maps file open on `fd`, in address order: asked of the kernel mapping by
+/// mapping where it answers `PROCMAP_QUERY`, else read from the file's text.
+fn for_each_private_writable(
+    fd: libc::c_int,
+    mut visit: impl FnMut(usize, usize),
+) -> Result<(), WalkError> {
+    if !NO_PROCMAP_QUERY.load(Ordering::Relaxed) {
+        match query_each_private_writable(fd, &mut visit) {
+            Ok(()) => return Ok(()),
+            // A kernel before 6.11: not tried again. Nothing was visited.
+            Err(QueryError::Unsupported) => NO_PROCMAP_QUERY.store(true, Ordering::Relaxed),
+            // Failed part of the way: the text visits every mapping again (one already made
+            // private stays private; touching it again costs a little time, nothing else).
+            Err(QueryError::Failed) => {}
+        }
+    }
+    for_each_line(
+        |buf| read(fd, buf),
+        |line| {
+            if let Some(m) = parse_line(line) {
+                if m.perms == *b"rw-p" && !m.special {
+                    visit(m.start, m.end);
+                }
+            }
+        },
+    )
+}
+
+/// Set once `PROCMAP_QUERY` was refused as unknown (kernel before 6.11): text from then on.
+static NO_PROCMAP_QUERY: AtomicBool = AtomicBool::new(false);
+
+/// `struct procmap_query` of `linux/fs.h` (Linux ≥ 6.11), the argument of `PROCMAP_QUERY`.
+#[repr(C)]
+#[derive(Default)]
+struct ProcmapQuery {
+    size: u64,
+    query_flags: u64,
+    query_addr: u64,
+    vma_start: u64,
+    vma_end: u64,
+    vma_flags: u64,
+    vma_page_size: u64,
+    vma_offset: u64,
+    inode: u64,
+    dev_major: u32,
+    dev_minor: u32,
+    vma_name_size: u32,
+    build_id_size: u32,
+    vma_name_addr: u64,
+    build_id_addr: u64,
+}
+
+/// `_IOWR('f', 17, struct procmap_query)`.
+const PROCMAP_QUERY: libc::c_ulong =
+    (3 << 30) | ((std::mem::size_of::<ProcmapQuery>() as libc::c_ulong) << 16) | (0x66 << 8) | 17;
+const PROCMAP_QUERY_VMA_READABLE: u64 = 0x01;
+const PROCMAP_QUERY_VMA_WRITABLE: u64 = 0x02;
+const PROCMAP_QUERY_VMA_EXECUTABLE: u64 = 0x04;
+const PROCMAP_QUERY_VMA_SHARED: u64 = 0x08;
+/// No mapping at the address: the next one (that matches the other flags) instead.
+const PROCMAP_QUERY_COVERING_OR_NEXT_VMA: u64 = 0x10;
+
+enum QueryError {
+    /// The kernel does not know the ioctl.
+    Unsupported,
+    /// Anything else (the text is read instead).
+    Failed,
+}
+
+/// [`for_each_private_writable`] by `PROCMAP_QUERY`: from address 0, the next readable and
+/// writable mapping each time, until the kernel says there is none (ENOENT).
+fn query_each_private_writable(
+    fd: libc::c_int,
+    visit: &mut impl FnMut(usize, usize),
+) -> Result<(), QueryError> {
+    let mut addr = 0u64;
+    loop {
+        let mut q = ProcmapQuery {
+            size: std::mem::size_of::<ProcmapQuery>() as u64,
+            query_flags: PROCMAP_QUERY_VMA_READABLE
+                | PROCMAP_QUERY_VMA_WRITABLE
+                | PROCMAP_QUERY_COVERING_OR_NEXT_VMA,
+            query_addr: addr,
+            ..ProcmapQuery::default()
+        };
+        match procmap_query(fd, &mut q) {
+            Ok(()) => {}
+            Err(libc::ENOENT) => return Ok(()),
+            Err(libc::ENOTTY | libc::EINVAL) if addr == 0 => return Err(QueryError::Unsupported),
+            Err(_) => return Err(QueryError::Failed),
+        }
+        if q.vma_end <= addr {
+            // Never from a sane kernel; without it a loop could not end.
+            return Err(QueryError::Failed);
+        }
+        if q.vma_flags & (PROCMAP_QUERY_VMA_SHARED | PROCMAP_QUERY_VMA_EXECUTABLE) == 0 {
+            visit(q.vma_start as usize, q.vma_end as usize);
+        }
+        addr = q.vma_end;
+    }
+}
+
+fn procmap_query(fd: libc::c_int, q: &mut ProcmapQuery) -> Result<(), i32> {
+    loop {
+        // SAFETY: `q` is a valid, exclusively borrowed `struct procmap_query` whose `size` says
+        // how large it is; `vma_name_size` and `build_id_size` are 0, so the kernel writes
+        // nothing but `q` itself.
+        let r = unsafe { libc::ioctl(fd, PROCMAP_QUERY, std::ptr::from_mut(q)) };
+        if r == 0 {
+            return Ok(());
+        }
+        match errno() {
+            libc::EINTR => continue,
+            e => return Err(e),
+        }
+    }
 }
 
 /// Calls `visit` with each line (without its newline) of what `read` yields until it returns 0.
@@ -117,15 +244,6 @@ fn for_each_line(
 }
 
 /// One maps line: `start-end perms offset dev inode [path]`.
-fn visit_line(line: &[u8], stats: &mut WalkStats) {
-    let Some(m) = parse_line(line) else { return };
-    if m.perms != *b"rw-p" || m.special {
-        return;
-    }
-    stats.mappings += 1;
-    stats.pages_touched += touch_resident(m.start, m.end);
-}
-
 #[derive(Debug, PartialEq, Eq)]
 pub(crate) struct MapLine {
     pub(crate) start: usize,
@@ -389,6 +507,57 @@ mod tests {
             0,
             "child walk failed (2: nothing touched, 3: maps error)"
         );
+    }
+
+    /// `PROCMAP_QUERY` and the text of `/proc/self/maps` name the same mappings, in a forked
+    /// child (one thread: nothing maps or unmaps between the two listings; fixed arrays: no
+    /// allocation after the fork). Without the ioctl (a kernel before 6.11) only the fallback
+    /// is seen to work.
+    #[test]
+    fn the_query_and_the_text_list_the_same_mappings() {
+        const MAX: usize = 512;
+        let pid = fork_for_test();
+        if pid == 0 {
+            let list = |query: bool, out: &mut [(usize, usize); MAX]| -> Result<usize, i32> {
+                let fd = open_maps().map_err(|_| 10)?;
+                let mut n = 0;
+                let mut push = |a: usize, b: usize| {
+                    if n < MAX {
+                        out[n] = (a, b);
+                    }
+                    n += 1;
+                };
+                let r = if query {
+                    match query_each_private_writable(fd, &mut push) {
+                        Ok(()) => Ok(()),
+                        Err(QueryError::Unsupported) => Err(6),
+                        Err(QueryError::Failed) => Err(11),
+                    }
+                } else {
+                    NO_PROCMAP_QUERY.store(true, Ordering::Relaxed);
+                    for_each_private_writable(fd, &mut push).map_err(|_| 12)
+                };
+                close(fd);
+                r.map(|()| n)
+            };
+            let (mut by_query, mut by_text) = ([(0, 0); MAX], [(0, 0); MAX]);
+            let code = match (list(true, &mut by_query), list(false, &mut by_text)) {
+                (Err(6), Ok(n)) if n > 0 => 6,
+                (Ok(q), Ok(_)) if q == 0 || q > MAX => 7,
+                (Ok(q), Ok(t)) if q != t || by_query[..q] != by_text[..t] => 8,
+                (Ok(_), Ok(_)) => 0,
+                (Err(e), _) | (_, Err(e)) => e,
+            };
+            crate::sys::exit_now(code);
+        }
+        match wait_exit(pid) {
+            0 => {}
+            6 => eprintln!("PROCMAP_QUERY unknown to this kernel: the text alone was checked"),
+            c => panic!(
+                "child exited {c} (7: none or too many mappings, 8: the two lists differ, \
+                 10: open, 11: the query failed, 12: the text failed)"
+            ),
+        }
     }
 
     /// The real check: after the walk, a heap page of the child is backed by another physical
