@@ -148,7 +148,10 @@ struct ProcmapQuery {
 
 /// `_IOWR('f', 17, struct procmap_query)`.
 const PROCMAP_QUERY: libc::c_ulong =
-    (3 << 30) | ((std::mem::size_of::<ProcmapQuery>() as libc::c_ulong) << 16) | (0x66 << 8) | 17;
+    crate::sys::iowr(b'f', 17, std::mem::size_of::<ProcmapQuery>());
+// The kernel's layout (104 bytes) and number, as `linux/fs.h` of 6.11 defines them.
+const _: () = assert!(std::mem::size_of::<ProcmapQuery>() == 104);
+const _: () = assert!(PROCMAP_QUERY == 0xC068_6611);
 const PROCMAP_QUERY_VMA_READABLE: u64 = 0x01;
 const PROCMAP_QUERY_VMA_WRITABLE: u64 = 0x02;
 const PROCMAP_QUERY_VMA_EXECUTABLE: u64 = 0x04;

@@ -230,9 +230,17 @@ struct PidfdInfo {
     exit_code: i32,
 }
 
+/// `_IOWR(kind, nr, size)` of `asm-generic/ioctl.h`: an ioctl number that passes `size` bytes
+/// in and out.
+pub(crate) const fn iowr(kind: u8, nr: u8, size: usize) -> libc::c_ulong {
+    (3 << 30)
+        | ((size as libc::c_ulong) << 16)
+        | ((kind as libc::c_ulong) << 8)
+        | nr as libc::c_ulong
+}
+
 /// `PIDFD_GET_INFO`: `_IOWR(PIDFS_IOCTL_MAGIC = 0xFF, 11, struct pidfd_info)`.
-const PIDFD_GET_INFO: libc::c_ulong =
-    (3 << 30) | ((std::mem::size_of::<PidfdInfo>() as libc::c_ulong) << 16) | (0xFF << 8) | 11;
+const PIDFD_GET_INFO: libc::c_ulong = iowr(0xFF, 11, std::mem::size_of::<PidfdInfo>());
 /// Asks `PIDFD_GET_INFO` for the exit status.
 const PIDFD_INFO_EXIT: u64 = 1 << 3;
 
