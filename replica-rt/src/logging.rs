@@ -53,17 +53,33 @@ pub fn init_logging(component_default: &str) {
 }
 
 /// A component's log filter from `RUST_LOG`: a level (`warn`, `debug`, what bootstrap passes
-/// on for `-q`/`-v`), and optionally levels per target (`info,replica_rt=debug`). A value that
-/// does not parse, or none, is `info`.
+/// on for `-q`/`-v`), and levels per target (`info,replica_rt=debug`), read directive by
+/// directive: empty ones are skipped, as `EnvFilter` skips them, and one `Targets` cannot read
+/// (a span or field filter, `foo[{x=1}]=debug`, or a typo) is left out rather than the whole
+/// value. None that reads, or no `RUST_LOG`: `info`.
 ///
 /// Components take `Targets`, not the `EnvFilter` of the voter and the tools: its span and
 /// field directives need a regular-expression engine, about 250 KiB of machine code that every
 /// replica would otherwise map, lock and keep resident (`s3res-echo`: 4,388 KiB resident under
 /// `lock_memory: all` with it, 3,748 KiB without; docs/results.md).
 pub fn component_filter(rust_log: Option<&str>) -> Targets {
-    rust_log
-        .and_then(|v| v.parse::<Targets>().ok())
-        .unwrap_or_else(|| Targets::new().with_default(tracing::Level::INFO))
+    let mut filter = Targets::new();
+    let mut read_any = false;
+    let directives = rust_log.unwrap_or("").split(',').map(str::trim);
+    for one in directives.filter_map(|d| (!d.is_empty()).then(|| d.parse::<Targets>().ok())?) {
+        read_any = true;
+        if let Some(level) = one.default_level() {
+            filter = filter.with_default(level);
+        }
+        for (target, level) in &one {
+            filter = filter.with_target(target, level);
+        }
+    }
+    if read_any {
+        filter
+    } else {
+        Targets::new().with_default(tracing::Level::INFO)
+    }
 }
 
 /// A panic is reported like a log line: every line of the message (and of the backtrace, with
@@ -187,8 +203,20 @@ mod tests {
         let mixed = component_filter(Some("warn,replica_rt=debug"));
         assert!(mixed.would_enable("replica_rt::port", &Level::DEBUG));
         assert!(!mixed.would_enable("s3res_echo", &Level::INFO));
-        // Unreadable: the default.
-        for bad in ["replica_rt=loud", "a=b=c"] {
+        // Empty directives are skipped, and so is one that does not read; the rest stands.
+        for v in [
+            "warn,",
+            ",warn",
+            "warn,,",
+            "foo[{x=1}]=debug,warn",
+            "warn,replica_rt=loud",
+        ] {
+            let f = component_filter(Some(v));
+            assert!(f.would_enable("s3res_echo", &Level::WARN), "{v}");
+            assert!(!f.would_enable("s3res_echo", &Level::INFO), "{v}");
+        }
+        // Nothing that reads: the default.
+        for bad in ["replica_rt=loud", "a=b=c", "", " , "] {
             let f = component_filter(Some(bad));
             assert!(f.would_enable("s3res_echo", &Level::INFO), "{bad}");
             assert!(!f.would_enable("s3res_echo", &Level::DEBUG), "{bad}");
