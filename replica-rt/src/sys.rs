@@ -231,8 +231,11 @@ struct PidfdInfo {
 }
 
 /// `_IOWR(kind, nr, size)` of `asm-generic/ioctl.h`: an ioctl number that passes `size` bytes
-/// in and out.
+/// in and out. That is the encoding of x86, Arm and RISC-V; PowerPC, MIPS and SPARC encode the
+/// direction otherwise, and there the kernel refuses the number: its callers then take their
+/// fallbacks (`PROCMAP_QUERY` gives way to the text of `/proc/self/maps`).
 pub(crate) const fn iowr(kind: u8, nr: u8, size: usize) -> libc::c_ulong {
+    assert!(size < 1 << 14, "an ioctl's size has 14 bits");
     (3 << 30)
         | ((size as libc::c_ulong) << 16)
         | ((kind as libc::c_ulong) << 8)
