@@ -20,7 +20,14 @@ pub fn is_dynamically_linked(path: &Path) -> io::Result<bool> {
     let mut ehdr = [0u8; EHDR_LEN];
     file.read_exact_at(&mut ehdr, 0)?;
     let (phoff, phentsize, phnum) = program_headers(&ehdr).map_err(invalid)?;
-    let mut phdrs = vec![0u8; phentsize * phnum];
+    // Within the file, before anything is allocated for them: a damaged header may name up to
+    // 4 GiB of them.
+    let len = (phentsize * phnum) as u64;
+    let size = file.metadata()?.len();
+    if phoff.checked_add(len).is_none_or(|end| end > size) {
+        return Err(invalid("program headers past the end of the file"));
+    }
+    let mut phdrs = vec![0u8; len as usize];
     file.read_exact_at(&mut phdrs, phoff)?;
     Ok(names_interpreter(&phdrs, phentsize))
 }
@@ -100,5 +107,10 @@ mod tests {
         let mut short = elf(&[1, 3]);
         short.truncate(EHDR_LEN + 20);
         assert!(check(&short).is_err());
+        // Or far past it (65,535 of 65,535 bytes each).
+        let mut huge = elf(&[1]);
+        huge[E_PHENTSIZE..E_PHENTSIZE + 2].copy_from_slice(&u16::MAX.to_le_bytes());
+        huge[E_PHNUM..E_PHNUM + 2].copy_from_slice(&u16::MAX.to_le_bytes());
+        assert!(check(&huge).is_err());
     }
 }

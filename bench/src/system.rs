@@ -86,16 +86,22 @@ impl Bins {
     }
 
     /// `Some("static")` when the measured components are statically linked, `None` when they
-    /// are dynamically linked (the workspace's own build); an error if the folder holds one
-    /// of each, whose rows could not say which they measured.
+    /// are dynamically linked (the workspace's own build) or cannot be told (not an ELF
+    /// executable of this kind: a wrapper script, say; said once on stderr); an error if the
+    /// folder holds one of each, whose rows could not say which they measured.
     pub fn component_linking(&self) -> Result<Option<&'static str>> {
         let mut seen: Vec<(&str, bool)> = Vec::new();
         for name in COMPONENTS {
             let p = self.components.join(name);
-            if p.is_file() {
-                let dynamic = crate::elf::is_dynamically_linked(&p)
-                    .with_context(|| format!("reading the ELF header of {}", p.display()))?;
-                seen.push((name, dynamic));
+            if !p.is_file() {
+                continue;
+            }
+            match crate::elf::is_dynamically_linked(&p) {
+                Ok(dynamic) => seen.push((name, dynamic)),
+                Err(e) => eprintln!(
+                    "s3res-bench: cannot tell how {} is linked ({e}); its rows say nothing of it",
+                    p.display()
+                ),
             }
         }
         if let (Some(a), Some(b)) = (seen.iter().find(|c| c.1), seen.iter().find(|c| !c.1)) {
