@@ -121,7 +121,8 @@ if [ "$CPU_IDLE" = all ]; then
 fi
 echo "compare-peers: $PEERS/s3res/compare.sh, REPS=$REPS, raw results in $RES" >&2
 export REPS RES
-RUN_ARGS=("${BENCH_ARGS[@]}")
+# (${A[@]+"${A[@]}"}: an empty array under `set -u`, on every bash)
+RUN_ARGS=(${BENCH_ARGS[@]+"${BENCH_ARGS[@]}"})
 [ "$CPU_IDLE" = s3res ] && RUN_ARGS+=(--cpu-idle poll)
 if [ ${#RUN_ARGS[@]} -gt 0 ]; then
   # compare.sh runs $BENCH; this one adds the options to every s3res-bench it runs.
@@ -143,10 +144,10 @@ done
 
 # Replica resident size. s3res: s3res-bench memory (TMR s3res-echo, idle after 1000 rounds).
 echo "compare-peers: resident sizes" >&2
-run_session target/release/s3res-bench "${BENCH_ARGS[@]}" memory --size 0 --json --quiet \
+run_session target/release/s3res-bench ${BENCH_ARGS[@]+"${BENCH_ARGS[@]}"} memory --size 0 --json --quiet \
   > "$RES/s3res-memory.jsonl" 2>>"$RES/rss-stderr.log"
 # The same with the replicas locking only what they touch (a component's `lock_memory: used`).
-run_session target/release/s3res-bench "${BENCH_ARGS[@]}" memory --size 0 --json --quiet --lock-memory used \
+run_session target/release/s3res-bench ${BENCH_ARGS[@]+"${BENCH_ARGS[@]}"} memory --size 0 --json --quiet --lock-memory used \
   > "$RES/s3res-memory-used.jsonl" 2>>"$RES/rss-stderr.log"
 # S³RES: a TMR GenericEmpty under VoterM (pinned build), one round a millisecond; VmRSS of
 # each process once the rounds run.

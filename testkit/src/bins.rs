@@ -97,7 +97,7 @@ fn build_static_components() -> Result<PathBuf, String> {
         profile_dir: target_dir.join(&triple).join(&layout.profile),
     };
     let mut cmd = cargo_build(&static_layout)?;
-    cmd.args(["--package", "s3res-components", "--bins", "--locked"])
+    cmd.args(["--package", "s3res-components", "--bins"])
         // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
         // scripts and proc macros (which cannot be linked statically).
         .env("RUSTFLAGS", "-C target-feature=+crt-static")

@@ -554,8 +554,8 @@ fn a_statically_linked_replica_is_recovered_by_fork_with_its_state() {
     let count = 2000;
     let sys = System::new();
     let echo = format!(
-        r#"{{ "exec": "{}", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 1000000 }}"#,
-        exe.display()
+        r#"{{ "exec": {}, "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 1000000 }}"#,
+        serde_json::to_string(&exe).expect("a path as a JSON string")
     );
     let desc = echo_pipeline(&sys.path("summary.json"), &echo, count, 500);
     let mut run = sys.start(&desc);
