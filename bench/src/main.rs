@@ -193,6 +193,9 @@ pub struct Common {
     pub lock_memory: LockMemory,
     /// What idle CPUs do while a voter runs (see `--cpu-idle`).
     pub cpu_idle: CpuIdle,
+    /// `Some("static")` when the measured components are statically linked (read once from
+    /// their ELF headers: `Bins::component_linking`).
+    pub linking: Option<&'static str>,
 }
 
 impl Common {
@@ -247,8 +250,14 @@ fn run() -> Result<()> {
     sys::install_interrupt_handler().context("installing the Ctrl-C handler")?;
     // Replicas whose voter died come to us, so they are reaped here.
     replica_rt::sys::set_child_subreaper().context("becoming a child subreaper")?;
+    let bins = Bins::locate(cli.common.bin_dir.clone(), cli.common.component_dir.clone())?;
+    let linking = bins.component_linking()?;
+    if linking.is_some() {
+        eprintln!("s3res-bench: the components measured are statically linked");
+    }
     let common = Common {
-        bins: Bins::locate(cli.common.bin_dir.clone(), cli.common.component_dir.clone())?,
+        bins,
+        linking,
         quiet: cli.common.quiet,
         journal: !cli.common.no_journal,
         lock_memory: cli.common.lock_memory,
@@ -270,10 +279,6 @@ fn run() -> Result<()> {
             })?;
     }
     let cpu_idle = (common.cpu_idle == CpuIdle::Poll).then_some(common.cpu_idle.as_str());
-    let linking = common.bins.component_linking()?;
-    if linking.is_some() {
-        eprintln!("s3res-bench: the components measured are statically linked");
-    }
     let stamp = |mut rows: Vec<report::Row>| {
         for r in &mut rows {
             r.machine = Some(machine.clone());

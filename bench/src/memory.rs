@@ -48,7 +48,6 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
     let voter = common.bins.path("s3res-voter")?;
     let echo = common.bins.component("s3res-echo")?;
     let ballast = common.bins.component("s3res-ballast")?;
-    let linking = common.bins.component_linking()?;
     let mut rows = Vec::new();
     let base = |exec: &std::path::Path, args: Vec<String>, replicas| Spec {
         journal: common.journal,
@@ -104,7 +103,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
                 private_kib: m.private_kib,
                 beyond_state_kib: (what != "voter")
                     .then(|| m.rss_kib as i64 - (state / 1024) as i64),
-                linking: linking.filter(|_| what != "voter"),
+                linking: common.linking.filter(|_| what != "voter"),
             });
             Ok(())
         };

@@ -66,7 +66,10 @@ pub fn component_filter(rust_log: Option<&str>) -> Targets {
     let mut filter = Targets::new();
     let mut read_any = false;
     let directives = rust_log.unwrap_or("").split(',').map(str::trim);
-    for one in directives.filter_map(|d| (!d.is_empty()).then(|| d.parse::<Targets>().ok())?) {
+    let readable = directives
+        .filter(|d| !d.is_empty())
+        .filter_map(|d| d.parse::<Targets>().ok());
+    for one in readable {
         read_any = true;
         if let Some(level) = one.default_level() {
             filter = filter.with_default(level);

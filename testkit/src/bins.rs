@@ -89,13 +89,11 @@ fn build_static_components() -> Result<PathBuf, String> {
         .triple
         .clone()
         .unwrap_or_else(|| env!("S3RES_TESTKIT_TARGET").to_owned());
-    let target_dir = layout.target_dir.join("static-components");
-    let static_layout = Layout {
-        target_dir: target_dir.clone(),
-        triple: Some(triple.clone()),
-        profile: layout.profile.clone(),
-        profile_dir: target_dir.join(&triple).join(&layout.profile),
-    };
+    let static_layout = Layout::new(
+        layout.target_dir.join("static-components"),
+        Some(triple),
+        layout.profile,
+    );
     let mut cmd = cargo_build(&static_layout)?;
     cmd.args(["--package", "s3res-components", "--bins"])
         // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
@@ -176,6 +174,19 @@ pub struct Layout {
 }
 
 impl Layout {
+    /// The layout cargo makes in `target_dir` for `triple` (if named) and `profile`.
+    pub fn new(target_dir: PathBuf, triple: Option<String>, profile: String) -> Self {
+        let mut profile_dir = target_dir.clone();
+        profile_dir.extend(&triple);
+        profile_dir.push(&profile);
+        Layout {
+            target_dir,
+            triple,
+            profile,
+            profile_dir,
+        }
+    }
+
     pub fn from_test_exe(exe: &Path) -> Result<Self, String> {
         let bad = || format!("{} is not in <target>/<profile>/deps/", exe.display());
         let deps = exe.parent().ok_or_else(bad)?;
@@ -200,12 +211,7 @@ impl Layout {
                 _ => (above.to_path_buf(), None),
             }
         };
-        Ok(Layout {
-            target_dir,
-            triple,
-            profile,
-            profile_dir,
-        })
+        Ok(Layout::new(target_dir, triple, profile))
     }
 
     /// The `cargo build` arguments that select this profile and target.
