@@ -62,11 +62,12 @@ fn names_interpreter(phdrs: &[u8], phentsize: usize) -> bool {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    /// An ELF64 header with `types` as its program headers (56 bytes each, right after it).
-    fn elf(types: &[u32]) -> Vec<u8> {
+    /// An ELF64 header with `types` as its program headers (56 bytes each, right after it):
+    /// `[3]` (`PT_INTERP`) reads as dynamically linked, `[1]` (`PT_LOAD`) as static.
+    pub(crate) fn elf(types: &[u32]) -> Vec<u8> {
         let mut f = vec![0u8; EHDR_LEN];
         f[..4].copy_from_slice(b"\x7fELF");
         f[4] = 2;

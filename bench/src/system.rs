@@ -764,3 +764,42 @@ impl Setup {
         let _ = sys::set_affinity(0, &[]);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::elf::tests::elf;
+
+    /// A folder of components as `Bins` sees it: each `(name, contents)` written there.
+    fn bins_with(files: &[(&str, &[u8])]) -> (tempfile::TempDir, Bins) {
+        let dir = tempfile::tempdir().unwrap();
+        for (name, bytes) in files {
+            std::fs::write(dir.path().join(name), bytes).unwrap();
+        }
+        let bins = Bins::locate(Some(dir.path().into()), None).unwrap();
+        (dir, bins)
+    }
+
+    #[test]
+    fn the_components_linking_is_read_from_their_headers_and_a_mix_is_refused() {
+        let (dynamic, stat) = (elf(&[3, 1]), elf(&[1]));
+        let (_d, bins) = bins_with(&[("s3res-echo", &dynamic), ("s3res-ballast", &dynamic)]);
+        assert_eq!(bins.component_linking().unwrap(), None);
+        let (_d, bins) = bins_with(&[("s3res-echo", &stat), ("s3res-ballast", &stat)]);
+        assert_eq!(bins.component_linking().unwrap(), Some("static"));
+        // One of them missing: the other says.
+        let (_d, bins) = bins_with(&[("s3res-echo", &stat)]);
+        assert_eq!(bins.component_linking().unwrap(), Some("static"));
+        // Not an ELF executable (a wrapper script): unlabelled, not an error.
+        let script = b"#!/bin/sh\nexec s3res-echo-real \"$@\"\n".as_slice();
+        let (_d, bins) = bins_with(&[("s3res-echo", script), ("s3res-ballast", script)]);
+        assert_eq!(bins.component_linking().unwrap(), None);
+        // One of each: refused, naming both.
+        let (_d, bins) = bins_with(&[("s3res-echo", &stat), ("s3res-ballast", &dynamic)]);
+        let e = bins.component_linking().unwrap_err().to_string();
+        assert!(
+            e.contains("s3res-ballast is dynamically linked and s3res-echo statically"),
+            "{e}"
+        );
+    }
+}
