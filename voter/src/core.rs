@@ -1494,6 +1494,10 @@ fn replace(
                 ev.method = Some(RecoveryMethod::Fork);
                 ev.state_lost = Some(state_lost);
                 core.emit(ev);
+                // Off the measured path, while the child is known to live (its pidfd is held).
+                if let Some(child) = core.slots[slot].as_ref() {
+                    child.proc_stat.open_now();
+                }
                 m.forked(slot);
                 return Ok(true);
             }

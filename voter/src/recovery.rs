@@ -122,8 +122,13 @@ pub fn fork(
     // donor follows that copy in the child's pipe; nothing is written to the donor meanwhile.
     let mut refused = Refusals::default();
     refuse_backlog(listener, family, deadline, &mut refused);
-    let signalled = sys::sigqueue(donor.pid, signals::RESTART, nonce as i32)
-        .map_err(io_err("signalling the donor"));
+    let signalled = sys::pidfd_sigqueue(
+        donor.pidfd.as_fd(),
+        signals::RESTART,
+        nonce as i32,
+        signal_sender(),
+    )
+    .map_err(io_err("signalling the donor"));
     // The caller's work while the donor forks does not count against the child's time.
     let deadline = if signalled.is_ok() {
         meanwhile();
@@ -171,6 +176,12 @@ pub fn fork(
         replica: child,
         frames_sent,
     })
+}
+
+/// This voter as the sender of a RESTART: taken once (the voter never forks without `exec`).
+fn signal_sender() -> sys::SignalSender {
+    static SENDER: std::sync::OnceLock<sys::SignalSender> = std::sync::OnceLock::new();
+    *SENDER.get_or_init(sys::SignalSender::this_process)
 }
 
 /// At most this many connections are cleared from the socket before an attempt: a flood of
@@ -508,6 +519,7 @@ fn await_ready(
         start_pipe: None,
         started: true,
         schedstat: crate::starvation::SchedStat::new(pid),
+        proc_stat: crate::replica::ProcStat::new(pid),
         lines: None,
     };
     Ok((replica, ready, unread))

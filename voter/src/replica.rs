@@ -79,6 +79,8 @@ pub struct Replica {
     pub started: bool,
     /// Its times on and waiting for a CPU, to tell a late replica from one that could not run.
     pub schedstat: SchedStat,
+    /// Its `/proc/PID/stat`, for its state letter (the donor pick reads it).
+    pub proc_stat: ProcStat,
     /// An unmodified program's replica under a journaled voter: where it stands in lines
     /// given and answers taken (`None` until the voter journals it; see "Lines" in
     /// `journal.rs`).
@@ -266,6 +268,7 @@ impl Replica {
             start_pipe: None,
             started: true,
             schedstat: SchedStat::new(pid),
+            proc_stat: ProcStat::opened(pid),
             lines: None,
         }
     }
@@ -375,6 +378,7 @@ impl Replica {
             start_pipe: Some(start_r),
             started: false,
             schedstat: SchedStat::new(pid),
+            proc_stat: ProcStat::opened(pid),
             lines: None,
         })
     }
@@ -521,7 +525,7 @@ impl Replica {
         if !self.may_donate() {
             return None;
         }
-        let state = sys::process_state(self.pid);
+        let state = self.proc_stat.state();
         let rank = DonorRank {
             state_lost: self.state_lost,
             unproven: !self.proven,
@@ -533,7 +537,57 @@ impl Replica {
     /// Whether the process sleeps in the kernel (`S`: waiting for input, or for its output
     /// pipe to drain) rather than running, runnable, stopped or dead.
     pub fn is_asleep(&self) -> bool {
-        is_asleep(self.pid)
+        self.proc_stat.state() == Some('S')
+    }
+}
+
+/// A replica's `/proc/PID/stat`, kept open after the first look: a look at its state is then
+/// one `pread`. The donor pick reads it for every candidate, on the restart's critical path,
+/// where opening the file by its path (a `/proc` lookup each time) took as long as the rest of
+/// the pick. The open file stays with the process it was opened for (a read fails once that
+/// one is gone), so a reused pid is never mistaken for the replica once it is open; it is
+/// opened while the replica is known to live ([`ProcStat::open_now`]).
+#[derive(Debug)]
+pub struct ProcStat {
+    pid: libc::pid_t,
+    file: std::cell::OnceCell<Option<std::fs::File>>,
+}
+
+impl ProcStat {
+    pub fn new(pid: libc::pid_t) -> ProcStat {
+        ProcStat {
+            pid,
+            file: std::cell::OnceCell::new(),
+        }
+    }
+
+    /// One opened at once: for a process known to live (our unreaped child, or one whose pidfd
+    /// is held).
+    pub fn opened(pid: libc::pid_t) -> ProcStat {
+        let stat = ProcStat::new(pid);
+        stat.open_now();
+        stat
+    }
+
+    /// Opens the file now, if that has not happened yet: off the path that reads it.
+    pub fn open_now(&self) {
+        let _ = self.file();
+    }
+
+    fn file(&self) -> Option<&std::fs::File> {
+        self.file
+            .get_or_init(|| std::fs::File::open(format!("/proc/{}/stat", self.pid)).ok())
+            .as_ref()
+    }
+
+    /// The state letter (`S`, `R`, `T`, `Z`, …); `None` if the process is gone (or `/proc`
+    /// does not say).
+    pub fn state(&self) -> Option<char> {
+        use std::os::unix::fs::FileExt;
+        // The line is ~300 bytes; comm is at most 16.
+        let mut buf = [0u8; 1024];
+        let n = self.file()?.read_at(&mut buf, 0).ok()?;
+        sys::state_in_stat(std::str::from_utf8(&buf[..n]).ok()?)
     }
 }
 
