@@ -80,7 +80,18 @@ impl Staging {
     }
 }
 
-/// What a writer of whole frames keeps: where each queued frame ends, and the pipe's size.
+/// What a writer of whole frames keeps: where each queued frame ends, and the pipe's room.
+///
+/// **Room is counted in the pipe's slots, not its bytes.** A pipe holds `capacity / page`
+/// buffers of a page each, and a buffer part-filled by one write is filled further by the next
+/// only when all that write's last partial page fits in it (Linux's `pipe_write`). A pipe of
+/// frames a little over a page long is full with far fewer bytes in it than its capacity (64
+/// KiB of slots fill with ~10 frames of 5,004 bytes), and a non-blocking write there takes a
+/// page and cuts the frame. (Counting bytes, as this writer did, let that happen: found by
+/// `a_writer_of_whole_frames_counts_the_room_it_used`.) A write of `n` bytes takes at most
+/// `ceil(n / page)` slots, so the writer counts that many for each, and only the reader frees
+/// slots; when its count does not cover a frame, it looks (`FIONREAD`): an empty pipe has
+/// every slot free, and any other at least one slot fewer per byte held.
 #[derive(Debug)]
 struct Whole {
     /// End offsets in `pending` of the frames queued, in order.
@@ -88,18 +99,49 @@ struct Whole {
     capacity: usize,
     /// The last flush stopped because the next frame did not fit in the pipe's free room.
     waiting_for_room: bool,
+    /// The pipe's slots: `capacity` in pages.
+    slots: usize,
+    /// Slots free at least: what the last look found, less what was written since. While it
+    /// covers a frame, no look is needed (a `FIONREAD` per frame larger than `PIPE_BUF`, one
+    /// system call in every round of 4 KiB frames, before).
+    free_slots_at_least: usize,
 }
 
 impl Whole {
+    fn new(capacity: usize) -> Whole {
+        Whole {
+            ends: Default::default(),
+            capacity,
+            waiting_for_room: false,
+            slots: capacity / page(),
+            free_slots_at_least: 0,
+        }
+    }
+
     /// Whether a frame of `len` bytes may be written into the pipe now. Up to PIPE_BUF a write
     /// is all or nothing anyway, and a frame larger than the pipe can only go in parts; any
-    /// other only into room for all of it (one `FIONREAD`).
-    fn has_room_for(&self, fd: BorrowedFd<'_>, len: usize) -> io::Result<bool> {
-        if len <= libc::PIPE_BUF || len > self.capacity {
+    /// other only into room for all of it.
+    fn has_room_for(&mut self, fd: BorrowedFd<'_>, len: usize) -> io::Result<bool> {
+        let need = len.div_ceil(page());
+        if len <= libc::PIPE_BUF || len > self.capacity || self.free_slots_at_least >= need {
             return Ok(true);
         }
-        Ok(self.capacity.saturating_sub(sys::bytes_in_pipe(fd)?) >= len)
+        self.free_slots_at_least = match sys::bytes_in_pipe(fd)? {
+            0 => self.slots,
+            held => self.slots.saturating_sub(held),
+        };
+        Ok(self.free_slots_at_least >= need)
     }
+
+    /// One write put `n` bytes into the pipe.
+    fn wrote(&mut self, n: usize) {
+        self.free_slots_at_least = self.free_slots_at_least.saturating_sub(n.div_ceil(page()));
+    }
+}
+
+/// The page size: a pipe buffer's.
+fn page() -> usize {
+    replica_rt::cow::page_size()
 }
 
 impl FrameWriter {
@@ -150,11 +192,7 @@ impl FrameWriter {
         if capacity < want {
             capacity = sys::set_pipe_size(self.fd.as_fd(), want).unwrap_or(capacity);
         }
-        self.whole = Some(Whole {
-            ends: Default::default(),
-            capacity,
-            waiting_for_room: false,
-        });
+        self.whole = Some(Whole::new(capacity));
         Ok(true)
     }
 
@@ -202,7 +240,7 @@ impl FrameWriter {
     fn send_direct(&mut self, payload: &[u8]) -> io::Result<()> {
         let header = frame::header(payload.len());
         let total = frame::HEADER_LEN + payload.len();
-        let fits = match &self.whole {
+        let fits = match self.whole.as_mut() {
             Some(whole) => whole.has_room_for(self.fd.as_fd(), total)?,
             None => true,
         };
@@ -219,6 +257,9 @@ impl FrameWriter {
         } else {
             0
         };
+        if let Some(whole) = self.whole.as_mut() {
+            whole.wrote(written);
+        }
         if written == total {
             return Ok(());
         }
@@ -338,7 +379,10 @@ impl FrameWriter {
                 break;
             }
             match sys::write(self.fd.as_fd(), frame) {
-                Ok(n) => self.start += n,
+                Ok(n) => {
+                    self.start += n;
+                    whole.wrote(n);
+                }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
                 Err(e) => return Err(e),
             }
@@ -815,6 +859,45 @@ mod tests {
         dec.push(&drain(r.as_fd()).unwrap());
         assert_eq!(dec.next_frame().unwrap(), Some(&big[..]));
         assert_eq!(dec.next_frame().unwrap(), Some(&b"small"[..]));
+    }
+
+    /// Frames larger than PIPE_BUF, one after another into a pipe nobody reads: each goes in
+    /// whole while the room it knows of (looked at once, less what it wrote since) covers it,
+    /// and the one that would be cut waits; once the reader makes room, the rest follow.
+    #[test]
+    fn a_writer_of_whole_frames_counts_the_room_it_used() {
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        let mut writer = FrameWriter::new(w).unwrap();
+        writer.write_whole_frames(16 * 1024).unwrap();
+        let capacity = sys::pipe_size(writer.as_fd()).unwrap();
+        let whole = 5000 + frame::HEADER_LEN;
+        // Each takes two slots at most: that many fit for sure.
+        let fit = capacity / page() / whole.div_ceil(page());
+        let frames: Vec<Vec<u8>> = (0..capacity / whole + 3)
+            .map(|k| vec![k as u8; 5000])
+            .collect();
+        for (k, f) in frames.iter().enumerate() {
+            writer.send(f).unwrap();
+            let held = sys::bytes_in_pipe(r.as_fd()).unwrap();
+            assert_eq!(
+                held % whole,
+                0,
+                "frame {k}: {held} bytes in the pipe, a frame cut"
+            );
+        }
+        assert!(writer.waiting_for_room(), "more frames than the pipe holds");
+        assert_eq!(sys::bytes_in_pipe(r.as_fd()).unwrap(), fit * whole);
+        let mut got = drain(r.as_fd()).unwrap();
+        writer.flush().unwrap();
+        assert!(!writer.has_pending());
+        got.extend(drain(r.as_fd()).unwrap());
+        let mut dec = FrameDecoder::new(16 * 1024);
+        dec.push(&got);
+        for f in &frames {
+            assert_eq!(dec.next_frame().unwrap(), Some(&f[..]));
+        }
+        assert_eq!(dec.next_frame().unwrap(), None);
     }
 
     /// A large frame goes into the pipe straight from the caller's payload; what the pipe
