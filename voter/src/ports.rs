@@ -278,12 +278,7 @@ impl PollSet {
         self.add_quiet(timer.fd.as_fd().as_raw_fd(), Token::Timer, 0);
         let now = Instant::now();
         for (i, input) in inputs.iter().enumerate() {
-            let stalled = input
-                .peek
-                .as_ref()
-                .and_then(|p| p.stalled_until)
-                .is_some_and(|t| t > now);
-            if take_input && !input.reader.is_closed() && !stalled {
+            if take_input && input.may_read(now) {
                 self.add(
                     input.reader.as_fd().as_raw_fd(),
                     libc::POLLIN,
@@ -413,6 +408,17 @@ pub(crate) fn wait_until(
 }
 
 impl ExternalInput {
+    /// Whether a read may find something new: it is open, and not a peek stalled on a partial
+    /// frame (looked at again on a timer).
+    pub(crate) fn may_read(&self, now: Instant) -> bool {
+        let stalled = self
+            .peek
+            .as_ref()
+            .and_then(|p| p.stalled_until)
+            .is_some_and(|t| t > now);
+        !self.reader.is_closed() && !stalled
+    }
+
     /// One read from upstream into the decoder (a peek, if journaled); an end or an error
     /// closes the input (logged).
     pub(crate) fn read(&mut self) {

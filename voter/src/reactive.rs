@@ -53,6 +53,11 @@ pub struct ReactiveVoter {
     shares_cpu: ReplicaSet,
     /// When the last wait was to end at the latest (its nearest timer).
     wake_at: Option<Instant>,
+    /// The last wait was for the open round's close alone: every answer had gone out.
+    waited_for_close_only: bool,
+    /// The last round closed had forwarded all its answers before the wait that closed it
+    /// (see [`ReactiveVoter::run_loop`]).
+    forwarded_before_close: bool,
 }
 
 impl ReactiveVoter {
@@ -74,6 +79,8 @@ impl ReactiveVoter {
             evidence: [None; MAX_REPLICAS],
             watching: None,
             wake_at: None,
+            waited_for_close_only: false,
+            forwarded_before_close: false,
             shares_cpu,
         })
     }
@@ -319,6 +326,27 @@ impl ReactiveVoter {
             }
             if self.round.is_none() {
                 return;
+            }
+        }
+    }
+
+    /// Whether new input may be taken: only between rounds and when downstream keeps up
+    /// (back-pressure instead of unbounded buffering), and not while a fault waits for its
+    /// recovery.
+    fn takes_input(&self) -> bool {
+        let backlog = self.core.outputs.iter().any(|o| o.writer.has_pending());
+        self.round.is_none() && self.core.faults.is_empty() && !backlog
+    }
+
+    /// One read of every input the wait would watch (see `PollSet::reset`), without the wait.
+    fn read_inputs_now(&mut self) {
+        if !self.takes_input() || self.core.stop.is_some() {
+            return;
+        }
+        let now = Instant::now();
+        for input in &mut self.core.inputs {
+            if input.may_read(now) {
+                input.read();
             }
         }
     }
@@ -795,6 +823,9 @@ impl ReactiveVoter {
         let Some(round) = self.round.as_ref() else {
             return;
         };
+        // Every answer went out before the wait that ended in this close (at a majority):
+        // downstream may have answered with the next input meanwhile.
+        self.forwarded_before_close = self.waited_for_close_only;
         let late: Vec<usize> = round
             .members
             .iter()
@@ -933,6 +964,16 @@ impl Mode for ReactiveVoter {
                     return Ok(());
                 }
                 self.start_rounds_from_buffered_input();
+                // A round that forwarded its answers at a majority closes at its last answer;
+                // back to back, the next input came meanwhile (downstream answered the
+                // forward). Reading it now saves the wait that would only say so, one `ppoll`
+                // a round. Where input comes periodically, the read finds nothing (one `tee`),
+                // and the wait follows. A round that closes at its forward (SMR, DMR) is read
+                // for only after the wait: downstream has not seen its answer yet.
+                if std::mem::take(&mut self.forwarded_before_close) && self.round.is_none() {
+                    self.read_inputs_now();
+                    self.start_rounds_from_buffered_input();
+                }
                 if self.round.is_none() && self.core.stop.is_none() && self.all_inputs_done() {
                     self.core.stop = Some(Stop::InputsClosed);
                     return self.finish();
@@ -960,10 +1001,11 @@ impl Mode for ReactiveVoter {
     }
 
     fn build_poll_set(&mut self) {
-        let backlog = self.core.outputs.iter().any(|o| o.writer.has_pending());
-        // New input only between rounds and when downstream keeps up: back-pressure instead
-        // of unbounded buffering.
-        let take_input = self.round.is_none() && self.core.faults.is_empty() && !backlog;
+        self.waited_for_close_only = self
+            .round
+            .as_ref()
+            .is_some_and(|round| round.expected & !round.forwarded == 0);
+        let take_input = self.takes_input();
         self.core.reset_poll(take_input);
         let watched = self.watched();
         let all = ReplicaSet::first(self.core.slots.len());
