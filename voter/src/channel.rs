@@ -88,10 +88,12 @@ impl Staging {
 /// frames a little over a page long is full with far fewer bytes in it than its capacity (64
 /// KiB of slots fill with ~10 frames of 5,004 bytes), and a non-blocking write there takes a
 /// page and cuts the frame. (Counting bytes, as this writer did, let that happen: found by
-/// `a_writer_of_whole_frames_counts_the_room_it_used`.) A write of `n` bytes takes at most
-/// `ceil(n / page)` slots, so the writer counts that many for each, and only the reader frees
-/// slots; when its count does not cover a frame, it looks (`FIONREAD`): an empty pipe has
-/// every slot free, and any other at least one slot fewer per byte held.
+/// `a_writer_of_whole_frames_counts_the_room_it_used`.) The bytes of one write of `n` bytes lie
+/// in at most `ceil(n / page)` slots, so the writer keeps the sizes of its latest writes: the
+/// `held` bytes still in the pipe (`FIONREAD`) are the newest ones written, and lie in at most
+/// as many slots as the writes they came from take; bytes older than the writes kept count a
+/// slot each. Only the reader frees slots, so the free slots so found, less what the writer
+/// takes after, stay a lower bound: it looks again only when they do not cover a frame.
 #[derive(Debug)]
 struct Whole {
     /// End offsets in `pending` of the frames queued, in order.
@@ -105,16 +107,20 @@ struct Whole {
     /// covers a frame, no look is needed (a `FIONREAD` per frame larger than `PIPE_BUF`, one
     /// system call in every round of 4 KiB frames, before).
     free_slots_at_least: usize,
+    /// Bytes of each of the latest writes, the newest last (at most `slots` of them).
+    writes: std::collections::VecDeque<usize>,
 }
 
 impl Whole {
     fn new(capacity: usize) -> Whole {
+        let slots = capacity / page();
         Whole {
             ends: Default::default(),
             capacity,
             waiting_for_room: false,
-            slots: capacity / page(),
+            slots,
             free_slots_at_least: 0,
+            writes: std::collections::VecDeque::with_capacity(slots),
         }
     }
 
@@ -126,16 +132,35 @@ impl Whole {
         if len <= libc::PIPE_BUF || len > self.capacity || self.free_slots_at_least >= need {
             return Ok(true);
         }
-        self.free_slots_at_least = match sys::bytes_in_pipe(fd)? {
-            0 => self.slots,
-            held => self.slots.saturating_sub(held),
-        };
+        let held = sys::bytes_in_pipe(fd)?;
+        self.free_slots_at_least = self.slots.saturating_sub(self.slots_holding(held));
         Ok(self.free_slots_at_least >= need)
+    }
+
+    /// At most how many slots the newest `held` bytes written lie in.
+    fn slots_holding(&self, held: usize) -> usize {
+        let mut left = held;
+        let mut slots = 0;
+        for &n in self.writes.iter().rev() {
+            if left == 0 {
+                break;
+            }
+            slots += n.div_ceil(page());
+            left = left.saturating_sub(n);
+        }
+        slots + left
     }
 
     /// One write put `n` bytes into the pipe.
     fn wrote(&mut self, n: usize) {
+        if n == 0 {
+            return;
+        }
         self.free_slots_at_least = self.free_slots_at_least.saturating_sub(n.div_ceil(page()));
+        if self.writes.len() == self.slots {
+            self.writes.pop_front();
+        }
+        self.writes.push_back(n);
     }
 }
 
@@ -888,7 +913,14 @@ mod tests {
         }
         assert!(writer.waiting_for_room(), "more frames than the pipe holds");
         assert_eq!(sys::bytes_in_pipe(r.as_fd()).unwrap(), fit * whole);
-        let mut got = drain(r.as_fd()).unwrap();
+        // The reader takes three frames: the slots they held are counted free again, and as
+        // many frames follow, whole.
+        let mut got = vec![0u8; 3 * whole];
+        assert_eq!(sys::read(r.as_fd(), &mut got).unwrap(), 3 * whole);
+        writer.flush().unwrap();
+        assert!(writer.waiting_for_room());
+        assert_eq!(sys::bytes_in_pipe(r.as_fd()).unwrap(), fit * whole);
+        got.extend(drain(r.as_fd()).unwrap());
         writer.flush().unwrap();
         assert!(!writer.has_pending());
         got.extend(drain(r.as_fd()).unwrap());
