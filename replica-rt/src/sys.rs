@@ -147,14 +147,27 @@ impl SignalSender {
     }
 }
 
-/// A `siginfo_t` as `sigqueue` fills it (`SI_QUEUE`), in the kernel's layout on Linux (but
-/// MIPS, which swaps `si_errno` and `si_code`): `si_signo`, `si_errno`, `si_code`, then the
-/// union, pointer-aligned (`si_pid`, `si_uid`, `si_value`); 128 bytes in all.
+/// A `siginfo_t` as `sigqueue` fills it (`SI_QUEUE`), in the kernel's layout on Linux:
+/// `si_signo`, `si_errno`, `si_code` (MIPS: `si_code` before `si_errno`), then the union,
+/// pointer-aligned (`si_pid`, `si_uid`, `si_value`); 128 bytes in all.
 #[repr(C)]
 struct QueuedSiginfo {
     signo: libc::c_int,
+    #[cfg(not(any(
+        target_arch = "mips",
+        target_arch = "mips64",
+        target_arch = "mips32r6",
+        target_arch = "mips64r6"
+    )))]
     errno: libc::c_int,
     code: libc::c_int,
+    #[cfg(any(
+        target_arch = "mips",
+        target_arch = "mips64",
+        target_arch = "mips32r6",
+        target_arch = "mips64r6"
+    ))]
+    errno: libc::c_int,
     #[cfg(target_pointer_width = "64")]
     _align: libc::c_int,
     pid: libc::pid_t,
@@ -172,14 +185,12 @@ const SIGINFO_REST: usize = 128
         24
     };
 
-#[cfg(not(any(target_arch = "mips", target_arch = "mips64")))]
 const _: () =
     assert!(std::mem::size_of::<QueuedSiginfo>() == std::mem::size_of::<libc::siginfo_t>());
 
 /// Sends `sig` with an integer value, as `sigqueue` does (an `SA_SIGINFO` handler reads it with
 /// [`queued_value`]), to the process `pidfd` refers to: never to another one that took its pid
 /// after it died. One system call, where `sigqueue` makes three.
-#[cfg(not(any(target_arch = "mips", target_arch = "mips64")))]
 pub fn pidfd_sigqueue(
     pidfd: BorrowedFd<'_>,
     sig: libc::c_int,

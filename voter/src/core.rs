@@ -1494,9 +1494,10 @@ fn replace(
                 ev.method = Some(RecoveryMethod::Fork);
                 ev.state_lost = Some(state_lost);
                 core.emit(ev);
-                // Off the measured path, while the child is known to live (its pidfd is held).
+                // Its `/proc/PID/stat`, for when it is a donor candidate: opened here, off the
+                // path the `recovery` event measures.
                 if let Some(child) = core.slots[slot].as_ref() {
-                    child.proc_stat.open_now();
+                    child.proc_stat.open_now(child.pidfd.as_fd());
                 }
                 m.forked(slot);
                 return Ok(true);

@@ -824,7 +824,8 @@ impl ReactiveVoter {
             return;
         };
         // Every answer went out before the wait that ended in this close (at a majority):
-        // downstream may have answered with the next input meanwhile.
+        // downstream may have answered with the next input meanwhile. (A round closes only
+        // in `advance_round`, after a wait, so the flag is that wait's.)
         self.forwarded_before_close = self.waited_for_close_only;
         let late: Vec<usize> = round
             .members
@@ -967,8 +968,8 @@ impl Mode for ReactiveVoter {
                 // A round that forwarded its answers at a majority closes at its last answer;
                 // back to back, the next input came meanwhile (downstream answered the
                 // forward). Reading it now saves the wait that would only say so, one `ppoll`
-                // a round. Where input comes periodically, the read finds nothing (one `tee`),
-                // and the wait follows. A round that closes at its forward (SMR, DMR) is read
+                // a round. Where input comes periodically, the read finds nothing (one `tee`
+                // of a journaled input, or `read`), and the wait follows. A round that closes at its forward (SMR, DMR) is read
                 // for only after the wait: downstream has not seen its answer yet.
                 if std::mem::take(&mut self.forwarded_before_close) && self.round.is_none() {
                     self.read_inputs_now();

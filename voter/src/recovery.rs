@@ -391,7 +391,10 @@ fn identify_child(
         Ok(pid) => pid,
         Err(e) => return Err((conn, format!("no peer credentials: {e}"))),
     };
-    // Open the pidfd before checking the parent: from then on the pid cannot be reused.
+    // Open the pidfd before checking the parent. It holds the process, not its number: a child
+    // that dies now is reaped at once (its donor ignores SIGCHLD), and its number could go to
+    // another process; but one with the donor as its parent only by the donor's next fork,
+    // which comes only when this voter asks.
     let pidfd = match sys::pidfd_open(pid) {
         Ok(fd) => fd,
         Err(e) => return Err((conn, format!("peer {pid} is gone: {e}"))),

@@ -2,7 +2,7 @@
 //! pipes. Initial start (and recovery without a healthy donor) is by exec.
 
 use std::io;
-use std::os::fd::{AsFd, AsRawFd, OwnedFd, RawFd};
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
@@ -255,7 +255,7 @@ impl Replica {
         stderr: StderrRelay,
         entry: crate::journal::SlotEntry,
     ) -> Replica {
-        Replica {
+        let replica = Replica {
             pid,
             pidfd,
             inputs,
@@ -268,9 +268,11 @@ impl Replica {
             start_pipe: None,
             started: true,
             schedstat: SchedStat::new(pid),
-            proc_stat: ProcStat::opened(pid),
+            proc_stat: ProcStat::new(pid),
             lines: None,
-        }
+        };
+        replica.proc_stat.open_now(replica.pidfd.as_fd());
+        replica
     }
 
     /// An unmodified program's replica a voter's successor took over on the pipes its
@@ -365,7 +367,7 @@ impl Replica {
         // `child` is dropped without waiting: the voter reaps with waitpid itself.
         drop(child);
         let pidfd = sys::pidfd_open(pid)?;
-        Ok(Replica {
+        let replica = Replica {
             pid,
             pidfd,
             inputs: pipes.inputs,
@@ -378,9 +380,11 @@ impl Replica {
             start_pipe: Some(start_r),
             started: false,
             schedstat: SchedStat::new(pid),
-            proc_stat: ProcStat::opened(pid),
+            proc_stat: ProcStat::new(pid),
             lines: None,
-        })
+        };
+        replica.proc_stat.open_now(replica.pidfd.as_fd());
+        Ok(replica)
     }
 
     /// Reads the start handshake's pipe: `true` if the replica said that its runtime started
@@ -525,7 +529,7 @@ impl Replica {
         if !self.may_donate() {
             return None;
         }
-        let state = self.proc_stat.state();
+        let state = self.proc_stat.state(self.pidfd.as_fd());
         let rank = DonorRank {
             state_lost: self.state_lost,
             unproven: !self.proven,
@@ -537,7 +541,7 @@ impl Replica {
     /// Whether the process sleeps in the kernel (`S`: waiting for input, or for its output
     /// pipe to drain) rather than running, runnable, stopped or dead.
     pub fn is_asleep(&self) -> bool {
-        self.proc_stat.state() == Some('S')
+        self.proc_stat.state(self.pidfd.as_fd()) == Some('S')
     }
 }
 
@@ -545,12 +549,15 @@ impl Replica {
 /// one `pread`. The donor pick reads it for every candidate, on the restart's critical path,
 /// where opening the file by its path (a `/proc` lookup each time) took as long as the rest of
 /// the pick. The open file stays with the process it was opened for (a read fails once that
-/// one is gone), so a reused pid is never mistaken for the replica once it is open; it is
-/// opened while the replica is known to live ([`ProcStat::open_now`]).
+/// one is reaped), so a pid reused after the replica died is never read in its place once the
+/// file is open; and it is kept only if the replica was alive after the open, as its pidfd
+/// says (a number names a process only until it is reaped, and a fork child is reaped by
+/// nobody's wait: its donor ignores SIGCHLD). A failed open is not kept: the next look tries
+/// again.
 #[derive(Debug)]
 pub struct ProcStat {
     pid: libc::pid_t,
-    file: std::cell::OnceCell<Option<std::fs::File>>,
+    file: std::cell::OnceCell<std::fs::File>,
 }
 
 impl ProcStat {
@@ -561,32 +568,29 @@ impl ProcStat {
         }
     }
 
-    /// One opened at once: for a process known to live (our unreaped child, or one whose pidfd
-    /// is held).
-    pub fn opened(pid: libc::pid_t) -> ProcStat {
-        let stat = ProcStat::new(pid);
-        stat.open_now();
-        stat
-    }
-
     /// Opens the file now, if that has not happened yet: off the path that reads it.
-    pub fn open_now(&self) {
-        let _ = self.file();
+    /// `pidfd` is the replica's.
+    pub fn open_now(&self, pidfd: BorrowedFd<'_>) {
+        let _ = self.file(pidfd);
     }
 
-    fn file(&self) -> Option<&std::fs::File> {
-        self.file
-            .get_or_init(|| std::fs::File::open(format!("/proc/{}/stat", self.pid)).ok())
-            .as_ref()
+    fn file(&self, pidfd: BorrowedFd<'_>) -> Option<&std::fs::File> {
+        if let Some(file) = self.file.get() {
+            return Some(file);
+        }
+        let file = std::fs::File::open(format!("/proc/{}/stat", self.pid)).ok()?;
+        // Alive now, so alive at the open: the file is this replica's.
+        sys::pidfd_send_signal(pidfd, 0).ok()?;
+        Some(self.file.get_or_init(|| file))
     }
 
     /// The state letter (`S`, `R`, `T`, `Z`, …); `None` if the process is gone (or `/proc`
-    /// does not say).
-    pub fn state(&self) -> Option<char> {
+    /// does not say). `pidfd` is the replica's.
+    pub fn state(&self, pidfd: BorrowedFd<'_>) -> Option<char> {
         use std::os::unix::fs::FileExt;
         // The line is ~300 bytes; comm is at most 16.
         let mut buf = [0u8; 1024];
-        let n = self.file()?.read_at(&mut buf, 0).ok()?;
+        let n = self.file(pidfd)?.read_at(&mut buf, 0).ok()?;
         sys::state_in_stat(std::str::from_utf8(&buf[..n]).ok()?)
     }
 }
@@ -825,6 +829,31 @@ pub use replica_rt::sys::{caught_signals, signal_bit};
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The held `/proc/PID/stat` says the state of the process it was opened for, and nothing
+    /// once that process is reaped (its number may belong to another by then).
+    #[test]
+    fn a_held_stat_file_follows_its_process_and_not_its_number() {
+        let mut child = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .unwrap();
+        let pid = child.id() as libc::pid_t;
+        let pidfd = sys::pidfd_open(pid).unwrap();
+        let stat = ProcStat::new(pid);
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while stat.state(pidfd.as_fd()) != Some('S') {
+            assert!(std::time::Instant::now() < deadline, "sleep never slept");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert_eq!(stat.state(pidfd.as_fd()), None, "reaped, yet read");
+        // Never opened while it lived: not opened now (its pidfd says it is gone).
+        let late = ProcStat::new(pid);
+        assert_eq!(late.state(pidfd.as_fd()), None);
+        assert!(late.file.get().is_none());
+    }
 
     #[test]
     fn status_gives_state_and_voluntary_switches() {
