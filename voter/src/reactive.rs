@@ -969,8 +969,9 @@ impl Mode for ReactiveVoter {
                 // back to back, the next input came meanwhile (downstream answered the
                 // forward). Reading it now saves the wait that would only say so, one `ppoll`
                 // a round. Where input comes periodically, the read finds nothing (one `tee`
-                // of a journaled input, or `read`), and the wait follows. A round that closes at its forward (SMR, DMR) is read
-                // for only after the wait: downstream has not seen its answer yet.
+                // of a journaled input, or `read`), and the wait follows. A round that closes
+                // at its forward (SMR, DMR) is read for only after the wait: downstream has not
+                // seen its answer yet.
                 if std::mem::take(&mut self.forwarded_before_close) && self.round.is_none() {
                     self.read_inputs_now();
                     self.start_rounds_from_buffered_input();
