@@ -28,6 +28,10 @@ Environment:
               dynamic  as `cargo build --release` builds them (default)
               static   built again statically linked, as docs/writing-a-component.md
                        ("Statically linked") says, and measured with --component-dir
+  JOURNAL=J   whether s3res's voters keep their journal (what a successor needs when a
+              voter dies; neither peer survives the death of its voter):
+              on   as s3res-bootstrap runs a reactive component (default)
+              off  s3res-bench --no-journal: like for like with the peers
 Run as root (SCHED_RR). The table alone, again, from saved results:
   python3 scripts/peers-table.py RES_DIR
 EOF
@@ -55,6 +59,11 @@ COMPONENTS=${COMPONENTS:-dynamic}
 case "$COMPONENTS" in
   dynamic|static) ;;
   *) echo "compare-peers: COMPONENTS=$COMPONENTS is neither dynamic nor static" >&2; exit 2;;
+esac
+JOURNAL=${JOURNAL:-on}
+case "$JOURNAL" in
+  on|off) ;;
+  *) echo "compare-peers: JOURNAL=$JOURNAL is neither on nor off" >&2; exit 2;;
 esac
 RES=${RES:-$ROOT/target/s3res-peer/results/$(date -u +%Y%m%dT%H%M%SZ)}
 mkdir -p "$RES"
@@ -109,6 +118,7 @@ fi
   echo "reps $REPS"
   echo "cpu_idle $CPU_IDLE"
   echo "components $COMPONENTS"
+  echo "journal $JOURNAL"
   echo "load_start $(cut -d' ' -f1-3 /proc/loadavg)"
   echo "machine $(nproc) CPUs, $(uname -r), $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //')"
 } > "$RES/meta.txt"
@@ -124,6 +134,7 @@ export REPS RES
 # (${A[@]+"${A[@]}"}: an empty array under `set -u`, on every bash)
 RUN_ARGS=(${BENCH_ARGS[@]+"${BENCH_ARGS[@]}"})
 [ "$CPU_IDLE" = s3res ] && RUN_ARGS+=(--cpu-idle poll)
+[ "$JOURNAL" = off ] && RUN_ARGS+=(--no-journal)
 if [ ${#RUN_ARGS[@]} -gt 0 ]; then
   # compare.sh runs $BENCH; this one adds the options to every s3res-bench it runs.
   printf '#!/bin/bash\nexec %q%s "$@"\n' "$ROOT/target/release/s3res-bench" "$(printf ' %q' "${RUN_ARGS[@]}")" \
