@@ -469,8 +469,13 @@ pub fn process_state(pid: libc::pid_t) -> Option<char> {
 
 /// The state letter in the text of a `/proc/PID/stat` (field 3).
 pub fn state_in_stat(stat: &str) -> Option<char> {
-    // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
-    stat[stat.rfind(')')? + 1..].trim_start().chars().next()
+    after_comm(stat)?.trim_start().chars().next()
+}
+
+/// What follows `comm` in the text of a `/proc/PID/stat` (field 3 on): comm (field 2) may
+/// contain spaces and parentheses, so the rest starts after the last ')'.
+fn after_comm(stat: &str) -> Option<&str> {
+    Some(&stat[stat.rfind(')')? + 1..])
 }
 
 /// The kernel function `pid` sleeps in (`/proc/PID/wchan`: `pipe_read`, `pipe_write`,
@@ -642,9 +647,10 @@ pub fn zombie_exit_status(pid: libc::pid_t) -> Option<ExitStatus> {
 fn with_proc_stat<R>(pid: libc::pid_t, f: impl FnOnce(&str) -> Option<R>) -> Option<R> {
     // The line is ~300 bytes; comm is at most 16.
     let mut buf = [0u8; 1024];
-    let stat = read_proc_small(&format!("/proc/{pid}/stat"), &mut buf)?;
-    // comm (field 2) may contain spaces and parentheses: the rest starts after the last ')'.
-    f(&stat[stat.rfind(')')? + 1..])
+    f(after_comm(read_proc_small(
+        &format!("/proc/{pid}/stat"),
+        &mut buf,
+    )?)?)
 }
 
 /// Reads `/proc/PID/status` (about 1.5 KiB) and gives it to `f`.
