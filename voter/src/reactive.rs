@@ -53,11 +53,9 @@ pub struct ReactiveVoter {
     shares_cpu: ReplicaSet,
     /// When the last wait was to end at the latest (its nearest timer).
     wake_at: Option<Instant>,
-    /// The last wait was for the open round's close alone: every answer had gone out.
+    /// The last wait was for the open round's close alone: every answer had gone out (see
+    /// [`ReactiveVoter::run_loop`]).
     waited_for_close_only: bool,
-    /// The last round closed had forwarded all its answers before the wait that closed it
-    /// (see [`ReactiveVoter::run_loop`]).
-    forwarded_before_close: bool,
 }
 
 impl ReactiveVoter {
@@ -80,7 +78,6 @@ impl ReactiveVoter {
             watching: None,
             wake_at: None,
             waited_for_close_only: false,
-            forwarded_before_close: false,
             shares_cpu,
         })
     }
@@ -823,10 +820,6 @@ impl ReactiveVoter {
         let Some(round) = self.round.as_ref() else {
             return;
         };
-        // Every answer went out before the wait that ended in this close (at a majority):
-        // downstream may have answered with the next input meanwhile. (A round closes only
-        // in `advance_round`, after a wait, so the flag is that wait's.)
-        self.forwarded_before_close = self.waited_for_close_only;
         let late: Vec<usize> = round
             .members
             .iter()
@@ -967,12 +960,14 @@ impl Mode for ReactiveVoter {
                 self.start_rounds_from_buffered_input();
                 // A round that forwarded its answers at a majority closes at its last answer;
                 // back to back, the next input came meanwhile (downstream answered the
-                // forward). Reading it now saves the wait that would only say so, one `ppoll`
-                // a round. Where input comes periodically, the read finds nothing (one `tee`
-                // of a journaled input, or `read`), and the wait follows. A round that closes
-                // at its forward (SMR, DMR) is read for only after the wait: downstream has not
+                // forward). A round closes only after a wait (`advance_round`), so with no
+                // round open here, a last wait for the close alone means such a close.
+                // Reading the input now saves the wait that would only say so, one `ppoll` a
+                // round. Where input comes periodically, the read finds nothing (one `tee` of a
+                // journaled input, or `read`), and the wait follows. A round that closes at
+                // its forward (SMR, DMR) is read for only after the wait: downstream has not
                 // seen its answer yet.
-                if std::mem::take(&mut self.forwarded_before_close) && self.round.is_none() {
+                if std::mem::take(&mut self.waited_for_close_only) && self.round.is_none() {
                     self.read_inputs_now();
                     self.start_rounds_from_buffered_input();
                 }
