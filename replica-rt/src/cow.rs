@@ -208,7 +208,7 @@ fn procmap_query(fd: libc::c_int, q: &mut ProcmapQuery) -> Result<(), i32> {
         // SAFETY: `q` is a valid, exclusively borrowed `struct procmap_query` whose `size` says
         // how large it is; `vma_name_size` and `build_id_size` are 0, so the kernel writes
         // nothing but `q` itself.
-        let r = unsafe { libc::ioctl(fd, PROCMAP_QUERY, std::ptr::from_mut(q)) };
+        let r = unsafe { libc::ioctl(fd, PROCMAP_QUERY as _, std::ptr::from_mut(q)) };
         if r == 0 {
             return Ok(());
         }

@@ -17,6 +17,15 @@ fn cvt(ret: libc::c_int) -> io::Result<libc::c_int> {
     }
 }
 
+/// `cvt` for `libc::syscall`, which returns a `c_long`.
+fn cvt_long(ret: libc::c_long) -> io::Result<libc::c_long> {
+    if ret < 0 {
+        Err(io::Error::last_os_error())
+    } else {
+        Ok(ret)
+    }
+}
+
 /// A pipe whose both ends are close-on-exec: `(read, write)`.
 pub fn pipe() -> io::Result<(OwnedFd, OwnedFd)> {
     let mut fds = [0 as libc::c_int; 2];
@@ -382,7 +391,7 @@ pub fn wait_readable(fd: BorrowedFd<'_>, timeout: Duration) -> io::Result<bool> 
 /// `ppoll(2)` with nanosecond timeout (`None` waits forever). EINTR counts as zero ready fds.
 pub fn ppoll(fds: &mut [libc::pollfd], timeout: Option<Duration>) -> io::Result<usize> {
     let ts = timeout.map(|t| libc::timespec {
-        tv_sec: t.as_secs() as libc::time_t,
+        tv_sec: t.as_secs() as _,
         tv_nsec: t.subsec_nanos() as libc::c_long,
     });
     let tsp = ts
@@ -771,6 +780,7 @@ pub fn lock_all_memory() -> io::Result<()> {
 /// effort: the calls only tune the allocator.
 pub fn trim_heap(pad: usize, mmap_threshold: usize) {
     let int = |v: usize| libc::c_int::try_from(v).unwrap_or(libc::c_int::MAX);
+    #[cfg(target_env = "gnu")]
     // SAFETY: allocator tuning with plain integers; glibc's malloc takes its own locks.
     unsafe {
         libc::mallopt(libc::M_TOP_PAD, int(pad));
@@ -778,6 +788,10 @@ pub fn trim_heap(pad: usize, mmap_threshold: usize) {
         libc::mallopt(libc::M_TRIM_THRESHOLD, int(2 * mmap_threshold));
         libc::malloc_trim(pad);
     }
+    // musl's allocator has none of these knobs: it keeps no slack above what is asked and
+    // serves large blocks from mappings of their own, which it unmaps when they are freed.
+    #[cfg(not(target_env = "gnu"))]
+    let _ = (int(pad), mmap_threshold);
 }
 
 /// `MLOCK_ONFAULT` for `mlock2` (Linux >= 4.4; not exported by the `libc` crate for every
@@ -1077,8 +1091,8 @@ pub fn queued_value(info: &libc::siginfo_t) -> Option<i32> {
 /// Sets a socket's send and receive timeouts. Async-signal-safe (one system call each).
 pub fn set_socket_timeouts(sock: RawFd, timeout: Duration) -> io::Result<()> {
     let tv = libc::timeval {
-        tv_sec: timeout.as_secs() as libc::time_t,
-        tv_usec: timeout.subsec_micros() as libc::suseconds_t,
+        tv_sec: timeout.as_secs() as _,
+        tv_usec: timeout.subsec_micros() as _,
     };
     for opt in [libc::SO_RCVTIMEO, libc::SO_SNDTIMEO] {
         // SAFETY: `tv` is a valid timeval for the duration of the call and its size is passed.
@@ -1115,44 +1129,72 @@ impl SchedPolicy {
     }
 }
 
+/// A `sched_param` holding `priority` alone. musl's has more fields than glibc's (for
+/// `SCHED_SPORADIC`, which Linux does not have), so it is built from zeroes.
+fn sched_param(priority: libc::c_int) -> libc::sched_param {
+    // SAFETY: `sched_param` is a plain C struct of integers (and, on musl, timespecs of
+    // integers), for which all-zero bytes are a valid value.
+    let mut param: libc::sched_param = unsafe { std::mem::zeroed() };
+    param.sched_priority = priority;
+    param
+}
+
+// The scheduler calls go to the kernel directly: musl's wrappers of `sched_setscheduler`,
+// `sched_setparam`, `sched_getscheduler` and `sched_getparam` fail with ENOSYS by design
+// (POSIX means them for processes, Linux applies them to threads), and glibc's are the bare
+// system calls. One form serves replicas built on either C library.
+
+/// `sched_setscheduler(pid, policy, priority)`.
+fn set_scheduler(pid: libc::pid_t, policy: libc::c_int, priority: libc::c_int) -> io::Result<()> {
+    let param = sched_param(priority);
+    // SAFETY: `param` is a valid sched_param read by the kernel during the call only.
+    let r = unsafe {
+        libc::syscall(
+            libc::SYS_sched_setscheduler,
+            pid,
+            policy,
+            std::ptr::from_ref(&param),
+        )
+    };
+    cvt_long(r).map(drop)
+}
+
 /// `sched_setscheduler(pid, SCHED_RR, priority)`.
 pub fn set_round_robin(pid: libc::pid_t, priority: libc::c_int) -> io::Result<()> {
-    let param = libc::sched_param {
-        sched_priority: priority,
-    };
-    // SAFETY: `param` is a valid sched_param read by the kernel during the call only.
-    cvt(unsafe { libc::sched_setscheduler(pid, libc::SCHED_RR, &param) })?;
-    Ok(())
+    set_scheduler(pid, libc::SCHED_RR, priority)
 }
 
 /// `sched_setscheduler(pid, SCHED_OTHER, 0)`: back to the normal time-sharing policy.
 pub fn set_normal_policy(pid: libc::pid_t) -> io::Result<()> {
-    let param = libc::sched_param { sched_priority: 0 };
-    // SAFETY: as in `set_round_robin`.
-    cvt(unsafe { libc::sched_setscheduler(pid, libc::SCHED_OTHER, &param) })?;
-    Ok(())
+    set_scheduler(pid, libc::SCHED_OTHER, 0)
 }
 
 /// `sched_setparam(pid, priority)`: a new real-time priority within the current policy (the
 /// cheap call the voter makes at every turn of a sequential round).
 pub fn set_rt_priority(pid: libc::pid_t, priority: libc::c_int) -> io::Result<()> {
-    let param = libc::sched_param {
-        sched_priority: priority,
-    };
+    let param = sched_param(priority);
     // SAFETY: `param` is a valid sched_param read by the kernel during the call only.
-    cvt(unsafe { libc::sched_setparam(pid, &param) })?;
-    Ok(())
+    let r = unsafe { libc::syscall(libc::SYS_sched_setparam, pid, std::ptr::from_ref(&param)) };
+    cvt_long(r).map(drop)
 }
 
 /// `sched_getscheduler` and `sched_getparam` of `pid`.
 pub fn sched_policy(pid: libc::pid_t) -> io::Result<SchedPolicy> {
     // SAFETY: integer argument only.
-    let policy = cvt(unsafe { libc::sched_getscheduler(pid) })?;
-    let mut param = libc::sched_param { sched_priority: 0 };
+    let policy = cvt_long(unsafe { libc::syscall(libc::SYS_sched_getscheduler, pid) })?;
+    let mut param = sched_param(0);
     // SAFETY: `param` is a valid out-pointer for the duration of the call.
-    cvt(unsafe { libc::sched_getparam(pid, &mut param) })?;
+    let r = unsafe {
+        libc::syscall(
+            libc::SYS_sched_getparam,
+            pid,
+            std::ptr::from_mut(&mut param),
+        )
+    };
+    cvt_long(r)?;
     Ok(SchedPolicy {
-        policy,
+        // A policy is a small integer (`SCHED_*`); the kernel returns nothing wider.
+        policy: policy as libc::c_int,
         priority: param.sched_priority,
     })
 }
