@@ -5,7 +5,7 @@
 //!   before `kill` (both CLOCK_MONOTONIC).
 //! - `crash-round`: SIGKILL, then at once a frame: the round trip of the round that discovers
 //!   the dead replica (it includes the recovery the voter does before it reads the frame).
-//! - `hang`: the injection signal (`SIGRTMIN+2`: the replica spins) to an idle replica, then a
+//! - `hang`: the injection signal (36, glibc's `SIGRTMIN+2`: the replica spins) to an idle replica, then a
 //!   frame; latency = the `hang` event's `ts_ns` − (time just before the frame was written +
 //!   timeout). The voter opens the round a little after the bench wrote the frame, so this is an
 //!   upper bound: it includes the frame's trip into the voter (a few µs, about half the SMR

@@ -35,9 +35,9 @@ Fault kinds (--fault):
   exec  execution error: SIGKILL to the process
   sdc   silent data corruption: replica-rt flips one bit of the next frame the process sends
         (SIGUSR2, sigqueue value = the bit, reduced modulo the frame's bits)
-  cfe   control-flow error: replica-rt makes the process spin forever (SIGRTMIN+2)
+  cfe   control-flow error: replica-rt makes the process spin forever (signal 36, glibc's SIGRTMIN+2)
   var   variable-level flip: chosen bits at a chosen byte offset of the next frame
-        (--var-offset, --var-field, --var-flips, --var-bits; SIGRTMIN+3)
+        (--var-offset, --var-field, --var-flips, --var-bits; signal 37, glibc's SIGRTMIN+3)
   reg   register bit flip through ptrace (provided by the s3res-regflip crate)
   mixed exec, sdc or cfe, drawn for each injection, equally likely (campaign and inject;
         each injection's record says which it was)

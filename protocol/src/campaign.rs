@@ -26,9 +26,10 @@ pub enum FaultKind {
     Exec,
     /// Silent data corruption: replica-rt flips one bit of the next outgoing frame (SIGUSR2).
     Sdc,
-    /// Control-flow error: replica-rt spins forever (SIGRTMIN+2).
+    /// Control-flow error: replica-rt spins forever (signal 36, glibc's SIGRTMIN+2).
     Cfe,
-    /// Variable-level flip: chosen bits at a chosen byte offset of the next frame (SIGRTMIN+3).
+    /// Variable-level flip: chosen bits at a chosen byte offset of the next frame (signal 37,
+    /// glibc's SIGRTMIN+3).
     Var,
     /// Register bit flip through ptrace (the s3res-regflip crate).
     Reg,

@@ -291,19 +291,29 @@ pub mod signals {
     /// value), the bit is chosen at random and logged.
     pub const INJECT_SDC: libc::c_int = libc::SIGUSR2;
 
-    /// Injection: enter an endless loop (a control-flow error that never answers).
+    /// The real-time signals of this contract are kernel numbers, not `SIGRTMIN() + k`: the
+    /// C libraries keep a different number of real-time signals for themselves (glibc 32 and
+    /// 33, so its `SIGRTMIN()` is 34; musl 32 to 34, so 35). A voter built on one and a replica
+    /// built on the other would otherwise name different signals by the same words: a replica
+    /// built for musl handled 37 where the voter sent 36. 36 and 37 are glibc's `SIGRTMIN() + 2`
+    /// and `+ 3`, as before, and free for programs under either library.
+    const CFE: libc::c_int = 36;
+    const VAR: libc::c_int = 37;
+
+    /// Injection: enter an endless loop (a control-flow error that never answers). Signal 36
+    /// (glibc's `SIGRTMIN + 2`).
     pub fn inject_cfe() -> libc::c_int {
-        libc::SIGRTMIN() + 2
+        CFE
     }
 
     /// Injection at the variable level: XOR a byte mask into chosen bytes of the next outgoing
-    /// frame. Sent with `sigqueue` only (a real-time signal, so that several queue instead of
-    /// merging); the value is a [`VarRequest`] as [`VarRequest::to_value`] encodes it. One signal
+    /// frame. Signal 37 (glibc's `SIGRTMIN + 3`). Sent with `sigqueue` only (a real-time
+    /// signal, so that several queue instead of merging); the value is a [`VarRequest`] as [`VarRequest::to_value`] encodes it. One signal
     /// names one byte; a flip that spans bytes (the exponent of an f64) is several signals, the
     /// last one with `last` set, and only that one arms the flip. So the bytes of one request
     /// always land in the same frame.
     pub fn inject_var() -> libc::c_int {
-        libc::SIGRTMIN() + 3
+        VAR
     }
 
     /// One byte of a variable-level injection, as carried in the `sigqueue` value (an `i32`
@@ -376,6 +386,24 @@ mod tests {
     use super::handshake::{Ready, Rebind, READY_MAGIC, REBIND_MAGIC};
     use super::signals::VarRequest;
     use super::MAX_PORTS;
+
+    /// The injection signals are kernel numbers every C library leaves to programs: at or
+    /// above this library's `SIGRTMIN()` (34 on glibc, 35 on musl), and distinct.
+    #[test]
+    fn the_injection_signals_are_real_time_signals_a_program_may_use() {
+        use super::signals::{inject_cfe, inject_var};
+        for sig in [inject_cfe(), inject_var()] {
+            assert!(
+                (libc::SIGRTMIN()..=libc::SIGRTMAX()).contains(&sig),
+                "signal {sig} outside {}..={}",
+                libc::SIGRTMIN(),
+                libc::SIGRTMAX()
+            );
+            // musl keeps 32..=34 for itself: one built there must not collide either.
+            assert!(sig >= 35, "signal {sig} is one a C library keeps");
+        }
+        assert_ne!(inject_cfe(), inject_var());
+    }
 
     #[test]
     fn var_request_round_trips() {

@@ -9,9 +9,10 @@
  * Rules (the runtime relies on them):
  *   - Single-threaded. A replica is restarted by fork from a signal handler; fork copies only
  *     the thread that took the signal.
- *   - Do not install handlers for SIGUSR1 (restart), SIGUSR2 (SDC injection), SIGRTMIN+2
- *     (control-flow-error injection) or SIGRTMIN+3 (variable injection); s3res_init installs
- *     them. In a replica SIGCHLD is ignored (do not wait for children); SIGPIPE is ignored.
+ *   - Do not install handlers for SIGUSR1 (restart), SIGUSR2 (SDC injection), signal 36
+ *     (control-flow-error injection; glibc's SIGRTMIN+2) or signal 37 (variable injection;
+ *     glibc's SIGRTMIN+3); s3res_init installs them. The two are fixed numbers, the same
+ *     whichever C library a program is built on. In a replica SIGCHLD is ignored (do not wait for children); SIGPIPE is ignored.
  *   - Files and sockets you hold open are shared with a replacement forked from you (same
  *     open file description, same offset, same connection): move all channel I/O through the
  *     ports, and keep no other stream open across the run.
@@ -157,7 +158,8 @@ int s3res_lock_memory(void);
 
 /* The signals the runtime handles (for injectors and tests; never handle them yourself):
  * restart (SIGUSR1), SDC (SIGUSR2; a sigqueue value picks the bit), control-flow error
- * (SIGRTMIN+2: spin forever), variable injection (SIGRTMIN+3). SIGKILL needs no hook. */
+ * (signal 36, glibc's SIGRTMIN+2: spin forever), variable injection (signal 37, glibc's
+ * SIGRTMIN+3). SIGKILL needs no hook. */
 int s3res_signal_restart(void);
 int s3res_signal_inject_sdc(void);
 int s3res_signal_inject_cfe(void);

@@ -844,13 +844,15 @@ pub extern "C" fn s3res_signal_inject_sdc() -> c_int {
     signals::INJECT_SDC
 }
 
-/// The control-flow-error injection signal (SIGRTMIN+2): the process spins forever.
+/// The control-flow-error injection signal (signal 36, glibc's SIGRTMIN+2): the process spins
+/// forever.
 #[no_mangle]
 pub extern "C" fn s3res_signal_inject_cfe() -> c_int {
     guard_rc(signals::inject_cfe)
 }
 
-/// The variable-level injection signal (SIGRTMIN+3): XORs masks into bytes of the next frame.
+/// The variable-level injection signal (signal 37, glibc's SIGRTMIN+3): XORs masks into bytes
+/// of the next frame.
 #[no_mangle]
 pub extern "C" fn s3res_signal_inject_var() -> c_int {
     guard_rc(signals::inject_var)

@@ -132,7 +132,8 @@ enum Fault {
     Kill,
     Stop,
     Sdc,
-    /// The control-flow-error hook (SIGRTMIN+2): the replica spins in the handler.
+    /// The control-flow-error hook (signal 36, glibc's SIGRTMIN+2): the replica spins in the
+    /// handler.
     Cfe,
 }
 
@@ -192,7 +193,7 @@ fn the_c_example_keeps_its_mean_through_kills_stops_and_corruptions_under_tmr() 
         match fault {
             Fault::Kill => s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("SIGKILL"),
             Fault::Stop => s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP"),
-            Fault::Cfe => s3res_testkit::kill_pid(pid, signals::inject_cfe()).expect("SIGRTMIN+2"),
+            Fault::Cfe => s3res_testkit::kill_pid(pid, signals::inject_cfe()).expect("signal 36"),
             Fault::Sdc => {
                 let bit = rng.below(128) as i32;
                 s3res_testkit::sigqueue(pid, signals::INJECT_SDC, bit).expect("sigqueue")
