@@ -28,6 +28,9 @@ Environment:
               dynamic  as `cargo build --release` builds them (default)
               static   built again statically linked, as docs/writing-a-component.md
                        ("Statically linked") says, and measured with --component-dir
+              musl     built small, for musl in the `replica` profile, as
+                       docs/writing-a-component.md ("Small replicas") says (needs
+                       `rustup target add x86_64-unknown-linux-musl`)
   JOURNAL=J   whether s3res's voters keep their journal (what a successor needs when a
               voter dies; neither peer survives the death of its voter):
               on   as s3res-bootstrap runs a reactive component (default)
@@ -57,8 +60,8 @@ case "$CPU_IDLE" in
 esac
 COMPONENTS=${COMPONENTS:-dynamic}
 case "$COMPONENTS" in
-  dynamic|static) ;;
-  *) echo "compare-peers: COMPONENTS=$COMPONENTS is neither dynamic nor static" >&2; exit 2;;
+  dynamic|static|musl) ;;
+  *) echo "compare-peers: COMPONENTS=$COMPONENTS is none of dynamic, static, musl" >&2; exit 2;;
 esac
 JOURNAL=${JOURNAL:-on}
 case "$JOURNAL" in
@@ -109,6 +112,14 @@ if [ "$COMPONENTS" = static ]; then
   RUSTFLAGS="-C target-feature=+crt-static" cargo build --release --locked -q --target "$triple" \
     -p s3res-components || { echo "compare-peers: the static build of s3res-components failed" >&2; exit 1; }
   BENCH_ARGS+=(--component-dir "$ROOT/target/$triple/release")
+elif [ "$COMPONENTS" = musl ]; then
+  triple=$(rustc -vV | sed -n 's/^host: //p' | sed 's/-linux-gnu$/-linux-musl/')
+  echo "compare-peers: the components again, small, for $triple (profile replica)" >&2
+  cargo build --profile replica --locked -q --target "$triple" -p s3res-components || {
+    echo "compare-peers: the musl build of s3res-components failed (rustup target add $triple?)" >&2
+    exit 1
+  }
+  BENCH_ARGS+=(--component-dir "$ROOT/target/$triple/replica")
 fi
 
 {

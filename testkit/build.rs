@@ -17,12 +17,13 @@
 //! | `s3res_cc`          | `cc` compiles and links a C file                                 |
 //! | `s3res_cc_static`   | `cc -static` links one too (a static libc is installed)           |
 //! | `s3res_pidfd_exit`  | Linux 6.15+: a pidfd tells a non-parent how its process ended     |
+//! | `s3res_musl_target` | the toolchain has the standard library of the musl twin of the tests' target (`rustup target add x86_64-unknown-linux-musl`) |
 
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::process::{Command, Stdio};
 
-const CFGS: [&str; 10] = [
+const CFGS: [&str; 11] = [
     "s3res_pagemap_pfns",
     "s3res_sched_rr",
     "s3res_two_cpus",
@@ -33,6 +34,7 @@ const CFGS: [&str; 10] = [
     "s3res_cc",
     "s3res_cc_static",
     "s3res_pidfd_exit",
+    "s3res_musl_target",
 ];
 
 /// The harness's `system::UNPRIVILEGED_ENV`.
@@ -89,6 +91,46 @@ fn main() {
     set("s3res_cc", compiles(&[]));
     set("s3res_cc_static", compiles(&["-static"]));
     set("s3res_pidfd_exit", kernel_at_least(6, 15));
+    let musl = std::env::var("TARGET").ok().and_then(|t| musl_twin(&t));
+    let musl_installed = musl.as_deref().is_some_and(has_standard_library);
+    if let (Some(triple), true) = (&musl, musl_installed) {
+        // `bins::musl_component_dir` builds for it.
+        println!("cargo::rustc-env=S3RES_TESTKIT_MUSL_TARGET={triple}");
+    }
+    set("s3res_musl_target", musl_installed);
+}
+
+/// The musl target beside a glibc one: `x86_64-unknown-linux-gnu` → `x86_64-unknown-linux-musl`.
+fn musl_twin(target: &str) -> Option<String> {
+    target
+        .strip_suffix("-linux-gnu")
+        .map(|arch| format!("{arch}-linux-musl"))
+}
+
+/// Whether the compiler that builds this crate has `triple`'s standard library installed. Adding
+/// a target with rustup rewrites the sysroot's list of components, so that probes again.
+fn has_standard_library(triple: &str) -> bool {
+    let rustc = std::env::var("RUSTC").unwrap_or_else(|_| "rustc".to_owned());
+    let Ok(out) = Command::new(rustc)
+        .args(["--print", "sysroot"])
+        .stderr(Stdio::null())
+        .output()
+    else {
+        return false;
+    };
+    let sysroot = std::path::PathBuf::from(String::from_utf8_lossy(&out.stdout).trim());
+    let rustlib = sysroot.join("lib").join("rustlib");
+    let components = rustlib.join("components");
+    if components.is_file() {
+        println!("cargo::rerun-if-changed={}", components.display());
+    }
+    std::fs::read_dir(rustlib.join(triple).join("lib")).is_ok_and(|entries| {
+        entries.flatten().any(|e| {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            name.starts_with("libstd-") && name.ends_with(".rlib")
+        })
+    })
 }
 
 /// Whether the running kernel's release (`6.18.4-…`) is `major.minor` or later.

@@ -12,8 +12,9 @@
 //! `target/release`, to run the end-to-end tests against a release build).
 //!
 //! [`static_component_dir`] builds the example components again, statically linked, as
-//! docs/writing-a-component.md ("Statically linked") tells a user to: for the tests that run
-//! such a build.
+//! docs/writing-a-component.md ("Statically linked") tells a user to, and
+//! [`musl_component_dir`] builds them small, for musl ("Small replicas"): for the tests that
+//! run such builds.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -103,6 +104,38 @@ fn build_static_components() -> Result<PathBuf, String> {
     eprintln!("s3res-testkit: building the components statically linked: {cmd:?}");
     run_cargo(cmd)?;
     Ok(static_layout.profile_dir)
+}
+
+/// The folder of the `s3res-components` executables built small, as
+/// docs/writing-a-component.md ("Small replicas") tells a user to: for the musl twin of the
+/// tests' target (`x86_64-unknown-linux-musl`), in the workspace's `replica` profile, into a
+/// target folder of their own beside the workspace's (`musl-components`). Built on first use
+/// in each test process; a no-op when current. Needs that target's standard library (`rustup
+/// target add`): the tests that call it are ignored without it (`s3res_musl_target`).
+pub fn musl_component_dir() -> &'static Path {
+    static DIR: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    once(&DIR, build_musl_components)
+}
+
+fn build_musl_components() -> Result<PathBuf, String> {
+    let triple = option_env!("S3RES_TESTKIT_MUSL_TARGET").ok_or(
+        "the musl target's standard library was not installed when the tests were built \
+         (`rustup target add x86_64-unknown-linux-musl`, then `cargo clean -p s3res-testkit`)",
+    )?;
+    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
+    let layout = Layout::from_test_exe(&exe)?;
+    let musl_layout = Layout::new(
+        layout.target_dir.join("musl-components"),
+        Some(triple.to_owned()),
+        "replica".to_owned(),
+    );
+    let mut cmd = cargo_build(&musl_layout)?;
+    cmd.args(["--package", "s3res-components", "--bins"])
+        .env_remove("RUSTFLAGS")
+        .env_remove("CARGO_ENCODED_RUSTFLAGS");
+    eprintln!("s3res-testkit: building the components for musl, profile `replica`: {cmd:?}");
+    run_cargo(cmd)?;
+    Ok(musl_layout.profile_dir)
 }
 
 /// A `cargo build` of this workspace into `layout`'s target folder, for its profile and

@@ -549,8 +549,28 @@ fn shared_libraries(pid: i32) -> Vec<String> {
 )]
 fn a_statically_linked_replica_is_recovered_by_fork_with_its_state() {
     let exe = s3res_testkit::bins::static_component_dir().join("s3res-echo");
-    let exe = std::fs::canonicalize(&exe)
-        .unwrap_or_else(|e| panic!("{} after the static build: {e}", exe.display()));
+    static_replicas_recovered_by_fork(&exe);
+}
+
+/// A small replica (docs/writing-a-component.md, "Small replicas"), built as that section
+/// says: for musl, in the `replica` profile, where a panic aborts. Killed and recovered as the
+/// statically linked one above, with its state.
+#[test]
+#[cfg_attr(
+    not(s3res_musl_target),
+    ignore = "needs the musl target's standard library (rustup target add x86_64-unknown-linux-musl)"
+)]
+fn a_small_replica_built_for_musl_is_recovered_by_fork_with_its_state() {
+    let exe = s3res_testkit::bins::musl_component_dir().join("s3res-echo");
+    static_replicas_recovered_by_fork(&exe);
+}
+
+/// Runs `exe`, a statically linked `s3res-echo`, as a TMR stateful echo and kills two of its
+/// replicas, one after the other: each comes back by fork, with its state, as a process of the
+/// same executable that maps no shared library, and every frame gets through.
+fn static_replicas_recovered_by_fork(exe: &Path) {
+    let exe = std::fs::canonicalize(exe)
+        .unwrap_or_else(|e| panic!("{} after its build: {e}", exe.display()));
     let count = 2000;
     let sys = System::new();
     let echo = format!(
