@@ -113,7 +113,11 @@ if [ "$COMPONENTS" = static ]; then
     -p s3res-components || { echo "compare-peers: the static build of s3res-components failed" >&2; exit 1; }
   BENCH_ARGS+=(--component-dir "$ROOT/target/$triple/release")
 elif [ "$COMPONENTS" = musl ]; then
-  triple=$(rustc -vV | sed -n 's/^host: //p' | sed 's/-linux-gnu$/-linux-musl/')
+  triple=$(rustc -vV | sed -n 's/^host: //p' | sed -n 's/-linux-gnu$/-linux-musl/p')
+  if [ -z "$triple" ]; then
+    echo "compare-peers: COMPONENTS=musl needs a *-linux-gnu host, whose musl twin it builds for" >&2
+    exit 2
+  fi
   echo "compare-peers: the components again, small, for $triple (profile replica)" >&2
   cargo build --profile replica --locked -q --target "$triple" -p s3res-components || {
     echo "compare-peers: the musl build of s3res-components failed (rustup target add $triple?)" >&2

@@ -120,9 +120,16 @@ fn has_standard_library(triple: &str) -> bool {
     };
     let sysroot = std::path::PathBuf::from(String::from_utf8_lossy(&out.stdout).trim());
     let rustlib = sysroot.join("lib").join("rustlib");
+    // A missing path would run this script (and rebuild the tests) at every build; a
+    // toolchain not installed by rustup has no `components`, and its `rustlib` is watched.
     let components = rustlib.join("components");
-    if components.is_file() {
-        println!("cargo::rerun-if-changed={}", components.display());
+    let watched = if components.is_file() {
+        components
+    } else {
+        rustlib.clone()
+    };
+    if watched.exists() {
+        println!("cargo::rerun-if-changed={}", watched.display());
     }
     std::fs::read_dir(rustlib.join(triple).join("lib")).is_ok_and(|entries| {
         entries.flatten().any(|e| {

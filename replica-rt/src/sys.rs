@@ -779,19 +779,23 @@ pub fn lock_all_memory() -> io::Result<()> {
 /// raising would reach for blocks below `mmap_threshold` (trimmed above twice that). Best
 /// effort: the calls only tune the allocator.
 pub fn trim_heap(pad: usize, mmap_threshold: usize) {
-    let int = |v: usize| libc::c_int::try_from(v).unwrap_or(libc::c_int::MAX);
     #[cfg(target_env = "gnu")]
-    // SAFETY: allocator tuning with plain integers; glibc's malloc takes its own locks.
-    unsafe {
-        libc::mallopt(libc::M_TOP_PAD, int(pad));
-        libc::mallopt(libc::M_MMAP_THRESHOLD, int(mmap_threshold));
-        libc::mallopt(libc::M_TRIM_THRESHOLD, int(2 * mmap_threshold));
-        libc::malloc_trim(pad);
+    {
+        let int = |v: usize| libc::c_int::try_from(v).unwrap_or(libc::c_int::MAX);
+        // SAFETY: allocator tuning with plain integers; glibc's malloc takes its own locks.
+        unsafe {
+            libc::mallopt(libc::M_TOP_PAD, int(pad));
+            libc::mallopt(libc::M_MMAP_THRESHOLD, int(mmap_threshold));
+            libc::mallopt(libc::M_TRIM_THRESHOLD, int(2 * mmap_threshold));
+            libc::malloc_trim(pad);
+        }
     }
-    // musl's allocator has none of these knobs: it keeps no slack above what is asked and
-    // serves large blocks from mappings of their own, which it unmaps when they are freed.
+    // musl's allocator has none of these knobs: it keeps no slack above what is asked, and
+    // serves blocks from about 128 KiB up from mappings of their own, unmapped when freed (so
+    // a block that large allocated every round is a new mapping, populated and locked under
+    // `MCL_FUTURE`, each time: docs/writing-a-component.md, "Small replicas").
     #[cfg(not(target_env = "gnu"))]
-    let _ = (int(pad), mmap_threshold);
+    let _ = (pad, mmap_threshold);
 }
 
 /// `MLOCK_ONFAULT` for `mlock2` (Linux >= 4.4; not exported by the `libc` crate for every
@@ -1193,8 +1197,11 @@ pub fn sched_policy(pid: libc::pid_t) -> io::Result<SchedPolicy> {
     };
     cvt_long(r)?;
     Ok(SchedPolicy {
-        // A policy is a small integer (`SCHED_*`); the kernel returns nothing wider.
-        policy: policy as libc::c_int,
+        // The kernel ORs `SCHED_RESET_ON_FORK` into the policy of a process that has it
+        // (`chrt -R`, systemd's `CPUSchedulingResetOnFork=`): without the flag, such a process
+        // under SCHED_RR would read as some other policy, and a caller that tells RR by
+        // equality would take it for a time-shared one. A policy is a small integer.
+        policy: (policy as libc::c_int) & !libc::SCHED_RESET_ON_FORK,
         priority: param.sched_priority,
     })
 }

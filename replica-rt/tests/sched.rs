@@ -74,6 +74,28 @@ fn round_robin_is_granted_or_refused_with_eperm() {
     }
 }
 
+/// A process whose policy carries `SCHED_RESET_ON_FORK` (`chrt -R`) reads as SCHED_RR, not as
+/// the flag's bit OR'ed into it.
+#[test]
+fn round_robin_with_reset_on_fork_reads_as_round_robin() {
+    let child = Sleeper::start();
+    let pid = child.pid();
+    let param = libc::sched_param { sched_priority: 10 };
+    // SAFETY: `param` is a valid sched_param that the kernel reads during the call only.
+    let r = unsafe {
+        libc::sched_setscheduler(pid, libc::SCHED_RR | libc::SCHED_RESET_ON_FORK, &param)
+    };
+    if r != 0 {
+        let e = std::io::Error::last_os_error();
+        eprintln!("SCHED_RR refused here ({e}); checking the refusal only");
+        assert_eq!(e.raw_os_error(), Some(libc::EPERM), "{e}");
+        return;
+    }
+    let p = sys::sched_policy(pid).unwrap();
+    assert!(p.is_round_robin(), "{p:?}");
+    assert_eq!((p.policy, p.priority), (libc::SCHED_RR, 10));
+}
+
 #[test]
 fn a_gone_process_is_esrch() {
     let mut child = Sleeper::start();

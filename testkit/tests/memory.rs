@@ -15,6 +15,7 @@ use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use replica_rt::contract::signals;
 use s3res_testkit::{
     assert_sink_whole, bin_path, echo_pipeline, Event, EventKind, RecoveryMethod, RunningSystem,
     System,
@@ -557,8 +558,8 @@ fn a_statically_linked_replica_is_recovered_by_fork_with_its_state() {
 /// statically linked one above, with its state.
 #[test]
 #[cfg_attr(
-    not(s3res_musl_target),
-    ignore = "needs the musl target's standard library (rustup target add x86_64-unknown-linux-musl)"
+    not(all(s3res_musl_target, s3res_cc)),
+    ignore = "needs the musl target's standard library (rustup target add x86_64-unknown-linux-musl) and a C compiler to link with"
 )]
 fn a_small_replica_built_for_musl_is_recovered_by_fork_with_its_state() {
     let exe = s3res_testkit::bins::musl_component_dir().join("s3res-echo");
@@ -567,7 +568,10 @@ fn a_small_replica_built_for_musl_is_recovered_by_fork_with_its_state() {
 
 /// Runs `exe`, a statically linked `s3res-echo`, as a TMR stateful echo and kills two of its
 /// replicas, one after the other: each comes back by fork, with its state, as a process of the
-/// same executable that maps no shared library, and every frame gets through.
+/// same executable that maps no shared library. Then the third is sent the control-flow-error
+/// signal, by the number the contract fixes (a replica built on another C library than the
+/// voter and this test hooks the same number): it spins, is caught as a hang and is replaced
+/// by fork. Every frame gets through.
 fn static_replicas_recovered_by_fork(exe: &Path) {
     let exe = std::fs::canonicalize(exe)
         .unwrap_or_else(|e| panic!("{} after its build: {e}", exe.display()));
@@ -611,6 +615,19 @@ fn static_replicas_recovered_by_fork(exe: &Path) {
             rec.donor
         );
     }
+    let spinner = run.replica_pids("echo")[&1];
+    s3res_testkit::kill_pid(spinner, signals::inject_cfe()).unwrap();
+    run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.pid == Some(spinner),
+        Duration::from_secs(20),
+    );
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.pid == Some(spinner),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+    runs_static_echo(rec.new_pid.expect("new pid"), "the fork child in slot 1");
     run.wait_success(LIMIT);
     assert_sink_whole(&run.path("summary.json"), count);
 }
