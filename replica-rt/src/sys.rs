@@ -110,10 +110,7 @@ pub fn write2(fd: BorrowedFd<'_>, head: &[u8], body: &[u8]) -> io::Result<usize>
 /// reuse races. Works for any process we may signal, not only our children.
 pub fn pidfd_open(pid: libc::pid_t) -> io::Result<OwnedFd> {
     // SAFETY: pidfd_open takes two integers and returns a new fd or -1.
-    let fd = unsafe { libc::syscall(libc::SYS_pidfd_open, pid, 0) };
-    if fd < 0 {
-        return Err(io::Error::last_os_error());
-    }
+    let fd = cvt_long(unsafe { libc::syscall(libc::SYS_pidfd_open, pid, 0) })?;
     // SAFETY: the kernel just created this fd for us; it is open and unowned.
     Ok(unsafe { OwnedFd::from_raw_fd(fd as RawFd) })
 }
@@ -130,11 +127,7 @@ pub fn pidfd_send_signal(pidfd: BorrowedFd<'_>, sig: libc::c_int) -> io::Result<
             0,
         )
     };
-    if r < 0 {
-        Err(io::Error::last_os_error())
-    } else {
-        Ok(())
-    }
+    cvt_long(r).map(drop)
 }
 
 /// Who a queued signal says it comes from (`si_pid`, `si_uid`): glibc's `sigqueue` asks the
@@ -230,11 +223,7 @@ pub fn pidfd_sigqueue(
             0,
         )
     };
-    if r < 0 {
-        Err(io::Error::last_os_error())
-    } else {
-        Ok(())
-    }
+    cvt_long(r).map(drop)
 }
 
 /// Sends `sig` to `pid` with an integer value (readable by an SA_SIGINFO handler).
@@ -601,9 +590,7 @@ impl TaskClock {
                 PERF_FLAG_FD_CLOEXEC,
             )
         };
-        if fd < 0 {
-            return Err(io::Error::last_os_error());
-        }
+        let fd = cvt_long(fd)?;
         // SAFETY: the kernel just created this fd for us; it is open and unowned.
         Ok(TaskClock(unsafe { OwnedFd::from_raw_fd(fd as RawFd) }))
     }
@@ -819,8 +806,7 @@ pub unsafe fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
     // MADV_DONTNEED on private anonymous memory makes the next touch read zeros.
     cvt(unsafe { libc::madvise(ptr, len, libc::MADV_DONTNEED) })?;
     // SAFETY: mlock2 with a range and a flag; locking has no memory-safety effect.
-    let r = unsafe { libc::syscall(libc::SYS_mlock2, ptr, len, MLOCK_ONFAULT) };
-    cvt(r as libc::c_int)?;
+    cvt_long(unsafe { libc::syscall(libc::SYS_mlock2, ptr, len, MLOCK_ONFAULT) })?;
     Ok(())
 }
 
