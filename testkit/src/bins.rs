@@ -60,8 +60,7 @@ fn find_or_build() -> Result<PathBuf, String> {
     if let Some(dir) = std::env::var_os(BIN_DIR_ENV) {
         return Ok(PathBuf::from(dir));
     }
-    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
-    let layout = Layout::from_test_exe(&exe)?;
+    let layout = test_layout()?;
     let mut cmd = cargo_build(&layout)?;
     cmd.arg("--workspace")
         .arg("--bins")
@@ -84,26 +83,22 @@ pub fn static_component_dir() -> &'static Path {
 }
 
 fn build_static_components() -> Result<PathBuf, String> {
-    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
-    let layout = Layout::from_test_exe(&exe)?;
+    let layout = test_layout()?;
     let triple = layout
         .triple
         .clone()
         .unwrap_or_else(|| env!("S3RES_TESTKIT_TARGET").to_owned());
-    let static_layout = Layout::new(
-        layout.target_dir.join("static-components"),
-        Some(triple),
-        layout.profile,
-    );
-    let mut cmd = cargo_build(&static_layout)?;
-    cmd.args(["--package", "s3res-components", "--bins"])
-        // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
-        // scripts and proc macros (which cannot be linked statically).
-        .env("RUSTFLAGS", "-C target-feature=+crt-static")
-        .env_remove("CARGO_ENCODED_RUSTFLAGS");
-    eprintln!("s3res-testkit: building the components statically linked: {cmd:?}");
-    run_cargo(cmd)?;
-    Ok(static_layout.profile_dir)
+    // With `--target`, RUSTFLAGS reach only what is built for the target, not the build
+    // scripts and proc macros (which cannot be linked statically).
+    build_components(
+        Layout::new(
+            layout.target_dir.join("static-components"),
+            Some(triple),
+            layout.profile,
+        ),
+        Some("-C target-feature=+crt-static"),
+        "statically linked",
+    )
 }
 
 /// The folder of the `s3res-components` executables built small, as
@@ -122,20 +117,37 @@ fn build_musl_components() -> Result<PathBuf, String> {
         "the musl target's standard library was not installed when the tests were built \
          (`rustup target add x86_64-unknown-linux-musl`, then `cargo clean -p s3res-testkit`)",
     )?;
-    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
-    let layout = Layout::from_test_exe(&exe)?;
-    let musl_layout = Layout::new(
-        layout.target_dir.join("musl-components"),
-        Some(triple.to_owned()),
-        "replica".to_owned(),
-    );
-    let mut cmd = cargo_build(&musl_layout)?;
+    let layout = test_layout()?;
+    build_components(
+        Layout::new(
+            layout.target_dir.join("musl-components"),
+            Some(triple.to_owned()),
+            "replica".to_owned(),
+        ),
+        None,
+        "for musl, profile `replica`",
+    )
+}
+
+/// Builds the `s3res-components` executables into `layout` with exactly `rustflags` (none of
+/// the caller's), and returns their folder.
+fn build_components(layout: Layout, rustflags: Option<&str>, how: &str) -> Result<PathBuf, String> {
+    let mut cmd = cargo_build(&layout)?;
     cmd.args(["--package", "s3res-components", "--bins"])
         .env_remove("RUSTFLAGS")
         .env_remove("CARGO_ENCODED_RUSTFLAGS");
-    eprintln!("s3res-testkit: building the components for musl, profile `replica`: {cmd:?}");
+    if let Some(flags) = rustflags {
+        cmd.env("RUSTFLAGS", flags);
+    }
+    eprintln!("s3res-testkit: building the components {how}: {cmd:?}");
     run_cargo(cmd)?;
-    Ok(musl_layout.profile_dir)
+    Ok(layout.profile_dir)
+}
+
+/// The layout of the running test executable's build.
+fn test_layout() -> Result<Layout, String> {
+    let exe = std::env::current_exe().map_err(|e| format!("current_exe: {e}"))?;
+    Layout::from_test_exe(&exe)
 }
 
 /// A `cargo build` of this workspace into `layout`'s target folder, for its profile and
