@@ -106,14 +106,15 @@ echo "compare-peers: cargo build --release" >&2
 cargo build --release -q || { echo "compare-peers: cargo build --release failed" >&2; exit 1; }
 # What every s3res-bench run gets besides its own arguments.
 BENCH_ARGS=()
+host=$(rustc -vV | sed -n 's/^host: //p')
 if [ "$COMPONENTS" = static ]; then
-  triple=$(rustc -vV | sed -n 's/^host: //p')
+  triple=$host
   echo "compare-peers: the components again, statically linked, for $triple" >&2
   RUSTFLAGS="-C target-feature=+crt-static" cargo build --release --locked -q --target "$triple" \
     -p s3res-components || { echo "compare-peers: the static build of s3res-components failed" >&2; exit 1; }
   BENCH_ARGS+=(--component-dir "$ROOT/target/$triple/release")
 elif [ "$COMPONENTS" = musl ]; then
-  triple=$(rustc -vV | sed -n 's/^host: //p' | sed -n 's/-linux-gnu$/-linux-musl/p')
+  triple=$(echo "$host" | sed -n 's/-linux-gnu$/-linux-musl/p')
   if [ -z "$triple" ]; then
     echo "compare-peers: COMPONENTS=musl needs a *-linux-gnu host, whose musl twin it builds for" >&2
     exit 2
