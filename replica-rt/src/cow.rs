@@ -3,7 +3,10 @@
 //! After `fork` the parent and the child share every private page until one of them writes to
 //! it. A bit flip in such a shared physical page would corrupt both replicas at once, and the
 //! vote could not see it. [`break_cow_sharing`] writes once to every resident page of every
-//! private writable mapping, so the kernel gives the caller its own copy of each.
+//! private writable mapping, so the kernel gives the caller its own copy of each — but for
+//! the stack below the stack pointer (`DeadStack`), which holds nothing live: each replica
+//! writes such a page before it reads from it, and that write copies it then; a flip in it
+//! while it is shared reaches neither.
 //!
 //! The private writable mappings are found with the `PROCMAP_QUERY` ioctl on `/proc/self/maps`
 //! (Linux ≥ 6.11): one call per mapping, the kernel skipping to the next readable and writable
@@ -65,9 +68,10 @@ pub fn page_size() -> usize {
 
 /// Writes to every resident page of every private writable mapping (`rw-p` in
 /// `/proc/self/maps`, except the kernel's `[vsyscall]`, `[vvar]` and `[vdso]`), so that this
-/// process shares no physical page with its fork parent or children. Non-resident pages are
-/// skipped: nothing is shared there, and touching them would only cost memory (or a SIGBUS for
-/// a file mapping past the end of its file).
+/// process shares no physical page that holds live data with its fork parent or children.
+/// Non-resident pages are skipped: nothing is shared there, and touching them would only cost
+/// memory (or a SIGBUS for a file mapping past the end of its file). So is dead memory (the
+/// module's doc).
 ///
 /// Async-signal-safe: no allocation, no lock.
 ///
@@ -85,11 +89,53 @@ pub unsafe fn break_cow_sharing() -> Result<WalkStats, WalkError> {
 
 fn walk_maps(fd: libc::c_int) -> Result<WalkStats, WalkError> {
     let mut stats = WalkStats::default();
+    let dead = DeadStack::now();
     for_each_private_writable(fd, |start, end| {
         stats.mappings += 1;
-        stats.pages_touched += touch_resident(start, end);
+        let (from, to) = dead.live_part(start, end);
+        stats.pages_touched += touch_resident(from, to);
     })?;
     Ok(stats)
+}
+
+/// The part of the stack below the stack pointer: it holds nothing the process will read
+/// before it writes it again. The walk leaves its pages shared; a bit flip in one of them
+/// reaches neither replica, since each writes such a page (and so gets its own copy of it,
+/// by that write) before it reads from it. They are 5 of a small replica's 45 shared pages
+/// at a restart: at start [`crate::memory::lock`] keeps 32 KiB below the stack pointer
+/// resident, deeper than the main loop runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct DeadStack {
+    /// An address in the walk's own stack frame: the mapping that holds it is the stack the
+    /// walk runs on.
+    here: usize,
+    /// Pages of that mapping below this address are below the stack pointer (page-aligned,
+    /// one page below `here`'s: the red zone, and room to spare).
+    floor: usize,
+}
+
+impl DeadStack {
+    /// Where it is now.
+    #[inline(never)]
+    fn now() -> Self {
+        let page = page_size();
+        let marker = 0u8;
+        let here = std::hint::black_box(&marker) as *const u8 as usize;
+        Self {
+            here,
+            floor: (here & !(page - 1)).saturating_sub(page),
+        }
+    }
+
+    /// The part of the mapping `[start, end)` that is not below the stack pointer: all of it,
+    /// or for the stack the walk runs on, what lies from `floor` up.
+    fn live_part(&self, start: usize, end: usize) -> (usize, usize) {
+        if start <= self.here && self.here < end {
+            (start.max(self.floor), end)
+        } else {
+            (start, end)
+        }
+    }
 }
 
 /// Calls `visit(start, end)` for each private, readable and writable, not executable mapping
@@ -568,6 +614,85 @@ mod tests {
                  nothing)"
             ),
         }
+    }
+
+    #[test]
+    fn only_the_stack_the_walk_runs_on_loses_its_low_part() {
+        let dead = DeadStack {
+            here: 0x7000_2345,
+            floor: 0x7000_1000,
+        };
+        assert_eq!(
+            dead.live_part(0x6fff_0000, 0x7001_0000),
+            (0x7000_1000, 0x7001_0000)
+        );
+        // Another mapping, below or above: whole.
+        assert_eq!(dead.live_part(0x1000, 0x9000), (0x1000, 0x9000));
+        assert_eq!(
+            dead.live_part(0x7001_0000, 0x7002_0000),
+            (0x7001_0000, 0x7002_0000)
+        );
+        // A floor below the mapping's start leaves it whole.
+        assert_eq!(
+            dead.live_part(0x7000_2000, 0x7000_3000),
+            (0x7000_2000, 0x7000_3000)
+        );
+        let now = DeadStack::now();
+        assert!(now.floor < now.here && now.here - now.floor < 2 * page_size());
+    }
+
+    /// Writes `KIB` KiB of stack below the caller's frame, so those pages are resident.
+    #[inline(never)]
+    fn dirty_stack_below<const KIB: usize>() {
+        let mut deep = [0u8; 1024 * 64];
+        for (i, b) in deep.iter_mut().enumerate().take(KIB * 1024) {
+            *b = i as u8;
+        }
+        std::hint::black_box(&mut deep);
+    }
+
+    /// What the walk leaves shared, exactly: of the stack it runs on, a page in its caller's
+    /// frame (live) gets its own copy, and a page far below the stack pointer (dead) does not.
+    #[test]
+    fn the_stack_below_the_stack_pointer_stays_shared_and_the_rest_is_copied() {
+        let page = page_size();
+        let mut live = [0x11u8; 3 * 4096];
+        std::hint::black_box(&mut live);
+        if pfn(live.as_ptr() as usize) == 0 {
+            eprintln!("skipped: /proc/self/pagemap shows no PFNs (needs CAP_SYS_ADMIN)");
+            return;
+        }
+        dirty_stack_below::<64>();
+        let pid = fork_for_test();
+        if pid == 0 {
+            // Only async-signal-safe work in the child (the parent has other threads).
+            let live_page = (live.as_ptr() as usize).div_ceil(page) * page;
+            // 48 KiB below this frame: deeper than the walk goes, written by the call above.
+            let dead_page = ((live.as_ptr() as usize) & !(page - 1)) - 12 * page;
+            let (live_before, dead_before) = (pfn(live_page), pfn(dead_page));
+            // SAFETY: the fork child has a single thread.
+            let walked = unsafe { break_cow_sharing() };
+            let (live_after, dead_after) = (pfn(live_page), pfn(dead_page));
+            let code = if walked.is_err() {
+                3
+            } else if [live_before, dead_before, live_after, dead_after].contains(&0) {
+                4
+            } else if live_after == live_before {
+                5
+            } else if dead_after != dead_before {
+                6
+            } else {
+                0
+            };
+            crate::sys::exit_now(code);
+        }
+        let code = wait_exit(pid);
+        assert_eq!(
+            code, 0,
+            "3: walk failed, 4: a probe not resident, 5: the live stack page still shared, \
+             6: the dead stack page copied"
+        );
+        std::hint::black_box(&live);
     }
 
     /// The real check: after the walk, a heap page of the child is backed by another physical

@@ -72,24 +72,51 @@ fn page_size() -> u64 {
 
 /// PFNs of the present pages of the mappings of `pid` that `keep` selects.
 fn present_pfns(pid: i32, keep: impl Fn(&Mapping) -> bool) -> Vec<u64> {
+    present_pages(pid, keep)
+        .into_iter()
+        .map(|(_, pfn)| pfn)
+        .collect()
+}
+
+/// `(address, page frame number)` of each present page of the mappings `keep` selects.
+fn present_pages(pid: i32, keep: impl Fn(&Mapping) -> bool) -> Vec<(u64, u64)> {
     let pagemap = File::open(format!("/proc/{pid}/pagemap"))
         .unwrap_or_else(|e| panic!("opening /proc/{pid}/pagemap: {e}"));
     let ps = page_size();
-    let mut pfns = Vec::new();
+    let mut pages = Vec::new();
     for m in maps(pid).iter().filter(|m| keep(m)) {
-        let pages = ((m.end - m.start) / ps) as usize;
-        let mut buf = vec![0u8; pages * 8];
+        let count = ((m.end - m.start) / ps) as usize;
+        let mut buf = vec![0u8; count * 8];
         pagemap
             .read_exact_at(&mut buf, m.start / ps * 8)
             .unwrap_or_else(|e| panic!("reading pagemap of {pid} at {:#x}: {e}", m.start));
-        for entry in buf.chunks_exact(8) {
+        for (i, entry) in buf.chunks_exact(8).enumerate() {
             let e = u64::from_le_bytes(entry.try_into().unwrap());
             if e & PAGEMAP_PRESENT != 0 {
-                pfns.push(e & PAGEMAP_PFN);
+                pages.push((m.start + i as u64 * ps, e & PAGEMAP_PFN));
             }
         }
     }
-    pfns
+    pages
+}
+
+/// The user stack pointer of a stopped (or blocked) process: the second-to-last field of
+/// `/proc/PID/syscall` ("nr args… sp pc", or "-1 sp pc" outside a system call).
+fn stack_pointer(pid: i32) -> u64 {
+    let deadline = Instant::now() + Duration::from_secs(5);
+    loop {
+        let text = std::fs::read_to_string(format!("/proc/{pid}/syscall"))
+            .unwrap_or_else(|e| panic!("reading /proc/{pid}/syscall: {e}"));
+        let fields: Vec<&str> = text.split_whitespace().collect();
+        if fields.len() >= 3 {
+            let sp = fields[fields.len() - 2].trim_start_matches("0x");
+            return u64::from_str_radix(sp, 16)
+                .unwrap_or_else(|e| panic!("/proc/{pid}/syscall {text:?}: {e}"));
+        }
+        // "running": not stopped yet.
+        assert!(Instant::now() < deadline, "/proc/{pid}/syscall: {text:?}");
+        std::thread::sleep(Duration::from_millis(5));
+    }
 }
 
 /// Whether this process may see page frame numbers (they read as 0 without CAP_SYS_ADMIN).
@@ -154,9 +181,11 @@ impl Drop for Stopped {
 
 /// Kill a replica of a TMR echo that holds 32 MiB of filled heap; once its fork child has
 /// finished the copy-on-write break (it locks its memory right after, so `VmLck` turns
-/// non-zero), stop the donor and compare the page frames: no present private writable page of
-/// the child may be one of the donor's. The executable's code pages, which both map from the
-/// page cache, must be seen shared — the check that the comparison can see sharing at all.
+/// non-zero), stop the donor and the child and compare the page frames: no present private
+/// writable page of the child may be one of the donor's, but for its stack below its stack
+/// pointer, which holds nothing live and is left shared on purpose (replica-rt's `cow`). The
+/// executable's code pages, which both map from the page cache, must be seen shared — the
+/// check that the comparison can see sharing at all.
 #[test]
 #[cfg_attr(
     not(s3res_pagemap_pfns),
@@ -182,16 +211,33 @@ fn donor_and_fork_child_share_no_private_page() {
     let child = rec.new_pid.expect("new pid");
     let donor = first[&rec.donor.expect("donor")];
 
-    let (donor_private, child_private, donor_code, child_code) = {
+    let (donor_private, child_pages, child_sp, child_stack, donor_code, child_code) = {
         let _stopped = Stopped::new(donor);
+        let _child_stopped = Stopped::new(child);
         let code = |m: &Mapping| m.perms.starts_with("r-x") && m.path.ends_with("/s3res-echo");
+        let stack = maps(child)
+            .into_iter()
+            .find(|m| m.path == "[stack]")
+            .map(|m| (m.start, m.end))
+            .expect("the child's [stack] mapping");
         (
             present_pfns(donor, Mapping::private_writable),
-            present_pfns(child, Mapping::private_writable),
+            present_pages(child, Mapping::private_writable),
+            stack_pointer(child),
+            stack,
             present_pfns(donor, code),
             present_pfns(child, code),
         )
     };
+    // Pages wholly below the child's stack pointer, in its stack.
+    let dead =
+        |addr: u64| addr >= child_stack.0 && addr < child_stack.1 && addr + page_size() <= child_sp;
+    let child_private: Vec<u64> = child_pages
+        .iter()
+        .filter(|(addr, _)| !dead(*addr))
+        .map(|&(_, pfn)| pfn)
+        .collect();
+    let below_sp = child_pages.len() - child_private.len();
     let donor_set: HashSet<u64> = donor_private.iter().copied().collect();
     let shared: Vec<u64> = child_private
         .iter()
@@ -201,8 +247,9 @@ fn donor_and_fork_child_share_no_private_page() {
     let donor_code: HashSet<u64> = donor_code.into_iter().collect();
     let code_shared = child_code.iter().filter(|p| donor_code.contains(p)).count();
     eprintln!(
-        "page frames: donor {donor} {} private writable present, child {child} {} checked, \
-         shared {}; code pages shared (control) {code_shared} of {}",
+        "page frames: donor {donor} {} private writable present, child {child} {} checked \
+         ({below_sp} below its stack pointer {child_sp:#x} not), shared {}; code pages shared \
+         (control) {code_shared} of {}",
         donor_private.len(),
         child_private.len(),
         shared.len(),

@@ -51,9 +51,13 @@ fn main() -> Result<()> {
     let mut frames: u64 = 0;
     let work = std::time::Duration::from_micros(cli.work_us);
     while let Some(frame) = input.recv().context("receiving")? {
-        let started = std::time::Instant::now();
-        while started.elapsed() < work {
-            std::hint::spin_loop();
+        // No clock read without work: the round-trip benchmarks measure the runtime, not two
+        // clock reads a frame.
+        if !work.is_zero() {
+            let started = std::time::Instant::now();
+            while started.elapsed() < work {
+                std::hint::spin_loop();
+            }
         }
         output.send(echo.answer(frame)).context("answering")?;
         frames += 1;
