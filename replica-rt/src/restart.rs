@@ -15,9 +15,8 @@
 //!
 //! # What the handler does
 //!
-//! In the donor: copy what its input pipes hold (below), `_Fork`, yield the CPU (the voter
-//! waits for the child, not for the donor: where the two share a CPU, the child runs first),
-//! close the copies, return. The donor carries on as if nothing happened.
+//! In the donor: copy what its input pipes hold (below), `_Fork`, close the copies, return.
+//! The donor carries on as if nothing happened.
 //!
 //! **Unread input.** The child must read exactly what the donor had not read yet at the fork,
 //! on its own new pipes. The donor copies each input pipe's content with `tee(2)` (the pipe
@@ -51,7 +50,7 @@
 //!
 //! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
 //!
-//! Every call made is async-signal-safe: `_Fork`, `sched_yield`, `sigaltstack`, `pipe2`, `tee`, `splice`, `ioctl(FIONREAD)`,
+//! Every call made is async-signal-safe: `_Fork`, `pipe2`, `tee`, `splice`, `ioctl(FIONREAD)`,
 //! `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `mincore`, `madvise`, `_exit`, plain
 //! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
@@ -565,13 +564,6 @@ one, so it cannot be a recovery donor (refused)\n";
     }
     // In the donor: the copies were the child's. A failed fork (-1) is seen by the voter as a
     // connect timeout.
-    if pid > 0 {
-        // Let the child run first where it shares our CPU at our priority: what the voter
-        // waits for is its `Ready`, and our own return from here can wait (about 4 µs less
-        // to `Ready`, traced).
-        // SAFETY: sched_yield takes no arguments and touches no memory of ours.
-        unsafe { libc::sched_yield() };
-    }
     unread.close();
     set_errno(saved);
 }
