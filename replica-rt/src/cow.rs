@@ -16,9 +16,9 @@
 //! (Linux ≥ 5.14): the kernel write-faults the run in one call instead of one trap per page.
 //! Older kernels answer EINVAL, and the walk then writes to the pages one by one.
 //!
-//! It runs inside the restart signal handler, so it allocates nothing, takes no lock and makes
-//! only system calls that touch no user-space state (`open`, `ioctl`, `read`, `close`,
-//! `mincore`, `madvise`).
+//! It runs in a fork child, inside the restart signal handler or at the release of a deferred
+//! restart (`restart`), so it allocates nothing, takes no lock and makes only system calls that
+//! touch no user-space state (`open`, `ioctl`, `read`, `close`, `mincore`, `madvise`).
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
@@ -98,32 +98,47 @@ fn walk_maps(fd: libc::c_int) -> Result<WalkStats, WalkError> {
     Ok(stats)
 }
 
-/// The part of the stack below the stack pointer: it holds nothing the process will read
-/// before it writes it again. The walk leaves its pages shared; a bit flip in one of them
-/// reaches neither replica, since each writes such a page (and so gets its own copy of it,
-/// by that write) before it reads from it. They are 5 of a small replica's 45 shared pages
-/// at a restart: at start [`crate::memory::lock`] keeps 32 KiB below the stack pointer
+/// The part of the main thread's stack below the stack pointer: it holds nothing the process
+/// will read before it writes it again. The walk leaves its pages shared; a bit flip in one of
+/// them reaches neither replica, since each writes such a page (and so gets its own copy of
+/// it, by that write) before it reads from it. They are 5 of a small replica's 45 shared
+/// pages at a restart: at start [`crate::memory::lock`] keeps 32 KiB below the stack pointer
 /// resident, deeper than the main loop runs.
+///
+/// Only the main thread's stack, as [`note_main_stack`] recorded it at start: a walk that
+/// runs on another stack (an alternate signal stack or a coroutine's, which may be carved out
+/// of a larger mapping that holds live data below it) skips nothing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct DeadStack {
     /// An address in the walk's own stack frame: the mapping that holds it is the stack the
     /// walk runs on.
     here: usize,
     /// Pages of that mapping below this address are below the stack pointer (page-aligned,
-    /// one page below `here`'s: the red zone, and room to spare).
+    /// one page below `here`'s, to spare; the walk's own callees, below it, write their
+    /// frames anyway). 0 (nothing skipped) when `here` is not on the main thread's stack.
     floor: usize,
 }
 
 impl DeadStack {
-    /// Where it is now.
+    /// Where it is now. `#[inline(never)]`: `here` is then in a frame below every frame
+    /// still live (the walk's callers, the signal frame, the interrupted code's).
     #[inline(never)]
     fn now() -> Self {
         let page = page_size();
         let marker = 0u8;
         let here = std::hint::black_box(&marker) as *const u8 as usize;
+        let (low, high) = (
+            MAIN_STACK_LOW.load(Ordering::Relaxed),
+            MAIN_STACK_HIGH.load(Ordering::Relaxed),
+        );
+        let on_main_stack = low <= here && here < high;
         Self {
             here,
-            floor: (here & !(page - 1)).saturating_sub(page),
+            floor: if on_main_stack {
+                (here & !(page - 1)).saturating_sub(page)
+            } else {
+                0
+            },
         }
     }
 
@@ -136,6 +151,19 @@ impl DeadStack {
             (start, end)
         }
     }
+}
+
+/// The main thread's stack mapping (`[stack]`), as [`note_main_stack`] recorded it; empty
+/// (0, 0) until then.
+static MAIN_STACK_LOW: AtomicUsize = AtomicUsize::new(0);
+static MAIN_STACK_HIGH: AtomicUsize = AtomicUsize::new(0);
+
+/// Records the main thread's stack mapping `[low, high)` (`[stack]` in `/proc/self/maps`,
+/// read at start by [`crate::memory::lock`]), so that the walk knows a stack pointer there
+/// for the main thread's. Fork children inherit it, with the layout it describes.
+pub(crate) fn note_main_stack(low: usize, high: usize) {
+    MAIN_STACK_LOW.store(low, Ordering::Relaxed);
+    MAIN_STACK_HIGH.store(high, Ordering::Relaxed);
 }
 
 /// Calls `visit(start, end)` for each private, readable and writable, not executable mapping
@@ -637,8 +665,8 @@ mod tests {
             dead.live_part(0x7000_2000, 0x7000_3000),
             (0x7000_2000, 0x7000_3000)
         );
-        let now = DeadStack::now();
-        assert!(now.floor < now.here && now.here - now.floor < 2 * page_size());
+        // Not on the main thread's stack as recorded (none is, in a test thread): nothing.
+        assert_eq!(DeadStack::now().floor, 0);
     }
 
     /// Writes `KIB` KiB of stack below the caller's frame, so those pages are resident.
@@ -663,9 +691,20 @@ mod tests {
             return;
         }
         dirty_stack_below::<64>();
+        // This test thread's stack mapping: the fork child's only thread runs on it, so for
+        // the child it is the main thread's stack (read here: the child may not allocate).
+        let here = live.as_ptr() as usize;
+        let maps = std::fs::read_to_string("/proc/self/maps").expect("maps");
+        let (low, high) = maps
+            .lines()
+            .filter_map(|l| parse_line(l.as_bytes()))
+            .map(|m| (m.start, m.end))
+            .find(|&(a, b)| a <= here && here < b)
+            .expect("the mapping of this thread's stack");
         let pid = fork_for_test();
         if pid == 0 {
             // Only async-signal-safe work in the child (the parent has other threads).
+            note_main_stack(low, high);
             let live_page = (live.as_ptr() as usize).div_ceil(page) * page;
             // 48 KiB below this frame: deeper than the walk goes, written by the call above.
             let dead_page = ((live.as_ptr() as usize) & !(page - 1)) - 12 * page;

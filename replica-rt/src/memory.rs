@@ -79,6 +79,12 @@ fn policy_from(value: Option<&str>) -> LockMemory {
 /// [`STACK_LOCKED`] to be locked on fault; returns the bytes of stack released so. An error is
 /// the `mlockall` refusal (nothing is locked then); trimming and the stack are best effort.
 pub fn lock(policy: LockMemory) -> io::Result<usize> {
+    // Read before locking (which may be refused): a fork child's copy-on-write walk leaves
+    // this stack's dead part shared whether or not the memory is locked.
+    let stack = stack_mapping();
+    if let Some((low, high)) = stack {
+        crate::cow::note_main_stack(low, high);
+    }
     sys::trim_heap(HEAP_PAD, HEAP_MMAP_THRESHOLD);
     match policy {
         LockMemory::All => {
@@ -91,7 +97,7 @@ pub fn lock(policy: LockMemory) -> io::Result<usize> {
         }
     }
     let mut on_fault = 0;
-    if let Some((low, high)) = stack_mapping() {
+    if let Some((low, high)) = stack {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
             // SAFETY: the range is the part of this thread's stack mapping more than

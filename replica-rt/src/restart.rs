@@ -38,8 +38,8 @@
 //!    every resident private writable page ([`crate::cow`]) so that the child has its own
 //!    copy of every page it shared with the donor. Both happen before `Ready`, so no physical
 //!    page of private writable memory that holds live data is shared with the donor once the
-//!    voter counts the child in (the stack below the stack pointer and an idle alternate
-//!    signal stack stay shared until written: `cow`'s dead memory);
+//!    voter counts the child in (the main thread's stack below the stack pointer stays shared
+//!    until written: `cow`'s dead stack);
 //! 3. receive [`FdTransfer`] and the new pipe fds (`SCM_RIGHTS`), check them, `dup2` each onto its
 //!    target number and close the received copy: the component's ports keep their numbers, now on
 //!    the new pipes;

@@ -142,8 +142,9 @@ fn locked_kb(pid: i32) -> u64 {
 }
 
 /// SIGKILLs replica `victim` and waits for its recovery by fork and for the fork child to
-/// have locked its memory (it does so right after its copy-on-write walk: `VmLck` turns
-/// non-zero). Returns the recovery event.
+/// have locked its memory (`VmLck` turns non-zero; it locks before its copy-on-write walk,
+/// and the voter reports the recovery only at its `Ready`, after the walk). Returns the
+/// recovery event.
 fn kill_and_wait_for_locked_fork_child(run: &mut RunningSystem, victim: i32) -> Event {
     s3res_testkit::kill_pid(victim, libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
@@ -168,8 +169,13 @@ struct Stopped(i32);
 
 impl Stopped {
     fn new(pid: i32) -> Stopped {
-        s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP donor");
-        Stopped(pid)
+        s3res_testkit::kill_pid(pid, libc::SIGSTOP)
+            .unwrap_or_else(|e| panic!("SIGSTOP {pid}: {e}"));
+        let stopped = Stopped(pid);
+        // The signal is sent, not yet taken: what is read of the process must be of it
+        // stopped (its stack pointer and its pages at one moment).
+        s3res_testkit::wait_state(pid, "T", Duration::from_secs(10));
+        stopped
     }
 }
 
@@ -180,8 +186,8 @@ impl Drop for Stopped {
 }
 
 /// Kill a replica of a TMR echo that holds 32 MiB of filled heap; once its fork child has
-/// finished the copy-on-write break (it locks its memory right after, so `VmLck` turns
-/// non-zero), stop the donor and the child and compare the page frames: no present private
+/// finished the copy-on-write break (the recovery is reported at its `Ready`, after the walk,
+/// and `VmLck` is non-zero), stop the donor and the child and compare the page frames: no present private
 /// writable page of the child may be one of the donor's, but for its stack below its stack
 /// pointer, which holds nothing live and is left shared on purpose (replica-rt's `cow`). The
 /// executable's code pages, which both map from the page cache, must be seen shared — the
