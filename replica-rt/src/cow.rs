@@ -120,13 +120,12 @@ struct DeadStack {
 }
 
 impl DeadStack {
-    /// Where it is now. `#[inline(never)]`: `here` is then in a frame below every frame
-    /// still live (the walk's callers, the signal frame, the interrupted code's).
-    #[inline(never)]
+    /// Where it is now: `here` is in the frame of [`crate::memory::stack_pointer`], which is
+    /// not inlined, so below every frame still live (the walk's callers, the signal frame, the
+    /// interrupted code's).
     fn now() -> Self {
         let page = page_size();
-        let marker = 0u8;
-        let here = std::hint::black_box(&marker) as *const u8 as usize;
+        let here = crate::memory::stack_pointer();
         let (low, high) = (
             MAIN_STACK_LOW.load(Ordering::Relaxed),
             MAIN_STACK_HIGH.load(Ordering::Relaxed),

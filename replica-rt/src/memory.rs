@@ -133,9 +133,9 @@ pub(crate) fn lock_fork_child() -> io::Result<()> {
     }
 }
 
-/// An address in the current stack frame.
+/// An address in the current stack frame (its own, below its caller's: not inlined).
 #[inline(never)]
-fn stack_pointer() -> usize {
+pub(crate) fn stack_pointer() -> usize {
     let here = 0u8;
     std::hint::black_box(&here) as *const u8 as usize
 }

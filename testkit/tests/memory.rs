@@ -100,23 +100,17 @@ fn present_pages(pid: i32, keep: impl Fn(&Mapping) -> bool) -> Vec<(u64, u64)> {
     pages
 }
 
-/// The user stack pointer of a stopped (or blocked) process: the second-to-last field of
+/// The user stack pointer of a stopped process (see [`Stopped`]): the second-to-last field of
 /// `/proc/PID/syscall` ("nr args… sp pc", or "-1 sp pc" outside a system call).
 fn stack_pointer(pid: i32) -> u64 {
-    let deadline = Instant::now() + Duration::from_secs(5);
-    loop {
-        let text = std::fs::read_to_string(format!("/proc/{pid}/syscall"))
-            .unwrap_or_else(|e| panic!("reading /proc/{pid}/syscall: {e}"));
-        let fields: Vec<&str> = text.split_whitespace().collect();
-        if fields.len() >= 3 {
-            let sp = fields[fields.len() - 2].trim_start_matches("0x");
-            return u64::from_str_radix(sp, 16)
-                .unwrap_or_else(|e| panic!("/proc/{pid}/syscall {text:?}: {e}"));
-        }
-        // "running": not stopped yet.
-        assert!(Instant::now() < deadline, "/proc/{pid}/syscall: {text:?}");
-        std::thread::sleep(Duration::from_millis(5));
-    }
+    let text = std::fs::read_to_string(format!("/proc/{pid}/syscall"))
+        .unwrap_or_else(|e| panic!("reading /proc/{pid}/syscall: {e}"));
+    let fields: Vec<&str> = text.split_whitespace().collect();
+    let sp = match fields.as_slice() {
+        [_, .., sp, _pc] => sp.trim_start_matches("0x"),
+        _ => panic!("/proc/{pid}/syscall of a stopped process: {text:?}"),
+    };
+    u64::from_str_radix(sp, 16).unwrap_or_else(|e| panic!("/proc/{pid}/syscall {text:?}: {e}"))
 }
 
 /// Whether this process may see page frame numbers (they read as 0 without CAP_SYS_ADMIN).
