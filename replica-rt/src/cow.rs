@@ -6,7 +6,9 @@
 //! private writable mapping, so the kernel gives the caller its own copy of each — but for
 //! the stack below the stack pointer (`DeadStack`), which holds nothing live: each replica
 //! writes such a page before it reads from it, and that write copies it then; a flip in it
-//! while it is shared reaches neither.
+//! while it is shared reaches neither. Read-only private pages (the relocated read-only data,
+//! which `memory::lock` protects once start-up is over) are left shared, as the program's text
+//! and constants are: nothing writes them.
 //!
 //! The private writable mappings are found with the `PROCMAP_QUERY` ioctl on `/proc/self/maps`
 //! (Linux ≥ 6.11): one call per mapping, the kernel skipping to the next readable and writable

@@ -218,9 +218,13 @@ fn init_inner() -> Result<Runtime, InitError> {
         })?;
         let policy = memory::policy_from_env();
         match memory::lock(policy) {
-            Ok(stack_on_fault) => {
-                tracing::debug!(policy = policy.as_str(), stack_on_fault, "memory locked")
-            }
+            Ok(left) => tracing::debug!(
+                policy = policy.as_str(),
+                stack_on_fault = left.stack_on_fault,
+                alt_stack_on_fault = left.alt_stack_on_fault,
+                relro_read_only = left.relro_read_only,
+                "memory locked"
+            ),
             Err(e) => tracing::warn!(
                 error = %e,
                 "mlockall refused (raise RLIMIT_MEMLOCK or run with CAP_IPC_LOCK); \

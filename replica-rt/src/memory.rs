@@ -75,10 +75,72 @@ fn policy_from(value: Option<&str>) -> LockMemory {
     }
 }
 
-/// Trims malloc's slack, locks memory as `policy` says, and releases the stack below
-/// [`STACK_LOCKED`] to be locked on fault; returns the bytes of stack released so. An error is
-/// the `mlockall` refusal (nothing is locked then); trimming and the stack are best effort.
-pub fn lock(policy: LockMemory) -> io::Result<usize> {
+/// What [`lock`] did beside locking, in bytes.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Locked {
+    /// The main thread's stack below [`STACK_LOCKED`], locked on fault.
+    pub stack_on_fault: usize,
+    /// The idle alternate signal stack, locked on fault.
+    pub alt_stack_on_fault: usize,
+    /// The relocated read-only data made read-only (see [`protect_relocated_data`]).
+    pub relro_read_only: usize,
+}
+
+/// Makes the main program's relocated read-only data read-only, as the dynamic linker does for
+/// a dynamically linked program and musl's start-up code for a static one does not; returns
+/// the bytes protected (0 if none, or if refused). After relocation nothing writes these
+/// pages: read-only, a stray write there is a crash the voter sees instead of a silent change,
+/// and the copy-on-write walk of a fork child leaves them shared, as it does the program's
+/// text and constants (see [`crate::cow`]).
+pub fn protect_relocated_data() -> usize {
+    let Some((start, len)) = sys::main_program_relro(crate::cow::page_size()) else {
+        return 0;
+    };
+    // SAFETY: the range is the whole pages of the main program's PT_GNU_RELRO segment, which
+    // only relocation writes, and relocation was over before `main` ran.
+    match unsafe { sys::make_read_only(start, len) } {
+        Ok(()) => len,
+        Err(e) => {
+            tracing::debug!(error = %e, "could not make the relocated read-only data read-only");
+            0
+        }
+    }
+}
+
+/// Turns the whole pages of this thread's idle alternate signal stack from locked and resident
+/// into locked on fault; returns the bytes so released. Rust's runtime gives the main thread
+/// one (about 12 KiB) for the handler that reports a stack overflow: locking populates it,
+/// and a fork recovery would copy it, for a handler that runs, if ever, in a process about to
+/// die. A handler that does run there takes its pages then (a minor fault).
+pub fn release_alternate_stack() -> usize {
+    let Some((sp, size)) = sys::idle_alternate_stack() else {
+        return 0;
+    };
+    let page = crate::cow::page_size();
+    let start = sp.next_multiple_of(page);
+    let end = sp.saturating_add(size) & !(page - 1);
+    if end <= start {
+        return 0;
+    }
+    // SAFETY: the range is whole pages of this thread's alternate signal stack, and the thread
+    // is not running on it (`idle_alternate_stack`): a handler that runs there later builds
+    // its frame afresh, so nothing in it is live. Only this thread uses it, and this thread is
+    // in these system calls. Its pages read back as zeros (or, were it in a mapping of a file,
+    // as the file's bytes): either way dead data.
+    match unsafe { sys::lock_on_fault_instead(start, end - start) } {
+        Ok(()) => end - start,
+        Err(e) => {
+            tracing::debug!(error = %e, "could not release the alternate signal stack");
+            0
+        }
+    }
+}
+
+/// Trims malloc's slack, makes the relocated read-only data read-only, locks memory as
+/// `policy` says, and releases the stack below [`STACK_LOCKED`] and the idle alternate signal
+/// stack to be locked on fault. An error is the `mlockall` refusal (nothing is locked then);
+/// the rest is best effort.
+pub fn lock(policy: LockMemory) -> io::Result<Locked> {
     // Read before locking (which may be refused): a fork child's copy-on-write walk leaves
     // this stack's dead part shared whether or not the memory is locked.
     let stack = stack_mapping();
@@ -86,6 +148,7 @@ pub fn lock(policy: LockMemory) -> io::Result<usize> {
         crate::cow::note_main_stack(low, high);
     }
     sys::trim_heap(HEAP_PAD, HEAP_MMAP_THRESHOLD);
+    let relro_read_only = protect_relocated_data();
     match policy {
         LockMemory::All => {
             LOCK_ALL.store(true, Ordering::Relaxed);
@@ -116,7 +179,11 @@ pub fn lock(policy: LockMemory) -> io::Result<usize> {
             }
         }
     }
-    Ok(on_fault)
+    Ok(Locked {
+        stack_on_fault: on_fault,
+        alt_stack_on_fault: release_alternate_stack(),
+        relro_read_only,
+    })
 }
 
 /// Locks a fork child's memory as its donor's was (locks are not inherited over fork), on
@@ -166,6 +233,83 @@ fn unused_below(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Whether the page at `addr` is in memory, from `/proc/self/pagemap` (the present bit is
+    /// shown to any process for its own pages).
+    fn resident(addr: usize) -> bool {
+        use std::os::unix::fs::FileExt;
+        let pagemap = std::fs::File::open("/proc/self/pagemap").expect("/proc/self/pagemap");
+        let mut entry = [0u8; 8];
+        let at = (addr / crate::cow::page_size()) as u64 * 8;
+        pagemap
+            .read_exact_at(&mut entry, at)
+            .expect("a pagemap entry");
+        u64::from_le_bytes(entry) & (1 << 63) != 0
+    }
+
+    #[test]
+    fn the_idle_alternate_stack_is_given_back() {
+        // Rust's runtime gives every thread, this test's too, an alternate signal stack.
+        let (sp, size) =
+            sys::idle_alternate_stack().expect("this thread has an alternate signal stack");
+        let page = crate::cow::page_size();
+        let (start, end) = (sp.next_multiple_of(page), (sp + size) & !(page - 1));
+        assert!(
+            end > start,
+            "an alternate stack of {size} bytes holds no whole page"
+        );
+        for at in (start..end).step_by(page) {
+            // SAFETY: a whole page of this thread's alternate signal stack, which the thread
+            // is not running on (`idle_alternate_stack`), and on which no handler runs in this
+            // test: the byte is dead, and writing it only makes the page resident.
+            unsafe { (at as *mut u8).write_volatile(0x5a) };
+            assert!(resident(at), "page {at:#x} written but not resident");
+        }
+        assert_eq!(release_alternate_stack(), end - start);
+        for at in (start..end).step_by(page) {
+            assert!(
+                !resident(at),
+                "page {at:#x} of the alternate stack is still resident"
+            );
+        }
+    }
+
+    #[test]
+    fn the_relocated_read_only_data_is_the_loaders_and_read_only() {
+        let page = crate::cow::page_size();
+        let (start, len) = sys::main_program_relro(page).expect("the test binary has PT_GNU_RELRO");
+        assert!(
+            start % page == 0 && len % page == 0 && len > 0,
+            "{start:#x} + {len}"
+        );
+        assert_eq!(protect_relocated_data(), len);
+        // Every byte of it lies in mappings of this executable, none of them writable: the
+        // range is the program's (a wrong load address would land elsewhere).
+        let exe = std::fs::read_link("/proc/self/exe").expect("/proc/self/exe");
+        let maps = std::fs::read_to_string("/proc/self/maps").expect("/proc/self/maps");
+        let mut covered = 0;
+        for line in maps.lines() {
+            let m = crate::cow::parse_line(line.as_bytes()).expect("a maps line");
+            let (a, b) = (m.start.max(start), m.end.min(start + len));
+            if a >= b {
+                continue;
+            }
+            assert!(
+                line.ends_with(exe.to_str().expect("a UTF-8 path")),
+                "{line}"
+            );
+            assert_eq!(
+                &line.split_whitespace().nth(1).unwrap()[..2],
+                "r-",
+                "{line}"
+            );
+            covered += b - a;
+        }
+        assert_eq!(
+            covered, len,
+            "{start:#x} + {len} is not all mapped:\n{maps}"
+        );
+    }
 
     #[test]
     fn an_unreadable_policy_locks_everything() {

@@ -810,6 +810,75 @@ pub unsafe fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
     Ok(())
 }
 
+/// The whole pages of the main program's `PT_GNU_RELRO` segment, `(start, len)`: the data that
+/// only relocation at start writes (vtables, function pointers, the global offset table), to
+/// be made read-only once it is done. `None` when the program has no such segment or it holds
+/// no whole page. The dynamic linker protects it for a dynamically linked program; musl's
+/// start-up code for a statically linked position-independent one does not.
+pub fn main_program_relro(page: usize) -> Option<(usize, usize)> {
+    /// `dl_iterate_phdr`'s callback: records the segment of the first object (the main
+    /// program, which the C library lists first) and stops.
+    unsafe extern "C" fn first_object(
+        info: *mut libc::dl_phdr_info,
+        _size: libc::size_t,
+        data: *mut libc::c_void,
+    ) -> libc::c_int {
+        // SAFETY: `dl_iterate_phdr` passes an `info` valid for the duration of this call, and
+        // `data` is the `Option` that `main_program_relro` lent it below, alive and not
+        // otherwise borrowed while the iteration runs.
+        let (info, found) = unsafe { (&*info, &mut *data.cast::<Option<(usize, usize)>>()) };
+        if !info.dlpi_phdr.is_null() {
+            // SAFETY: the C library's program header table of the object has `dlpi_phnum`
+            // entries at `dlpi_phdr`, mapped for the life of the object.
+            let headers =
+                unsafe { std::slice::from_raw_parts(info.dlpi_phdr, usize::from(info.dlpi_phnum)) };
+            *found = headers
+                .iter()
+                .find(|h| h.p_type == libc::PT_GNU_RELRO)
+                .map(|h| {
+                    (
+                        info.dlpi_addr as usize + h.p_vaddr as usize,
+                        h.p_memsz as usize,
+                    )
+                });
+        }
+        1
+    }
+    let mut found: Option<(usize, usize)> = None;
+    // SAFETY: the callback only reads what the C library passes it and writes `found`, which
+    // outlives the call.
+    unsafe { libc::dl_iterate_phdr(Some(first_object), (&raw mut found).cast::<libc::c_void>()) };
+    let (addr, len) = found?;
+    // As the dynamic linker does: from the page the segment starts in (the part of that page
+    // before it is the read-only segment's tail), to the last page it fills.
+    let start = addr & !(page - 1);
+    let end = addr.checked_add(len)? & !(page - 1);
+    (end > start).then_some((start, end - start))
+}
+
+/// Makes `len` bytes at `addr` (page-aligned) read-only: a write to them is then a SIGSEGV.
+///
+/// # Safety
+/// Nothing may write to `addr..addr + len` from now on (the caller's knowledge: the relocated
+/// read-only data of [`main_program_relro`], after start-up).
+pub unsafe fn make_read_only(addr: usize, len: usize) -> io::Result<()> {
+    // SAFETY: changes protection only; the caller guarantees that no write is due there.
+    cvt(unsafe { libc::mprotect(addr as *mut libc::c_void, len, libc::PROT_READ) })?;
+    Ok(())
+}
+
+/// This thread's alternate signal stack, `(start, len)`, while it is set and the thread is not
+/// running on it (Rust's runtime gives every thread one, for the handler that reports a stack
+/// overflow).
+pub fn idle_alternate_stack() -> Option<(usize, usize)> {
+    // SAFETY: `stack_t` is plain data; all zeros is a valid value to be overwritten.
+    let mut current: libc::stack_t = unsafe { std::mem::zeroed() };
+    // SAFETY: a null new stack only asks; the kernel writes the current one to `current`.
+    cvt(unsafe { libc::sigaltstack(std::ptr::null(), &mut current) }).ok()?;
+    let unused = current.ss_flags & (libc::SS_DISABLE | libc::SS_ONSTACK) == 0;
+    (unused && !current.ss_sp.is_null()).then_some((current.ss_sp as usize, current.ss_size))
+}
+
 /// `MCL_ONFAULT` (Linux ≥ 4.4; the value is the same on every architecture Linux has, and glibc's
 /// `libc` crate does not export it for x86-64).
 const MCL_ONFAULT: libc::c_int = 4;

@@ -585,6 +585,73 @@ fn shared_libraries(pid: i32) -> Vec<String> {
     libs
 }
 
+/// The `PT_GNU_RELRO` segment of the ELF executable `exe`, `(p_vaddr, p_memsz)`, and the
+/// `p_vaddr` of its first loadable segment.
+fn relro_segment(exe: &Path) -> Option<((u64, u64), u64)> {
+    const PT_LOAD: u32 = 1;
+    const PT_GNU_RELRO: u32 = 0x6474_e552;
+    let elf = std::fs::read(exe).unwrap_or_else(|e| panic!("{}: {e}", exe.display()));
+    assert_eq!(
+        &elf[..5],
+        b"\x7fELF\x02",
+        "{} is not a 64-bit ELF file",
+        exe.display()
+    );
+    let u16_at = |at: usize| u16::from_le_bytes(elf[at..at + 2].try_into().unwrap());
+    let u32_at = |at: usize| u32::from_le_bytes(elf[at..at + 4].try_into().unwrap());
+    let u64_at = |at: usize| u64::from_le_bytes(elf[at..at + 8].try_into().unwrap());
+    let (phoff, phentsize, phnum) = (u64_at(0x20) as usize, u16_at(0x36), u16_at(0x38));
+    let headers = (0..usize::from(phnum)).map(|i| phoff + i * usize::from(phentsize));
+    let (mut relro, mut first_load) = (None, None);
+    for h in headers {
+        match u32_at(h) {
+            PT_GNU_RELRO => relro = Some((u64_at(h + 16), u64_at(h + 40))),
+            PT_LOAD if first_load.is_none() => first_load = Some(u64_at(h + 16)),
+            _ => {}
+        }
+    }
+    Some((relro?, first_load?))
+}
+
+/// The whole pages of `exe`'s relocated read-only data in process `pid` are mapped, and none
+/// of them writable.
+fn assert_relro_read_only(pid: i32, exe: &Path, segment: ((u64, u64), u64), who: &str) {
+    let ((vaddr, memsz), first_load) = segment;
+    let page = page_size();
+    let path = exe.to_str().expect("a UTF-8 path");
+    let mapped = maps(pid);
+    let ours: Vec<&Mapping> = mapped.iter().filter(|m| m.path == path).collect();
+    let lowest = ours
+        .iter()
+        .map(|m| m.start)
+        .min()
+        .expect("the executable is mapped");
+    let base = lowest - (first_load & !(page - 1));
+    let (start, end) = (
+        (base + vaddr) & !(page - 1),
+        (base + vaddr + memsz) & !(page - 1),
+    );
+    let mut covered = 0;
+    for m in &ours {
+        let (a, b) = (m.start.max(start), m.end.min(end));
+        if a < b {
+            assert!(
+                !m.perms.contains('w'),
+                "{who}: relocated read-only data {start:#x}-{end:#x} is writable: {:#x}-{:#x} {}",
+                m.start,
+                m.end,
+                m.perms
+            );
+            covered += b - a;
+        }
+    }
+    assert_eq!(
+        covered,
+        end - start,
+        "{who}: {start:#x}-{end:#x} is not all mapped"
+    );
+}
+
 /// A statically linked replica (docs/writing-a-component.md, "Statically linked"), built as
 /// that section says: kill two replicas of a TMR stateful echo built so, one after the other.
 /// Each is recovered by fork into a new process of the same executable, which maps no shared
@@ -632,6 +699,7 @@ fn static_replicas_recovered_by_fork(exe: &Path) {
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
     run.wait_for_answers("echo");
+    let relro = relro_segment(&exe);
     let runs_static_echo = |pid: i32, who: &str| {
         let running = std::fs::read_link(format!("/proc/{pid}/exe"))
             .unwrap_or_else(|e| panic!("{who} {pid}: /proc/{pid}/exe: {e}"));
@@ -641,6 +709,11 @@ fn static_replicas_recovered_by_fork(exe: &Path) {
             libs.is_empty(),
             "{who} {pid} maps shared libraries: {libs:?}"
         );
+        // No loader made the relocated read-only data read-only: replica-rt did, and a fork
+        // child inherits it (its copy-on-write walk leaves those pages shared).
+        if let Some(segment) = relro {
+            assert_relro_read_only(pid, &exe, segment, &format!("{who} {pid}"));
+        }
     };
     for (slot, pid) in run.replica_pids("echo") {
         runs_static_echo(pid, &format!("replica {slot}"));
