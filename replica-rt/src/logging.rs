@@ -3,15 +3,14 @@
 //! tools and the voter ([`init_cli_logging`]: verbosity from `-q`/`-v`), and how they print an
 //! error with its causes ([`error_chain`]).
 
-use std::fmt;
+use std::fmt::{self, Write as _};
 use std::io::IsTerminal;
+use std::sync::atomic::{AtomicU64, Ordering};
 
-use tracing::{Event, Subscriber};
-use tracing_subscriber::filter::Targets;
-use tracing_subscriber::fmt::format::{Format, Full, Writer};
-use tracing_subscriber::fmt::{FmtContext, FormatEvent, FormatFields};
-use tracing_subscriber::prelude::*;
-use tracing_subscriber::registry::LookupSpan;
+use tracing::field::{Field, Visit};
+use tracing::span::{Attributes, Id, Record};
+use tracing::{Event, Level, Metadata, Subscriber};
+use tracing_subscriber::filter::{LevelFilter, Targets};
 use tracing_subscriber::EnvFilter;
 
 use crate::contract::{ENV_COMPONENT, ENV_REPLICA, ENV_VOTER_SOCKET};
@@ -38,18 +37,205 @@ pub fn init_logging(component_default: &str) {
     };
     let filter = component_filter(std::env::var("RUST_LOG").ok().as_deref());
     install_panic_hook(prefix.clone());
-    let layer = tracing_subscriber::fmt::layer()
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::stderr().is_terminal())
-        .event_format(Prefixed {
-            prefix,
-            inner: Format::default(),
-        });
+    let log = ComponentLog::new(
+        filter,
+        prefix,
+        std::io::stderr().is_terminal(),
+        Box::new(|line| {
+            let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), line);
+        }),
+    );
     // Err only if a subscriber is already set, which is what "harmless" above means.
-    let _ = tracing_subscriber::registry()
-        .with(filter)
-        .with(layer)
-        .try_init();
+    let _ = tracing::subscriber::set_global_default(log);
+}
+
+/// Where a [`ComponentLog`] puts each whole line.
+type LineSink = Box<dyn Fn(&[u8]) + Send + Sync>;
+
+/// A component's `tracing` subscriber: each event that `filter` lets through becomes one line,
+/// written whole with one call, in `tracing-subscriber`'s default format (`2026-11-27T23:56:19.444536Z
+/// WARN target: message key=value`), behind `[prefix pid N] ` when there is a prefix.
+///
+/// Not `tracing-subscriber`'s registry and formatting layer, which the voter and the tools use:
+/// the registry sets out 32 KiB of slots for 4,096 threads when it is made, which a replica
+/// locks, keeps resident and copies at every fork recovery (8 of a small replica's 39 pages
+/// of its own; results.md, stop 35). Components open no spans; this one keeps none, and
+/// shows an event without the spans it is in.
+pub struct ComponentLog {
+    filter: Targets,
+    most: LevelFilter,
+    prefix: Option<String>,
+    ansi: bool,
+    sink: LineSink,
+    next_span: AtomicU64,
+}
+
+impl ComponentLog {
+    pub fn new(filter: Targets, prefix: Option<String>, ansi: bool, sink: LineSink) -> Self {
+        let most = filter
+            .iter()
+            .map(|(_, level)| level)
+            .chain(filter.default_level())
+            .max()
+            .unwrap_or(LevelFilter::OFF);
+        ComponentLog {
+            filter,
+            most,
+            prefix,
+            ansi,
+            sink,
+            next_span: AtomicU64::new(1),
+        }
+    }
+
+    /// The line for `event`, newline included.
+    fn line(&self, event: &Event<'_>) -> String {
+        let meta = event.metadata();
+        let mut line = String::with_capacity(128);
+        // The pid is read per line, not cached: after a restart by fork it is the child's.
+        if let Some(prefix) = &self.prefix {
+            let _ = write!(line, "[{prefix} pid {}] ", std::process::id());
+        }
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        let level = *meta.level();
+        if self.ansi {
+            let colour = match level {
+                Level::ERROR => 31,
+                Level::WARN => 33,
+                Level::INFO => 32,
+                Level::DEBUG => 34,
+                Level::TRACE => 35,
+            };
+            let _ = write!(
+                line,
+                "\x1b[2m{}\x1b[0m \x1b[{colour}m{level:>5}\x1b[0m ",
+                Utc(now)
+            );
+        } else {
+            let _ = write!(line, "{} {level:>5} ", Utc(now));
+        }
+        let _ = write!(line, "{}: ", meta.target());
+        event.record(&mut Fields {
+            line: &mut line,
+            empty: true,
+        });
+        line.push('\n');
+        line
+    }
+}
+
+impl Subscriber for ComponentLog {
+    fn enabled(&self, meta: &Metadata<'_>) -> bool {
+        self.filter.would_enable(meta.target(), meta.level())
+    }
+
+    fn max_level_hint(&self) -> Option<LevelFilter> {
+        Some(self.most)
+    }
+
+    fn new_span(&self, _span: &Attributes<'_>) -> Id {
+        Id::from_u64(self.next_span.fetch_add(1, Ordering::Relaxed))
+    }
+
+    fn record(&self, _span: &Id, _values: &Record<'_>) {}
+
+    fn record_follows_from(&self, _span: &Id, _follows: &Id) {}
+
+    fn event(&self, event: &Event<'_>) {
+        (self.sink)(self.line(event).as_bytes());
+    }
+
+    fn enter(&self, _span: &Id) {}
+
+    fn exit(&self, _span: &Id) {}
+}
+
+/// An event's fields as `tracing-subscriber` writes them: the message bare, then `name=value`
+/// (`Debug`, so text is quoted), an error with its causes as `name.sources=[..]`.
+struct Fields<'a> {
+    line: &'a mut String,
+    empty: bool,
+}
+
+impl Visit for Fields<'_> {
+    fn record_str(&mut self, field: &Field, value: &str) {
+        if field.name() == "message" {
+            self.record_debug(field, &format_args!("{value}"));
+        } else {
+            self.record_debug(field, &value);
+        }
+    }
+
+    fn record_error(&mut self, field: &Field, value: &(dyn std::error::Error + 'static)) {
+        match value.source() {
+            Some(source) => self.record_debug(
+                field,
+                &format_args!("{value} {}.sources={}", field.name(), Sources(source)),
+            ),
+            None => self.record_debug(field, &format_args!("{value}")),
+        }
+    }
+
+    fn record_debug(&mut self, field: &Field, value: &dyn fmt::Debug) {
+        let name = field.name();
+        // Fields that the `log` crate's bridge adds; nothing here uses it.
+        if name.starts_with("log.") {
+            return;
+        }
+        let pad = if self.empty { "" } else { " " };
+        self.empty = false;
+        let _ = if name == "message" {
+            write!(self.line, "{pad}{value:?}")
+        } else {
+            let name = name.strip_prefix("r#").unwrap_or(name);
+            write!(self.line, "{pad}{name}={value:?}")
+        };
+    }
+}
+
+/// An error's causes, `[first, second]`.
+struct Sources<'a>(&'a (dyn std::error::Error + 'static));
+
+impl fmt::Display for Sources<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut list = f.debug_list();
+        let mut cause = Some(self.0);
+        while let Some(c) = cause {
+            list.entry(&format_args!("{c}"));
+            cause = c.source();
+        }
+        list.finish()
+    }
+}
+
+/// A time since the Unix epoch as `tracing-subscriber` prints it: RFC 3339, UTC, in µs.
+struct Utc(std::time::Duration);
+
+impl fmt::Display for Utc {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let secs = self.0.as_secs();
+        let (days, of_day) = (secs / 86_400, secs % 86_400);
+        // Days to a civil date (Howard Hinnant's `civil_from_days`), for days since 1970.
+        let z = days as i64 + 719_468;
+        let era = z.div_euclid(146_097);
+        let doe = z.rem_euclid(146_097);
+        let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+        let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+        let mp = (5 * doy + 2) / 153;
+        let day = doy - (153 * mp + 2) / 5 + 1;
+        let month = if mp < 10 { mp + 3 } else { mp - 9 };
+        let year = yoe + era * 400 + i64::from(month <= 2);
+        write!(
+            f,
+            "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:06}Z",
+            of_day / 3600,
+            of_day / 60 % 60,
+            of_day % 60,
+            self.0.subsec_micros()
+        )
+    }
 }
 
 /// A component's log filter from `RUST_LOG`: a level (`warn`, `debug`, what bootstrap passes
@@ -145,32 +331,6 @@ where
         .try_init();
 }
 
-/// The default full format, after a `[name pid N]` prefix.
-struct Prefixed {
-    /// `None` under a voter, which prefixes the lines itself.
-    prefix: Option<String>,
-    inner: Format<Full>,
-}
-
-impl<S, N> FormatEvent<S, N> for Prefixed
-where
-    S: Subscriber + for<'a> LookupSpan<'a>,
-    N: for<'a> FormatFields<'a> + 'static,
-{
-    fn format_event(
-        &self,
-        ctx: &FmtContext<'_, S, N>,
-        mut writer: Writer<'_>,
-        event: &Event<'_>,
-    ) -> fmt::Result {
-        // The pid is read per line, not cached: after a restart by fork it is the child's.
-        if let Some(prefix) = &self.prefix {
-            write!(writer, "[{prefix} pid {}] ", std::process::id())?;
-        }
-        self.inner.format_event(ctx, writer, event)
-    }
-}
-
 /// An error and its causes on one line, `what: why: because`, leaving out a cause whose text
 /// the message before it already ends with (thiserror messages often quote their source).
 pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
@@ -189,8 +349,78 @@ pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::{component_filter, error_chain, prefix_lines};
+    use super::{component_filter, error_chain, prefix_lines, ComponentLog, Utc};
+    use std::sync::{Arc, Mutex};
+    use std::time::Duration;
     use tracing::Level;
+
+    /// The lines a [`ComponentLog`] with `filter` and `prefix` writes while `f` runs.
+    fn lines_of(rust_log: &str, prefix: Option<&str>, f: impl FnOnce()) -> Vec<String> {
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let sink = Arc::clone(&lines);
+        let log = ComponentLog::new(
+            component_filter(Some(rust_log)),
+            prefix.map(str::to_owned),
+            false,
+            Box::new(move |line| {
+                sink.lock()
+                    .unwrap()
+                    .push(String::from_utf8(line.to_vec()).unwrap())
+            }),
+        );
+        tracing::subscriber::with_default(log, f);
+        let lines = lines.lock().unwrap().clone();
+        lines
+    }
+
+    #[test]
+    fn a_component_line_is_the_default_format_written_whole() {
+        #[derive(Debug, thiserror::Error)]
+        #[error("outer")]
+        struct Outer(#[source] std::io::Error);
+        let lines = lines_of("info", Some("echo#1"), || {
+            tracing::warn!(count = 3, name = "x", "end of input");
+            tracing::debug!("not shown at info");
+            let e = Outer(std::io::Error::other("inner"));
+            tracing::error!(error = &e as &(dyn std::error::Error + 'static), "failed");
+            tracing::info!(r#type = 1, "{} and {}", "formatted", 2);
+        });
+        assert_eq!(lines.len(), 3, "{lines:?}");
+        let head = format!("[echo#1 pid {}] ", std::process::id());
+        let target = module_path!();
+        for (line, rest) in lines.iter().zip([
+            format!(" WARN {target}: end of input count=3 name=\"x\"\n"),
+            format!("ERROR {target}: failed error=outer error.sources=[inner]\n"),
+            format!(" INFO {target}: formatted and 2 type=1\n"),
+        ]) {
+            let stamp = line
+                .strip_prefix(&head)
+                .and_then(|l| l.strip_suffix(&rest))
+                .unwrap_or_else(|| panic!("{line:?} is not {head:?} <time> {rest:?}"));
+            // 2026-11-27T23:56:19.444536Z and the space after it.
+            assert_eq!(stamp.len(), 28, "{stamp:?}");
+            assert!(
+                stamp.ends_with("Z ") && stamp.as_bytes()[10] == b'T',
+                "{stamp:?}"
+            );
+        }
+        // Under a voter there is no prefix: the voter writes its own.
+        let bare = lines_of("debug", None, || tracing::debug!("shown"));
+        assert!(
+            bare[0].ends_with(&format!("DEBUG {target}: shown\n")),
+            "{bare:?}"
+        );
+        assert!(bare[0].starts_with("20"), "{bare:?}");
+    }
+
+    #[test]
+    fn time_is_printed_as_rfc3339_utc_in_microseconds() {
+        let at = |secs: u64, micros: u32| Utc(Duration::new(secs, micros * 1000)).to_string();
+        assert_eq!(at(0, 0), "1970-01-01T00:00:00.000000Z");
+        assert_eq!(at(951_782_400, 1), "2000-02-29T00:00:00.000001Z");
+        assert_eq!(at(1_700_000_000, 123_456), "2023-11-14T22:13:20.123456Z");
+        assert_eq!(at(1_798_761_599, 999_999), "2026-12-31T23:59:59.999999Z");
+    }
 
     #[test]
     fn a_components_filter_takes_levels_and_targets_and_defaults_to_info() {
