@@ -89,7 +89,7 @@ extern "C" fn load() {
     }
     // Before `main`, single-threaded (checked just below for the replica itself).
     std::env::set_var(ENV_PID, &me);
-    replica_rt::init_logging("s3res_preload=info,replica_rt=warn");
+    replica_rt::init_logging("s3res-preload");
     if let Some(n) = replica_rt::restart::thread_count().filter(|&n| n != 1) {
         refuse(&format!(
             "the program runs {n} threads at start; an unmodified program must be \

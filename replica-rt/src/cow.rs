@@ -7,8 +7,9 @@
 //! the stack below the stack pointer (`DeadStack`), which holds nothing live: each replica
 //! writes such a page before it reads from it, and that write copies it then; a flip in it
 //! while it is shared reaches neither. Read-only private pages (the relocated read-only data,
-//! which `memory::lock` protects once start-up is over) are left shared, as the program's text
-//! and constants are: nothing writes them.
+//! which `memory::lock` protects once start-up is over) are left shared too: nothing writes
+//! them, and a flip in one hits donor and child alike, as a flip in the program's text would
+//! hit every replica (the trade-off is in `memory::protect_relocated_data`).
 //!
 //! The private writable mappings are found with the `PROCMAP_QUERY` ioctl on `/proc/self/maps`
 //! (Linux ≥ 6.11): one call per mapping, the kernel skipping to the next readable and writable

@@ -46,21 +46,36 @@ pub fn init_logging(component_default: &str) {
         }),
     );
     // Err only if a subscriber is already set, which is what "harmless" above means.
-    let _ = tracing::subscriber::set_global_default(log);
+    if tracing::subscriber::set_global_default(log).is_ok() {
+        // Records of the `log` crate (a dependency a component brings may use it) become
+        // events too, up to the most verbose level the filter lets through.
+        let most = LevelFilter::current().into_level().map(|l| match l {
+            Level::ERROR => log::LevelFilter::Error,
+            Level::WARN => log::LevelFilter::Warn,
+            Level::INFO => log::LevelFilter::Info,
+            Level::DEBUG => log::LevelFilter::Debug,
+            Level::TRACE => log::LevelFilter::Trace,
+        });
+        let _ = tracing_log::LogTracer::builder()
+            .with_max_level(most.unwrap_or(log::LevelFilter::Off))
+            .init();
+    }
 }
 
 /// Where a [`ComponentLog`] puts each whole line.
 type LineSink = Box<dyn Fn(&[u8]) + Send + Sync>;
 
 /// A component's `tracing` subscriber: each event that `filter` lets through becomes one line,
-/// written whole with one call, in `tracing-subscriber`'s default format (`2026-11-27T23:56:19.444536Z
-/// WARN target: message key=value`), behind `[prefix pid N] ` when there is a prefix.
+/// written whole with one call, in `tracing-subscriber`'s default format
+/// (`2026-11-27T23:56:19.444536Z  WARN target: message key=value`, control characters in
+/// messages and errors escaped), behind `[prefix pid N] ` when there is a prefix. On a
+/// terminal it is coloured as `tracing-subscriber` colours it (a test compares the two).
 ///
 /// Not `tracing-subscriber`'s registry and formatting layer, which the voter and the tools use:
 /// the registry sets out 32 KiB of slots for 4,096 threads when it is made, which a replica
-/// locks, keeps resident and copies at every fork recovery (8 of a small replica's 39 pages
-/// of its own; results.md, stop 35). Components open no spans; this one keeps none, and
-/// shows an event without the spans it is in.
+/// locks, keeps resident and copies at every fork recovery (8 pages; docs/results.md, stop
+/// 35). Components open no spans; this one keeps none, and shows an event without the spans
+/// it is in.
 pub struct ComponentLog {
     filter: Targets,
     most: LevelFilter,
@@ -69,6 +84,11 @@ pub struct ComponentLog {
     sink: LineSink,
     next_span: AtomicU64,
 }
+
+/// The ANSI styles `tracing-subscriber` uses (through `nu-ansi-term`).
+const DIM: &str = "\x1b[2m";
+const ITALIC: &str = "\x1b[3m";
+const RESET: &str = "\x1b[0m";
 
 impl ComponentLog {
     pub fn new(filter: Targets, prefix: Option<String>, ansi: bool, sink: LineSink) -> Self {
@@ -90,7 +110,9 @@ impl ComponentLog {
 
     /// The line for `event`, newline included.
     fn line(&self, event: &Event<'_>) -> String {
-        let meta = event.metadata();
+        // A record of the `log` crate carries its own target and level in fields.
+        let normalized = tracing_log::NormalizeEvent::normalized_metadata(event);
+        let meta = normalized.as_ref().unwrap_or_else(|| event.metadata());
         let mut line = String::with_capacity(128);
         // The pid is read per line, not cached: after a restart by fork it is the child's.
         if let Some(prefix) = &self.prefix {
@@ -100,7 +122,8 @@ impl ComponentLog {
             .duration_since(std::time::UNIX_EPOCH)
             .unwrap_or_default();
         let level = *meta.level();
-        if self.ansi {
+        let target = meta.target();
+        let _ = if self.ansi {
             let colour = match level {
                 Level::ERROR => 31,
                 Level::WARN => 33,
@@ -108,18 +131,18 @@ impl ComponentLog {
                 Level::DEBUG => 34,
                 Level::TRACE => 35,
             };
-            let _ = write!(
+            write!(
                 line,
-                "\x1b[2m{}\x1b[0m \x1b[{colour}m{level:>5}\x1b[0m ",
+                "{DIM}{}{RESET} \x1b[{colour}m{level:>5}{RESET} {DIM}{target}{RESET}{DIM}:{RESET} ",
                 Utc(now)
-            );
+            )
         } else {
-            let _ = write!(line, "{} {level:>5} ", Utc(now));
-        }
-        let _ = write!(line, "{}: ", meta.target());
+            write!(line, "{} {level:>5} {target}: ", Utc(now))
+        };
         event.record(&mut Fields {
             line: &mut line,
             empty: true,
+            ansi: self.ansi,
         });
         line.push('\n');
         line
@@ -157,6 +180,14 @@ impl Subscriber for ComponentLog {
 struct Fields<'a> {
     line: &'a mut String,
     empty: bool,
+    ansi: bool,
+}
+
+impl Fields<'_> {
+    /// `text` in `style` on a terminal, plain otherwise.
+    fn styled<'t>(&self, style: &'static str, text: &'t str) -> Styled<'t> {
+        Styled(self.ansi.then_some(style), text)
+    }
 }
 
 impl Visit for Fields<'_> {
@@ -172,30 +203,86 @@ impl Visit for Fields<'_> {
         match value.source() {
             Some(source) => self.record_debug(
                 field,
-                &format_args!("{value} {}.sources={}", field.name(), Sources(source)),
+                &format_args!(
+                    "{} {}{}{}{}",
+                    Escaped(value),
+                    self.styled(ITALIC, field.name()),
+                    self.styled(ITALIC, ".sources"),
+                    self.styled(DIM, "="),
+                    Sources(source)
+                ),
             ),
-            None => self.record_debug(field, &format_args!("{value}")),
+            None => self.record_debug(field, &format_args!("{}", Escaped(value))),
         }
     }
 
     fn record_debug(&mut self, field: &Field, value: &dyn fmt::Debug) {
         let name = field.name();
-        // Fields that the `log` crate's bridge adds; nothing here uses it.
+        // What the `log` bridge adds (target, module, file, line): in the line's head already.
         if name.starts_with("log.") {
             return;
         }
         let pad = if self.empty { "" } else { " " };
         self.empty = false;
         let _ = if name == "message" {
-            write!(self.line, "{pad}{value:?}")
+            write!(self.line, "{pad}{}", Escaped(DebugAsDisplay(value)))
         } else {
             let name = name.strip_prefix("r#").unwrap_or(name);
-            write!(self.line, "{pad}{name}={value:?}")
+            let (name, eq) = (self.styled(ITALIC, name), self.styled(DIM, "="));
+            write!(self.line, "{pad}{name}{eq}{value:?}")
         };
     }
 }
 
-/// An error's causes, `[first, second]`.
+/// Text in an ANSI style, or plain (`None`).
+struct Styled<'t>(Option<&'static str>, &'t str);
+
+impl fmt::Display for Styled<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.0 {
+            Some(style) => write!(f, "{style}{}{RESET}", self.1),
+            None => f.write_str(self.1),
+        }
+    }
+}
+
+/// A `Debug` value written as its `Debug` text, for [`Escaped`].
+struct DebugAsDisplay<'a>(&'a dyn fmt::Debug);
+
+impl fmt::Display for DebugAsDisplay<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:?}", self.0)
+    }
+}
+
+/// Text with the control characters a terminal would act on written out as escapes (ESC,
+/// BEL, BS, FF, DEL and the C1 controls), as `tracing-subscriber` writes messages and errors:
+/// a log line cannot move the cursor, retitle the window or hide what came before.
+struct Escaped<T>(T);
+
+impl<T: fmt::Display> fmt::Display for Escaped<T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        /// Escapes what passes through it on the way to `f`.
+        struct Escaping<'a, 'b>(&'a mut fmt::Formatter<'b>);
+        impl fmt::Write for Escaping<'_, '_> {
+            fn write_str(&mut self, s: &str) -> fmt::Result {
+                for ch in s.chars() {
+                    match ch {
+                        '\x1b' | '\x07' | '\x08' | '\x0c' | '\x7f' => {
+                            write!(self.0, "\\x{:02x}", ch as u32)?
+                        }
+                        '\u{80}'..='\u{9f}' => write!(self.0, "\\u{{{:x}}}", ch as u32)?,
+                        _ => self.0.write_char(ch)?,
+                    }
+                }
+                Ok(())
+            }
+        }
+        write!(Escaping(f), "{}", self.0)
+    }
+}
+
+/// An error's causes, `[first, second]`, each escaped.
 struct Sources<'a>(&'a (dyn std::error::Error + 'static));
 
 impl fmt::Display for Sources<'_> {
@@ -203,7 +290,7 @@ impl fmt::Display for Sources<'_> {
         let mut list = f.debug_list();
         let mut cause = Some(self.0);
         while let Some(c) = cause {
-            list.entry(&format_args!("{c}"));
+            list.entry(&format_args!("{}", Escaped(c)));
             cause = c.source();
         }
         list.finish()
@@ -355,13 +442,13 @@ mod tests {
     use tracing::Level;
 
     /// The lines a [`ComponentLog`] with `filter` and `prefix` writes while `f` runs.
-    fn lines_of(rust_log: &str, prefix: Option<&str>, f: impl FnOnce()) -> Vec<String> {
+    fn lines_of(rust_log: &str, prefix: Option<&str>, ansi: bool, f: impl FnOnce()) -> Vec<String> {
         let lines = Arc::new(Mutex::new(Vec::new()));
         let sink = Arc::clone(&lines);
         let log = ComponentLog::new(
             component_filter(Some(rust_log)),
             prefix.map(str::to_owned),
-            false,
+            ansi,
             Box::new(move |line| {
                 sink.lock()
                     .unwrap()
@@ -373,44 +460,117 @@ mod tests {
         lines
     }
 
-    #[test]
-    fn a_component_line_is_the_default_format_written_whole() {
-        #[derive(Debug, thiserror::Error)]
-        #[error("outer")]
-        struct Outer(#[source] std::io::Error);
-        let lines = lines_of("info", Some("echo#1"), || {
-            tracing::warn!(count = 3, name = "x", "end of input");
-            tracing::debug!("not shown at info");
-            let e = Outer(std::io::Error::other("inner"));
-            tracing::error!(error = &e as &(dyn std::error::Error + 'static), "failed");
-            tracing::info!(r#type = 1, "{} and {}", "formatted", 2);
-        });
-        assert_eq!(lines.len(), 3, "{lines:?}");
-        let head = format!("[echo#1 pid {}] ", std::process::id());
-        let target = module_path!();
-        for (line, rest) in lines.iter().zip([
-            format!(" WARN {target}: end of input count=3 name=\"x\"\n"),
-            format!("ERROR {target}: failed error=outer error.sources=[inner]\n"),
-            format!(" INFO {target}: formatted and 2 type=1\n"),
-        ]) {
-            let stamp = line
-                .strip_prefix(&head)
-                .and_then(|l| l.strip_suffix(&rest))
-                .unwrap_or_else(|| panic!("{line:?} is not {head:?} <time> {rest:?}"));
-            // 2026-11-27T23:56:19.444536Z and the space after it.
-            assert_eq!(stamp.len(), 28, "{stamp:?}");
-            assert!(
-                stamp.ends_with("Z ") && stamp.as_bytes()[10] == b'T',
-                "{stamp:?}"
-            );
+    /// What tracing-subscriber's default format writes for the events of `f`, one line each.
+    fn reference_lines(ansi: bool, f: impl FnOnce()) -> Vec<String> {
+        #[derive(Clone, Default)]
+        struct Capture(Arc<Mutex<Vec<u8>>>);
+        impl std::io::Write for Capture {
+            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+                self.0.lock().unwrap().extend_from_slice(buf);
+                Ok(buf.len())
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
         }
-        // Under a voter there is no prefix: the voter writes its own.
-        let bare = lines_of("debug", None, || tracing::debug!("shown"));
-        assert!(
-            bare[0].ends_with(&format!("DEBUG {target}: shown\n")),
-            "{bare:?}"
+        let capture = Capture::default();
+        let out = capture.clone();
+        let reference = tracing_subscriber::fmt()
+            .with_writer(move || out.clone())
+            .with_ansi(ansi)
+            .with_max_level(Level::INFO)
+            .finish();
+        tracing::subscriber::with_default(reference, f);
+        let text = String::from_utf8(capture.0.lock().unwrap().clone()).unwrap();
+        text.lines().map(|l| format!("{l}\n")).collect()
+    }
+
+    /// A line without its time stamp (27 characters, plus the styling around it on a terminal).
+    fn untimed(line: &str) -> String {
+        let from = line.find("20").expect("a time stamp");
+        let to = from + line[from..].find('Z').expect("the time stamp's end");
+        format!("{}{}", &line[..from], &line[to + 1..])
+    }
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("outer\x1b[2J")]
+    struct Outer(#[source] std::io::Error);
+
+    /// Events of every kind of field.
+    fn events() {
+        tracing::warn!(count = 3, name = "x\x07", "end of input");
+        tracing::debug!("not shown at info");
+        let e = Outer(std::io::Error::other("inner\u{9b}"));
+        tracing::error!(error = &e as &(dyn std::error::Error + 'static), "failed");
+        let plain = std::io::Error::other("plain");
+        tracing::info!(
+            error = &plain as &(dyn std::error::Error + 'static),
+            r#type = 1,
+            "{} and {}",
+            "formatted",
+            2
         );
-        assert!(bare[0].starts_with("20"), "{bare:?}");
+        tracing::info!(at = ?std::time::Duration::from_micros(1500), "a bell \x07, a clear \x1b[2J and a C1 \u{85}");
+    }
+
+    #[test]
+    fn a_component_line_is_what_tracing_subscriber_writes() {
+        for ansi in [false, true] {
+            let ours = lines_of("info", None, ansi, events);
+            let reference = reference_lines(ansi, events);
+            assert_eq!(ours.len(), 4, "{ours:?}");
+            let ours: Vec<String> = ours.iter().map(|l| untimed(l)).collect();
+            let reference: Vec<String> = reference.iter().map(|l| untimed(l)).collect();
+            assert_eq!(ours, reference, "ansi {ansi}");
+        }
+        // No raw control character reaches the line.
+        for line in lines_of("info", None, false, events) {
+            assert!(!line.trim_end().chars().any(|c| c.is_control()), "{line:?}");
+        }
+    }
+
+    #[test]
+    fn a_component_line_is_prefixed_and_filtered() {
+        let lines = lines_of("info", Some("echo#1"), false, || {
+            tracing::warn!(count = 3, "end of input");
+            tracing::debug!("not shown at info");
+        });
+        let head = format!("[echo#1 pid {}] ", std::process::id());
+        let rest = format!(" WARN {}: end of input count=3\n", module_path!());
+        assert_eq!(lines.len(), 1, "{lines:?}");
+        let stamp = lines[0]
+            .strip_prefix(&head)
+            .and_then(|l| l.strip_suffix(&rest))
+            .unwrap_or_else(|| panic!("{:?} is not {head:?} <time> {rest:?}", lines[0]));
+        // 2026-11-27T23:56:19.444536Z and the space after it.
+        assert_eq!(stamp.len(), 28, "{stamp:?}");
+        assert!(
+            stamp.ends_with("Z ") && stamp.as_bytes()[10] == b'T',
+            "{stamp:?}"
+        );
+        let debug = lines_of("warn,replica_rt=debug", None, false, || {
+            tracing::debug!("shown")
+        });
+        assert!(
+            debug[0].ends_with(&format!("DEBUG {}: shown\n", module_path!())),
+            "{debug:?}"
+        );
+    }
+
+    #[test]
+    fn records_of_the_log_crate_are_lines_too() {
+        let _ = tracing_log::LogTracer::builder()
+            .with_max_level(log::LevelFilter::Trace)
+            .init();
+        let lines = lines_of("info", None, false, || {
+            log::warn!(target: "some_crate::part", "from log {}", 1);
+            log::debug!(target: "some_crate", "not shown at info");
+        });
+        assert_eq!(lines.len(), 1, "{lines:?}");
+        assert!(
+            lines[0].ends_with(" WARN some_crate::part: from log 1\n"),
+            "{lines:?}"
+        );
     }
 
     #[test]

@@ -80,7 +80,8 @@ fn policy_from(value: Option<&str>) -> LockMemory {
 pub struct Locked {
     /// The main thread's stack below [`STACK_LOCKED`], locked on fault.
     pub stack_on_fault: usize,
-    /// The idle alternate signal stack, locked on fault.
+    /// The idle alternate signal stack, locked on fault (under `all` only: `used` never
+    /// populated it).
     pub alt_stack_on_fault: usize,
     /// The relocated read-only data made read-only (see [`protect_relocated_data`]).
     pub relro_read_only: usize,
@@ -89,15 +90,23 @@ pub struct Locked {
 /// Makes the main program's relocated read-only data read-only, as the dynamic linker does for
 /// a dynamically linked program and musl's start-up code for a static one does not; returns
 /// the bytes protected (0 if none, or if refused). After relocation nothing writes these
-/// pages: read-only, a stray write there is a crash the voter sees instead of a silent change,
-/// and the copy-on-write walk of a fork child leaves them shared, as it does the program's
-/// text and constants (see [`crate::cow`]).
+/// pages: read-only, a stray write there is a crash the voter sees instead of a silent change.
+///
+/// A fork child's copy-on-write walk leaves them shared with its donor, as a dynamically
+/// linked replica's always were. That is a trade-off, not free: they are private copies (each
+/// replica started by exec relocated its own), so a bit flip in one hits a donor and its
+/// children alike, where before the walk gave each its own. It is the exposure the program's
+/// text and constants have in every replica (one copy in the page cache for all), for 28 KiB
+/// of pointers that, corrupted, mostly crash; and it saves 7 page copies a restart (see
+/// [`crate::cow`] and docs/architecture.md, "Copy-on-write break").
 pub fn protect_relocated_data() -> usize {
     let Some((start, len)) = sys::main_program_relro(crate::cow::page_size()) else {
         return 0;
     };
-    // SAFETY: the range is the whole pages of the main program's PT_GNU_RELRO segment, which
-    // only relocation writes, and relocation was over before `main` ran.
+    // SAFETY: the range is the main program's PT_GNU_RELRO segment as the loaders protect it
+    // (`main_program_relro`: its last, partial page left out; its first page holds nothing
+    // writable before it), which only relocation writes, and relocation was over before any
+    // constructor or `main` ran (musl, glibc: neither binds lazily into it).
     match unsafe { sys::make_read_only(start, len) } {
         Ok(()) => len,
         Err(e) => {
@@ -123,10 +132,10 @@ pub fn release_alternate_stack() -> usize {
         return 0;
     }
     // SAFETY: the range is whole pages of this thread's alternate signal stack, and the thread
-    // is not running on it (`idle_alternate_stack`): a handler that runs there later builds
-    // its frame afresh, so nothing in it is live. Only this thread uses it, and this thread is
-    // in these system calls. Its pages read back as zeros (or, were it in a mapping of a file,
-    // as the file's bytes): either way dead data.
+    // is not running on it (`idle_alternate_stack`): nothing in it is live, as a handler that
+    // runs there builds its frame afresh and leaves it dead when it returns (also one that
+    // runs between these system calls). An alternate stack belongs to its thread alone (POSIX
+    // leaves sharing one undefined). `lock_on_fault_instead` says what its pages read back as.
     match unsafe { sys::lock_on_fault_instead(start, end - start) } {
         Ok(()) => end - start,
         Err(e) => {
@@ -160,6 +169,11 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
         }
     }
     let mut on_fault = 0;
+    // Under `used` the alternate stack was never populated: nothing to give back.
+    let alt_stack_on_fault = match policy {
+        LockMemory::All => release_alternate_stack(),
+        LockMemory::Used => 0,
+    };
     if let Some((low, high)) = stack {
         let sp = stack_pointer();
         if let Some(range) = unused_below(low, high, sp, STACK_LOCKED, crate::cow::page_size()) {
@@ -181,7 +195,7 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
     }
     Ok(Locked {
         stack_on_fault: on_fault,
-        alt_stack_on_fault: release_alternate_stack(),
+        alt_stack_on_fault,
         relro_read_only,
     })
 }
@@ -265,7 +279,22 @@ mod tests {
             unsafe { (at as *mut u8).write_volatile(0x5a) };
             assert!(resident(at), "page {at:#x} written but not resident");
         }
-        assert_eq!(release_alternate_stack(), end - start);
+        let released = release_alternate_stack();
+        // The pages are dropped before they are locked again; only that last step needs
+        // locked memory, which RLIMIT_MEMLOCK may refuse an unprivileged test.
+        let mut limit = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        // SAFETY: getrlimit writes the limit into `limit`.
+        let got = unsafe { libc::getrlimit(libc::RLIMIT_MEMLOCK, &mut limit) };
+        assert_eq!(got, 0);
+        let refused = sys::effective_uid() != 0 && limit.rlim_cur < (end - start) as u64;
+        assert!(
+            released == end - start || (released == 0 && refused),
+            "released {released} of {} bytes",
+            end - start
+        );
         for at in (start..end).step_by(page) {
             assert!(
                 !resident(at),
@@ -275,39 +304,54 @@ mod tests {
     }
 
     #[test]
-    fn the_relocated_read_only_data_is_the_loaders_and_read_only() {
+    fn the_relocated_read_only_data_is_made_read_only() {
         let page = crate::cow::page_size();
         let (start, len) = sys::main_program_relro(page).expect("the test binary has PT_GNU_RELRO");
         assert!(
             start % page == 0 && len % page == 0 && len > 0,
             "{start:#x} + {len}"
         );
-        assert_eq!(protect_relocated_data(), len);
-        // Every byte of it lies in mappings of this executable, none of them writable: the
-        // range is the program's (a wrong load address would land elsewhere).
-        let exe = std::fs::read_link("/proc/self/exe").expect("/proc/self/exe");
-        let maps = std::fs::read_to_string("/proc/self/maps").expect("/proc/self/maps");
-        let mut covered = 0;
-        for line in maps.lines() {
-            let m = crate::cow::parse_line(line.as_bytes()).expect("a maps line");
-            let (a, b) = (m.start.max(start), m.end.min(start + len));
-            if a >= b {
-                continue;
+        // Writable again, as musl's static start-up leaves it (this test binary's loader
+        // protected it already).
+        let rw = libc::PROT_READ | libc::PROT_WRITE;
+        // SAFETY: only the protection changes, to what it was before the loader's `mprotect`.
+        let made = unsafe { libc::mprotect(start as *mut libc::c_void, len, rw) };
+        assert_eq!(made, 0);
+        let permissions = || {
+            // Every byte of it lies in mappings of this executable (a wrong load address would
+            // land elsewhere): their permissions.
+            let exe = std::fs::read_link("/proc/self/exe").expect("/proc/self/exe");
+            let maps = std::fs::read_to_string("/proc/self/maps").expect("/proc/self/maps");
+            let mut seen = Vec::new();
+            let mut covered = 0;
+            for line in maps.lines() {
+                let m = crate::cow::parse_line(line.as_bytes()).expect("a maps line");
+                let (a, b) = (m.start.max(start), m.end.min(start + len));
+                if a < b {
+                    assert!(
+                        line.ends_with(exe.to_str().expect("a UTF-8 path")),
+                        "{line}"
+                    );
+                    seen.push(line.split_whitespace().nth(1).unwrap()[..2].to_owned());
+                    covered += b - a;
+                }
             }
-            assert!(
-                line.ends_with(exe.to_str().expect("a UTF-8 path")),
-                "{line}"
-            );
             assert_eq!(
-                &line.split_whitespace().nth(1).unwrap()[..2],
-                "r-",
-                "{line}"
+                covered, len,
+                "{start:#x} + {len} is not all mapped:\n{maps}"
             );
-            covered += b - a;
-        }
-        assert_eq!(
-            covered, len,
-            "{start:#x} + {len} is not all mapped:\n{maps}"
+            seen
+        };
+        assert!(
+            permissions().iter().all(|p| p == "rw"),
+            "{:?}",
+            permissions()
+        );
+        assert_eq!(protect_relocated_data(), len);
+        assert!(
+            permissions().iter().all(|p| p == "r-"),
+            "{:?}",
+            permissions()
         );
     }
 

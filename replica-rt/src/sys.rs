@@ -789,15 +789,17 @@ pub fn trim_heap(pad: usize, mmap_threshold: usize) {
 /// target).
 const MLOCK_ONFAULT: libc::c_uint = 1;
 
-/// Turns `len` bytes at `addr` (page-aligned, in a private anonymous mapping that holds no data
-/// the process needs: the unused part of its stack) from locked and populated into locked on
+/// Turns `len` bytes at `addr` (page-aligned, holding no data the process needs: the unused
+/// part of its stack, an idle alternate signal stack) from locked and populated into locked on
 /// fault: unlocks them, drops their pages, and locks the range again with `MLOCK_ONFAULT`, so
 /// that a page is locked when first touched. On an error the range may be left unlocked (a
 /// later touch is an ordinary fault).
 ///
 /// # Safety
-/// Nothing in `addr..addr + len` may be in use, now or by anything that runs before this
-/// returns: its pages are dropped, and read back as zeros.
+/// Nothing in `addr..addr + len` may be live, now or once this returns: its pages are dropped,
+/// and read back as zeros (in a private mapping of a file, as the file's bytes; in a shared
+/// mapping, as they were). Something that runs in between, such as a signal handler, may use
+/// the range only as scratch that is dead again when it returns.
 pub unsafe fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
     let ptr = addr as *mut libc::c_void;
     // SAFETY: unlocking has no memory-safety effect.
@@ -810,47 +812,60 @@ pub unsafe fn lock_on_fault_instead(addr: usize, len: usize) -> io::Result<()> {
     Ok(())
 }
 
-/// The whole pages of the main program's `PT_GNU_RELRO` segment, `(start, len)`: the data that
-/// only relocation at start writes (vtables, function pointers, the global offset table), to
-/// be made read-only once it is done. `None` when the program has no such segment or it holds
-/// no whole page. The dynamic linker protects it for a dynamically linked program; musl's
-/// start-up code for a statically linked position-independent one does not.
+/// The pages of the main program's `PT_GNU_RELRO` segment, `(start, len)`, as the dynamic
+/// linker protects them: from the page the segment starts in to the last page it fills. That
+/// is the data only relocation at start writes (vtables, function pointers, the global offset
+/// table), to be made read-only once it is done. `None` when the program has no such segment
+/// or it fills no page. The dynamic linker protects it for a dynamically linked program;
+/// musl's start-up code for a statically linked position-independent one does not.
 pub fn main_program_relro(page: usize) -> Option<(usize, usize)> {
-    /// `dl_iterate_phdr`'s callback: records the segment of the first object (the main
-    /// program, which the C library lists first) and stops.
-    unsafe extern "C" fn first_object(
+    /// What the callback looks for and what it found.
+    struct Search {
+        /// The main program's program header table (`AT_PHDR`).
+        phdr: usize,
+        found: Option<(usize, usize)>,
+    }
+    /// `dl_iterate_phdr`'s callback: in the object whose program headers are the main
+    /// program's, records the segment's address and size, and stops.
+    unsafe extern "C" fn look(
         info: *mut libc::dl_phdr_info,
         _size: libc::size_t,
         data: *mut libc::c_void,
     ) -> libc::c_int {
         // SAFETY: `dl_iterate_phdr` passes an `info` valid for the duration of this call, and
-        // `data` is the `Option` that `main_program_relro` lent it below, alive and not
+        // `data` is the `Search` that `main_program_relro` lent it below, alive and not
         // otherwise borrowed while the iteration runs.
-        let (info, found) = unsafe { (&*info, &mut *data.cast::<Option<(usize, usize)>>()) };
-        if !info.dlpi_phdr.is_null() {
-            // SAFETY: the C library's program header table of the object has `dlpi_phnum`
-            // entries at `dlpi_phdr`, mapped for the life of the object.
-            let headers =
-                unsafe { std::slice::from_raw_parts(info.dlpi_phdr, usize::from(info.dlpi_phnum)) };
-            *found = headers
-                .iter()
-                .find(|h| h.p_type == libc::PT_GNU_RELRO)
-                .map(|h| {
-                    (
-                        info.dlpi_addr as usize + h.p_vaddr as usize,
-                        h.p_memsz as usize,
-                    )
-                });
+        let (info, search) = unsafe { (&*info, &mut *data.cast::<Search>()) };
+        if info.dlpi_phdr.is_null() || info.dlpi_phdr as usize != search.phdr {
+            return 0;
         }
+        // SAFETY: the C library's program header table of the object has `dlpi_phnum` entries
+        // at `dlpi_phdr`, mapped for the life of the object.
+        let headers =
+            unsafe { std::slice::from_raw_parts(info.dlpi_phdr, usize::from(info.dlpi_phnum)) };
+        search.found = headers
+            .iter()
+            .find(|h| h.p_type == libc::PT_GNU_RELRO)
+            .and_then(|h| {
+                let at = (info.dlpi_addr as usize).checked_add(h.p_vaddr as usize)?;
+                Some((at, h.p_memsz as usize))
+            });
         1
     }
-    let mut found: Option<(usize, usize)> = None;
-    // SAFETY: the callback only reads what the C library passes it and writes `found`, which
+    // SAFETY: getauxval reads the auxiliary vector the kernel gave the process; 0 if absent.
+    let phdr = unsafe { libc::getauxval(libc::AT_PHDR) } as usize;
+    if phdr == 0 {
+        return None;
+    }
+    let mut search = Search { phdr, found: None };
+    // SAFETY: the callback only reads what the C library passes it and writes `search`, which
     // outlives the call.
-    unsafe { libc::dl_iterate_phdr(Some(first_object), (&raw mut found).cast::<libc::c_void>()) };
-    let (addr, len) = found?;
-    // As the dynamic linker does: from the page the segment starts in (the part of that page
-    // before it is the read-only segment's tail), to the last page it fills.
+    unsafe { libc::dl_iterate_phdr(Some(look), (&raw mut search).cast::<libc::c_void>()) };
+    let (addr, len) = search.found?;
+    // Rounded down at both ends, as glibc's `_dl_protect_relro` and musl's `reloc_all` do. The
+    // linker puts the segment at the head of the writable load segment, so what precedes it
+    // in its first page is no writable data; its end is page-aligned by the linker, or the
+    // page it ends in stays writable.
     let start = addr & !(page - 1);
     let end = addr.checked_add(len)? & !(page - 1);
     (end > start).then_some((start, end - start))
