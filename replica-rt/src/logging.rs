@@ -73,9 +73,9 @@ type LineSink = Box<dyn Fn(&[u8]) + Send + Sync>;
 ///
 /// Not `tracing-subscriber`'s registry and formatting layer, which the voter and the tools use:
 /// the registry sets out 32 KiB of slots for 4,096 threads when it is made, which a replica
-/// locks, keeps resident and copies at every fork recovery (8 pages; docs/results.md, stop
-/// 35). Components open no spans; this one keeps none, and shows an event without the spans
-/// it is in.
+/// locks, keeps resident and copies at every fork recovery (8 pages; docs/results.md, "Fewer
+/// pages to copy at a restart"). Components open no spans; this one keeps none, and shows an
+/// event without the spans it is in.
 pub struct ComponentLog {
     filter: Targets,
     most: LevelFilter,
