@@ -541,6 +541,11 @@ impl ReactiveVoter {
             return ReplicaSet::EMPTY;
         };
         let span = now.saturating_duration_since(look.at);
+        let came_back_before = self
+            .round
+            .as_ref()
+            .map_or(ReplicaSet::EMPTY, |rd| rd.came_back);
+        let mut came_back = ReplicaSet::EMPTY;
         let mut starved = ReplicaSet::EMPTY;
         for r in self.timed().iter() {
             let Some(rep) = self.core.slots[r].as_ref() else {
@@ -556,7 +561,10 @@ impl ReactiveVoter {
                 state = replica_rt::sys::process_state(rep.pid);
                 state == Some('R')
             };
-            let verdict = starvation::judge(before, after, span, clocked, runnable);
+            let verdict = starvation::after_coming_back(
+                starvation::judge(before, after, span, clocked, runnable),
+                came_back_before.contains(r),
+            );
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
             let wchan = match (verdict, state) {
                 (Window::HadItsChance, Some(s)) if s != 'R' => replica_rt::sys::wchan(rep.pid),
@@ -567,9 +575,15 @@ impl ReactiveVoter {
                 wchan,
                 ..Seen::between(before, after, span, clocked)
             });
-            if verdict == Window::Starved {
+            if verdict == Window::CameBack {
+                came_back = came_back.with(r);
+            }
+            if verdict.starved() {
                 starved = starved.with(r);
             }
+        }
+        if let Some(round) = self.round.as_mut() {
+            round.came_back = came_back;
         }
         starved
     }
@@ -695,6 +709,7 @@ impl ReactiveVoter {
         round.look = None;
         round.starved = None;
         round.extended = Duration::ZERO;
+        round.came_back = ReplicaSet::EMPTY;
         true
     }
 

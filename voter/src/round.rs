@@ -40,6 +40,9 @@ pub struct Round {
     pub starved: Option<ReplicaSet>,
     /// How far the deadline has been moved on for replicas that could not run.
     pub extended: Duration,
+    /// The replicas that came back from a long wait for a CPU in the last window judged (see
+    /// `starvation::after_coming_back`).
+    pub came_back: ReplicaSet,
     /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
     /// siblings to run (found starved); put back to rest when its turn ends.
     pub raised: Option<usize>,
@@ -78,6 +81,7 @@ impl Round {
             look: None,
             starved: None,
             extended: Duration::ZERO,
+            came_back: ReplicaSet::EMPTY,
             raised: None,
             checked: None,
         }
