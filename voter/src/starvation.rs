@@ -37,7 +37,9 @@
 //! and is starved by its wait. So is one whose wait, ended in the window, was longer than the
 //! whole window, however long it ran since: a CPU held from a replica for 30 ms gave it back
 //! with 200–300 µs of work that was not the replica's round (`real_time.rs`'s hog test failed
-//! on it about one run in twenty); a spinner that came back so is blamed one window later.
+//! on it about one run in twenty). That backlog can outlast a window, so the window after the
+//! one it came back in is starved too, however it ran ([`after_coming_back`]); a spinner that
+//! came back so is blamed two windows later.
 //!
 //! A voter that itself woke up past the first look (it was held up too) did not see the
 //! window: the deadline moves on by one window, with a fresh look.
