@@ -49,15 +49,8 @@ pub fn init_logging(component_default: &str) {
     if tracing::subscriber::set_global_default(log).is_ok() {
         // Records of the `log` crate (a dependency a component brings may use it) become
         // events too, up to the most verbose level the filter lets through.
-        let most = LevelFilter::current().into_level().map(|l| match l {
-            Level::ERROR => log::LevelFilter::Error,
-            Level::WARN => log::LevelFilter::Warn,
-            Level::INFO => log::LevelFilter::Info,
-            Level::DEBUG => log::LevelFilter::Debug,
-            Level::TRACE => log::LevelFilter::Trace,
-        });
         let _ = tracing_log::LogTracer::builder()
-            .with_max_level(most.unwrap_or(log::LevelFilter::Off))
+            .with_max_level(tracing_log::AsLog::as_log(&LevelFilter::current()))
             .init();
     }
 }
