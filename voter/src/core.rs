@@ -25,6 +25,7 @@ use crate::channel::Fill;
 use crate::clock::{self, ClockError, Instant};
 use crate::decision::Decision;
 use crate::event::{Cause, Event, EventKind, RecoveryMethod};
+use crate::held::HeldFaults;
 use crate::journal::{self, Committed, InputState, Journal, SlotEntry};
 use crate::monitor::{Captures, Monitors};
 use crate::park::ParkingLot;
@@ -197,6 +198,8 @@ pub(crate) struct Core {
     listener: UnixListener,
     signals: SignalFd,
     events: Option<OwnedFd>,
+    /// Fault events written once the donor of their recovery has been signalled (`held.rs`).
+    held: HeldFaults,
     pub(crate) stop: Option<Stop>,
     pub(crate) poll: PollSet,
     /// Wakes the loop at the mode's next deadline (see [`WakeTimer`]).
@@ -326,6 +329,7 @@ impl Core {
             listener,
             signals,
             events,
+            held: HeldFaults::default(),
             stop: None,
             poll: PollSet::default(),
             timer: WakeTimer::new()?,
@@ -477,6 +481,8 @@ impl Core {
     /// Brings the journal's replica table up to date with the slots (a `/proc` read for each
     /// slot whose process changed).
     pub(crate) fn journal_slots(&mut self) {
+        // A slot leaves the table only once its fault's event is out (`held.rs`).
+        self.release_faults();
         if self.journal.is_none() {
             return;
         }
@@ -705,8 +711,17 @@ impl Core {
         Event::new(&self.plan.system, &self.plan.component, kind)
     }
 
+    /// Writes `ev`, after the fault events held so far (their order is kept).
     pub(crate) fn emit(&self, ev: Event) {
+        self.release_faults();
         write_event(self.events.as_ref(), &ev);
+    }
+
+    /// Writes the fault events held back for a recovery, and takes their replicas out of the
+    /// journal's table (see `held.rs`).
+    pub(crate) fn release_faults(&self) {
+        self.held
+            .release(self.events.as_ref(), self.journal.as_ref());
     }
 
     /// Every alarm is an `anomaly` event, whatever the voter then does about it. `again`: the
@@ -779,10 +794,12 @@ impl Core {
             );
         }
         let detected_ns = ev.ts_ns;
-        self.emit(ev);
-        // The journal no longer names it: a successor that adopts the replicas while this one
-        // is being replaced refills the slot without reporting its fault a second time.
-        self.journal_slots();
+        // Its event is written, and the journal no longer names it, once the donor of its
+        // recovery has been signalled (or before the loop next waits, whichever comes first;
+        // `held.rs`). Both at once: a successor that adopts the replicas after that refills
+        // the slot without reporting its fault a second time, one that adopts them before it
+        // finds the dead replica named and reports it itself.
+        self.held.hold(ev, r);
         let pid = replica.pid;
         self.faults.push(Fault {
             slot: r,
@@ -1009,7 +1026,13 @@ impl Core {
         self.rt.raise(donor_pid);
         let mut retiring = self.retiring.take();
         let component = &self.plan.component;
-        let mut retire = || Fault::retire_if_any(&mut retiring, component);
+        let (held, events, journal) = (&self.held, self.events.as_ref(), self.journal.as_ref());
+        // While the donor forks: the faults' events out (held until now, see `held.rs`), then
+        // the replaced replica retired.
+        let mut retire = || {
+            held.release(events, journal);
+            Fault::retire_if_any(&mut retiring, component);
+        };
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
@@ -1185,6 +1208,7 @@ impl Core {
     /// Kills every replica (trusted or faulty) and everything re-parented to us, after giving
     /// downstream whatever it takes at once; removes the socket.
     pub(crate) fn shut_down(&mut self) {
+        self.release_faults();
         heartbeat_ending();
         self.captures.flush();
         self.monitors.log_cost();
@@ -1253,6 +1277,8 @@ pub(crate) fn run(mut m: impl Mode) -> Result<(), VoterError> {
 /// One `ppoll` on everything that can make progress, bounded by the mode's next wake-up, then
 /// each ready fd to the core or the mode.
 pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
+    // No fault event waits with the loop (`held.rs`).
+    m.core().release_faults();
     m.build_poll_set();
     let core = m.core();
     let stalled_input = core
@@ -1509,6 +1535,8 @@ fn replace(
         }
     }
     m.core().retire_pending();
+    // An exec takes milliseconds: the fault's event does not wait for it.
+    m.core().release_faults();
     let started = m
         .core()
         .replace_by_exec(slot, old_pid, detected_ns, retry)?;

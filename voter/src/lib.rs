@@ -20,6 +20,7 @@ pub mod clock;
 mod core;
 pub mod crashpoint;
 pub mod decision;
+mod held;
 mod journal;
 mod lines;
 pub mod monitor;
