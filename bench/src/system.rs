@@ -153,6 +153,8 @@ pub struct System {
     /// Current pid of every replica slot (from `start` and `recovery` events).
     pub replicas: Vec<libc::pid_t>,
     events: Option<Receiver<Event>>,
+    /// The thread that reads the voter's events: the setup places it with the bench.
+    events_thread: Option<libc::pid_t>,
     /// Events that are neither `start` nor `recovery`: faults.
     pub faults: Vec<Event>,
     /// Every event in arrival order (kept for the subcommands that need them).
@@ -177,6 +179,7 @@ impl System {
         let (out_r, out_w) = rsys::pipe().context("pipe")?;
         let mut cmd;
         let mut events_rx = None;
+        let mut events_thread = None;
         let mut keep: Vec<OwnedFd> = vec![in_r, out_w];
         if spec.replicas == 0 {
             cmd = Command::new(&spec.exec);
@@ -269,7 +272,9 @@ impl System {
                 .env_remove(ENV_VOTER_SOCKET)
                 .env_remove(ENV_REPLICA)
                 .env(ENV_COMPONENT, COMPONENT);
-            events_rx = Some(spawn_event_reader(ev_r)?);
+            let (rx, thread) = spawn_event_reader(ev_r)?;
+            events_rx = Some(rx);
+            events_thread = Some(thread);
         }
         cmd.stdin(Stdio::null())
             .stdout(Stdio::from(log.try_clone()?))
@@ -296,6 +301,7 @@ impl System {
             top_pid,
             replicas: vec![0; spec.replicas],
             events: events_rx,
+            events_thread,
             faults: Vec::new(),
             log: Vec::new(),
             lost_rounds: 0,
@@ -619,12 +625,15 @@ fn port(name: &str, dir: Direction, fd: i32, max_frame: usize) -> PortSpec {
 }
 
 /// Reads the voter's events pipe on a thread (so a burst of events never blocks the voter)
-/// and hands each parsed event over.
-fn spawn_event_reader(fd: OwnedFd) -> Result<Receiver<Event>> {
+/// and hands each parsed event over. Returns the thread's kernel id too, for [`Setup::apply`].
+fn spawn_event_reader(fd: OwnedFd) -> Result<(Receiver<Event>, libc::pid_t)> {
     let (tx, rx) = mpsc::channel();
+    let (tid_tx, tid_rx) = mpsc::sync_channel(1);
     std::thread::Builder::new()
         .name("events".into())
         .spawn(move || {
+            // SAFETY: gettid takes no arguments and cannot fail.
+            let _ = tid_tx.send(unsafe { libc::syscall(libc::SYS_gettid) as libc::pid_t });
             for line in BufReader::new(File::from(fd)).lines() {
                 let Ok(line) = line else { return };
                 match serde_json::from_str::<Event>(&line) {
@@ -638,7 +647,10 @@ fn spawn_event_reader(fd: OwnedFd) -> Result<Receiver<Event>> {
             }
         })
         .context("starting the events thread")?;
-    Ok(rx)
+    let tid = tid_rx
+        .recv()
+        .context("the events thread ended before it started")?;
+    Ok((rx, tid))
 }
 
 /// How the processes of a configuration are scheduled (rows are labelled with it).
@@ -747,6 +759,13 @@ impl Setup {
             Ok(())
         };
         apply(0, "the bench", RR_PRIORITY, cpus_top)?;
+        // The bench's events thread stays time-shared, but on the bench's CPUs: left to the
+        // kernel, it wakes on an idle CPU (the replicas', when they are pinned apart) at each
+        // fault event, and a donor's `RESTART` then has to interrupt it there (measured: 20 to
+        // 30 µs more a restart, docs/results.md, stop 36).
+        if let (Some(tid), false) = (system.events_thread, cpus_top.is_empty()) {
+            sys::set_affinity(tid, cpus_top).with_context(|| what("the events thread", tid))?;
+        }
         if system.replicas.is_empty() {
             apply(
                 system.top_pid,
