@@ -162,16 +162,24 @@ pub struct EventReader {
 impl EventReader {
     /// Starts reading `pipe` (the read end of the events pipe) until every writer has closed
     /// it; each line is also appended to `log` if given, and applied to the live view if given.
+    /// The thread runs on `cpus` (empty: anywhere; see `sched::events_reader_cpus`).
     pub fn spawn(
         pipe: OwnedFd,
         log: Option<File>,
         live: Option<LiveState>,
         tally: Option<Tally>,
+        cpus: Vec<usize>,
     ) -> std::io::Result<Self> {
         let (tx, rx) = mpsc::channel();
         std::thread::Builder::new()
             .name("events".to_owned())
             .spawn(move || {
+                // This thread only (it starts no process, so no child inherits the mask).
+                if !cpus.is_empty() {
+                    if let Err(e) = replica_rt::sys::set_cpu_affinity(0, &cpus) {
+                        tracing::debug!(error = %e, ?cpus, "could not place the events reader");
+                    }
+                }
                 let summary = read_all(
                     BufReader::new(File::from(pipe)),
                     log,
@@ -269,7 +277,7 @@ mod tests {
     #[test]
     fn reader_thread_ends_at_eof() {
         let (r, w) = replica_rt::sys::pipe().unwrap();
-        let reader = EventReader::spawn(r, None, None, None).unwrap();
+        let reader = EventReader::spawn(r, None, None, None, Vec::new()).unwrap();
         let line = Event::new("s", "c", EventKind::Hang).to_line();
         replica_rt::sys::write(std::os::fd::AsFd::as_fd(&w), line.as_bytes()).unwrap();
         drop(w);

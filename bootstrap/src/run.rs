@@ -316,7 +316,9 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     let tally = Tally::default();
     let (events_reader, events_write) = if voter.is_some() {
         let (r, w) = sys::pipe().map_err(RunError::EventsPipe)?;
-        let reader = EventReader::spawn(r, events_log, live.clone(), Some(tally.clone()))
+        let allowed = sys::cpu_affinity(0).unwrap_or_default();
+        let cpus = crate::sched::events_reader_cpus(plan, &allowed);
+        let reader = EventReader::spawn(r, events_log, live.clone(), Some(tally.clone()), cpus)
             .map_err(RunError::EventsPipe)?;
         (Some(reader), Some(w))
     } else {

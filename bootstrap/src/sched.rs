@@ -254,6 +254,33 @@ fn probe_round_robin() -> Result<(), String> {
     }
 }
 
+/// Where bootstrap's events reader may run: each CPU bootstrap may run on (`allowed`) that no
+/// replica of a protected component is pinned to. Empty, meaning where bootstrap runs, where no
+/// replica is pinned or every allowed CPU has one.
+///
+/// The reader is time-shared and wakes at each event the voters write. Left to the kernel it
+/// lands on an idle CPU, often the replicas': a fault's event woke it there just before the
+/// voter asked a donor on that CPU to fork, and waking the donor then took an interrupt
+/// between CPUs (on a virtual machine, a trap to the host), and the reader shared the CPU
+/// with the fork and the copy that followed (measured with `s3res-bench`'s own reader: a
+/// 256 KiB restart 10–30 µs slower; docs/results.md, stop 36).
+pub fn events_reader_cpus(plan: &SystemPlan, allowed: &[usize]) -> Vec<usize> {
+    let replica_cpus: Vec<usize> = plan
+        .components
+        .iter()
+        .filter(|c| c.is_protected())
+        .flat_map(|c| (0..c.replicas).filter_map(|slot| sched::replica_cpu(&c.cpus, slot)))
+        .collect();
+    if replica_cpus.is_empty() {
+        return Vec::new();
+    }
+    allowed
+        .iter()
+        .copied()
+        .filter(|c| !replica_cpus.contains(c))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -326,6 +353,34 @@ mod tests {
         assert!(
             out.contains("nice 0 (instead of SCHED_RR 40: refused), any CPU"),
             "{out}"
+        );
+    }
+    #[test]
+    fn the_events_reader_keeps_off_the_replicas_cpus() {
+        // b's replicas on CPUs 0 and 1: nowhere is free, the reader may run anywhere.
+        assert_eq!(
+            events_reader_cpus(&plan(SYSTEM), &[0, 1]),
+            Vec::<usize>::new()
+        );
+        let pinned = SYSTEM.replace(
+            r#""cpus": [0, 1], "voter_cpu": 1"#,
+            r#""cpus": [1], "voter_cpu": 0"#,
+        );
+        assert_eq!(events_reader_cpus(&plan(&pinned), &[0, 1]), vec![0]);
+        assert_eq!(
+            events_reader_cpus(&plan(&pinned), &[0, 1, 2, 3]),
+            vec![0, 2, 3]
+        );
+        // Bootstrap itself kept off CPU 0 (a cpuset, taskset): no CPU left, so where it runs.
+        assert_eq!(
+            events_reader_cpus(&plan(&pinned), &[1]),
+            Vec::<usize>::new()
+        );
+        // Nothing pinned: anywhere, as before.
+        let unpinned = SYSTEM.replace(r#""cpus": [0, 1], "voter_cpu": 1, "#, "");
+        assert_eq!(
+            events_reader_cpus(&plan(&unpinned), &[0, 1]),
+            Vec::<usize>::new()
         );
     }
 }

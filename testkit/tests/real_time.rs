@@ -174,6 +174,57 @@ fn unprivileged_priorities_fall_back_to_nice_values_in_the_same_order() {
     priorities_and_cpus(true);
 }
 
+/// The thread of bootstrap that reads the voters' events keeps off the CPU the replicas are
+/// pinned to (a fault's event woke it there just before the voter asked a donor on that CPU to
+/// fork); bootstrap's own thread, and the processes it starts, keep every CPU they had.
+#[test]
+#[cfg_attr(not(s3res_two_cpus), ignore = "needs two usable CPUs")]
+fn the_events_reader_keeps_off_the_replicas_cpu() {
+    let _turn = one_system_at_a_time();
+    let cpus = usable_cpus();
+    s3res_testkit::require(
+        cpus.len() >= 2,
+        &format!("this test keeps a CPU for the replicas; only {cpus:?} usable"),
+    );
+    let (voter_cpu, replica_cpu) = (cpus[0], cpus[cpus.len() - 1]);
+    let count = 2000;
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+              "timeout_us": {TIMEOUT_US}, "priority": 30, "cpus": [{replica_cpu}],
+              "voter_cpu": {voter_cpu} }}"#
+    );
+    let desc = echo_pipeline(&summary, &echo, count, 500);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let bootstrap = run.pid();
+    let reader = std::fs::read_dir(format!("/proc/{bootstrap}/task"))
+        .expect("bootstrap's threads")
+        .filter_map(|t| t.ok()?.file_name().to_str()?.parse::<i32>().ok())
+        .find(|tid| {
+            std::fs::read_to_string(format!("/proc/{bootstrap}/task/{tid}/comm"))
+                .is_ok_and(|c| c.trim() == "events")
+        })
+        .expect("bootstrap has a thread named `events`");
+    let others: Vec<usize> = cpus.iter().copied().filter(|&c| c != replica_cpu).collect();
+    let mask = |pid: i32| replica_rt::sys::cpu_affinity(pid).expect("sched_getaffinity");
+    assert_eq!(mask(reader), others, "the events reader");
+    assert_eq!(mask(bootstrap), cpus, "bootstrap's own thread");
+    assert_eq!(
+        mask(pid_of(&run, "s3res-sink")),
+        cpus,
+        "an unpinned component"
+    );
+    assert_eq!(
+        mask(pid_of(&run, "s3res-source")),
+        cpus,
+        "an unpinned component"
+    );
+    run.wait_success(LIMIT);
+    assert_sink_whole(&summary, count);
+}
+
 /// source → echo (TMR at priority 30, every replica on the first usable CPU, the voter on the
 /// last) → sink, started (as an unprivileged user if asked). `auto` makes its rounds
 /// sequential. Returns the system and the sink's summary path.
