@@ -125,12 +125,10 @@ pub fn release_alternate_stack() -> usize {
     let Some((sp, size)) = sys::idle_alternate_stack() else {
         return 0;
     };
-    let page = crate::cow::page_size();
-    let start = sp.next_multiple_of(page);
-    let end = sp.saturating_add(size) & !(page - 1);
-    if end <= start {
+    let Some((start, end)) = whole_pages(sp, sp.saturating_add(size), crate::cow::page_size())
+    else {
         return 0;
-    }
+    };
     // SAFETY: the range is whole pages of this thread's alternate signal stack, and the thread
     // is not running on it (`idle_alternate_stack`): nothing in it is live, as a handler that
     // runs there builds its frame afresh and leaves it dead when it returns (also one that
@@ -240,8 +238,14 @@ fn unused_below(
     if sp < low || sp >= high {
         return None;
     }
-    let end = sp.checked_sub(keep)? & !(page - 1);
-    (end > low).then_some((low, end))
+    whole_pages(low, sp.checked_sub(keep)?, page)
+}
+
+/// The whole pages inside `start..end` (`start` rounded up, `end` down to a page boundary),
+/// if there is one: what can be locked on fault without touching a byte outside the range.
+fn whole_pages(start: usize, end: usize, page: usize) -> Option<(usize, usize)> {
+    let (start, end) = (start.checked_next_multiple_of(page)?, end & !(page - 1));
+    (end > start).then_some((start, end))
 }
 
 #[cfg(test)]
@@ -380,5 +384,17 @@ mod tests {
         assert_eq!(unused_below(low, high, low + 1000, 64 * 1024, page), None);
         // Another thread's stack pointer: not this mapping.
         assert_eq!(unused_below(low, high, high + 10, 64 * 1024, page), None);
+    }
+
+    /// Only whole pages, never a byte outside the range; none in less than a page.
+    #[test]
+    fn whole_pages_round_inwards() {
+        let page = 4096;
+        assert_eq!(whole_pages(0x1000, 0x4000, page), Some((0x1000, 0x4000)));
+        assert_eq!(whole_pages(0x1001, 0x3fff, page), Some((0x2000, 0x3000)));
+        assert_eq!(whole_pages(0x1001, 0x2fff, page), None);
+        assert_eq!(whole_pages(0x1000, 0x1fff, page), None);
+        assert_eq!(whole_pages(0x3000, 0x1000, page), None);
+        assert_eq!(whole_pages(usize::MAX - 10, usize::MAX, page), None);
     }
 }
