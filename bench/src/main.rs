@@ -150,6 +150,14 @@ enum Command {
         /// fork runs at the bench's own scheduling of that setup.
         #[arg(long, value_parser = Setup::parse, default_value = "plain")]
         setup: Setup,
+        /// Idle time before each kill, and before each fork of the floor, ms. 0 (the default):
+        /// back to back, so caches and the kernel's free page lists are warm from the last
+        /// restart. A fault in a real system comes after a while of other work: measured on
+        /// the project's VM under s3res-bootstrap, a 256 KiB restart took about 220 µs with
+        /// 2–5 ms between kills, 350 with 20–50 ms and 455 with 200–500 ms (docs/results.md,
+        /// stop 36).
+        #[arg(long, default_value_t = 0)]
+        gap_ms: u64,
     },
     /// Crash and hang detection latency; false positives in fault-free rounds.
     Detect {
@@ -335,11 +343,13 @@ fn run() -> Result<()> {
             count,
             timeout_us,
             setup,
+            gap_ms,
         } => {
             if count == 0 {
                 bail!("--count must be at least 1");
             }
-            let rows = stamp(restart::run(&common, &size, count, timeout_us, setup)?);
+            let gap = std::time::Duration::from_millis(gap_ms);
+            let rows = stamp(restart::run(&common, &size, count, timeout_us, setup, gap)?);
             report::emit(&rows, json, restart::render);
             write_plot(plot_dir, "fig4-restart.svg", |p| plot::restart(&rows, p))?;
         }

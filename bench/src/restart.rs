@@ -3,6 +3,9 @@
 //! the `recovery` event's the new replica's `Ready`). Next to it, the floor: the bench itself
 //! holds the same amount of touched memory, forks, and the child writes every page; the time
 //! from before `fork` to the child's "done" byte. The S³RES paper's Figure 4.
+//!
+//! `gap` idles the bench before each kill and each fork of the floor: back to back (no gap)
+//! both run with what the last one left warm, which a fault in a real system does not find.
 
 use std::os::fd::AsFd;
 use std::time::Duration;
@@ -30,6 +33,7 @@ pub fn run(
     count: u64,
     timeout_us: u64,
     setup: Setup,
+    gap: Duration,
 ) -> Result<Vec<Row>> {
     let ballast = common.bins.component("s3res-ballast")?;
     let voter = common.bins.path("s3res-voter")?;
@@ -50,11 +54,11 @@ pub fn run(
             setup,
             preload: None,
         };
-        let (restart, extra) = restarts(&spec, setup, count, &bar)
+        let (restart, extra) = restarts(&spec, setup, count, gap, &bar)
             .with_context(|| format!("restart with {} of state", report::bytes_name(size)))?;
-        let floor = floor(size as usize, count, Own::Touch, &bar)
+        let floor = floor(size as usize, count, Own::Touch, gap, &bar)
             .with_context(|| format!("floor for {}", report::bytes_name(size)))?;
-        let floor_madvise = floor_madvise_or_none(size as usize, count, &bar)
+        let floor_madvise = floor_madvise_or_none(size as usize, count, gap, &bar)
             .with_context(|| format!("madvise floor for {}", report::bytes_name(size)))?;
         Setup::reset_bench();
         let mut row = Row::new("restart", 3, size, restart);
@@ -64,6 +68,9 @@ pub fn run(
         row.floor_p99_us = Some(floor.p99_us);
         row.ratio = Some(restart.median_us / floor.median_us);
         let mut extra = extra;
+        if let Some(map) = extra.as_object_mut() {
+            map.insert("gap_ms".into(), (gap.as_millis() as u64).into());
+        }
         if let (Some(f), Some(map)) = (floor_madvise, extra.as_object_mut()) {
             map.insert("floor_madvise_us".into(), f.median_us.into());
             map.insert(
@@ -83,6 +90,7 @@ fn restarts(
     spec: &Spec,
     setup: Setup,
     count: u64,
+    gap: Duration,
     bar: &indicatif::ProgressBar,
 ) -> Result<(Summary, serde_json::Value)> {
     let mut system = System::start(spec)?;
@@ -99,6 +107,7 @@ fn restarts(
     let mut service = histogram();
     for k in 0..count {
         let slot = (k % 3) as usize;
+        std::thread::sleep(gap);
         let pid = system.replicas[slot];
         let killed_at = replica_rt::sys::monotonic_ns();
         replica_rt::sys::kill(pid, libc::SIGKILL).context("killing a replica")?;
@@ -216,23 +225,31 @@ enum Own {
 fn floor_madvise_or_none(
     size: usize,
     count: u64,
+    gap: Duration,
     bar: &indicatif::ProgressBar,
 ) -> Result<Option<Summary>> {
     if size > 0 && !sys::populate_write_supported() {
         bar.inc(count);
         return Ok(None);
     }
-    floor(size, count, Own::Populate, bar).map(Some)
+    floor(size, count, Own::Populate, gap, bar).map(Some)
 }
 
 /// fork + take a private copy of every page of `size` bytes of touched memory, `count` times,
 /// in the bench.
-fn floor(size: usize, count: u64, own: Own, bar: &indicatif::ProgressBar) -> Result<Summary> {
+fn floor(
+    size: usize,
+    count: u64,
+    own: Own,
+    gap: Duration,
+    bar: &indicatif::ProgressBar,
+) -> Result<Summary> {
     let page = replica_rt::cow::page_size();
     let mut state = vec![0u8; size];
     sys::touch_pages(&mut state, page);
     let mut h = histogram();
     for _ in 0..count {
+        std::thread::sleep(gap);
         let (r, w) = replica_rt::sys::pipe().context("pipe")?;
         let t0 = replica_rt::sys::monotonic_ns();
         // SAFETY: the child below only writes its own copy of `state` (touch or one madvise),

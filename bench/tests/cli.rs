@@ -180,8 +180,23 @@ fn restart_reports_the_floor_and_keeps_state() {
         assert_eq!(r["count"], 3);
         // Every restart was by fork (state kept); the bench checks the counter itself.
         assert_eq!(r["extra"]["by_exec"], 0, "{r}");
+        assert_eq!(r["extra"]["gap_ms"], 0, "back to back by default: {r}");
     }
     assert!(plots.path().join("fig4-restart.svg").is_file());
+}
+
+/// `--gap-ms` spaces the kills (and the floor's forks), and the row says so.
+#[test]
+fn restart_spaced_by_a_gap_says_so() {
+    let _g = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let mut cmd = bench();
+    cmd.args([
+        "restart", "--size", "4k", "--count", "2", "--gap-ms", "30", "--json",
+    ]);
+    let rows = json_lines(&run(cmd));
+    assert_eq!(rows.len(), 1, "{rows:?}");
+    assert_eq!(rows[0]["extra"]["gap_ms"], 30, "{}", rows[0]);
+    assert_eq!(rows[0]["extra"]["by_exec"], 0, "{}", rows[0]);
 }
 
 #[test]
