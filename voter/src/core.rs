@@ -481,8 +481,15 @@ impl Core {
     /// Brings the journal's replica table up to date with the slots (a `/proc` read for each
     /// slot whose process changed).
     pub(crate) fn journal_slots(&mut self) {
-        // A slot leaves the table only once its fault's event is out (`held.rs`).
+        // A slot leaves the table only once its fault's event is out (`held.rs`); a slot the
+        // release took out is written again whatever its pid (a replacement may have got the
+        // dead replica's pid back).
         self.release_faults();
+        for slot in self.held.take_cleared() {
+            if let Some(pid) = self.journaled_pids.get_mut(slot) {
+                *pid = 0;
+            }
+        }
         if self.journal.is_none() {
             return;
         }
@@ -769,6 +776,8 @@ impl Core {
         // place. It may still be dying (its output closed just before its exit), which is
         // waited for here, within a bound.
         let status = if cause == Cause::Died {
+            // A wait (bounded): what is held from an earlier fault goes out before it.
+            self.release_faults();
             replica.exit_status(EXIT_STATUS_WAIT)
         } else {
             None
@@ -1488,6 +1497,8 @@ fn replace(
     {
         // Not yet (see `Core::lines_quiet`): the slot is tried again with backoff, for as long
         // as a recovery may take; then as it can (a fork would fail, an exec loses the state).
+        // No donor is signalled now: the fault's event goes out first.
+        m.core().release_faults();
         m.core().retire_pending();
         return Ok(false);
     }
@@ -1495,7 +1506,12 @@ fn replace(
     let mut failed = ReplicaSet::EMPTY;
     loop {
         let progress = m.progress();
-        let pick = crate::replica::best_donor(&m.core().slots, |d| progress[d], patience, failed);
+        let core = m.core();
+        // A donor not seen asleep is waited for: the fault's event does not wait with it.
+        let pick =
+            crate::replica::best_donor(&core.slots, |d| progress[d], patience, failed, &|| {
+                core.release_faults()
+            });
         for r in pick.hung {
             let detail = format!(
                 "picked as recovery donor, it ran for {} µs without once waiting for input or producing a frame",
@@ -1534,9 +1550,10 @@ fn replace(
             }
         }
     }
-    m.core().retire_pending();
-    // An exec takes milliseconds: the fault's event does not wait for it.
+    // Retiring the replaced replica (its death awaited, up to a second) and an exec (milliseconds)
+    // come after the fault's event.
     m.core().release_faults();
+    m.core().retire_pending();
     let started = m
         .core()
         .replace_by_exec(slot, old_pid, detected_ns, retry)?;

@@ -11,44 +11,57 @@
 //! voter that dies in between has neither written the event nor cleared the slot, and its
 //! successor reports the dead replica itself (once).
 //!
-//! Nothing is held across a wait: the loop writes what is held before each `ppoll`, and so
-//! do every other event written (the order of events is kept), every update of the
-//! journal's table, the fallback to exec and the voter's shutdown.
+//! Nothing is held across a wait: what is held is written before the loop's `ppoll`, before a
+//! wait for a donor that is not asleep yet, for a dying replica's exit status or for the
+//! replaced replica's death, before an exec, at the end of the input and at the shutdown;
+//! and before every other event written (their order is kept) and every update of the
+//! journal's table.
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::os::fd::OwnedFd;
 
 use crate::event::Event;
 use crate::journal::Journal;
 use crate::ports::write_event;
 
-/// The events of faults recorded and not written yet, each with the slot it emptied.
+/// The events of faults recorded and not written yet, each with the slot it emptied; and the
+/// slots a release took out of the journal's table since [`HeldFaults::take_cleared`].
 #[derive(Default)]
-pub(crate) struct HeldFaults(RefCell<Vec<(Event, usize)>>);
+pub(crate) struct HeldFaults {
+    held: RefCell<Vec<(Event, usize)>>,
+    cleared: Cell<u64>,
+}
 
 impl HeldFaults {
     /// Holds the event of the fault that emptied `slot`.
     pub(crate) fn hold(&self, event: Event, slot: usize) {
-        self.0.borrow_mut().push((event, slot));
+        self.held.borrow_mut().push((event, slot));
     }
 
-    /// Writes the held events in the order they were recorded, then takes their slots out of
-    /// the journal's table. Does nothing if nothing is held.
+    /// Writes the held events in the order they were recorded, each followed at once by its
+    /// slot's removal from the journal's table. Does nothing if nothing is held.
     pub(crate) fn release(&self, events: Option<&OwnedFd>, journal: Option<&Journal>) {
-        let held = self.0.take();
-        for (event, _) in &held {
+        // Taken out first: nothing below borrows it again.
+        let held = self.held.take();
+        for (event, slot) in &held {
             write_event(events, event);
-        }
-        if let Some(journal) = journal {
-            for &(_, slot) in &held {
-                journal.set_slot(slot, None);
+            if let Some(journal) = journal {
+                journal.set_slot(*slot, None);
+                self.cleared.set(self.cleared.get() | 1u64 << (*slot % 64));
             }
         }
     }
 
+    /// The slots released out of the journal's table since the last call (the voter's own
+    /// record of what the table names must forget them).
+    pub(crate) fn take_cleared(&self) -> impl Iterator<Item = usize> {
+        let cleared = self.cleared.take();
+        (0..64).filter(move |slot| cleared & 1 << slot != 0)
+    }
+
     #[cfg(test)]
     fn len(&self) -> usize {
-        self.0.borrow().len()
+        self.held.borrow().len()
     }
 }
 
@@ -143,6 +156,12 @@ mod tests {
         held.release(Some(&w), Some(&journal));
         let after = slots();
         assert_eq!(after[1].map(|e| e.pid), None, "still named after its event");
+        assert_eq!(held.take_cleared().collect::<Vec<_>>(), vec![1]);
+        assert_eq!(
+            held.take_cleared().count(),
+            0,
+            "each cleared slot is said once"
+        );
         assert_eq!(
             after[0].map(|e| e.pid),
             Some(100),

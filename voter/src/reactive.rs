@@ -868,6 +868,8 @@ impl ReactiveVoter {
     /// Inputs closed: close the replicas' inputs, let them finish, flush what was voted.
     fn finish(&mut self) -> Result<(), VoterError> {
         tracing::debug!("inputs closed; flushing output and letting the replicas finish");
+        // No recovery comes now: a fault's event held for one goes out before the waits below.
+        self.core.release_faults();
         crate::ports::heartbeat_ending();
         // Voted output first: it is what the rest of the system is waiting for.
         let drain_deadline = Instant::now() + core::OUTPUT_DRAIN_LIMIT;

@@ -644,6 +644,7 @@ pub fn best_donor(
     progress: impl Fn(usize) -> u64,
     patience: Duration,
     exclude: crate::vote::ReplicaSet,
+    before_waiting: &dyn Fn(),
 ) -> DonorPick {
     // (rank, progress, slot, pid, state letter when ranked); slots are unique, so the state
     // never decides the order.
@@ -678,7 +679,7 @@ pub fn best_donor(
             .map(|&(.., d, pid, state)| (d, pid, first_look(state, fresh)))
             .collect();
         looked.extend(clean.iter().map(|c| c.0));
-        if let Some(d) = first_to_wait(&clean, patience) {
+        if let Some(d) = first_to_wait(&clean, patience, before_waiting) {
             return DonorPick {
                 donor: Some(d),
                 hung,
@@ -719,7 +720,7 @@ pub fn best_donor(
         let donor = if rank.stopped {
             group.first().map(|c| c.0)
         } else {
-            let donor = first_to_wait(&group, patience);
+            let donor = first_to_wait(&group, patience, before_waiting);
             fresh &= group.is_empty();
             donor
         };
@@ -752,6 +753,7 @@ type Candidate = (
 fn first_to_wait(
     candidates: &[(usize, libc::pid_t, Option<char>)],
     patience: Duration,
+    before_waiting: &dyn Fn(),
 ) -> Option<usize> {
     let started = std::time::Instant::now();
     let mut first_blocks = Vec::with_capacity(candidates.len());
@@ -764,6 +766,9 @@ fn first_to_wait(
             return Some(d);
         }
         first_blocks.push(look.voluntary_switches);
+    }
+    if !candidates.is_empty() && started.elapsed() < patience {
+        before_waiting();
     }
     while !candidates.is_empty() && started.elapsed() < patience {
         std::thread::sleep(RESAMPLE);

@@ -642,6 +642,8 @@ impl StreamVoter {
 
     /// Writes out what is queued for downstream and lets the replicas exit.
     fn finish(&mut self) -> Result<(), VoterError> {
+        // No recovery comes now: a fault's event held for one goes out before the waits below.
+        self.core.release_faults();
         if !self.all_finished() {
             let alive = self.core.alive();
             let state: Vec<String> = (0..self.core.outputs.len())
