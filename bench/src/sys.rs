@@ -161,6 +161,18 @@ pub fn is_root() -> bool {
     replica_rt::sys::effective_uid() == 0
 }
 
+thread_local! {
+    /// This thread's kernel id, asked once (a read must not cost a system call more).
+    static THIS_THREAD: libc::pid_t =
+        // SAFETY: gettid takes no arguments and cannot fail.
+        unsafe { libc::syscall(libc::SYS_gettid) as libc::pid_t };
+}
+
+/// The calling thread's kernel id (`gettid`), asked once per thread.
+pub fn this_thread() -> libc::pid_t {
+    THIS_THREAD.with(|tid| *tid)
+}
+
 /// Blocking reads with a deadline, without a timed wait per read.
 ///
 /// The peers' harnesses wait for a round trip's answer in a blocking `read`; a `ppoll` with a
@@ -193,17 +205,6 @@ pub mod read_deadline {
 
     fn now_ns() -> u64 {
         s3res_protocol::clock::monotonic_ns()
-    }
-
-    thread_local! {
-        /// This thread's kernel id, asked once (a read must not cost a system call more).
-        static THIS_THREAD: libc::pid_t =
-            // SAFETY: gettid takes no arguments and cannot fail.
-            unsafe { libc::syscall(libc::SYS_gettid) as libc::pid_t };
-    }
-
-    fn this_thread() -> libc::pid_t {
-        THIS_THREAD.with(|tid| *tid)
     }
 
     /// Installs the handler and starts the watchdog thread, once per process.
@@ -263,7 +264,7 @@ pub mod read_deadline {
     impl Armed {
         pub fn new(deadline_ns: u64) -> std::io::Result<Armed> {
             start()?;
-            READER.store(this_thread(), Ordering::SeqCst);
+            READER.store(super::this_thread(), Ordering::SeqCst);
             DEADLINE_NS.store(deadline_ns.max(1), Ordering::SeqCst);
             Ok(Armed(()))
         }

@@ -632,8 +632,7 @@ fn spawn_event_reader(fd: OwnedFd) -> Result<(Receiver<Event>, libc::pid_t)> {
     std::thread::Builder::new()
         .name("events".into())
         .spawn(move || {
-            // SAFETY: gettid takes no arguments and cannot fail.
-            let _ = tid_tx.send(unsafe { libc::syscall(libc::SYS_gettid) as libc::pid_t });
+            let _ = tid_tx.send(sys::this_thread());
             for line in BufReader::new(File::from(fd)).lines() {
                 let Ok(line) = line else { return };
                 match serde_json::from_str::<Event>(&line) {

@@ -355,6 +355,7 @@ mod tests {
             "{out}"
         );
     }
+
     #[test]
     fn the_events_reader_keeps_off_the_replicas_cpus() {
         // b's replicas on CPUs 0 and 1: nowhere is free, the reader may run anywhere.

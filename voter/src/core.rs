@@ -485,7 +485,7 @@ impl Core {
         // release took out is written again whatever its pid (a replacement may have got the
         // dead replica's pid back).
         self.release_faults();
-        for slot in self.held.take_cleared() {
+        for slot in self.held.take_cleared().iter() {
             if let Some(pid) = self.journaled_pids.get_mut(slot) {
                 *pid = 0;
             }

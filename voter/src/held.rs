@@ -23,13 +23,14 @@ use std::os::fd::OwnedFd;
 use crate::event::Event;
 use crate::journal::Journal;
 use crate::ports::write_event;
+use crate::vote::ReplicaSet;
 
 /// The events of faults recorded and not written yet, each with the slot it emptied; and the
 /// slots a release took out of the journal's table since [`HeldFaults::take_cleared`].
 #[derive(Default)]
 pub(crate) struct HeldFaults {
     held: RefCell<Vec<(Event, usize)>>,
-    cleared: Cell<u64>,
+    cleared: Cell<ReplicaSet>,
 }
 
 impl HeldFaults {
@@ -47,16 +48,15 @@ impl HeldFaults {
             write_event(events, event);
             if let Some(journal) = journal {
                 journal.set_slot(*slot, None);
-                self.cleared.set(self.cleared.get() | 1u64 << (*slot % 64));
+                self.cleared.set(self.cleared.get().with(*slot));
             }
         }
     }
 
     /// The slots released out of the journal's table since the last call (the voter's own
     /// record of what the table names must forget them).
-    pub(crate) fn take_cleared(&self) -> impl Iterator<Item = usize> {
-        let cleared = self.cleared.take();
-        (0..64).filter(move |slot| cleared & 1 << slot != 0)
+    pub(crate) fn take_cleared(&self) -> ReplicaSet {
+        self.cleared.take()
     }
 
     #[cfg(test)]
@@ -156,9 +156,9 @@ mod tests {
         held.release(Some(&w), Some(&journal));
         let after = slots();
         assert_eq!(after[1].map(|e| e.pid), None, "still named after its event");
-        assert_eq!(held.take_cleared().collect::<Vec<_>>(), vec![1]);
+        assert_eq!(held.take_cleared().iter().collect::<Vec<_>>(), vec![1]);
         assert_eq!(
-            held.take_cleared().count(),
+            held.take_cleared().iter().count(),
             0,
             "each cleared slot is said once"
         );
