@@ -169,6 +169,40 @@ for f in "$RES"/c-*.txt; do
   [ -s "$f" ] || { echo "compare-peers: the C floor produced nothing ($f is empty), see $RES/compare.log" >&2; exit 1; }
 done
 
+# The restart floor, made to do what it says. limits.c's child "touches" each page with
+# `m[o]=m[o]`, which gcc -O2 compiles away: its fork+touch figure is a bare fork, no page
+# copied (docs/benchmarks.md, "The C floor's restart"). Built again here from the same
+# source, changed only in that loop: `written` writes every page (volatile), `populate` takes
+# its copies with one madvise(MADV_POPULATE_WRITE), as s3res's fork child does. Both also at
+# 4 KiB, and run as compare.sh runs limits (SCHED_RR 60, unpinned), each repetition followed by
+# s3res's restart over the same sizes, so that the ratios of every size are of one run.
+if [ "${SKIP_RECOVERY:-0}" != 1 ]; then
+  sed -e 's/m\[o\]=m\[o\];/((volatile char*)m)[o]=m[o];/' \
+      -e 's/long kbs\[\]={256,/long kbs[]={4,256,/' -e 's/k<4;k++/k<5;k++/' \
+      "$PEERS/c-floor/limits.c" > "$RES/limits-written.c"
+  sed -e 's/for(long o=0;o<sz;o+=pg)m\[o\]=m\[o\];/if(madvise((char*)((long)m\&-pg),sz+((long)m\&(pg-1)),23))kill(getppid(),9);/' \
+      -e 's/long kbs\[\]={256,/long kbs[]={4,256,/' -e 's/k<4;k++/k<5;k++/' \
+      "$PEERS/c-floor/limits.c" > "$RES/limits-populate.c"
+  for v in written populate; do
+    grep -q 'kbs\[\]={4,' "$RES/limits-$v.c" && ! grep -q 'm\[o\]=m\[o\];' "$RES/limits-$v.c" ||
+      { echo "compare-peers: limits.c has changed; the $v floor could not be made from it" >&2; exit 1; }
+    gcc -O2 -w "$RES/limits-$v.c" -o "$RES/limits-$v" ||
+      { echo "compare-peers: could not build the $v floor" >&2; exit 1; }
+  done
+  for rep in $(seq 1 "$REPS"); do
+    echo "=== restart floors and s3res restart by size, repetition $rep $(date +%T)" >&2
+    for v in written populate; do
+      run_session chrt -r 60 "$RES/limits-$v" fork > "$RES/c-fork-$v-$rep.txt" ||
+        { echo "compare-peers: the $v floor failed, see $RES/c-fork-$v-$rep.txt" >&2; exit 1; }
+    done
+    # ($BENCH, when set, is the wrapper above: it carries BENCH_ARGS already.)
+    run_session "${BENCH:-$ROOT/target/release/s3res-bench}" restart \
+      --size 4k,256k,1m,8m,64m --count 30 --setup rr-pinned --json --quiet \
+      > "$RES/s3res-restart-sizes-$rep.jsonl" 2>>"$RES/restart-sizes-stderr.log" ||
+      { echo "compare-peers: s3res-bench restart failed, see $RES/restart-sizes-stderr.log" >&2; exit 1; }
+  done
+fi
+
 # Replica resident size. s3res: s3res-bench memory (TMR s3res-echo, idle after 1000 rounds).
 echo "compare-peers: resident sizes" >&2
 run_session target/release/s3res-bench ${BENCH_ARGS[@]+"${BENCH_ARGS[@]}"} memory --size 0 --json --quiet \

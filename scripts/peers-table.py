@@ -67,9 +67,9 @@ class Results:
                     self.faults = getattr(self, "faults", 0) + (d.get("faults") or 0)
         return out
 
-    def c_fork(self):  # {kib: [(med, max)]}
+    def c_fork(self, variant=""):  # {kib: [(med, max)]}; variant "-written", "-populate"
         out = {}
-        for d in self.lines("c-fork", "fork+touch"):
+        for d in self.lines(f"c-fork{variant}", "fork+touch"):
             out.setdefault(int(d["rss_kb"]), []).append((float(d["median_us"]), float(d["max_us"])))
         return out
 
@@ -149,6 +149,35 @@ def ratio(a, b):
     return f"{med(rs):.2f}" if rs else "—"
 
 
+def restart_by_size(R, fork, written, populate):
+    """The restart against the three C floors, 4 KiB to 64 MiB: each repetition of the floors
+    followed by s3res-bench restart over the same sizes (compare-peers.sh)."""
+    rst = {}
+    for d in R.jsonl("s3res-restart-sizes"):
+        rst.setdefault(d["size"] // 1024, []).append((d["median_us"], d.get("p99_us")))
+    if not rst or not written:
+        return
+    print()
+    print("Restart by state size: s3res detection → ready (TMR `s3res-ballast`, rr-pinned, 30 "
+          "kills) against the C floor's fork of a process holding that state, locked: as limits.c "
+          "ships it (its touch compiled away: a bare fork), with every page written, and with "
+          "one madvise(MADV_POPULATE_WRITE) as s3res's fork child takes its copies.")
+    print()
+    print("| state | s3res | C fork only | C fork + write | C fork + populate "
+          "| / fork only | / fork + write | / fork + populate |")
+    print("|---|---|---|---|---|---|---|---|")
+    for kib in sorted(rst):
+        s = rst[kib]
+        name = f"{kib} KiB" if kib < 1024 else f"{kib // 1024} MiB"
+        print("| " + " | ".join([
+            name, cell(s), cell(fork.get(kib), "max"), cell(written.get(kib), "max"),
+            cell(populate.get(kib), "max"), ratio(s, fork.get(kib)), ratio(s, written.get(kib)),
+            ratio(s, populate.get(kib))]) + " |")
+    print()
+    print("The fork-only column comes from compare.sh's own runs (no 4 KiB size there); the "
+          "other floors and s3res from compare-peers.sh's, repetition by repetition.")
+
+
 def main():
     if len(sys.argv) != 2 or sys.argv[1] in ("-h", "--help"):
         print(__doc__.strip())
@@ -181,8 +210,11 @@ def main():
                      cell(cp.get(k)), cell(op.get(k)), cell(sp.get(k)),
                      ratio(sp.get(k), op.get(k)), ratio(sp.get(k), cp.get(k))))
 
-    # restart after SIGKILL, detection → ready
-    fork = R.c_fork()
+    # restart after SIGKILL, detection → ready. limits.c's own fork+touch writes no page (gcc
+    # drops its `m[o]=m[o]`); compare-peers.sh measures the floor again with every page written.
+    fork, written, populate = R.c_fork(), R.c_fork("-written"), R.c_fork("-populate")
+    floor, floor_name = (written, "C: fork + every page written") if written else \
+        (fork, "C: limits.c's fork + touch, which writes no page")
     orig_restart, orig_k2a = R.orig_kill()
     o_rs = [(med(v), pct(v, 0.9)) for _, v in sorted(orig_restart.items()) if v]
     rst = {}
@@ -190,8 +222,8 @@ def main():
         rst.setdefault(d["size"], []).append((d["median_us"], d.get("p99_us")))
     for kib in (4, 256):
         s = rst.get(kib * 1024)
-        c = fork.get(kib)
-        rows.append((f"restart after SIGKILL, detection → ready, {kib} KiB state (C: fork + touch)",
+        c = floor.get(kib)
+        rows.append((f"restart after SIGKILL, detection → ready, {kib} KiB state ({floor_name})",
                      cell(c, "max"), cell(o_rs, "p90"), cell(s),
                      ratio(s, o_rs), ratio(s, c)))
 
@@ -237,9 +269,10 @@ def main():
           "s3res `--setup rr-pinned`. S³RES restart: VoterM's own restart time, TMR, every voter "
           "timeout (its replica's state is whatever GenericEmpty has: the same figure on both rows).")
     floors = {d["size"] // 1024: d.get("floor_us") for d in R.jsonl("s3res-restart")}
-    if floors.get(4) is not None:
+    if floors.get(4) is not None and 4 not in floor:
         print(f"The C floor has no 4 KiB size; s3res-bench's own fork + touch floor at 4 KiB, same run: "
               f"{num(floors[4])} µs (at 256 KiB: {num(floors.get(256))} µs).")
+    restart_by_size(R, fork, written, populate)
     for v in ("seq", "unpinned"):  # counted, not shown
         R.orig_rtt(v)
     for v in ("rr", "one-cpu"):
