@@ -125,7 +125,8 @@ impl Tally {
         r.extra = Some(serde_json::json!({
             "misclassified": self.misclassified,
             "undetected": self.undetected,
-            "lost_rounds": system.lost_rounds,
+            "lost_rounds": system.lost.count,
+            "late_answers": system.lost.late,
         }));
         r
     }
@@ -281,7 +282,8 @@ fn false_positives(
     let mut r = row("false-positives", &h, spec.timeout_us, faults.len() as u64);
     r.extra = Some(serde_json::json!({
         "rounds": rounds,
-        "lost_rounds": system.lost_rounds,
+        "lost_rounds": system.lost.count,
+        "late_answers": system.lost.late,
         "kinds": faults.iter().map(|f| format!("{:?}", f.kind).to_lowercase()).collect::<Vec<_>>(),
     }));
     Ok(r)

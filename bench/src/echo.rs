@@ -201,8 +201,11 @@ fn measure(
     if spec.replicas > 0 {
         row.timeout_us = Some(spec.timeout_us);
         row.faults = Some(system.faults.len() as u64);
-        if system.lost_rounds > 0 {
-            row.extra = Some(serde_json::json!({ "lost_rounds": system.lost_rounds }));
+        if system.lost.count > 0 || system.lost.late > 0 {
+            row.extra = Some(serde_json::json!({
+                "lost_rounds": system.lost.count,
+                "late_answers": system.lost.late,
+            }));
         }
     }
     Ok(row)

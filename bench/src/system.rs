@@ -143,6 +143,46 @@ pub struct Spec {
 
 /// Name of the component in plans and events.
 const COMPONENT: &str = "bench";
+/// Lost rounds whose frames are kept to recognise their answers arriving late.
+const LOST_FRAMES_KEPT: usize = 8;
+
+/// The rounds [`System::echo_round`] gave up on: every replica of the round was blamed, so the
+/// voter withholds the answer, the bench waits for the replacements and goes on. A fault
+/// stamped after the round was sent can still belong to the round before, though, and then
+/// the voter may have had a majority after all: that answer comes during a later round. It is
+/// recognised by its frame (every round's differs) and counted late, not taken for a wrong
+/// answer to the round being waited for.
+#[derive(Debug, Default)]
+pub struct LostRounds {
+    /// Rounds given up on and not answered since.
+    pub count: u64,
+    /// Rounds given up on whose answer came later.
+    pub late: u64,
+    /// The frames of the latest rounds given up on, oldest first.
+    frames: std::collections::VecDeque<Vec<u8>>,
+}
+
+impl LostRounds {
+    /// The round of `frame` is given up on.
+    pub fn lose(&mut self, frame: &[u8]) {
+        self.count += 1;
+        if self.frames.len() == LOST_FRAMES_KEPT {
+            self.frames.pop_front();
+        }
+        self.frames.push_back(frame.to_vec());
+    }
+
+    /// Whether `reply` is the answer to a round given up on (then counted late, once).
+    pub fn answered_late(&mut self, reply: &[u8]) -> bool {
+        let Some(k) = self.frames.iter().position(|f| f == reply) else {
+            return false;
+        };
+        self.frames.remove(k);
+        self.count -= 1;
+        self.late += 1;
+        true
+    }
+}
 
 /// A running system with the bench holding its input and output.
 pub struct System {
@@ -159,8 +199,9 @@ pub struct System {
     pub faults: Vec<Event>,
     /// Every event in arrival order (kept for the subcommands that need them).
     pub log: Vec<Event>,
-    /// Rounds whose answer the voter withheld (every replica found faulty in the round).
-    pub lost_rounds: u64,
+    /// Rounds whose answer the voter withheld (every replica found faulty in the round), and
+    /// those of them answered late after all.
+    pub lost: LostRounds,
     group_slot: Option<usize>,
     workdir: tempfile::TempDir,
     reaped: bool,
@@ -304,7 +345,7 @@ impl System {
             events_thread,
             faults: Vec::new(),
             log: Vec::new(),
-            lost_rounds: 0,
+            lost: LostRounds::default(),
             group_slot,
             workdir,
             reaped: false,
@@ -476,6 +517,9 @@ impl System {
                 Ok(reply) => {
                     let at = rsys::monotonic_ns();
                     if reply != frame {
+                        if self.lost.answered_late(reply) {
+                            continue;
+                        }
                         bail!(
                             "the answer ({} bytes) is not the frame ({} bytes)",
                             reply.len(),
@@ -493,7 +537,7 @@ impl System {
                         .filter_map(|e| e.replica)
                         .fold(0u64, |set, r| set | 1 << r);
                     if blamed.count_ones() as usize >= n {
-                        self.lost_rounds += 1;
+                        self.lost.lose(frame);
                         for slot in 0..n {
                             self.wait_event_since(
                                 |e| e.replica == Some(slot) && e.kind == EventKind::Recovery,
@@ -787,6 +831,33 @@ impl Setup {
 mod tests {
     use super::*;
     use crate::elf::tests::elf;
+
+    #[test]
+    fn a_lost_rounds_answer_arriving_later_is_counted_late_once() {
+        let mut lost = LostRounds::default();
+        lost.lose(b"round 7");
+        lost.lose(b"round 9");
+        assert_eq!((lost.count, lost.late), (2, 0));
+        // Not the answer to a lost round: a wrong answer, for the caller to report.
+        assert!(!lost.answered_late(b"round 8"));
+        assert!(lost.answered_late(b"round 7"));
+        assert_eq!((lost.count, lost.late), (1, 1));
+        // The same answer twice is a wrong answer the second time.
+        assert!(!lost.answered_late(b"round 7"));
+        assert!(lost.answered_late(b"round 9"));
+        assert_eq!((lost.count, lost.late), (0, 2));
+    }
+
+    #[test]
+    fn only_the_latest_lost_rounds_are_remembered() {
+        let mut lost = LostRounds::default();
+        for k in 0..=LOST_FRAMES_KEPT {
+            lost.lose(format!("round {k}").as_bytes());
+        }
+        assert_eq!(lost.count, LOST_FRAMES_KEPT as u64 + 1);
+        assert!(!lost.answered_late(b"round 0"));
+        assert!(lost.answered_late(format!("round {LOST_FRAMES_KEPT}").as_bytes()));
+    }
 
     /// A folder of components as `Bins` sees it: each `(name, contents)` written there.
     fn bins_with(files: &[(&str, &[u8])]) -> (tempfile::TempDir, Bins) {
