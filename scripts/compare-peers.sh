@@ -177,11 +177,11 @@ done
 # 4 KiB, and run as compare.sh runs limits (SCHED_RR 60, unpinned), each repetition followed by
 # s3res's restart over the same sizes, so that the ratios of every size are of one run.
 if [ "${SKIP_RECOVERY:-0}" != 1 ]; then
-  sed -e 's/m\[o\]=m\[o\];/((volatile char*)m)[o]=m[o];/' \
-      -e 's/long kbs\[\]={256,/long kbs[]={4,256,/' -e 's/k<4;k++/k<5;k++/' \
+  with_4k=(-e 's/long kbs\[\]={256,/long kbs[]={4,256,/' -e 's/k<4;k++/k<5;k++/')
+  sed "${with_4k[@]}" -e 's/m\[o\]=m\[o\];/((volatile char*)m)[o]=m[o];/' \
       "$PEERS/c-floor/limits.c" > "$RES/limits-written.c"
-  sed -e 's/for(long o=0;o<sz;o+=pg)m\[o\]=m\[o\];/if(madvise((char*)((long)m\&-pg),sz+((long)m\&(pg-1)),23))kill(getppid(),9);/' \
-      -e 's/long kbs\[\]={256,/long kbs[]={4,256,/' -e 's/k<4;k++/k<5;k++/' \
+  sed "${with_4k[@]}" \
+      -e 's/for(long o=0;o<sz;o+=pg)m\[o\]=m\[o\];/if(madvise((char*)((long)m\&-pg),sz+((long)m\&(pg-1)),23))kill(getppid(),9);/' \
       "$PEERS/c-floor/limits.c" > "$RES/limits-populate.c"
   for v in written populate; do
     grep -q 'kbs\[\]={4,' "$RES/limits-$v.c" && ! grep -q 'm\[o\]=m\[o\];' "$RES/limits-$v.c" ||

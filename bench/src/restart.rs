@@ -70,13 +70,13 @@ pub fn run(
         let mut extra = extra;
         if let Some(map) = extra.as_object_mut() {
             map.insert("gap_ms".into(), (gap.as_millis() as u64).into());
-        }
-        if let (Some(f), Some(map)) = (floor_madvise, extra.as_object_mut()) {
-            map.insert("floor_madvise_us".into(), f.median_us.into());
-            map.insert(
-                "ratio_madvise".into(),
-                (restart.median_us / f.median_us).into(),
-            );
+            if let Some(f) = floor_madvise {
+                map.insert("floor_madvise_us".into(), f.median_us.into());
+                map.insert(
+                    "ratio_madvise".into(),
+                    (restart.median_us / f.median_us).into(),
+                );
+            }
         }
         row.extra = Some(extra);
         rows.push(row);
