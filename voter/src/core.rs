@@ -31,9 +31,8 @@ use crate::monitor::{Captures, Monitors};
 use crate::park::ParkingLot;
 use crate::plan::{Framing, Mode as PlanMode, VoterPlan};
 use crate::ports::{
-    beat, heartbeat_ending, kill_all_children, reap_children, stop_requested, wait_until,
-    write_event, Endpoints, ExternalInput, ExternalOutput, PollSet, Token, WakeTimer,
-    HEARTBEAT_PERIOD,
+    beat, heartbeat_ending, kill_all_children, reap_children, stop_requested, write_event,
+    Endpoints, ExternalInput, ExternalOutput, PollSet, Token, WakeTimer, HEARTBEAT_PERIOD,
 };
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
 use crate::replica::Replica;
@@ -1318,7 +1317,7 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     m.core().timer.wake_by(wake)?;
     beat();
     m.core().poll.seal();
-    let ready = wait_until(&mut m.core().poll.fds, None)?;
+    let ready = m.core().poll.wait()?;
     for out in &mut m.core().outputs {
         if out.writer.waiting_for_room() {
             out.flush();

@@ -133,10 +133,17 @@ pub(crate) enum Token {
 /// times. The epoll instance is made afresh whenever the quiet set changes (a replica
 /// replaced, a stderr pipe closed): a new instance holds no registration of a file that an
 /// old fd number once named, so no stale event can reach a new replica's slot.
+///
+/// **The wait itself** is an `epoll_wait` on an instance that watches exactly this set
+/// ([`WaitEpoll`]), kept from wait to wait: a steady-state loop waits on the same few sets over
+/// and over (idle for input; in a round, the replica it is waiting for), and `ppoll` would
+/// put the voter onto each fd's wait queue and take it off again on every one of them.
 #[derive(Debug, Default)]
 pub(crate) struct PollSet {
     pub(crate) fds: Vec<libc::pollfd>,
     pub(crate) tokens: Vec<Token>,
+    /// Whose fd each one is (a replica's pid; 0 for the voter's own), beside `fds`.
+    owners: Vec<libc::pid_t>,
     /// The quiet fds wanted for this wait, in dispatch order.
     quiet_wanted: Vec<QuietFd>,
     /// The epoll instance and what it holds (`None`: none made yet, or making one failed, and
@@ -149,6 +156,68 @@ pub(crate) struct PollSet {
     quiet_refused: bool,
     /// The quiet fds found ready, in dispatch order (see [`PollSet::ready_quiet`]).
     pub(crate) quiet_ready: Vec<Token>,
+    /// Epoll instances for the sets waited on lately, the most recently used last.
+    waits: Vec<WaitEpoll>,
+    /// What `epoll_wait` found, reused.
+    wait_events: Vec<EpollEvent>,
+    /// An epoll instance could not be made or waited on (reported once): every wait is a
+    /// `ppoll` from then on.
+    wait_refused: bool,
+}
+
+/// One fd of a wait as an epoll instance watches it: the instance is kept for a set only
+/// while every one of these is the same, the owner too (see [`QuietFd`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Watched {
+    fd: RawFd,
+    events: libc::c_short,
+    token: Token,
+    owner: libc::pid_t,
+}
+
+/// An epoll instance watching one set, level-triggered like `ppoll`; an event's data is the
+/// fd's index in the set, so a wait fills in the same `revents` that `ppoll` would.
+///
+/// Stale registrations cannot reach a wait: every fd of a replica is keyed by its pid, and
+/// all instances go whenever the quiet set changes (a replica replaced or gone, a pipe
+/// closed). The voter's own inputs and outputs are opened once.
+#[derive(Debug)]
+struct WaitEpoll {
+    epoll: Epoll,
+    members: Vec<Watched>,
+}
+
+/// How many sets keep their epoll instance. A TMR round on one CPU waits on the idle set and
+/// on one per replica it waits for; each instance a pipe is in costs every write to it a
+/// wake-up callback, so no more are kept than a loop uses.
+const WAIT_SETS: usize = 6;
+
+impl WaitEpoll {
+    fn new(members: &[Watched]) -> nix::Result<WaitEpoll> {
+        let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC)?;
+        for (k, w) in members.iter().enumerate() {
+            // SAFETY: `w.fd` is open: it was taken from a live object of the loop's state in
+            // this same turn of the loop, before anything could close it.
+            let fd = unsafe { BorrowedFd::borrow_raw(w.fd) };
+            let events = EpollFlags::from_bits_truncate(w.events as u16 as libc::c_int);
+            epoll.add(fd, EpollEvent::new(events, k as u64))?;
+        }
+        Ok(WaitEpoll {
+            epoll,
+            members: members.to_vec(),
+        })
+    }
+
+    fn watches(&self, fds: &[libc::pollfd], tokens: &[Token], owners: &[libc::pid_t]) -> bool {
+        self.members.len() == fds.len()
+            && self
+                .members
+                .iter()
+                .zip(fds.iter().zip(tokens).zip(owners))
+                .all(|(w, ((p, &token), &owner))| {
+                    w.fd == p.fd && w.events == p.events && w.token == token && w.owner == owner
+                })
+    }
 }
 
 /// A quiet fd, with the token it stands for and the pid of the replica it belongs to (0 for
@@ -183,13 +252,14 @@ impl QuietSet {
 }
 
 impl PollSet {
-    fn add(&mut self, fd: RawFd, events: libc::c_short, token: Token) {
+    fn add(&mut self, fd: RawFd, events: libc::c_short, token: Token, owner: libc::pid_t) {
         self.fds.push(libc::pollfd {
             fd,
             events,
             revents: 0,
         });
         self.tokens.push(token);
+        self.owners.push(owner);
     }
 
     fn add_quiet(&mut self, fd: RawFd, token: Token, owner: libc::pid_t) {
@@ -209,6 +279,8 @@ impl PollSet {
             let n = self.quiet_wanted.len().max(1);
             self.quiet_events.resize(n, EpollEvent::empty());
             self.quiet_ready.reserve(n);
+            // Every wait instance holds the old quiet instance, or fds of a replica now gone.
+            self.waits.clear();
             self.quiet = match QuietSet::new(&self.quiet_wanted) {
                 Ok(set) => Some(set),
                 Err(e) => {
@@ -227,12 +299,97 @@ impl PollSet {
             Some(q) => {
                 self.fds.insert(0, pollfd(q.epoll.0.as_raw_fd()));
                 self.tokens.insert(0, Token::Quiet);
+                self.owners.insert(0, 0);
             }
             None => {
                 for (k, q) in self.quiet_wanted.iter().enumerate() {
                     self.fds.insert(k, pollfd(q.fd));
                     self.tokens.insert(k, q.token);
+                    self.owners.insert(k, q.owner);
                 }
+            }
+        }
+    }
+
+    /// Waits until something in the (sealed) set is ready, with no time limit (the wake
+    /// timer bounds it); fills in `revents` and returns how many fds are ready, 0 if a signal
+    /// interrupted the wait.
+    pub(crate) fn wait(&mut self) -> Result<usize, VoterError> {
+        if let Some(k) = self.wait_epoll() {
+            self.wait_events.resize(self.fds.len(), EpollEvent::empty());
+            match self.waits[k]
+                .epoll
+                .wait(&mut self.wait_events, EpollTimeout::NONE)
+            {
+                Ok(n) => {
+                    for p in &mut self.fds {
+                        p.revents = 0;
+                    }
+                    for e in &self.wait_events[..n] {
+                        // EPOLLIN, EPOLLOUT, EPOLLERR and EPOLLHUP are POLLIN, POLLOUT,
+                        // POLLERR and POLLHUP: the same bits.
+                        self.fds[e.data() as usize].revents = e.events().bits() as libc::c_short;
+                    }
+                    return Ok(n);
+                }
+                Err(nix::errno::Errno::EINTR) => {
+                    for p in &mut self.fds {
+                        p.revents = 0;
+                    }
+                    return Ok(0);
+                }
+                Err(e) => {
+                    tracing::warn!("epoll_wait: {e}; waiting with ppoll from now on");
+                    self.waits.clear();
+                    self.wait_refused = true;
+                }
+            }
+        }
+        wait_until(&mut self.fds, None)
+    }
+
+    /// The index in `waits` of the instance that watches the set as it is now, made if
+    /// there is none (the least recently used one goes); `None`: wait with `ppoll`.
+    fn wait_epoll(&mut self) -> Option<usize> {
+        if self.wait_refused {
+            return None;
+        }
+        let (fds, tokens, owners) = (&self.fds, &self.tokens, &self.owners);
+        if let Some(k) = self
+            .waits
+            .iter()
+            .position(|w| w.watches(fds, tokens, owners))
+        {
+            // Most recently used last; a steady loop finds its sets at the end at once.
+            let last = self.waits.len() - 1;
+            if k != last {
+                let w = self.waits.remove(k);
+                self.waits.push(w);
+            }
+            return Some(last);
+        }
+        let members: Vec<Watched> = (self.fds.iter().zip(tokens).zip(owners))
+            .map(|((p, &token), &owner)| Watched {
+                fd: p.fd,
+                events: p.events,
+                token,
+                owner,
+            })
+            .collect();
+        match WaitEpoll::new(&members) {
+            Ok(w) => {
+                if self.waits.len() == WAIT_SETS {
+                    self.waits.remove(0);
+                }
+                self.waits.push(w);
+                Some(self.waits.len() - 1)
+            }
+            Err(e) => {
+                // A regular file, say, which epoll refuses and `ppoll` takes.
+                tracing::warn!("epoll for the wait: {e}; waiting with ppoll from now on");
+                self.waits.clear();
+                self.wait_refused = true;
+                None
             }
         }
     }
@@ -273,6 +430,7 @@ impl PollSet {
     ) {
         self.fds.clear();
         self.tokens.clear();
+        self.owners.clear();
         self.quiet_wanted.clear();
         self.add_quiet(signals.as_raw_fd(), Token::Signal, 0);
         self.add_quiet(timer.fd.as_fd().as_raw_fd(), Token::Timer, 0);
@@ -283,6 +441,7 @@ impl PollSet {
                     input.reader.as_fd().as_raw_fd(),
                     libc::POLLIN,
                     Token::Input(i),
+                    0,
                 );
             }
         }
@@ -293,6 +452,7 @@ impl PollSet {
                     output.writer.as_fd().as_raw_fd(),
                     libc::POLLOUT,
                     Token::OutputWritable(o),
+                    0,
                 );
             }
         }
@@ -316,6 +476,7 @@ impl PollSet {
                     out.as_fd().as_raw_fd(),
                     libc::POLLIN,
                     Token::ReplicaOutput(r, o),
+                    rep.pid,
                 );
             }
         }
@@ -323,7 +484,12 @@ impl PollSet {
             self.add_quiet(fd.as_raw_fd(), Token::ReplicaStderr(r), rep.pid);
         }
         if let Some(fd) = rep.start_pipe.as_ref() {
-            self.add(fd.as_raw_fd(), libc::POLLIN, Token::ReplicaStarted(r));
+            self.add(
+                fd.as_raw_fd(),
+                libc::POLLIN,
+                Token::ReplicaStarted(r),
+                rep.pid,
+            );
         }
         for (i, input) in rep.inputs.iter().enumerate() {
             if input.writer.has_pending() {
@@ -331,6 +497,7 @@ impl PollSet {
                     input.writer.as_fd().as_raw_fd(),
                     libc::POLLOUT,
                     Token::ReplicaInputWritable(r, i),
+                    rep.pid,
                 );
             }
         }
@@ -788,5 +955,132 @@ mod tests {
         );
         sys::write(w3.as_fd(), b"y").unwrap();
         assert_eq!(quiet_ready(&mut set), [Token::ReplicaStderr(1)]);
+    }
+
+    /// One wait on `(fd, token, owner)`s (each watched for input), as the loop makes it: the
+    /// ready tokens, and the wait instance's fd.
+    fn wait_on(set: &mut PollSet, fds: &[(RawFd, Token, libc::pid_t)]) -> (Vec<Token>, RawFd) {
+        set.fds.clear();
+        set.tokens.clear();
+        set.owners.clear();
+        set.quiet_wanted.clear();
+        for &(fd, token, owner) in fds {
+            set.add(fd, libc::POLLIN, token, owner);
+        }
+        set.seal();
+        let n = set.wait().unwrap();
+        let ready: Vec<Token> = (set.fds.iter().zip(&set.tokens))
+            .filter(|(p, _)| p.revents != 0)
+            .map(|(_, &t)| t)
+            .collect();
+        assert_eq!(ready.len(), n, "as many ready as the wait said");
+        let epoll = set
+            .waits
+            .last()
+            .expect("waited with epoll")
+            .epoll
+            .0
+            .as_raw_fd();
+        (ready, epoll)
+    }
+
+    #[test]
+    fn a_wait_sees_what_ppoll_sees_and_never_a_replaced_owners_old_pipe() {
+        let (in_r, in_w) = sys::pipe().unwrap();
+        let (out_r, out_w) = sys::pipe().unwrap();
+        let mut set = PollSet::default();
+        let input = (in_r.as_raw_fd(), Token::Input(0), 0);
+        let answer = |fd: &OwnedFd, pid| (fd.as_raw_fd(), Token::ReplicaOutput(0, 0), pid);
+
+        sys::write(in_w.as_fd(), b"i").unwrap();
+        let (ready, idle) = wait_on(&mut set, &[input, answer(&out_r, 100)]);
+        assert_eq!(ready, [Token::Input(0)]);
+        let mut buf = [0u8; 8];
+        sys::read(in_r.as_fd(), &mut buf).unwrap();
+
+        // In a round: only the replica's pipe, a set of its own.
+        sys::write(out_w.as_fd(), b"a").unwrap();
+        let (ready, round) = wait_on(&mut set, &[answer(&out_r, 100)]);
+        assert_eq!(ready, [Token::ReplicaOutput(0, 0)]);
+        assert_ne!(round, idle, "another set, another instance");
+        sys::read(out_r.as_fd(), &mut buf).unwrap();
+
+        // Idle again: the same instance, level-triggered as ppoll is (the input was written
+        // while it was not waited on).
+        sys::write(in_w.as_fd(), b"j").unwrap();
+        let (ready, again) = wait_on(&mut set, &[input, answer(&out_r, 100)]);
+        assert_eq!(ready, [Token::Input(0)]);
+        assert_eq!(again, idle, "an unchanged set keeps its instance");
+        let (ready, _) = wait_on(&mut set, &[input, answer(&out_r, 100)]);
+        assert_eq!(ready, [Token::Input(0)], "still there: nothing read it");
+        sys::read(in_r.as_fd(), &mut buf).unwrap();
+
+        // The writer ends: a hang-up, as ppoll reports it, though only input was asked for.
+        drop(in_w);
+        let (ready, _) = wait_on(&mut set, &[input, answer(&out_r, 100)]);
+        assert_eq!(ready, [Token::Input(0)]);
+        let k = set
+            .tokens
+            .iter()
+            .position(|&t| t == Token::Input(0))
+            .unwrap();
+        assert_ne!(set.fds[k].revents & libc::POLLHUP, 0);
+
+        // The replica is replaced: its pipe closes and a new one comes under the same number.
+        // The old pipe lives on elsewhere (as a parked copy would), so the old instances keep
+        // its registration; a new owner means a new instance, which watches the new pipe.
+        let _parked = out_r.try_clone().unwrap();
+        let (fresh_r, new_w) = sys::pipe().unwrap();
+        let mut new_r = out_r;
+        nix::unistd::dup2(&fresh_r, &mut new_r).unwrap();
+        drop(fresh_r);
+        sys::write(out_w.as_fd(), b"old").unwrap();
+        // The old pipe is ready, the new one is not: the wait must last until the new one is
+        // written (a stale instance would return at once, for the old pipe).
+        let written = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let writer = std::thread::spawn({
+            let written = written.clone();
+            move || {
+                std::thread::sleep(Duration::from_millis(100));
+                written.store(true, std::sync::atomic::Ordering::SeqCst);
+                sys::write(new_w.as_fd(), b"new").unwrap();
+            }
+        });
+        let (ready, replaced) = wait_on(&mut set, &[answer(&new_r, 200)]);
+        assert!(
+            written.load(std::sync::atomic::Ordering::SeqCst),
+            "the wait returned for the replaced replica's old pipe"
+        );
+        writer.join().unwrap();
+        assert_eq!(ready, [Token::ReplicaOutput(0, 0)]);
+        assert_ne!(replaced, round, "a new owner, a new instance");
+        let mut got = [0u8; 8];
+        let n = sys::read(new_r.as_fd(), &mut got).unwrap();
+        assert_eq!(&got[..n], b"new");
+    }
+
+    #[test]
+    fn no_more_wait_instances_are_kept_than_a_loop_uses() {
+        let pipes: Vec<(OwnedFd, OwnedFd)> =
+            (0..WAIT_SETS + 2).map(|_| sys::pipe().unwrap()).collect();
+        for (_, w) in &pipes {
+            sys::write(w.as_fd(), b"x").unwrap();
+        }
+        let mut set = PollSet::default();
+        for (k, (r, _)) in pipes.iter().enumerate() {
+            let (ready, _) = wait_on(&mut set, &[(r.as_raw_fd(), Token::Input(k), 0)]);
+            assert_eq!(ready, [Token::Input(k)]);
+            assert!(set.waits.len() <= WAIT_SETS);
+        }
+        assert_eq!(set.waits.len(), WAIT_SETS);
+        // The first sets went, the most recent stayed.
+        let newest = pipes.last().unwrap().0.as_raw_fd();
+        // The quiet instance is the first member of every set, the pipe the last.
+        let pipe_of = |w: &WaitEpoll| w.members.last().unwrap().fd;
+        assert_eq!(pipe_of(set.waits.last().unwrap()), newest);
+        assert!(set
+            .waits
+            .iter()
+            .all(|w| pipe_of(w) != pipes[0].0.as_raw_fd()));
     }
 }
