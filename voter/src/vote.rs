@@ -49,10 +49,36 @@ impl ReplicaSet {
     pub fn minus(self, other: ReplicaSet) -> Self {
         ReplicaSet(self.0 & !other.0)
     }
-    pub fn iter(self) -> impl Iterator<Item = usize> {
-        (0..MAX_REPLICAS).filter(move |&i| self.contains(i))
+    /// The members, lowest first.
+    pub fn iter(self) -> Members {
+        Members(self.0)
     }
 }
+
+/// The members of a [`ReplicaSet`], lowest first: one step per member, not per possible slot
+/// (the voter walks these sets several times for every answer).
+#[derive(Debug, Clone)]
+pub struct Members(u32);
+
+impl Iterator for Members {
+    type Item = usize;
+
+    fn next(&mut self) -> Option<usize> {
+        if self.0 == 0 {
+            return None;
+        }
+        let lowest = self.0.trailing_zeros() as usize;
+        self.0 &= self.0 - 1;
+        Some(lowest)
+    }
+
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        let n = self.0.count_ones() as usize;
+        (n, Some(n))
+    }
+}
+
+impl ExactSizeIterator for Members {}
 
 impl fmt::Debug for ReplicaSet {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -223,6 +249,17 @@ mod tests {
     }
 
     #[test]
+    fn a_set_lists_its_members_lowest_first() {
+        assert_eq!(ReplicaSet::EMPTY.iter().count(), 0);
+        assert_eq!(
+            set(&[2, 0, 31, 5]).iter().collect::<Vec<_>>(),
+            [0, 2, 5, 31]
+        );
+        assert_eq!(ReplicaSet::first(32).iter().len(), 32);
+        assert_eq!(ReplicaSet::first(3).iter().collect::<Vec<_>>(), [0, 1, 2]);
+    }
+
+    #[test]
     fn tmr_two_agree_before_the_third_answers() {
         let answers = [a("x"), a("x"), None];
         assert_eq!(
@@ -354,6 +391,17 @@ mod tests {
             bitwise_majority(&[Some(good), Some(other), Some(other2)], all),
             None
         );
+    }
+
+    proptest! {
+        /// Walking the set bits is walking every slot and keeping the members.
+        #[test]
+        fn members_are_the_slots_the_set_contains(bits in any::<u32>()) {
+            let s = ReplicaSet(bits);
+            let slots: Vec<usize> = (0..MAX_REPLICAS).filter(|&i| s.contains(i)).collect();
+            prop_assert_eq!(s.iter().collect::<Vec<_>>(), slots);
+            prop_assert_eq!(s.iter().len(), s.len());
+        }
     }
 
     proptest! {
