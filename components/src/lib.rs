@@ -83,14 +83,17 @@ impl Echo {
         }
     }
 
-    /// The answer to `frame`; counts it as answered.
-    pub fn answer(&mut self, frame: &[u8]) -> &[u8] {
-        self.buf.clear();
-        if self.stateful {
-            self.buf.extend_from_slice(&self.answered.to_le_bytes());
-        }
-        self.buf.extend_from_slice(frame);
+    /// The answer to `frame`; counts it as answered. Without the state prefix that is
+    /// `frame` itself, sent from where the runtime received it (no copy, as a C echo does).
+    pub fn answer<'a>(&'a mut self, frame: &'a [u8]) -> &'a [u8] {
         self.answered = self.answered.wrapping_add(1);
+        if !self.stateful {
+            return frame;
+        }
+        self.buf.clear();
+        self.buf
+            .extend_from_slice(&(self.answered - 1).to_le_bytes());
+        self.buf.extend_from_slice(frame);
         &self.buf
     }
 }
