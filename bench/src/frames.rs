@@ -71,13 +71,16 @@ impl FrameOut {
     pub fn send(&mut self, payload: &[u8], timeout: Duration) -> Result<(), FrameIoError> {
         self.buf.encode(payload);
         let frame = self.buf.as_slice();
-        let deadline = Instant::now() + timeout;
+        // Read off the clock only if the pipe is full: a round trip's clock reads are the
+        // bench's two timestamps, as in the peers' harnesses.
+        let mut deadline = None;
         let mut done = 0;
         while done < frame.len() {
             match sys::write(self.fd.as_fd(), &frame[done..]) {
                 Ok(n) => done += n,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    wait(&self.fd, libc::POLLOUT, deadline).map_err(|e| match e {
+                    let by = *deadline.get_or_insert_with(|| Instant::now() + timeout);
+                    wait(&self.fd, libc::POLLOUT, by).map_err(|e| match e {
                         FrameIoError::Timeout(_) => FrameIoError::Timeout(timeout),
                         e => e,
                     })?
@@ -138,10 +141,16 @@ impl FrameIn {
     /// The next whole frame's payload, waiting up to `timeout` (and at most
     /// [`read_deadline::WATCHDOG_PERIOD`] more).
     pub fn recv(&mut self, timeout: Duration) -> Result<&[u8], FrameIoError> {
-        let timeout_ns = timeout.as_nanos().min(u64::MAX as u128) as u64;
-        let deadline = read_deadline::Armed::new(
-            s3res_protocol::clock::monotonic_ns().saturating_add(timeout_ns),
-        )?;
+        let by = s3res_protocol::clock::monotonic_ns().saturating_add(nanos(timeout));
+        self.recv_by(by, timeout)
+    }
+
+    /// [`recv`](Self::recv) until `by` (CLOCK_MONOTONIC ns; `timeout` is what a timeout
+    /// reports): for a caller that has just read the clock, so that the wait reads it only
+    /// once a read is interrupted.
+    pub fn recv_by(&mut self, by: u64, timeout: Duration) -> Result<&[u8], FrameIoError> {
+        let deadline = read_deadline::Armed::new(by)?;
+        let mut first = true;
         loop {
             if let Some(len) = self.whole_frame()? {
                 let at = self.start + 4;
@@ -157,9 +166,11 @@ impl FrameIn {
             if crate::sys::interrupted() {
                 return Err(FrameIoError::Interrupted);
             }
-            if deadline.expired() {
+            // Before the first read the deadline is ahead (the caller just set it).
+            if !first && deadline.expired() {
                 return Err(FrameIoError::Timeout(timeout));
             }
+            first = false;
             // One blocking read, as the peers' harnesses wait: no `ppoll` (and its timer)
             // before it. The watchdog interrupts it once the deadline has passed.
             match read_deadline::read(self.fd.as_fd(), &mut self.buf[self.end..]) {
@@ -176,6 +187,11 @@ impl FrameIn {
             }
         }
     }
+}
+
+/// `d` in nanoseconds, saturated.
+pub fn nanos(d: Duration) -> u64 {
+    d.as_nanos().min(u64::MAX as u128) as u64
 }
 
 #[cfg(test)]

@@ -27,7 +27,7 @@ use replica_rt::sys as rsys;
 use s3res_protocol::event::{Event, EventKind};
 use s3res_protocol::plan::{ExternalPort, RoundTrigger, VoterPlan};
 
-use crate::frames::{FrameIn, FrameIoError, FrameOut};
+use crate::frames::{nanos, FrameIn, FrameIoError, FrameOut};
 use crate::sys;
 
 /// Where the s3res executables are.
@@ -496,24 +496,28 @@ impl System {
     }
 
     /// Writes `frame`, waits for the answer and checks that it equals `frame` (an echo).
-    /// Returns the time the answer had arrived, or `None` if the voter withheld it because every
+    /// Returns the round trip (ns from just before the write to just after the read that
+    /// completed the answer), or `None` if the voter withheld it because every
     /// replica of the round was found faulty (under heavy load all of them can miss a short
     /// deadline): then it waits for their replacements, counts a lost round, and goes on.
     pub fn echo_round(&mut self, frame: &[u8], limit: Duration) -> Result<Option<u64>> {
+        // Between the two timestamps only what the peers' harnesses do between theirs: one
+        // write and the reads of the answer. Deadlines are reckoned from `sent_at`.
         let sent_at = rsys::monotonic_ns();
-        let dir = self.workdir.path().to_path_buf();
+        let workdir = &self.workdir;
         self.input
             .send(frame, limit)
-            .map_err(|e| anyhow!("sending a frame: {e}\n{}", log_tail(&dir)))?;
-        let deadline = Instant::now() + limit;
+            .map_err(|e| anyhow!("sending a frame: {e}\n{}", log_tail(workdir.path())))?;
+        let deadline = sent_at.saturating_add(nanos(limit));
         let n = self.replicas.len();
+        let wait = if n == 0 {
+            limit
+        } else {
+            Duration::from_millis(20)
+        };
+        let mut wait_until = sent_at.saturating_add(nanos(wait)).min(deadline);
         loop {
-            let wait = if n == 0 {
-                limit
-            } else {
-                Duration::from_millis(20)
-            };
-            match self.output.recv(wait) {
+            match self.output.recv_by(wait_until, wait) {
                 Ok(reply) => {
                     let at = rsys::monotonic_ns();
                     if reply != frame {
@@ -526,9 +530,10 @@ impl System {
                             frame.len()
                         );
                     }
-                    return Ok(Some(at));
+                    return Ok(Some(at - sent_at));
                 }
-                Err(FrameIoError::Timeout(_)) if n > 0 && Instant::now() < deadline => {
+                Err(FrameIoError::Timeout(_)) if n > 0 && rsys::monotonic_ns() < deadline => {
+                    wait_until = rsys::monotonic_ns().saturating_add(nanos(wait));
                     self.drain_events()?;
                     let blamed = self
                         .faults
