@@ -163,6 +163,9 @@ pub(crate) struct PollSet {
     /// An epoll instance could not be made or waited on (reported once): every wait is a
     /// `ppoll` from then on.
     wait_refused: bool,
+    /// Instances made, and waits, in the current window of [`CHURN_WINDOW`] waits.
+    made_in_window: u32,
+    waits_in_window: u32,
 }
 
 /// One fd of a wait as an epoll instance watches it: the instance is kept for a set only
@@ -191,6 +194,12 @@ struct WaitEpoll {
 /// on one per replica it waits for; each instance a pipe is in costs every write to it a
 /// wake-up callback, so no more are kept than a loop uses.
 const WAIT_SETS: usize = 6;
+
+/// A loop that goes round more sets than are kept would make an instance (one system call per
+/// fd) at most waits: at most [`MADE_PER_WINDOW`] are made in any [`CHURN_WINDOW`] waits, and
+/// a set without one waits with `ppoll`, as it did before there were instances.
+const CHURN_WINDOW: u32 = 256;
+const MADE_PER_WINDOW: u32 = 8;
 
 impl WaitEpoll {
     fn new(members: &[Watched]) -> nix::Result<WaitEpoll> {
@@ -354,6 +363,11 @@ impl PollSet {
         if self.wait_refused {
             return None;
         }
+        self.waits_in_window += 1;
+        if self.waits_in_window > CHURN_WINDOW {
+            self.waits_in_window = 1;
+            self.made_in_window = 0;
+        }
         let (fds, tokens, owners) = (&self.fds, &self.tokens, &self.owners);
         if let Some(k) = self
             .waits
@@ -368,6 +382,10 @@ impl PollSet {
             }
             return Some(last);
         }
+        if self.made_in_window == MADE_PER_WINDOW {
+            return None;
+        }
+        self.made_in_window += 1;
         let members: Vec<Watched> = (self.fds.iter().zip(tokens).zip(owners))
             .map(|((p, &token), &owner)| Watched {
                 fd: p.fd,
@@ -1057,6 +1075,44 @@ mod tests {
         let mut got = [0u8; 8];
         let n = sys::read(new_r.as_fd(), &mut got).unwrap();
         assert_eq!(&got[..n], b"new");
+    }
+
+    #[test]
+    fn a_loop_that_churns_through_sets_waits_with_ppoll() {
+        let pipes: Vec<(OwnedFd, OwnedFd)> = (0..MADE_PER_WINDOW + 4)
+            .map(|_| sys::pipe().unwrap())
+            .collect();
+        for (_, w) in &pipes {
+            sys::write(w.as_fd(), b"x").unwrap();
+        }
+        let mut set = PollSet::default();
+        let mut made = Vec::new();
+        for (k, (r, _)) in pipes.iter().enumerate() {
+            set.fds.clear();
+            set.tokens.clear();
+            set.owners.clear();
+            set.add(r.as_raw_fd(), libc::POLLIN, Token::Input(k), 0);
+            set.seal();
+            let before = set.waits.last().map(|w| w.epoll.0.as_raw_fd());
+            assert_eq!(set.wait().unwrap(), 1);
+            assert_ne!(
+                set.fds.last().unwrap().revents,
+                0,
+                "set {k}: the pipe is ready"
+            );
+            made.push(set.waits.last().map(|w| w.epoll.0.as_raw_fd()) != before);
+        }
+        // Each set was new: the first ones got an instance, the rest of the window waits with
+        // ppoll (and still sees what is ready).
+        let expected: Vec<bool> = (0..pipes.len())
+            .map(|k| k < MADE_PER_WINDOW as usize)
+            .collect();
+        assert_eq!(made, expected);
+        // A new window makes instances again.
+        set.waits_in_window = CHURN_WINDOW;
+        let (ready, _) = wait_on(&mut set, &[(pipes[0].0.as_raw_fd(), Token::Input(0), 0)]);
+        assert_eq!(ready, [Token::Input(0)]);
+        assert_eq!(set.made_in_window, 1);
     }
 
     #[test]
