@@ -140,7 +140,10 @@ pub(crate) fn clear_pending() {
 
 /// Applies an armed variable-level request to `payload` and empties the table.
 fn apply_var(port: &str, payload: &mut [u8]) {
-    if !VAR_ARMED.swap(false, Ordering::SeqCst) {
+    // Looked at before it is taken: a load is a plain read, a swap a locked one on every
+    // frame sent. A request armed between the two is taken by the swap; one armed after it
+    // waits for the next frame, as it would have after a swap alone.
+    if !VAR_ARMED.load(Ordering::SeqCst) || !VAR_ARMED.swap(false, Ordering::SeqCst) {
         return;
     }
     // While the table is emptied, a new request must not be half taken: hold the signal.
@@ -190,6 +193,10 @@ pub fn injection_pending() -> bool {
 /// Applies a pending SDC injection to `payload` (the outgoing copy), logging what was done.
 pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
     apply_var(port, payload);
+    // As for VAR_ARMED: read first, taken only if there is something to take.
+    if PENDING_SDC.load(Ordering::SeqCst) == NONE {
+        return;
+    }
     let req = PENDING_SDC.swap(NONE, Ordering::SeqCst);
     if req == NONE {
         return;
