@@ -184,11 +184,17 @@ struct Watched {
 /// Stale registrations cannot reach a wait: every fd of a replica is keyed by its pid, and
 /// all instances go whenever the quiet set changes (a replica replaced or gone, a pipe
 /// closed). The voter's own inputs and outputs are opened once.
+///
+/// Its members sit in an array, so that making one in a steady loop allocates nothing.
 #[derive(Debug)]
 struct WaitEpoll {
     epoll: Epoll,
-    members: Vec<Watched>,
+    members: [Watched; WAIT_SET_FDS],
+    len: usize,
 }
+
+/// The most fds a set with an instance has; a larger set waits with `ppoll`.
+const WAIT_SET_FDS: usize = 24;
 
 /// How many sets keep their epoll instance. A TMR round on one CPU waits on the idle set and
 /// on one per replica it waits for; each instance a pipe is in costs every write to it a
@@ -202,25 +208,48 @@ const CHURN_WINDOW: u32 = 256;
 const MADE_PER_WINDOW: u32 = 8;
 
 impl WaitEpoll {
-    fn new(members: &[Watched]) -> nix::Result<WaitEpoll> {
+    /// An instance for the set `fds` (at most [`WAIT_SET_FDS`]), with their tokens and owners.
+    fn new(
+        fds: &[libc::pollfd],
+        tokens: &[Token],
+        owners: &[libc::pid_t],
+    ) -> nix::Result<WaitEpoll> {
         let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC)?;
-        for (k, w) in members.iter().enumerate() {
-            // SAFETY: `w.fd` is open: it was taken from a live object of the loop's state in
+        let unused = Watched {
+            fd: -1,
+            events: 0,
+            token: Token::Quiet,
+            owner: 0,
+        };
+        let mut members = [unused; WAIT_SET_FDS];
+        for (k, ((p, &token), &owner)) in fds.iter().zip(tokens).zip(owners).enumerate() {
+            // SAFETY: `p.fd` is open: it was taken from a live object of the loop's state in
             // this same turn of the loop, before anything could close it.
-            let fd = unsafe { BorrowedFd::borrow_raw(w.fd) };
-            let events = EpollFlags::from_bits_truncate(w.events as u16 as libc::c_int);
+            let fd = unsafe { BorrowedFd::borrow_raw(p.fd) };
+            let events = EpollFlags::from_bits_truncate(p.events as u16 as libc::c_int);
             epoll.add(fd, EpollEvent::new(events, k as u64))?;
+            members[k] = Watched {
+                fd: p.fd,
+                events: p.events,
+                token,
+                owner,
+            };
         }
         Ok(WaitEpoll {
             epoll,
-            members: members.to_vec(),
+            members,
+            len: fds.len(),
         })
     }
 
+    fn members(&self) -> &[Watched] {
+        &self.members[..self.len]
+    }
+
     fn watches(&self, fds: &[libc::pollfd], tokens: &[Token], owners: &[libc::pid_t]) -> bool {
-        self.members.len() == fds.len()
+        self.len == fds.len()
             && self
-                .members
+                .members()
                 .iter()
                 .zip(fds.iter().zip(tokens).zip(owners))
                 .all(|(w, ((p, &token), &owner))| {
@@ -382,19 +411,19 @@ impl PollSet {
             }
             return Some(last);
         }
-        if self.made_in_window == MADE_PER_WINDOW {
+        if self.made_in_window == MADE_PER_WINDOW || fds.len() > WAIT_SET_FDS {
             return None;
         }
         self.made_in_window += 1;
-        let members: Vec<Watched> = (self.fds.iter().zip(tokens).zip(owners))
-            .map(|((p, &token), &owner)| Watched {
-                fd: p.fd,
-                events: p.events,
-                token,
-                owner,
-            })
-            .collect();
-        match WaitEpoll::new(&members) {
+        // Sized once for good, at the first instance, so that none made later allocates.
+        if self.waits.capacity() < WAIT_SETS {
+            self.waits.reserve_exact(WAIT_SETS - self.waits.len());
+        }
+        if self.wait_events.capacity() < WAIT_SET_FDS {
+            self.wait_events
+                .reserve_exact(WAIT_SET_FDS - self.wait_events.len());
+        }
+        match WaitEpoll::new(fds, tokens, owners) {
             Ok(w) => {
                 if self.waits.len() == WAIT_SETS {
                     self.waits.remove(0);
@@ -1132,7 +1161,7 @@ mod tests {
         // The first sets went, the most recent stayed.
         let newest = pipes.last().unwrap().0.as_raw_fd();
         // The quiet instance is the first member of every set, the pipe the last.
-        let pipe_of = |w: &WaitEpoll| w.members.last().unwrap().fd;
+        let pipe_of = |w: &WaitEpoll| w.members().last().unwrap().fd;
         assert_eq!(pipe_of(set.waits.last().unwrap()), newest);
         assert!(set
             .waits
