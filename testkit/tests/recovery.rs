@@ -158,6 +158,9 @@ fn smr_restarts_by_exec_and_says_state_was_lost() {
     let summary = sys.path("summary.json");
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 1);
+    // It has counted at least one frame: a replica killed before its first would come back
+    // counting from zero with no break to see.
+    run.wait_for_answers("echo");
 
     let pid = run.replica_pids("echo")[&0];
     s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill");
