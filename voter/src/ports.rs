@@ -355,14 +355,15 @@ impl PollSet {
     pub(crate) fn wait(&mut self) -> Result<usize, VoterError> {
         if let Some(k) = self.wait_epoll() {
             self.wait_events.resize(self.fds.len(), EpollEvent::empty());
+            // What the wait does not report ready stays 0, as after a `ppoll`.
+            for p in &mut self.fds {
+                p.revents = 0;
+            }
             match self.waits[k]
                 .epoll
                 .wait(&mut self.wait_events, EpollTimeout::NONE)
             {
                 Ok(n) => {
-                    for p in &mut self.fds {
-                        p.revents = 0;
-                    }
                     for e in &self.wait_events[..n] {
                         // EPOLLIN, EPOLLOUT, EPOLLERR and EPOLLHUP are POLLIN, POLLOUT,
                         // POLLERR and POLLHUP: the same bits.
@@ -370,12 +371,7 @@ impl PollSet {
                     }
                     return Ok(n);
                 }
-                Err(nix::errno::Errno::EINTR) => {
-                    for p in &mut self.fds {
-                        p.revents = 0;
-                    }
-                    return Ok(0);
-                }
+                Err(nix::errno::Errno::EINTR) => return Ok(0),
                 Err(e) => {
                     tracing::warn!("epoll_wait: {e}; waiting with ppoll from now on");
                     self.waits.clear();
