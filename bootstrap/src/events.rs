@@ -3,6 +3,15 @@
 //! Voters write one JSON object per `write` (< PIPE_BUF, so lines never interleave). The reader
 //! copies each line to the `--events` file, logs it, and counts faults and recoveries per
 //! component for the summary. A line it cannot parse is logged and kept in the file, never fatal.
+//!
+//! A fault can reach the pipe twice, and is kept once. A voter writes a fault's event and then
+//! takes the replica out of its journal's table; a voter SIGKILLed between the two leaves the
+//! dead replica named, and its successor reports it again when it finds it dead. No order of
+//! the two steps avoids this without losing the report instead (a pipe write and a store to
+//! shared memory cannot be made one), so the voters report a fault at least once and this
+//! reader keeps it once: a fault naming the same replica slot and pid as that slot's last
+//! fault is a repeat (a replica is killed at its first fault; its slot's next fault names its
+//! replacement).
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -38,23 +47,44 @@ pub struct Counts {
 pub struct EventSummary {
     pub per_component: BTreeMap<String, Counts>,
     pub unparsable: u64,
+    /// Faults reported again by a dead voter's successor, kept once (module docs).
+    pub repeats: u64,
+    /// The pid each (component, replica slot)'s last fault named.
+    last_fault: BTreeMap<(String, usize), i32>,
+}
+
+/// What one line of the events pipe was.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Line {
+    /// An event, counted and logged.
+    Event(Box<Event>),
+    /// A fault already reported (module docs): logged, not counted, not saved again.
+    Repeat,
+    /// A blank or unreadable line (an unreadable one is logged and counted).
+    Other,
 }
 
 impl EventSummary {
-    /// Takes one line into account (and logs it); returns the event if the line was one.
-    pub fn record_line(&mut self, line: &str) -> Option<Event> {
+    /// Takes one line into account (and logs it).
+    pub fn record_line(&mut self, line: &str) -> Line {
         let line = line.trim_end();
         if line.is_empty() {
-            return None;
+            return Line::Other;
         }
         let event: Event = match serde_json::from_str(line) {
             Ok(e) => e,
             Err(e) => {
                 self.unparsable += 1;
                 tracing::warn!("unreadable event line ({e}): {line}");
-                return None;
+                return Line::Other;
             }
         };
+        if self.is_repeat(&event) {
+            self.repeats += 1;
+            tracing::info!(component = %event.component, replica = %shown(event.replica), pid = %shown(event.pid),
+                "fault reported again by the successor of the voter that reported it (that voter died before it took the replica out of its journal); kept once");
+            return Line::Repeat;
+        }
         let counts = self
             .per_component
             .entry(event.component.clone())
@@ -122,7 +152,21 @@ impl EventSummary {
                 );
             }
         }
-        Some(event)
+        Line::Event(Box::new(event))
+    }
+
+    /// Whether `event` is a fault whose replica's fault was reported already; remembers it if
+    /// not.
+    fn is_repeat(&mut self, event: &Event) -> bool {
+        let fault = matches!(
+            event.kind,
+            EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol
+        );
+        let (true, Some(slot), Some(pid)) = (fault, event.replica, event.pid) else {
+            return false;
+        };
+        let last = self.last_fault.insert((event.component.clone(), slot), pid);
+        last == Some(pid)
     }
 
     /// The one-line summary printed at exit, e.g.
@@ -148,6 +192,12 @@ impl EventSummary {
         let mut s = format!("events: {}", parts.join("; "));
         if self.unparsable > 0 {
             s.push_str(&format!(" ({} unreadable line(s))", self.unparsable));
+        }
+        if self.repeats > 0 {
+            s.push_str(&format!(
+                " ({} fault(s) reported again by a voter's successor, kept once)",
+                self.repeats
+            ));
         }
         s
     }
@@ -219,6 +269,10 @@ pub fn read_all(
                 break;
             }
         }
+        let line = summary.record_line(&String::from_utf8_lossy(&buf));
+        if matches!(line, Line::Repeat) {
+            continue;
+        }
         if let Some(f) = log.as_mut() {
             let mut res = f.write_all(&buf);
             if res.is_ok() && !buf.ends_with(b"\n") {
@@ -229,8 +283,7 @@ pub fn read_all(
                 log = None;
             }
         }
-        let event = summary.record_line(&String::from_utf8_lossy(&buf));
-        if let Some(event) = event {
+        if let Line::Event(event) = line {
             if let Some(live) = live {
                 live.update(|v| v.apply(&event));
             }
@@ -272,6 +325,50 @@ mod tests {
         assert_eq!(saved.lines().count(), 5);
         assert!(saved.starts_with(&e1.to_line()));
         assert!(summary.line().contains("echo 1 fault(s), 1 recovery(ies)"));
+    }
+
+    fn fault(component: &str, slot: usize, pid: i32, detail: &str) -> Event {
+        let mut e = Event::new("sys", component, EventKind::Crash);
+        e.replica = Some(slot);
+        e.pid = Some(pid);
+        e.detail = Some(detail.to_owned());
+        e
+    }
+
+    /// A dead voter's successor that reports a fault again (the same slot and pid as that
+    /// slot's last fault) is kept once: counted once, saved once. Any other fault counts,
+    /// also one whose pid an earlier replica of the slot had.
+    #[test]
+    fn a_fault_reported_again_by_a_successor_is_kept_once() {
+        let lines = [
+            fault("echo", 0, 100, "the replica process died"),
+            fault("echo", 0, 100, "died while its voter was being replaced"),
+            // The same pid in another slot or component is another replica.
+            fault("echo", 1, 100, "x"),
+            fault("nav", 0, 100, "x"),
+            // Slot 0's replacement, then a replica that got pid 100 back.
+            fault("echo", 0, 101, "x"),
+            fault("echo", 0, 100, "x"),
+        ];
+        let input: String = lines.iter().map(Event::to_line).collect();
+        let mut log = tempfile::tempfile().unwrap();
+        let summary = read_all(input.as_bytes(), Some(log.try_clone().unwrap()), None, None);
+        assert_eq!(summary.repeats, 1);
+        assert_eq!(summary.per_component["echo"].faults, 4);
+        assert_eq!(summary.per_component["nav"].faults, 1);
+        let mut saved = String::new();
+        log.rewind().unwrap();
+        log.read_to_string(&mut saved).unwrap();
+        assert_eq!(saved.lines().count(), 5, "{saved}");
+        assert!(
+            !saved.contains("died while its voter was being replaced"),
+            "{saved}"
+        );
+        assert!(
+            summary.line().contains("1 fault(s) reported again"),
+            "{}",
+            summary.line()
+        );
     }
 
     #[test]

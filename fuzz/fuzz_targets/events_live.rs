@@ -7,7 +7,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use s3res_bootstrap::events::EventSummary;
+use s3res_bootstrap::events::{EventSummary, Line};
 use s3res_bootstrap::status::Tally;
 use s3res_inject::target::{resolve, Pick};
 use s3res_protocol::event::Event;
@@ -34,7 +34,7 @@ fuzz_target!(|data: &[u8]| {
     let tally = Tally::default();
     // As `events::read_all` reads the pipe: lines, lossily decoded.
     for line in events.split(|&b| b == b'\n') {
-        let Some(event) = summary.record_line(&String::from_utf8_lossy(line)) else {
+        let Line::Event(event) = summary.record_line(&String::from_utf8_lossy(line)) else {
             continue;
         };
         let again: Event = serde_json::from_str(&event.to_line()).expect("an event reads back");

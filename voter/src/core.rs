@@ -804,9 +804,10 @@ impl Core {
         let detected_ns = ev.ts_ns;
         // Its event is written, and the journal no longer names it, once the donor of its
         // recovery has been signalled (or before the loop next waits, whichever comes first;
-        // `held.rs`). Both at once: a successor that adopts the replicas after that refills
-        // the slot without reporting its fault a second time, one that adopts them before it
-        // finds the dead replica named and reports it itself.
+        // `held.rs`). The event first: a successor that adopts the replicas after both refills
+        // the slot without reporting its fault a second time, one that adopts them before the
+        // event finds the dead replica named and reports it itself (and one in between reports
+        // it again, which bootstrap's events reader keeps once).
         self.held.hold(ev, r);
         let pid = replica.pid;
         self.faults.push(Fault {

@@ -7,9 +7,10 @@
 //! finding the CPU idle. Measured on a virtual machine where an interrupt between CPUs costs
 //! a trap to the host, that added 11 µs to the signal and 24 µs to a restart (docs/results.md,
 //! stop 36). So a fault's event is held until the donor has been signalled, and written while
-//! the donor forks; its replica leaves the journal's table at the same moment, so that a
-//! voter that dies in between has neither written the event nor cleared the slot, and its
-//! successor reports the dead replica itself (once).
+//! the donor forks; its replica leaves the journal's table right after, so that a voter that
+//! dies before has neither written the event nor cleared the slot, and its successor reports
+//! the dead replica itself. (One that dies between the event and the clear has its fault
+//! reported twice; bootstrap keeps it once, see `bootstrap/src/events.rs`.)
 //!
 //! Nothing is held across a wait: what is held is written before the loop's `ppoll`, before a
 //! wait for a donor that is not asleep yet, for a dying replica's exit status or for the
