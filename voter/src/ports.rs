@@ -156,8 +156,10 @@ pub(crate) struct PollSet {
     quiet_refused: bool,
     /// The quiet fds found ready, in dispatch order (see [`PollSet::ready_quiet`]).
     pub(crate) quiet_ready: Vec<Token>,
-    /// Epoll instances for the sets waited on lately, the most recently used last.
+    /// Epoll instances for the sets waited on lately (at most [`WAIT_SETS`]).
     waits: Vec<WaitEpoll>,
+    /// Waits with an instance so far: the instances' clock of use.
+    wait_clock: u64,
     /// What `epoll_wait` found, reused.
     wait_events: Vec<EpollEvent>,
     /// An epoll instance could not be made or waited on (reported once): every wait is a
@@ -191,6 +193,10 @@ struct WaitEpoll {
     epoll: Epoll,
     members: [Watched; WAIT_SET_FDS],
     len: usize,
+    /// When it was last used, on [`PollSet`]'s count of waits: the least recently used
+    /// instance is the one replaced. (Instances stay where they are: reordering them to keep
+    /// the most recent last moved hundreds of bytes per wait.)
+    used: u64,
 }
 
 /// The most fds a set with an instance has; a larger set waits with `ppoll`.
@@ -239,6 +245,7 @@ impl WaitEpoll {
             epoll,
             members,
             len: fds.len(),
+            used: 0,
         })
     }
 
@@ -393,19 +400,15 @@ impl PollSet {
             self.waits_in_window = 1;
             self.made_in_window = 0;
         }
+        self.wait_clock += 1;
         let (fds, tokens, owners) = (&self.fds, &self.tokens, &self.owners);
         if let Some(k) = self
             .waits
             .iter()
             .position(|w| w.watches(fds, tokens, owners))
         {
-            // Most recently used last; a steady loop finds its sets at the end at once.
-            let last = self.waits.len() - 1;
-            if k != last {
-                let w = self.waits.remove(k);
-                self.waits.push(w);
-            }
-            return Some(last);
+            self.waits[k].used = self.wait_clock;
+            return Some(k);
         }
         if self.made_in_window == MADE_PER_WINDOW || fds.len() > WAIT_SET_FDS {
             return None;
@@ -420,12 +423,15 @@ impl PollSet {
                 .reserve_exact(WAIT_SET_FDS - self.wait_events.len());
         }
         match WaitEpoll::new(fds, tokens, owners) {
-            Ok(w) => {
-                if self.waits.len() == WAIT_SETS {
-                    self.waits.remove(0);
+            Ok(mut w) => {
+                w.used = self.wait_clock;
+                if self.waits.len() < WAIT_SETS {
+                    self.waits.push(w);
+                    return Some(self.waits.len() - 1);
                 }
-                self.waits.push(w);
-                Some(self.waits.len() - 1)
+                let oldest = (0..self.waits.len()).min_by_key(|&k| self.waits[k].used)?;
+                self.waits[oldest] = w;
+                Some(oldest)
             }
             Err(e) => {
                 // A regular file, say, which epoll refuses and `ppoll` takes.
@@ -1017,14 +1023,13 @@ mod tests {
             .map(|(_, &t)| t)
             .collect();
         assert_eq!(ready.len(), n, "as many ready as the wait said");
-        let epoll = set
-            .waits
-            .last()
-            .expect("waited with epoll")
-            .epoll
-            .0
-            .as_raw_fd();
+        let epoll = latest(set).expect("waited with epoll").epoll.0.as_raw_fd();
         (ready, epoll)
+    }
+
+    /// The instance used last.
+    fn latest(set: &PollSet) -> Option<&WaitEpoll> {
+        set.waits.iter().max_by_key(|w| w.used)
     }
 
     #[test]
@@ -1118,14 +1123,14 @@ mod tests {
             set.owners.clear();
             set.add(r.as_raw_fd(), libc::POLLIN, Token::Input(k), 0);
             set.seal();
-            let before = set.waits.last().map(|w| w.epoll.0.as_raw_fd());
+            let before = latest(&set).map(|w| w.epoll.0.as_raw_fd());
             assert_eq!(set.wait().unwrap(), 1);
             assert_ne!(
                 set.fds.last().unwrap().revents,
                 0,
                 "set {k}: the pipe is ready"
             );
-            made.push(set.waits.last().map(|w| w.epoll.0.as_raw_fd()) != before);
+            made.push(latest(&set).map(|w| w.epoll.0.as_raw_fd()) != before);
         }
         // Each set was new: the first ones got an instance, the rest of the window waits with
         // ppoll (and still sees what is ready).
@@ -1158,10 +1163,41 @@ mod tests {
         let newest = pipes.last().unwrap().0.as_raw_fd();
         // The quiet instance is the first member of every set, the pipe the last.
         let pipe_of = |w: &WaitEpoll| w.members().last().unwrap().fd;
-        assert_eq!(pipe_of(set.waits.last().unwrap()), newest);
+        assert_eq!(pipe_of(latest(&set).unwrap()), newest);
         assert!(set
             .waits
             .iter()
             .all(|w| pipe_of(w) != pipes[0].0.as_raw_fd()));
+    }
+
+    /// The instance replaced is the one used least recently, not the one made first: a set
+    /// waited on again keeps its instance.
+    #[test]
+    fn the_least_recently_used_wait_instance_goes() {
+        let pipes: Vec<(OwnedFd, OwnedFd)> =
+            (0..WAIT_SETS + 1).map(|_| sys::pipe().unwrap()).collect();
+        for (_, w) in &pipes {
+            sys::write(w.as_fd(), b"x").unwrap();
+        }
+        let on = |k: usize| [(pipes[k].0.as_raw_fd(), Token::Input(k), 0)];
+        let mut set = PollSet::default();
+        let mut first = Vec::new();
+        for k in 0..WAIT_SETS {
+            first.push(wait_on(&mut set, &on(k)).1);
+        }
+        // Set 0 again: the same instance, now the most recent.
+        assert_eq!(wait_on(&mut set, &on(0)).1, first[0]);
+        // A new set takes the place of set 1's instance, the least recently used.
+        let (ready, _) = wait_on(&mut set, &on(WAIT_SETS));
+        assert_eq!(ready, [Token::Input(WAIT_SETS)]);
+        assert_eq!(set.waits.len(), WAIT_SETS);
+        let pipe_of = |w: &WaitEpoll| w.members().last().unwrap().fd;
+        let kept: Vec<RawFd> = set.waits.iter().map(pipe_of).collect();
+        assert!(kept.contains(&pipes[0].0.as_raw_fd()), "set 0 went");
+        assert!(!kept.contains(&pipes[1].0.as_raw_fd()), "set 1 stayed");
+        assert_eq!(wait_on(&mut set, &on(0)).1, first[0]);
+        for (k, &epoll) in first.iter().enumerate().skip(2) {
+            assert_eq!(wait_on(&mut set, &on(k)).1, epoll, "set {k}");
+        }
     }
 }
