@@ -2,9 +2,10 @@
 //! the system does not notice (issue 13, item 2). The stateful TMR echo counts the frames it
 //! has seen; the sink checks every frame arrived once, in order, with that count continuous.
 
+use std::path::Path;
 use std::time::{Duration, Instant};
 
-use s3res_testkit::{assert_sink_whole, echo_pipeline, EventKind, Rng, System};
+use s3res_testkit::{assert_sink_whole, echo_pipeline, EventKind, Outcome, Rng, System};
 
 /// A stateful TMR echo fed `count` frames as fast as it takes them, each answer taking
 /// `work_us` of computation: the voter is nearly always in the middle of a round, so a kill
@@ -158,13 +159,7 @@ fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
     s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
     s3res_testkit::kill_pid(donor, libc::SIGCONT).expect("continue the donor");
     let out = run.wait(Duration::from_secs(120));
-    assert!(
-        out.status.success(),
-        "bootstrap: {}\nsink summary: {}\n{}",
-        out.status,
-        std::fs::read_to_string(&summary).unwrap_or_default(),
-        s3res_testkit::tail(&out.stderr, 40)
-    );
+    assert_success(&out, &summary);
     let restarts = out
         .events
         .iter()
@@ -175,6 +170,63 @@ fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
     // One fault, kept once: the replica killed. The voter that saw it reported it; if it was
     // killed before it took the replica out of its journal, its successor reported it again,
     // and bootstrap kept that repeat out of the events (`bootstrap/src/events.rs`).
+    assert_one_fault_of(&out, victim);
+    for e in &out.events {
+        assert_ne!(e.state_lost, Some(true), "state lost: {e:?}");
+    }
+    assert_sink_whole(&summary, COUNT);
+    run.assert_nothing_left();
+}
+
+/// A voter killed between writing a fault's event and taking the dead replica out of its
+/// journal's table (the crash point `fault-reported`, `voter/src/crashpoint.rs`) leaves the
+/// replica named there, and its successor reports the fault again: bootstrap keeps it once
+/// (`bootstrap/src/events.rs`). One replica of a TMR echo is killed; the events hold one
+/// fault, bootstrap's log says it kept a repeat out, and every frame reaches the sink.
+#[test]
+fn a_fault_reported_again_by_the_voters_successor_is_kept_once() {
+    const COUNT: u32 = 3000;
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 200000 }"#;
+    let desc = echo_pipeline(&summary, echo, COUNT, 1000);
+    let mut run = sys
+        .env("S3RES_VOTER_CRASH_AT", "fault-reported:1")
+        .env("RUST_LOG", "info")
+        .start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let victim = run.replica_pids("echo")[&0];
+    s3res_testkit::kill_pid(victim, libc::SIGKILL).expect("kill replica 0");
+    let out = run.wait(Duration::from_secs(120));
+    assert_success(&out, &summary);
+    out.voter_restarts(1);
+    assert_one_fault_of(&out, victim);
+    assert!(
+        out.stderr
+            .lines()
+            .any(|l| l.contains("fault reported again by the successor")),
+        "the successor did not report the fault again (the crash point missed?):\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    assert_sink_whole(&summary, COUNT);
+    run.assert_nothing_left();
+}
+
+/// The run ended with status 0 (else: its status, the sink's summary and bootstrap's last
+/// lines).
+fn assert_success(out: &Outcome, summary: &Path) {
+    assert!(
+        out.status.success(),
+        "bootstrap: {}\nsink summary: {}\n{}",
+        out.status,
+        std::fs::read_to_string(summary).unwrap_or_default(),
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+}
+
+/// The events hold exactly one fault, of `victim`.
+fn assert_one_fault_of(out: &Outcome, victim: i32) {
     let faults = out.faults();
     assert_eq!(
         faults.len(),
@@ -183,9 +235,4 @@ fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
         s3res_testkit::tail(&out.stderr, 60)
     );
     assert_eq!(faults[0].pid, Some(victim), "{faults:#?}");
-    for e in &out.events {
-        assert_ne!(e.state_lost, Some(true), "state lost: {e:?}");
-    }
-    assert_sink_whole(&summary, COUNT);
-    run.assert_nothing_left();
 }

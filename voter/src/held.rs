@@ -48,6 +48,7 @@ impl HeldFaults {
         for (event, slot) in &held {
             write_event(events, event);
             if let Some(journal) = journal {
+                crate::crashpoint::reached("fault-reported");
                 journal.set_slot(*slot, None);
                 self.cleared.set(self.cleared.get().with(*slot));
             }
