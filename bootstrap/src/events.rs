@@ -158,11 +158,8 @@ impl EventSummary {
     /// Whether `event` is a fault whose replica's fault was reported already; remembers it if
     /// not.
     fn is_repeat(&mut self, event: &Event) -> bool {
-        let fault = matches!(
-            event.kind,
-            EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol
-        );
-        let (true, Some(slot), Some(pid)) = (fault, event.replica, event.pid) else {
+        let (true, Some(slot), Some(pid)) = (event.kind.is_fault(), event.replica, event.pid)
+        else {
             return false;
         };
         let last = self.last_fault.insert((event.component.clone(), slot), pid);

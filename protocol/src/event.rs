@@ -31,6 +31,16 @@ pub enum EventKind {
     VoterRestart,
 }
 
+impl EventKind {
+    /// A fault a voter blamed on a replica or a round: `sdc`, `crash`, `hang`, `protocol`.
+    pub fn is_fault(self) -> bool {
+        matches!(
+            self,
+            EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol
+        )
+    }
+}
+
 /// Why the voter raised an event: the observation behind a fault, or why a frame was
 /// withheld. Every fault event carries one; tools and tests match on it, not on `detail`
 /// (the human-readable text, which may change). Each cause belongs to one [`EventKind`].

@@ -76,13 +76,6 @@ pub struct RunMatch {
     pub false_positives: u64,
 }
 
-fn is_fault(k: EventKind) -> bool {
-    matches!(
-        k,
-        EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol
-    )
-}
-
 fn kind_name(k: EventKind) -> String {
     serde_json::to_value(k)
         .ok()
@@ -108,7 +101,7 @@ pub fn match_run(fired: &[Fired], events: &[Event], window_ns: u64, task_ok: boo
     let (attributed, unattributed): (Vec<&Event>, Vec<&Event>) = events
         .iter()
         .copied()
-        .filter(|e| is_fault(e.kind))
+        .filter(|e| e.kind.is_fault())
         .partition(|e| e.replica.is_some());
     for e in attributed.into_iter().chain(unattributed) {
         let in_window = |f: &Fired| e.ts_ns >= f.ts_ns && e.ts_ns - f.ts_ns <= window_ns;

@@ -214,11 +214,13 @@ const CHURN_WINDOW: u32 = 256;
 const MADE_PER_WINDOW: u32 = 8;
 
 impl WaitEpoll {
-    /// An instance for the set `fds` (at most [`WAIT_SET_FDS`]), with their tokens and owners.
+    /// An instance for the set `fds` (at most [`WAIT_SET_FDS`]), with their tokens and owners,
+    /// used at `used`.
     fn new(
         fds: &[libc::pollfd],
         tokens: &[Token],
         owners: &[libc::pid_t],
+        used: u64,
     ) -> nix::Result<WaitEpoll> {
         let epoll = Epoll::new(EpollCreateFlags::EPOLL_CLOEXEC)?;
         let unused = Watched {
@@ -245,7 +247,7 @@ impl WaitEpoll {
             epoll,
             members,
             len: fds.len(),
-            used: 0,
+            used,
         })
     }
 
@@ -422,9 +424,8 @@ impl PollSet {
             self.wait_events
                 .reserve_exact(WAIT_SET_FDS - self.wait_events.len());
         }
-        match WaitEpoll::new(fds, tokens, owners) {
-            Ok(mut w) => {
-                w.used = self.wait_clock;
+        match WaitEpoll::new(fds, tokens, owners, self.wait_clock) {
+            Ok(w) => {
                 if self.waits.len() < WAIT_SETS {
                     self.waits.push(w);
                     return Some(self.waits.len() - 1);
@@ -1032,6 +1033,21 @@ mod tests {
         set.waits.iter().max_by_key(|w| w.used)
     }
 
+    /// `n` pipes, each with a byte to read.
+    fn ready_pipes(n: usize) -> Vec<(OwnedFd, OwnedFd)> {
+        let pipes: Vec<(OwnedFd, OwnedFd)> = (0..n).map(|_| sys::pipe().unwrap()).collect();
+        for (_, w) in &pipes {
+            sys::write(w.as_fd(), b"x").unwrap();
+        }
+        pipes
+    }
+
+    /// The pipe a one-pipe set's instance watches: the quiet instance is the first member of
+    /// every set, the pipe the last.
+    fn pipe_of(w: &WaitEpoll) -> RawFd {
+        w.members().last().unwrap().fd
+    }
+
     #[test]
     fn a_wait_sees_what_ppoll_sees_and_never_a_replaced_owners_old_pipe() {
         let (in_r, in_w) = sys::pipe().unwrap();
@@ -1109,12 +1125,7 @@ mod tests {
 
     #[test]
     fn a_loop_that_churns_through_sets_waits_with_ppoll() {
-        let pipes: Vec<(OwnedFd, OwnedFd)> = (0..MADE_PER_WINDOW + 4)
-            .map(|_| sys::pipe().unwrap())
-            .collect();
-        for (_, w) in &pipes {
-            sys::write(w.as_fd(), b"x").unwrap();
-        }
+        let pipes = ready_pipes(MADE_PER_WINDOW as usize + 4);
         let mut set = PollSet::default();
         let mut made = Vec::new();
         for (k, (r, _)) in pipes.iter().enumerate() {
@@ -1147,11 +1158,7 @@ mod tests {
 
     #[test]
     fn no_more_wait_instances_are_kept_than_a_loop_uses() {
-        let pipes: Vec<(OwnedFd, OwnedFd)> =
-            (0..WAIT_SETS + 2).map(|_| sys::pipe().unwrap()).collect();
-        for (_, w) in &pipes {
-            sys::write(w.as_fd(), b"x").unwrap();
-        }
+        let pipes = ready_pipes(WAIT_SETS + 2);
         let mut set = PollSet::default();
         for (k, (r, _)) in pipes.iter().enumerate() {
             let (ready, _) = wait_on(&mut set, &[(r.as_raw_fd(), Token::Input(k), 0)]);
@@ -1161,8 +1168,6 @@ mod tests {
         assert_eq!(set.waits.len(), WAIT_SETS);
         // The first sets went, the most recent stayed.
         let newest = pipes.last().unwrap().0.as_raw_fd();
-        // The quiet instance is the first member of every set, the pipe the last.
-        let pipe_of = |w: &WaitEpoll| w.members().last().unwrap().fd;
         assert_eq!(pipe_of(latest(&set).unwrap()), newest);
         assert!(set
             .waits
@@ -1174,11 +1179,7 @@ mod tests {
     /// waited on again keeps its instance.
     #[test]
     fn the_least_recently_used_wait_instance_goes() {
-        let pipes: Vec<(OwnedFd, OwnedFd)> =
-            (0..WAIT_SETS + 1).map(|_| sys::pipe().unwrap()).collect();
-        for (_, w) in &pipes {
-            sys::write(w.as_fd(), b"x").unwrap();
-        }
+        let pipes = ready_pipes(WAIT_SETS + 1);
         let on = |k: usize| [(pipes[k].0.as_raw_fd(), Token::Input(k), 0)];
         let mut set = PollSet::default();
         let mut first = Vec::new();
@@ -1191,7 +1192,6 @@ mod tests {
         let (ready, _) = wait_on(&mut set, &on(WAIT_SETS));
         assert_eq!(ready, [Token::Input(WAIT_SETS)]);
         assert_eq!(set.waits.len(), WAIT_SETS);
-        let pipe_of = |w: &WaitEpoll| w.members().last().unwrap().fd;
         let kept: Vec<RawFd> = set.waits.iter().map(pipe_of).collect();
         assert!(kept.contains(&pipes[0].0.as_raw_fd()), "set 0 went");
         assert!(!kept.contains(&pipes[1].0.as_raw_fd()), "set 1 stayed");
