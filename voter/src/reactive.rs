@@ -451,7 +451,8 @@ impl ReactiveVoter {
     /// pipes (`timeout_us / 20`, at least 50 µs), so the next turn's deadline starts at most
     /// that late (never early: a turn is never shortened). A fault-free round is over long
     /// before; the loop's timer (`ports::WakeTimer`) stays armed across rounds, so the check
-    /// costs no system call per round.
+    /// costs no system call per round, but the timer expires, for nothing, in whatever round
+    /// runs once per half window: on one CPU, the round trip's tail (results.md, stop 39).
     fn unwatched_turn_check(&self, round: &Round) -> Option<Instant> {
         let turn = round.turn?;
         // What this wait watches (`build_poll_set` ran just before): `None` is everyone.
