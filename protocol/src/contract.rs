@@ -24,6 +24,10 @@ pub const ENV_COMPONENT: &str = "S3RES_COMPONENT";
 pub const ENV_STARTED_FD: &str = "S3RES_STARTED_FD";
 /// The byte of the start handshake.
 pub const STARTED: u8 = b'S';
+/// The answer stamps: the number of an inherited fd, a memfd page in which the replica's
+/// runtime records when it last answered (see `replica_rt::stamps`). Absent: no stamps, and
+/// the voter looks for unwatched answers on its timer instead.
+pub const ENV_STAMPS_FD: &str = "S3RES_STAMPS_FD";
 /// Output history for a stream replica whose voter may be replaced: `"FRAMES,BYTES"`. The
 /// replica keeps, per output, every frame its voter may not have decided yet — the newest
 /// `BYTES` worth (what can sit in the pipe and the voter's read buffer) and `FRAMES` frames

@@ -5,7 +5,7 @@
 //! like any other inherited fd.
 
 use std::io;
-use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd};
+use std::os::fd::{AsFd, BorrowedFd, OwnedFd};
 use std::sync::atomic::Ordering;
 
 use crate::shared::{memfd, SharedRegion};
@@ -48,20 +48,8 @@ impl Heartbeat {
     /// Maps the page behind `fd` (the voter, from the fd bootstrap handed it). An fd that is
     /// not a page of at least the layout's size is refused (mapping it could SIGBUS later).
     pub fn adopt(fd: OwnedFd) -> io::Result<Heartbeat> {
-        // SAFETY: `st` is a valid out-pointer for fstat; all-zero is a valid `stat`.
-        let mut st: libc::stat = unsafe { std::mem::zeroed() };
-        // SAFETY: as above; `fd` is open (we own it).
-        if unsafe { libc::fstat(fd.as_raw_fd(), &mut st) } != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        if (st.st_mode & libc::S_IFMT) != libc::S_IFREG || (st.st_size as usize) < MAP_LEN {
-            return Err(io::Error::new(
-                io::ErrorKind::InvalidInput,
-                format!("not a heartbeat page ({} bytes)", st.st_size),
-            ));
-        }
         Ok(Heartbeat {
-            page: SharedRegion::existing(fd)?,
+            page: SharedRegion::handed(fd, MAP_LEN, "a heartbeat page")?,
         })
     }
 

@@ -52,6 +52,7 @@ pub(crate) mod rebind;
 pub mod restart;
 pub mod select;
 pub mod shared;
+pub mod stamps;
 pub mod sys;
 
 /// The contract, the framing and the machine records are the protocol's (`s3res-protocol`),
@@ -208,6 +209,7 @@ fn init_inner() -> Result<Runtime, InitError> {
             }
         }
         history::configure_from_env();
+        take_stamp_page();
         sys::ignore_signal(libc::SIGCHLD).map_err(|source| InitError::Signal {
             what: "SIGCHLD (ignore)",
             source,
@@ -248,28 +250,46 @@ fn init_inner() -> Result<Runtime, InitError> {
     })
 }
 
-/// The start handshake (see [`contract::ENV_STARTED_FD`]): one byte to the voter, then the fd
-/// is closed and the variable removed, so that nothing the component starts later writes to a
-/// number that may have been reused by then.
-fn say_started() {
-    let Some(fd) = std::env::var(contract::ENV_STARTED_FD)
+/// The fd the voter handed this process under the environment variable `var` (its number),
+/// taken once: the variable is removed, so that nothing the component starts later uses a
+/// number that may have been reused by then. `None`: not handed.
+fn handed_fd(var: &str) -> Option<(std::os::fd::RawFd, std::io::Result<std::os::fd::OwnedFd>)> {
+    let fd = std::env::var(var)
         .ok()
-        .and_then(|v| v.parse::<std::os::fd::RawFd>().ok())
-    else {
-        return;
-    };
+        .and_then(|v| v.parse::<std::os::fd::RawFd>().ok())?;
     // `init` runs before any thread is started (its contract), so nothing reads the environment
     // concurrently.
-    std::env::remove_var(contract::ENV_STARTED_FD);
+    std::env::remove_var(var);
     // SAFETY: the number comes from the variable the voter set for this process, which is read
     // once (removed above); nothing else in the process knows it.
-    match unsafe { sys::try_adopt_inherited_fd(fd) } {
-        Ok(owned) => {
+    Some((fd, unsafe { sys::try_adopt_inherited_fd(fd) }))
+}
+
+/// The start handshake (see [`contract::ENV_STARTED_FD`]): one byte to the voter, then the fd
+/// is closed.
+fn say_started() {
+    match handed_fd(contract::ENV_STARTED_FD) {
+        None => {}
+        Some((fd, Ok(owned))) => {
             if let Err(e) = sys::write(std::os::fd::AsFd::as_fd(&owned), &[contract::STARTED]) {
                 tracing::warn!(fd, error = %e, "could not tell the voter that the runtime started");
             }
         }
-        Err(e) => tracing::warn!(fd, error = %e, "the start handshake's fd is not open"),
+        Some((fd, Err(e))) => {
+            tracing::warn!(fd, error = %e, "the start handshake's fd is not open")
+        }
+    }
+}
+
+/// The answer stamps (see [`contract::ENV_STAMPS_FD`]): maps the page the voter handed, if it
+/// handed one. Without it the runtime works as before; the voter looks for answers on a timer.
+fn take_stamp_page() {
+    let Some((fd, owned)) = handed_fd(contract::ENV_STAMPS_FD) else {
+        return;
+    };
+    match owned.and_then(stamps::AnswerStamps::adopt) {
+        Ok(page) => stamps::install(page),
+        Err(e) => tracing::warn!(fd, error = %e, "the answer-stamp page is not usable"),
     }
 }
 

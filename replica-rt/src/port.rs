@@ -382,6 +382,8 @@ impl OutPort {
         if let Some(position) = self.position {
             restart::count_sent(position);
         }
+        // When this answer went out, for a voter that did not wake for it (`stamps`).
+        crate::stamps::answered();
         let last = &mut *last;
         if let Some(history) = last.history.as_mut() {
             history.record(last.sent, last.bytes.as_slice());

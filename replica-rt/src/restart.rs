@@ -625,6 +625,7 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     }
     unread.close();
     drop(sock);
+    crate::stamps::forked(ready.pid);
     FORKED_FROM.store(donor, Ordering::Relaxed);
 }
 

@@ -65,6 +65,25 @@ impl SharedRegion {
         Self::map(fd, len)
     }
 
+    /// Maps the file behind `fd`, handed over by another process as a `what`: refused unless
+    /// it is a regular file of at least `min_len` bytes (mapping a shorter one could SIGBUS
+    /// later).
+    pub fn handed(fd: OwnedFd, min_len: usize, what: &str) -> io::Result<SharedRegion> {
+        // SAFETY: `st` is a valid out-pointer for fstat; all-zero is a valid `stat`.
+        let mut st: libc::stat = unsafe { std::mem::zeroed() };
+        // SAFETY: as above; `fd` is open (we own it).
+        if unsafe { libc::fstat(fd.as_raw_fd(), &mut st) } != 0 {
+            return Err(io::Error::last_os_error());
+        }
+        if (st.st_mode & libc::S_IFMT) != libc::S_IFREG || (st.st_size as usize) < min_len {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("not {what} ({} bytes)", st.st_size),
+            ));
+        }
+        Self::existing(fd)
+    }
+
     fn map(fd: OwnedFd, len: usize) -> io::Result<SharedRegion> {
         if len == 0 {
             return Err(io::Error::new(io::ErrorKind::InvalidInput, "empty region"));
