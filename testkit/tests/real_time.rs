@@ -322,6 +322,105 @@ fn unprivileged_sequential_rounds_blame_exactly_a_stopped_replica() {
     sequential_identifies(true, 1, stop);
 }
 
+/// TMR echo with the voter on its replicas' CPU, tracing the turns the voter times from
+/// answer stamps.
+fn start_tmr_with_the_voter_on_one_cpu(count: u32) -> (RunningSystem, std::path::PathBuf) {
+    let shared = usable_cpus()[0];
+    let sys = System::new().env(
+        "RUST_LOG",
+        "info,s3res_voter=debug,s3res_voter::reactive=trace",
+    );
+    let summary = sys.path("summary.json");
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr",
+             "timeout_us": {TIMEOUT_US}, "priority": 30, "cpus": [{shared}],
+             "voter_cpu": {shared} }}"#
+    );
+    let run = sys.start(&echo_pipeline(&summary, &echo, count, 500));
+    (run, summary)
+}
+
+/// How many of the voter's trace lines in `stderr` (from the first line containing `after`
+/// on) say that a turn of `slot` ended at its answer stamp.
+fn turns_timed_from_stamps(stderr: &str, slot: usize, after: &str) -> usize {
+    stderr
+        .lines()
+        .skip_while(|l| !l.contains(after))
+        .filter(|l| {
+            l.contains("turn ended at its answer stamp") && l.contains(&format!("replica={slot} "))
+        })
+        .count()
+}
+
+/// Answer stamps (`replica_rt::stamps`): with the voter on the replicas' CPU, a TMR round's
+/// wait does not watch the first turn's answer (it decides nothing), and the voter finds it
+/// only when something else wakes it: the next answer, or with the second replica stopped, a
+/// timer. It times replica 1's turn from when replica 0's answer stamp says that answer went
+/// out, not from when it found it (without stamps the voter looked for that answer on a
+/// timer every half look window, which fired in fault-free rounds too). The turns are timed
+/// from stamps (the voter's trace says so), replica 1 alone is blamed, at its turn's
+/// deadline, and every frame arrives.
+#[test]
+fn a_turn_found_over_late_is_timed_from_its_answer_stamp() {
+    let _turn = one_system_at_a_time();
+    let count = 1500;
+    let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let pid = run.replica_pids("echo")[&1];
+    stop(pid);
+    let hang = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    assert_eq!(hang.replica, Some(1), "{hang:?}");
+    assert_eq!(hang.cause, Some(Cause::TurnDeadline), "{hang:?}");
+    let out = run.wait_success(LIMIT);
+    assert!(
+        turns_timed_from_stamps(&out.stderr, 0, "") > 0,
+        "no turn was timed from replica 0's answer stamp:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    let faults = out.faults();
+    assert_eq!(faults.len(), 1, "exactly the one fault: {faults:#?}");
+    assert_sink_whole(&summary, count);
+}
+
+/// A replica forked from a donor shares the donor's mapping of the stamp page, and claims an
+/// entry of its own: after replica 0 is killed and rebuilt by fork, its turns are still
+/// timed from its own answer stamps (were it stamping its donor's entry, the voter would find
+/// no stamp for its pid and time them from when it found them over).
+#[test]
+fn a_replica_forked_from_a_donor_stamps_its_own_answers() {
+    let _turn = one_system_at_a_time();
+    let count = 1500;
+    let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let pid = run.replica_pids("echo")[&0];
+    replica_rt::sys::kill(pid, libc::SIGKILL).expect("SIGKILL replica 0");
+    let rec = run.wait_for_event(
+        |e| e.kind == EventKind::Recovery && e.pid == Some(pid),
+        Duration::from_secs(20),
+    );
+    assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    let out = run.wait_success(LIMIT);
+    let after = format!("event: recovery replica 0 pid {pid}");
+    assert!(
+        out.stderr.contains(&after),
+        "the voter's log has no recovery of replica 0:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    assert!(
+        turns_timed_from_stamps(&out.stderr, 0, &after) > 0,
+        "no turn of the forked replica 0 was timed from its answer stamp:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    let faults = out.faults();
+    assert_eq!(faults.len(), 1, "exactly the one fault: {faults:#?}");
+    assert_sink_whole(&summary, count);
+}
+
 /// `s3res-bootstrap --check DESCRIPTION`: it starts nothing, it validates, prints and exits.
 fn check(desc: &std::path::Path) -> std::process::Output {
     Command::new(bin_path("s3res-bootstrap"))

@@ -10,13 +10,14 @@
 //! [`Core::apply`] turns a decision into the frame sent and the events written, the same way
 //! for both modes.
 
-use std::os::fd::{AsFd, OwnedFd};
+use std::os::fd::{AsFd, BorrowedFd, OwnedFd};
 use std::os::unix::net::UnixListener;
 use std::time::Duration;
 
 use nix::sys::signalfd::SignalFd;
 use replica_rt::contract::MAX_PORTS;
 use replica_rt::frame::{self, FrameError};
+use replica_rt::stamps::AnswerStamps;
 use replica_rt::sys;
 use thiserror::Error;
 
@@ -37,6 +38,7 @@ use crate::ports::{
 use crate::recovery::{self, DonorState, Forked, RecoveryError};
 use crate::replica::Replica;
 use crate::rt::RealTime;
+use crate::sched::Schedule;
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
 /// How long a replica whose output pipe closed may take to show up as dead before we call it a
@@ -203,6 +205,9 @@ pub(crate) struct Core {
     pub(crate) poll: PollSet,
     /// Wakes the loop at the mode's next deadline (see [`WakeTimer`]).
     pub(crate) timer: WakeTimer,
+    /// When each replica last answered, if they say so (sequential rounds: see
+    /// `replica_rt::stamps` and `ReactiveVoter::turn_ended_at`).
+    pub(crate) stamps: Option<AnswerStamps>,
     /// Priorities, pinning and the raising of turns.
     pub(crate) rt: RealTime,
     /// Anomaly detectors on the outputs.
@@ -245,6 +250,15 @@ pub(crate) struct AdoptedStreams {
 }
 
 impl Core {
+    /// Frees the answer stamps of replicas this voter no longer has (called when a slot is
+    /// filled again: the replica it held is gone by then).
+    pub(crate) fn forget_stamps_of_the_gone(&self) {
+        if let Some(stamps) = &self.stamps {
+            let slots = &self.slots;
+            stamps.retain(|pid| slots.iter().flatten().any(|rep| rep.pid as u32 == pid));
+        }
+    }
+
     /// Checks the plan, calibrates the clock, loads the detectors, takes over the fds named in
     /// `plan`, binds the socket, and starts the replicas.
     pub(crate) fn start(plan: VoterPlan) -> Result<Core, VoterError> {
@@ -277,6 +291,7 @@ impl Core {
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
         let cpu_latency = crate::rt::keep_cpus_polling(plan.cpu_idle);
+        let stamps = answer_stamps(&plan);
         let (journal, slots, adoption) = match journal {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
@@ -303,7 +318,8 @@ impl Core {
                     }
                     None => None,
                 };
-                let slots = start_replicas(&plan, events.as_ref(), |pid, slot| {
+                let stamp_fd = stamps.as_ref().map(AnswerStamps::fd);
+                let slots = start_replicas(&plan, events.as_ref(), stamp_fd, |pid, slot| {
                     rt.apply_to_replica(pid, slot)
                 })?;
                 (journal, slots, None)
@@ -332,6 +348,7 @@ impl Core {
             stop: None,
             poll: PollSet::default(),
             timer: WakeTimer::new()?,
+            stamps,
             rt,
             monitors,
             captures,
@@ -1083,7 +1100,7 @@ impl Core {
         retry: bool,
     ) -> Result<bool, VoterError> {
         self.check_restart_budget()?;
-        match Replica::spawn(&self.plan, slot) {
+        match Replica::spawn(&self.plan, slot, self.stamps.as_ref().map(AnswerStamps::fd)) {
             Ok(fresh) => {
                 self.exec_restarts.push_back(Instant::now());
                 self.exec_restarts_total += 1;
@@ -1095,6 +1112,7 @@ impl Core {
                 let mut fresh = fresh;
                 fresh.state_lost = true;
                 self.slots[slot] = Some(fresh);
+                self.forget_stamps_of_the_gone();
                 self.number_inputs_of(slot);
                 // A fresh process: its first frame is a warm-up for the detectors.
                 self.monitors.reset_stream(slot);
@@ -1667,16 +1685,31 @@ fn journaled_inputs(inputs: &mut [ExternalInput], plan: &VoterPlan) -> Result<()
     Ok(())
 }
 
+/// The answer-stamp page for the replicas of a sequential reactive voter (the only voter that
+/// does not wake for every answer); `None` for the others, for programs run under the preload
+/// library (their runtime is not replica-rt), or if it cannot be made (logged: the voter then
+/// looks for answers on its timer, as without stamps).
+fn answer_stamps(plan: &VoterPlan) -> Option<AnswerStamps> {
+    let sequential = plan.mode == PlanMode::Reactive && plan.schedule == Schedule::Sequential;
+    if !sequential || plan.preload.is_some() {
+        return None;
+    }
+    AnswerStamps::create()
+        .inspect_err(|e| tracing::warn!(error = %e, "no answer-stamp page: turns are timed on the voter's timer"))
+        .ok()
+}
+
 /// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,
 /// slot)` runs for each new process first (to apply scheduling settings).
 fn start_replicas(
     plan: &VoterPlan,
     events: Option<&OwnedFd>,
+    stamps: Option<BorrowedFd<'_>>,
     mut on_spawn: impl FnMut(libc::pid_t, usize),
 ) -> Result<Vec<Option<Replica>>, VoterError> {
     let mut slots: Vec<Option<Replica>> = (0..plan.replicas).map(|_| None).collect();
     for slot in 0..plan.replicas {
-        let replica = match Replica::spawn(plan, slot) {
+        let replica = match Replica::spawn(plan, slot, stamps) {
             Ok(r) => r,
             Err(e) => {
                 // The ones already running must not outlive this failed start.

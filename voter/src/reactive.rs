@@ -427,7 +427,8 @@ impl ReactiveVoter {
             return;
         };
         let last_watched = watched.iter().last().unwrap_or(0);
-        let timer_due = self.wake_at.is_some_and(|at| Instant::now() >= at);
+        let read_at = Instant::now();
+        let timer_due = self.wake_at.is_some_and(|at| read_at >= at);
         let unwatched = self
             .pending(round)
             .iter()
@@ -439,9 +440,14 @@ impl ReactiveVoter {
                 return;
             }
         }
+        // The turn was still open when these reads began, if they found it so (if they found
+        // it over, the last time it was seen open stays the bound of when it ended: see
+        // `turn_ended_at`).
         if timer_due {
             if let Some(round) = self.round.as_mut() {
-                round.checked = Some(Instant::now());
+                if round.turn.is_some_and(|t| !round.is_done_by(t)) {
+                    round.checked = Some(read_at);
+                }
             }
         }
     }
@@ -457,6 +463,11 @@ impl ReactiveVoter {
         let turn = round.turn?;
         // What this wait watches (`build_poll_set` ran just before): `None` is everyone.
         if self.watching.is_none_or(|watched| watched.contains(turn)) {
+            return None;
+        }
+        // A replica that stamps its answers needs no check: whenever the loop finds its
+        // answer, the stamp says when its turn ended (see `turn_ended_at`).
+        if self.answer_stamp(turn).is_some() {
             return None;
         }
         let since = round.checked?;
@@ -696,22 +707,63 @@ impl ReactiveVoter {
             .iter()
             .filter(|&r| self.core.slots[r].is_some())
             .find(|&r| !round.is_done_by(r) && Some(r) != previous);
+        // The previous turn's replica, if it finished (rather than being taken out) and the
+        // last wait did not watch for its answer (if it did, the loop woke at the answer).
+        let finished = previous.filter(|&p| {
+            round.is_done_by(p)
+                && self.core.slots[p].is_some()
+                && self.watching.is_some_and(|watched| !watched.contains(p))
+        });
+        let (open, number) = (round.checked, round.number);
         self.rest_the_raised_turn();
         let Some(next) = next else {
             return false;
         };
         let allowance = self.allowance(ReplicaSet::EMPTY.with(next));
+        let now = Instant::now();
+        let began = match finished {
+            Some(p) => self.turn_ended_at(p, open, now),
+            None => now,
+        };
+        if began < now {
+            tracing::trace!(
+                round = number,
+                replica = finished,
+                next,
+                before_us = now.saturating_duration_since(began).as_micros() as u64,
+                "turn ended at its answer stamp: the next turn's deadline runs from there"
+            );
+        }
         let round = self.round.as_mut().expect("checked above");
         round.turn = Some(next);
-        let now = Instant::now();
-        round.deadline = now + allowance;
-        round.checked = Some(now);
+        round.deadline = began + allowance;
+        round.checked = Some(began);
         // The looks and extensions were for the previous turn.
         round.look = None;
         round.starved = None;
         round.extended = Duration::ZERO;
         round.came_back = ReplicaSet::EMPTY;
         true
+    }
+
+    /// When replica `p`'s turn ended, found over `now`: when it answered, by its answer stamp
+    /// (`replica_rt::stamps`), if that falls between `open` (the last time the loop saw the
+    /// turn open) and now; else now, as without stamps. The next turn's deadline starts
+    /// there: not later than the turn began, whenever the loop woke to see it; and never
+    /// earlier than a time the loop saw `p`'s turn still open, whatever a faulty replica wrote
+    /// in the page.
+    fn turn_ended_at(&self, p: usize, open: Option<Instant>, now: Instant) -> Instant {
+        let answered = self.answer_stamp(p).map(|ns| {
+            let age = replica_rt::sys::monotonic_ns().saturating_sub(ns);
+            now - Duration::from_nanos(age)
+        });
+        turn_end(answered, open, now)
+    }
+
+    /// Replica `r`'s last answer stamp (`CLOCK_MONOTONIC` ns), if it stamps its answers.
+    fn answer_stamp(&self, r: usize) -> Option<u64> {
+        let pid = self.core.slots[r].as_ref()?.pid;
+        self.core.stamps.as_ref()?.answered_at(pid as u32)
     }
 
     /// Sequential schedule: the replica whose turn it is could not run (a sibling that kept
@@ -1068,6 +1120,7 @@ impl Mode for ReactiveVoter {
             .map_err(|e| e.to_string())?;
         let pid = forked.replica.pid;
         self.core.slots[slot] = Some(forked.replica);
+        self.core.forget_stamps_of_the_gone();
         Ok(pid)
     }
 
@@ -1107,6 +1160,15 @@ fn unwatched_look(out: &crate::channel::FrameReader) -> Option<Duration> {
 const PARTIAL_LOOK: Duration = Duration::from_micros(50);
 const UNTAKEN_LOOK: Duration = Duration::from_millis(1);
 
+/// When a turn ended: at its answer stamp `answered`, if that lies between `open` (a time
+/// the turn was seen open) and `now`; else `now`.
+fn turn_end(answered: Option<Instant>, open: Option<Instant>, now: Instant) -> Instant {
+    match (answered, open) {
+        (Some(at), Some(open)) if open <= at && at <= now => at,
+        _ => now,
+    }
+}
+
 /// How many bytes the voter queues for one replica input beyond what its pipe holds before
 /// the replica counts as not taking its input (a `hang`): 64 frames of the channel's maximum,
 /// and at least 4 MiB, so a burst of an upstream neighbour never trips it, while a replica
@@ -1121,6 +1183,21 @@ mod tests {
 
     fn set(slots: &[usize]) -> ReplicaSet {
         slots.iter().fold(ReplicaSet::EMPTY, |s, &r| s.with(r))
+    }
+
+    #[test]
+    fn a_turn_ends_at_its_answer_stamp_only_between_its_last_sighting_open_and_now() {
+        let now = Instant::now();
+        let us = Duration::from_micros;
+        let open = Some(now - us(1_000));
+        // The stamp inside the bracket: the turn ended then, not when the loop found it.
+        assert_eq!(turn_end(Some(now - us(900)), open, now), now - us(900));
+        assert_eq!(turn_end(Some(now - us(1_000)), open, now), now - us(1_000));
+        // Before the turn was last seen open (a stale or a forged stamp): now, as without.
+        assert_eq!(turn_end(Some(now - us(1_001)), open, now), now);
+        // No stamp, or no sighting to bound it by: now.
+        assert_eq!(turn_end(None, open, now), now);
+        assert_eq!(turn_end(Some(now - us(10)), None, now), now);
     }
 
     #[test]

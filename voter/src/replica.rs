@@ -7,8 +7,8 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use replica_rt::contract::{
-    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_STARTED_FD,
-    ENV_VOTER_SOCKET, FIRST_PORT_FD, STARTED,
+    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_STAMPS_FD,
+    ENV_STARTED_FD, ENV_VOTER_SOCKET, FIRST_PORT_FD, STARTED,
 };
 use replica_rt::sys;
 
@@ -317,8 +317,12 @@ impl Replica {
         Ok(replica)
     }
 
-    /// Starts replica `slot` afresh by exec.
-    pub fn spawn(plan: &VoterPlan, slot: usize) -> io::Result<Replica> {
+    /// Starts replica `slot` afresh by exec (`stamps`: the answer-stamp page to map into it).
+    pub fn spawn(
+        plan: &VoterPlan,
+        slot: usize,
+        stamps: Option<BorrowedFd<'_>>,
+    ) -> io::Result<Replica> {
         let pipes = ReplicaPipes::new(plan)?;
         let mut cmd = Command::new(&plan.exec);
         cmd.args(&plan.args)
@@ -359,6 +363,11 @@ impl Replica {
             .map(|(fd, target)| (fd.as_raw_fd(), target))
             .collect();
         map.push((start_w.as_raw_fd(), start_target));
+        if let Some(stamps) = stamps {
+            // The answer stamps go on the number after the start handshake's.
+            cmd.env(ENV_STAMPS_FD, (start_target + 1).to_string());
+            map.push((stamps.as_raw_fd(), start_target + 1));
+        }
         sys::map_fds_on_exec(&mut cmd, map);
         let child = cmd.spawn()?;
         // Only the replica holds the write end now: its end of the pipe is its exit.
