@@ -286,6 +286,7 @@ impl System {
                 socket_fd: None,
                 journal_fd,
                 park_fds,
+                stamps_fd: None,
                 adopt: None,
                 restart_timeout_ms: s3res_protocol::plan::default_restart_timeout_ms(),
                 priority: sched.priority,

@@ -183,6 +183,7 @@ fn steady_state(monitored: bool) {
         // As s3res-bootstrap runs it: the journal's peek, take and commit are on every round.
         journal_fd: Some(replica_rt::shared::memfd(c"journal").unwrap().into_raw_fd()),
         park_fds: None,
+        stamps_fd: None,
         adopt: None,
         restart_timeout_ms: 1000,
         priority: None,

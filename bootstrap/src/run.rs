@@ -853,12 +853,15 @@ fn spawn_voter(
         } else {
             None
         };
-        Some((socket, journal, park))
+        // The replicas' answer stamps, so that a successor reads those of the replicas it
+        // adopts (they keep the page they were given).
+        let stamps = replica_rt::shared::memfd(c"s3res-answer-stamps").map_err(spawn_err)?;
+        Some((socket, journal, park, stamps))
     } else {
         None
     };
-    let (socket_fd, journal_fd, park_fds) = match &owned {
-        Some((socket, journal, park)) => {
+    let (socket_fd, journal_fd, park_fds, stamps_fd) = match &owned {
+        Some((socket, journal, park, stamps)) => {
             let socket_target = heartbeat_target + 1;
             handed.push((socket.as_fd(), socket_target));
             handed.push((journal.as_fd(), socket_target + 1));
@@ -867,9 +870,15 @@ fn spawn_voter(
                 handed.push((rx.as_fd(), socket_target + 3));
                 [socket_target + 2, socket_target + 3]
             });
-            (Some(socket_target), Some(socket_target + 1), park_fds)
+            handed.push((stamps.as_fd(), socket_target + 4));
+            (
+                Some(socket_target),
+                Some(socket_target + 1),
+                park_fds,
+                Some(socket_target + 4),
+            )
         }
-        None => (None, None, None),
+        None => (None, None, None, None),
     };
     let external = |ports: &[crate::plan::PortPlan], first: usize| -> Vec<ExternalPort> {
         ports
@@ -898,6 +907,7 @@ fn spawn_voter(
         socket_fd,
         journal_fd,
         park_fds,
+        stamps_fd,
         adopt: None,
         restart_timeout_ms: c.restart_timeout_ms,
         start_timeout_ms: c.start_timeout_ms,

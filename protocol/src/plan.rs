@@ -109,6 +109,11 @@ pub struct VoterPlan {
     /// successor needs to take the component over. `None`: no journal, no successor.
     #[serde(default)]
     pub journal_fd: Option<RawFd>,
+    /// Fd of the replicas' answer-stamp page (a memfd bootstrap made and keeps, like the
+    /// journal; `replica_rt::stamps`), so that a successor reads the stamps of the replicas it
+    /// adopts. `None`: the voter makes a page of its own.
+    #[serde(default)]
+    pub stamps_fd: Option<RawFd>,
     /// An unmodified program's voter under a journal: the two ends of a socket pair
     /// (`SOCK_SEQPACKET`, sending end first) that bootstrap made and keeps, in which the voter
     /// parks the voter's ends of every replica's pipes (`voter/src/park.rs`), so that they

@@ -15,7 +15,9 @@
 //! stamps it after each answer's write. The voter hands the page to the replicas it starts by
 //! exec ([`contract::ENV_STAMPS_FD`](crate::contract::ENV_STAMPS_FD)); a replica forked from a
 //! donor shares the donor's mapping and claims its own entry; the voter frees the entries of
-//! replicas it no longer has ([`AnswerStamps::retain`]).
+//! replicas it no longer has ([`AnswerStamps::retain`]). bootstrap makes the page and keeps it
+//! across voters, like the journal, so a voter's successor reads the stamps of the replicas it
+//! adopts.
 //!
 //! Every replica can write the whole page, so a faulty one can write any stamp. The voter
 //! believes a stamp only if it falls between the last time it knew the turn still open and
@@ -55,6 +57,14 @@ impl AnswerStamps {
     /// A new, zeroed page (the voter): a memfd, close-on-exec (handed on by fd mapping only).
     pub fn create() -> io::Result<AnswerStamps> {
         let fd = memfd(c"s3res-answer-stamps")?;
+        Ok(AnswerStamps {
+            page: SharedRegion::sized(fd, MAP_LEN)?,
+        })
+    }
+
+    /// Maps the page behind `fd`, which bootstrap keeps across voters: the first voter finds it
+    /// empty and makes it a zeroed page; a successor finds it as its predecessor left it.
+    pub fn kept(fd: OwnedFd) -> io::Result<AnswerStamps> {
         Ok(AnswerStamps {
             page: SharedRegion::sized(fd, MAP_LEN)?,
         })
@@ -245,6 +255,17 @@ mod tests {
         voter.retain(|pid| pid % 2 == 0);
         assert!(replica.claim(9_999).is_some());
         assert!(voter.entry_of(2).is_some() && voter.entry_of(3).is_none());
+    }
+
+    #[test]
+    fn a_kept_page_is_sized_once_and_keeps_its_entries_for_the_next_voter() {
+        let fd = memfd(c"test").unwrap();
+        let first = AnswerStamps::kept(fd.try_clone().unwrap()).unwrap();
+        let e = first.claim(100).unwrap();
+        assert!(first.stamp(e, 100, 5_000));
+        drop(first);
+        let successor = AnswerStamps::kept(fd).unwrap();
+        assert_eq!(successor.answered_at(100), Some(5_000));
     }
 
     /// The only test that installs the process's page (other tests' sends stamp it too).

@@ -421,6 +421,36 @@ fn a_replica_forked_from_a_donor_stamps_its_own_answers() {
     assert_sink_whole(&summary, count);
 }
 
+/// The stamp page is bootstrap's, like the journal: a voter's successor reads the stamps of
+/// the replicas it adopts (they keep the page they were given), so after the voter is killed
+/// their turns are still timed from stamps, and nothing is lost.
+#[test]
+fn a_voters_successor_reads_the_answer_stamps_of_the_replicas_it_adopts() {
+    let _turn = one_system_at_a_time();
+    let count = 1500;
+    let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let voter = pid_of(&run, "s3res-voter");
+    s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+    let successor = run.next_voter(voter, Duration::from_secs(10));
+    let out = run.wait_success(LIMIT);
+    out.voter_restarts(1);
+    let after = "adopted replica=0";
+    assert!(
+        out.stderr.contains(after),
+        "voter {successor} did not adopt replica 0:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    assert!(
+        turns_timed_from_stamps(&out.stderr, 0, after) > 0,
+        "no turn of an adopted replica 0 was timed from its answer stamp:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    assert_sink_whole(&summary, count);
+    run.assert_nothing_left();
+}
+
 /// `s3res-bootstrap --check DESCRIPTION`: it starts nothing, it validates, prints and exits.
 fn check(desc: &std::path::Path) -> std::process::Output {
     Command::new(bin_path("s3res-bootstrap"))

@@ -272,6 +272,7 @@ impl Core {
             listener,
             journal,
             park,
+            stamps,
         } = Endpoints::open(&plan)?;
         let mut park = match park {
             Some((tx, rx)) => Some(ParkingLot::new(tx, rx).map_err(io_err("the parking socket"))?),
@@ -291,7 +292,7 @@ impl Core {
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
         let cpu_latency = crate::rt::keep_cpus_polling(plan.cpu_idle);
-        let stamps = answer_stamps(&plan);
+        let stamps = answer_stamps(&plan, stamps);
         let (journal, slots, adoption) = match journal {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
@@ -1686,17 +1687,24 @@ fn journaled_inputs(inputs: &mut [ExternalInput], plan: &VoterPlan) -> Result<()
 }
 
 /// The answer-stamp page for the replicas of a sequential reactive voter (the only voter that
-/// does not wake for every answer); `None` for the others, for programs run under the preload
-/// library (their runtime is not replica-rt), or if it cannot be made (logged: the voter then
-/// looks for answers on its timer, as without stamps).
-fn answer_stamps(plan: &VoterPlan) -> Option<AnswerStamps> {
+/// does not wake for every answer): the one bootstrap keeps across voters (`kept`; a
+/// successor finds its predecessor's replicas' entries there), else one of its own. `None` for
+/// the other voters, for programs run under the preload library (their runtime is not
+/// replica-rt), or if it cannot be mapped (logged: the voter then looks for answers on its
+/// timer, as without stamps).
+fn answer_stamps(plan: &VoterPlan, kept: Option<OwnedFd>) -> Option<AnswerStamps> {
     let sequential = plan.mode == PlanMode::Reactive && plan.schedule == Schedule::Sequential;
     if !sequential || plan.preload.is_some() {
         return None;
     }
-    AnswerStamps::create()
-        .inspect_err(|e| tracing::warn!(error = %e, "no answer-stamp page: turns are timed on the voter's timer"))
-        .ok()
+    let page = match kept {
+        Some(fd) => AnswerStamps::kept(fd),
+        None => AnswerStamps::create(),
+    };
+    page.inspect_err(|e| {
+        tracing::warn!(error = %e, "no answer-stamp page: turns are timed on the voter's timer")
+    })
+    .ok()
 }
 
 /// Starts every replica by exec, in slot order, each with a `start` event. `on_spawn(pid,

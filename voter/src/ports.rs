@@ -713,6 +713,8 @@ pub(crate) struct Endpoints {
     pub(crate) journal: Option<OwnedFd>,
     /// Where an unmodified program's pipes are parked (`park.rs`), if bootstrap made it.
     pub(crate) park: Option<(OwnedFd, OwnedFd)>,
+    /// The replicas' answer-stamp page, if bootstrap made it (`replica_rt::stamps`).
+    pub(crate) stamps: Option<OwnedFd>,
 }
 
 impl Endpoints {
@@ -778,6 +780,10 @@ impl Endpoints {
             Some([tx, rx]) => Some((adopted.take(tx, "park")?, adopted.take(rx, "park")?)),
             None => None,
         };
+        let stamps = plan
+            .stamps_fd
+            .map(|fd| adopted.take(fd, "answer stamps"))
+            .transpose()?;
         let listener = match plan.socket_fd {
             // Bound and listening already: bootstrap keeps it across voters.
             Some(fd) => UnixListener::from(adopted.take(fd, "socket")?),
@@ -802,6 +808,7 @@ impl Endpoints {
             listener,
             journal,
             park,
+            stamps,
         })
     }
 }
