@@ -33,7 +33,26 @@ pub enum FireError {
         attempts: u32,
         patience_ms: u64,
     },
+    #[error(
+        "process {pid} does not catch signal {signal} within {patience_ms} ms: no s3res runtime \
+         installed its injection hooks (not a replica-rt program, or its init never came); \
+         the signal was not sent, as its default action would kill it"
+    )]
+    NoHook {
+        pid: i32,
+        signal: i32,
+        patience_ms: u64,
+    },
 }
+
+/// How long a signal injection waits for its target to catch the signal. replica-rt's `init`
+/// installs the hooks; a target signalled before that dies of the signal's default action, and
+/// the campaign would count a `crash` that depends only on how soon after its start the
+/// injection came (`inject/tests/classify.rs` saw one run classify `sdc` and the next `crash`
+/// for one schedule).
+const HOOK_PATIENCE: std::time::Duration = std::time::Duration::from_secs(1);
+/// How often a target is looked at while the injection waits for its hook.
+const HOOK_POLL: std::time::Duration = std::time::Duration::from_millis(1);
 
 /// How long a register flip waits for its target to be seen running: a component waiting on
 /// its input spends most of its time blocked in a system call, with its registers in kernel
@@ -108,6 +127,16 @@ pub fn fire(
             source: std::io::Error::from_raw_os_error(libc::EINVAL),
         });
     }
+    let hook = match action {
+        Action::Sdc { .. } => Some(signals::INJECT_SDC),
+        Action::Cfe => Some(signals::inject_cfe()),
+        Action::Var { .. } => Some(signals::inject_var()),
+        Action::Exec | Action::Reg { .. } => None,
+    };
+    let waited = match hook {
+        Some(signal) => wait_for_hook(pid, signal)?,
+        None => None,
+    };
     match action {
         Action::Exec => check(replica_rt::sys::kill(pid, libc::SIGKILL))?,
         Action::Sdc { value } => check(replica_rt::sys::sigqueue(
@@ -127,7 +156,54 @@ pub fn fire(
         }
         Action::Reg { seed } => return fire_reg(pid, *seed, reg).map(Some),
     }
-    Ok(None)
+    // An injection that had to wait for its hook happened when it was sent, not when it was
+    // due (the campaign records `time_ns` as the injection's time, as for a register flip).
+    Ok(waited.map(|waited| {
+        serde_json::json!({
+            "time_ns": replica_rt::sys::monotonic_ns(),
+            "hook_waited_us": waited.as_micros() as u64,
+        })
+    }))
+}
+
+/// Waits until `pid` catches `signal` (its runtime installed the hook: see [`HOOK_PATIENCE`]);
+/// how long it waited, if it had to.
+fn wait_for_hook(pid: i32, signal: i32) -> Result<Option<std::time::Duration>, FireError> {
+    let started = std::time::Instant::now();
+    let deadline = started + HOOK_PATIENCE;
+    loop {
+        match catches(pid, signal) {
+            None => return Err(FireError::Gone(pid)),
+            Some(true) if started.elapsed() < HOOK_POLL => return Ok(None),
+            Some(true) => return Ok(Some(started.elapsed())),
+            Some(false) if std::time::Instant::now() >= deadline => {
+                return Err(FireError::NoHook {
+                    pid,
+                    signal,
+                    patience_ms: HOOK_PATIENCE.as_millis() as u64,
+                })
+            }
+            Some(false) => std::thread::sleep(HOOK_POLL),
+        }
+    }
+}
+
+/// Whether `pid` catches `signal` (`SigCgt` in `/proc/PID/status`); `None` if it is gone.
+fn catches(pid: i32, signal: i32) -> Option<bool> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    Some(caught_in(&status, signal))
+}
+
+/// Whether the `SigCgt` mask of a `/proc/PID/status` text has `signal` (bit `signal - 1`).
+fn caught_in(status: &str, signal: i32) -> bool {
+    let mask = status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigCgt:"))
+        .and_then(|hex| u64::from_str_radix(hex.trim(), 16).ok());
+    match (mask, u32::try_from(signal - 1)) {
+        (Some(mask), Ok(bit)) if bit < 64 => mask & (1 << bit) != 0,
+        _ => false,
+    }
 }
 
 /// One register flip into `pid` (s3res-regflip), the register and bits drawn from `seed`. A
@@ -220,6 +296,37 @@ fn with_wait(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_caught_mask_is_read_bit_by_signal() {
+        let status = "Name:\techo\nSigIgn:\t0000000000001000\nSigCgt:\t0000000300004002\n";
+        assert!(caught_in(status, 2));
+        assert!(caught_in(status, 15));
+        assert!(caught_in(status, 33) && caught_in(status, 34));
+        assert!(!caught_in(status, 13), "ignored is not caught");
+        assert!(!caught_in(status, 35));
+        assert!(!caught_in("Name:\tx\n", 2), "no mask: not caught");
+        assert!(!caught_in(status, 0) && !caught_in(status, 65));
+    }
+
+    /// A target without the hooks (a plain program) is not signalled: the default action of
+    /// the injection signals would kill it, and a campaign would count a crash.
+    #[test]
+    fn a_signal_injection_never_kills_a_target_without_its_hook() {
+        let mut child = std::process::Command::new("sleep")
+            .arg("30")
+            .spawn()
+            .expect("spawn sleep");
+        let pid = child.id() as i32;
+        let err = fire(&Action::Sdc { value: 1 }, pid, &RegOptions::default()).unwrap_err();
+        assert!(matches!(err, FireError::NoHook { .. }), "{err}");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the target was killed by the injection signal"
+        );
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
 
     #[test]
     fn actions_serialise_with_their_kind() {
