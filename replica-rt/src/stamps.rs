@@ -22,7 +22,10 @@
 //! Every replica can write the whole page, so a faulty one can write any stamp. The voter
 //! believes a stamp only if it falls between the last time it knew the turn still open and
 //! now, so a wrong stamp can at worst start the next turn's deadline as early as that, never
-//! before its turn began (`ReactiveVoter::turn_ended_at`).
+//! before its turn began (`ReactiveVoter::turn_ended_at`). The stamp comes after the answer's
+//! write, so a deadline never starts before the answer went out; a voter that reads the
+//! answer in the instant between the two finds the stamp of the round before, which that
+//! bound refuses, and times the next turn from when it found the answer, as without stamps.
 
 use std::io;
 use std::os::fd::OwnedFd;

@@ -749,9 +749,9 @@ impl ReactiveVoter {
     /// When replica `p`'s turn ended, found over `now`: when it answered, by its answer stamp
     /// (`replica_rt::stamps`), if that falls between `open` (the last time the loop saw the
     /// turn open) and now; else now, as without stamps. The next turn's deadline starts
-    /// there: not later than the turn began, whenever the loop woke to see it; and never
-    /// earlier than a time the loop saw `p`'s turn still open, whatever a faulty replica wrote
-    /// in the page.
+    /// there: when that turn really began, not when the loop happened to wake and see it; and
+    /// never before a moment the loop saw `p`'s turn still open, whatever a faulty replica
+    /// wrote in the page.
     fn turn_ended_at(&self, p: usize, open: Option<Instant>, now: Instant) -> Instant {
         let answered = self.answer_stamp(p).map(|ns| {
             let age = replica_rt::sys::monotonic_ns().saturating_sub(ns);
