@@ -172,7 +172,9 @@ fn wait_for_hook(pid: i32, signal: i32) -> Result<Option<std::time::Duration>, F
     let started = std::time::Instant::now();
     let deadline = started + HOOK_PATIENCE;
     loop {
-        match catches(pid, signal) {
+        let caught = replica_rt::sys::caught_signals(pid)
+            .map(|mask| mask & replica_rt::sys::signal_bit(signal) != 0);
+        match caught {
             None => return Err(FireError::Gone(pid)),
             Some(true) if started.elapsed() < HOOK_POLL => return Ok(None),
             Some(true) => return Ok(Some(started.elapsed())),
@@ -185,24 +187,6 @@ fn wait_for_hook(pid: i32, signal: i32) -> Result<Option<std::time::Duration>, F
             }
             Some(false) => std::thread::sleep(HOOK_POLL),
         }
-    }
-}
-
-/// Whether `pid` catches `signal` (`SigCgt` in `/proc/PID/status`); `None` if it is gone.
-fn catches(pid: i32, signal: i32) -> Option<bool> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    Some(caught_in(&status, signal))
-}
-
-/// Whether the `SigCgt` mask of a `/proc/PID/status` text has `signal` (bit `signal - 1`).
-fn caught_in(status: &str, signal: i32) -> bool {
-    let mask = status
-        .lines()
-        .find_map(|l| l.strip_prefix("SigCgt:"))
-        .and_then(|hex| u64::from_str_radix(hex.trim(), 16).ok());
-    match (mask, u32::try_from(signal - 1)) {
-        (Some(mask), Ok(bit)) if bit < 64 => mask & (1 << bit) != 0,
-        _ => false,
     }
 }
 
@@ -296,18 +280,6 @@ fn with_wait(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_caught_mask_is_read_bit_by_signal() {
-        let status = "Name:\techo\nSigIgn:\t0000000000001000\nSigCgt:\t0000000300004002\n";
-        assert!(caught_in(status, 2));
-        assert!(caught_in(status, 15));
-        assert!(caught_in(status, 33) && caught_in(status, 34));
-        assert!(!caught_in(status, 13), "ignored is not caught");
-        assert!(!caught_in(status, 35));
-        assert!(!caught_in("Name:\tx\n", 2), "no mask: not caught");
-        assert!(!caught_in(status, 0) && !caught_in(status, 65));
-    }
 
     /// A target without the hooks (a plain program) is not signalled: the default action of
     /// the injection signals would kill it, and a campaign would count a crash.

@@ -59,10 +59,7 @@ unsafe impl Sync for AnswerStamps {}
 impl AnswerStamps {
     /// A new, zeroed page (the voter): a memfd, close-on-exec (handed on by fd mapping only).
     pub fn create() -> io::Result<AnswerStamps> {
-        let fd = memfd(c"s3res-answer-stamps")?;
-        Ok(AnswerStamps {
-            page: SharedRegion::sized(fd, MAP_LEN)?,
-        })
+        Self::kept(memfd(c"s3res-answer-stamps")?)
     }
 
     /// Maps the page behind `fd`, which bootstrap keeps across voters: the first voter finds it

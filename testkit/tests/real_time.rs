@@ -323,7 +323,7 @@ fn unprivileged_sequential_rounds_blame_exactly_a_stopped_replica() {
 }
 
 /// TMR echo with the voter on its replicas' CPU, tracing the turns the voter times from
-/// answer stamps.
+/// answer stamps; returned once every replica has answered.
 fn start_tmr_with_the_voter_on_one_cpu(count: u32) -> (RunningSystem, std::path::PathBuf) {
     let shared = usable_cpus()[0];
     let sys = System::new().env(
@@ -336,7 +336,9 @@ fn start_tmr_with_the_voter_on_one_cpu(count: u32) -> (RunningSystem, std::path:
              "timeout_us": {TIMEOUT_US}, "priority": 30, "cpus": [{shared}],
              "voter_cpu": {shared} }}"#
     );
-    let run = sys.start(&echo_pipeline(&summary, &echo, count, 500));
+    let mut run = sys.start(&echo_pipeline(&summary, &echo, count, 500));
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
     (run, summary)
 }
 
@@ -365,8 +367,6 @@ fn a_turn_found_over_late_is_timed_from_its_answer_stamp() {
     let _turn = one_system_at_a_time();
     let count = 1500;
     let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
-    run.wait_for_replicas("echo", 3);
-    run.wait_for_answers("echo");
     let pid = run.replica_pids("echo")[&1];
     stop(pid);
     let hang = run.wait_for_event(
@@ -395,8 +395,6 @@ fn a_replica_forked_from_a_donor_stamps_its_own_answers() {
     let _turn = one_system_at_a_time();
     let count = 1500;
     let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
-    run.wait_for_replicas("echo", 3);
-    run.wait_for_answers("echo");
     let pid = run.replica_pids("echo")[&0];
     replica_rt::sys::kill(pid, libc::SIGKILL).expect("SIGKILL replica 0");
     let rec = run.wait_for_event(
@@ -429,8 +427,6 @@ fn a_voters_successor_reads_the_answer_stamps_of_the_replicas_it_adopts() {
     let _turn = one_system_at_a_time();
     let count = 1500;
     let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
-    run.wait_for_replicas("echo", 3);
-    run.wait_for_answers("echo");
     let voter = pid_of(&run, "s3res-voter");
     s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
     let successor = run.next_voter(voter, Duration::from_secs(10));
