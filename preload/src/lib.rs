@@ -23,8 +23,12 @@
 //! text and its newline separately), restarts are deferred (`replica_rt::restart::hold_restarts`:
 //! an atomic counter, no system call), so a fork child never starts its output with the tail
 //! of its donor's line, and a RESTART that came meanwhile forks at the end of the `write` that
-//! completes the line. The same place applies SDC injections to the outgoing line. (C stdio
-//! writes from inside libc and does not come here; line-buffered, it writes whole lines.)
+//! completes the line. The same place applies SDC injections to the outgoing line, and stamps
+//! the time when a write completes a line (or a frame), in the answer-stamp page its voter
+//! handed it (`replica_rt::stamps`), as replica-rt's output ports do. (C stdio writes from
+//! inside libc and does not come here; line-buffered, it writes whole lines, but stamps none:
+//! the voter then looks for such a program's answers on its timer, as it did for every
+//! unmodified program before.)
 //!
 //! A program that writes s3res frames itself (`"framing": "frames"`: the voter says so with
 //! `S3RES_PRELOAD_FRAMES=1`) has its stdout followed frame by frame instead of line by line:
@@ -165,6 +169,12 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
         }
     }
     if !MID_LINE.load(Ordering::SeqCst) {
+        if n > 0 {
+            // An answer (its line, or its frame) is whole in the pipe now: when it went out, for
+            // a voter that does not wake for it (`replica_rt::stamps`). Still held, so a fork
+            // child never starts with its donor's stamp pending.
+            replica_rt::stamps::answered();
+        }
         // The line is whole: a RESTART that came meanwhile forks here (errno is kept, for a
         // failed write's caller).
         restart::release_restarts();

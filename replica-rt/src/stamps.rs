@@ -12,8 +12,10 @@
 //! The page holds [`ENTRIES`] entries of two 64-bit words: a pid (0: free) and that process's
 //! last answer, `CLOCK_MONOTONIC` nanoseconds (0: none yet). A replica claims a free entry for
 //! its pid the first time it answers (a compare-and-swap, so two replicas never share one) and
-//! stamps it after each answer's write. The voter hands the page to the replicas it starts by
-//! exec ([`contract::ENV_STAMPS_FD`](crate::contract::ENV_STAMPS_FD)); a replica forked from a
+//! stamps it after each answer's write ([`answered`]: replica-rt's output ports, and the preload
+//! library's `write` for an unmodified program's lines and frames). The voter hands the page to
+//! the replicas it starts by exec
+//! ([`contract::ENV_STAMPS_FD`](crate::contract::ENV_STAMPS_FD)); a replica forked from a
 //! donor shares the donor's mapping and claims its own entry; the voter frees the entries of
 //! replicas it no longer has ([`AnswerStamps::retain`]). bootstrap makes the page and keeps it
 //! across voters, like the journal, so a voter's successor reads the stamps of the replicas it
@@ -171,9 +173,12 @@ pub(crate) fn forked(pid: libc::pid_t) {
     ENTRY.store(usize::MAX, Ordering::Relaxed);
 }
 
-/// Stamps this process's entry with the time now (after an answer's write). Without a page,
-/// or with the page full, nothing: the voter then looks for the answer on its timer.
-pub(crate) fn answered() {
+/// Stamps this process's entry with the time now, right after an answer's write: the runtime's
+/// output ports call it ([`crate::OutPort::send`]), and so does the preload library's `write`
+/// when a write completes a line or a frame. Without a page, or with the page full, nothing:
+/// the voter then looks for the answer on its timer. Only atomics and the vDSO clock:
+/// async-signal-safe, no allocation.
+pub fn answered() {
     let Some(page) = PAGE.get() else {
         return;
     };

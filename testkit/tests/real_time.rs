@@ -366,7 +366,18 @@ fn turns_timed_from_stamps(stderr: &str, slot: usize, after: &str) -> usize {
 fn a_turn_found_over_late_is_timed_from_its_answer_stamp() {
     let _turn = one_system_at_a_time();
     let count = 1500;
-    let (mut run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
+    let (run, summary) = start_tmr_with_the_voter_on_one_cpu(count);
+    stop_replica_1_and_expect_turns_timed_from_stamps(run, &summary, count);
+}
+
+/// Stops replica 1 of `echo` (the voter on its replicas' CPU) and checks that replica 1 alone is
+/// blamed, at its turn's deadline; that the voter timed turns from replica 0's answer stamps
+/// (its trace says so); and that every one of `count` frames arrives.
+fn stop_replica_1_and_expect_turns_timed_from_stamps(
+    mut run: RunningSystem,
+    summary: &std::path::Path,
+    count: u32,
+) {
     let pid = run.replica_pids("echo")[&1];
     stop(pid);
     let hang = run.wait_for_event(
@@ -383,7 +394,8 @@ fn a_turn_found_over_late_is_timed_from_its_answer_stamp() {
     );
     let faults = out.faults();
     assert_eq!(faults.len(), 1, "exactly the one fault: {faults:#?}");
-    assert_sink_whole(&summary, count);
+    assert_sink_whole(summary, count);
+    run.assert_nothing_left();
 }
 
 /// A replica forked from a donor shares the donor's mapping of the stamp page, and claims an
@@ -445,6 +457,49 @@ fn a_voters_successor_reads_the_answer_stamps_of_the_replicas_it_adopts() {
     );
     assert_sink_whole(&summary, count);
     run.assert_nothing_left();
+}
+
+/// An unmodified program's answers are stamped too: the preload library's `write` stamps
+/// each frame that `cat` writes whole (`"framing": "frames"`). With the voter on the
+/// replicas' CPU and replica 1 stopped, the voter times replica 1's turn from replica 0's
+/// stamp (its trace says so), blames replica 1 alone at its turn's deadline, and every frame
+/// arrives. (Before, the voter looked for an unmodified program's answers on its timer only.)
+#[test]
+fn an_unmodified_programs_turns_are_timed_from_the_stamps_of_its_writes() {
+    let _turn = one_system_at_a_time();
+    let count = 1500;
+    let shared = usable_cpus()[0];
+    let cat = std::env::split_paths(&std::env::var_os("PATH").unwrap_or_default())
+        .map(|d| d.join("cat"))
+        .find(|p| p.is_file())
+        .expect("cat on the PATH");
+    let sys = System::new().env(
+        "RUST_LOG",
+        "info,s3res_voter=debug,s3res_voter::reactive=trace",
+    );
+    let summary = sys.path("summary.json");
+    let desc = format!(
+        r#"{{
+  "name": "cat-pipeline",
+  "components": {{
+    "source": {{ "exec": "s3res-source", "args": ["--count", "{count}", "--hz", "500"] }},
+    "echo": {{ "exec": "{}", "runtime": "preload", "framing": "frames", "redundancy": "tmr",
+               "timeout_us": {TIMEOUT_US}, "priority": 30, "cpus": [{shared}],
+               "voter_cpu": {shared} }},
+    "sink": {{ "exec": "s3res-sink", "args": ["--expect", "{count}", "--summary", "{}"] }}
+  }},
+  "channels": [
+    {{ "from": "source.out", "to": "echo.in" }},
+    {{ "from": "echo.out", "to": "sink.in" }}
+  ]
+}}"#,
+        cat.display(),
+        summary.display()
+    );
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    stop_replica_1_and_expect_turns_timed_from_stamps(run, &summary, count);
 }
 
 /// `s3res-bootstrap --check DESCRIPTION`: it starts nothing, it validates, prints and exits.

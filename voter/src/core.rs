@@ -1688,13 +1688,15 @@ fn journaled_inputs(inputs: &mut [ExternalInput], plan: &VoterPlan) -> Result<()
 
 /// The answer-stamp page for the replicas of a sequential reactive voter (the only voter that
 /// does not wake for every answer): the one bootstrap keeps across voters (`kept`; a
-/// successor finds its predecessor's replicas' entries there), else one of its own. `None` for
-/// the other voters, for programs run under the preload library (their runtime is not
-/// replica-rt), or if it cannot be mapped (logged: the voter then looks for answers on its
-/// timer, as without stamps).
+/// successor finds its predecessor's replicas' entries there), else one of its own. Programs
+/// under the preload library get it too: the library stamps each line or frame that the
+/// program's `write` completes (one whose output goes through C stdio stamps nothing, and the
+/// voter goes on looking for its answers on the timer: `unwatched_turn_check`). `None` for
+/// the other voters, or if it cannot be mapped (logged: the voter then looks for answers on
+/// its timer, as without stamps).
 fn answer_stamps(plan: &VoterPlan, kept: Option<OwnedFd>) -> Option<AnswerStamps> {
     let sequential = plan.mode == PlanMode::Reactive && plan.schedule == Schedule::Sequential;
-    if !sequential || plan.preload.is_some() {
+    if !sequential {
         return None;
     }
     let page = match kept {
