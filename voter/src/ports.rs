@@ -565,6 +565,15 @@ impl PollSet {
 /// round to round, so one timer armed for the first round's stays valid for the next ones:
 /// it expires early, the loop finds nothing due, and it is armed again for what is due then,
 /// once per `timeout_us` or so instead of twice per round.
+///
+/// That early expiry is not free either: on this VM an hrtimer interrupt costs the CPU it
+/// lands on 20–40 µs, and at a 2 ms `timeout_us` it came every 1.8 ms, in whatever round ran
+/// then (the one-CPU tail, results.md, stops 40 and 41). So a timer about to expire for
+/// nothing is moved instead (one `timerfd_settime`, about 1 µs): when it is due within
+/// [`MOVE_WITHIN`] and the wake-up needed now is at least [`MOVE_GAIN`] later. The gain bounds
+/// how often it can move, to once per `MOVE_GAIN` at most; a wake-up that keeps receding by
+/// a little (a turn check every 100 µs, for a program that does not stamp its answers) is
+/// left to expire, as before, rather than moved every other round.
 pub(crate) struct WakeTimer {
     fd: TimerFd,
     /// What it is armed for; `None`: disarmed, or expired.
@@ -581,15 +590,20 @@ impl WakeTimer {
         Ok(WakeTimer { fd, armed: None })
     }
 
-    /// Makes sure the loop wakes up by `at`: arms the timer unless it already expires by then.
+    /// Makes sure the loop wakes up by `at`: arms the timer unless it already expires by then
+    /// (and is not about to expire long before it: `move_instead`).
     pub(crate) fn wake_by(&mut self, at: Instant) -> Result<(), VoterError> {
-        if self.armed.is_some_and(|armed| armed <= at) {
+        let now = Instant::now();
+        if self
+            .armed
+            .is_some_and(|armed| armed <= at && !move_instead(armed, at, now))
+        {
             return Ok(());
         }
         // Relative to now on the deadline clock, floored, so never later than `at`; a zero
         // would disarm the timer, so at least a nanosecond.
         let left = at
-            .saturating_duration_since(Instant::now())
+            .saturating_duration_since(now)
             .max(Duration::from_nanos(1));
         self.fd
             .set(
@@ -607,6 +621,19 @@ impl WakeTimer {
         let _ = sys::read(self.fd.as_fd(), &mut count);
         self.armed = None;
     }
+}
+
+/// How close to its expiry a timer armed for a sooner wake-up than the one needed is moved.
+pub(crate) const MOVE_WITHIN: Duration = Duration::from_micros(50);
+/// How much later the wake-up needed must be for such a timer to be moved.
+pub(crate) const MOVE_GAIN: Duration = Duration::from_micros(500);
+
+/// Whether a timer armed for `armed`, sooner than the wake-up needed `at`, is moved to `at`
+/// now rather than left to expire for nothing: it is due within [`MOVE_WITHIN`] and `at` is
+/// at least [`MOVE_GAIN`] after it (see [`WakeTimer`]).
+fn move_instead(armed: Instant, at: Instant, now: Instant) -> bool {
+    armed.saturating_duration_since(now) < MOVE_WITHIN
+        && at.saturating_duration_since(armed) >= MOVE_GAIN
 }
 
 /// One `ppoll` on `fds` until something is ready or `deadline` (none: no limit) comes;
@@ -947,6 +974,45 @@ mod tests {
         // A wake-up already due fires at once.
         timer.wake_by(Instant::now()).unwrap();
         assert!(readable(&timer, Duration::from_secs(2)));
+    }
+
+    #[test]
+    fn a_timer_about_to_expire_for_nothing_is_moved_to_the_wake_up_needed() {
+        crate::clock::init().unwrap();
+        let now = Instant::now();
+        let ms = Duration::from_millis;
+        let us = Duration::from_micros;
+        // Due within MOVE_WITHIN, and the wake-up needed far later: moved.
+        assert!(move_instead(now + us(20), now + ms(2), now));
+        // Already due (expired, not yet taken off): moved too.
+        assert!(move_instead(now, now + ms(2), now));
+        // Due later than MOVE_WITHIN: left, it may still be moved nearer its expiry.
+        assert!(!move_instead(now + us(60), now + ms(2), now));
+        // The wake-up needed only a little later (a turn check moving on): left to expire.
+        assert!(!move_instead(now + us(20), now + us(120), now));
+        assert!(!move_instead(
+            now + us(20),
+            now + us(20) + MOVE_GAIN - us(1),
+            now
+        ));
+        assert!(move_instead(now + us(20), now + us(21) + MOVE_GAIN, now));
+
+        let mut timer = WakeTimer::new().unwrap();
+        let soon = Instant::now() + us(10);
+        timer.wake_by(soon).unwrap();
+        let later = soon + Duration::from_secs(5);
+        timer.wake_by(later).unwrap();
+        assert_eq!(timer.armed, Some(later), "moved");
+        assert!(
+            !readable(&timer, ms(50)),
+            "the timer moved does not expire at its old time"
+        );
+        // Armed far ahead, a later wake-up keeps it (moved only near its expiry).
+        let far = Instant::now() + ms(20);
+        let mut timer = WakeTimer::new().unwrap();
+        timer.wake_by(far).unwrap();
+        timer.wake_by(far + Duration::from_secs(5)).unwrap();
+        assert_eq!(timer.armed, Some(far));
     }
 
     /// The quiet fds the wait found ready, through the one epoll fd.
