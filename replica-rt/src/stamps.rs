@@ -108,6 +108,7 @@ impl AnswerStamps {
         if let Some(e) = self.entry_of(pid) {
             return Some(e);
         }
+        let pid = u64::from(pid);
         (0..ENTRIES).find(|&e| {
             let word = self.pid_word(e);
             if word.load(Ordering::Relaxed) != 0 {
@@ -116,8 +117,14 @@ impl AnswerStamps {
             // The stamp is cleared before the pid is published, so that the voter never
             // takes a previous holder's stamp for this process's.
             self.stamp_word(e).store(0, Ordering::Relaxed);
-            word.compare_exchange(0, u64::from(pid), Ordering::Release, Ordering::Relaxed)
-                .is_ok()
+            match word.compare_exchange(0, pid, Ordering::Release, Ordering::Relaxed) {
+                Ok(_) => true,
+                // This same process claimed it meanwhile (a `write` from a signal handler
+                // that came in the middle of this claim, under the preload library): it is
+                // ours, and taking a second entry would leave the one the voter reads (the
+                // first with our pid) never stamped again.
+                Err(holder) => holder == pid,
+            }
         })
     }
 

@@ -570,10 +570,10 @@ impl PollSet {
 /// lands on 20–40 µs, and at a 2 ms `timeout_us` it came every 1.8 ms, in whatever round ran
 /// then (the one-CPU tail, results.md, stops 40 and 41). So a timer about to expire for
 /// nothing is moved instead (one `timerfd_settime`, about 1 µs): when it is due within
-/// [`MOVE_WITHIN`] and the wake-up needed now is at least [`MOVE_GAIN`] later. The gain bounds
-/// how often it can move, to once per `MOVE_GAIN` at most; a wake-up that keeps receding by
-/// a little (a turn check every 100 µs, for a program that does not stamp its answers) is
-/// left to expire, as before, rather than moved every other round.
+/// [`MOVE_WITHIN`] and the wake-up needed now is at least [`MOVE_GAIN`] later. Each move thus
+/// pushes the timer at least `MOVE_GAIN` on, so a wake-up that keeps receding by a little (a
+/// turn check every 100 µs, for a program that does not stamp its answers) is left to
+/// expire, as before, rather than moved every other round.
 pub(crate) struct WakeTimer {
     fd: TimerFd,
     /// What it is armed for; `None`: disarmed, or expired.
@@ -593,13 +593,14 @@ impl WakeTimer {
     /// Makes sure the loop wakes up by `at`: arms the timer unless it already expires by then
     /// (and is not about to expire long before it: `move_instead`).
     pub(crate) fn wake_by(&mut self, at: Instant) -> Result<(), VoterError> {
-        let now = Instant::now();
-        if self
-            .armed
-            .is_some_and(|armed| armed <= at && !move_instead(armed, at, now))
-        {
-            return Ok(());
+        let mut now = None;
+        if let Some(armed) = self.armed.filter(|&armed| armed <= at) {
+            let t = *now.insert(Instant::now());
+            if !move_instead(armed, at, t) {
+                return Ok(());
+            }
         }
+        let now = now.unwrap_or_else(Instant::now);
         // Relative to now on the deadline clock, floored, so never later than `at`; a zero
         // would disarm the timer, so at least a nanosecond.
         let left = at
@@ -954,7 +955,9 @@ mod tests {
     fn the_wake_timer_is_armed_only_for_a_sooner_wake_up() {
         crate::clock::init().unwrap();
         let mut timer = WakeTimer::new().unwrap();
-        let soon = Instant::now() + Duration::from_millis(20);
+        // Seconds ahead: a stall of the test (a loaded machine) must not bring it within
+        // MOVE_WITHIN, where a later wake-up would move it.
+        let soon = Instant::now() + Duration::from_secs(10);
         timer.wake_by(soon).unwrap();
         assert_eq!(timer.armed, Some(soon));
         // A later wake-up keeps the sooner one: the loop wakes early and arms again.
@@ -1008,7 +1011,7 @@ mod tests {
             "the timer moved does not expire at its old time"
         );
         // Armed far ahead, a later wake-up keeps it (moved only near its expiry).
-        let far = Instant::now() + ms(20);
+        let far = Instant::now() + Duration::from_secs(10);
         let mut timer = WakeTimer::new().unwrap();
         timer.wake_by(far).unwrap();
         timer.wake_by(far + Duration::from_secs(5)).unwrap();

@@ -53,6 +53,10 @@ pub struct ReactiveVoter {
     shares_cpu: ReplicaSet,
     /// When the last wait was to end at the latest (its nearest timer).
     wake_at: Option<Instant>,
+    /// Replicas whose answer stamp was last found stale (older than a moment their turn was
+    /// seen open): they are looked for on the timer again until a stamp is believed (see
+    /// [`ReactiveVoter::unwatched_turn_check`]).
+    stale_stamps: ReplicaSet,
     /// The last wait was for the open round's close alone: every answer had gone out (see
     /// [`ReactiveVoter::run_loop`]).
     waited_for_close_only: bool,
@@ -78,6 +82,7 @@ impl ReactiveVoter {
             watching: None,
             wake_at: None,
             waited_for_close_only: false,
+            stale_stamps: ReplicaSet::EMPTY,
             shares_cpu,
         })
     }
@@ -466,8 +471,11 @@ impl ReactiveVoter {
             return None;
         }
         // A replica that stamps its answers needs no check: whenever the loop finds its
-        // answer, the stamp says when its turn ended (see `turn_ended_at`).
-        if self.answer_stamp(turn).is_some() {
+        // answer, the stamp says when its turn ended (see `turn_ended_at`). Unless its last
+        // stamp was stale (a program that writes part of its output past the preload
+        // library, or a faulty replica): then its turn ends when the loop looks, and without
+        // the check a hang of the next turn would be found up to a whole turn later.
+        if self.answer_stamp(turn).is_some() && !self.stale_stamps.contains(turn) {
             return None;
         }
         let since = round.checked?;
@@ -722,7 +730,17 @@ impl ReactiveVoter {
         let allowance = self.allowance(ReplicaSet::EMPTY.with(next));
         let now = Instant::now();
         let began = match finished {
-            Some(p) => self.turn_ended_at(p, open, now),
+            Some(p) => {
+                let began = self.turn_ended_at(p, open, now);
+                // A stamp refused (not after the turn was last seen open) is stale.
+                let stale = began == now && self.answer_stamp(p).is_some();
+                self.stale_stamps = if stale {
+                    self.stale_stamps.with(p)
+                } else {
+                    self.stale_stamps.without(p)
+                };
+                began
+            }
             None => now,
         };
         if began < now {
