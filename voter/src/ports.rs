@@ -593,14 +593,13 @@ impl WakeTimer {
     /// Makes sure the loop wakes up by `at`: arms the timer unless it already expires by then
     /// (and is not about to expire long before it: `move_instead`).
     pub(crate) fn wake_by(&mut self, at: Instant) -> Result<(), VoterError> {
-        let mut now = None;
-        if let Some(armed) = self.armed.filter(|&armed| armed <= at) {
-            let t = *now.insert(Instant::now());
-            if !move_instead(armed, at, t) {
-                return Ok(());
-            }
+        let now = Instant::now();
+        if self
+            .armed
+            .is_some_and(|armed| armed <= at && !move_instead(armed, at, now))
+        {
+            return Ok(());
         }
-        let now = now.unwrap_or_else(Instant::now);
         // Relative to now on the deadline clock, floored, so never later than `at`; a zero
         // would disarm the timer, so at least a nanosecond.
         let left = at

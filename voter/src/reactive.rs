@@ -731,9 +731,10 @@ impl ReactiveVoter {
         let now = Instant::now();
         let began = match finished {
             Some(p) => {
-                let began = self.turn_ended_at(p, open, now);
+                let stamp = self.answer_stamp(p);
+                let began = self.turn_ended_at(stamp, open, now);
                 // A stamp refused (not after the turn was last seen open) is stale.
-                let stale = began == now && self.answer_stamp(p).is_some();
+                let stale = began == now && stamp.is_some();
                 self.stale_stamps = if stale {
                     self.stale_stamps.with(p)
                 } else {
@@ -764,14 +765,14 @@ impl ReactiveVoter {
         true
     }
 
-    /// When replica `p`'s turn ended, found over `now`: when it answered, by its answer stamp
+    /// When a finished turn ended, found over `now`: when it answered, by its answer `stamp`
     /// (`replica_rt::stamps`), if that falls between `open` (the last time the loop saw the
     /// turn open) and now; else now, as without stamps. The next turn's deadline starts
     /// there: when that turn really began, not when the loop happened to wake and see it; and
-    /// never before a moment the loop saw `p`'s turn still open, whatever a faulty replica
+    /// never before a moment the loop saw that turn still open, whatever a faulty replica
     /// wrote in the page.
-    fn turn_ended_at(&self, p: usize, open: Option<Instant>, now: Instant) -> Instant {
-        let answered = self.answer_stamp(p).map(|ns| {
+    fn turn_ended_at(&self, stamp: Option<u64>, open: Option<Instant>, now: Instant) -> Instant {
+        let answered = stamp.map(|ns| {
             let age = replica_rt::sys::monotonic_ns().saturating_sub(ns);
             now - Duration::from_nanos(age)
         });
