@@ -19,11 +19,22 @@
 //! (Linux ≥ 5.14): the kernel write-faults the run in one call instead of one trap per page.
 //! Older kernels answer EINVAL, and the walk then writes to the pages one by one.
 //!
+//! **The donor lists the mappings, the child walks them.** Opening `/proc/self/maps` is the
+//! dearest single system call of a fork child's walk (15–20 µs on the AMD host of
+//! docs/results.md, stop 42; the first open in a new process), and the child's address space is
+//! its donor's at the fork. So each replica keeps its own maps file open (`open_own_maps`,
+//! at start and, in a fork child, once it has joined), and the donor lists its private writable
+//! mappings with `PROCMAP_QUERY` on it right before `_Fork` (`take_snapshot`): nothing runs
+//! in between that could map or unmap memory (the handler's own calls do not), so the list is
+//! exactly the child's. The child walks the list (`break_cow_sharing_after_fork`) and opens
+//! nothing. Where the list could not be made (no `PROCMAP_QUERY`, the fd no longer the file it
+//! was, more mappings than the list holds) the child walks as before, from its own maps file.
+//!
 //! It runs in a fork child, inside the restart signal handler or at the release of a deferred
 //! restart (`restart`), so it allocates nothing, takes no lock and makes only system calls that
 //! touch no user-space state (`open`, `ioctl`, `read`, `close`, `mincore`, `madvise`).
 
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicU64, AtomicUsize, Ordering};
 
 /// Bytes of `/proc/self/maps` read per `read` call.
 const READ_BUF: usize = 4096;
@@ -88,6 +99,157 @@ pub unsafe fn break_cow_sharing() -> Result<WalkStats, WalkError> {
     let result = walk_maps(fd);
     close(fd);
     result
+}
+
+/// [`break_cow_sharing`] in a fork child: from the mappings its donor listed right before the
+/// fork ([`take_snapshot`]), without opening anything; from the child's own maps file where the
+/// donor made no list.
+///
+/// # Safety
+///
+/// As [`break_cow_sharing`]; and the caller must be the child of the fork that followed the
+/// donor's [`take_snapshot`], before it has mapped or unmapped anything.
+pub(crate) unsafe fn break_cow_sharing_after_fork() -> Result<WalkStats, WalkError> {
+    let Some(len) = SNAPSHOT.len() else {
+        // SAFETY: the caller's contract is this one's.
+        return unsafe { break_cow_sharing() };
+    };
+    let mut stats = WalkStats::default();
+    let dead = DeadStack::now();
+    for (start, end) in SNAPSHOT.ranges(len) {
+        stats.mappings += 1;
+        let (from, to) = dead.live_part(start, end);
+        stats.pages_touched += touch_resident(from, to);
+    }
+    Ok(stats)
+}
+
+/// Mappings a donor's list holds at most; a process with more private writable ones (a
+/// program with very many libraries) gives its child no list, and the child reads its maps.
+const SNAPSHOT_MAX: usize = 128;
+
+/// The donor's list of its private writable mappings, made right before `_Fork` and inherited
+/// by the child with the rest of its memory. Atomics, because a signal handler writes it.
+struct Snapshot {
+    /// Mappings listed, or [`Snapshot::NONE`] when there is no valid list.
+    len: AtomicUsize,
+    starts: [AtomicUsize; SNAPSHOT_MAX],
+    ends: [AtomicUsize; SNAPSHOT_MAX],
+}
+
+impl Snapshot {
+    const NONE: usize = usize::MAX;
+
+    fn len(&self) -> Option<usize> {
+        match self.len.load(Ordering::SeqCst) {
+            Self::NONE => None,
+            n => Some(n.min(SNAPSHOT_MAX)),
+        }
+    }
+
+    fn ranges(&self, len: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        (0..len).map(|i| {
+            (
+                self.starts[i].load(Ordering::Relaxed),
+                self.ends[i].load(Ordering::Relaxed),
+            )
+        })
+    }
+}
+
+static SNAPSHOT: Snapshot = Snapshot {
+    len: AtomicUsize::new(Snapshot::NONE),
+    starts: [const { AtomicUsize::new(0) }; SNAPSHOT_MAX],
+    ends: [const { AtomicUsize::new(0) }; SNAPSHOT_MAX],
+};
+
+/// This process's own maps file, kept open for [`take_snapshot`] (-1: none), and its device and
+/// inode, so that an fd number the component closed and reused is never taken for it.
+static OWN_MAPS: AtomicI32 = AtomicI32::new(-1);
+static OWN_MAPS_ID: AtomicU64 = AtomicU64::new(0);
+static OWN_MAPS_DEV: AtomicU64 = AtomicU64::new(0);
+
+/// The lowest fd number the kept maps file is moved to: out of the low numbers a program may
+/// expect its own first `open` to get.
+const OWN_MAPS_FLOOR: libc::c_int = 64;
+
+/// Opens this process's maps file and keeps it for [`take_snapshot`]; closes the one inherited
+/// from a donor first (it shows the donor's mappings, not ours). At start, and in a fork child
+/// once it has joined. Async-signal-safe (`close`, `open`, `fcntl`, `fstat`). Best effort: without
+/// it a child of ours opens its own maps file, as it always did.
+pub(crate) fn open_own_maps() {
+    let old = OWN_MAPS.swap(-1, Ordering::SeqCst);
+    if old >= 0 && same_file(old) {
+        close(old);
+    }
+    let Ok(fd) = open_maps() else { return };
+    // SAFETY: fcntl(F_DUPFD_CLOEXEC) on an fd we own returns a new fd or -1; nothing else.
+    let high = unsafe { libc::fcntl(fd, libc::F_DUPFD_CLOEXEC, OWN_MAPS_FLOOR) };
+    let fd = if high >= 0 {
+        close(fd);
+        high
+    } else {
+        fd
+    };
+    let Some((dev, ino)) = file_id(fd) else {
+        close(fd);
+        return;
+    };
+    OWN_MAPS_DEV.store(dev, Ordering::SeqCst);
+    OWN_MAPS_ID.store(ino, Ordering::SeqCst);
+    OWN_MAPS.store(fd, Ordering::SeqCst);
+}
+
+/// Whether `fd` is still the maps file [`open_own_maps`] opened (the component may have closed
+/// the number and opened something else on it).
+fn same_file(fd: libc::c_int) -> bool {
+    file_id(fd).is_some_and(|(dev, ino)| {
+        dev == OWN_MAPS_DEV.load(Ordering::SeqCst) && ino == OWN_MAPS_ID.load(Ordering::SeqCst)
+    })
+}
+
+fn file_id(fd: libc::c_int) -> Option<(u64, u64)> {
+    let mut st = std::mem::MaybeUninit::<libc::stat>::uninit();
+    // SAFETY: fstat writes one `struct stat` into `st`, which is large enough, and is read only
+    // after it succeeded.
+    if unsafe { libc::fstat(fd, st.as_mut_ptr()) } != 0 {
+        return None;
+    }
+    // SAFETY: fstat succeeded, so `st` is initialised.
+    let st = unsafe { st.assume_init() };
+    // dev_t and ino_t are u64 on x86-64, narrower on some other targets.
+    #[allow(clippy::unnecessary_cast)]
+    Some((st.st_dev as u64, st.st_ino as u64))
+}
+
+/// Lists this process's private writable mappings for the child of the fork about to follow
+/// (see the module doc). Async-signal-safe: `fstat` and `ioctl` on the kept maps file, atomics.
+/// With no kept file, no `PROCMAP_QUERY`, or too many mappings, there is no list, and the child
+/// reads its own maps file.
+pub(crate) fn take_snapshot() {
+    SNAPSHOT.len.store(Snapshot::NONE, Ordering::SeqCst);
+    let fd = OWN_MAPS.load(Ordering::SeqCst);
+    if fd < 0 || NO_PROCMAP_QUERY.load(Ordering::Relaxed) || !same_file(fd) {
+        return;
+    }
+    let mut n = 0;
+    let mut full = false;
+    let listed = query_each_private_writable(fd, &mut |start, end| {
+        if n == SNAPSHOT_MAX {
+            full = true;
+            return;
+        }
+        SNAPSHOT.starts[n].store(start, Ordering::Relaxed);
+        SNAPSHOT.ends[n].store(end, Ordering::Relaxed);
+        n += 1;
+    });
+    match listed {
+        Ok(()) if !full => SNAPSHOT.len.store(n, Ordering::SeqCst),
+        // Refused at once (a kernel before 6.11, a seccomp filter): not asked again, here or in
+        // the walks.
+        Err(QueryError::Unsupported) => NO_PROCMAP_QUERY.store(true, Ordering::Relaxed),
+        _ => {}
+    }
 }
 
 fn walk_maps(fd: libc::c_int) -> Result<WalkStats, WalkError> {
@@ -740,16 +902,9 @@ mod tests {
     /// frame than the parent's.
     #[test]
     fn walk_gives_child_its_own_pages() {
-        let page = page_size();
-        let mut heap = vec![0x5au8; page * 4];
-        std::hint::black_box(&mut heap);
-        // A page wholly inside the vector, so no other allocation shares it.
-        let addr = (heap.as_ptr() as usize).div_ceil(page) * page + page;
-        let parent_pfn = pfn(addr);
-        if parent_pfn == 0 {
-            eprintln!("skipped: /proc/self/pagemap shows no PFNs (needs CAP_SYS_ADMIN)");
+        let Some((heap, addr, parent_pfn)) = heap_page() else {
             return;
-        }
+        };
         let pid = fork_for_test();
         if pid == 0 {
             // Only async-signal-safe work in the child: the parent has other threads, whose
@@ -775,6 +930,100 @@ mod tests {
             "3: walk failed, 4: page not shared right after fork, 5: still shared after walk"
         );
         drop(heap);
+    }
+
+    /// The donor lists its mappings before the fork, the child walks the list: the child's
+    /// page is its own afterwards, and the list was what it walked. And a kept maps fd whose
+    /// number now holds another file is never asked for a list.
+    #[test]
+    fn the_donors_list_gives_the_child_its_own_pages() {
+        let Some((heap, addr, parent_pfn)) = heap_page() else {
+            return;
+        };
+        open_own_maps();
+        let kept = OWN_MAPS.load(Ordering::SeqCst);
+        assert!(
+            kept >= OWN_MAPS_FLOOR,
+            "the maps file is kept above the low numbers"
+        );
+        take_snapshot();
+        let Some(listed) = SNAPSHOT.len() else {
+            assert!(
+                NO_PROCMAP_QUERY.load(Ordering::Relaxed),
+                "no list although PROCMAP_QUERY answers"
+            );
+            eprintln!("skipped: this kernel has no PROCMAP_QUERY (Linux < 6.11)");
+            return;
+        };
+        assert!(listed > 0);
+        let heap_mapping = SNAPSHOT
+            .ranges(listed)
+            .find(|&(start, end)| start <= addr && addr < end)
+            .expect("the heap page's mapping is listed");
+        let pid = fork_for_test();
+        if pid == 0 {
+            // Only async-signal-safe work in the child (see walk_gives_child_its_own_pages).
+            // The list cut down to the heap page's mapping: a walk of anything else than the
+            // list would visit more than one mapping.
+            SNAPSHOT.starts[0].store(heap_mapping.0, Ordering::Relaxed);
+            SNAPSHOT.ends[0].store(heap_mapping.1, Ordering::Relaxed);
+            SNAPSHOT.len.store(1, Ordering::SeqCst);
+            let before = pfn(addr);
+            // SAFETY: the fork child has a single thread and has mapped nothing since the fork.
+            let walked = unsafe { break_cow_sharing_after_fork() };
+            let after = pfn(addr);
+            let code = match walked {
+                Err(_) => 3,
+                Ok(_) if before != parent_pfn => 4,
+                Ok(_) if after == before || after == 0 => 5,
+                Ok(stats) if stats.mappings != 1 => 6,
+                Ok(_) => 0,
+            };
+            crate::sys::exit_now(code);
+        }
+        let code = wait_exit(pid);
+        assert_eq!(
+            code, 0,
+            "3: walk failed, 4: page not shared right after fork, 5: still shared after walk, \
+             6: the child walked something else than the list"
+        );
+        drop(heap);
+
+        // The component closes the number and opens something else on it: no list.
+        // SAFETY: /dev/null opened read-only, then dup2 onto the kept number (ours).
+        unsafe {
+            let null = libc::open(c"/dev/null".as_ptr(), libc::O_RDONLY | libc::O_CLOEXEC);
+            assert!(null >= 0);
+            assert_eq!(libc::dup2(null, kept), kept);
+            libc::close(null);
+        }
+        take_snapshot();
+        assert_eq!(
+            SNAPSHOT.len(),
+            None,
+            "a reused fd number is not the maps file"
+        );
+        // Opened again: the stranger on the old number is left alone, a list is made.
+        open_own_maps();
+        assert!(file_id(kept).is_some(), "the other file was not closed");
+        take_snapshot();
+        assert!(SNAPSHOT.len().is_some());
+        close(kept);
+    }
+
+    /// A heap allocation, the address of a page wholly inside it (so no other allocation shares
+    /// it) and that page's physical frame; `None` (said) where pagemap shows no frames.
+    fn heap_page() -> Option<(Vec<u8>, usize, u64)> {
+        let page = page_size();
+        let mut heap = vec![0x5au8; page * 4];
+        std::hint::black_box(&mut heap);
+        let addr = (heap.as_ptr() as usize).div_ceil(page) * page + page;
+        let frame = pfn(addr);
+        if frame == 0 {
+            eprintln!("skipped: /proc/self/pagemap shows no PFNs (needs CAP_SYS_ADMIN)");
+            return None;
+        }
+        Some((heap, addr, frame))
     }
 
     fn fork_for_test() -> libc::pid_t {

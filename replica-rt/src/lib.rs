@@ -233,6 +233,9 @@ fn init_inner() -> Result<Runtime, InitError> {
                  running with unlocked memory, so page faults may add latency"
             ),
         }
+        // Kept open for the page walk of our fork children (`cow`, "The donor lists the
+        // mappings").
+        cow::open_own_maps();
     }
     say_started();
     tracing::debug!(

@@ -15,7 +15,9 @@
 //!
 //! # What the handler does
 //!
-//! In the donor: copy what its input pipes hold (below), `_Fork`, close the copies, return.
+//! In the donor: copy what its input pipes hold (below), list its private writable mappings
+//! for the child's page walk (`cow::take_snapshot`), `_Fork`, close the copies,
+//! return.
 //! The donor carries on as if nothing happened.
 //!
 //! **Unread input.** The child must read exactly what the donor had not read yet at the fork,
@@ -35,7 +37,8 @@
 //!    and send [`Hello`] with the attempt's nonce;
 //! 2. while the voter checks who it is and sends its pipes, `mlockall` again, on fault (locks
 //!    are not inherited over fork; see [`crate::memory::lock_fork_child`]), and write-fault
-//!    every resident private writable page ([`crate::cow`]) so that the child has its own
+//!    every resident private writable page of the mappings the donor listed right before the
+//!    fork ([`crate::cow`], "The donor lists the mappings") so that the child has its own
 //!    copy of every page it shared with the donor. Both happen before `Ready`, so no physical
 //!    page of private writable memory that holds live data is shared with the donor once the
 //!    voter counts the child in (the main thread's stack below the stack pointer stays shared
@@ -45,13 +48,15 @@
 //!    the new pipes;
 //! 4. answer [`Ready`] with its pid, the frames sent per output and the bytes of unread input
 //!    per input so far, send those bytes (`splice` from the copies), and close the socket;
-//! 5. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
+//! 5. open its own maps file for when it is a donor (`cow::open_own_maps`; the one
+//!    inherited shows the donor's mappings);
+//! 6. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
 //!    was interrupted is restarted (`SA_RESTART`), on the new fd with the same number.
 //!
 //! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
 //!
 //! Every call made is async-signal-safe: `_Fork`, `pipe2`, `tee`, `splice`, `ioctl(FIONREAD)`,
-//! `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `mincore`, `madvise`, `_exit`, plain
+//! `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `fstat`, `ioctl`, `mincore`, `madvise`, `_exit`, plain
 //! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
 //!
@@ -553,6 +558,9 @@ one, so it cannot be a recovery donor (refused)\n";
         set_errno(saved);
         return;
     };
+    // The child's page walk works from this list of our mappings: nothing between here and
+    // the fork maps or unmaps memory (`cow`, "The donor lists the mappings").
+    crate::cow::take_snapshot();
     // SAFETY: components are single-threaded (module doc), and the child runs only
     // async-signal-safe code (`become_replacement`) before returning to the component.
     let pid = unsafe { raw_fork() };
@@ -590,8 +598,8 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     // refused.
     let _ = crate::memory::lock_fork_child();
     // Then break the sharing of every resident private writable page (locked as it is copied).
-    // SAFETY: the fork child has a single thread.
-    let _ = unsafe { crate::cow::break_cow_sharing() };
+    // SAFETY: the fork child has a single thread, and has mapped nothing since the fork.
+    let _ = unsafe { crate::cow::break_cow_sharing_after_fork() };
     // Our pipes, onto the donor's fd numbers (nothing has used the donor's copies meanwhile:
     // this runs in the restart handler, before the component's code).
     if take_pipes(&sock).is_err() {
@@ -625,6 +633,9 @@ fn become_replacement(nonce: u32, unread: &UnreadInput) {
     }
     unread.close();
     drop(sock);
+    // Our own maps file, for when we are a donor (the inherited one shows the donor's
+    // mappings). After `Ready`: it is not needed before.
+    crate::cow::open_own_maps();
     crate::stamps::forked(ready.pid);
     FORKED_FROM.store(donor, Ordering::Relaxed);
 }
