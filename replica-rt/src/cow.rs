@@ -27,12 +27,16 @@
 //! mappings with `PROCMAP_QUERY` on it right before `_Fork` (`take_snapshot`): nothing runs
 //! in between that could map or unmap memory (the handler's own calls do not), so the list is
 //! exactly the child's. The child walks the list (`break_cow_sharing_after_fork`) and opens
-//! nothing. Where the list could not be made (no `PROCMAP_QUERY`, the fd no longer the file it
-//! was, more mappings than the list holds) the child walks as before, from its own maps file.
+//! nothing. Every signal that can wait is blocked from before the list until the child has
+//! joined (`restart`), so no handler of the component's own maps or unmaps memory in between.
+//! Where the list could not be made (no kept fd, no `PROCMAP_QUERY`, the fd no longer the file
+//! it was, a query that failed part of the way, more mappings than the list holds) the child
+//! walks as before, from its own maps file.
 //!
-//! It runs in a fork child, inside the restart signal handler or at the release of a deferred
-//! restart (`restart`), so it allocates nothing, takes no lock and makes only system calls that
-//! touch no user-space state (`open`, `ioctl`, `read`, `close`, `mincore`, `madvise`).
+//! The walk runs in a fork child, the list in its donor, both inside the restart signal handler
+//! or at the release of a deferred restart (`restart`), so nothing here allocates or takes a
+//! lock, and the only system calls touch no user-space state (`open`, `fcntl`, `fstat`,
+//! `ioctl`, `read`, `close`, `mincore`, `madvise`).
 
 use std::sync::atomic::{AtomicBool, AtomicI32, AtomicU64, AtomicUsize, Ordering};
 
@@ -201,7 +205,10 @@ pub(crate) fn open_own_maps() {
 }
 
 /// Whether `fd` is still the maps file [`open_own_maps`] opened (the component may have closed
-/// the number and opened something else on it).
+/// the number and opened something else on it). A component that closed it and opened its own
+/// `/proc/self/maps` on the same number passes (same inode): that file lists the same mappings,
+/// and a fork child of ours closes it as it would ours, which that component would not expect
+/// of a number it had closed once.
 fn same_file(fd: libc::c_int) -> bool {
     file_id(fd).is_some_and(|(dev, ino)| {
         dev == OWN_MAPS_DEV.load(Ordering::SeqCst) && ino == OWN_MAPS_ID.load(Ordering::SeqCst)
@@ -236,12 +243,14 @@ pub(crate) fn take_snapshot() {
     let mut full = false;
     let listed = query_each_private_writable(fd, &mut |start, end| {
         if n == SNAPSHOT_MAX {
+            // No list then: the child reads its maps file, and we ask no more.
             full = true;
-            return;
+            return Walk::Stop;
         }
         SNAPSHOT.starts[n].store(start, Ordering::Relaxed);
         SNAPSHOT.ends[n].store(end, Ordering::Relaxed);
         n += 1;
+        Walk::GoOn
     });
     match listed {
         Ok(()) if !full => SNAPSHOT.len.store(n, Ordering::SeqCst),
@@ -339,7 +348,11 @@ fn for_each_private_writable(
     mut visit: impl FnMut(usize, usize),
 ) -> Result<(), WalkError> {
     if !NO_PROCMAP_QUERY.load(Ordering::Relaxed) {
-        match query_each_private_writable(fd, &mut visit) {
+        let mut each = |start, end| {
+            visit(start, end);
+            Walk::GoOn
+        };
+        match query_each_private_writable(fd, &mut each) {
             Ok(()) => return Ok(()),
             // Refused at once (a kernel before 6.11, a seccomp filter): not tried again.
             // Nothing was visited.
@@ -399,6 +412,13 @@ const PROCMAP_QUERY_VMA_SHARED: u64 = 0x08;
 /// No mapping at the address: the next one (that matches the other flags) instead.
 const PROCMAP_QUERY_COVERING_OR_NEXT_VMA: u64 = 0x10;
 
+/// What a visitor of [`query_each_private_writable`] wants next.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Walk {
+    GoOn,
+    Stop,
+}
+
 enum QueryError {
     /// The kernel does not know the ioctl, or may not be asked it.
     Unsupported,
@@ -410,7 +430,7 @@ enum QueryError {
 /// writable mapping each time, until the kernel says there is none (ENOENT).
 fn query_each_private_writable(
     fd: libc::c_int,
-    visit: &mut impl FnMut(usize, usize),
+    visit: &mut impl FnMut(usize, usize) -> Walk,
 ) -> Result<(), QueryError> {
     let mut addr = 0u64;
     loop {
@@ -434,8 +454,10 @@ fn query_each_private_writable(
             // Never from a sane kernel; without it a loop could not end.
             return Err(QueryError::Failed);
         }
-        if q.vma_flags & (PROCMAP_QUERY_VMA_SHARED | PROCMAP_QUERY_VMA_EXECUTABLE) == 0 {
-            visit(q.vma_start as usize, q.vma_end as usize);
+        if q.vma_flags & (PROCMAP_QUERY_VMA_SHARED | PROCMAP_QUERY_VMA_EXECUTABLE) == 0
+            && visit(q.vma_start as usize, q.vma_end as usize) == Walk::Stop
+        {
+            return Ok(());
         }
         addr = q.vma_end;
     }
@@ -655,7 +677,8 @@ fn populate_write(addr: usize, len: usize) -> Result<(), i32> {
 
 fn touch(addr: usize) {
     let p = addr as *mut u8;
-    // SAFETY: `p` is in a private mapping that /proc/self/maps lists as readable and writable,
+    // SAFETY: `p` is in a private mapping that /proc/self/maps lists as readable and writable
+    // (or the donor's list of them, made right before the fork with every signal blocked),
     // and mincore just reported its page resident (so no SIGBUS past a file's end). Writing back
     // the byte just read leaves memory unchanged; no other thread runs (the caller's contract),
     // so no concurrent write can be lost. Volatile keeps the compiler from eliding the write,
@@ -773,7 +796,11 @@ mod tests {
                     n += 1;
                 };
                 let r = if query {
-                    match query_each_private_writable(fd, &mut push) {
+                    let mut each = |a, b| {
+                        push(a, b);
+                        Walk::GoOn
+                    };
+                    match query_each_private_writable(fd, &mut each) {
                         Ok(()) => Ok(()),
                         Err(QueryError::Unsupported) => Err(6),
                         Err(QueryError::Failed) => Err(11),
@@ -937,6 +964,7 @@ mod tests {
     /// number now holds another file is never asked for a list.
     #[test]
     fn the_donors_list_gives_the_child_its_own_pages() {
+        let _one_at_a_time = LIST_TESTS.lock().unwrap_or_else(|e| e.into_inner());
         let Some((heap, addr, parent_pfn)) = heap_page() else {
             return;
         };
@@ -948,11 +976,24 @@ mod tests {
         );
         take_snapshot();
         let Some(listed) = SNAPSHOT.len() else {
-            assert!(
-                NO_PROCMAP_QUERY.load(Ordering::Relaxed),
-                "no list although PROCMAP_QUERY answers"
-            );
-            eprintln!("skipped: this kernel has no PROCMAP_QUERY (Linux < 6.11)");
+            if NO_PROCMAP_QUERY.load(Ordering::Relaxed) {
+                eprintln!("skipped: this kernel has no PROCMAP_QUERY (Linux < 6.11)");
+            } else {
+                // More private writable mappings than the list holds (a test process with
+                // very many threads has an arena each).
+                let mut n = 0;
+                let fd = open_maps().expect("maps");
+                let _ = query_each_private_writable(fd, &mut |_, _| {
+                    n += 1;
+                    Walk::GoOn
+                });
+                close(fd);
+                assert!(
+                    n > SNAPSHOT_MAX,
+                    "no list although PROCMAP_QUERY answers ({n})"
+                );
+                eprintln!("skipped: {n} private writable mappings, more than a list holds");
+            }
             return;
         };
         assert!(listed > 0);
@@ -1009,6 +1050,78 @@ mod tests {
         take_snapshot();
         assert!(SNAPSHOT.len().is_some());
         close(kept);
+    }
+
+    /// The kept maps file and the list are one per process: the tests that use them take turns.
+    static LIST_TESTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+    /// In a fork child (one thread: nothing maps memory behind its back), the list is exactly
+    /// what a fresh maps file says, and a child's own kept maps file shows the child's
+    /// mappings, not its parent's: a page mapped in the child is listed.
+    #[test]
+    fn the_list_is_the_mappings_of_the_process_that_takes_it() {
+        let _one_at_a_time = LIST_TESTS.lock().unwrap_or_else(|e| e.into_inner());
+        open_own_maps();
+        take_snapshot();
+        if SNAPSHOT.len().is_none() {
+            eprintln!("skipped: no list here (see the_donors_list_gives_the_child_its_own_pages)");
+            return;
+        }
+        let pid = fork_for_test();
+        if pid == 0 {
+            // Only async-signal-safe work in the child.
+            open_own_maps();
+            let page = page_size();
+            // SAFETY: a fresh private anonymous mapping of one page; nothing else is touched.
+            let fresh = unsafe {
+                libc::mmap(
+                    std::ptr::null_mut(),
+                    page,
+                    libc::PROT_READ | libc::PROT_WRITE,
+                    libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+                    -1,
+                    0,
+                )
+            };
+            if fresh == libc::MAP_FAILED {
+                crate::sys::exit_now(3);
+            }
+            let fresh = fresh as usize;
+            take_snapshot();
+            let Some(len) = SNAPSHOT.len() else {
+                crate::sys::exit_now(4);
+            };
+            let Ok(fd) = open_maps() else {
+                crate::sys::exit_now(3);
+            };
+            let mut i = 0;
+            let mut same = true;
+            let _ = query_each_private_writable(fd, &mut |start, end| {
+                same &= i < len
+                    && SNAPSHOT.starts[i].load(Ordering::Relaxed) == start
+                    && SNAPSHOT.ends[i].load(Ordering::Relaxed) == end;
+                i += 1;
+                Walk::GoOn
+            });
+            close(fd);
+            let listed = SNAPSHOT
+                .ranges(len)
+                .any(|(start, end)| start <= fresh && fresh < end);
+            let code = if !same || i != len {
+                5
+            } else if !listed {
+                6
+            } else {
+                0
+            };
+            crate::sys::exit_now(code);
+        }
+        let code = wait_exit(pid);
+        assert_eq!(
+            code, 0,
+            "3: mmap or open failed, 4: no list in the child, 5: the list is not what the maps \
+             file says, 6: the child's own new mapping is not listed (its parent's were)"
+        );
     }
 
     /// A heap allocation, the address of a page wholly inside it (so no other allocation shares

@@ -558,8 +558,13 @@ one, so it cannot be a recovery donor (refused)\n";
         set_errno(saved);
         return;
     };
-    // The child's page walk works from this list of our mappings: nothing between here and
-    // the fork maps or unmaps memory (`cow`, "The donor lists the mappings").
+    // The child's page walk works from this list of our mappings, so nothing may map, unmap
+    // or protect memory between the list and the fork, nor in the child before its walk: a
+    // handler of the component's own (a preloaded C program's) could, so every signal that
+    // can wait waits, in the donor until the fork is done, in the child until it has joined
+    // (`cow`, "The donor lists the mappings"). Two system calls; a refusal (there is none for
+    // a valid mask) leaves signals as they were.
+    let blocked = sys::block_all_signals().ok();
     crate::cow::take_snapshot();
     // SAFETY: components are single-threaded (module doc), and the child runs only
     // async-signal-safe code (`become_replacement`) before returning to the component.
@@ -570,6 +575,8 @@ one, so it cannot be a recovery donor (refused)\n";
         DEFERRAL.forget_pending();
         become_replacement(nonce, &unread);
     }
+    // The signals that waited come now (in the handler, only those its own mask lets through).
+    drop(blocked);
     // In the donor: the copies were the child's. A failed fork (-1) is seen by the voter as a
     // connect timeout.
     unread.close();

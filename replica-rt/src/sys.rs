@@ -1129,6 +1129,23 @@ pub fn block_signal(sig: libc::c_int) -> io::Result<BlockedSignal> {
     Ok(BlockedSignal { old })
 }
 
+/// Blocks every signal that can be blocked for the calling thread; see [`BlockedSignal`].
+/// Async-signal-safe (`pthread_sigmask`).
+pub fn block_all_signals() -> io::Result<BlockedSignal> {
+    // SAFETY: sigset_t is plain old data and sigfillset initialises it fully.
+    let mut set: libc::sigset_t = unsafe { std::mem::zeroed() };
+    // SAFETY: as above.
+    let mut old: libc::sigset_t = unsafe { std::mem::zeroed() };
+    // SAFETY: `set` is a valid sigset_t; sigfillset only writes into it.
+    unsafe { libc::sigfillset(&mut set) };
+    // SAFETY: both pointers are valid for the call; pthread_sigmask returns an error number.
+    let r = unsafe { libc::pthread_sigmask(libc::SIG_BLOCK, &set, &mut old) };
+    if r != 0 {
+        return Err(io::Error::from_raw_os_error(r));
+    }
+    Ok(BlockedSignal { old })
+}
+
 impl Drop for BlockedSignal {
     fn drop(&mut self) {
         // SAFETY: `self.old` is the mask pthread_sigmask gave us; setting it cannot fail with a
