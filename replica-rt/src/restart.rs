@@ -15,9 +15,9 @@
 //!
 //! # What the handler does
 //!
-//! In the donor: copy what its input pipes hold (below), list its private writable mappings
-//! for the child's page walk (`cow::take_snapshot`), `_Fork`, close the copies,
-//! return.
+//! In the donor: copy what its input pipes hold (below), block every signal that can wait,
+//! list its private writable mappings for the child's page walk (`cow::take_snapshot`),
+//! `_Fork`, unblock, close the copies, return. (The child unblocks once it has joined.)
 //! The donor carries on as if nothing happened.
 //!
 //! **Unread input.** The child must read exactly what the donor had not read yet at the fork,
@@ -55,9 +55,10 @@
 //!
 //! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
 //!
-//! Every call made is async-signal-safe: `_Fork`, `pipe2`, `tee`, `splice`, `ioctl(FIONREAD)`,
-//! `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`, `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `fstat`, `ioctl`, `mincore`, `madvise`, `_exit`, plain
-//! memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
+//! Every call made is async-signal-safe: `_Fork`, `pthread_sigmask`, `pipe2`, `tee`, `splice`,
+//! `ioctl` (`FIONREAD`, `PROCMAP_QUERY`), `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`,
+//! `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `fstat`, `mincore`, `madvise`,
+//! `_exit`, plain memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
 //!
 //! # Output frames stay whole: restarts are deferred, not masked

@@ -1104,7 +1104,7 @@ pub fn ignore_signal(sig: libc::c_int) -> io::Result<()> {
     Ok(())
 }
 
-/// Blocks one signal for the calling thread until the guard is dropped (then the previous mask
+/// Signals blocked for the calling thread until the guard is dropped (then the previous mask
 /// comes back, and a signal that arrived meanwhile is delivered at that moment).
 pub struct BlockedSignal {
     old: libc::sigset_t,
