@@ -561,11 +561,10 @@ impl ReactiveVoter {
             return ReplicaSet::EMPTY;
         };
         let span = now.saturating_duration_since(look.at);
-        let came_back_before = self
+        let mut came_back = self
             .round
             .as_ref()
-            .map_or(ReplicaSet::EMPTY, |rd| rd.came_back);
-        let mut came_back = ReplicaSet::EMPTY;
+            .map_or([0; MAX_REPLICAS], |rd| rd.came_back);
         let mut starved = ReplicaSet::EMPTY;
         for r in self.timed().iter() {
             let Some(rep) = self.core.slots[r].as_ref() else {
@@ -583,7 +582,7 @@ impl ReactiveVoter {
             };
             let verdict = starvation::after_coming_back(
                 starvation::judge(before, after, span, clocked, runnable),
-                came_back_before.contains(r),
+                came_back[r] > 0,
             );
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
             let wchan = match (verdict, state) {
@@ -595,9 +594,13 @@ impl ReactiveVoter {
                 wchan,
                 ..Seen::between(before, after, span, clocked)
             });
-            if verdict == Window::CameBack {
-                came_back = came_back.with(r);
-            }
+            came_back[r] = match verdict {
+                Window::CameBack => {
+                    let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
+                    starvation::windows_after_coming_back(waited, span)
+                }
+                _ => came_back[r].saturating_sub(1),
+            };
             if verdict.starved() {
                 starved = starved.with(r);
             }
@@ -761,7 +764,7 @@ impl ReactiveVoter {
         round.look = None;
         round.starved = None;
         round.extended = Duration::ZERO;
-        round.came_back = ReplicaSet::EMPTY;
+        round.came_back = [0; MAX_REPLICAS];
         true
     }
 

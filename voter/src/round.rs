@@ -40,9 +40,9 @@ pub struct Round {
     pub starved: Option<ReplicaSet>,
     /// How far the deadline has been moved on for replicas that could not run.
     pub extended: Duration,
-    /// The replicas that came back from a long wait for a CPU in the last window judged (see
-    /// `starvation::after_coming_back`).
-    pub came_back: ReplicaSet,
+    /// Per replica, how many more windows count as starved because it came back from a long
+    /// wait for a CPU (see `starvation::windows_after_coming_back`); 0 for most.
+    pub came_back: [u32; MAX_REPLICAS],
     /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
     /// siblings to run (found starved); put back to rest when its turn ends.
     pub raised: Option<usize>,
@@ -81,7 +81,7 @@ impl Round {
             look: None,
             starved: None,
             extended: Duration::ZERO,
-            came_back: ReplicaSet::EMPTY,
+            came_back: [0; MAX_REPLICAS],
             raised: None,
             checked: None,
         }

@@ -37,9 +37,11 @@
 //! and is starved by its wait. So is one whose wait, ended in the window, was longer than the
 //! whole window, however long it ran since: a CPU held from a replica for 30 ms gave it back
 //! with 200–300 µs of work that was not the replica's round (`real_time.rs`'s hog test failed
-//! on it about one run in twenty). That backlog can outlast a window, so the window after the
-//! one it came back in is starved too, however it ran ([`after_coming_back`]); a spinner that
-//! came back so is blamed two windows later.
+//! on it about one run in twenty). That backlog can outlast a window, so the windows after the
+//! one it came back in are starved too, however it ran, one for every thirtieth of its wait
+//! ([`after_coming_back`], [`windows_after_coming_back`]: five after 30 ms at a 2 ms deadline;
+//! one window was too few on the AMD host, stop 42); a spinner that came back so is blamed
+//! that many windows later.
 //!
 //! A voter that itself woke up past the first look (it was held up too) did not see the
 //! window: the deadline moves on by one window, with a fresh look.
@@ -221,17 +223,35 @@ impl Window {
 }
 
 /// The verdict on a window that follows one in which the replica came back from a long wait
-/// (`came_back_before`): starved again, however it ran. What a replica runs right after a
-/// CPU held from it for tens of ms is that CPU's backlog, not its round, and it can outlast a
-/// window: the hog test once saw a replica that came back, then "ran 124 µs (of 123 µs on its
-/// clock) and waited 0 µs" in the next window and answered 121 µs after that deadline. A
-/// spinner that came back so is blamed one window later still.
+/// (`came_back_before`: within [`windows_after_coming_back`] windows of it): starved again,
+/// however it ran. What a replica runs right after a CPU held from it for tens of ms is that
+/// CPU's backlog, not its round, and it can outlast a window: the hog test once saw a replica
+/// that came back, then "ran 124 µs (of 123 µs on its clock) and waited 0 µs" in the next
+/// window and answered 121 µs after that deadline; on the AMD host of docs/results.md (stop
+/// 42) one "ran 71 µs (of 70 µs on its clock) and waited 0 µs" a window later still. A
+/// spinner that came back so is blamed that many windows later.
 pub fn after_coming_back(verdict: Window, came_back_before: bool) -> Window {
     match verdict {
         Window::HadItsChance if came_back_before => Window::Starved,
         v => v,
     }
 }
+
+/// How many windows after the one it came back in a replica's run still counts as backlog:
+/// one for every [`BACKLOG_SHARE`]th of its wait, at least one (a wait of 30 ms, the hog
+/// test's, against a 200 µs window: five). The backlog grows with the wait: 200–300 µs after
+/// 30 ms on the Intel host of stop 40, longer on the AMD host, where every system call costs
+/// three times as much. The round's extensions stay bounded by [`MAX_EXTENSION`].
+pub fn windows_after_coming_back(waited: Duration, window: Duration) -> u32 {
+    let backlog = waited / BACKLOG_SHARE;
+    let window = window.max(MIN_WINDOW).as_nanos();
+    let windows = backlog.as_nanos().div_ceil(window);
+    u32::try_from(windows).unwrap_or(u32::MAX).max(1)
+}
+
+/// The part of a long wait for a CPU that a replica may spend, once back, on that CPU's
+/// backlog before its lateness is its own again (see [`windows_after_coming_back`]).
+pub const BACKLOG_SHARE: u32 = 30;
 
 /// The rule of the module's comment, from the samples at both ends of a window of `window`,
 /// of which the replica's clock was read over `clocked` (from its first sample to its
@@ -365,6 +385,18 @@ mod tests {
         // What starved or came back stays so.
         assert_eq!(after_coming_back(Window::CameBack, true), Window::CameBack);
         assert_eq!(after_coming_back(Window::Starved, false), Window::Starved);
+    }
+
+    #[test]
+    fn the_backlog_after_a_long_wait_counts_in_proportion_to_it() {
+        let w = Duration::from_micros(200);
+        // The hog test's 30 ms: a thirtieth is 1 ms, five windows.
+        assert_eq!(windows_after_coming_back(Duration::from_millis(30), w), 5);
+        // A wait just over a window still gets one.
+        assert_eq!(windows_after_coming_back(Duration::from_micros(250), w), 1);
+        assert_eq!(windows_after_coming_back(Duration::ZERO, w), 1);
+        // Real-time throttling's 50 ms against a 2 ms deadline's 200 µs window: 9.
+        assert_eq!(windows_after_coming_back(Duration::from_millis(50), w), 9);
     }
 
     #[test]
