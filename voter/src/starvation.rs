@@ -239,7 +239,9 @@ pub fn after_coming_back(verdict: Window, came_back_before: bool) -> Window {
 
 /// How many windows after the one it came back in a replica's run still counts as backlog:
 /// one for every [`BACKLOG_SHARE`]th of its wait, at least one (a wait of 30 ms, the hog
-/// test's, against a 200 µs window: five). The backlog grows with the wait: 200–300 µs after
+/// test's, against a 200 µs window: five). `window` is the span the verdict was judged over:
+/// the window, or longer when the voter itself came late to its look (then fewer, longer
+/// windows). The backlog grows with the wait: 200–300 µs after
 /// 30 ms on the Intel host of stop 40, longer on the AMD host, where every system call costs
 /// three times as much. The round's extensions stay bounded by [`MAX_EXTENSION`].
 pub fn windows_after_coming_back(waited: Duration, window: Duration) -> u32 {
