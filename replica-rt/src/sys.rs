@@ -1112,21 +1112,14 @@ pub struct BlockedSignal {
 
 /// Blocks `sig` for the calling thread; see [`BlockedSignal`].
 pub fn block_signal(sig: libc::c_int) -> io::Result<BlockedSignal> {
-    // SAFETY: sigset_t is plain old data and sigemptyset/sigaddset initialise it fully.
+    // SAFETY: sigset_t is plain old data; sigemptyset/sigaddset initialise it fully.
     let mut set: libc::sigset_t = unsafe { std::mem::zeroed() };
-    // SAFETY: as above.
-    let mut old: libc::sigset_t = unsafe { std::mem::zeroed() };
     // SAFETY: `set` is a valid sigset_t; sigemptyset/sigaddset only write into it.
     unsafe {
         libc::sigemptyset(&mut set);
         libc::sigaddset(&mut set, sig);
     }
-    // SAFETY: both pointers are valid for the call; pthread_sigmask returns an error number.
-    let r = unsafe { libc::pthread_sigmask(libc::SIG_BLOCK, &set, &mut old) };
-    if r != 0 {
-        return Err(io::Error::from_raw_os_error(r));
-    }
-    Ok(BlockedSignal { old })
+    block(&set)
 }
 
 /// Blocks every signal that can be blocked for the calling thread; see [`BlockedSignal`].
@@ -1134,12 +1127,17 @@ pub fn block_signal(sig: libc::c_int) -> io::Result<BlockedSignal> {
 pub fn block_all_signals() -> io::Result<BlockedSignal> {
     // SAFETY: sigset_t is plain old data and sigfillset initialises it fully.
     let mut set: libc::sigset_t = unsafe { std::mem::zeroed() };
-    // SAFETY: as above.
-    let mut old: libc::sigset_t = unsafe { std::mem::zeroed() };
     // SAFETY: `set` is a valid sigset_t; sigfillset only writes into it.
     unsafe { libc::sigfillset(&mut set) };
+    block(&set)
+}
+
+/// Adds `set` to the calling thread's blocked signals until the guard is dropped.
+fn block(set: &libc::sigset_t) -> io::Result<BlockedSignal> {
+    // SAFETY: sigset_t is plain old data; pthread_sigmask fills it before it is read.
+    let mut old: libc::sigset_t = unsafe { std::mem::zeroed() };
     // SAFETY: both pointers are valid for the call; pthread_sigmask returns an error number.
-    let r = unsafe { libc::pthread_sigmask(libc::SIG_BLOCK, &set, &mut old) };
+    let r = unsafe { libc::pthread_sigmask(libc::SIG_BLOCK, set, &mut old) };
     if r != 0 {
         return Err(io::Error::from_raw_os_error(r));
     }
