@@ -540,11 +540,20 @@ impl Replica {
         }
         let state = self.proc_stat.state(self.pidfd.as_fd());
         let rank = DonorRank {
-            state_lost: self.state_lost,
-            unproven: !self.proven,
             stopped: matches!(state, Some('T' | 't')),
+            ..self.donor_rank_unlooked()
         };
         Some((rank, state))
+    }
+
+    /// Its [`DonorRank`] as far as it is known without a look at the process (taken as not
+    /// stopped), whether or not it may donate.
+    fn donor_rank_unlooked(&self) -> DonorRank {
+        DonorRank {
+            state_lost: self.state_lost,
+            unproven: !self.proven,
+            stopped: false,
+        }
     }
 
     /// Whether the process sleeps in the kernel (`S`: waiting for input, or for its output
@@ -619,6 +628,15 @@ pub struct DonorRank {
     pub state_lost: bool,
     pub unproven: bool,
     pub stopped: bool,
+}
+
+impl DonorRank {
+    /// Kept its state, answered, not stopped.
+    pub const BEST: DonorRank = DonorRank {
+        state_lost: false,
+        unproven: false,
+        stopped: false,
+    };
 }
 
 /// What [`best_donor`] found.
@@ -756,24 +774,28 @@ type Candidate = (
     Option<char>,
 );
 
-/// The usual pick, found with one look: the first of the proven replicas that kept their
-/// state (most `progress` first, then lowest slot), if it is asleep (`S`). That is the donor
-/// [`best_donor`]'s ranking picks, since a sleeping replica is not stopped; ranking first read
-/// every candidate's `/proc/PID/stat` (a `pread` each, on the restart's critical path, stop 43)
+/// The usual pick, found with one look: the candidate that ranks first before any look at
+/// the processes (most `progress`, then lowest slot), if that rank is [`DonorRank::BEST`] and
+/// it is asleep (`S`). That is the donor [`best_donor`]'s ranking picks, since a sleeping
+/// replica is not stopped (and an answered one may donate); ranking first read every
+/// candidate's `/proc/PID/stat` (a `pread` each, on the restart's critical path, stop 43)
 /// where this one read answers. `None`: rank them all.
 fn first_choice_asleep(
     slots: &[Option<Replica>],
     progress: &impl Fn(usize) -> u64,
     exclude: crate::vote::ReplicaSet,
 ) -> Option<usize> {
-    let (d, first) = slots
+    let (rank, _, d) = slots
         .iter()
         .enumerate()
         .filter(|&(d, _)| !exclude.contains(d))
-        .filter_map(|(d, rep)| Some((d, rep.as_ref()?)))
-        .filter(|(_, rep)| rep.proven && !rep.state_lost)
-        .min_by_key(|&(d, _)| (std::cmp::Reverse(progress(d)), d))?;
-    first.is_asleep().then_some(d)
+        .filter_map(|(d, rep)| {
+            let rank = rep.as_ref()?.donor_rank_unlooked();
+            Some((rank, std::cmp::Reverse(progress(d)), d))
+        })
+        .min()?;
+    let first = slots[d].as_ref()?;
+    (rank == DonorRank::BEST && first.is_asleep()).then_some(d)
 }
 
 /// The first of `candidates` seen asleep or having blocked since the first look, within
