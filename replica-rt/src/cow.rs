@@ -26,8 +26,9 @@
 //! at start and, in a fork child, once it has joined), and the donor lists its private writable
 //! mappings with `PROCMAP_QUERY` on it right before `_Fork` (`take_snapshot`): nothing runs
 //! in between that could map or unmap memory (the handler's own calls do not), so the list is
-//! exactly the child's. The child walks the list (`break_cow_sharing_after_fork`) and opens
-//! nothing. Every signal that can wait is blocked from before the list until the child has
+//! exactly the child's. The list joins mappings that touch (the stack's two parts, a
+//! program's data and bss), so the child asks `mincore` once per stretch of memory, not per
+//! mapping. The child walks the list (`break_cow_sharing_after_fork`) and opens nothing. Every signal that can wait is blocked from before the list until the child has
 //! joined (`restart`), so no handler of the component's own maps or unmaps memory in between.
 //! Where the list could not be made (no kept fd, no `PROCMAP_QUERY`, the fd no longer the file
 //! it was, a query that failed part of the way, more mappings than the list holds) the child
@@ -58,7 +59,7 @@ pub struct WalkError {
 /// What a walk did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct WalkStats {
-    /// Private writable mappings visited.
+    /// Private writable mappings visited (from a donor's list, adjacent ones count as one).
     pub mappings: usize,
     /// Resident pages written to.
     pub pages_touched: usize,
@@ -122,8 +123,9 @@ pub(crate) unsafe fn break_cow_sharing_after_fork() -> Result<WalkStats, WalkErr
     let dead = DeadStack::now();
     for (start, end) in SNAPSHOT.ranges(len) {
         stats.mappings += 1;
-        let (from, to) = dead.live_part(start, end);
-        stats.pages_touched += touch_resident(from, to);
+        for (from, to) in dead.live_parts(start, end) {
+            stats.pages_touched += touch_resident(from, to);
+        }
     }
     Ok(stats)
 }
@@ -242,6 +244,14 @@ pub(crate) fn take_snapshot() {
     let mut n = 0;
     let mut full = false;
     let listed = query_each_private_writable(fd, &mut |start, end| {
+        // A mapping that starts where the last one listed ends joins it: the child's walk then
+        // asks `mincore` and `madvise` once for both. The main thread's stack comes in two
+        // mappings (`memory::lock` locks the part below the stack pointer on fault), and so do
+        // a program's data and bss; joined, the stack's dead part is one stretch the walk skips.
+        if n > 0 && SNAPSHOT.ends[n - 1].load(Ordering::Relaxed) == start {
+            SNAPSHOT.ends[n - 1].store(end, Ordering::Relaxed);
+            return Walk::GoOn;
+        }
         if n == SNAPSHOT_MAX {
             // No list then: the child reads its maps file, and we ask no more.
             full = true;
@@ -266,8 +276,9 @@ fn walk_maps(fd: libc::c_int) -> Result<WalkStats, WalkError> {
     let dead = DeadStack::now();
     for_each_private_writable(fd, |start, end| {
         stats.mappings += 1;
-        let (from, to) = dead.live_part(start, end);
-        stats.pages_touched += touch_resident(from, to);
+        for (from, to) in dead.live_parts(start, end) {
+            stats.pages_touched += touch_resident(from, to);
+        }
     })?;
     Ok(stats)
 }
@@ -291,6 +302,10 @@ struct DeadStack {
     /// one page below `here`'s, to spare; the walk's own callees, below it, write their
     /// frames anyway). 0 (nothing skipped) when `here` is not on the main thread's stack.
     floor: usize,
+    /// The main thread's stack mapping's start, as recorded: nothing below it is taken for
+    /// dead stack, whatever range holds it (the donor's list joins adjacent mappings, and a
+    /// mapping placed right below the stack would join it).
+    low: usize,
 }
 
 impl DeadStack {
@@ -312,16 +327,19 @@ impl DeadStack {
             } else {
                 0
             },
+            low,
         }
     }
 
-    /// The part of the mapping `[start, end)` that is not below the stack pointer: all of it,
-    /// or for the stack the walk runs on, what lies from `floor` up.
-    fn live_part(&self, start: usize, end: usize) -> (usize, usize) {
-        if start <= self.here && self.here < end {
-            (start.max(self.floor), end)
+    /// The parts of the range `[start, end)` that are not below the stack pointer: all of it,
+    /// or for the range that holds the stack the walk runs on, what lies below the stack's
+    /// recorded start and what lies from `floor` up. An empty part is `(x, x)`.
+    fn live_parts(&self, start: usize, end: usize) -> [(usize, usize); 2] {
+        let dead_from = start.max(self.low);
+        if start <= self.here && self.here < end && dead_from < self.floor {
+            [(start, dead_from), (self.floor, end)]
         } else {
-            (start, end)
+            [(start, end), (end, end)]
         }
     }
 }
@@ -840,21 +858,29 @@ mod tests {
         let dead = DeadStack {
             here: 0x7000_2345,
             floor: 0x7000_1000,
+            low: 0x6fff_0000,
         };
+        let whole = |start, end| [(start, end), (end, end)];
         assert_eq!(
-            dead.live_part(0x6fff_0000, 0x7001_0000),
-            (0x7000_1000, 0x7001_0000)
+            dead.live_parts(0x6fff_0000, 0x7001_0000),
+            [(0x6fff_0000, 0x6fff_0000), (0x7000_1000, 0x7001_0000)]
         );
         // Another mapping, below or above: whole.
-        assert_eq!(dead.live_part(0x1000, 0x9000), (0x1000, 0x9000));
+        assert_eq!(dead.live_parts(0x1000, 0x9000), whole(0x1000, 0x9000));
         assert_eq!(
-            dead.live_part(0x7001_0000, 0x7002_0000),
-            (0x7001_0000, 0x7002_0000)
+            dead.live_parts(0x7001_0000, 0x7002_0000),
+            whole(0x7001_0000, 0x7002_0000)
         );
         // A floor below the mapping's start leaves it whole.
         assert_eq!(
-            dead.live_part(0x7000_2000, 0x7000_3000),
-            (0x7000_2000, 0x7000_3000)
+            dead.live_parts(0x7000_2000, 0x7000_3000),
+            whole(0x7000_2000, 0x7000_3000)
+        );
+        // A range that holds the stack and a mapping right below it (the donor's list joins
+        // adjacent mappings): the mapping below is live, only the stack's own low part is not.
+        assert_eq!(
+            dead.live_parts(0x6ffe_0000, 0x7001_0000),
+            [(0x6ffe_0000, 0x6fff_0000), (0x7000_1000, 0x7001_0000)]
         );
         // Not on the main thread's stack as recorded (none is, in a test thread): nothing.
         assert_eq!(DeadStack::now().floor, 0);
@@ -1056,7 +1082,7 @@ mod tests {
     static LIST_TESTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
     /// In a fork child (one thread: nothing maps memory behind its back), the list is exactly
-    /// what a fresh maps file says, and a child's own kept maps file shows the child's
+    /// what a fresh maps file says (adjacent mappings joined), and a child's own kept maps file shows the child's
     /// mappings, not its parent's: a page mapped in the child is listed.
     #[test]
     fn the_list_is_the_mappings_of_the_process_that_takes_it() {
@@ -1094,15 +1120,32 @@ mod tests {
             let Ok(fd) = open_maps() else {
                 crate::sys::exit_now(3);
             };
+            // The file's mappings, adjacent ones joined as the list joins them: each run must
+            // be the list's next entry.
+            let listed_at = |i: usize, (start, end): (usize, usize)| {
+                i < len
+                    && SNAPSHOT.starts[i].load(Ordering::Relaxed) == start
+                    && SNAPSHOT.ends[i].load(Ordering::Relaxed) == end
+            };
             let mut i = 0;
             let mut same = true;
+            let mut run: Option<(usize, usize)> = None;
             let _ = query_each_private_writable(fd, &mut |start, end| {
-                same &= i < len
-                    && SNAPSHOT.starts[i].load(Ordering::Relaxed) == start
-                    && SNAPSHOT.ends[i].load(Ordering::Relaxed) == end;
-                i += 1;
+                match run {
+                    Some((from, to)) if to == start => run = Some((from, end)),
+                    Some(done) => {
+                        same &= listed_at(i, done);
+                        i += 1;
+                        run = Some((start, end));
+                    }
+                    None => run = Some((start, end)),
+                }
                 Walk::GoOn
             });
+            if let Some(done) = run {
+                same &= listed_at(i, done);
+                i += 1;
+            }
             close(fd);
             let listed = SNAPSHOT
                 .ranges(len)

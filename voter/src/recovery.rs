@@ -148,13 +148,7 @@ pub fn fork(
         accept_child(listener, donor, &attempt, &mut refused)
     });
     refused.report();
-    let joined = joined?;
-    let child_pidfd = joined.pidfd.try_clone().map_err(io_err("dup of a pidfd"))?;
-    let (mut child, ready, unread) =
-        await_ready(joined, plan.inputs.len(), deadline).inspect_err(|_| {
-            // The child exists but will never be used: do not leave it behind.
-            let _ = sys::pidfd_send_signal(child_pidfd.as_fd(), libc::SIGKILL);
-        })?;
+    let (mut child, ready, unread) = await_ready(joined?, plan.inputs.len(), deadline)?;
 
     // 6. Exactly what the donor had yet to read: its pipe's content, then our queue.
     for ((input, copy), donors) in child.inputs.iter_mut().zip(&unread).zip(&donor.inputs) {
@@ -455,7 +449,8 @@ fn read_exact_into(conn: &UnixStream, buf: &mut [u8], deadline: Instant) -> io::
 const MAX_UNREAD_INPUT: u64 = 1 << 24;
 
 /// Waits for the confirmation of a child that has been sent its pipes, and the unread input
-/// of each of the `inputs` that follows it.
+/// of each of the `inputs` that follows it. A child that fails to give them is killed: it
+/// exists, but will never be used.
 fn await_ready(
     joined: Joined,
     inputs_count: usize,
@@ -467,14 +462,22 @@ fn await_ready(
         pidfd,
         pipes,
     } = joined;
-    let ReplicaPipes {
-        inputs,
-        outputs,
-        stderr,
-        ..
-    } = pipes;
+    let (ready, unread) = read_ready(&conn, pid, inputs_count, deadline).inspect_err(|_| {
+        let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+    })?;
+    let replica = Replica::forked(pid, pidfd, pipes);
+    Ok((replica, ready, unread))
+}
 
-    let ready = match read_exact_by::<{ Ready::SIZE }>(&conn, deadline) {
+/// `Ready` from the child `pid`, checked, and the unread input of each of the `inputs_count`
+/// inputs that follows it.
+fn read_ready(
+    conn: &UnixStream,
+    pid: libc::pid_t,
+    inputs_count: usize,
+    deadline: Instant,
+) -> Result<(Ready, Vec<Vec<u8>>), RecoveryError> {
+    let ready = match read_exact_by::<{ Ready::SIZE }>(conn, deadline) {
         Ok(bytes) => Ready::from_bytes(bytes),
         Err(e)
             if matches!(
@@ -500,30 +503,17 @@ fn await_ready(
             )));
         }
         let mut copy = vec![0u8; bytes as usize];
-        read_exact_into(&conn, &mut copy, deadline).map_err(|e| match e.kind() {
-            io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut => RecoveryError::ReadyTimeout(pid),
-            _ => io_err("reading the child's unread input")(e),
-        })?;
+        // Nothing to read, nothing to set up: the socket's options cost two system calls
+        // between `Ready` and the child counted in, and most restarts have no unread input.
+        if bytes > 0 {
+            read_exact_into(conn, &mut copy, deadline).map_err(|e| match e.kind() {
+                io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut => {
+                    RecoveryError::ReadyTimeout(pid)
+                }
+                _ => io_err("reading the child's unread input")(e),
+            })?;
+        }
         unread.push(copy);
     }
-    let replica = Replica {
-        pid,
-        pidfd,
-        inputs,
-        outputs,
-        stderr,
-        our_child: false,
-        // A fork of a replica that has answered: its handler is in place.
-        proven: true,
-        // The voter sets it from the donor's.
-        state_lost: false,
-        output_closed_at: None,
-        // A copy of a donor whose runtime had started.
-        start_pipe: None,
-        started: true,
-        schedstat: crate::starvation::SchedStat::new(pid),
-        proc_stat: crate::replica::ProcStat::new(pid),
-        lines: None,
-    };
-    Ok((replica, ready, unread))
+    Ok((ready, unread))
 }

@@ -245,6 +245,21 @@ impl Replica {
         Replica::taken_over(pid, pidfd, pipes.inputs, pipes.outputs, pipes.stderr, entry)
     }
 
+    /// A fork child of a donor that has joined (`recovery.rs`): proven, since it is a copy of a
+    /// replica that has answered, so its handler is in place; its state kept (the voter sets
+    /// `state_lost` from the donor's). Its `/proc/PID/stat` is opened after the `recovery` event.
+    pub(crate) fn forked(pid: libc::pid_t, pidfd: OwnedFd, pipes: ReplicaPipes) -> Replica {
+        Replica::not_our_child(
+            pid,
+            pidfd,
+            pipes.inputs,
+            pipes.outputs,
+            pipes.stderr,
+            true,
+            false,
+        )
+    }
+
     /// A replica another voter started, as its successor holds it: not its child, its runtime
     /// started, proven or not and with its state kept or lost as the journal says.
     fn taken_over(
@@ -255,24 +270,45 @@ impl Replica {
         stderr: StderrRelay,
         entry: crate::journal::SlotEntry,
     ) -> Replica {
-        let replica = Replica {
+        let replica = Replica::not_our_child(
+            pid,
+            pidfd,
+            inputs,
+            outputs,
+            stderr,
+            entry.proven,
+            entry.state_lost,
+        );
+        replica.proc_stat.open_now(replica.pidfd.as_fd());
+        replica
+    }
+
+    /// A replica this voter did not start, whose runtime has: a fork child, or one taken over.
+    fn not_our_child(
+        pid: libc::pid_t,
+        pidfd: OwnedFd,
+        inputs: Vec<ReplicaInput>,
+        outputs: Vec<FrameReader>,
+        stderr: StderrRelay,
+        proven: bool,
+        state_lost: bool,
+    ) -> Replica {
+        Replica {
             pid,
             pidfd,
             inputs,
             outputs,
             stderr,
             our_child: false,
-            proven: entry.proven,
-            state_lost: entry.state_lost,
+            proven,
+            state_lost,
             output_closed_at: None,
             start_pipe: None,
             started: true,
             schedstat: SchedStat::new(pid),
             proc_stat: ProcStat::new(pid),
             lines: None,
-        };
-        replica.proc_stat.open_now(replica.pidfd.as_fd());
-        replica
+        }
     }
 
     /// An unmodified program's replica a voter's successor took over on the pipes its
