@@ -28,8 +28,9 @@
 //! in between that could map or unmap memory (the handler's own calls do not), so the list is
 //! exactly the child's. The list joins mappings that touch (the stack's two parts, a
 //! program's data and bss), so the child asks `mincore` once per stretch of memory, not per
-//! mapping. The child walks the list (`break_cow_sharing_after_fork`) and opens nothing. Every signal that can wait is blocked from before the list until the child has
-//! joined (`restart`), so no handler of the component's own maps or unmaps memory in between.
+//! mapping. The child walks the list (`break_cow_sharing_after_fork`) and opens nothing.
+//! Every signal that can wait is blocked from before the list until the child has joined
+//! (`restart`), so no handler of the component's own maps or unmaps memory in between.
 //! Where the list could not be made (no kept fd, no `PROCMAP_QUERY`, the fd no longer the file
 //! it was, a query that failed part of the way, more mappings than the list holds) the child
 //! walks as before, from its own maps file.
@@ -1082,8 +1083,8 @@ mod tests {
     static LIST_TESTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
     /// In a fork child (one thread: nothing maps memory behind its back), the list is exactly
-    /// what a fresh maps file says (adjacent mappings joined), and a child's own kept maps file shows the child's
-    /// mappings, not its parent's: a page mapped in the child is listed.
+    /// what a fresh maps file says (adjacent mappings joined), and a child's own kept maps file
+    /// shows the child's mappings, not its parent's: a page mapped in the child is listed.
     #[test]
     fn the_list_is_the_mappings_of_the_process_that_takes_it() {
         let _one_at_a_time = LIST_TESTS.lock().unwrap_or_else(|e| e.into_inner());
