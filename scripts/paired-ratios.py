@@ -11,7 +11,8 @@ thousand rounds, or twenty restarts, each; the order drawn anew for every cell o
 from the seed), divides within the pair, and repeats. Per cell it prints each implementation's
 median of its per-run medians, the median of the per-pair ratios with a 95 % confidence
 interval (distribution-free: the binomial order statistics of a median), and how many pairs
-were within issue 15's target.
+were within issue 15's target; and, with S³RES, the C floor's own ratio to it in the same
+pairs: how far below S³RES anything can get on this host.
 
   --what roundtrip  cells are replication level × frame size (8 B, 4 KiB), placed all on one
                     CPU or with the replicas on the other one (--placement); targets s3res / C
@@ -321,10 +322,15 @@ def table(res):
         "",
     ]
     names = {"c": "C", "s3res": "s3res", "orig": "S³RES"}
+    # With S³RES: the C floor's own ratio to it, in the same pairs — how far below S³RES
+    # anything can get on this host, and so whether a target against S³RES is reachable.
+    floor = [("C / S³RES", "c", "orig")] if meta["with_orig"] else []
     out.append("| " + ("size" if restart else "level | size") + " | "
                + " | ".join(names[i] for i in impls) + " | "
-               + " | ".join(f"s3res / {name} (≤ {t})" for _, name, t in targets) + " |")
-    out.append("|" + ("---|" if restart else "---|--:|") + "--:|" * len(impls) + "---|" * len(targets))
+               + " | ".join(f"s3res / {name} (≤ {t})" for _, name, t in targets)
+               + "".join(f" | {title}" for title, _, _ in floor) + " |")
+    out.append("|" + ("---|" if restart else "---|--:|") + "--:|" * len(impls)
+               + "---|" * (len(targets) + len(floor)))
     for (level, size) in sorted(by):
         pairs = [p for p in by[(level, size)].values() if all(i in p for i in impls)]
         if not pairs:
@@ -340,6 +346,9 @@ def table(res):
             within = sum(r <= target for r in ratios)
             ci_s = f"{ci[0]:.2f}–{ci[1]:.2f}" if ci else "no interval below 6 pairs"
             row += f" **{med:.2f}** ({ci_s}); {within}/{len(ratios)} |"
+        for _, num, den in floor:
+            med, ci = median_ci([p[num] / p[den] for p in pairs])
+            row += f" {med:.2f} ({ci[0]:.2f}–{ci[1]:.2f}) |" if ci else f" {med:.2f} |"
         out.append(row)
     return "\n".join(out)
 
