@@ -35,8 +35,9 @@ usage: scripts/paired-ratios.py [--what roundtrip|restart] [--pairs N] [--count 
                                 [--res DIR]
        scripts/paired-ratios.py --table RES_DIR      (the table again, from saved results)
 
-Needs root (SCHED_RR), gcc and the release binaries (cargo build --release). Run it on a quiet
-machine: it measures. Every process it starts runs in a session of its own and is killed when
+Needs root (SCHED_RR), gcc and the release binaries (cargo build --release); without them, or
+with arguments that cannot work, it says why in one line and exits with status 2, having run
+nothing (a run that fails on the way exits with 1). Run it on a quiet machine: it measures. Every process it starts runs in a session of its own and is killed when
 its run ends, times out, or the script is interrupted.
 """
 
@@ -76,7 +77,14 @@ RUN_TIMEOUT_S = 60
 
 
 def fail(msg):
+    """A run that could not be made or went wrong: one line, exit status 1."""
     sys.exit(f"paired-ratios.py: {msg}")
+
+
+def usage_error(msg):
+    """Arguments or surroundings that cannot work: one line, exit status 2, nothing run."""
+    print(f"paired-ratios.py: {msg}", file=sys.stderr)
+    sys.exit(2)
 
 
 # --- processes ---------------------------------------------------------------------------------
@@ -364,7 +372,7 @@ def parse_size(text):
     try:
         return int(text[:-1] if scale > 1 else text) * scale
     except ValueError:
-        fail(f"--sizes: `{text}` is not a size (a number of bytes, or with k or m)")
+        usage_error(f"--sizes: `{text}` is not a size (a number of bytes, or with k or m)")
 
 
 # --- main ----------------------------------------------------------------------------------------
@@ -398,7 +406,7 @@ def main():
     args = ap.parse_args()
     if args.table:
         if not os.path.isfile(os.path.join(args.table, "meta.json")):
-            fail(f"--table: no meta.json in {args.table}")
+            usage_error(f"--table: no meta.json in {args.table}")
         print(table(args.table))
         return
 
@@ -407,21 +415,21 @@ def main():
     levels = [3] if restart else [int(x) for x in args.levels.split(",")]
     count = args.count or (20 if restart else 3000)
     if restart and any(x not in RESTART_SIZES for x in sizes):
-        fail("--sizes: the C fork floor measures 4k, 256k, 1m, 8m and 64m only")
+        usage_error("--sizes: the C fork floor measures 4k, 256k, 1m, 8m and 64m only")
     if not restart and any(x not in (8, 4096) for x in sizes):
-        fail("--sizes: the C floor measures round trips of 8 and 4096 bytes only")
+        usage_error("--sizes: the C floor measures round trips of 8 and 4096 bytes only")
     if any(x not in LEVEL_NAMES for x in levels):
-        fail("--levels: 1, 2 or 3")
+        usage_error("--levels: 1, 2 or 3")
     if args.pairs < 1 or count < (5 if restart else 100):
-        fail(f"--pairs at least 1, --count at least {5 if restart else 100}")
+        usage_error(f"--pairs at least 1, --count at least {5 if restart else 100}")
     if os.geteuid() != 0:
-        fail("needs root: every implementation runs under SCHED_RR")
+        usage_error("needs root: every implementation runs under SCHED_RR")
     peers = os.path.abspath(args.peers)
     if not os.path.isfile(os.path.join(peers, "c-floor", "limits.c")):
-        fail(f"no peer tooling at {peers} (expected c-floor/limits.c; --peers DIR)")
+        usage_error(f"no peer tooling at {peers} (expected c-floor/limits.c; --peers DIR)")
     bench = os.path.join(os.path.abspath(args.bin_dir), "s3res-bench")
     if not os.access(bench, os.X_OK):
-        fail(f"no {bench}; run cargo build --release first")
+        usage_error(f"no {bench}; run cargo build --release first")
     placement = "pinned" if restart else args.placement
     setup, _, orig_variant = PLACEMENTS[placement]
     with_orig = not args.no_s3res_orig
