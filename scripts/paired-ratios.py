@@ -150,6 +150,11 @@ def kill_all_sessions(*_):
     sys.exit("paired-ratios.py: interrupted; every process it started is stopped")
 
 
+def kv(line):
+    """The `key=value` fields of one line of limits.c's or GEVoteTest's output."""
+    return dict(re.findall(r"(\w+)=([^\s]+)", line))
+
+
 # --- the three implementations -------------------------------------------------------------------
 
 def build_c_floor(peers, placement, res):
@@ -206,7 +211,7 @@ def run_c_restart(exe, size, count):
     env = dict(os.environ, KB=str(size // 1024), FORKS=str(count))
     out = run(["chrt", "-r", "60", exe, "fork"], env=env)
     for line in out.splitlines():
-        d = dict(re.findall(r"(\w+)=([^\s]+)", line))
+        d = kv(line)
         if line.startswith("fork+touch") and int(d["rss_kb"]) * 1024 == size:
             return float(d["median_us"]), None, float(d["max_us"])
     fail(f"the C floor printed no fork figure for {size // 1024} KiB: {out!r}")
@@ -241,7 +246,7 @@ def run_c(exe, level, size, count):
     env = dict(os.environ, ITERS=str(count), LEVEL=str(level), SIZE=str(size))
     out = run(["chrt", "-r", "60", exe, "roundtrip"], env=env)
     for line in out.splitlines():
-        d = dict(re.findall(r"(\w+)=([^\s]+)", line))
+        d = kv(line)
         if line.startswith("roundtrip") and int(d["replicas"]) == level and int(d["size"]) == size:
             return float(d["median_us"]), float(d["p99_us"]), float(d["max_us"])
     fail(f"the C floor printed no round trip for level {level}, size {size}: {out!r}")
@@ -268,7 +273,7 @@ def run_orig(test_dir, level, size, count, warmup):
     out = run(cmd, cwd=test_dir)
     for line in out.splitlines():
         if line.startswith("s3res_orig_rtt"):
-            d = dict(re.findall(r"(\w+)=([^\s]+)", line))
+            d = kv(line)
             if int(d.get("lost", 0)):
                 fail(f"S³RES lost {d['lost']} rounds in a fault-free run: {line}")
             return float(d["median_us"]), float(d["p99_us"]), float(d.get("max_us", "nan"))
