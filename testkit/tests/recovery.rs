@@ -606,3 +606,89 @@ fn redundancy_is_restored_after_a_recovery_failed() {
     run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);
 }
+
+/// `VmLck` of a process, in KiB (`None`: gone, or no such line).
+fn locked_kib(pid: i32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmLck:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()
+}
+
+/// A fork child that connects and then never confirms its pipes (stopped during its page
+/// walk, before `Ready`): the voter waits `restart_timeout_ms` for it, kills it (a child
+/// that will never be used must not live on, stopped, holding a copy of the donor's memory),
+/// and forks the slot from the next donor. The sink sees every frame once, in order.
+///
+/// The child is stopped once its memory is locked: it locks it right after its `Hello`, so
+/// the voter has accepted it and is waiting for `Ready`; the walk of 256 MiB that follows is
+/// long enough to stop it in.
+#[test]
+fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
+    // 10 s of input: the system still runs when the child must be gone (at its end, the whole
+    // process group is killed, the child with it).
+    let count = 2000;
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let echo = r#"{ "exec": "s3res-ballast", "args": ["--mib", "256"], "redundancy": "tmr",
+                    "timeout_us": 800000, "restart_timeout_ms": 3000 }"#;
+    let desc = echo_pipeline(&summary, echo, count, 200);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    // Both donors must have answered to be asked to fork (else the slot is filled by exec).
+    run.wait_for_answers("echo");
+    let pids = run.replica_pids("echo");
+    s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill replica 2");
+    // The donor's child, once it has locked its memory (after its `Hello`).
+    let (donor, child) = s3res_testkit::wait::wait_until(
+        "a fork child of replica 0 or 1 with its memory locked",
+        Duration::from_secs(20),
+        || {
+            procs::all()
+                .into_iter()
+                .filter(|p| p.ppid == pids[&0] || p.ppid == pids[&1])
+                .find(|p| locked_kib(p.pid).is_some_and(|kib| kib > 0))
+                .map(|p| (p.ppid, p.pid))
+        },
+    );
+    s3res_testkit::kill_pid(child, libc::SIGSTOP).expect("stop the fork child");
+    let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(30));
+    let next_donor = if donor == pids[&0] { 1 } else { 0 };
+    assert_eq!(
+        (rec.method, rec.donor, rec.state_lost),
+        (Some(RecoveryMethod::Fork), Some(next_donor), Some(false)),
+        "the stopped child's donor must have been passed over for the other: {rec:?}"
+    );
+    assert_ne!(rec.new_pid, Some(child), "{rec:?}");
+    // Killed before the next donor was asked, so gone by now (a moment for the kernel).
+    s3res_testkit::wait::wait_until(
+        "the stopped fork child to be killed",
+        Duration::from_secs(2),
+        || {
+            procs::all()
+                .iter()
+                .all(|p| p.pid != child || p.is_zombie())
+                .then_some(())
+        },
+    );
+    assert!(
+        run.try_status().is_none(),
+        "the system ended before the child was looked for; make the source longer"
+    );
+    let stderr = run.stderr();
+    assert!(
+        stderr.contains(&format!(
+            "new replica (pid {child}) did not confirm its pipes in time"
+        )),
+        "the voter names the child that did not confirm:\n{}",
+        s3res_testkit::tail(&stderr, 30)
+    );
+    let out = run.wait_success(LIMIT);
+    assert_eq!(out.faults().len(), 1, "only the kill: {:#?}", out.faults());
+    assert_sink_whole(&summary, count);
+}
