@@ -643,6 +643,10 @@ fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
     // Both donors must have answered to be asked to fork (else the slot is filled by exec).
     run.wait_for_answers("echo");
     let pids = run.replica_pids("echo");
+    // The child inherits its donor's real-time priority and walks its pages without sleeping:
+    // a test thread below it could be kept off that CPU until the walk is over. Above it (where
+    // allowed), the look and the SIGSTOP come at once; the looks sleep in between.
+    let raised = replica_rt::sys::set_round_robin(0, 90).is_ok();
     s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill replica 2");
     // The donor's child, once it has locked its memory (after its `Hello`).
     let (donor, child) = s3res_testkit::wait::wait_until(
@@ -657,6 +661,9 @@ fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
         },
     );
     s3res_testkit::kill_pid(child, libc::SIGSTOP).expect("stop the fork child");
+    if raised {
+        replica_rt::sys::set_normal_policy(0).expect("back to SCHED_OTHER");
+    }
     let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(30));
     let next_donor = if donor == pids[&0] { 1 } else { 0 };
     assert_eq!(
