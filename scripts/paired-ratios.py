@@ -37,8 +37,9 @@ usage: scripts/paired-ratios.py [--what roundtrip|restart] [--pairs N] [--count 
 
 Needs root (SCHED_RR), gcc and the release binaries (cargo build --release); without them, or
 with arguments that cannot work, it says why in one line and exits with status 2, having run
-nothing (a run that fails on the way exits with 1). Run it on a quiet machine: it measures. Every process it starts runs in a session of its own and is killed when
-its run ends, times out, or the script is interrupted.
+nothing (a run that fails on the way exits with 1). Run it on a quiet machine: it measures.
+Every process it starts runs in a session of its own and is killed when its run ends, times
+out, or the script is interrupted.
 """
 
 import argparse
@@ -76,15 +77,15 @@ PLACEMENTS = {
 RUN_TIMEOUT_S = 60
 
 
-def fail(msg):
-    """A run that could not be made or went wrong: one line, exit status 1."""
-    sys.exit(f"paired-ratios.py: {msg}")
+def fail(msg, status=1):
+    """A run that could not be made or went wrong: one line on stderr, exit status 1."""
+    print(f"paired-ratios.py: {msg}", file=sys.stderr)
+    sys.exit(status)
 
 
 def usage_error(msg):
     """Arguments or surroundings that cannot work: one line, exit status 2, nothing run."""
-    print(f"paired-ratios.py: {msg}", file=sys.stderr)
-    sys.exit(2)
+    fail(msg, status=2)
 
 
 # --- processes ---------------------------------------------------------------------------------

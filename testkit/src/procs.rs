@@ -200,6 +200,16 @@ pub fn voluntary_switches(pid: i32) -> Option<u64> {
         .and_then(|v| v.trim().parse().ok())
 }
 
+/// Memory `pid` has locked, KiB (`VmLck` in `/proc/PID/status`: non-zero once it has called
+/// `mlockall`, which a fork child does again right after its `Hello`); `None` if it is gone.
+pub fn locked_kib(pid: i32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmLck:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
 /// Time `pid` has spent on a CPU, ns (the first field of `/proc/PID/schedstat`); `None` if it
 /// is gone.
 pub fn cpu_time_ns(pid: i32) -> Option<u64> {

@@ -125,14 +125,7 @@ fn pfns_visible() -> bool {
 
 /// `VmLck` of `pid` in kB (0 if unreadable).
 fn locked_kb(pid: i32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("VmLck:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        })
-        .unwrap_or(0)
+    s3res_testkit::procs::locked_kib(pid).unwrap_or(0)
 }
 
 /// SIGKILLs replica `victim` and waits for its recovery by fork and for the fork child to

@@ -607,19 +607,6 @@ fn redundancy_is_restored_after_a_recovery_failed() {
     assert_sink_whole(&summary, count);
 }
 
-/// `VmLck` of a process, in KiB (`None`: gone, or no such line).
-fn locked_kib(pid: i32) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmLck:"))?
-        .trim()
-        .trim_end_matches("kB")
-        .trim()
-        .parse()
-        .ok()
-}
-
 /// A fork child that connects and then never confirms its pipes (stopped during its page
 /// walk, before `Ready`): the voter waits `restart_timeout_ms` for it, kills it (a child
 /// that will never be used must not live on, stopped, holding a copy of the donor's memory),
@@ -649,14 +636,14 @@ fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
     let raised = replica_rt::sys::set_round_robin(0, 90).is_ok();
     s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill replica 2");
     // The donor's child, once it has locked its memory (after its `Hello`).
-    let (donor, child) = s3res_testkit::wait::wait_until(
+    let (donor, child) = s3res_testkit::wait_until(
         "a fork child of replica 0 or 1 with its memory locked",
         Duration::from_secs(20),
         || {
             procs::all()
                 .into_iter()
                 .filter(|p| p.ppid == pids[&0] || p.ppid == pids[&1])
-                .find(|p| locked_kib(p.pid).is_some_and(|kib| kib > 0))
+                .find(|p| procs::locked_kib(p.pid).is_some_and(|kib| kib > 0))
                 .map(|p| (p.ppid, p.pid))
         },
     );
@@ -673,13 +660,12 @@ fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
     );
     assert_ne!(rec.new_pid, Some(child), "{rec:?}");
     // Killed before the next donor was asked, so gone by now (a moment for the kernel).
-    s3res_testkit::wait::wait_until(
+    s3res_testkit::wait_until(
         "the stopped fork child to be killed",
         Duration::from_secs(2),
         || {
-            procs::all()
-                .iter()
-                .all(|p| p.pid != child || p.is_zombie())
+            replica_rt::sys::process_state(child)
+                .is_none_or(|s| s == 'Z' || s == 'X')
                 .then_some(())
         },
     );
