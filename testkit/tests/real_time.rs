@@ -13,7 +13,7 @@ use std::time::Duration;
 use s3res_protocol::plan::CPU_LATENCY_QOS;
 use s3res_testkit::procs::{self, Scheduling};
 use s3res_testkit::{
-    assert_sink_whole, bin_path, echo_pipeline, signals, Cause, EventKind, RecoveryMethod,
+    assert_sink_whole, bin_path, echo_pipeline, signals, Cause, Event, EventKind, RecoveryMethod,
     RunningSystem, System,
 };
 
@@ -735,14 +735,32 @@ fn stream_replicas_sharing_a_cpu_rest_at_one_level_and_a_spinner_is_found() {
 )]
 fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     let _turn = one_system_at_a_time();
+    let count = 3000;
+    let (mut run, summary, b) = replica_1_alone_on_a_cpu(count);
+    for _ in 0..5 {
+        std::thread::sleep(Duration::from_millis(200));
+        hog(b, "0.03");
+    }
+    run.wait_success(LIMIT);
+    let events = run.events();
+    let faults = echo_faults(&events);
+    assert!(
+        faults.is_empty(),
+        "a replica that could not run was blamed: {faults:?}"
+    );
+    assert_sink_whole(&summary, count);
+}
+
+/// A TMR `s3res-echo --stateful` between a source and a sink of `count` frames at 1000 a
+/// second, 2 ms deadline, SCHED_RR 30: replicas 0 and 2 on the first usable CPU with the
+/// voter, replica 1 alone on the second, which is returned. Started, its replicas running.
+fn replica_1_alone_on_a_cpu(count: u32) -> (RunningSystem, std::path::PathBuf, usize) {
     let cpus = usable_cpus();
     s3res_testkit::require(cpus.len() >= 2, "two usable CPUs");
     let (a, b) = (cpus[0], cpus[1]);
-    let count = 3000;
     let sys = System::new();
     s3res_testkit::require(sys.round_robin_allowed(), "SCHED_RR allowed");
     let summary = sys.path("summary.json");
-    // Replicas 0 and 2 on `a` with the voter, replica 1 alone on `b`.
     let echo = format!(
         r#"{{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 2000,
              "priority": 30, "cpus": [{a}, {b}], "voter_cpu": {a} }}"#
@@ -750,27 +768,31 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     let desc = echo_pipeline(&summary, &echo, count, 1000);
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 3);
-    for _ in 0..5 {
-        std::thread::sleep(Duration::from_millis(200));
-        // `timeout` (SCHED_RR 99) ends the loop (SCHED_RR 98) after 30 ms, preempting it: at
-        // the loop's own priority it would wait for the loop's round-robin slice (100 ms).
-        // Every process of the chain is on `b` from the start: before, `taskset` came last,
-        // and the chain's exec and linking at SCHED_RR 98–99 ran wherever they landed —
-        // on `a` now and then, holding up the voter and replicas 0 and 2 for a millisecond
-        // (a replica on `a` was once blamed, the voter 1062 µs late at the deadline).
-        let hog = Command::new("taskset")
-            .args(["-c", &b.to_string()])
-            .args(["chrt", "-r", "99", "timeout", "0.03", "chrt", "-r", "98"])
-            .args(["sh", "-c", "while :; do :; done"])
-            .status()
-            .expect("running taskset, chrt and timeout");
-        // 124: `timeout` ended the loop, as meant.
-        assert_eq!(hog.code(), Some(124), "the hog: {hog}");
-    }
-    run.wait_success(LIMIT);
-    let faults: Vec<_> = run
-        .events()
-        .into_iter()
+    (run, summary, b)
+}
+
+/// Holds `cpu` with a SCHED_RR 98 busy loop for `seconds`, above every process of a system.
+fn hog(cpu: usize, seconds: &str) {
+    // `timeout` (SCHED_RR 99) ends the loop (SCHED_RR 98) on time, preempting it: at the
+    // loop's own priority it would wait for the loop's round-robin slice (100 ms). Every
+    // process of the chain is on `cpu` from the start: before, `taskset` came last, and the
+    // chain's exec and linking at SCHED_RR 98–99 ran wherever they landed — on another CPU
+    // now and then, holding up a voter and replicas there for a millisecond (a replica was
+    // once blamed, the voter 1062 µs late at the deadline).
+    let hog = Command::new("taskset")
+        .args(["-c", &cpu.to_string()])
+        .args(["chrt", "-r", "99", "timeout", seconds, "chrt", "-r", "98"])
+        .args(["sh", "-c", "while :; do :; done"])
+        .status()
+        .expect("running taskset, chrt and timeout");
+    // 124: `timeout` ended the loop, as meant.
+    assert_eq!(hog.code(), Some(124), "the hog: {hog}");
+}
+
+/// The fault events of the component `echo`.
+fn echo_faults(events: &[Event]) -> Vec<&Event> {
+    events
+        .iter()
         .filter(|e| {
             e.component == "echo"
                 && matches!(
@@ -778,10 +800,52 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
                     EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol
                 )
         })
-        .collect();
+        .collect()
+}
+
+/// A replica that never gets its CPU back within the round's extensions is still blamed in
+/// the end (voter/src/starvation.rs, `MAX_EXTENSION`: 100 ms a round): a SCHED_RR hog above
+/// every process of the system holds replica 1's CPU for 400 ms, against a 2 ms deadline. The
+/// `hang` event says why a reader should not take its "waited 0 µs" at face value: the
+/// deadline was moved on for want of a CPU, and the replica is runnable, its wait not counted
+/// yet (the kernel counts a wait only when it ends). Then the slot is filled by fork, and every
+/// frame reaches the sink once, in order.
+#[test]
+#[cfg_attr(
+    not(all(s3res_sched_rr, s3res_two_cpus)),
+    ignore = "needs SCHED_RR and two usable CPUs"
+)]
+fn a_replica_kept_off_its_cpu_past_every_extension_is_blamed_and_told_why() {
+    let _turn = one_system_at_a_time();
+    let count = 3000;
+    let (mut run, summary, b) = replica_1_alone_on_a_cpu(count);
+    run.wait_for_answers("echo");
+    let pids = run.replica_pids("echo");
+    hog(b, "0.4");
+    run.wait_success(LIMIT);
+    let events = run.events();
+    let faults = echo_faults(&events);
+    assert_eq!(faults.len(), 1, "one fault, replica 1's hang: {faults:?}");
+    let hang = faults[0];
+    assert_eq!(hang.kind, EventKind::Hang, "{hang:?}");
+    assert_eq!(hang.pid, Some(pids[&1]), "{hang:?}");
+    let detail = hang.detail.as_deref().unwrap_or_default();
     assert!(
-        faults.is_empty(),
-        "a replica that could not run was blamed: {faults:?}"
+        detail.contains("after its deadline was moved on") && detail.contains("for want of a CPU"),
+        "the detail says the deadline was moved on: {detail}"
+    );
+    assert!(
+        detail.contains("state R (runnable: a wait for a CPU is counted only when it ends)"),
+        "the detail says the replica is still waiting for a CPU: {detail}"
+    );
+    let recovered = events
+        .iter()
+        .find(|e| e.kind == EventKind::Recovery && e.pid == Some(pids[&1]))
+        .unwrap_or_else(|| panic!("replica 1's slot was not filled: {events:?}"));
+    assert_eq!(
+        recovered.method,
+        Some(RecoveryMethod::Fork),
+        "{recovered:?}"
     );
     assert_sink_whole(&summary, count);
 }

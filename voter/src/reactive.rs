@@ -890,9 +890,18 @@ impl ReactiveVoter {
                     Some(seen) => format!(" ({seen})"),
                     None => String::new(),
                 };
+                // Moved on for want of a CPU (its own or a sibling's): "within" the timeout is
+                // then not the whole story.
+                let extended = match self.round.as_ref().map_or(Duration::ZERO, |rd| rd.extended) {
+                    d if d.is_zero() => String::new(),
+                    d => format!(
+                        " after its deadline was moved on {} µs for want of a CPU",
+                        d.as_micros()
+                    ),
+                };
                 format!(
-                    "no answer within {} µs{turn} in round {number}{seen}{backlog}; the voter \
-                     blamed it {voter_late} µs after the deadline",
+                    "no answer within {} µs{turn}{extended} in round {number}{seen}{backlog}; \
+                     the voter blamed it {voter_late} µs after the deadline",
                     plan.timeout_us
                 )
             }

@@ -233,6 +233,14 @@ pub fn port_map(plan: &VoterPlan) -> PortMap {
     }
 }
 
+/// What a voter knows of a replica it did not start (see [`Replica::proven`] and
+/// [`Replica::state_lost`]).
+#[derive(Debug, Clone, Copy)]
+struct Standing {
+    proven: bool,
+    state_lost: bool,
+}
+
 impl Replica {
     /// A replica a voter's successor took over (see `adopt.rs`): not its child, proven or not
     /// and with its state kept or lost as the predecessor's journal says, on fresh pipes.
@@ -255,8 +263,10 @@ impl Replica {
             pipes.inputs,
             pipes.outputs,
             pipes.stderr,
-            true,
-            false,
+            Standing {
+                proven: true,
+                state_lost: false,
+            },
         )
     }
 
@@ -276,8 +286,10 @@ impl Replica {
             inputs,
             outputs,
             stderr,
-            entry.proven,
-            entry.state_lost,
+            Standing {
+                proven: entry.proven,
+                state_lost: entry.state_lost,
+            },
         );
         replica.proc_stat.open_now(replica.pidfd.as_fd());
         replica
@@ -290,8 +302,7 @@ impl Replica {
         inputs: Vec<ReplicaInput>,
         outputs: Vec<FrameReader>,
         stderr: StderrRelay,
-        proven: bool,
-        state_lost: bool,
+        Standing { proven, state_lost }: Standing,
     ) -> Replica {
         Replica {
             pid,

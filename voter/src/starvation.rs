@@ -46,8 +46,11 @@
 //! A voter that itself woke up past the first look (it was held up too) did not see the
 //! window: the deadline moves on by one window, with a fresh look.
 //!
-//! What was seen goes into the `hang` event's detail ("in the last 180 µs it ran 0 µs and
-//! waited 0 µs for a CPU; state R").
+//! What was seen goes into the `hang` event's detail ("in the last 180 µs it ran 0 µs (of 175
+//! µs on its clock) and waited 0 µs for a CPU; state R (runnable: a wait for a CPU is counted
+//! only when it ends)"), and so does how far the round's deadline had been moved on: a
+//! replica still starved when the extensions are used up is blamed with "after its deadline
+//! was moved on 100000 µs for want of a CPU".
 //!
 //! The cost: nothing in a round where every replica answers before the first look; per late
 //! replica otherwise, a task-clock read and a `pread` at each look (the task clock and the
@@ -192,8 +195,16 @@ impl std::fmt::Display for Seen {
             "in the last {} µs it ran {} µs (of {} µs on its clock) and waited {} µs for a CPU",
             self.window_us, self.ran_us, self.clocked_us, self.waited_us
         )?;
-        if let Some(s) = self.state {
-            write!(f, "; state {s}")?;
+        match self.state {
+            // Read only for a replica that ran less than a quarter of its clock's span: `R` is
+            // then most likely one queued for a CPU, whose wait so far is not in the figure
+            // above (the kernel adds a wait to it only when the wait ends).
+            Some('R') => write!(
+                f,
+                "; state R (runnable: a wait for a CPU is counted only when it ends)"
+            )?,
+            Some(s) => write!(f, "; state {s}")?,
+            None => {}
         }
         if let Some(w) = self.wchan {
             write!(f, ", asleep in {}", w.as_str())?;
@@ -431,6 +442,20 @@ mod tests {
         child.kill().unwrap();
         child.wait().unwrap();
         assert!(b.run_ns > a.run_ns, "{a:?} {b:?}");
+    }
+
+    #[test]
+    fn the_evidence_says_that_a_runnable_replica_s_wait_is_not_counted_yet() {
+        // Kept off its CPU for the whole window: no wait booked, since the wait has not ended.
+        let seen = Seen {
+            state: Some('R'),
+            ..Seen::between(t(0, 0), t(0, 0), W, W)
+        };
+        assert_eq!(
+            seen.to_string(),
+            "in the last 200 µs it ran 0 µs (of 200 µs on its clock) and waited 0 µs for a \
+             CPU; state R (runnable: a wait for a CPU is counted only when it ends)"
+        );
     }
 
     #[test]
