@@ -1,12 +1,12 @@
 //! The replica contract: the port map a component reads from `S3RES_PORTS`
 //! (`replica_rt::parse_port_map`, the check `init` does), and the fixed-size messages of the
-//! restart handshake (`Hello`, `Ready`) and the `var` injection request a replica decodes from a
+//! restart handshake (`Hello`, `Spare`, `Ready`) and the `var` injection request a replica decodes from a
 //! signal's value. Any bytes give a value or an error, never a panic; what is accepted is what
 //! the contract promises, and the messages round-trip.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use s3res_protocol::contract::handshake::{Hello, Ready};
+use s3res_protocol::contract::handshake::{Hello, Ready, Spare};
 use s3res_protocol::contract::signals::VarRequest;
 use s3res_protocol::contract::MAX_PORTS;
 
@@ -15,6 +15,10 @@ fuzz_target!(|data: &[u8]| {
     if let Some(b) = data.get(..Hello::SIZE) {
         let b: [u8; Hello::SIZE] = b.try_into().unwrap();
         assert_eq!(Hello::from_bytes(b).to_bytes(), b);
+    }
+    if let Some(b) = data.get(..Spare::SIZE) {
+        let b: [u8; Spare::SIZE] = b.try_into().unwrap();
+        assert_eq!(Spare::from_bytes(b).to_bytes(), b);
     }
     if let Some(b) = data.get(..Ready::SIZE) {
         let b: [u8; Ready::SIZE] = b.try_into().unwrap();

@@ -39,6 +39,11 @@ pub const ENV_OUTPUT_HISTORY: &str = "S3RES_OUTPUT_HISTORY";
 /// Absent: `all`.
 pub const ENV_LOCK_MEMORY: &str = "S3RES_LOCK_MEMORY";
 
+/// Present (any value): the voter takes spare lines (see [`handshake::Spare`]), so the
+/// replica keeps one connected for its next fork child. Absent: it keeps none, and a fork child
+/// connects when it needs to (as to a voter, or a test harness, that does not know them).
+pub const ENV_SPARE_LINE: &str = "S3RES_SPARE_LINE";
+
 /// Largest number of ports one component may have (inputs plus outputs). The restart handler
 /// uses fixed-size arrays of this length, because it may not allocate.
 pub const MAX_PORTS: usize = 32;
@@ -92,9 +97,12 @@ pub const FIRST_PORT_FD: RawFd = 3;
 ///
 /// 0. the voter sends the donor [`signals::RESTART`] with `sigqueue`, whose value is a nonce
 ///    that names this recovery attempt;
-/// 1. the donor's handler forks; the child connects and sends [`Hello`] with that nonce (a child
-///    forked for an earlier, abandoned attempt carries an old nonce and is refused and killed);
-/// 2. the voter checks `SO_PEERCRED` (the peer's parent must be the donor), then sends one
+/// 1. the donor's handler forks; the child sends [`Hello`] with that nonce and its pid (a
+///    child forked for an earlier, abandoned attempt carries an old nonce and is refused and
+///    killed), on the donor's *spare line* where it has one ([`Spare`]: a connection the donor
+///    made ahead, which the child inherits), else on a connection of its own;
+/// 2. the voter checks who it is — on a connection of its own, `SO_PEERCRED`'s pid; on a
+///    spare line, the pid in `Hello` — (its parent must be the donor), then sends one
 ///    message: [`FdTransfer`] as the payload and the new pipe fds as `SCM_RIGHTS`, in the same
 ///    order as `targets`, and only then reads `Hello` and checks the nonce (a child with an old
 ///    one is killed, and the pipes it got are dropped by the voter); so the child may receive
@@ -107,6 +115,7 @@ pub const FIRST_PORT_FD: RawFd = 3;
 /// instead of waiting forever.
 ///
 /// [`Hello`]: handshake::Hello
+/// [`Spare`]: handshake::Spare
 /// [`FdTransfer`]: handshake::FdTransfer
 /// [`Ready`]: handshake::Ready
 pub mod handshake {
@@ -129,6 +138,28 @@ pub mod handshake {
         pub magic: u32,
         /// The value the RESTART signal carried (0 if it came without one, e.g. from `kill`).
         pub nonce: u32,
+        /// The child's pid: on a spare line, `SO_PEERCRED` names the replica that connected it
+        /// (the donor), not the child.
+        pub pid: i32,
+    }
+
+    /// Replica → voter, first and only, on a *spare line*: a connection a replica makes ahead
+    /// (at start, and after each fork) for its next fork child, which inherits it and sends
+    /// its [`Hello`] on it instead of making a connection of its own — `socket`, the socket's
+    /// timeouts and `connect` cost a fresh fork child about 30 µs on the project's VM, on a
+    /// restart's critical path. The voter keeps a spare line of each of its replicas (checked
+    /// by `SO_PEERCRED` against the replica's pid and this message), and waits for a child's
+    /// `Hello` on its donor's. Every spare line is used once: the donor closes its copy at the
+    /// fork, the child after `Ready`, and each makes another later, in normal context (a
+    /// signal handler may not, and its work would delay the child). A line that no longer
+    /// leads to the voter (a voter replaced since, a spare refused) fails the child's first
+    /// send, and the child connects as without one.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct Spare {
+        pub magic: u32,
+        /// The replica that made the line.
+        pub pid: i32,
     }
 
     /// Replica → voter's successor, first, when its voter died (an input ended without an
@@ -217,6 +248,7 @@ pub mod handshake {
     pub const TRANSFER_MAGIC: u32 = u32::from_le_bytes(*b"S3fd");
     pub const READY_MAGIC: u32 = u32::from_le_bytes(*b"S3ok");
     pub const HELLO_MAGIC: u32 = u32::from_le_bytes(*b"S3hi");
+    pub const SPARE_MAGIC: u32 = u32::from_le_bytes(*b"S3sp");
 
     /// How long a fork child waits on the voter during the handshake before giving up.
     pub const CHILD_SOCKET_TIMEOUT_MS: u64 = 2000;
@@ -227,7 +259,8 @@ pub mod handshake {
         pub fn to_bytes(self) -> [u8; Self::SIZE] {
             let mut out = [0u8; Self::SIZE];
             out[..4].copy_from_slice(&self.magic.to_ne_bytes());
-            out[4..].copy_from_slice(&self.nonce.to_ne_bytes());
+            out[4..8].copy_from_slice(&self.nonce.to_ne_bytes());
+            out[8..].copy_from_slice(&self.pid.to_ne_bytes());
             out
         }
 
@@ -235,6 +268,25 @@ pub mod handshake {
             Hello {
                 magic: u32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
                 nonce: u32::from_ne_bytes([b[4], b[5], b[6], b[7]]),
+                pid: i32::from_ne_bytes([b[8], b[9], b[10], b[11]]),
+            }
+        }
+    }
+
+    impl Spare {
+        pub const SIZE: usize = std::mem::size_of::<Spare>();
+
+        pub fn to_bytes(self) -> [u8; Self::SIZE] {
+            let mut out = [0u8; Self::SIZE];
+            out[..4].copy_from_slice(&self.magic.to_ne_bytes());
+            out[4..].copy_from_slice(&self.pid.to_ne_bytes());
+            out
+        }
+
+        pub fn from_bytes(b: [u8; Self::SIZE]) -> Self {
+            Spare {
+                magic: u32::from_ne_bytes([b[0], b[1], b[2], b[3]]),
+                pid: i32::from_ne_bytes([b[4], b[5], b[6], b[7]]),
             }
         }
     }
@@ -387,7 +439,9 @@ pub mod signals {
 
 #[cfg(test)]
 mod tests {
-    use super::handshake::{Ready, Rebind, READY_MAGIC, REBIND_MAGIC};
+    use super::handshake::{
+        Hello, Ready, Rebind, Spare, HELLO_MAGIC, READY_MAGIC, REBIND_MAGIC, SPARE_MAGIC,
+    };
     use super::signals::VarRequest;
     use super::MAX_PORTS;
 
@@ -499,5 +553,31 @@ mod tests {
         };
         assert_eq!(Rebind::from_bytes(rebind.to_bytes()), rebind);
         assert_eq!(Rebind::SIZE, 8 + 16 * MAX_PORTS);
+    }
+
+    #[test]
+    fn hello_and_spare_roundtrip_and_share_rebind_s_first_words() {
+        let hello = Hello {
+            magic: HELLO_MAGIC,
+            nonce: 0xdead_beef,
+            pid: -5,
+        };
+        assert_eq!(Hello::from_bytes(hello.to_bytes()), hello);
+        assert_eq!(Hello::SIZE, 12);
+        let spare = Spare {
+            magic: SPARE_MAGIC,
+            pid: 31,
+        };
+        assert_eq!(Spare::from_bytes(spare.to_bytes()), spare);
+        // A voter's successor reads the first 8 bytes of a connection to tell a spare line
+        // from a rebind: magic, then pid, in both.
+        assert_eq!(Spare::SIZE, 8);
+        let rebind = Rebind {
+            magic: REBIND_MAGIC,
+            pid: 31,
+            frames_taken: [0; MAX_PORTS],
+            frames_sent: [0; MAX_PORTS],
+        };
+        assert_eq!(rebind.to_bytes()[4..8], spare.to_bytes()[4..8]);
     }
 }

@@ -236,6 +236,10 @@ fn init_inner() -> Result<Runtime, InitError> {
         // Kept open for the page walk of our fork children (`cow`, "The donor lists the
         // mappings").
         cow::open_own_maps();
+        if std::env::var_os(contract::ENV_SPARE_LINE).is_some() {
+            restart::use_spare_lines();
+            restart::keep_spare_line();
+        }
     }
     say_started();
     tracing::debug!(

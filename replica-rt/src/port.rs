@@ -158,6 +158,8 @@ impl InPort {
     /// outlive the decoder's own, which the read loop needs to mutate.
     pub fn recv(&mut self) -> Result<Option<&[u8]>, RecvError> {
         note_fork();
+        // Before waiting for input: the round before has been answered.
+        restart::keep_spare_line();
         self.catch_up();
         loop {
             if self.next_buffered()? {

@@ -93,6 +93,9 @@ fn rebind_within(timeout: Duration) -> Result<(), NoSuccessor> {
             Ok(()) => {
                 drop::<Fd>(sock);
                 tracing::info!("voter replaced: took fresh channels from its successor");
+                // Our spare line led to the dead voter: a new one, for the successor, at the
+                // next `recv` (after this round, once the successor has taken us all back).
+                restart::renew_spare_line();
                 // A stream replica's frames the dead voter may not have decided (`history`).
                 crate::answers::resend_histories();
                 return Ok(());

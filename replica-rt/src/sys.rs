@@ -1159,6 +1159,13 @@ pub fn exit_now(code: libc::c_int) -> ! {
     unsafe { libc::_exit(code) }
 }
 
+/// Lets the other runnable threads of this CPU's priority run first (`sched_yield`); it
+/// cannot fail on Linux.
+pub fn yield_cpu() {
+    // SAFETY: no arguments.
+    unsafe { libc::sched_yield() };
+}
+
 /// Pid of the calling process.
 pub fn getpid() -> libc::pid_t {
     // SAFETY: getpid has no arguments and cannot fail.

@@ -90,6 +90,50 @@ fn tmr_single_fault(inject: impl FnOnce(i32), kind: EventKind) -> Event {
     fault
 }
 
+/// Every replica keeps a spare line to its voter (replica-rt's `restart`, "The spare line"):
+/// a fork child sends its `Hello` on its donor's instead of connecting. Three kills in turn,
+/// each replacement later a donor or a victim itself: every recovery is by fork and joins on
+/// the donor's line, which shows that donor and child each made a new one after the fork. No
+/// line is dropped, and the sink sees every frame once, in order.
+#[test]
+fn every_fork_child_joins_on_its_donor_s_spare_line_and_the_lines_are_renewed() {
+    let count = 1500;
+    let sys = System::new().env("RUST_LOG", "info,s3res_voter::recovery=debug");
+    let desc = echo_system(&sys, "tmr", "s3res-echo", &["--stateful"], count, 200);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    for slot in [2, 0, 2] {
+        let pid = run.replica_pids("echo")[&slot];
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill a replica");
+        let rec = run.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        // A few rounds (5 ms apart): donor and child make their next lines at their next
+        // `recv`.
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let out = run.wait_success(LIMIT);
+    let joined = out
+        .stderr
+        .matches("the donor's child joined on its spare line")
+        .count();
+    let connected = out.stderr.matches("the donor's child connected").count();
+    assert_eq!(
+        (joined, connected),
+        (3, 0),
+        "every child on its donor's line:\n{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    assert!(
+        !out.stderr.contains("dropped a spare line"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+    assert_eq!(out.faults().len(), 3, "{:#?}", out.events);
+    assert_sink_whole(&summary, count);
+}
+
 #[test]
 fn tmr_outvotes_a_corrupted_frame() {
     tmr_single_fault(

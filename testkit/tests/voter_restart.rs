@@ -213,6 +213,66 @@ fn a_fault_reported_again_by_the_voters_successor_is_kept_once() {
     run.assert_nothing_left();
 }
 
+/// A voter's spare lines die with it (replica-rt's `restart`, "The spare line"): a replica
+/// that rebinds to the successor drops its own and makes another, which the successor takes.
+/// A replica killed before the voter's death (so that the voter had taken every line) and two
+/// after it: all three recoveries are by fork with the state kept, and every child joins on
+/// its donor's line (a dead one is passed over).
+/// Every frame reaches the sink once, and nothing is left behind.
+#[test]
+fn after_a_voter_restart_fork_children_join_on_spare_lines_made_for_the_successor() {
+    const COUNT: u32 = 1500;
+    let sys = System::new().env("RUST_LOG", "info,s3res_voter::recovery=debug");
+    let summary = sys.path("summary.json");
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 200000 }"#;
+    let desc = echo_pipeline(&summary, echo, COUNT, 200);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    run.wait_for_answers("echo");
+    let mut joins = Vec::new();
+    for slot in [2, 0, 2] {
+        if joins.len() == 1 {
+            // The first voter has taken every replica's line by now (during the recovery), and
+            // the next donor, replica 1, has made none since: only its rebind renews it.
+            let voter = run.process_named("s3res-voter").expect("the echo's voter");
+            s3res_testkit::kill_pid(voter, libc::SIGKILL).expect("kill the voter");
+            run.next_voter(voter, Duration::from_secs(20));
+        }
+        // Rounds first (5 ms apart): lines are made at a replica's next `recv`.
+        std::thread::sleep(Duration::from_millis(200));
+        let pid = run.replica_pids("echo")[&slot];
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill a replica");
+        let rec = run.wait_for_event(
+            |e| s3res_testkit::is_recovery_of(e, slot, pid),
+            Duration::from_secs(20),
+        );
+        assert_eq!(
+            (rec.method, rec.state_lost),
+            (Some(s3res_testkit::RecoveryMethod::Fork), Some(false)),
+            "{rec:?}"
+        );
+        joins.push(rec.new_pid);
+    }
+    let out = run.wait(Duration::from_secs(120));
+    assert_success(&out, &summary);
+    out.voter_restarts(1);
+    let said = |what: &str, pid: Option<i32>| {
+        let pid = format!("pid={}", pid.expect("a recovery names its new pid"));
+        out.stderr
+            .lines()
+            .any(|l| l.contains(what) && l.contains(&pid))
+    };
+    for child in joins {
+        assert!(
+            said("the donor's child joined on its spare line", child),
+            "child {child:?} joins on a line made for the successor:\n{}",
+            s3res_testkit::tail(&out.stderr, 60)
+        );
+    }
+    assert_sink_whole(&summary, COUNT);
+    run.assert_nothing_left();
+}
+
 /// The run ended with status 0 (else: its status, the sink's summary and bootstrap's last
 /// lines).
 fn assert_success(out: &Outcome, summary: &Path) {

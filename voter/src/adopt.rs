@@ -8,14 +8,16 @@ use std::os::fd::{AsFd, AsRawFd, OwnedFd};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::time::Duration;
 
-use replica_rt::contract::handshake::{Ready, Rebind, READY_MAGIC, REBIND_MAGIC};
+use replica_rt::contract::handshake::{
+    Ready, Rebind, Spare, READY_MAGIC, REBIND_MAGIC, SPARE_MAGIC,
+};
 use replica_rt::sys;
 
 use crate::clock::Instant;
 use crate::journal::{self, SlotEntry};
 use crate::park::{Parked, ParkedSet, ParkingLot};
 use crate::plan::VoterPlan;
-use crate::recovery::{read_exact_by, send_pipes};
+use crate::recovery::{read_exact_by, read_exact_into, send_pipes, SpareLines};
 use crate::replica::{Replica, ReplicaPipes};
 
 /// A slot whose replica did not come back.
@@ -33,6 +35,16 @@ pub(crate) struct Lost {
 pub(crate) struct Adopted {
     pub(crate) slots: Vec<Option<Replica>>,
     pub(crate) lost: Vec<Lost>,
+    /// Spare lines that came while the replicas were taken back (`recovery::SpareLines`).
+    pub(crate) spares: SpareLines,
+}
+
+/// What a connection taken off the socket while adopting turned out to be.
+enum Taken {
+    /// An awaited replica, rebound: its slot, and the replica.
+    Replica(usize, Replica),
+    /// An awaited replica's spare line.
+    Spare(libc::pid_t, UnixStream),
 }
 
 /// A replica named in the journal, alive, that has not rebound yet.
@@ -53,6 +65,7 @@ pub(crate) fn replicas(
     let mut adopted = Adopted {
         slots: (0..plan.replicas).map(|_| None).collect(),
         lost: Vec::new(),
+        spares: SpareLines::default(),
     };
     let mut awaited = Vec::new();
     for (slot, entry) in table.iter().enumerate() {
@@ -115,11 +128,14 @@ pub(crate) fn replicas(
         }
         while let Ok((conn, _)) = listener.accept() {
             match rebind(plan, conn, &mut awaited, deadline) {
-                Ok((slot, replica)) => {
+                Ok(Taken::Replica(slot, replica)) => {
                     on_adopt(replica.pid, slot);
                     tracing::info!(replica = slot, pid = replica.pid, "adopted");
                     adopted.slots[slot] = Some(replica);
                 }
+                // The newest of each replica is kept: one made before its voter died leads
+                // nowhere once the replica has rebound (it drops it then, and makes another).
+                Ok(Taken::Spare(pid, line)) => adopted.spares.keep(pid, line),
                 Err(why) => tracing::warn!("refused a connection while adopting: {why}"),
             }
         }
@@ -137,20 +153,28 @@ pub(crate) fn replicas(
     adopted
 }
 
-/// One rebind: the peer must be an awaited replica, and say so; it gets fresh pipes.
+/// One rebind: the peer must be an awaited replica, and say so; it gets fresh pipes. Or the
+/// peer's spare line (replica-rt's `restart`, "The spare line"), which says so instead.
 fn rebind(
     plan: &VoterPlan,
     conn: UnixStream,
     awaited: &mut Vec<Awaited>,
     deadline: Instant,
-) -> Result<(usize, Replica), String> {
+) -> Result<Taken, String> {
     let pid = sys::peer_pid(conn.as_fd()).map_err(|e| format!("no peer credentials: {e}"))?;
     let Some(k) = awaited.iter().position(|a| a.entry.pid == pid) else {
         // A fork child its predecessor was handing pipes to, or a stranger.
         return Err(format!("peer {pid} is not a replica the journal names"));
     };
-    let bytes = read_exact_by::<{ Rebind::SIZE }>(&conn, deadline)
-        .map_err(|e| format!("no Rebind from {pid}: {e}"))?;
+    // Magic and pid first: a spare line says no more, and waiting for a whole `Rebind` on it
+    // would hold up the adoption until the deadline.
+    let mut bytes = [0u8; Rebind::SIZE];
+    let (head, rest) = bytes.split_at_mut(Spare::SIZE);
+    read_exact_into(&conn, head, deadline).map_err(|e| format!("no Rebind from {pid}: {e}"))?;
+    if head[..4] == SPARE_MAGIC.to_ne_bytes() {
+        return Ok(Taken::Spare(pid, conn));
+    }
+    read_exact_into(&conn, rest, deadline).map_err(|e| format!("no Rebind from {pid}: {e}"))?;
     let hello = Rebind::from_bytes(bytes);
     if hello.magic != REBIND_MAGIC || hello.pid != pid {
         return Err(format!(
@@ -167,7 +191,10 @@ fn rebind(
         return Err(format!("bad Ready from {pid}"));
     }
     let Awaited { slot, entry, pidfd } = awaited.remove(k);
-    Ok((slot, Replica::adopted(pid, pidfd, pipes, entry)))
+    Ok(Taken::Replica(
+        slot,
+        Replica::adopted(pid, pidfd, pipes, entry),
+    ))
 }
 
 /// Takes over an unmodified program's replicas (see `lines.rs`): they cannot rebind, so each
@@ -209,6 +236,7 @@ pub(crate) fn parked_replicas(
     let mut adopted = Adopted {
         slots: (0..plan.replicas).map(|_| None).collect(),
         lost: Vec::new(),
+        spares: SpareLines::default(),
     };
     for (slot, entry) in table.iter().enumerate() {
         let lost = |pid, died, why| Lost {

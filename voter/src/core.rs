@@ -197,6 +197,8 @@ pub(crate) struct Core {
     /// Names the current fork attempt; a child of an older attempt is refused.
     restart_nonce: u32,
     listener: UnixListener,
+    /// The replicas' spare lines taken so far (`recovery::SpareLines`).
+    spares: recovery::SpareLines,
     signals: SignalFd,
     events: Option<OwnedFd>,
     /// Fault events written once the donor of their recovery has been signalled (`held.rs`).
@@ -293,6 +295,7 @@ impl Core {
         rt.apply_to_voter();
         let cpu_latency = crate::rt::keep_cpus_polling(plan.cpu_idle);
         let stamps = answer_stamps(&plan, stamps);
+        let mut spares = recovery::SpareLines::default();
         let (journal, slots, adoption) = match journal {
             Some(fd) if plan.adopt.is_some() => {
                 let (journal, found) =
@@ -305,6 +308,7 @@ impl Core {
                         .map_err(io_err("adopting an unmodified program's replicas"))?,
                     None => adopt::replicas(&plan, &listener, &found.slots, on_adopt),
                 };
+                spares = adopted.spares;
                 (Some(journal), adopted.slots, Some((found, adopted.lost)))
             }
             journal_fd => {
@@ -343,6 +347,7 @@ impl Core {
             last_fault: String::new(),
             restart_nonce: 0,
             listener,
+            spares,
             signals,
             events,
             held: HeldFaults::default(),
@@ -1063,6 +1068,7 @@ impl Core {
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
+            &mut self.spares,
             donor,
             self.restart_nonce,
             &family,

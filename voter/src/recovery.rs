@@ -5,17 +5,21 @@
 //! 1. check that the donor has no half-read answer in our decoder (its fork restarts on a
 //!    frame boundary: replica-rt never forks in the middle of a `send`), and take back the input
 //!    still buffered in its pipes (the child would not see it otherwise);
-//! 2. refuse and kill whatever is waiting on our socket from an abandoned earlier attempt;
-//! 3. send the donor [`signals::RESTART`] with a fresh nonce; its handler forks; meanwhile,
+//! 2. send the donor [`signals::RESTART`] with a fresh nonce; its handler forks; meanwhile,
 //!    make the child's fresh pipes;
-//! 4. accept the child: `SO_PEERCRED` must name a child of the donor (anyone else is refused
-//!    before anything is sent); send it the pipes by `SCM_RIGHTS` at once (it breaks its
-//!    copy-on-write sharing meanwhile, and puts them on the donor's fd numbers after); then
-//!    check that its `Hello` carries this attempt's nonce (a late child of an earlier attempt
-//!    has an older state). One that fails is refused (killed) and its pipes are dropped; the next
-//!    connection gets a new set;
-//! 5. wait for its `Ready`;
-//! 6. give the taken-back input, followed by whatever is still queued for the donor, to both
+//! 3. wait for the child on the donor's spare line ([`SpareLines`]), and on our socket: the
+//!    child sends its `Hello` on the line where the donor had one, else it connects. On a
+//!    connection of its own `SO_PEERCRED` must name a child of the donor (anyone else is
+//!    refused, and killed if it is a child of one of ours, before anything is sent: whatever
+//!    waits on the socket from an abandoned earlier attempt, or a stranger); the pipes go out by
+//!    `SCM_RIGHTS` at once (it breaks its copy-on-write sharing meanwhile, and puts them on the
+//!    donor's fd numbers after); then its `Hello` must carry this attempt's nonce (a late child
+//!    of an earlier attempt has an older state). On the spare line, `Hello` comes first, and
+//!    names the child, whose parent must be the donor. One that fails is refused (killed) and
+//!    its pipes are dropped; the next connection gets a new set. The spare lines of other
+//!    replicas that come meanwhile are kept for later attempts;
+//! 4. wait for its `Ready`;
+//! 5. give the taken-back input, followed by whatever is still queued for the donor, to both
 //!    (to the donor only after the fork: what it read in between would reach the child twice).
 //!
 //! In stream mode ([`DonorState::Streaming`]) the donor is not idle: it may be writing output
@@ -30,7 +34,7 @@ use std::time::Duration;
 use crate::clock::Instant;
 
 use replica_rt::contract::handshake::{
-    FdTransfer, Hello, Ready, HELLO_MAGIC, READY_MAGIC, TRANSFER_MAGIC,
+    FdTransfer, Hello, Ready, Spare, HELLO_MAGIC, READY_MAGIC, SPARE_MAGIC, TRANSFER_MAGIC,
 };
 use replica_rt::contract::{signals, MAX_HANDED_FDS};
 use replica_rt::sys;
@@ -92,12 +96,46 @@ pub struct Forked {
     pub frames_sent: Vec<u64>,
 }
 
+/// The replicas' spare lines (replica-rt's `restart`, "The spare line"; the contract's
+/// `handshake::Spare`): connections each replica makes ahead for its next fork child, taken off
+/// our socket during recovery attempts, at most one kept per replica (its newest). A fork
+/// child sends its `Hello` on its donor's, and so skips making a connection of its own.
+#[derive(Default)]
+pub struct SpareLines(Vec<(libc::pid_t, UnixStream)>);
+
+impl SpareLines {
+    /// Keeps `line`, the newest of replica `pid` (an older one of it was used by a fork child).
+    pub(crate) fn keep(&mut self, pid: libc::pid_t, line: UnixStream) {
+        self.0.retain(|(p, _)| *p != pid);
+        self.0.push((pid, line));
+    }
+
+    /// The line of replica `pid`, if one was kept; it is used once.
+    fn take(&mut self, pid: libc::pid_t) -> Option<UnixStream> {
+        let k = self.0.iter().position(|(p, _)| *p == pid)?;
+        Some(self.0.swap_remove(k).1)
+    }
+
+    /// Drops the lines of replicas not in `family` any more.
+    fn forget_all_but(&mut self, family: &[libc::pid_t]) {
+        self.0.retain(|(p, _)| family.contains(p));
+    }
+}
+
+/// How long the announcement of a spare line may take to arrive once its connection is
+/// accepted: the replica sends it right after `connect`, so only a replica stopped in between
+/// takes longer, and its line is dropped rather than let it hold up the recovery.
+const SPARE_ANNOUNCEMENT_WAIT: Duration = Duration::from_millis(10);
+
 /// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
 /// `meanwhile` runs once the donor has been asked to fork, while it does (not at all if it
-/// could not be asked).
+/// could not be asked). `spares` are the replicas' spare lines taken so far; the donor's is
+/// used (whatever the outcome), and those that come during the attempt are kept.
+#[allow(clippy::too_many_arguments)]
 pub fn fork(
     plan: &VoterPlan,
     listener: &UnixListener,
+    spares: &mut SpareLines,
     donor: &mut Replica,
     nonce: u32,
     family: &[libc::pid_t],
@@ -120,8 +158,12 @@ pub fn fork(
     // the child sends us the copy behind `Ready` (replica-rt's `restart`, "Unread input"). So a
     // voter killed during the fork takes no input with it. What is still queued here for the
     // donor follows that copy in the child's pipe; nothing is written to the donor meanwhile.
+    //
+    // Nothing is taken off the socket before the signal: whatever waits there (spare lines,
+    // children of abandoned attempts, strangers) is dealt with while the donor forks.
     let mut refused = Refusals::default();
-    refuse_backlog(listener, family, deadline, &mut refused);
+    spares.forget_all_but(family);
+    let lines: Vec<UnixStream> = spares.take(donor.pid).into_iter().collect();
     let signalled = sys::pidfd_sigqueue(
         donor.pidfd.as_fd(),
         signals::RESTART,
@@ -145,7 +187,7 @@ pub fn fork(
             timeout,
             state,
         };
-        accept_child(listener, donor, &attempt, &mut refused)
+        accept_child(listener, spares, lines, donor, &attempt, &mut refused)
     });
     refused.report();
     let (mut child, ready, unread) = await_ready(joined?, plan.inputs.len(), deadline)?;
@@ -178,10 +220,6 @@ fn signal_sender() -> sys::SignalSender {
     *SENDER.get_or_init(sys::SignalSender::this_process)
 }
 
-/// At most this many connections are cleared from the socket before an attempt: a flood of
-/// connections from the same user must not keep the voter from asking the donor to fork.
-const BACKLOG_CLEAR_LIMIT: usize = 256;
-
 /// One fork attempt, as the accept loop needs it.
 struct Attempt<'a> {
     plan: &'a VoterPlan,
@@ -202,6 +240,11 @@ struct Refusals {
 }
 
 impl Refusals {
+    /// A spare line dropped: it ended, or what came on it was not what a line carries.
+    fn note_line(&mut self, why: &str) {
+        tracing::warn!(why, "dropped a spare line on the voter socket");
+    }
+
     fn report(&self) {
         if self.count > 1 {
             tracing::warn!(
@@ -210,26 +253,6 @@ impl Refusals {
                 "refused connections on the voter socket during one recovery"
             );
         }
-    }
-}
-
-/// Refuses the processes waiting on the socket (at most [`BACKLOG_CLEAR_LIMIT`], and not past
-/// `deadline`): children of abandoned attempts (a donor that was stopped when we gave up forks
-/// once it is continued), or strangers.
-fn refuse_backlog(
-    listener: &UnixListener,
-    family: &[libc::pid_t],
-    deadline: Instant,
-    refused: &mut Refusals,
-) {
-    for _ in 0..BACKLOG_CLEAR_LIMIT {
-        if Instant::now() >= deadline {
-            return;
-        }
-        let Ok((conn, _)) = listener.accept() else {
-            return;
-        };
-        refuse(conn, family, "left over from an earlier attempt", refused);
     }
 }
 
@@ -258,11 +281,14 @@ fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str, refused: &mut Ref
     }
 }
 
-/// Waits for the donor's child; refuses anyone else.
+/// Waits for the donor's child, on the donor's spare `lines` and on the socket; refuses anyone
+/// else, and keeps the spare lines of the other replicas that come meanwhile.
 /// A streaming donor's output pipes are read meanwhile (into their decoders, not decoded), so a
 /// donor blocked writing a frame can finish it and take the signal.
 fn accept_child(
     listener: &UnixListener,
+    spares: &mut SpareLines,
+    mut lines: Vec<UnixStream>,
     donor: &mut Replica,
     attempt: &Attempt,
     refused: &mut Refusals,
@@ -285,13 +311,17 @@ fn accept_child(
             return Err(RecoveryError::ConnectTimeout(timeout));
         }
         fds.clear();
-        for fd in [listener.as_raw_fd(), donor.pidfd.as_raw_fd()] {
+        let polled = [listener.as_raw_fd(), donor.pidfd.as_raw_fd()]
+            .into_iter()
+            .chain(lines.iter().map(AsRawFd::as_raw_fd));
+        for fd in polled {
             fds.push(libc::pollfd {
                 fd,
                 events: libc::POLLIN,
                 revents: 0,
             });
         }
+        let first_output = fds.len();
         if state == DonorState::Streaming {
             for out in donor.outputs.iter().filter(|out| !out.is_closed()) {
                 fds.push(libc::pollfd {
@@ -302,11 +332,28 @@ fn accept_child(
             }
         }
         sys::ppoll(&mut fds, Some(deadline - now)).map_err(io_err("waiting for the child"))?;
-        if fds[2..].iter().any(|p| p.revents != 0) {
+        if fds[first_output..].iter().any(|p| p.revents != 0) {
             for out in donor.outputs.iter_mut().filter(|out| !out.is_closed()) {
                 // A read error or a closed pipe shows again in the voter's own loop.
                 let _ = out.fill();
             }
+        }
+        // A line with something to read: the child's `Hello`, or the end (a line whose
+        // fork child is gone, or used already).
+        if let Some(k) = (0..lines.len()).find(|&k| fds[2 + k].revents != 0) {
+            let line = lines.swap_remove(k);
+            match joined_on_line(plan, line, &mut pipes, donor, nonce, deadline) {
+                Ok(joined) => {
+                    tracing::debug!(
+                        pid = joined.pid,
+                        "the donor's child joined on its spare line"
+                    );
+                    return Ok(joined);
+                }
+                Err(Some(why)) => refused.note_line(&why),
+                Err(None) => {}
+            }
+            continue;
         }
         if fds[0].revents == 0 {
             if fds[1].revents != 0 {
@@ -319,6 +366,22 @@ fn accept_child(
             Err(e) if e.kind() == io::ErrorKind::WouldBlock => continue,
             Err(e) => return Err(io_err("accepting the child")(e)),
         };
+        // A replica's spare line: the donor's is watched from now on, another's kept.
+        if let Some((pid, line)) = spare_line(&conn, family) {
+            let line = match line {
+                Ok(()) => conn,
+                Err(why) => {
+                    refused.note_line(&why);
+                    continue;
+                }
+            };
+            if pid == donor.pid {
+                lines.push(line);
+            } else {
+                spares.keep(pid, line);
+            }
+            continue;
+        }
         // Who it is first (cheap: a stranger costs no pipes); then the pipes go out at once,
         // before the nonce in its `Hello` is read: the child puts them in place and starts on
         // its copy-on-write sharing while the voter reads it. A child of the donor that turns
@@ -344,12 +407,13 @@ fn accept_child(
         };
         match check_hello(conn, pid, nonce, deadline) {
             Ok(conn) => {
+                tracing::debug!(pid, "the donor's child connected (no spare line)");
                 return Ok(Joined {
                     conn,
                     pid,
                     pidfd,
                     pipes: sent,
-                })
+                });
             }
             Err((conn, why)) => refuse(conn, family, &why, refused),
         }
@@ -372,6 +436,95 @@ pub(crate) fn send_pipes(conn: &UnixStream, pipes: ReplicaPipes) -> io::Result<R
     let mut pipes = pipes;
     drop::<Vec<OwnedFd>>(std::mem::take(&mut pipes.replica_ends));
     Ok(pipes)
+}
+
+/// If `conn` comes from one of our replicas (`SO_PEERCRED`'s pid in `family`), it is a spare
+/// line: its pid, and whether it announced itself as one (`Err`: why not, and it is dropped).
+/// `None` for anyone else (a fork child, a stranger).
+fn spare_line(
+    conn: &UnixStream,
+    family: &[libc::pid_t],
+) -> Option<(libc::pid_t, Result<(), String>)> {
+    let pid = sys::peer_pid(conn.as_fd())
+        .ok()
+        .filter(|pid| family.contains(pid))?;
+    let by = Instant::now() + SPARE_ANNOUNCEMENT_WAIT;
+    let announced = match read_exact_by::<{ Spare::SIZE }>(conn, by) {
+        Ok(bytes) => {
+            let spare = Spare::from_bytes(bytes);
+            if spare.magic == SPARE_MAGIC && spare.pid == pid {
+                Ok(())
+            } else {
+                Err(format!(
+                    "replica {pid} connected without announcing a spare line \
+                     (magic {:#x}, pid {})",
+                    spare.magic, spare.pid
+                ))
+            }
+        }
+        Err(e) => Err(format!("replica {pid}'s spare line said nothing: {e}")),
+    };
+    Some((pid, announced))
+}
+
+/// The donor's child on the donor's spare line: its `Hello` (this attempt's nonce, and its pid,
+/// whose parent must be the donor), then its pipes. A child that fails is killed: a late child
+/// of an abandoned attempt of this donor, with an older state. `Err(None)`: the line ended
+/// (not worth a warning: see below); `Err(Some(why))`: refused.
+fn joined_on_line(
+    plan: &VoterPlan,
+    line: UnixStream,
+    pipes: &mut Option<ReplicaPipes>,
+    donor: &Replica,
+    nonce: u32,
+    deadline: Instant,
+) -> Result<Joined, Option<String>> {
+    let hello = match read_exact_by::<{ Hello::SIZE }>(&line, deadline) {
+        Ok(bytes) => Hello::from_bytes(bytes),
+        // A line its replica dropped: one made for a voter since replaced (the replica made
+        // another after its rebind, which waits on the socket), or one whose child is gone
+        // before it said anything (the attempt times out, as without a line).
+        Err(e) => {
+            tracing::debug!(donor = donor.pid, "the donor's spare line ended: {e}");
+            return Err(None);
+        }
+    };
+    let pid = hello.pid;
+    let refused = |why: String| Some(why);
+    let pidfd = sys::pidfd_open(pid).map_err(|e| {
+        refused(format!(
+            "the child {pid} named on the donor's spare line is gone: {e}"
+        ))
+    })?;
+    if sys::parent_pid(pid) != Some(donor.pid) {
+        return Err(refused(format!(
+            "the spare line of donor {} named {pid}, not a child of it",
+            donor.pid
+        )));
+    }
+    if hello.magic != HELLO_MAGIC || hello.nonce != nonce {
+        let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+        return Err(refused(format!(
+            "child {pid} belongs to another attempt (nonce {:#x}, expected {nonce:#x}); killed",
+            hello.nonce
+        )));
+    }
+    let pipes = match pipes.take() {
+        Some(p) => p,
+        None => ReplicaPipes::new(plan).map_err(|e| refused(format!("creating pipes: {e}")))?,
+    };
+    match send_pipes(&line, pipes) {
+        Ok(pipes) => Ok(Joined {
+            conn: line,
+            pid,
+            pidfd,
+            pipes,
+        }),
+        Err(e) => {
+            let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
+            Err(refused(format!("sending the pipes to {pid}: {e}; killed")))
+        }
+    }
 }
 
 /// `SO_PEERCRED` names a child of the donor; returns its pid and a pidfd of it. Cheap (no
@@ -414,12 +567,13 @@ fn check_hello(
         Ok(bytes) => Hello::from_bytes(bytes),
         Err(e) => return Err((conn, format!("no Hello from {pid}: {e}"))),
     };
-    if hello.magic != HELLO_MAGIC || hello.nonce != nonce {
+    if hello.magic != HELLO_MAGIC || hello.nonce != nonce || hello.pid != pid {
         return Err((
             conn,
             format!(
-                "child {pid} belongs to another attempt (nonce {:#x}, expected {nonce:#x})",
-                hello.nonce
+                "child {pid} belongs to another attempt (nonce {:#x}, expected {nonce:#x}; \
+                 pid {})",
+                hello.nonce, hello.pid
             ),
         ));
     }
@@ -437,7 +591,11 @@ pub(crate) fn read_exact_by<const N: usize>(
 }
 
 /// Fills `buf` from `conn` by `deadline`.
-fn read_exact_into(conn: &UnixStream, buf: &mut [u8], deadline: Instant) -> io::Result<()> {
+pub(crate) fn read_exact_into(
+    conn: &UnixStream,
+    buf: &mut [u8],
+    deadline: Instant,
+) -> io::Result<()> {
     let left = deadline.saturating_duration_since(Instant::now());
     conn.set_nonblocking(false)?;
     conn.set_read_timeout(Some(left.max(Duration::from_millis(1))))?;

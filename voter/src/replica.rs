@@ -375,6 +375,7 @@ impl Replica {
         cmd.args(&plan.args)
             .env(ENV_PORTS, port_map(plan).to_env())
             .env(ENV_VOTER_SOCKET, &plan.socket_path)
+            .env(replica_rt::contract::ENV_SPARE_LINE, "1")
             .env(ENV_REPLICA, slot.to_string())
             .env(ENV_COMPONENT, &plan.component)
             .env(
