@@ -427,6 +427,26 @@ pub fn peer_pid(sock: BorrowedFd<'_>) -> io::Result<libc::pid_t> {
     Ok(cred.pid)
 }
 
+/// Copies up to `buf.len()` bytes from the head of socket `sock` without taking them off and
+/// without waiting (`recv` with `MSG_PEEK | MSG_DONTWAIT`): how many (0 at its end, or
+/// `WouldBlock` while nothing has come).
+pub fn peek_now(sock: BorrowedFd<'_>, buf: &mut [u8]) -> io::Result<usize> {
+    // SAFETY: `buf` is valid for writes of `buf.len()` bytes for the duration of the call.
+    let n = unsafe {
+        libc::recv(
+            sock.as_raw_fd(),
+            buf.as_mut_ptr().cast(),
+            buf.len(),
+            libc::MSG_PEEK | libc::MSG_DONTWAIT,
+        )
+    };
+    if n < 0 {
+        Err(io::Error::last_os_error())
+    } else {
+        Ok(n as usize)
+    }
+}
+
 /// Parent pid of `pid`, from `/proc/PID/stat` (`None` if the process is gone).
 pub fn parent_pid(pid: libc::pid_t) -> Option<libc::pid_t> {
     proc_stat_field(pid, 4)

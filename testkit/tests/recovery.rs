@@ -717,11 +717,15 @@ fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
         run.try_status().is_none(),
         "the system ended before the child was looked for; make the source longer"
     );
+    // The voter's log reaches bootstrap's stderr through a relay: looked for, not read once.
+    let named = format!("new replica (pid {child}) did not confirm its pipes in time");
+    let by = std::time::Instant::now() + Duration::from_secs(5);
+    while !run.stderr().contains(&named) && std::time::Instant::now() < by {
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let stderr = run.stderr();
     assert!(
-        stderr.contains(&format!(
-            "new replica (pid {child}) did not confirm its pipes in time"
-        )),
+        stderr.contains(&named),
         "the voter names the child that did not confirm:\n{}",
         s3res_testkit::tail(&stderr, 30)
     );

@@ -367,21 +367,22 @@ fn accept_child(
             Err(e) => return Err(io_err("accepting the child")(e)),
         };
         // A replica's spare line: the donor's is watched from now on, another's kept.
-        if let Some((pid, line)) = spare_line(&conn, family) {
-            let line = match line {
-                Ok(()) => conn,
-                Err(why) => {
-                    refused.note_line(&why);
-                    continue;
-                }
-            };
-            if pid == donor.pid {
+        let conn = match spare_line(conn, family) {
+            Line::Kept(pid, line) if pid == donor.pid => {
                 lines.push(line);
-            } else {
-                spares.keep(pid, line);
+                continue;
             }
-            continue;
-        }
+            Line::Kept(pid, line) => {
+                spares.keep(pid, line);
+                continue;
+            }
+            Line::Stale => continue,
+            Line::Unannounced(why) => {
+                refused.note_line(&why);
+                continue;
+            }
+            Line::Not(conn) => conn,
+        };
         // Who it is first (cheap: a stranger costs no pipes); then the pipes go out at once,
         // before the nonce in its `Hello` is read: the child puts them in place and starts on
         // its copy-on-write sharing while the voter reads it. A child of the donor that turns
@@ -438,33 +439,48 @@ pub(crate) fn send_pipes(conn: &UnixStream, pipes: ReplicaPipes) -> io::Result<R
     Ok(pipes)
 }
 
-/// If `conn` comes from one of our replicas (`SO_PEERCRED`'s pid in `family`), it is a spare
-/// line: its pid, and whether it announced itself as one (`Err`: why not, and it is dropped).
-/// `None` for anyone else (a fork child, a stranger).
-fn spare_line(
-    conn: &UnixStream,
-    family: &[libc::pid_t],
-) -> Option<(libc::pid_t, Result<(), String>)> {
-    let pid = sys::peer_pid(conn.as_fd())
-        .ok()
-        .filter(|pid| family.contains(pid))?;
-    let by = Instant::now() + SPARE_ANNOUNCEMENT_WAIT;
-    let announced = match read_exact_by::<{ Spare::SIZE }>(conn, by) {
-        Ok(bytes) => {
-            let spare = Spare::from_bytes(bytes);
-            if spare.magic == SPARE_MAGIC && spare.pid == pid {
-                Ok(())
-            } else {
-                Err(format!(
-                    "replica {pid} connected without announcing a spare line \
-                     (magic {:#x}, pid {})",
-                    spare.magic, spare.pid
-                ))
-            }
-        }
-        Err(e) => Err(format!("replica {pid}'s spare line said nothing: {e}")),
+/// What a connection taken off the socket during an attempt is, as far as spare lines go.
+enum Line {
+    /// A spare line of replica `pid`, one of ours now; its announcement read.
+    Kept(libc::pid_t, UnixStream),
+    /// A spare line of a replica that is no longer ours (replaced since it made it): dropped.
+    Stale,
+    /// One of our replicas connected and did not announce a line: dropped, and why.
+    Unannounced(String),
+    /// Not a spare line: a fork child's connection, or a stranger's.
+    Not(UnixStream),
+}
+
+/// Tells a spare line from the rest: its first bytes are a [`Spare`] announcement of the
+/// replica that connected (`SO_PEERCRED`), looked at without taking them, or, for one of ours
+/// (`family`) that has not sent them yet, waited for briefly.
+fn spare_line(conn: UnixStream, family: &[libc::pid_t]) -> Line {
+    let Ok(pid) = sys::peer_pid(conn.as_fd()) else {
+        return Line::Not(conn);
     };
-    Some((pid, announced))
+    let mut head = [0u8; Spare::SIZE];
+    let announced = |head: &[u8; Spare::SIZE]| {
+        let spare = Spare::from_bytes(*head);
+        spare.magic == SPARE_MAGIC && spare.pid == pid
+    };
+    let ours = family.contains(&pid);
+    let peeked = sys::peek_now(conn.as_fd(), &mut head).unwrap_or(0);
+    if peeked == Spare::SIZE && announced(&head) && !ours {
+        tracing::debug!(pid, "dropped the spare line of a replica replaced since");
+        return Line::Stale;
+    }
+    if !ours || (peeked == Spare::SIZE && !announced(&head)) {
+        return Line::Not(conn);
+    }
+    let by = Instant::now() + SPARE_ANNOUNCEMENT_WAIT;
+    match read_exact_by::<{ Spare::SIZE }>(&conn, by) {
+        Ok(bytes) if announced(&bytes) => Line::Kept(pid, conn),
+        Ok(bytes) => Line::Unannounced(format!(
+            "replica {pid} connected without announcing a spare line (magic {:#x})",
+            Spare::from_bytes(bytes).magic
+        )),
+        Err(e) => Line::Unannounced(format!("replica {pid}'s spare line said nothing: {e}")),
+    }
 }
 
 /// The donor's child on the donor's spare line: its `Hello` (this attempt's nonce, and its pid,
