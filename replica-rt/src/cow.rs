@@ -218,7 +218,9 @@ fn same_file(fd: libc::c_int) -> bool {
     })
 }
 
-fn file_id(fd: libc::c_int) -> Option<(u64, u64)> {
+/// The device and inode of what `fd` is open on (`fstat`); `None` for a closed fd.
+/// Async-signal-safe.
+pub(crate) fn file_id(fd: libc::c_int) -> Option<(u64, u64)> {
     let mut st = std::mem::MaybeUninit::<libc::stat>::uninit();
     // SAFETY: fstat writes one `struct stat` into `st`, which is large enough, and is read only
     // after it succeeded.

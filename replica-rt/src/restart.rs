@@ -78,7 +78,10 @@
 //! A replica that rebinds to a voter's successor drops its line (it led to the dead voter)
 //! and makes another at its next `recv`; until then a child connects itself.
 //! The preload library's programs make one at start only: they have no `recv` to make the
-//! next one in, so after their first fork their children connect as without one.
+//! next one in, so after their first fork their children connect as without one. A component
+//! that closed the line's number (and perhaps opened something else on it) has no line: the
+//! handler checks the number's device and inode first, and neither writes to nor closes what
+//! is not the line.
 //!
 //! # Output frames stay whole: restarts are deferred, not masked
 //!
@@ -172,6 +175,10 @@ static VOTER_ADDR: OnceLock<VoterAddr> = OnceLock::new();
 /// The spare line (module docs): a connection to the voter made ahead for the next fork
 /// child, above the port numbers; -1 while there is none.
 static SPARE_LINE: AtomicI32 = AtomicI32::new(-1);
+/// The device and inode of the spare line's socket: the component may close the number and
+/// open something else on it, which must be neither written to nor closed.
+static SPARE_LINE_DEV: AtomicU64 = AtomicU64::new(0);
+static SPARE_LINE_ID: AtomicU64 = AtomicU64::new(0);
 /// Whether this replica's voter takes spare lines (`ENV_SPARE_LINE`, read at init).
 static SPARE_LINES: AtomicBool = AtomicBool::new(false);
 /// A spare line is to be made at the next [`keep_spare_line`]: set at init and after every
@@ -189,7 +196,7 @@ pub(crate) fn use_spare_lines() {
 /// takes them. Normal context only.
 pub(crate) fn renew_spare_line() {
     let _held = RestartsHeld::new();
-    let line = SPARE_LINE.swap(-1, Ordering::SeqCst);
+    let line = take_spare_line();
     if line >= 0 {
         close(line);
     }
@@ -211,7 +218,11 @@ pub(crate) fn keep_spare_line() {
     // answer by the time it takes (measured: the first answer after a 4 KiB restart 26 µs later).
     sys::yield_cpu();
     match make_spare_line() {
-        Ok(line) => SPARE_LINE.store(line, Ordering::SeqCst),
+        Ok((line, (dev, ino))) => {
+            SPARE_LINE_DEV.store(dev, Ordering::SeqCst);
+            SPARE_LINE_ID.store(ino, Ordering::SeqCst);
+            SPARE_LINE.store(line, Ordering::SeqCst);
+        }
         Err(()) => tracing::debug!(
             "no spare line for the next fork child (the voter's socket refused it); \
              it will connect itself"
@@ -219,9 +230,27 @@ pub(crate) fn keep_spare_line() {
     }
 }
 
+/// Takes the spare line out of [`SPARE_LINE`] if this process still holds it: its number
+/// still names the socket that was made for it (device and inode), else -1 and the number is
+/// left alone. Async-signal-safe (`fstat`, atomics).
+fn take_spare_line() -> libc::c_int {
+    let line = SPARE_LINE.swap(-1, Ordering::SeqCst);
+    let ours = line >= 0
+        && crate::cow::file_id(line).is_some_and(|(dev, ino)| {
+            dev == SPARE_LINE_DEV.load(Ordering::SeqCst)
+                && ino == SPARE_LINE_ID.load(Ordering::SeqCst)
+        });
+    if ours {
+        line
+    } else {
+        -1
+    }
+}
+
 /// A new spare line: connected without waiting (a full backlog refuses it), then blocking with
-/// the child's timeouts, announced with [`Spare`], and moved above the port numbers.
-fn make_spare_line() -> Result<libc::c_int, ()> {
+/// the child's timeouts, announced with [`Spare`], and moved above the port numbers; with its
+/// device and inode.
+fn make_spare_line() -> Result<(libc::c_int, (u64, u64)), ()> {
     let addr = VOTER_ADDR.get().ok_or(())?;
     // SAFETY: integer arguments only.
     let fd = unsafe {
@@ -249,7 +278,10 @@ fn make_spare_line() -> Result<libc::c_int, ()> {
     };
     send_all(sock.0, &spare.to_bytes())?;
     // Above every port number, so that placing a fork child's pipes cannot replace it.
-    dup_above(sock.0, FIRST_PORT_FD + MAX_PORTS as libc::c_int)
+    let line = Fd(dup_above(sock.0, FIRST_PORT_FD + MAX_PORTS as libc::c_int)?);
+    let id = crate::cow::file_id(line.0).ok_or(())?;
+    let line = std::mem::ManuallyDrop::new(line);
+    Ok((line.0, id))
 }
 
 /// Connects a new socket to the voter's address (prepared at init), with send and receive
@@ -671,7 +703,7 @@ one, so it cannot be a recovery donor (refused)\n";
     let blocked = sys::block_all_signals().ok();
     crate::cow::take_snapshot();
     // The spare line is the child's (module docs, "The spare line").
-    let line = SPARE_LINE.swap(-1, Ordering::SeqCst);
+    let line = take_spare_line();
     // SAFETY: components are single-threaded (module doc), and the child runs only
     // async-signal-safe code (`become_replacement`) before returning to the component.
     let pid = unsafe { raw_fork() };
@@ -1181,6 +1213,37 @@ mod tests {
         d.forget_pending();
         d.release(forks.run());
         assert_eq!(forks.take(), [] as [u32; 0]);
+    }
+
+    /// The spare line is taken only while its number still names the socket made for it: a
+    /// number the component closed and reused for a file of its own is neither handed to a
+    /// fork child (which would write its `Hello` into the file) nor closed.
+    #[test]
+    fn a_spare_line_whose_number_was_reused_is_left_alone() {
+        use super::{take_spare_line, SPARE_LINE, SPARE_LINE_DEV, SPARE_LINE_ID};
+        use std::os::fd::AsRawFd;
+        let (line, _voter) = std::os::unix::net::UnixStream::pair().unwrap();
+        let (dev, ino) = crate::cow::file_id(line.as_raw_fd()).unwrap();
+        SPARE_LINE_DEV.store(dev, Ordering::SeqCst);
+        SPARE_LINE_ID.store(ino, Ordering::SeqCst);
+        SPARE_LINE.store(line.as_raw_fd(), Ordering::SeqCst);
+        assert_eq!(take_spare_line(), line.as_raw_fd(), "still the line");
+        assert_eq!(SPARE_LINE.load(Ordering::SeqCst), -1, "taken once");
+        assert_eq!(take_spare_line(), -1, "none left");
+        // The component closes the number and opens a file on it.
+        let file = std::fs::File::open("/proc/self/stat").unwrap();
+        let number = line.as_raw_fd();
+        drop(line);
+        // SAFETY: `number` was just closed; dup2 puts a copy of the test's own file on it.
+        assert_eq!(unsafe { libc::dup2(file.as_raw_fd(), number) }, number);
+        SPARE_LINE.store(number, Ordering::SeqCst);
+        assert_eq!(take_spare_line(), -1, "a file is not the line");
+        assert!(
+            crate::cow::file_id(number).is_some(),
+            "and it is still open"
+        );
+        // SAFETY: closes the copy this test put on `number`.
+        unsafe { libc::close(number) };
     }
 
     #[test]

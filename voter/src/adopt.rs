@@ -45,6 +45,8 @@ enum Taken {
     Replica(usize, Replica),
     /// An awaited replica's spare line.
     Spare(libc::pid_t, UnixStream),
+    /// The spare line of a replica not awaited: dropped.
+    Stale,
 }
 
 /// A replica named in the journal, alive, that has not rebound yet.
@@ -136,6 +138,7 @@ pub(crate) fn replicas(
                 // The newest of each replica is kept: one made before its voter died leads
                 // nowhere once the replica has rebound (it drops it then, and makes another).
                 Ok(Taken::Spare(pid, line)) => adopted.spares.keep(pid, line),
+                Ok(Taken::Stale) => {}
                 Err(why) => tracing::warn!("refused a connection while adopting: {why}"),
             }
         }
@@ -162,6 +165,19 @@ fn rebind(
     deadline: Instant,
 ) -> Result<Taken, String> {
     let pid = sys::peer_pid(conn.as_fd()).map_err(|e| format!("no peer credentials: {e}"))?;
+    // The spare line of a replica that is not awaited (one that died with the predecessor,
+    // say) is nobody's business: dropped without a word.
+    let mut head = [0u8; Spare::SIZE];
+    let peeked = sys::peek_now(conn.as_fd(), &mut head).unwrap_or(0);
+    let a_line = peeked == Spare::SIZE
+        && Spare::from_bytes(head)
+            == Spare {
+                magic: SPARE_MAGIC,
+                pid,
+            };
+    if a_line && !awaited.iter().any(|a| a.entry.pid == pid) {
+        return Ok(Taken::Stale);
+    }
     let Some(k) = awaited.iter().position(|a| a.entry.pid == pid) else {
         // A fork child its predecessor was handing pipes to, or a stranger.
         return Err(format!("peer {pid} is not a replica the journal names"));

@@ -194,7 +194,9 @@ pub(crate) struct Core {
     pub(crate) runtime_started: bool,
     /// The last fault, as its event reads: the budget's message quotes it.
     last_fault: String,
-    /// Names the current fork attempt; a child of an older attempt is refused.
+    /// Names the current fork attempt; a child of an older attempt is refused. Starts at a
+    /// value of this voter's own ([`first_nonce`]), so that a late child of a predecessor's
+    /// attempt does not carry a nonce of ours.
     restart_nonce: u32,
     listener: UnixListener,
     /// The replicas' spare lines taken so far (`recovery::SpareLines`).
@@ -345,7 +347,7 @@ impl Core {
             exec_answered: false,
             runtime_started: false,
             last_fault: String::new(),
-            restart_nonce: 0,
+            restart_nonce: first_nonce(),
             listener,
             spares,
             signals,
@@ -1793,4 +1795,18 @@ pub fn validate(plan: &VoterPlan) -> Result<(), VoterError> {
         }
         _ => Ok(()),
     }
+}
+
+/// Where this voter's fork-attempt nonces start: random (the hasher keys std draws from the
+/// OS for each process). A voter that dies during a fork attempt leaves a donor that forks
+/// for it; that child, with the donor's state at that moment, may reach the voter's successor
+/// (on the donor's spare line, or connecting late), and counting from the same start the
+/// successor's first attempt would carry its nonce and take it (found by
+/// `voter_restart::a_fault_reported_again_by_the_voters_successor_is_kept_once`: a fork child
+/// of the dead voter's attempt joined the successor and disagreed in the replayed round).
+fn first_nonce() -> u32 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(s3res_protocol::clock::monotonic_ns());
+    h.finish() as u32
 }
