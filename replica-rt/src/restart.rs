@@ -1230,11 +1230,12 @@ mod tests {
         assert_eq!(take_spare_line(), line.as_raw_fd(), "still the line");
         assert_eq!(SPARE_LINE.load(Ordering::SeqCst), -1, "taken once");
         assert_eq!(take_spare_line(), -1, "none left");
-        // The component closes the number and opens a file on it.
+        // The component closes the number and opens a file on it (here in one step, so that
+        // no other test's thread gets the number in between).
         let file = std::fs::File::open("/proc/self/stat").unwrap();
-        let number = line.as_raw_fd();
-        drop(line);
-        // SAFETY: `number` was just closed; dup2 puts a copy of the test's own file on it.
+        let number = std::os::fd::IntoRawFd::into_raw_fd(line);
+        // SAFETY: `number` is this test's socket; dup2 replaces it with a copy of the test's
+        // own file, atomically.
         assert_eq!(unsafe { libc::dup2(file.as_raw_fd(), number) }, number);
         SPARE_LINE.store(number, Ordering::SeqCst);
         assert_eq!(take_spare_line(), -1, "a file is not the line");
