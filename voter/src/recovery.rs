@@ -506,28 +506,30 @@ fn joined_on_line(
         }
     };
     let pid = hello.pid;
-    let refused = |why: String| Some(why);
     let pidfd = sys::pidfd_open(pid).map_err(|e| {
-        refused(format!(
+        Some(format!(
             "the child {pid} named on the donor's spare line is gone: {e}"
         ))
     })?;
     if sys::parent_pid(pid) != Some(donor.pid) {
-        return Err(refused(format!(
+        return Err(Some(format!(
             "the spare line of donor {} named {pid}, not a child of it",
             donor.pid
         )));
     }
-    if hello.magic != HELLO_MAGIC || hello.nonce != nonce {
+    let kill = |why: String| {
         let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
-        return Err(refused(format!(
-            "child {pid} belongs to another attempt (nonce {:#x}, expected {nonce:#x}); killed",
+        Some(format!("{why}; killed"))
+    };
+    if hello.magic != HELLO_MAGIC || hello.nonce != nonce {
+        return Err(kill(format!(
+            "child {pid} belongs to another attempt (nonce {:#x}, expected {nonce:#x})",
             hello.nonce
         )));
     }
     let pipes = match pipes.take() {
         Some(p) => p,
-        None => ReplicaPipes::new(plan).map_err(|e| refused(format!("creating pipes: {e}")))?,
+        None => ReplicaPipes::new(plan).map_err(|e| kill(format!("creating pipes: {e}")))?,
     };
     match send_pipes(&line, pipes) {
         Ok(pipes) => Ok(Joined {
@@ -536,10 +538,7 @@ fn joined_on_line(
             pidfd,
             pipes,
         }),
-        Err(e) => {
-            let _ = sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL);
-            Err(refused(format!("sending the pipes to {pid}: {e}; killed")))
-        }
+        Err(e) => Err(kill(format!("sending the pipes to {pid}: {e}"))),
     }
 }
 
