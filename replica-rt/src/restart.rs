@@ -192,6 +192,12 @@ pub(crate) fn use_spare_lines() {
     SPARE_WANTED.store(true, Ordering::SeqCst);
 }
 
+/// A new spare line is to be made at the next [`keep_spare_line`], where the voter takes
+/// them. Async-signal-safe (atomics).
+fn want_spare_line() {
+    SPARE_WANTED.store(SPARE_LINES.load(Ordering::SeqCst), Ordering::SeqCst);
+}
+
 /// Drops the spare line (it led to a voter that is gone) and wants a new one, where the voter
 /// takes them. Normal context only.
 pub(crate) fn renew_spare_line() {
@@ -200,7 +206,7 @@ pub(crate) fn renew_spare_line() {
     if line >= 0 {
         close(line);
     }
-    SPARE_WANTED.store(SPARE_LINES.load(Ordering::SeqCst), Ordering::SeqCst);
+    want_spare_line();
 }
 
 /// Makes the spare line if one is wanted (module docs, "The spare line"): one atomic load when
@@ -721,7 +727,7 @@ one, so it cannot be a recovery donor (refused)\n";
     if line >= 0 {
         close(line);
     }
-    SPARE_WANTED.store(SPARE_LINES.load(Ordering::SeqCst), Ordering::SeqCst);
+    want_spare_line();
     set_errno(saved);
 }
 
@@ -788,7 +794,7 @@ fn become_replacement(nonce: u32, unread: &UnreadInput, line: libc::c_int) {
     crate::cow::open_own_maps();
     crate::stamps::forked(ready.pid);
     // A line of our own for our own fork children, made at our next `recv`.
-    SPARE_WANTED.store(SPARE_LINES.load(Ordering::SeqCst), Ordering::SeqCst);
+    want_spare_line();
     FORKED_FROM.store(donor, Ordering::Relaxed);
 }
 

@@ -17,7 +17,7 @@ use crate::clock::Instant;
 use crate::journal::{self, SlotEntry};
 use crate::park::{Parked, ParkedSet, ParkingLot};
 use crate::plan::VoterPlan;
-use crate::recovery::{read_exact_by, read_exact_into, send_pipes, SpareLines};
+use crate::recovery::{peek_announcement, read_exact_by, read_exact_into, send_pipes, SpareLines};
 use crate::replica::{Replica, ReplicaPipes};
 
 /// A slot whose replica did not come back.
@@ -167,15 +167,7 @@ fn rebind(
     let pid = sys::peer_pid(conn.as_fd()).map_err(|e| format!("no peer credentials: {e}"))?;
     // The spare line of a replica that is not awaited (one that died with the predecessor,
     // say) is nobody's business: dropped without a word.
-    let mut head = [0u8; Spare::SIZE];
-    let peeked = sys::peek_now(conn.as_fd(), &mut head).unwrap_or(0);
-    let a_line = peeked == Spare::SIZE
-        && Spare::from_bytes(head)
-            == Spare {
-                magic: SPARE_MAGIC,
-                pid,
-            };
-    if a_line && !awaited.iter().any(|a| a.entry.pid == pid) {
+    if peek_announcement(&conn, pid) == Some(true) && !awaited.iter().any(|a| a.entry.pid == pid) {
         return Ok(Taken::Stale);
     }
     let Some(k) = awaited.iter().position(|a| a.entry.pid == pid) else {

@@ -458,29 +458,41 @@ fn spare_line(conn: UnixStream, family: &[libc::pid_t]) -> Line {
     let Ok(pid) = sys::peer_pid(conn.as_fd()) else {
         return Line::Not(conn);
     };
-    let mut head = [0u8; Spare::SIZE];
-    let announced = |head: &[u8; Spare::SIZE]| {
-        let spare = Spare::from_bytes(*head);
-        spare.magic == SPARE_MAGIC && spare.pid == pid
-    };
     let ours = family.contains(&pid);
-    let peeked = sys::peek_now(conn.as_fd(), &mut head).unwrap_or(0);
-    if peeked == Spare::SIZE && announced(&head) && !ours {
+    let peeked = peek_announcement(&conn, pid);
+    if peeked == Some(true) && !ours {
         tracing::debug!(pid, "dropped the spare line of a replica replaced since");
         return Line::Stale;
     }
-    if !ours || (peeked == Spare::SIZE && !announced(&head)) {
+    if !ours || peeked == Some(false) {
         return Line::Not(conn);
     }
     let by = Instant::now() + SPARE_ANNOUNCEMENT_WAIT;
     match read_exact_by::<{ Spare::SIZE }>(&conn, by) {
-        Ok(bytes) if announced(&bytes) => Line::Kept(pid, conn),
+        Ok(bytes) if is_announcement(bytes, pid) => Line::Kept(pid, conn),
         Ok(bytes) => Line::Unannounced(format!(
             "replica {pid} connected without announcing a spare line (magic {:#x})",
             Spare::from_bytes(bytes).magic
         )),
         Err(e) => Line::Unannounced(format!("replica {pid}'s spare line said nothing: {e}")),
     }
+}
+
+/// Whether `bytes` are the announcement of a spare line made by `pid`.
+fn is_announcement(bytes: [u8; Spare::SIZE], pid: libc::pid_t) -> bool {
+    Spare::from_bytes(bytes)
+        == Spare {
+            magic: SPARE_MAGIC,
+            pid,
+        }
+}
+
+/// Whether `conn`, from `pid`, starts with a spare line's announcement, looked at without
+/// taking it and without waiting: `None` while fewer bytes than one have come.
+pub(crate) fn peek_announcement(conn: &UnixStream, pid: libc::pid_t) -> Option<bool> {
+    let mut head = [0u8; Spare::SIZE];
+    let peeked = sys::peek_now(conn.as_fd(), &mut head).unwrap_or(0);
+    (peeked == Spare::SIZE).then(|| is_announcement(head, pid))
 }
 
 /// The donor's child on the donor's spare line: its `Hello` (this attempt's nonce, and its pid,
