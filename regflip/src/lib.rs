@@ -19,8 +19,10 @@
 mod engine;
 #[cfg(all(target_os = "linux", target_arch = "x86_64"))]
 mod regs;
+/// The ptrace boundary. Public for the test kit, which stops a fork child at a chosen system
+/// call with the same wrappers (`s3res_testkit::trace`).
 #[cfg(all(target_os = "linux", target_arch = "x86_64"))]
-mod sys;
+pub mod sys;
 
 use rand::Rng;
 use serde::{Deserialize, Serialize};

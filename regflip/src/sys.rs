@@ -35,6 +35,31 @@ pub fn seize(tid: Tid) -> io::Result<()> {
     Ok(())
 }
 
+/// [`seize`], and also trace every child `tid` forks from now on (`PTRACE_O_TRACEFORK`): the
+/// fork is reported as a [`Stop::OtherEvent`] of `PTRACE_EVENT_FORK` (the child's pid from
+/// [`event_message`]), and the child starts traced, in a [`Stop::Event`].
+pub fn seize_following_forks(tid: Tid) -> io::Result<()> {
+    let options = libc::PTRACE_O_TRACESYSGOOD | libc::PTRACE_O_TRACEFORK;
+    // SAFETY: PTRACE_SEIZE reads no memory of ours; addr must be 0 and data is the option mask.
+    cvt(unsafe { libc::ptrace(libc::PTRACE_SEIZE, tid, 0usize, options as usize) })?;
+    Ok(())
+}
+
+/// `PTRACE_GETEVENTMSG`: for a `PTRACE_EVENT_FORK` stop, the new child's pid.
+pub fn event_message(tid: Tid) -> io::Result<u64> {
+    let mut msg: libc::c_ulong = 0;
+    // SAFETY: the kernel writes one unsigned long to `data`, which points to one.
+    cvt(unsafe {
+        libc::ptrace(
+            libc::PTRACE_GETEVENTMSG,
+            tid,
+            0usize,
+            &mut msg as *mut libc::c_ulong,
+        )
+    })?;
+    Ok(msg as u64)
+}
+
 /// `PTRACE_SYSCALL`, delivering `sig` (0 = none): run until the next system call is entered
 /// or left (a [`Stop::Syscall`]).
 pub fn resume_to_syscall(tid: Tid, sig: libc::c_int) -> io::Result<()> {

@@ -32,13 +32,15 @@ pub mod procs;
 pub mod rng;
 pub mod scenario;
 pub mod system;
+pub mod trace;
 pub mod wait;
 
 pub use bins::{bin_dir, bin_path};
 pub use events::{is_recovery_of, of_kind, parse_events, replica_pids};
 pub use rng::Rng;
 pub use scenario::{
-    assert_kills_were_crashes, assert_sink_missed_one, assert_sink_whole, echo_pipeline,
+    assert_children_joined_on_spare_lines, assert_kills_were_crashes, assert_sink_missed_one,
+    assert_sink_whole, echo_pipeline,
 };
 pub use system::{is_root, Outcome, RunningSystem, System};
 pub use wait::{wait_spinning, wait_state, wait_until};

@@ -323,3 +323,19 @@ impl RunningSystem {
         out
     }
 }
+
+/// Asserts that `joined` fork children joined their voter on their donor's spare line and none
+/// connected by itself, from the voter's log in `stderr` (it needs
+/// `RUST_LOG=s3res_voter::recovery=debug`; replica-rt's `restart`, "The spare line").
+pub fn assert_children_joined_on_spare_lines(stderr: &str, joined: usize) {
+    let on_line = stderr
+        .matches("the donor's child joined on its spare line")
+        .count();
+    let connected = stderr.matches("the donor's child connected").count();
+    assert_eq!(
+        (on_line, connected),
+        (joined, 0),
+        "every child on its donor's line (joined, connected):\n{}",
+        crate::tail(stderr, 40)
+    );
+}
