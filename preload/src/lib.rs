@@ -28,7 +28,10 @@
 //! handed it (`replica_rt::stamps`), as replica-rt's output ports do. (C stdio writes from
 //! inside libc and does not come here; line-buffered, it writes whole lines, but stamps none:
 //! the voter then looks for such a program's answers on its timer, as it did for every
-//! unmodified program before.)
+//! unmodified program before.) After a fork, a `write` that completes a line also makes the
+//! replica's next spare line to its voter, for its next fork child (replica-rt's `restart`,
+//! "The spare line"); a program that writes only through C stdio keeps the one it made at
+//! start, and its children after the first fork connect themselves.
 //!
 //! A program that writes s3res frames itself (`"framing": "frames"`: the voter says so with
 //! `S3RES_PRELOAD_FRAMES=1`) has its stdout followed frame by frame instead of line by line:
@@ -178,6 +181,12 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
         // The line is whole: a RESTART that came meanwhile forks here (errno is kept, for a
         // failed write's caller).
         restart::release_restarts();
+        if n > 0 {
+            // The answer is out: after a fork, the next spare line is made here (replica-rt's
+            // `restart`, "The spare line"), as a component's runtime makes it at its `recv`.
+            // One atomic load when none is wanted; errno is kept.
+            restart::keep_spare_line();
+        }
     }
     n
 }

@@ -77,8 +77,10 @@
 //! take (a full backlog: the connect does not wait), is not tried again until the next fork.
 //! A replica that rebinds to a voter's successor drops its line (it led to the dead voter)
 //! and makes another at its next `recv`; until then a child connects itself.
-//! The preload library's programs make one at start only: they have no `recv` to make the
-//! next one in, so after their first fork their children connect as without one. A component
+//! The preload library's programs make the next one in its `write`, once a line (or frame) to
+//! stdout is whole — the answer is out, as at a `recv`. A program whose output never passes
+//! there (C stdio writes from inside libc) has a line at start only: after its first fork its
+//! children connect as without one. A component
 //! that closed the line's number (and perhaps opened something else on it) has no line: the
 //! handler checks the number's device and inode first, and neither writes to nor closes what
 //! is not the line.
@@ -210,11 +212,19 @@ pub(crate) fn renew_spare_line() {
 }
 
 /// Makes the spare line if one is wanted (module docs, "The spare line"): one atomic load when
-/// none is. Normal context only; restarts are deferred while the line is made.
-pub(crate) fn keep_spare_line() {
+/// none is. Normal context only; restarts are deferred while the line is made. Called where a
+/// replica has answered and is about to wait for input: replica-rt's `recv`, and the preload
+/// library's `write` once a line (or frame) is whole. `errno` is left as it was.
+pub fn keep_spare_line() {
     if !SPARE_WANTED.load(Ordering::Relaxed) {
         return;
     }
+    let saved = errno();
+    make_wanted_spare_line();
+    set_errno(saved);
+}
+
+fn make_wanted_spare_line() {
     let _held = RestartsHeld::new();
     if !SPARE_WANTED.swap(false, Ordering::SeqCst) || SPARE_LINE.load(Ordering::SeqCst) >= 0 {
         return;

@@ -418,6 +418,40 @@ fn cat_reading_frames_is_recovered_by_fork() {
     assert_numbers_continuous(&run, FRAMES);
 }
 
+/// An unmodified program's replicas keep a spare line to their voter for their next fork child
+/// (replica-rt's `restart`, "The spare line"), renewed after every fork by the preload
+/// library's `write` once a line is whole. Three kills in turn, each replacement later a
+/// donor or a victim itself: every child joins on its donor's line (before the renewal, the
+/// second and third donors had forked already and had none: their children connected).
+#[test]
+#[cfg_attr(not(s3res_python3), ignore = "needs python3")]
+fn every_fork_child_of_an_unmodified_program_joins_on_a_spare_line() {
+    const LINES: u64 = 1500;
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let sys = System::new().env("RUST_LOG", "info,s3res_voter::recovery=debug");
+    let desc = pipeline(&sys, Program::Python.command(&sys), "tmr", LINES);
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("sum", 3);
+    // Answers out (every replica has made some): a donor must have answered to be asked.
+    let sums = run.path("sums.txt");
+    s3res_testkit::wait_until("20 sums collected", Duration::from_secs(30), || {
+        let text = std::fs::read_to_string(&sums).ok()?;
+        (text.lines().count() >= 20).then_some(())
+    });
+    for slot in [2, 0, 2] {
+        let pid = run.replica_pids("sum")[&slot];
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill a replica");
+        let rec = run.wait_for_recovery("sum", slot, pid);
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+        assert_eq!(rec.state_lost, Some(false), "{rec:?}");
+        // Some lines (4 ms apart): donor and child write an answer, and make their lines.
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let out = run.wait_success(LIMIT);
+    s3res_testkit::assert_children_joined_on_spare_lines(&out.stderr, 3);
+    assert_sums_continuous(&run, LINES);
+}
+
 /// Every number the feed sent, back once and in order (a program that echoes them).
 fn assert_numbers_continuous(run: &RunningSystem, n: u64) {
     let text = std::fs::read_to_string(run.path("sums.txt")).expect("collect wrote sums.txt");
