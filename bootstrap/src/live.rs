@@ -57,6 +57,9 @@ struct Inner {
     path: PathBuf,
     /// A write failed once; said so, and stopped trying.
     broken: bool,
+    /// The file is about to go (it lives in bootstrap's private folder, removed at the end):
+    /// the view is still kept, the file no longer written.
+    closed: bool,
 }
 
 impl LiveState {
@@ -69,6 +72,7 @@ impl LiveState {
                 view,
                 path,
                 broken: false,
+                closed: false,
             })),
         })
     }
@@ -77,7 +81,7 @@ impl LiveState {
     pub fn update(&self, f: impl FnOnce(&mut LiveView) -> bool) {
         // A panic elsewhere while holding the lock leaves a usable view; keep going.
         let mut inner = self.inner.lock().unwrap_or_else(|p| p.into_inner());
-        if !f(&mut inner.view) || inner.broken {
+        if !f(&mut inner.view) || inner.broken || inner.closed {
             return;
         }
         inner.view.updated_ns = replica_rt::sys::monotonic_ns();
@@ -88,6 +92,12 @@ impl LiveState {
             );
             inner.broken = true;
         }
+    }
+
+    /// Stops writing the file (the view is still kept): for a file in bootstrap's private
+    /// folder, which the final sweep removes, so that the last updates neither fail nor warn.
+    pub fn close(&self) {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner()).closed = true;
     }
 
     /// A copy of the current view.
@@ -140,5 +150,15 @@ mod tests {
         let back = LiveView::read(&path).unwrap();
         assert_eq!(back.components["echo"].replicas[0].pid, Some(7));
         assert_eq!(back, live.snapshot());
+
+        // Closed (its folder about to go): the view changes, the file no longer.
+        live.close();
+        std::fs::remove_file(&path).unwrap();
+        live.update(|v| {
+            v.running = false;
+            true
+        });
+        assert!(!live.snapshot().running);
+        assert!(!path.exists(), "a closed view was written");
     }
 }

@@ -483,6 +483,11 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         list
     });
 
+    // A state file in the private folder goes with it: nobody reads it after the sweep, and
+    // the updates below would fail on a missing folder and warn about it.
+    if let (Some(live), None) = (&live, &opts.state_file) {
+        live.close();
+    }
     guard.finish();
     let events = events_reader.and_then(|r| {
         let s = r.finish(EVENTS_DRAIN);

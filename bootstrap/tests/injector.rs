@@ -75,3 +75,29 @@ fn no_inject_runs_the_same_system_without_faults() {
     );
     run.assert_nothing_left();
 }
+
+/// Without `state`, the injector's live view lives in bootstrap's private folder, which the
+/// final sweep removes: the run still ends clean, with no warning about that file (the last
+/// updates of the view once wrote to the removed folder and warned at every such run).
+#[test]
+fn a_private_state_file_ends_without_a_warning() {
+    let system = SYSTEM.replace("  \"state\": \"out/state.json\",\n", "");
+    assert!(
+        !system.contains("\"state\""),
+        "the description still names a state file"
+    );
+    let mut run = System::new().without_events().start(&system);
+    let out = run.wait(LIMIT);
+    assert!(out.status.success(), "{}\n{}", out.status, out.stderr);
+    assert!(
+        out.stderr.contains("  outcome      succeeded"),
+        "{}",
+        out.stderr
+    );
+    assert!(
+        !out.stderr.contains("cannot update the state file"),
+        "{}",
+        out.stderr
+    );
+    run.assert_nothing_left();
+}
