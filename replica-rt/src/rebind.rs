@@ -88,7 +88,8 @@ fn rebind_within(timeout: Duration) -> Result<(), NoSuccessor> {
             return Err(NoSuccessor::Gone);
         }
         // No connection at all: nobody holds the socket any more (the system is ending).
-        let sock = restart::connect_voter(left).map_err(|()| NoSuccessor::Gone)?;
+        let sock =
+            restart::connect_voter(left, restart::Backlog::Wait).map_err(|()| NoSuccessor::Gone)?;
         match handshake(&sock) {
             Ok(()) => {
                 drop::<Fd>(sock);

@@ -263,31 +263,12 @@ fn take_spare_line() -> libc::c_int {
     }
 }
 
-/// A new spare line: connected without waiting (a full backlog refuses it), then blocking with
-/// the child's timeouts, announced with [`Spare`], and moved above the port numbers; with its
-/// device and inode.
+/// A new spare line: connected without waiting (a full backlog refuses it), with the child's
+/// timeouts, announced with [`Spare`], and moved above the port numbers; with its device and
+/// inode.
 fn make_spare_line() -> Result<(libc::c_int, (u64, u64)), ()> {
-    let addr = VOTER_ADDR.get().ok_or(())?;
-    // SAFETY: integer arguments only.
-    let fd = unsafe {
-        libc::socket(
-            libc::AF_UNIX,
-            libc::SOCK_STREAM | libc::SOCK_CLOEXEC | libc::SOCK_NONBLOCK,
-            0,
-        )
-    };
-    if fd < 0 {
-        return Err(());
-    }
-    let sock = Fd(fd);
-    connect(sock.0, addr)?;
-    // SAFETY: integer arguments only; a Unix socket has no other status flag set, so 0
-    // clears O_NONBLOCK and nothing else.
-    if unsafe { libc::fcntl(sock.0, libc::F_SETFL, 0) } != 0 {
-        return Err(());
-    }
     let timeout = std::time::Duration::from_millis(CHILD_SOCKET_TIMEOUT_MS);
-    sys::set_socket_timeouts(sock.0, timeout).map_err(|_| ())?;
+    let sock = connect_voter(timeout, Backlog::Refuse)?;
     let spare = Spare {
         magic: SPARE_MAGIC,
         pid: sys::getpid(),
@@ -300,13 +281,45 @@ fn make_spare_line() -> Result<(libc::c_int, (u64, u64)), ()> {
     Ok((line.0, id))
 }
 
+/// What [`connect_voter`] does when the voter's socket has no room for another connection.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Backlog {
+    /// Wait for room, up to the timeout (a fork child, a replica rebinding).
+    Wait,
+    /// Fail at once (a spare line: made ahead, it is not worth a wait).
+    Refuse,
+}
+
 /// Connects a new socket to the voter's address (prepared at init), with send and receive
-/// timeouts; `Err(())` without an address (not a replica) or when nobody listens.
-pub(crate) fn connect_voter(timeout: std::time::Duration) -> Result<Fd, ()> {
+/// timeouts; `Err(())` without an address (not a replica), when nobody listens, or (with
+/// [`Backlog::Refuse`]) when the backlog is full. Async-signal-safe (`socket`, `setsockopt`,
+/// `connect`, `fcntl`): the fork child connects with it in the handler.
+pub(crate) fn connect_voter(timeout: std::time::Duration, backlog: Backlog) -> Result<Fd, ()> {
     let addr = VOTER_ADDR.get().ok_or(())?;
-    let sock = Fd(socket()?);
+    let nonblocking = match backlog {
+        Backlog::Wait => 0,
+        Backlog::Refuse => libc::SOCK_NONBLOCK,
+    };
+    // SAFETY: integer arguments only.
+    let fd = unsafe {
+        libc::socket(
+            libc::AF_UNIX,
+            libc::SOCK_STREAM | libc::SOCK_CLOEXEC | nonblocking,
+            0,
+        )
+    };
+    if fd < 0 {
+        return Err(());
+    }
+    let sock = Fd(fd);
+    // A blocking connect waits for room at most the send timeout.
     sys::set_socket_timeouts(sock.0, timeout).map_err(|_| ())?;
     connect(sock.0, addr)?;
+    // SAFETY: integer arguments only; a Unix socket has no other status flag set, so 0
+    // clears O_NONBLOCK and nothing else.
+    if backlog == Backlog::Refuse && unsafe { libc::fcntl(sock.0, libc::F_SETFL, 0) } != 0 {
+        return Err(());
+    }
     Ok(sock)
 }
 
@@ -826,13 +839,10 @@ fn join_voter(nonce: u32, line: libc::c_int) -> Result<Fd, ()> {
             return Ok(line);
         }
     }
-    let addr = VOTER_ADDR.get().ok_or(())?;
-    let sock = Fd(socket()?);
     // A voter that gave up on this attempt never answers: time out and exit, rather than
     // keep a whole copy of the donor's memory waiting forever.
     let timeout = std::time::Duration::from_millis(CHILD_SOCKET_TIMEOUT_MS);
-    sys::set_socket_timeouts(sock.0, timeout).map_err(|_| ())?;
-    connect(sock.0, addr)?;
+    let sock = connect_voter(timeout, Backlog::Wait)?;
     send_all(sock.0, &hello)?;
     Ok(sock)
 }
@@ -986,16 +996,6 @@ pub(crate) struct Fd(pub(crate) libc::c_int);
 impl Drop for Fd {
     fn drop(&mut self) {
         close(self.0);
-    }
-}
-
-fn socket() -> Result<libc::c_int, ()> {
-    // SAFETY: integer arguments only.
-    let fd = unsafe { libc::socket(libc::AF_UNIX, libc::SOCK_STREAM | libc::SOCK_CLOEXEC, 0) };
-    if fd < 0 {
-        Err(())
-    } else {
-        Ok(fd)
     }
 }
 

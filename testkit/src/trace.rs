@@ -169,26 +169,31 @@ impl CaughtChild {
     /// Waits until the child has been killed by someone else (reported to us as its tracer), and
     /// reaps that report so that its parent can reap the child. Returns the signal it died of.
     pub fn wait_killed(&mut self, timeout: Duration) -> i32 {
+        match self.wait_end(timeout) {
+            Ok(Some(Stop::Killed { sig })) => sig,
+            Ok(Some(Stop::Exited { code })) => {
+                panic!("the caught child {} exited with {code}", self.pid)
+            }
+            Ok(_) => panic!(
+                "the caught child {} was not killed in {timeout:?}",
+                self.pid
+            ),
+            Err(e) => panic!("waiting for the caught child {}: {e}", self.pid),
+        }
+    }
+
+    /// Waits up to `timeout` for the report of the child's end, passing over any other stop
+    /// (a signal sent to it while it is held, such as the group's teardown: it stays held).
+    /// `Ok(None)` if it has not ended by then.
+    fn wait_end(&mut self, timeout: Duration) -> io::Result<Option<Stop>> {
         let deadline = replica_rt::sys::monotonic_ns() + timeout.as_nanos() as u64;
-        loop {
-            match ptrace::wait_stop_until(self.pid, deadline) {
-                Ok(Some(Stop::Killed { sig })) => {
-                    self.reaped = true;
-                    return sig;
-                }
-                Ok(Some(Stop::Exited { code })) => {
-                    self.reaped = true;
-                    panic!("the caught child {} exited with {code}", self.pid);
-                }
-                // A signal sent to it while it is held (the group's teardown): held still.
-                Ok(Some(_)) => continue,
-                Ok(None) => panic!(
-                    "the caught child {} was not killed in {timeout:?}",
-                    self.pid
-                ),
-                Err(e) => panic!("waiting for the caught child {}: {e}", self.pid),
+        while let Some(stop) = ptrace::wait_stop_until(self.pid, deadline)? {
+            if matches!(stop, Stop::Killed { .. } | Stop::Exited { .. }) {
+                self.reaped = true;
+                return Ok(Some(stop));
             }
         }
+        Ok(None)
     }
 }
 
@@ -197,12 +202,7 @@ impl Drop for CaughtChild {
     fn drop(&mut self) {
         if !self.reaped {
             let _ = crate::kill_pid(self.pid, libc::SIGKILL);
-            let deadline = replica_rt::sys::monotonic_ns() + 5_000_000_000;
-            while let Ok(Some(stop)) = ptrace::wait_stop_until(self.pid, deadline) {
-                if matches!(stop, Stop::Killed { .. } | Stop::Exited { .. }) {
-                    break;
-                }
-            }
+            let _ = self.wait_end(Duration::from_secs(5));
         }
     }
 }

@@ -165,12 +165,12 @@ fn rebind(
     deadline: Instant,
 ) -> Result<Taken, String> {
     let pid = sys::peer_pid(conn.as_fd()).map_err(|e| format!("no peer credentials: {e}"))?;
-    // The spare line of a replica that is not awaited (one that died with the predecessor,
-    // say) is nobody's business: dropped without a word.
-    if peek_announcement(&conn, pid) == Some(true) && !awaited.iter().any(|a| a.entry.pid == pid) {
-        return Ok(Taken::Stale);
-    }
     let Some(k) = awaited.iter().position(|a| a.entry.pid == pid) else {
+        // The spare line of a replica that is not awaited (one that died with the predecessor,
+        // say) is nobody's business: dropped without a word.
+        if peek_announcement(&conn, pid) == Some(true) {
+            return Ok(Taken::Stale);
+        }
         // A fork child its predecessor was handing pipes to, or a stranger.
         return Err(format!("peer {pid} is not a replica the journal names"));
     };
