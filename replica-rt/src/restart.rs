@@ -741,6 +741,10 @@ one, so it cannot be a recovery donor (refused)\n";
         // which keeps its own copy and forks for it; it is not the child's.
         DEFERRAL.forget_pending();
         become_replacement(nonce, &unread, line);
+        // The copies and the line were closed as the child joined.
+        drop(blocked);
+        set_errno(saved);
+        return;
     }
     // The signals that waited come now (in the handler, only those its own mask lets through).
     drop(blocked);

@@ -150,6 +150,24 @@ fn priorities_and_cpus(unprivileged: bool) {
     if !rr {
         assert_eq!(fresh.nice, r1.nice, "{fresh} / {r1}");
     }
+    // The donor ran above its siblings while it forked, and is back at its rest once its
+    // child has joined. (A turn kept off its CPU is raised for a moment too: looked at until
+    // it is at rest, within a bound.)
+    let donor = replicas[&0];
+    let until = std::time::Instant::now() + Duration::from_secs(5);
+    let mut seen = procs::scheduling(donor);
+    while rr && seen.priority != 28 && std::time::Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(10));
+        seen = procs::scheduling(donor);
+    }
+    eprintln!("donor after the fork: {seen}");
+    assert_placed(
+        &seen,
+        rr,
+        28,
+        &[a],
+        "the donor, back at rest after the fork",
+    );
 
     let out = run.wait_success(LIMIT);
     assert_sink_whole(&summary, count);

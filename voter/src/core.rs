@@ -1047,26 +1047,32 @@ impl Core {
 
     // ----- recovery ----------------------------------------------------------------------
 
-    /// Forks `d` for a new replica: the donor runs above its siblings while it forks (S³RES
-    /// §4.4), and goes back to rest after. The replica being replaced is retired while the
-    /// donor forks: waiting for it to finish dying (its memory torn down, milliseconds for a
-    /// large state after a hang's SIGKILL), relaying its last words and reaping it need not
-    /// hold up the fork.
-    pub(crate) fn fork(&mut self, d: usize, state: DonorState) -> Result<Forked, RecoveryError> {
+    /// Forks `d` for a new replica in `slot`: the donor runs above its siblings while it forks
+    /// (S³RES §4.4), and goes back to rest once its child has joined. The replica being
+    /// replaced is retired while the donor forks: waiting for it to finish dying (its memory
+    /// torn down, milliseconds for a large state after a hang's SIGKILL), relaying its last
+    /// words and reaping it need not hold up the fork. The child is moved to its slot's CPUs
+    /// as soon as it has joined, while it walks its pages (done after its `Ready`, that call
+    /// and the donor's rest lay between the `Ready` and the replica counted in). It keeps the
+    /// raised priority it inherited through its walk, as before: at its slot's rest a busy
+    /// sibling above it (a stream's) could hold its walk up; `replace` gives it its slot's
+    /// priority after the `Ready`.
+    pub(crate) fn fork(
+        &mut self,
+        slot: usize,
+        d: usize,
+        state: DonorState,
+    ) -> Result<Forked, RecoveryError> {
         let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
         self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
         let donor = self.slots[d].as_mut().expect("donor slot is filled");
         let donor_pid = donor.pid;
-        self.rt.raise(donor_pid);
         let mut retiring = self.retiring.take();
         let component = &self.plan.component;
         let (held, events, journal) = (&self.held, self.events.as_ref(), self.journal.as_ref());
-        // While the donor forks: the faults' events out (held until now, see `held.rs`), then
-        // the replaced replica retired.
-        let mut retire = || {
-            held.release(events, journal);
-            Fault::retire_if_any(&mut retiring, component);
-        };
+        let rt = &mut self.rt;
+        let mut raised = false;
+        let mut rested = false;
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
@@ -1075,11 +1081,30 @@ impl Core {
             self.restart_nonce,
             &family,
             state,
-            &mut retire,
+            &mut |step| match step {
+                recovery::Step::Signalled => {
+                    // Raised right after the signal, not before it: the donor's wake-up does
+                    // not wait for the call, and a sibling running on its CPU keeps it waiting
+                    // only until the call lands. Then the faults' events out (held until now,
+                    // see `held.rs`), and the replaced replica retired.
+                    rt.raise(donor_pid);
+                    raised = true;
+                    held.release(events, journal);
+                    Fault::retire_if_any(&mut retiring, component);
+                }
+                recovery::Step::Joined(child) => {
+                    rt.rest(donor_pid, d);
+                    rested = true;
+                    rt.place_replica(child, slot);
+                }
+            },
         );
-        // The attempt failed before the donor was signalled.
-        retire();
-        self.rt.rest(donor_pid, d);
+        // The attempt failed before the donor was signalled, or before a child joined.
+        held.release(events, journal);
+        Fault::retire_if_any(&mut retiring, component);
+        if raised && !rested {
+            rt.rest(donor_pid, d);
+        }
         forked
     }
 
@@ -1554,8 +1579,9 @@ fn replace(
                 if let Some(child) = core.slots[slot].as_mut() {
                     child.state_lost = state_lost;
                 }
-                // The child inherited the donor's priority and CPU; it takes the slot's.
-                core.rt.apply_to_replica(pid, slot);
+                // The child took the slot's CPUs when it joined (`Core::fork`); it ran its
+                // page walk at the donor's raised priority, and takes the slot's now.
+                core.rt.set_replica_priority(pid, slot);
                 // The child continues the donor's frames, so its detector stream too.
                 core.monitors.copy_stream(d, slot);
                 let mut ev = core.recovery_event(slot, old_pid, pid, detected_ns);

@@ -1147,7 +1147,7 @@ impl Mode for ReactiveVoter {
     fn fork_into(&mut self, slot: usize, d: usize) -> Result<libc::pid_t, String> {
         let forked = self
             .core
-            .fork(d, DonorState::Quiet)
+            .fork(slot, d, DonorState::Quiet)
             .map_err(|e| e.to_string())?;
         let pid = forked.replica.pid;
         self.core.slots[slot] = Some(forked.replica);

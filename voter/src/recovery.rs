@@ -127,10 +127,23 @@ impl SpareLines {
 /// takes longer, and its line is dropped rather than let it hold up the recovery.
 const SPARE_ANNOUNCEMENT_WAIT: Duration = Duration::from_millis(10);
 
+/// Where an attempt has got to, for the caller's work that can be done while it goes on
+/// (see [`fork`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    /// The donor has been asked to fork, and does.
+    Signalled,
+    /// The child (this pid) has been identified as this attempt's and has its pipes; it is
+    /// breaking its copy-on-write sharing, and its `Ready` is awaited next.
+    Joined(libc::pid_t),
+}
+
 /// Makes a copy of `donor` by fork. `nonce` must differ from every earlier attempt's.
-/// `meanwhile` runs once the donor has been asked to fork, while it does (not at all if it
-/// could not be asked). `spares` are the replicas' spare lines taken so far; the donor's is
-/// used (whatever the outcome), and those that come during the attempt are kept.
+/// `steps` is called as the attempt reaches each [`Step`], at most once for each: what the
+/// caller does there runs while the donor forks, or while the child walks its pages, not
+/// after the child's `Ready` (on two CPUs in parallel with them; on one, the voter outranks
+/// them either way). `spares` are the replicas' spare lines taken so far; the donor's is used
+/// (whatever the outcome), and those that come during the attempt are kept.
 #[allow(clippy::too_many_arguments)]
 pub fn fork(
     plan: &VoterPlan,
@@ -140,7 +153,7 @@ pub fn fork(
     nonce: u32,
     family: &[libc::pid_t],
     state: DonorState,
-    meanwhile: &mut dyn FnMut(),
+    steps: &mut dyn FnMut(Step),
 ) -> Result<Forked, RecoveryError> {
     let timeout = Duration::from_millis(plan.restart_timeout_ms);
     let deadline = Instant::now() + timeout;
@@ -173,7 +186,7 @@ pub fn fork(
     .map_err(io_err("signalling the donor"));
     // The caller's work while the donor forks does not count against the child's time.
     let deadline = if signalled.is_ok() {
-        meanwhile();
+        steps(Step::Signalled);
         Instant::now() + timeout
     } else {
         deadline
@@ -190,7 +203,9 @@ pub fn fork(
         accept_child(listener, spares, lines, donor, &attempt, &mut refused)
     });
     refused.report();
-    let (mut child, ready, unread) = await_ready(joined?, plan.inputs.len(), deadline)?;
+    let joined = joined?;
+    steps(Step::Joined(joined.pid));
+    let (mut child, ready, unread) = await_ready(joined, plan.inputs.len(), deadline)?;
 
     // 6. Exactly what the donor had yet to read: its pipe's content, then our queue.
     for ((input, copy), donors) in child.inputs.iter_mut().zip(&unread).zip(&donor.inputs) {

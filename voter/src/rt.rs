@@ -142,8 +142,14 @@ impl RealTime {
     }
 
     /// Replica `slot`'s priority at rest and its CPU; for a replica just started by exec or
-    /// just forked from a donor (whose settings it inherited).
+    /// adopted (a fork child takes the two at different moments: `Core::fork`).
     pub fn apply_to_replica(&mut self, pid: libc::pid_t, slot: usize) {
+        self.set_replica_priority(pid, slot);
+        self.place_replica(pid, slot);
+    }
+
+    /// Replica `slot`'s priority at rest: SCHED_RR at its level, or the replicas' nice value.
+    pub fn set_replica_priority(&mut self, pid: libc::pid_t, slot: usize) {
         match self.mode {
             Mode::Untouched => {}
             Mode::RoundRobin(p) => {
@@ -157,6 +163,11 @@ impl RealTime {
             }
             Mode::Nice(n) => self.apply_nice_value(pid, n.replicas),
         }
+    }
+
+    /// Replica `slot`'s CPUs (those the description gives it, or else those it was started
+    /// with when the voter was pinned apart).
+    pub fn place_replica(&mut self, pid: libc::pid_t, slot: usize) {
         match sched::replica_cpu(&self.cpus, slot) {
             Some(cpu) => self.pin(pid, &[cpu], "a replica"),
             None if !self.voter_cpus.is_empty() && !self.start_cpus.is_empty() => {

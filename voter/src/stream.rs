@@ -547,7 +547,7 @@ impl StreamVoter {
         let donor_pid = self.core.slots[d].as_ref().map(|r| r.pid);
         // The donor runs above its siblings while it forks (a boosted laggard on its CPU would
         // otherwise starve it into the accept timeout), then goes back to rest.
-        let forked = self.core.fork(d, DonorState::Streaming);
+        let forked = self.core.fork(slot, d, DonorState::Streaming);
         if self.boosted.is_some_and(|(pid, _)| Some(pid) == donor_pid) {
             // Put back to rest: the next `boost_laggard` raises it again if it still lags.
             self.boosted = None;
