@@ -18,7 +18,8 @@
 //!    names the child, whose parent must be the donor. One that fails is refused (killed) and
 //!    its pipes are dropped; the next connection gets a new set. The spare lines of other
 //!    replicas that come meanwhile are kept for later attempts;
-//! 4. wait for its `Ready`;
+//! 4. tell the caller that the child has joined ([`Step::Joined`]: the voter moves it to its
+//!    slot's CPUs and rests the donor while the child walks its pages), and wait for its `Ready`;
 //! 5. give the taken-back input, followed by whatever is still queued for the donor, to both
 //!    (to the donor only after the fork: what it read in between would reach the child twice).
 //!
