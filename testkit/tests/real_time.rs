@@ -797,6 +797,19 @@ fn hog(cpu: usize, seconds: &str) {
     // chain's exec and linking at SCHED_RR 98–99 ran wherever they landed — on another CPU
     // now and then, holding up a voter and replicas there for a millisecond (a replica was
     // once blamed, the voter 1062 µs late at the deadline).
+    // The same chain once at the normal policy first, so that its programs and libraries are
+    // in memory when it runs at SCHED_RR: an exec that waits for the disk in the middle of the
+    // real-time chain (this VM pages cold files out) would give the CPU back to the replica for
+    // slivers, and the voter would rightly see a replica that could run. (Two failures in
+    // stop 48's full runs, "it ran 55 µs … and waited 0 µs for a CPU", may have been that; it
+    // was not proven.)
+    let warm = Command::new("taskset")
+        .args(["-c", &cpu.to_string()])
+        .args(["chrt", "-o", "0", "timeout", seconds, "chrt", "-o", "0"])
+        .args(["sh", "-c", ":"])
+        .status()
+        .expect("running taskset, chrt and timeout at the normal policy");
+    assert!(warm.success(), "the hog's warm-up: {warm}");
     let hog = Command::new("taskset")
         .args(["-c", &cpu.to_string()])
         .args(["chrt", "-r", "99", "timeout", seconds, "chrt", "-r", "98"])
