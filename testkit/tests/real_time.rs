@@ -803,21 +803,35 @@ fn hog(cpu: usize, seconds: &str) {
     // slivers, and the voter would rightly see a replica that could run. (Two failures in
     // stop 48's full runs, "it ran 55 µs … and waited 0 µs for a CPU", may have been that; it
     // was not proven.)
-    let warm = Command::new("taskset")
-        .args(["-c", &cpu.to_string()])
-        .args(["chrt", "-o", "0", "timeout", seconds, "chrt", "-o", "0"])
-        .args(["sh", "-c", ":"])
-        .status()
-        .expect("running taskset, chrt and timeout at the normal policy");
+    let warm = chain_on(cpu, ["-o", "0"], seconds, ["-o", "0"], ":");
     assert!(warm.success(), "the hog's warm-up: {warm}");
-    let hog = Command::new("taskset")
-        .args(["-c", &cpu.to_string()])
-        .args(["chrt", "-r", "99", "timeout", seconds, "chrt", "-r", "98"])
-        .args(["sh", "-c", "while :; do :; done"])
-        .status()
-        .expect("running taskset, chrt and timeout");
+    let hog = chain_on(
+        cpu,
+        ["-r", "99"],
+        seconds,
+        ["-r", "98"],
+        "while :; do :; done",
+    );
     // 124: `timeout` ended the loop, as meant.
     assert_eq!(hog.code(), Some(124), "the hog: {hog}");
+}
+
+/// `taskset -c CPU chrt OUTER timeout SECONDS chrt INNER sh -c SCRIPT`, waited for.
+fn chain_on(
+    cpu: usize,
+    outer: [&str; 2],
+    seconds: &str,
+    inner: [&str; 2],
+    script: &str,
+) -> std::process::ExitStatus {
+    Command::new("taskset")
+        .args(["-c", &cpu.to_string(), "chrt"])
+        .args(outer)
+        .args(["timeout", seconds, "chrt"])
+        .args(inner)
+        .args(["sh", "-c", script])
+        .status()
+        .expect("running taskset, chrt and timeout")
 }
 
 /// The fault events of the component `echo`.
