@@ -106,6 +106,15 @@ pub(crate) enum Stop {
     Requested,
 }
 
+/// Where a fork's donor stands during `Core::fork`: raised once signalled, back at rest once
+/// its child has joined (or after an attempt that failed in between).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum DonorLevel {
+    AtRest,
+    Raised,
+    RestedAgain,
+}
+
 /// Where a decision was made, for events: a reactive round, or a frame of a stream output.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum At {
@@ -1071,8 +1080,13 @@ impl Core {
         let component = &self.plan.component;
         let (held, events, journal) = (&self.held, self.events.as_ref(), self.journal.as_ref());
         let rt = &mut self.rt;
-        let mut raised = false;
-        let mut rested = false;
+        // The faults' events out (held until now, see `held.rs`), and the replaced replica
+        // retired: once the donor is signalled, or after an attempt that failed before that.
+        let mut settle_the_fault = || {
+            held.release(events, journal);
+            Fault::retire_if_any(&mut retiring, component);
+        };
+        let mut donor_level = DonorLevel::AtRest;
         let forked = recovery::fork(
             &self.plan,
             &self.listener,
@@ -1085,24 +1099,21 @@ impl Core {
                 recovery::Step::Signalled => {
                     // Raised right after the signal, not before it: the donor's wake-up does
                     // not wait for the call, and a sibling running on its CPU keeps it waiting
-                    // only until the call lands. Then the faults' events out (held until now,
-                    // see `held.rs`), and the replaced replica retired.
+                    // only until the call lands.
                     rt.raise(donor_pid);
-                    raised = true;
-                    held.release(events, journal);
-                    Fault::retire_if_any(&mut retiring, component);
+                    donor_level = DonorLevel::Raised;
+                    settle_the_fault();
                 }
                 recovery::Step::Joined(child) => {
                     rt.rest(donor_pid, d);
-                    rested = true;
+                    donor_level = DonorLevel::RestedAgain;
                     rt.place_replica(child, slot);
                 }
             },
         );
         // The attempt failed before the donor was signalled, or before a child joined.
-        held.release(events, journal);
-        Fault::retire_if_any(&mut retiring, component);
-        if raised && !rested {
+        settle_the_fault();
+        if donor_level == DonorLevel::Raised {
             rt.rest(donor_pid, d);
         }
         forked
