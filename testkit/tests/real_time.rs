@@ -8,7 +8,7 @@
 
 use std::process::Command;
 use std::sync::{Mutex, MutexGuard};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use s3res_protocol::plan::CPU_LATENCY_QOS;
 use s3res_testkit::procs::{self, Scheduling};
@@ -757,7 +757,7 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     let (mut run, summary, b) = replica_1_alone_on_a_cpu(count);
     for _ in 0..5 {
         std::thread::sleep(Duration::from_millis(200));
-        hog(b, "0.03");
+        hog(b, Duration::from_millis(30));
     }
     run.wait_success(LIMIT);
     let events = run.events();
@@ -789,49 +789,29 @@ fn replica_1_alone_on_a_cpu(count: u32) -> (RunningSystem, std::path::PathBuf, u
     (run, summary, b)
 }
 
-/// Holds `cpu` with a SCHED_RR 98 busy loop for `seconds`, above every process of a system.
-fn hog(cpu: usize, seconds: &str) {
-    // `timeout` (SCHED_RR 99) ends the loop (SCHED_RR 98) on time, preempting it: at the
-    // loop's own priority it would wait for the loop's round-robin slice (100 ms). Every
-    // process of the chain is on `cpu` from the start: before, `taskset` came last, and the
-    // chain's exec and linking at SCHED_RR 98–99 ran wherever they landed — on another CPU
-    // now and then, holding up a voter and replicas there for a millisecond (a replica was
-    // once blamed, the voter 1062 µs late at the deadline).
-    // The same chain once at the normal policy first, so that its programs and libraries are
-    // in memory when it runs at SCHED_RR: an exec that waits for the disk in the middle of the
-    // real-time chain (this VM pages cold files out) would give the CPU back to the replica for
-    // slivers, and the voter would rightly see a replica that could run. (Two failures in
-    // stop 48's full runs, "it ran 55 µs … and waited 0 µs for a CPU", may have been that; it
-    // was not proven.)
-    let warm = chain_on(cpu, ["-o", "0"], seconds, ["-o", "0"], ":");
-    assert!(warm.success(), "the hog's warm-up: {warm}");
-    let hog = chain_on(
-        cpu,
-        ["-r", "99"],
-        seconds,
-        ["-r", "98"],
-        "while :; do :; done",
-    );
-    // 124: `timeout` ended the loop, as meant.
-    assert_eq!(hog.code(), Some(124), "the hog: {hog}");
-}
-
-/// `taskset -c CPU chrt OUTER timeout SECONDS chrt INNER sh -c SCRIPT`, waited for.
-fn chain_on(
-    cpu: usize,
-    outer: [&str; 2],
-    seconds: &str,
-    inner: [&str; 2],
-    script: &str,
-) -> std::process::ExitStatus {
-    Command::new("taskset")
-        .args(["-c", &cpu.to_string(), "chrt"])
-        .args(outer)
-        .args(["timeout", seconds, "chrt"])
-        .args(inner)
-        .args(["sh", "-c", script])
-        .status()
-        .expect("running taskset, chrt and timeout")
+/// Holds `cpu` for `hold` with a SCHED_RR 98 busy loop, above every process of a system: a
+/// thread of this test, moved to `cpu` and raised there, that spins on the clock until
+/// `hold` has passed and then returns to the normal policy.
+///
+/// A thread, not a `taskset` → `chrt` → `timeout` → `chrt` → `sh` chain as before: an exec
+/// that waited for the disk in the middle of that chain gave the starved replica its CPU back
+/// for slivers, and a replica preempted again mid-round after "it ran 54 µs (of 73 µs on its
+/// clock) and waited 0 µs for a CPU" is, by the voter's rule, one that could run (the test
+/// failed so in 2 of stop 48's 4 full runs; that the disk was the cause is likely, not
+/// proven). Spinning on the clock (vDSO) never blocks: the CPU is held exactly `hold` long.
+fn hog(cpu: usize, hold: Duration) {
+    std::thread::spawn(move || {
+        // 0: the calling thread (Linux applies both calls to threads).
+        replica_rt::sys::set_cpu_affinity(0, &[cpu]).expect("moving the hog to its CPU");
+        replica_rt::sys::set_round_robin(0, 98).expect("raising the hog to SCHED_RR 98");
+        let until = Instant::now() + hold;
+        while Instant::now() < until {
+            std::hint::spin_loop();
+        }
+        replica_rt::sys::set_normal_policy(0).expect("the hog back to the normal policy");
+    })
+    .join()
+    .expect("the hog thread");
 }
 
 /// The fault events of the component `echo`.
@@ -866,7 +846,7 @@ fn a_replica_kept_off_its_cpu_past_every_extension_is_blamed_and_told_why() {
     let (mut run, summary, b) = replica_1_alone_on_a_cpu(count);
     run.wait_for_answers("echo");
     let pids = run.replica_pids("echo");
-    hog(b, "0.4");
+    hog(b, Duration::from_millis(400));
     run.wait_success(LIMIT);
     let events = run.events();
     let faults = echo_faults(&events);
@@ -914,6 +894,7 @@ fn perf_events_of(pid: i32) -> usize {
 /// events are refused there is nothing to hold, and nothing to wait for.
 #[test]
 fn bootstrap_keeps_task_clocks_ready_and_a_voter_holds_none_while_no_replica_is_late() {
+    let _turn = one_system_at_a_time();
     let perf = replica_rt::sys::TaskClock::open_idle(0);
     if let Err(e) = &perf {
         eprintln!("perf events refused here ({e}): nothing to check");
