@@ -561,10 +561,12 @@ impl ReactiveVoter {
             return ReplicaSet::EMPTY;
         };
         let span = now.saturating_duration_since(look.at);
-        let mut came_back = self
+        let (mut came_back, mut starved_for) = self
             .round
             .as_ref()
-            .map_or([0; MAX_REPLICAS], |rd| rd.came_back);
+            .map_or(([0; MAX_REPLICAS], [Duration::ZERO; MAX_REPLICAS]), |rd| {
+                (rd.came_back, rd.starved_for)
+            });
         let mut starved = ReplicaSet::EMPTY;
         for r in self.timed().iter() {
             let Some(rep) = self.core.slots[r].as_ref() else {
@@ -580,8 +582,9 @@ impl ReactiveVoter {
                 state = replica_rt::sys::process_state(rep.pid);
                 state == Some('R')
             };
+            let own = starvation::judge(before, after, span, clocked, runnable);
             let verdict = starvation::after_coming_back(
-                starvation::judge(before, after, span, clocked, runnable),
+                starvation::after_starving(own, starved_for[r]),
                 came_back[r] > 0,
             );
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
@@ -597,9 +600,15 @@ impl ReactiveVoter {
             came_back[r] = match verdict {
                 Window::CameBack => {
                     let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
-                    starvation::windows_after_coming_back(waited, span)
+                    starvation::windows_after_coming_back(waited.max(starved_for[r]), span)
                 }
                 _ => came_back[r].saturating_sub(1),
+            };
+            // Only windows starved by the rule itself make a streak: those starved for a
+            // backlog do not (a spinner would otherwise come back again and again).
+            starved_for[r] = match own {
+                Window::Starved => starved_for[r] + span,
+                _ => Duration::ZERO,
             };
             if verdict.starved() {
                 starved = starved.with(r);
@@ -607,6 +616,7 @@ impl ReactiveVoter {
         }
         if let Some(round) = self.round.as_mut() {
             round.came_back = came_back;
+            round.starved_for = starved_for;
         }
         starved
     }
@@ -637,6 +647,13 @@ impl ReactiveVoter {
                     round = number,
                     "the voter missed the look before the deadline: deadline moved on"
                 );
+                // A window the machine stalled in, for the voter too: it counts in the late
+                // replicas' stretch without a CPU (`starvation::after_starving`).
+                if let Some(round) = self.round.as_mut() {
+                    for r in late.iter() {
+                        round.starved_for[r] += window;
+                    }
+                }
                 late
             }
         };
@@ -765,6 +782,7 @@ impl ReactiveVoter {
         round.starved = None;
         round.extended = Duration::ZERO;
         round.came_back = [0; MAX_REPLICAS];
+        round.starved_for = [Duration::ZERO; MAX_REPLICAS];
         true
     }
 

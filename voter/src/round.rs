@@ -43,6 +43,9 @@ pub struct Round {
     /// Per replica, how many more windows count as starved because it came back from a long
     /// wait for a CPU (see `starvation::windows_after_coming_back`); 0 for most.
     pub came_back: [u32; MAX_REPLICAS],
+    /// Per replica, how long it has been found starved in a row, window after window (see
+    /// `starvation::after_starving`); zero for most.
+    pub starved_for: [Duration; MAX_REPLICAS],
     /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
     /// siblings to run (found starved); put back to rest when its turn ends.
     pub raised: Option<usize>,
@@ -82,6 +85,7 @@ impl Round {
             starved: None,
             extended: Duration::ZERO,
             came_back: [0; MAX_REPLICAS],
+            starved_for: [Duration::ZERO; MAX_REPLICAS],
             raised: None,
             checked: None,
         }
