@@ -19,7 +19,7 @@ use crate::event::Cause;
 use crate::plan::VoterPlan;
 use crate::recovery::DonorState;
 use crate::replica::Replica;
-use crate::round::{Look, OutputSet, Round};
+use crate::round::{Look, OutputSet, Round, Stall};
 use crate::sched::Schedule;
 use crate::starvation::{self, Seen, Window};
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
@@ -561,12 +561,10 @@ impl ReactiveVoter {
             return ReplicaSet::EMPTY;
         };
         let span = now.saturating_duration_since(look.at);
-        let (mut came_back, mut starved_for) = self
+        let mut stalls = self
             .round
             .as_ref()
-            .map_or(([0; MAX_REPLICAS], [Duration::ZERO; MAX_REPLICAS]), |rd| {
-                (rd.came_back, rd.starved_for)
-            });
+            .map_or([Stall::default(); MAX_REPLICAS], |rd| rd.stalls);
         let mut starved = ReplicaSet::EMPTY;
         for r in self.timed().iter() {
             let Some(rep) = self.core.slots[r].as_ref() else {
@@ -584,8 +582,8 @@ impl ReactiveVoter {
             };
             let own = starvation::judge(before, after, span, clocked, runnable);
             let verdict = starvation::after_coming_back(
-                starvation::after_starving(own, starved_for[r]),
-                came_back[r] > 0,
+                starvation::after_starving(own, stalls[r].starved_for),
+                stalls[r].came_back > 0,
             );
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
             let wchan = match (verdict, state) {
@@ -597,17 +595,17 @@ impl ReactiveVoter {
                 wchan,
                 ..Seen::between(before, after, span, clocked)
             });
-            came_back[r] = match verdict {
+            stalls[r].came_back = match verdict {
                 Window::CameBack => {
                     let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
-                    starvation::windows_after_coming_back(waited.max(starved_for[r]), span)
+                    starvation::windows_after_coming_back(waited.max(stalls[r].starved_for), span)
                 }
-                _ => came_back[r].saturating_sub(1),
+                _ => stalls[r].came_back.saturating_sub(1),
             };
             // Only windows starved by the rule itself make a streak: those starved for a
             // backlog do not (a spinner would otherwise come back again and again).
-            starved_for[r] = match own {
-                Window::Starved => starved_for[r] + span,
+            stalls[r].starved_for = match own {
+                Window::Starved => stalls[r].starved_for + span,
                 _ => Duration::ZERO,
             };
             if verdict.starved() {
@@ -615,8 +613,7 @@ impl ReactiveVoter {
             }
         }
         if let Some(round) = self.round.as_mut() {
-            round.came_back = came_back;
-            round.starved_for = starved_for;
+            round.stalls = stalls;
         }
         starved
     }
@@ -651,7 +648,7 @@ impl ReactiveVoter {
                 // replicas' stretch without a CPU (`starvation::after_starving`).
                 if let Some(round) = self.round.as_mut() {
                     for r in late.iter() {
-                        round.starved_for[r] += window;
+                        round.stalls[r].starved_for += window;
                     }
                 }
                 late
@@ -781,8 +778,7 @@ impl ReactiveVoter {
         round.look = None;
         round.starved = None;
         round.extended = Duration::ZERO;
-        round.came_back = [0; MAX_REPLICAS];
-        round.starved_for = [Duration::ZERO; MAX_REPLICAS];
+        round.stalls = [Stall::default(); MAX_REPLICAS];
         true
     }
 

@@ -40,18 +40,26 @@ pub struct Round {
     pub starved: Option<ReplicaSet>,
     /// How far the deadline has been moved on for replicas that could not run.
     pub extended: Duration,
-    /// Per replica, how many more windows count as starved because it came back from a long
-    /// wait for a CPU (see `starvation::windows_after_coming_back`); 0 for most.
-    pub came_back: [u32; MAX_REPLICAS],
-    /// Per replica, how long it has been found starved in a row, window after window (see
-    /// `starvation::after_starving`); zero for most.
-    pub starved_for: [Duration; MAX_REPLICAS],
+    /// Per replica, what its windows so far leave for its next verdict (see `starvation.rs`).
+    pub stalls: [Stall; MAX_REPLICAS],
     /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
     /// siblings to run (found starved); put back to rest when its turn ends.
     pub raised: Option<usize>,
     /// Sequential schedule: when the loop last read the answers it does not wait for (see
     /// `ReactiveVoter::watched`).
     pub checked: Option<Instant>,
+}
+
+/// What a late replica's windows so far leave for its next verdict (see `starvation.rs`);
+/// the default for most.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Stall {
+    /// How many more windows count as starved because it came back from a long wait for a
+    /// CPU (see `starvation::windows_after_coming_back`).
+    pub came_back: u32,
+    /// How long it has been found starved in a row, window after window (see
+    /// `starvation::after_starving`).
+    pub starved_for: Duration,
 }
 
 /// What the replicas that had not answered had run and waited, at one moment.
@@ -84,8 +92,7 @@ impl Round {
             look: None,
             starved: None,
             extended: Duration::ZERO,
-            came_back: [0; MAX_REPLICAS],
-            starved_for: [Duration::ZERO; MAX_REPLICAS],
+            stalls: [Stall::default(); MAX_REPLICAS],
             raised: None,
             checked: None,
         }
