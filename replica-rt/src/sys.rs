@@ -452,6 +452,32 @@ pub fn parent_pid(pid: libc::pid_t) -> Option<libc::pid_t> {
     proc_stat_field(pid, 4)
 }
 
+/// Parent pid of the process behind `pidfd`, whose pid is `pid` (`None` if it is gone). Asked
+/// of the pidfd itself where the kernel can say (`PIDFD_GET_INFO`, Linux 6.13+): one `ioctl`,
+/// 1.0 µs on the AMD host of docs/results.md against 9.2 µs for opening and reading
+/// `/proc/PID/stat` (stop 50), and the answer is of that process even if its number has been
+/// reused since. Older kernels (`ENOTTY`, `EINVAL`) are answered from `/proc/PID/stat`.
+pub fn parent_of(pidfd: BorrowedFd<'_>, pid: libc::pid_t) -> Option<libc::pid_t> {
+    let mut info = PidfdInfo::default();
+    // SAFETY: `info` is a valid, writable `struct pidfd_info` of the size the request number
+    // encodes, for the duration of the call; the kernel writes no more than that.
+    let r = unsafe {
+        libc::ioctl(
+            pidfd.as_raw_fd(),
+            PIDFD_GET_INFO as _,
+            &mut info as *mut PidfdInfo,
+        )
+    };
+    if r == 0 {
+        return libc::pid_t::try_from(info.ppid).ok();
+    }
+    match io::Error::last_os_error().raw_os_error() {
+        // The process has exited (it may not have been reaped yet).
+        Some(libc::ESRCH) => None,
+        _ => parent_pid(pid),
+    }
+}
+
 /// Process group of `pid`, from `/proc/PID/stat` (`None` if the process is gone).
 pub fn process_group(pid: libc::pid_t) -> Option<libc::pid_t> {
     proc_stat_field(pid, 5)
@@ -1633,6 +1659,28 @@ mod tests {
         code.wait().unwrap();
         sleeper.wait().unwrap();
         assert_eq!(zombie_exit_status(code_pid), None, "reaped: gone");
+    }
+
+    #[test]
+    fn a_pidfd_names_its_process_parent_until_it_is_reaped() {
+        let mut sleeper = Reaped(
+            std::process::Command::new("sleep")
+                .arg("30")
+                .spawn()
+                .unwrap(),
+        );
+        let pid = sleeper.0.id() as libc::pid_t;
+        let pidfd = pidfd_open(pid).unwrap();
+        let me = std::process::id() as libc::pid_t;
+        assert_eq!(parent_of(pidfd.as_fd(), pid), Some(me));
+        assert_eq!(
+            parent_of(pidfd.as_fd(), pid),
+            parent_pid(pid),
+            "as /proc says"
+        );
+        sleeper.0.kill().unwrap();
+        sleeper.0.wait().unwrap();
+        assert_eq!(parent_of(pidfd.as_fd(), pid), None, "reaped: gone");
     }
 
     #[test]

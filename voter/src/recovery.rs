@@ -287,7 +287,8 @@ fn refuse(conn: UnixStream, family: &[libc::pid_t], why: &str, refused: &mut Ref
         return;
     };
     let me = std::process::id() as libc::pid_t;
-    let ours = sys::parent_pid(pid).is_some_and(|parent| parent == me || family.contains(&parent));
+    let ours = sys::parent_of(pidfd.as_fd(), pid)
+        .is_some_and(|parent| parent == me || family.contains(&parent));
     if first || ours {
         tracing::warn!(pid, ours, why, "refused a connection on the voter socket");
     }
@@ -539,7 +540,7 @@ fn joined_on_line(
             "the child {pid} named on the donor's spare line is gone: {e}"
         ))
     })?;
-    if sys::parent_pid(pid) != Some(donor.pid) {
+    if sys::parent_of(pidfd.as_fd(), pid) != Some(donor.pid) {
         return Err(Some(format!(
             "the spare line of donor {} named {pid}, not a child of it",
             donor.pid
@@ -589,7 +590,7 @@ fn identify_child(
         Ok(fd) => fd,
         Err(e) => return Err((conn, format!("peer {pid} is gone: {e}"))),
     };
-    if sys::parent_pid(pid) != Some(donor.pid) {
+    if sys::parent_of(pidfd.as_fd(), pid) != Some(donor.pid) {
         return Err((
             conn,
             format!("peer {pid} is not a child of the donor {}", donor.pid),
