@@ -182,10 +182,11 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
         // failed write's caller).
         restart::release_restarts();
         if n > 0 {
-            // The answer is out: after a fork, the next spare line is made here (replica-rt's
-            // `restart`, "The spare line"), as a component's runtime makes it at its `recv`.
-            // One atomic load when none is wanted; errno is kept.
-            restart::keep_spare_line();
+            // The answer is out: what a fork left for between rounds — a fork child's memory
+            // lock, the next spare line (replica-rt's `restart`, "The spare line") — is done
+            // here, as a component's runtime does it at its `recv`. Two atomic loads when
+            // nothing is left; errno is kept.
+            restart::between_rounds();
         }
     }
     n

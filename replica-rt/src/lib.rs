@@ -238,7 +238,7 @@ fn init_inner() -> Result<Runtime, InitError> {
         cow::open_own_maps();
         if std::env::var_os(contract::ENV_SPARE_LINE).is_some() {
             restart::use_spare_lines();
-            restart::keep_spare_line();
+            restart::between_rounds();
         }
     }
     say_started();

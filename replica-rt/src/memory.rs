@@ -198,17 +198,45 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
     })
 }
 
-/// Locks a fork child's memory as its donor's was (locks are not inherited over fork), on
-/// fault either way: a plain `mlockall(MCL_CURRENT)` would populate every mapping up front,
-/// most of a small component's restart time. With `all` the donor had every page locked, so
-/// the child's first touch of a page is a minor fault, never I/O; future mappings are then
-/// populated in full, as the donor's were. Async-signal-safe (an atomic load, two or three
-/// system calls).
-pub(crate) fn lock_fork_child() -> io::Result<()> {
-    if LOCK_ALL.load(Ordering::Relaxed) {
+/// Set in a fork child from its fork until its memory is locked ([`lock_fork_child`]).
+static FORK_CHILD_UNLOCKED: AtomicBool = AtomicBool::new(false);
+
+/// Called by a fork child in the restart handler: its memory is to be locked at its first
+/// moment between rounds ([`lock_fork_child`]), not before its `Ready`. Locks are not
+/// inherited over fork, and `mlockall(MCL_CURRENT …)` visits every mapping and every present
+/// page to lock it: 37 µs of a 4 KiB replica's restart on the AMD host of docs/results.md
+/// (stop 50), on the restart's critical path, where the child's page walk and the lock were
+/// the part of the restart that the voter waited for. Nothing needs the lock to answer:
+/// every page the child shares with its donor or owns after its walk is resident (the donor's
+/// locked pages stay locked while it lives), so until the lock only a reclaim under memory
+/// pressure could take one away. Async-signal-safe (an atomic store).
+pub(crate) fn defer_fork_child_lock() {
+    FORK_CHILD_UNLOCKED.store(true, Ordering::SeqCst);
+}
+
+/// Whether this process is a fork child that has not locked its memory yet (one atomic load).
+pub(crate) fn fork_child_unlocked() -> bool {
+    FORK_CHILD_UNLOCKED.load(Ordering::Relaxed)
+}
+
+/// Locks a fork child's memory as its donor's was, on fault either way: a plain
+/// `mlockall(MCL_CURRENT)` would populate every mapping up front, most of a small component's
+/// restart time. With `all` the donor had every page locked, so the child's first touch of a
+/// page is a minor fault, never I/O; future mappings are then populated in full, as the
+/// donor's were. Does nothing in a process that is not an unlocked fork child. Called where a
+/// replica has answered and is about to wait for input (`restart::between_rounds`). A refusal
+/// is only logged at debug: the donor logged it at init, where it was refused too.
+pub(crate) fn lock_fork_child() {
+    if !FORK_CHILD_UNLOCKED.swap(false, Ordering::SeqCst) {
+        return;
+    }
+    let locked = if LOCK_ALL.load(Ordering::Relaxed) {
         sys::lock_memory_on_fault()
     } else {
         sys::lock_used_memory()
+    };
+    if let Err(e) = locked {
+        tracing::debug!(error = %e, "a fork child could not lock its memory");
     }
 }
 

@@ -159,7 +159,7 @@ impl InPort {
     pub fn recv(&mut self) -> Result<Option<&[u8]>, RecvError> {
         note_fork();
         // Before waiting for input: the round before has been answered.
-        restart::keep_spare_line();
+        restart::between_rounds();
         self.catch_up();
         loop {
             if self.next_buffered()? {

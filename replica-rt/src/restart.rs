@@ -36,11 +36,10 @@
 //! 1. send [`Hello`] with the attempt's nonce and its pid on the donor's spare line where it has
 //!    one (below), else on a new connection to the voter's socket (address prepared at init,
 //!    so nothing is allocated here);
-//! 2. while the voter checks who it is and sends its pipes, `mlockall` again, on fault (locks
-//!    are not inherited over fork; see [`crate::memory::lock_fork_child`]), and write-fault
+//! 2. while the voter checks who it is and sends its pipes, write-fault
 //!    every resident private writable page of the mappings the donor listed right before the
 //!    fork ([`crate::cow`], "The donor lists the mappings") so that the child has its own
-//!    copy of every page it shared with the donor. Both happen before `Ready`, so no physical
+//!    copy of every page it shared with the donor. This happens before `Ready`, so no physical
 //!    page of private writable memory that holds live data is shared with the donor once the
 //!    voter counts the child in (the main thread's stack below the stack pointer stays shared
 //!    until written: `cow`'s dead stack);
@@ -52,13 +51,17 @@
 //! 5. open its own maps file for when it is a donor (`cow::open_own_maps`; the one
 //!    inherited shows the donor's mappings);
 //! 6. return: the child resumes exactly where the donor was interrupted. A blocking `read` that
-//!    was interrupted is restarted (`SA_RESTART`), on the new fd with the same number.
+//!    was interrupted is restarted (`SA_RESTART`), on the new fd with the same number;
+//! 7. once it has answered, at its first moment between rounds ([`between_rounds`]): `mlockall`
+//!    again, on fault (locks are not inherited over fork; see
+//!    [`crate::memory::defer_fork_child_lock`] for why not before `Ready`), and make a spare
+//!    line of its own.
 //!
 //! Any failure in the child ends it with `_exit(121)`: the voter sees the death or the timeout.
 //!
 //! Every call made is async-signal-safe: `_Fork`, `pthread_sigmask`, `pipe2`, `tee`, `splice`,
 //! `ioctl` (`FIONREAD`, `PROCMAP_QUERY`), `socket`, `connect`, `recvmsg`, `dup2`, `fcntl`,
-//! `close`, `send`, `getpid`, `mlockall`, `open`, `read`, `fstat`, `mincore`, `madvise`,
+//! `close`, `send`, `getpid`, `open`, `read`, `fstat`, `mincore`, `madvise`,
 //! `_exit`, plain memory accesses and atomics. Nothing allocates, formats, logs or takes a lock. `errno` is saved
 //! and restored, so the interrupted code never sees it change.
 //!
@@ -71,7 +74,7 @@
 //! handler takes the line (`SPARE_LINE`, swapped for -1) right before `_Fork`; the child sends
 //! its `Hello` on it, and connects as before only if that send fails (a voter replaced since
 //! the line was made); the donor closes its copy after the fork. Both then want a new line,
-//! made in normal context at the next [`keep_spare_line`] (replica-rt's `recv`, before it
+//! made in normal context at the next [`between_rounds`] (replica-rt's `recv`, before it
 //! waits for input; the voter's round is answered by then), with restarts deferred while it
 //! is made, so that a fork never copies half a line. A line the voter refused, or could not
 //! take (a full backlog: the connect does not wait), is not tried again until the next fork.
@@ -183,7 +186,7 @@ static SPARE_LINE_DEV: AtomicU64 = AtomicU64::new(0);
 static SPARE_LINE_ID: AtomicU64 = AtomicU64::new(0);
 /// Whether this replica's voter takes spare lines (`ENV_SPARE_LINE`, read at init).
 static SPARE_LINES: AtomicBool = AtomicBool::new(false);
-/// A spare line is to be made at the next [`keep_spare_line`]: set at init and after every
+/// A spare line is to be made at the next [`between_rounds`]: set at init and after every
 /// fork, in the donor and in the child, where the voter takes them.
 static SPARE_WANTED: AtomicBool = AtomicBool::new(false);
 
@@ -194,7 +197,7 @@ pub(crate) fn use_spare_lines() {
     SPARE_WANTED.store(true, Ordering::SeqCst);
 }
 
-/// A new spare line is to be made at the next [`keep_spare_line`], where the voter takes
+/// A new spare line is to be made at the next [`between_rounds`], where the voter takes
 /// them. Async-signal-safe (atomics).
 fn want_spare_line() {
     SPARE_WANTED.store(SPARE_LINES.load(Ordering::SeqCst), Ordering::SeqCst);
@@ -211,16 +214,29 @@ pub(crate) fn renew_spare_line() {
     want_spare_line();
 }
 
-/// Makes the spare line if one is wanted (module docs, "The spare line"): one atomic load when
-/// none is. Normal context only; restarts are deferred while the line is made. Called where a
-/// replica has answered and is about to wait for input: replica-rt's `recv`, and the preload
-/// library's `write` once a line (or frame) is whole. `errno` is left as it was.
-pub fn keep_spare_line() {
-    if !SPARE_WANTED.load(Ordering::Relaxed) {
+/// Does the work a fork (or init) left for the replica's next moment between rounds, if any:
+/// a fork child locks its memory (`memory::lock_fork_child`, deferred from the handler), and
+/// the spare line is made where one is wanted (module docs, "The spare line"). Two atomic
+/// loads when there is nothing to do. Normal context only; restarts are deferred while the
+/// line is made. Called where a replica has answered and is about to wait for input:
+/// replica-rt's `recv`, and the preload library's `write` once a line (or frame) is whole.
+/// `errno` is left as it was.
+pub fn between_rounds() {
+    let unlocked = crate::memory::fork_child_unlocked();
+    let line_wanted = SPARE_WANTED.load(Ordering::Relaxed);
+    if !unlocked && !line_wanted {
         return;
     }
     let saved = errno();
-    make_wanted_spare_line();
+    // Siblings on this CPU first: right after a fork the donor and its child both have work
+    // here at their next `recv`, and the one that answers first would otherwise hold up the
+    // other's answer by the time it takes (measured for the spare line alone: the first answer
+    // after a 4 KiB restart 26 µs later).
+    sys::yield_cpu();
+    crate::memory::lock_fork_child();
+    if line_wanted {
+        make_wanted_spare_line();
+    }
     set_errno(saved);
 }
 
@@ -229,10 +245,6 @@ fn make_wanted_spare_line() {
     if !SPARE_WANTED.swap(false, Ordering::SeqCst) || SPARE_LINE.load(Ordering::SeqCst) >= 0 {
         return;
     }
-    // Siblings on this CPU first: right after a fork the donor and its child both make a line
-    // at their next `recv`, and the one that answers first would otherwise hold up the other's
-    // answer by the time it takes (measured: the first answer after a 4 KiB restart 26 µs later).
-    sys::yield_cpu();
     match make_spare_line() {
         Ok((line, (dev, ino))) => {
             SPARE_LINE_DEV.store(dev, Ordering::SeqCst);
@@ -768,19 +780,17 @@ fn become_replacement(nonce: u32, unread: &UnreadInput, line: libc::c_int) {
     };
     // The voter now checks who we are and sends our pipes; meanwhile we do the part of the
     // restart that does not need them (on two CPUs the two overlap, and on one the voter,
-    // which outranks us, does its part as soon as it is woken). Own pages and locked memory
-    // *before* `Ready`: the voter counts us as a member of the next
+    // which outranks us, does its part as soon as it is woken). Own pages *before* `Ready`:
+    // the voter counts us as a member of the next
     // round from `Ready` on, and a page walk after it (milliseconds for a few MiB, tens of ms
     // for tens of MiB) would make us miss that round's deadline and be killed as hung, again
     // and again. It also makes the voter's recovery time the time to a replica that can answer.
     //
-    // Locks are not inherited over fork, so lock again, on fault (see
-    // `memory::lock_fork_child`): the pages the donor had mapped are locked now and the others
-    // (text the child has not touched yet; fork does not copy those page tables) when first
-    // used. A failure cannot be logged here; the donor already logged it at init if it was
-    // refused.
-    let _ = crate::memory::lock_fork_child();
-    // Then break the sharing of every resident private writable page (locked as it is copied).
+    // Locks are not inherited over fork; the child locks again at its first moment between
+    // rounds, once it has answered (`memory::defer_fork_child_lock`): nothing needs the lock
+    // to answer, and it was the dearest single call of the child's part.
+    crate::memory::defer_fork_child_lock();
+    // Break the sharing of every resident private writable page.
     // SAFETY: the fork child has a single thread, and has mapped nothing since the fork.
     let _ = unsafe { crate::cow::break_cow_sharing_after_fork() };
     // Our pipes, onto the donor's fd numbers (nothing has used the donor's copies meanwhile:

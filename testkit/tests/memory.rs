@@ -129,9 +129,9 @@ fn locked_kb(pid: i32) -> u64 {
 }
 
 /// SIGKILLs replica `victim` and waits for its recovery by fork and for the fork child to
-/// have locked its memory (`VmLck` turns non-zero; it locks before its copy-on-write walk,
-/// and the voter reports the recovery only at its `Ready`, after the walk). Returns the
-/// recovery event.
+/// have locked its memory (`VmLck` turns non-zero: it locks at its first moment between rounds,
+/// once it has answered; the voter reports the recovery at its `Ready`, after its
+/// copy-on-write walk). Returns the recovery event.
 fn kill_and_wait_for_locked_fork_child(run: &mut RunningSystem, victim: i32) -> Event {
     s3res_testkit::kill_pid(victim, libc::SIGKILL).unwrap();
     let rec = run.wait_for_event(
@@ -173,7 +173,7 @@ impl Drop for Stopped {
 }
 
 /// Kill a replica of a TMR echo that holds 32 MiB of filled heap; once its fork child has
-/// finished the copy-on-write break (the recovery is reported at its `Ready`, after the walk,
+/// finished the copy-on-write break (the recovery is reported at its `Ready`, after the walk;
 /// and `VmLck` is non-zero), stop the donor and the child and compare the page frames: no present private
 /// writable page of the child may be one of the donor's, but for its stack below its stack
 /// pointer, which holds nothing live and is left shared on purpose (replica-rt's `cow`). The

@@ -646,10 +646,12 @@ fn redundancy_is_restored_after_a_recovery_failed() {
 /// never be used must not live on, stopped, holding a copy of the donor's memory), and forks
 /// the slot from the next donor. The sink sees every frame once, in order.
 ///
-/// The child is caught by ptrace as it enters the call that locks its memory, its first after
-/// the `Hello` (see replica-rt's `restart.rs`, "In the child"): the voter has its connection
-/// and waits for `Ready`. (Stopping it with SIGSTOP during its page walk instead raced the
-/// walk, which took from under 0.2 s to 0.6 s here.)
+/// The child is caught by ptrace as it enters its page walk's first `mincore` (or, should the
+/// walk make none, the `recvmsg` that takes its pipes), both after the `Hello` (see
+/// replica-rt's `restart.rs`, "In the child"): the voter has its connection and waits for
+/// `Ready`. (Stopping it with SIGSTOP during its page walk instead raced the walk, which took
+/// from under 0.2 s to 0.6 s here. Until stop 50 the child was caught at its `mlockall`,
+/// which it now makes only once it has answered.)
 #[test]
 fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
     // 10 s of input: the system still runs when the child must be gone (at its end, the whole
@@ -665,10 +667,11 @@ fn a_fork_child_that_never_confirms_is_killed_and_the_next_donor_forks() {
     // Both donors must have answered to be asked to fork (else the slot is filled by exec).
     run.wait_for_answers("echo");
     let pids = run.replica_pids("echo");
-    let locks = [libc::SYS_mlock, libc::SYS_mlock2, libc::SYS_mlockall];
-    let mut child = s3res_testkit::trace::catch_fork_child(&[pids[&0], pids[&1]], &locks, || {
-        s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill replica 2")
-    });
+    let after_hello = [libc::SYS_mincore, libc::SYS_recvmsg];
+    let mut child =
+        s3res_testkit::trace::catch_fork_child(&[pids[&0], pids[&1]], &after_hello, || {
+            s3res_testkit::kill_pid(pids[&2], libc::SIGKILL).expect("kill replica 2")
+        });
     let (donor, child_pid) = (child.parent, child.pid);
     let rec = run.wait_for_event(|e| is_recovery_of(e, 2, pids[&2]), Duration::from_secs(30));
     let next_donor = if donor == pids[&0] { 1 } else { 0 };

@@ -439,13 +439,25 @@ fn every_fork_child_of_an_unmodified_program_joins_on_a_spare_line() {
         (text.lines().count() >= 20).then_some(())
     });
     for slot in [2, 0, 2] {
-        let pid = run.replica_pids("sum")[&slot];
+        let pids = run.replica_pids("sum");
+        let pid = pids[&slot];
         s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill a replica");
         let rec = run.wait_for_recovery("sum", slot, pid);
         assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
         assert_eq!(rec.state_lost, Some(false), "{rec:?}");
         // Some lines (4 ms apart): donor and child write an answer, and make their lines.
         std::thread::sleep(Duration::from_millis(300));
+        // The child locks its memory once it has answered (at the preload library's `write`),
+        // as its donor did at start (where the donor could not, neither can the child).
+        let donor = pids[&rec.donor.expect("a fork names its donor")];
+        if s3res_testkit::procs::locked_kib(donor).unwrap_or(0) > 0 {
+            let child = rec.new_pid.expect("new pid");
+            s3res_testkit::wait_until(
+                "the fork child locks its memory",
+                Duration::from_secs(10),
+                || (s3res_testkit::procs::locked_kib(child).unwrap_or(0) > 0).then_some(()),
+            );
+        }
     }
     let out = run.wait_success(LIMIT);
     s3res_testkit::assert_children_joined_on_spare_lines(&out.stderr, 3);
