@@ -204,8 +204,8 @@ static FORK_CHILD_UNLOCKED: AtomicBool = AtomicBool::new(false);
 /// Called by a fork child in the restart handler: its memory is to be locked at its first
 /// moment between rounds ([`lock_fork_child`]), not before its `Ready`. Locks are not
 /// inherited over fork, and `mlockall(MCL_CURRENT …)` visits every mapping and every present
-/// page to lock it: 37 µs of a 4 KiB replica's restart on the AMD host of docs/results.md
-/// (stop 50), on the restart's critical path, where the child's page walk and the lock were
+/// page to lock it: 37–45 µs (traced) of a 4 KiB replica's restart on the AMD host of
+/// docs/results.md (stop 50), on the restart's critical path, where the child's page walk and the lock were
 /// the part of the restart that the voter waited for. Nothing needs the lock to answer:
 /// every page the child shares with its donor or owns after its walk is resident (the donor's
 /// locked pages stay locked while it lives), so until the lock only a reclaim under memory

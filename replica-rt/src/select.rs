@@ -20,7 +20,7 @@ use std::time::Duration;
 
 use crate::contract::MAX_PORTS;
 use crate::port::{InPort, RecvError};
-use crate::sys;
+use crate::{restart, sys};
 
 /// What a non-blocking receive found.
 #[derive(Debug, PartialEq, Eq)]
@@ -58,6 +58,8 @@ pub fn wait_any(ports: &[&InPort], timeout: Option<Duration>) -> io::Result<Read
             "wait_any: more ports than a component may have",
         ));
     }
+    // Before waiting for input: the round before has been answered (as in `recv`).
+    restart::between_rounds();
     let deadline = timeout.map(|t| sys::monotonic_ns().saturating_add(nanos(t)));
     let mut pfds = [libc::pollfd {
         fd: -1,
@@ -127,6 +129,8 @@ impl InPort {
     /// The next frame, waiting at most `timeout` for it; [`TryRecv::Empty`] if none came whole
     /// in time.
     pub fn recv_timeout(&mut self, timeout: Duration) -> Result<TryRecv<'_>, RecvError> {
+        // Before waiting for input: the round before has been answered (as in `recv`).
+        restart::between_rounds();
         self.recv_until(Some(sys::monotonic_ns().saturating_add(nanos(timeout))))
     }
 

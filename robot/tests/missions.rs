@@ -125,7 +125,7 @@ fn inject_until_end<T>(
 /// may race the end of the mission (the replica had finished, or the voter was ending, when a
 /// fault is recorded but not repaired) and is then excused: the injection loop waits for each
 /// recovery before the next kill, so no earlier one can.
-fn assert_kills_recovered_by_fork(events: &[Event], killed: &[Injection<()>]) {
+fn assert_kills_recovered_by_fork<T>(events: &[Event], killed: &[Injection<T>]) {
     for (i, k) in killed.iter().enumerate() {
         let of = |kind: EventKind| {
             events.iter().find(|e| {
@@ -251,8 +251,12 @@ fn tmr_mission_survives_navigator_kills() {
     let _robot = one_robot_at_a_time();
     let (mut rng, mut run) = start_tmr_robot(1, &["navigator", "filter"]);
 
+    // Each replica's locked memory as it is killed (0.3–0.7 s after the recovery before).
     let killed = inject_until_end(&mut run, &mut rng, &["navigator"], |_, pid| {
-        s3res_testkit::kill_pid(pid, libc::SIGKILL).ok()
+        let locked_kib = procs::locked_kib(pid).unwrap_or(0);
+        s3res_testkit::kill_pid(pid, libc::SIGKILL)
+            .ok()
+            .map(|()| locked_kib)
     });
     let out = run.wait_success(LIMIT);
     let m = mission(&run);
@@ -263,6 +267,25 @@ fn tmr_mission_survives_navigator_kills() {
         killed.len()
     );
     assert_kills_recovered_by_fork(&out.events, &killed);
+    // A fork child locks its memory once it has answered, where the navigator waits for its
+    // inputs (`wait_any`): every one killed had, where the replicas started by exec could.
+    let forked: Vec<i32> = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::Recovery && e.component == "navigator")
+        .filter_map(|e| e.new_pid)
+        .collect();
+    let (children, first): (Vec<_>, Vec<_>) = killed.iter().partition(|k| forked.contains(&k.pid));
+    if first.iter().any(|k| k.what > 0) {
+        for k in &children {
+            assert!(
+                k.what > 0,
+                "fork child {} of navigator {} had no memory locked when it was killed",
+                k.pid,
+                k.slot
+            );
+        }
+    }
     assert_eq!(m["success"], true, "{}", line(&m));
     assert_eq!(m["collisions"], 0);
     assert_no_sdc(&out.events);
