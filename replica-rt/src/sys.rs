@@ -472,7 +472,7 @@ pub fn parent_of(pidfd: BorrowedFd<'_>, pid: libc::pid_t) -> Option<libc::pid_t>
         return libc::pid_t::try_from(info.ppid).ok();
     }
     match io::Error::last_os_error().raw_os_error() {
-        // The process has exited (it may not have been reaped yet).
+        // Gone: reaped (a zombie still answers, with its parent, as `/proc` does).
         Some(libc::ESRCH) => None,
         _ => parent_pid(pid),
     }
@@ -1679,6 +1679,8 @@ mod tests {
             "as /proc says"
         );
         sleeper.0.kill().unwrap();
+        until_zombie(pid);
+        assert_eq!(parent_of(pidfd.as_fd(), pid), Some(me), "a zombie");
         sleeper.0.wait().unwrap();
         assert_eq!(parent_of(pidfd.as_fd(), pid), None, "reaped: gone");
     }
