@@ -581,10 +581,7 @@ impl ReactiveVoter {
                 state == Some('R')
             };
             let own = starvation::judge(before, after, span, clocked, runnable);
-            let verdict = starvation::after_coming_back(
-                starvation::after_starving(own, stalls[r].starved_for),
-                stalls[r].came_back > 0,
-            );
+            let verdict = stalls[r].verdict(own);
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
             let wchan = match (verdict, state) {
                 (Window::HadItsChance, Some(s)) if s != 'R' => replica_rt::sys::wchan(rep.pid),
@@ -595,19 +592,8 @@ impl ReactiveVoter {
                 wchan,
                 ..Seen::between(before, after, span, clocked)
             });
-            stalls[r].came_back = match verdict {
-                Window::CameBack => {
-                    let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
-                    starvation::windows_after_coming_back(waited.max(stalls[r].starved_for), span)
-                }
-                _ => stalls[r].came_back.saturating_sub(1),
-            };
-            // Only windows starved by the rule itself make a streak: those starved for a
-            // backlog do not (a spinner would otherwise come back again and again).
-            stalls[r].starved_for = match own {
-                Window::Starved => stalls[r].starved_for + span,
-                _ => Duration::ZERO,
-            };
+            let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
+            stalls[r] = stalls[r].after_window(own, verdict, waited, span);
             if verdict.starved() {
                 starved = starved.with(r);
             }
@@ -648,7 +634,7 @@ impl ReactiveVoter {
                 // replicas' stretch without a CPU (`starvation::after_starving`).
                 if let Some(round) = self.round.as_mut() {
                     for r in late.iter() {
-                        round.stalls[r].starved_for += window;
+                        round.stalls[r].passed_over(window);
                     }
                 }
                 late

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use crate::clock::Instant;
-use crate::starvation::SchedTimes;
+use crate::starvation::{self, SchedTimes, Window};
 
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
@@ -60,6 +60,48 @@ pub struct Stall {
     /// How long it has been found starved in a row, window after window (see
     /// `starvation::after_starving`).
     pub starved_for: Duration,
+}
+
+impl Stall {
+    /// The verdict on a window, from the rule's own (`starvation::judge`) and what the
+    /// windows before it left: back from a stretch without a CPU, or still in a backlog.
+    pub fn verdict(self, own: Window) -> Window {
+        starvation::after_coming_back(
+            starvation::after_starving(own, self.starved_for),
+            self.came_back > 0,
+        )
+    }
+
+    /// What is left for the next window after one of `span` judged `own` by the rule and
+    /// `verdict` in the end, in which the replica's booked wait grew by `waited`.
+    pub fn after_window(
+        self,
+        own: Window,
+        verdict: Window,
+        waited: Duration,
+        span: Duration,
+    ) -> Stall {
+        Stall {
+            came_back: match verdict {
+                Window::CameBack => {
+                    starvation::windows_after_coming_back(waited.max(self.starved_for), span)
+                }
+                _ => self.came_back.saturating_sub(1),
+            },
+            // Only windows starved by the rule itself make a streak: those starved for a
+            // backlog do not (a spinner would otherwise come back again and again).
+            starved_for: match own {
+                Window::Starved => self.starved_for + span,
+                _ => Duration::ZERO,
+            },
+        }
+    }
+
+    /// A window the voter passed over (it woke up past its look, held up as much as anyone):
+    /// part of the stretch without a CPU.
+    pub fn passed_over(&mut self, window: Duration) {
+        self.starved_for += window;
+    }
 }
 
 /// What the replicas that had not answered had run and waited, at one moment.
