@@ -700,13 +700,14 @@ pub(crate) fn start_time(pid: libc::pid_t) -> Option<u64> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use replica_rt::frame::{encode_into, resume_frame};
     use replica_rt::shared::memfd;
     use std::os::fd::AsFd;
 
-    fn plan() -> VoterPlan {
+    /// A TMR plan with one input and one output (also `adopt.rs`'s tests').
+    pub(crate) fn plan() -> VoterPlan {
         let json = r#"{"system":"s","component":"c","exec":"/bin/true","args":[],"replicas":3,
             "timeout_us":1000,"inputs":[{"name":"in","fd":3,"max_frame":64}],
             "outputs":[{"name":"out","fd":4,"max_frame":64}],"rounds":[],

@@ -112,7 +112,7 @@ impl SpareLines {
     }
 
     /// The line of replica `pid`, if one was kept; it is used once.
-    fn take(&mut self, pid: libc::pid_t) -> Option<UnixStream> {
+    pub(crate) fn take(&mut self, pid: libc::pid_t) -> Option<UnixStream> {
         let k = self.0.iter().position(|(p, _)| *p == pid)?;
         Some(self.0.swap_remove(k).1)
     }
@@ -456,8 +456,9 @@ pub(crate) fn send_pipes(conn: &UnixStream, pipes: ReplicaPipes) -> io::Result<R
     Ok(pipes)
 }
 
-/// What a connection taken off the socket during an attempt is, as far as spare lines go.
-enum Line {
+/// What a connection taken off the socket during an attempt (or an adoption) is, as far as
+/// spare lines go.
+pub(crate) enum Line {
     /// A spare line of replica `pid`, one of ours now; its announcement read.
     Kept(libc::pid_t, UnixStream),
     /// A spare line of a replica that is no longer ours (replaced since it made it): dropped.
@@ -471,7 +472,7 @@ enum Line {
 /// Tells a spare line from the rest: its first bytes are a [`Spare`] announcement of the
 /// replica that connected (`SO_PEERCRED`), looked at without taking them, or, for one of ours
 /// (`family`) that has not sent them yet, waited for briefly.
-fn spare_line(conn: UnixStream, family: &[libc::pid_t]) -> Line {
+pub(crate) fn spare_line(conn: UnixStream, family: &[libc::pid_t]) -> Line {
     let Ok(pid) = sys::peer_pid(conn.as_fd()) else {
         return Line::Not(conn);
     };
@@ -506,7 +507,7 @@ fn is_announcement(bytes: [u8; Spare::SIZE], pid: libc::pid_t) -> bool {
 
 /// Whether `conn`, from `pid`, starts with a spare line's announcement, looked at without
 /// taking it and without waiting: `None` while fewer bytes than one have come.
-pub(crate) fn peek_announcement(conn: &UnixStream, pid: libc::pid_t) -> Option<bool> {
+fn peek_announcement(conn: &UnixStream, pid: libc::pid_t) -> Option<bool> {
     let mut head = [0u8; Spare::SIZE];
     let peeked = sys::peek_now(conn.as_fd(), &mut head).unwrap_or(0);
     (peeked == Spare::SIZE).then(|| is_announcement(head, pid))
