@@ -75,7 +75,8 @@
 //! its `Hello` on it, and connects as before only if that send fails (a voter replaced since
 //! the line was made); the donor closes its copy after the fork. Both then want a new line,
 //! made in normal context at the next [`between_rounds`] (replica-rt's `recv`, `recv_timeout`
-//! or `wait_any`, before it waits for input; the voter's round is answered by then), with restarts deferred while it
+//! or `wait_any` before it waits for input, `try_recv` before it looks; the voter's round is
+//! answered by then), with restarts deferred while it
 //! is made, so that a fork never copies half a line. A line the voter refused, or could not
 //! take (a full backlog: the connect does not wait), is not tried again until the next fork.
 //! A replica that rebinds to a voter's successor drops its line (it led to the dead voter)
@@ -219,8 +220,8 @@ pub(crate) fn renew_spare_line() {
 /// the spare line is made where one is wanted (module docs, "The spare line"). Two atomic
 /// loads when there is nothing to do. Normal context only; restarts are deferred while the
 /// line is made. Called where a replica has answered and is about to wait for input:
-/// replica-rt's `recv`, `recv_timeout` and `wait_any`, and the preload library's `write` once
-/// a line (or frame) is whole. `errno` is left as it was.
+/// replica-rt's `recv`, `recv_timeout`, `wait_any` and `try_recv`, and the preload library's
+/// `write` once a line (or frame) is whole. `errno` is left as it was.
 pub fn between_rounds() {
     let unlocked = crate::memory::fork_child_unlocked();
     let line_wanted = SPARE_WANTED.load(Ordering::Relaxed);

@@ -123,6 +123,11 @@ impl InPort {
     /// The next frame if one can be had without blocking: from the port's buffer, or from what
     /// the channel holds right now. Errors as [`InPort::recv`].
     pub fn try_recv(&mut self) -> Result<TryRecv<'_>, RecvError> {
+        // As in `recv`: a component that only polls must also lock a fork child's memory and
+        // keep a spare line (`restart::between_rounds`; two atomic loads when there is nothing
+        // to do). One that looks here in the middle of a round, after `wait_any`, has done
+        // that work there already.
+        restart::between_rounds();
         self.recv_until(Some(0))
     }
 

@@ -269,6 +269,58 @@ fn donor_and_fork_child_share_no_private_page() {
     assert_sink_whole(&run.path("summary.json"), count);
 }
 
+/// The unix sockets `pid` holds (`socket:[…]` links in `/proc/PID/fd`).
+fn sockets_held(pid: i32) -> usize {
+    std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .map(|fds| {
+            fds.filter_map(|fd| std::fs::read_link(fd.ok()?.path()).ok())
+                .filter(|target| target.to_string_lossy().starts_with("socket:"))
+                .count()
+        })
+        .unwrap_or(0)
+}
+
+/// Waits (10 s at most) until `who`, replica process `pid`, holds one socket: its spare line.
+fn wait_for_one_socket(pid: i32, who: &str) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while sockets_held(pid) != 1 {
+        assert!(
+            Instant::now() < deadline,
+            "{who} ({pid}) of a polling component made no spare line in 10 s (it holds {} \
+             sockets)",
+            sockets_held(pid)
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// A component that never blocks for input, only looks for it with `try_recv` (`s3res-echo
+/// --poll-us`), is looked after as one that waits: a fork child of it locks its memory, and
+/// makes the spare line for its own next fork child (replica-rt's `restart::between_rounds`,
+/// which `try_recv` did not call before stop 51). A replica holds exactly one socket, that
+/// line: the child's first one (its donor's, on which it joined) is closed at its `Ready`.
+#[test]
+fn a_component_that_only_polls_locks_its_fork_children_and_keeps_spare_lines() {
+    let count = 2000;
+    let sys = System::new();
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful", "--poll-us", "200"], "redundancy": "tmr", "timeout_us": 1000000 }"#;
+    let desc = echo_pipeline(&sys.path("summary.json"), echo, count, 500);
+    let mut run = sys.start(&desc);
+    // (Not `wait_for_answers`: it looks for replicas blocked reading their input.)
+    run.wait_for_replicas("echo", 3);
+    let first = run.replica_pids("echo");
+    // Its handlers are in place; its lock, then its spare line, come at the end of its init.
+    wait_for_one_socket(first[&0], "a replica started by exec");
+    s3res_testkit::require(
+        locked_kb(first[&0]) > 0,
+        "the replica's mlockall was refused (raise RLIMIT_MEMLOCK)",
+    );
+    let rec = kill_and_wait_for_locked_fork_child(&mut run, first[&2]);
+    wait_for_one_socket(rec.new_pid.expect("new pid"), "the fork child");
+    run.wait_success(LIMIT);
+    assert_sink_whole(&run.path("summary.json"), count);
+}
+
 /// Runs bootstrap under `RLIMIT_MEMLOCK=0` (and, as root, without CAP_IPC_LOCK, which would
 /// ignore the limit): every replica's `mlockall` is refused, and the voter's. Each replica
 /// process says so once (fork children, which lock again inside the restart handler, stay

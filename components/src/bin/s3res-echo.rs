@@ -4,6 +4,7 @@
 
 use anyhow::{Context, Result};
 use clap::Parser;
+use replica_rt::TryRecv;
 use s3res_components::Echo;
 
 /// Answers every frame on input `in` with the same bytes on output `out`; exits at the end of
@@ -31,6 +32,11 @@ struct Cli {
     /// component with real work to do (for tests that need rounds to take a while).
     #[arg(long, value_name = "US", default_value_t = 0)]
     work_us: u64,
+    /// Never block for input: look for a frame with `try_recv` and, when none has come, sleep
+    /// this many microseconds and look again (a component that polls, for the tests that
+    /// check such a one is looked after as well as one that waits).
+    #[arg(long, value_name = "US")]
+    poll_us: Option<u64>,
 }
 
 fn main() -> Result<()> {
@@ -50,7 +56,22 @@ fn main() -> Result<()> {
     let ballast = vec![0xa5u8; heap_bytes];
     let mut frames: u64 = 0;
     let work = std::time::Duration::from_micros(cli.work_us);
-    while let Some(frame) = input.recv().context("receiving")? {
+    let poll = cli.poll_us.map(std::time::Duration::from_micros);
+    loop {
+        let frame = match poll {
+            None => match input.recv().context("receiving")? {
+                Some(frame) => frame,
+                None => break,
+            },
+            Some(pause) => match input.try_recv().context("receiving")? {
+                TryRecv::Frame(frame) => frame,
+                TryRecv::Empty => {
+                    std::thread::sleep(pause);
+                    continue;
+                }
+                TryRecv::Closed => break,
+            },
+        };
         // No clock read without work: the round-trip benchmarks measure the runtime, not two
         // clock reads a frame.
         if !work.is_zero() {
