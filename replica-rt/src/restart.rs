@@ -80,7 +80,9 @@
 //! is made, so that a fork never copies half a line. A line the voter refused, or could not
 //! take (a full backlog: the connect does not wait), is not tried again until the next fork.
 //! A replica that rebinds to a voter's successor drops its line (it led to the dead voter)
-//! and makes another at its next `recv`; until then a child connects itself.
+//! and makes another at its next [`between_rounds`]; until then a child connects itself. That
+//! can come before the successor has taken the other replicas back (an answer to finish, a
+//! frame left in the old pipe), and the successor keeps it then too (the voter's `adopt`).
 //! The preload library's programs make the next one in its `write`, once a line (or frame) to
 //! stdout is whole — the answer is out, as at a `recv`. A program whose output never passes
 //! there (C stdio writes from inside libc) has a line at start only: after its first fork its
