@@ -8,6 +8,8 @@
 //!   system runs on.
 //! - `lock_memory: used` locks on fault: a replica holds only what it touched, far less than
 //!   under `all`, and a fork child locks too.
+//! - A component that only polls (`try_recv`) has its fork children lock their memory and keep
+//!   a spare line, as one that waits for input does.
 
 use std::collections::HashSet;
 use std::fs::File;
@@ -323,8 +325,9 @@ fn a_component_that_only_polls_locks_its_fork_children_and_keeps_spare_lines() {
 
 /// Runs bootstrap under `RLIMIT_MEMLOCK=0` (and, as root, without CAP_IPC_LOCK, which would
 /// ignore the limit): every replica's `mlockall` is refused, and the voter's. Each replica
-/// process says so once (fork children, which lock again inside the restart handler, stay
-/// quiet), the voter once, a crash is still recovered by fork, and every frame gets through.
+/// process says so once (fork children, which lock again at their first moment between
+/// rounds, stay quiet), the voter once, a crash is still recovered by fork, and every frame
+/// gets through.
 #[test]
 #[cfg_attr(
     not(s3res_prlimit),
