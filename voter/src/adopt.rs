@@ -324,7 +324,6 @@ mod tests {
     use std::io::{IoSliceMut, Read, Write};
     use std::os::fd::{AsRawFd, RawFd};
     use std::path::Path;
-    use std::process::{Child, Command};
 
     use nix::sys::socket::{recvmsg, ControlMessageOwned, MsgFlags};
     use replica_rt::contract::handshake::{FdTransfer, Ready, Rebind, Spare};
@@ -333,6 +332,7 @@ mod tests {
 
     use super::*;
     use crate::journal::tests::plan;
+    use crate::test_support::Sleeper;
 
     fn entry(pid: libc::pid_t) -> SlotEntry {
         SlotEntry {
@@ -341,16 +341,6 @@ mod tests {
             state_lost: false,
             proven: true,
             offsets: [0; MAX_PORTS],
-        }
-    }
-
-    /// A child process killed and reaped when the test ends, passed or not.
-    struct Reaped(Child);
-
-    impl Drop for Reaped {
-        fn drop(&mut self) {
-            let _ = self.0.kill();
-            let _ = self.0.wait();
         }
     }
 
@@ -402,8 +392,8 @@ mod tests {
         ));
         let listener = UnixListener::bind(&socket).unwrap();
         listener.set_nonblocking(true).unwrap();
-        let late = Reaped(Command::new("sleep").arg("30").spawn().unwrap());
-        let late_pid = late.0.id() as libc::pid_t;
+        let late = Sleeper::start();
+        let late_pid = late.pid();
         let me = std::process::id() as libc::pid_t;
         let table = [Some(entry(me)), Some(entry(late_pid))];
         let path = socket.clone();

@@ -36,6 +36,9 @@ pub mod stderr;
 pub mod stream;
 pub mod vote;
 
+#[cfg(test)]
+mod test_support;
+
 /// The plan, its priority scheme and the events are the protocol's (`s3res-protocol`); the old
 /// paths stay.
 pub use s3res_protocol::{event, plan, sched};

@@ -593,7 +593,7 @@ impl ReactiveVoter {
                 ..Seen::between(before, after, span, clocked)
             });
             let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
-            stalls[r] = stalls[r].after_window(own, verdict, waited, span);
+            stalls[r] = stalls[r].after_window(own, waited, span);
             if verdict.starved() {
                 starved = starved.with(r);
             }

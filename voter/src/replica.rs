@@ -944,11 +944,8 @@ mod tests {
     /// once that process is reaped (its number may belong to another by then).
     #[test]
     fn a_held_stat_file_follows_its_process_and_not_its_number() {
-        let mut child = std::process::Command::new("sleep")
-            .arg("30")
-            .spawn()
-            .unwrap();
-        let pid = child.id() as libc::pid_t;
+        let mut child = crate::test_support::Sleeper::start();
+        let pid = child.pid();
         let pidfd = sys::pidfd_open(pid).unwrap();
         let stat = ProcStat::new(pid);
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
@@ -956,8 +953,8 @@ mod tests {
             assert!(std::time::Instant::now() < deadline, "sleep never slept");
             std::thread::sleep(Duration::from_millis(5));
         }
-        child.kill().unwrap();
-        child.wait().unwrap();
+        child.0.kill().unwrap();
+        child.0.wait().unwrap();
         assert_eq!(stat.state(pidfd.as_fd()), None, "reaped, yet read");
         // Never opened while it lived: not opened now (its pidfd says it is gone).
         let late = ProcStat::new(pid);

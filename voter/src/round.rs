@@ -72,17 +72,12 @@ impl Stall {
         )
     }
 
-    /// What is left for the next window after one of `span` judged `own` by the rule and
-    /// `verdict` in the end, in which the replica's booked wait grew by `waited`.
-    pub fn after_window(
-        self,
-        own: Window,
-        verdict: Window,
-        waited: Duration,
-        span: Duration,
-    ) -> Stall {
+    /// What is left for the next window after one of `span` judged `own` by the rule (its
+    /// verdict in the end: [`Stall::verdict`]), in which the replica's booked wait grew by
+    /// `waited`.
+    pub fn after_window(self, own: Window, waited: Duration, span: Duration) -> Stall {
         Stall {
-            came_back: match verdict {
+            came_back: match self.verdict(own) {
                 Window::CameBack => {
                     starvation::windows_after_coming_back(waited.max(self.starved_for), span)
                 }

@@ -512,11 +512,8 @@ mod tests {
         );
         // A child of ours asleep: the kernel names where (this crate's tests run as the
         // child's owner, who may read it).
-        let mut sleeper = std::process::Command::new("sleep")
-            .arg("5")
-            .spawn()
-            .unwrap();
-        let pid = sleeper.id() as libc::pid_t;
+        let mut sleeper = crate::test_support::Sleeper::start();
+        let pid = sleeper.pid();
         let mut wchan = None;
         for _ in 0..100 {
             std::thread::sleep(Duration::from_millis(10));
@@ -525,8 +522,8 @@ mod tests {
                 break;
             }
         }
-        sleeper.kill().unwrap();
-        sleeper.wait().unwrap();
+        sleeper.0.kill().unwrap();
+        sleeper.0.wait().unwrap();
         let wchan = wchan.expect("a sleeping child's /proc/PID/wchan names a function");
         assert!(
             wchan.as_str().contains("sleep"),

@@ -2,24 +2,20 @@
 # per fork of a ballast replica: the child's user page faults from the fork to Ready (its 2nd sendto),
 # by phase (before Hello / Hello..recvmsg / recvmsg..Ready) and kind (error code)
 import re, sys, statistics as st, collections
-pat = re.compile(r'^\s*(\S.*?)\s+(\d+)\s+\[(\d+)\]\s+([\d.]+):\s+(\S+):\s*(.*)$')
-ev=[]
-for line in open(sys.argv[1]):
-    m=pat.match(line)
-    if m:
-        comm,pid,cpu,ts,name,rest=m.groups(); ev.append((float(ts)*1e6,int(pid),comm,name,rest))
+from perfscript import events
+ev = events(sys.argv[1])
 def kind(ec):
     ec=int(ec,16)
     if ec & 0x10: return 'exec'
     if ec & 2: return 'cow' if ec & 1 else 'wr-new'
     return 'rd-prot' if ec & 1 else 'read'
 rows=[]; kinds=collections.Counter(); addrs=collections.Counter()
-for i,(t,pid,comm,name,rest) in enumerate(ev):
+for i,(t,pid,comm,name,rest,_cpu) in enumerate(ev):
     if name!='sched:sched_process_fork' or 'ballast' not in comm: continue
     child=int(re.search(r'child_pid=(\d+)',rest).group(1))
     d={'fork':t,'pf':[]}; phase='pre'
     for j in range(i+1,min(len(ev),i+6000)):
-        tj,p,c,n,r=ev[j]
+        tj,p,c,n,r,_=ev[j]
         if p!=child: continue
         if n=='syscalls:sys_enter_sendto':
             if 'hello' not in d: d['hello']=tj; phase='walk'

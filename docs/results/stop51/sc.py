@@ -1,12 +1,8 @@
 #!/usr/bin/env python3
-# per fork of a ballast replica: the child's syscalls (enter->exit) and faults from fork to Ready, as a median timeline
+# per fork of a ballast replica: the child's syscalls (enter->exit) and faults from fork to Ready: two children's sequences, from the middle of the run
 import re, sys, statistics as st, collections
-pat = re.compile(r'^\s*(\S.*?)\s+(\d+)\s+\[(\d+)\]\s+([\d.]+):\s+(\S+):\s*(.*)$')
-ev=[]
-for line in open(sys.argv[1]):
-    m=pat.match(line)
-    if m:
-        comm,pid,cpu,ts,name,rest=m.groups(); ev.append((float(ts)*1e6,int(pid),comm,name,rest,int(cpu)))
+from perfscript import events
+ev = events(sys.argv[1])
 seqs=[]
 for i,(t,pid,comm,name,rest,cpu) in enumerate(ev):
     if name!='sched:sched_process_fork' or 'ballast' not in comm: continue
