@@ -30,7 +30,7 @@ fn run(mut cmd: Command) -> Output {
     let err_file = tempfile::tempfile().unwrap();
     cmd.stdout(out_file.try_clone().unwrap())
         .stderr(err_file.try_clone().unwrap());
-    let mut child = cmd.spawn().expect("starting s3res-bench");
+    let mut child = s3res_testkit::spawn_tied_to_this_process(cmd).expect("starting s3res-bench");
     let started = Instant::now();
     let status = loop {
         if let Some(st) = child.try_wait().unwrap() {
@@ -259,7 +259,7 @@ fn ctrl_c_stops_and_reaps_everything() {
     ])
     .stdout(Stdio::null())
     .stderr(Stdio::piped());
-    let mut child = cmd.spawn().unwrap();
+    let mut child = s3res_testkit::spawn_tied_to_this_process(cmd).unwrap();
     // Let it start the voter and its replicas.
     std::thread::sleep(Duration::from_millis(1500));
     let pid = child.id() as i32;

@@ -5,7 +5,9 @@
 //! How a leftover is found: bootstrap leads its own process group, and carries an environment
 //! mark (`S3RES_TEST_SYSTEM`) that every descendant inherits, so a process that left the group
 //! is found too. The test process is a child subreaper, so orphans are reaped here rather than
-//! lingering as zombies under an init that may not reap.
+//! lingering as zombies under an init that may not reap. A test process that is killed runs no
+//! drop guard; its bootstraps die with it all the same ([`spawn_tied_to_this_process`]), and a
+//! dead bootstrap takes its system with it.
 //!
 //! Binaries: [`bin_path`] builds the workspace's executables once per test process (see
 //! [`bins`]). Random choices: [`Rng::from_env`] prints its seed; `S3RES_TEST_SEED` replays it.
@@ -31,6 +33,7 @@ pub mod events;
 pub mod procs;
 pub mod rng;
 pub mod scenario;
+mod spawner;
 pub mod system;
 pub mod trace;
 pub mod wait;
@@ -42,6 +45,7 @@ pub use scenario::{
     assert_children_joined_on_spare_lines, assert_kills_were_crashes, assert_sink_missed_one,
     assert_sink_whole, echo_pipeline,
 };
+pub use spawner::spawn_tied_to_this_process;
 pub use system::{is_root, Outcome, RunningSystem, System};
 pub use wait::{wait_spinning, wait_state, wait_until};
 

@@ -7,7 +7,7 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Mutex, MutexGuard, Once};
+use std::sync::{Mutex, MutexGuard, Once, OnceLock};
 use std::thread::sleep;
 use std::time::{Duration, Instant};
 
@@ -19,6 +19,7 @@ use tempfile::TempDir;
 use crate::bins::bin_path;
 use crate::events::{parse_events, replica_pids};
 use crate::procs::{self, ProcStat};
+use crate::spawner::spawn_tied_to_this_process;
 use crate::tail;
 
 /// `S3RES_KEEP_TMP=1` keeps each test's temp dir (its path is printed) for a post-mortem.
@@ -191,9 +192,12 @@ impl System {
             let mut cmd = Command::new(setpriv());
             cmd.arg(format!("--reuid={UNPRIVILEGED_ID}"))
                 .arg(format!("--regid={UNPRIVILEGED_ID}"))
-                .arg("--clear-groups")
-                .arg("--")
-                .arg(bootstrap);
+                .arg("--clear-groups");
+            // A change of user clears the parent-death signal (spawner.rs); keep it.
+            if setpriv_keeps_pdeathsig() {
+                cmd.arg("--pdeathsig=keep");
+            }
+            cmd.arg("--").arg(bootstrap);
             cmd
         } else {
             Command::new(bootstrap)
@@ -222,8 +226,7 @@ impl System {
         // Spawn and register under the lock, so that no other test's orphan reaping can take
         // a bootstrap that exits at once for an adopted orphan and steal its exit status.
         let mut bootstraps = lock_bootstraps();
-        let child = cmd
-            .spawn()
+        let child = spawn_tied_to_this_process(cmd)
             .unwrap_or_else(|e| panic!("starting {}: {e}", bootstrap.display()));
         let pgid = child.id() as i32;
         bootstraps.push(pgid);
@@ -281,6 +284,19 @@ fn setpriv() -> PathBuf {
     panic!("an unprivileged test run needs `setpriv` (package util-linux), which is not installed");
 }
 
+/// Whether this `setpriv` has `--pdeathsig` (util-linux 2.33 and later).
+fn setpriv_keeps_pdeathsig() -> bool {
+    static KEEPS: OnceLock<bool> = OnceLock::new();
+    *KEEPS.get_or_init(|| {
+        Command::new(setpriv())
+            .arg("--help")
+            .stdin(Stdio::null())
+            .stderr(Stdio::null())
+            .output()
+            .is_ok_and(|out| String::from_utf8_lossy(&out.stdout).contains("--pdeathsig"))
+    })
+}
+
 /// What a finished system left: exit status, bootstrap's output, and the event log.
 #[derive(Debug, Clone)]
 pub struct Outcome {
@@ -332,7 +348,9 @@ impl Outcome {
 }
 
 /// A started system. Dropping it stops bootstrap (SIGTERM, then SIGKILL to the whole process
-/// group), reaps it, and fails the test if any process of the group is left.
+/// group), reaps it, and fails the test if any process of the group is left. If the test
+/// process itself dies (Ctrl-C, a time limit's SIGKILL), the kernel SIGKILLs bootstrap, which
+/// takes its system with it (`spawner.rs`).
 pub struct RunningSystem {
     dir: Option<TempDir>,
     child: Child,
@@ -349,6 +367,11 @@ impl RunningSystem {
     /// Bootstrap's pid, which is also the process group of the whole system.
     pub fn pid(&self) -> i32 {
         self.pgid
+    }
+
+    /// The value of [`MARK_ENV`] that every process of this system carries.
+    pub fn mark(&self) -> &str {
+        &self.mark
     }
 
     pub fn pgid(&self) -> i32 {
@@ -681,7 +704,7 @@ fn killpg(pgid: i32) {
 /// An adopted orphan is told from a child we spawned ourselves thus: it is not a registered
 /// bootstrap (whose `Child` reaps it), and it is not in the test's own process group (where a
 /// cargo build, or anything a test spawns directly, stays).
-fn reap_orphans_here() {
+pub fn reap_orphans_here() {
     static SUBREAPER: Once = Once::new();
     SUBREAPER.call_once(|| {
         if let Err(e) = replica_rt::sys::set_child_subreaper() {

@@ -112,6 +112,157 @@ fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
     );
 }
 
+/// What the test process started below prints once its system runs: bootstrap's pid, the
+/// system's mark and its temp dir.
+const KILLED_TEST_PROCESS_SAYS: &str = "s3res-test-system-running";
+
+/// The body of the test process that `a_killed_test_process_takes_its_system_with_it` starts
+/// and kills: a running system, what identifies it on stdout, then a wait for stdin to end
+/// (at once when run alone, with stdin empty: the system is then stopped as usual).
+#[test]
+#[ignore = "started, and killed mid-run, by a_killed_test_process_takes_its_system_with_it"]
+fn a_test_process_killed_with_its_system_running() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    println!(
+        "{KILLED_TEST_PROCESS_SAYS} {} {} {}",
+        run.pid(),
+        run.mark(),
+        run.dir().display()
+    );
+    let mut rest = Vec::new();
+    let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut rest);
+    run.stop();
+}
+
+/// A test process started by a test, with what its system left to clean up when the test
+/// fails: the test process's group, the system's processes (by mark), its temp dir.
+struct KilledTestProcess {
+    child: std::process::Child,
+    mark: Option<String>,
+    dir: Option<PathBuf>,
+}
+
+impl Drop for KilledTestProcess {
+    fn drop(&mut self) {
+        let _ = s3res_testkit::kill_pid(-(self.child.id() as i32), libc::SIGKILL);
+        let _ = self.child.wait();
+        if let Some(mark) = &self.mark {
+            procs::kill_with_env(s3res_testkit::system::MARK_ENV, mark);
+        }
+        s3res_testkit::system::reap_orphans_here();
+        if let Some(dir) = &self.dir {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+}
+
+/// A test process that dies (Ctrl-C on `cargo test`, a time limit's SIGKILL) runs no drop
+/// guard; its systems must not outlive it all the same. The test starts this test binary
+/// again on `a_test_process_killed_with_its_system_running`, waits until that process's system
+/// runs, SIGKILLs the test process alone, and waits (10 s at most) until no process carrying
+/// the system's mark lives. (Before the harness tied bootstrap to the test process, the
+/// system ran on for its minute.)
+#[test]
+fn a_killed_test_process_takes_its_system_with_it() {
+    use std::io::BufRead as _;
+    use std::os::unix::process::CommandExt as _;
+    use std::process::{Command, Stdio};
+
+    // Orphans (bootstrap, once its test process is gone) come here to be reaped.
+    s3res_testkit::system::reap_orphans_here();
+    let exe = std::env::current_exe().expect("the test binary's path");
+    let stderr = tempfile::NamedTempFile::new().expect("a file for its stderr");
+    let mut child = Command::new(exe)
+        .args([
+            "--exact",
+            "a_test_process_killed_with_its_system_running",
+            "--ignored",
+            "--nocapture",
+            "--test-threads=1",
+        ])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(stderr.reopen().expect("reopening the stderr file"))
+        .process_group(0)
+        .spawn()
+        .expect("starting the test binary again");
+    let stdout = child.stdout.take().expect("piped stdout");
+    let mut test = KilledTestProcess {
+        child,
+        mark: None,
+        dir: None,
+    };
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+        {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    // The second test process builds nothing (the binaries are built) but starts a system.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let said = loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let Ok(line) = rx.recv_timeout(left) else {
+            panic!(
+                "the second test process never said its system runs; its stderr:\n{}",
+                s3res_testkit::tail(
+                    &std::fs::read_to_string(stderr.path()).unwrap_or_default(),
+                    30
+                )
+            );
+        };
+        // libtest writes `test NAME ... ` on the same line first.
+        if let Some((_, rest)) = line.split_once(KILLED_TEST_PROCESS_SAYS) {
+            break rest.to_owned();
+        }
+    };
+    let fields: Vec<&str> = said.split_whitespace().collect();
+    let [bootstrap, mark, dir] = fields[..] else {
+        panic!("unexpected line from the second test process: {said:?}");
+    };
+    let bootstrap: i32 = bootstrap.parse().expect("bootstrap's pid");
+    test.mark = Some(mark.to_owned());
+    test.dir = Some(PathBuf::from(dir));
+    let running = procs::with_env(s3res_testkit::system::MARK_ENV, mark);
+    // bootstrap, source, voter, three replicas, sink.
+    assert!(running.len() >= 7, "the system is not running: {running:?}");
+
+    s3res_testkit::kill_pid(test.child.id() as i32, libc::SIGKILL).expect("kill the test process");
+    let status = test.child.wait().expect("reaping the test process");
+    assert_eq!(
+        std::os::unix::process::ExitStatusExt::signal(&status),
+        Some(libc::SIGKILL),
+        "the second test process ended before it was killed: {status}"
+    );
+    let start = Instant::now();
+    loop {
+        let left: Vec<_> = procs::with_env(s3res_testkit::system::MARK_ENV, mark)
+            .into_iter()
+            .filter(|p| !p.is_zombie())
+            .collect();
+        if left.is_empty() {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "10 s after its test process was killed, its system still runs: {left:?}"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    eprintln!(
+        "every process of the system (bootstrap {bootstrap}) gone {:?} after its test process was killed",
+        start.elapsed()
+    );
+}
+
 /// A voter that stops (SIGSTOP) no longer turns its loop, and its heartbeat stands still:
 /// bootstrap kills it after the deadline its plan allows and starts a successor that adopts
 /// the replicas; the run then completes with every frame delivered once, in order, the echo's

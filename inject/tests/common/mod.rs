@@ -51,15 +51,13 @@ pub fn spawn_with(cwd: Option<&Path>, env: &[(&str, &str)], args: &[&str]) -> Sp
     if let Some(cwd) = cwd {
         cmd.current_dir(cwd);
     }
-    let child = cmd
-        .args(args)
+    cmd.args(args)
         .envs(env.iter().copied())
         .env(MARK_ENV, &mark)
         .stdin(Stdio::null())
         .stdout(std::fs::File::create(&out_path).unwrap())
-        .stderr(std::fs::File::create(&err_path).unwrap())
-        .spawn()
-        .unwrap();
+        .stderr(std::fs::File::create(&err_path).unwrap());
+    let child = s3res_testkit::spawn_tied_to_this_process(cmd).unwrap();
     Spawned {
         child,
         mark,
