@@ -360,8 +360,7 @@ def table(res):
         pairs = [p for p in by[(level, size)].values() if all(i in p for i in impls)]
         if not pairs:
             continue
-        size_s = (f"{size >> 20} MiB" if size >= 1 << 20 and size % (1 << 20) == 0
-                  else f"{size >> 10} KiB" if size >= 1024 else f"{size} B")
+        size_s = size_label(size)
         row = "| " + (size_s if restart else f"{LEVEL_NAMES[level]} | {size_s}") + " |"
         for i in impls:
             row += f" {statistics.median(p[i] for p in pairs):.1f} |"
@@ -377,9 +376,14 @@ def table(res):
         out.append(row)
     for (level, size), pairs in sorted(lossy.items()):
         out.append("")
-        out.append(f"Left out of {LEVEL_NAMES[level]} {size} B: {len(pairs)} pair(s) in which S³RES "
+        out.append(f"Left out of {LEVEL_NAMES[level]} {size_label(size)}: {len(pairs)} pair(s) in which S³RES "
                    f"lost rounds without a fault (pairs {', '.join(map(str, sorted(pairs)))}).")
     return "\n".join(out)
+
+
+def size_label(size):
+    return (f"{size >> 20} MiB" if size >= 1 << 20 and size % (1 << 20) == 0
+            else f"{size >> 10} KiB" if size >= 1024 else f"{size} B")
 
 
 def write_meta(res, meta):

@@ -2,10 +2,12 @@
 //! the system does not notice (issue 13, item 2). The stateful TMR echo counts the frames it
 //! has seen; the sink checks every frame arrived once, in order, with that count continuous.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use s3res_testkit::{assert_sink_whole, echo_pipeline, EventKind, Outcome, Rng, System};
+use s3res_testkit::{
+    assert_sink_whole, echo_pipeline, EventKind, Outcome, Rng, RunningSystem, System,
+};
 
 /// A stateful TMR echo fed `count` frames as fast as it takes them, each answer taking
 /// `work_us` of computation: the voter is nearly always in the middle of a round, so a kill
@@ -186,14 +188,7 @@ fn a_voter_killed_during_a_fork_recovery_takes_no_input_with_it() {
 #[test]
 fn a_fault_reported_again_by_the_voters_successor_is_kept_once() {
     const COUNT: u32 = 3000;
-    let sys = System::new();
-    let summary = sys.path("summary.json");
-    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 200000 }"#;
-    let desc = echo_pipeline(&summary, echo, COUNT, 1000);
-    let mut run = sys
-        .env("S3RES_VOTER_CRASH_AT", "fault-reported:1")
-        .env("RUST_LOG", "info")
-        .start(&desc);
+    let (mut run, summary) = echo_crashing_at("fault-reported:1", COUNT);
     run.wait_for_replicas("echo", 3);
     run.wait_for_answers("echo");
     let victim = run.replica_pids("echo")[&0];
@@ -202,13 +197,33 @@ fn a_fault_reported_again_by_the_voters_successor_is_kept_once() {
     assert_success(&out, &summary);
     out.voter_restarts(1);
     assert_one_fault_of(&out, victim);
-    assert!(
-        out.stderr
-            .lines()
-            .any(|l| l.contains("fault reported again by the successor")),
-        "the successor did not report the fault again (the crash point missed?):\n{}",
-        s3res_testkit::tail(&out.stderr, 40)
+    assert_logged(
+        &out,
+        "fault reported again by the successor",
+        "the successor did not report the fault again",
     );
+    assert_sink_whole(&summary, COUNT);
+    run.assert_nothing_left();
+}
+
+/// A voter takes an input frame into its journal before it writes the frame to its replicas
+/// (`Core::deliver_next`). Killed in between (the crash point `input-taken`,
+/// `voter/src/crashpoint.rs`, at the 500th frame), it leaves a frame no replica has and no
+/// channel holds: its successor replays it from the journal, and every frame reaches the sink
+/// once, in order, through a stateful TMR echo whose state stays continuous.
+#[test]
+fn a_voter_killed_between_taking_an_input_and_writing_it_loses_nothing() {
+    const COUNT: u32 = 2000;
+    let (mut run, summary) = echo_crashing_at("input-taken:500", COUNT);
+    let out = run.wait(Duration::from_secs(120));
+    assert_success(&out, &summary);
+    out.voter_restarts(1);
+    assert_logged(
+        &out,
+        "replaying the input taken since the predecessor's last commit",
+        "the successor replayed nothing",
+    );
+    assert!(out.faults().is_empty(), "{:#?}", out.faults());
     assert_sink_whole(&summary, COUNT);
     run.assert_nothing_left();
 }
@@ -281,6 +296,31 @@ fn assert_success(out: &Outcome, summary: &Path) {
         "bootstrap: {}\nsink summary: {}\n{}",
         out.status,
         std::fs::read_to_string(summary).unwrap_or_default(),
+        s3res_testkit::tail(&out.stderr, 40)
+    );
+}
+
+/// A stateful TMR echo pipeline of `count` frames (1000 a second) whose first voter kills
+/// itself at the crash point `at` (`POINT:N`, `voter/src/crashpoint.rs`); and its sink's
+/// summary.
+fn echo_crashing_at(at: &str, count: u32) -> (RunningSystem, PathBuf) {
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--stateful"], "redundancy": "tmr", "timeout_us": 200000 }"#;
+    let desc = echo_pipeline(&summary, echo, count, 1000);
+    let run = sys
+        .env("S3RES_VOTER_CRASH_AT", at)
+        .env("RUST_LOG", "info")
+        .start(&desc);
+    (run, summary)
+}
+
+/// bootstrap's log (the voters' lines included) has a line with `what`; else `why`, with the
+/// note that the crash point may have missed.
+fn assert_logged(out: &Outcome, what: &str, why: &str) {
+    assert!(
+        out.stderr.lines().any(|l| l.contains(what)),
+        "{why} (the crash point missed?):\n{}",
         s3res_testkit::tail(&out.stderr, 40)
     );
 }
