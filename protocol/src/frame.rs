@@ -377,19 +377,6 @@ impl FrameDecoder {
         Ok(self.next_range()?.map(|at| &self.buf[at]))
     }
 
-    /// Where the next whole frame's payload lies, as [`next_frame`](Self::next_frame) finds
-    /// it, without holding the decoder borrowed: its bytes are [`payload_at`](Self::payload_at)
-    /// that range until the decoder takes in more.
-    pub fn next_frame_at(&mut self) -> Result<Option<std::ops::Range<usize>>, FrameError> {
-        self.next_range()
-    }
-
-    /// The bytes at `at`, a range [`next_frame_at`](Self::next_frame_at) returned since the
-    /// decoder last took bytes in.
-    pub fn payload_at(&self, at: std::ops::Range<usize>) -> &[u8] {
-        &self.buf[at]
-    }
-
     /// The next whole frame's payload, as [`next_frame`](Self::next_frame), handed over
     /// into `into` and located by the range returned, without a copy where it can be: when
     /// the frame is the last byte the decoder holds (a replica's answer, read whole) and its
