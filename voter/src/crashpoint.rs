@@ -1,11 +1,11 @@
 //! Crash points, for tests that must prove what a voter's successor finds in each window of
 //! the journal's protocol (see "Lines" in `journal.rs`; `input-delivered`, between an input
 //! frame's writes to the replicas and its take into the journal, `Core::deliver_next`; and
-//! `fault-reported`, between a fault's event and its replica's leaving the table, `held.rs`): with `S3RES_VOTER_CRASH_AT=POINT:N`
-//! in its environment, the first voter of a component SIGKILLs itself the `N`th time it
-//! reaches `POINT`, as an injected fault would kill it between those two system calls. A
-//! successor (`plan.adopt`) ignores it, so the component carries on. Without the variable a
-//! point costs one relaxed load.
+//! `fault-reported`, between a fault's event and its replica's leaving the table,
+//! `held.rs`): with `S3RES_VOTER_CRASH_AT=POINT:N` in its environment, the first voter of a
+//! component SIGKILLs itself the `N`th time it reaches `POINT`, as an injected fault would
+//! kill it between those two system calls. A successor (`plan.adopt`) ignores it, so the
+//! component carries on. Without the variable a point costs one relaxed load.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::OnceLock;
@@ -15,10 +15,10 @@ pub const ENV_CRASH_AT: &str = "S3RES_VOTER_CRASH_AT";
 
 /// The points, in the order an input frame (or a line) and its answer pass them.
 pub const POINTS: [&str; 8] = [
-    "input-delivered",
     "line-staged",
     "line-given",
     "line-moved",
+    "input-delivered",
     "round-committed",
     "answer-announced",
     "answer-read",
