@@ -310,10 +310,8 @@ fn cpu_idle_poll_labels_voter_rows_and_stops_without_the_right() {
     }
     let refused = if s3res_testkit::is_root() {
         // The test binaries are readable by everyone, as the unprivileged system tests need.
-        let mut cmd = Command::new("setpriv");
-        cmd.args(["--reuid=65534", "--regid=65534", "--clear-groups", "--"])
-            .arg(env!("CARGO_BIN_EXE_s3res-bench"))
-            .arg("--bin-dir")
+        let mut cmd = s3res_testkit::system::as_nobody(env!("CARGO_BIN_EXE_s3res-bench"));
+        cmd.arg("--bin-dir")
             .arg(s3res_testkit::bin_dir())
             .arg("--quiet")
             .stdin(Stdio::null());

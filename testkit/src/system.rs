@@ -92,13 +92,7 @@ impl System {
     /// is to drop to `nobody`).
     pub fn round_robin_allowed(&self) -> bool {
         let mut cmd = if self.unprivileged && is_root() {
-            let mut cmd = Command::new(setpriv());
-            cmd.arg(format!("--reuid={UNPRIVILEGED_ID}"))
-                .arg(format!("--regid={UNPRIVILEGED_ID}"))
-                .arg("--clear-groups")
-                .arg("--")
-                .arg("chrt");
-            cmd
+            as_nobody("chrt")
         } else {
             Command::new("chrt")
         };
@@ -189,16 +183,7 @@ impl System {
         );
         let mut cmd = if self.unprivileged && is_root() {
             self.hand_dir_to_unprivileged_user();
-            let mut cmd = Command::new(setpriv());
-            cmd.arg(format!("--reuid={UNPRIVILEGED_ID}"))
-                .arg(format!("--regid={UNPRIVILEGED_ID}"))
-                .arg("--clear-groups");
-            // A change of user clears the parent-death signal (spawner.rs); keep it.
-            if setpriv_keeps_pdeathsig() {
-                cmd.arg("--pdeathsig=keep");
-            }
-            cmd.arg("--").arg(bootstrap);
-            cmd
+            as_nobody(bootstrap)
         } else {
             Command::new(bootstrap)
         };
@@ -282,6 +267,21 @@ fn setpriv() -> PathBuf {
         }
     }
     panic!("an unprivileged test run needs `setpriv` (package util-linux), which is not installed");
+}
+
+/// `program` run as [`UNPRIVILEGED_ID`] (`nobody`, groups cleared) through `setpriv`, by a
+/// test running as root. A change of user clears the parent-death signal
+/// ([`spawn_tied_to_this_process`]); `setpriv` is told to keep it where it can.
+pub fn as_nobody(program: impl AsRef<std::ffi::OsStr>) -> Command {
+    let mut cmd = Command::new(setpriv());
+    cmd.arg(format!("--reuid={UNPRIVILEGED_ID}"))
+        .arg(format!("--regid={UNPRIVILEGED_ID}"))
+        .arg("--clear-groups");
+    if setpriv_keeps_pdeathsig() {
+        cmd.arg("--pdeathsig=keep");
+    }
+    cmd.arg("--").arg(program);
+    cmd
 }
 
 /// Whether this `setpriv` has `--pdeathsig` (util-linux 2.33 and later).
