@@ -52,6 +52,7 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
         journal: common.journal,
         lock_memory: common.lock_memory,
         cpu_idle: common.cpu_idle,
+        spin_us: common.spin_us,
         exec: echo.clone(),
         args: Vec::new(),
         replicas: 3,

@@ -121,6 +121,7 @@ pub fn run(common: &Common, o: &EchoOptions) -> Result<Vec<Row>> {
             journal: common.journal,
             lock_memory: common.lock_memory,
             cpu_idle: common.cpu_idle,
+            spin_us: common.spin_us,
             exec: echo.clone(),
             args: Vec::new(),
             replicas,

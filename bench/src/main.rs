@@ -91,6 +91,12 @@ struct CommonArgs {
     /// costs. Rows without a voter (`--replicas 0`) run without the request either way.
     #[arg(long, global = true, value_name = "halt|poll", default_value = "halt", value_parser = parse_cpu_idle)]
     cpu_idle: CpuIdle,
+    /// How long a voter pinned apart from its replicas (`--setup rr-pinned`) may spin for an
+    /// answer before it sleeps, µs, as a component's `spin_us` (0: never; the default is a
+    /// system description's). Other setups never spin.
+    #[arg(long, global = true, value_name = "US", default_value_t = s3res_protocol::plan::DEFAULT_SPIN_US,
+          value_parser = clap::value_parser!(u32).range(0..=i64::from(s3res_protocol::plan::MAX_SPIN_US)))]
+    spin_us: u32,
 }
 
 fn parse_cpu_idle(s: &str) -> Result<CpuIdle, String> {
@@ -201,6 +207,8 @@ pub struct Common {
     pub lock_memory: LockMemory,
     /// What idle CPUs do while a voter runs (see `--cpu-idle`).
     pub cpu_idle: CpuIdle,
+    /// How long a voter pinned apart from its replicas may spin (see `--spin-us`).
+    pub spin_us: u32,
     /// `Some("static")` when the measured components are statically linked (read once from
     /// their ELF headers: `Bins::component_linking`).
     pub linking: Option<&'static str>,
@@ -270,6 +278,7 @@ fn run() -> Result<()> {
         journal: !cli.common.no_journal,
         lock_memory: cli.common.lock_memory,
         cpu_idle: cli.common.cpu_idle,
+        spin_us: cli.common.spin_us,
     };
     let json = cli.common.json;
     // Taken before measuring: the load then is what the measurement competed with.
@@ -293,6 +302,8 @@ fn run() -> Result<()> {
             // Only a voter holds the request: a row without one (the no-voter baseline) ran
             // on CPUs that sleep when idle.
             r.cpu_idle = cpu_idle.filter(|_| r.replicas > 0);
+            // Only a voter pinned apart from its replicas spins.
+            r.spin_us = (r.setup == "rr-pinned" && r.replicas > 0).then_some(common.spin_us);
             // An unmodified program's rows ran `cat`, not a component of the folder.
             let preloaded = r.what.as_deref().is_some_and(|w| w.starts_with("preload"));
             r.linking = linking.filter(|_| !preloaded);

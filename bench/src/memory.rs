@@ -53,6 +53,7 @@ pub fn run(common: &Common, sizes: &[u64]) -> Result<Vec<MemRow>> {
         journal: common.journal,
         lock_memory: common.lock_memory,
         cpu_idle: common.cpu_idle,
+        spin_us: common.spin_us,
         exec: exec.to_path_buf(),
         args,
         replicas,

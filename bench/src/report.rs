@@ -78,6 +78,10 @@ pub struct Row {
     /// `poll` when the voters kept idle CPUs polling (`--cpu-idle poll`); absent: `halt`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cpu_idle: Option<&'static str>,
+    /// How long the voter could spin for an answer (`--spin-us`), where it could: a voter
+    /// pinned apart from its replicas (`rr-pinned`); absent elsewhere.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub spin_us: Option<u32>,
     /// `static` when the component measured (`s3res-echo`, `s3res-ballast`) was statically
     /// linked (`--component-dir`); absent: dynamically, as the workspace builds it.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -105,6 +109,7 @@ impl Row {
             extra: None,
             machine: None,
             cpu_idle: None,
+            spin_us: None,
             linking: None,
         }
     }

@@ -45,6 +45,7 @@ pub fn run(
             journal: common.journal,
             lock_memory: common.lock_memory,
             cpu_idle: common.cpu_idle,
+            spin_us: common.spin_us,
             exec: ballast.clone(),
             args: vec!["--kib".into(), (size / 1024).to_string()],
             replicas: 3,

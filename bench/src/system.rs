@@ -139,6 +139,8 @@ pub struct Spec {
     pub lock_memory: s3res_protocol::plan::LockMemory,
     /// What idle CPUs do while the voter runs.
     pub cpu_idle: s3res_protocol::plan::CpuIdle,
+    /// How long the voter may spin for an answer from another CPU, µs.
+    pub spin_us: u32,
 }
 
 /// Name of the component in plans and events.
@@ -305,6 +307,7 @@ impl System {
                 framing: spec.preload.as_ref().map(|p| p.1).unwrap_or_default(),
                 lock_memory: spec.lock_memory,
                 cpu_idle: spec.cpu_idle,
+                spin_us: spec.spin_us,
                 preload: spec.preload.as_ref().map(|p| p.0.clone()),
             };
             cmd = Command::new(voter);

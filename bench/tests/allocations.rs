@@ -202,6 +202,7 @@ fn steady_state(monitored: bool) {
         framing: Default::default(),
         lock_memory: Default::default(),
         cpu_idle: Default::default(),
+        spin_us: s3res_protocol::plan::DEFAULT_SPIN_US,
         preload: None,
     };
     let mut plan = plan;

@@ -931,6 +931,7 @@ fn spawn_voter(
         framing: c.framing,
         lock_memory: c.lock_memory,
         cpu_idle: c.cpu_idle,
+        spin_us: c.spin_us,
         preload: c.preload.clone(),
     };
     let mapping: Vec<(RawFd, RawFd)> = handed

@@ -6,7 +6,7 @@
 use std::fmt::Write as _;
 
 use replica_rt::sys;
-use s3res_protocol::plan::{CpuIdle, NiceFallback};
+use s3res_protocol::plan::{CpuIdle, Mode, NiceFallback};
 use s3res_protocol::sched::{self, Schedule};
 
 use crate::plan::{ComponentPlan, SchedLines, SystemPlan};
@@ -165,9 +165,19 @@ impl SystemSched {
             CpuIdle::Poll => "; keeps idle CPUs polling (cpu_idle: poll, needs root)",
             CpuIdle::Halt => "",
         };
+        let spins =
+            c.mode == Mode::Reactive && c.spin_us > 0 && sched::voter_apart(&c.cpus, c.voter_cpu);
+        let spin = if spins {
+            format!(
+                "; looks for answers up to {} µs before it sleeps (spin_us)",
+                c.spin_us
+            )
+        } else {
+            String::new()
+        };
         let _ = writeln!(
             out,
-            "  process   voter      {voter}, {}{idle}",
+            "  process   voter      {voter}, {}{idle}{spin}",
             cpu_text(&voter_cpus)
         );
         for slot in 0..c.replicas {
@@ -354,6 +364,40 @@ mod tests {
             out.contains("nice 0 (instead of SCHED_RR 40: refused), any CPU"),
             "{out}"
         );
+    }
+
+    #[test]
+    fn check_lines_say_where_the_voter_spins() {
+        let voter_line = |extra: &str| {
+            let p = plan(&format!(
+                r#"{{ "name": "n", "components": {{ "a": {{ "exec": "./run.sh" }},
+                "b": {{ "exec": "./run.sh", "redundancy": "tmr", "timeout_us": 100,
+                       "priority": 30{extra} }} }},
+                "channels": [ {{ "from": "a.out", "to": "b.in" }} ] }}"#
+            ));
+            let mut out = String::new();
+            SystemSched::with(&p, true, None, 0).describe(1, &p.components[1], &mut out);
+            out.lines()
+                .find(|l| l.contains("process   voter"))
+                .unwrap()
+                .trim()
+                .to_owned()
+        };
+        assert_eq!(
+            voter_line(r#", "cpus": [1], "voter_cpu": 0"#),
+            "process   voter      SCHED_RR 30, CPU 0; looks for answers up to 50 µs before it \
+             sleeps (spin_us)"
+        );
+        assert_eq!(
+            voter_line(r#", "cpus": [1], "voter_cpu": 0, "spin_us": 0"#),
+            "process   voter      SCHED_RR 30, CPU 0"
+        );
+        // Sharing a CPU with a replica, or not pinned: no spin, nothing said.
+        assert_eq!(
+            voter_line(r#", "cpus": [0, 1], "voter_cpu": 1"#),
+            "process   voter      SCHED_RR 30, CPU 1"
+        );
+        assert_eq!(voter_line(""), "process   voter      SCHED_RR 30, any CPU");
     }
 
     #[test]

@@ -16,7 +16,7 @@ use s3res_protocol::frame::DEFAULT_MAX_FRAME;
 use s3res_protocol::plan::{
     default_max_restarts, default_restart_timeout_ms, default_restart_window_ms,
     default_start_timeout_ms, default_stream_window, CapturePlan, CpuIdle, Framing, LockMemory,
-    Mode, MonitorPlan, RoundTrigger,
+    Mode, MonitorPlan, RoundTrigger, DEFAULT_SPIN_US, MAX_SPIN_US,
 };
 use s3res_protocol::sched::{self, Schedule};
 
@@ -309,6 +309,9 @@ struct ComponentDesc {
     lock_memory: Option<LockMemory>,
     /// Whether idle CPUs may sleep while the voter runs: `halt` (default) or `poll`.
     cpu_idle: Option<CpuIdle>,
+    /// How long the voter may spin for an answer from replicas on other CPUs before it
+    /// sleeps, µs (0: never).
+    spin_us: Option<u64>,
 }
 
 /// `runtime` as written.
@@ -830,6 +833,30 @@ impl Checker<'_> {
             None => None,
         };
 
+        if let Some(us) = desc.spin_us.filter(|&us| us > u64::from(MAX_SPIN_US)) {
+            return Err(self.err(
+                &field("spin_us"),
+                format!(
+                    "spin_us {us} is above {MAX_SPIN_US}: a voter spinning longer than that \
+                     only holds its CPU (0 turns the spin off)"
+                ),
+            ));
+        }
+        if protected && desc.spin_us.is_some_and(|us| us > 0) {
+            if desc.mode == Mode::Stream {
+                warnings.push(format!(
+                    "component {name}: `spin_us` has no effect in stream mode (only a reactive \
+                     voter spins for its replicas' answers)"
+                ));
+            } else if !sched::voter_apart(&cpus, voter_cpu) {
+                warnings.push(format!(
+                    "component {name}: `spin_us` has no effect unless `voter_cpu` is a CPU \
+                     apart from the replicas' `cpus` (the voter spins only for answers from \
+                     other CPUs)"
+                ));
+            }
+        }
+
         let choice = desc.schedule.unwrap_or(ScheduleChoice::Auto);
         let schedule = match choice {
             ScheduleChoice::Auto => sched::choose(replicas, &cpus),
@@ -852,6 +879,7 @@ impl Checker<'_> {
                 (desc.voter_cpu.is_some(), "voter_cpu"),
                 (desc.lock_memory.is_some(), "lock_memory"),
                 (desc.cpu_idle.is_some(), "cpu_idle"),
+                (desc.spin_us.is_some(), "spin_us"),
             ] {
                 if present {
                     warnings.push(format!(
@@ -1276,6 +1304,10 @@ impl Checker<'_> {
             framing: d.framing,
             lock_memory: d.desc.lock_memory.unwrap_or_default(),
             cpu_idle: d.desc.cpu_idle.unwrap_or_default(),
+            spin_us: d
+                .desc
+                .spin_us
+                .map_or(DEFAULT_SPIN_US, |us| us.min(u64::from(MAX_SPIN_US)) as u32),
             preload: d.preload,
         })
     }

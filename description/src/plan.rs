@@ -131,6 +131,8 @@ pub struct ComponentPlan {
     pub lock_memory: LockMemory,
     /// Whether idle CPUs may sleep while the voter runs.
     pub cpu_idle: CpuIdle,
+    /// How long the voter may spin for an answer from replicas on other CPUs, µs.
+    pub spin_us: u32,
     /// An unmodified program: the library put in its `LD_PRELOAD`.
     pub preload: Option<PathBuf>,
 }

@@ -182,6 +182,10 @@ pub struct VoterPlan {
     /// Whether idle CPUs may sleep while this voter runs (see [`CpuIdle`]).
     #[serde(default)]
     pub cpu_idle: CpuIdle,
+    /// How long the voter may spin (look without sleeping) for an answer from replicas that
+    /// run on CPUs other than its own before it sleeps, µs; 0: never (`voter/src/spin.rs`).
+    #[serde(default = "default_spin_us")]
+    pub spin_us: u32,
     /// An unmodified program: this library is put in its `LD_PRELOAD` (it installs the restart
     /// handler and the injection hooks), and its one input and one output are its stdin and
     /// stdout. `None`: the component links replica-rt itself and finds its ports on fd 3, 4, ...
@@ -307,6 +311,18 @@ pub struct NiceFallback {
 
 fn yes() -> bool {
     true
+}
+
+/// The voter's spin for an answer from another CPU, µs, unless the component says (measured
+/// on the 2-core VM of docs/results.md, stop 53: an echo across CPUs answers in 3–10 µs after
+/// its input, a TMR round's third answer 20–40 µs after it).
+pub const DEFAULT_SPIN_US: u32 = 50;
+
+/// The longest spin a component may ask for, µs.
+pub const MAX_SPIN_US: u32 = 1000;
+
+pub fn default_spin_us() -> u32 {
+    DEFAULT_SPIN_US
 }
 
 pub fn default_start_timeout_ms() -> u64 {

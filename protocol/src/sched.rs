@@ -87,6 +87,13 @@ pub fn voter_cpus(cpus: &[usize], voter_cpu: Option<usize>) -> Vec<usize> {
     }
 }
 
+/// Whether the voter has a CPU that none of its replicas runs on: the replicas are pinned
+/// (`cpus` given) and `voter_cpu` is not among them. Only such a voter spins for answers
+/// (`spin_us`).
+pub fn voter_apart(cpus: &[usize], voter_cpu: Option<usize>) -> bool {
+    voter_cpu.is_some_and(|v| !cpus.is_empty() && !cpus.contains(&v))
+}
+
 /// Whether the placement puts two replicas on one CPU: only when they are pinned
 /// (`cpus` given) to fewer CPUs than there are replicas.
 pub fn replicas_share_a_cpu(replicas: usize, cpus: &[usize]) -> bool {

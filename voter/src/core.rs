@@ -160,6 +160,11 @@ pub(crate) trait Mode: Sized {
     fn build_poll_set(&mut self);
     /// When the loop must wake up at the latest.
     fn next_wakeup(&mut self) -> Option<Instant>;
+    /// Whether the wait about to begin may spin before it sleeps (`spin.rs`): it waits for
+    /// answers from replicas that all run on other CPUs than the voter's.
+    fn may_spin(&self) -> bool {
+        false
+    }
     fn on_input_readable(&mut self, i: usize);
     fn on_replica_output(&mut self, r: usize, o: usize);
     fn on_replica_exit(&mut self, r: usize);
@@ -251,6 +256,8 @@ pub(crate) struct Core {
     pub(crate) park: Option<ParkingLot>,
     /// `cpu_idle: poll`: the open PM QoS request that keeps idle CPUs polling (`rt.rs`).
     _cpu_latency: Option<std::fs::File>,
+    /// What the waits may still spin (`spin.rs`).
+    spin: crate::spin::Spin,
 }
 
 /// What a stream voter needs from its predecessor's journal (see [`Core::slot_offsets`]).
@@ -301,6 +308,7 @@ impl Core {
         // Models are checked before any replica starts: a bad one is an error, not a surprise.
         let monitors = Monitors::load(&plan)?;
         let captures = Captures::open(&plan)?;
+        let spin = crate::spin::Spin::new(plan.spin_us);
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
@@ -379,6 +387,7 @@ impl Core {
             last_delivered_len: Vec::new(),
             park,
             _cpu_latency: cpu_latency,
+            spin,
         };
         core.last_delivered_len = vec![0; core.plan.inputs.len()];
         core.slot_offsets = vec![[0; MAX_PORTS]; core.plan.replicas];
@@ -1391,8 +1400,17 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
         .fold(heartbeat, Instant::min);
     m.core().timer.wake_by(wake)?;
     beat();
-    m.core().poll.seal();
-    let ready = m.core().poll.wait()?;
+    let spin = if m.may_spin() {
+        m.core().spin.grant(Instant::now())
+    } else {
+        None
+    };
+    let core = m.core();
+    core.poll.seal();
+    let (ready, spun) = core.poll.wait(spin)?;
+    if !spun.is_zero() {
+        core.spin.spent(spun);
+    }
     for out in &mut m.core().outputs {
         if out.writer.waiting_for_room() {
             out.flush();

@@ -31,6 +31,7 @@ pub mod recovery;
 pub mod replica;
 pub mod round;
 pub mod rt;
+pub mod spin;
 pub mod starvation;
 pub mod stderr;
 pub mod stream;

@@ -359,28 +359,48 @@ impl PollSet {
     }
 
     /// Waits until something in the (sealed) set is ready, with no time limit (the wake
-    /// timer bounds it); fills in `revents` and returns how many fds are ready, 0 if a signal
-    /// interrupted the wait.
-    pub(crate) fn wait(&mut self) -> Result<usize, VoterError> {
+    /// timer bounds it), after looking for up to `spin` without sleeping (`spin.rs`); fills in
+    /// `revents` and returns how many fds are ready (0 if a signal interrupted the wait) and
+    /// how long it spun.
+    pub(crate) fn wait(&mut self, spin: Option<Duration>) -> Result<(usize, Duration), VoterError> {
         if let Some(k) = self.wait_epoll() {
             self.wait_events.resize(self.fds.len(), EpollEvent::empty());
             // What the wait does not report ready stays 0, as after a `ppoll`.
             for p in &mut self.fds {
                 p.revents = 0;
             }
+            let mut spun = Duration::ZERO;
+            if let Some(limit) = spin {
+                let began = Instant::now();
+                loop {
+                    match self.waits[k]
+                        .epoll
+                        .wait(&mut self.wait_events, EpollTimeout::ZERO)
+                    {
+                        Ok(0) => {}
+                        Ok(n) => {
+                            self.took_events(n);
+                            return Ok((n, began.elapsed()));
+                        }
+                        // The sleep below says what is wrong, if anything.
+                        Err(_) => break,
+                    }
+                    spun = began.elapsed();
+                    if spun >= limit {
+                        break;
+                    }
+                    sys::yield_cpu();
+                }
+            }
             match self.waits[k]
                 .epoll
                 .wait(&mut self.wait_events, EpollTimeout::NONE)
             {
                 Ok(n) => {
-                    for e in &self.wait_events[..n] {
-                        // EPOLLIN, EPOLLOUT, EPOLLERR and EPOLLHUP are POLLIN, POLLOUT,
-                        // POLLERR and POLLHUP: the same bits.
-                        self.fds[e.data() as usize].revents = e.events().bits() as libc::c_short;
-                    }
-                    return Ok(n);
+                    self.took_events(n);
+                    return Ok((n, spun));
                 }
-                Err(nix::errno::Errno::EINTR) => return Ok(0),
+                Err(nix::errno::Errno::EINTR) => return Ok((0, spun)),
                 Err(e) => {
                     tracing::warn!("epoll_wait: {e}; waiting with ppoll from now on");
                     self.waits.clear();
@@ -388,7 +408,16 @@ impl PollSet {
                 }
             }
         }
-        wait_until(&mut self.fds, None)
+        Ok((wait_until(&mut self.fds, None)?, Duration::ZERO))
+    }
+
+    /// Copies the first `n` events of the last `epoll_wait` into the set's `revents`.
+    fn took_events(&mut self, n: usize) {
+        for e in &self.wait_events[..n] {
+            // EPOLLIN, EPOLLOUT, EPOLLERR and EPOLLHUP are POLLIN, POLLOUT, POLLERR and
+            // POLLHUP: the same bits.
+            self.fds[e.data() as usize].revents = e.events().bits() as libc::c_short;
+        }
     }
 
     /// The index in `waits` of the instance that watches the set as it is now, made if
@@ -1093,7 +1122,7 @@ mod tests {
             set.add(fd, libc::POLLIN, token, owner);
         }
         set.seal();
-        let n = set.wait().unwrap();
+        let n = set.wait(None).unwrap().0;
         let ready: Vec<Token> = (set.fds.iter().zip(&set.tokens))
             .filter(|(p, _)| p.revents != 0)
             .map(|(_, &t)| t)
@@ -1198,6 +1227,51 @@ mod tests {
         assert_eq!(&got[..n], b"new");
     }
 
+    /// A spin sees what the sleep would: an answer that comes while it spins ends it; one that
+    /// comes after it is waited for asleep.
+    #[test]
+    fn a_spinning_wait_returns_what_comes_during_the_spin_or_after_it() {
+        let (r, w) = sys::pipe().unwrap();
+        let mut set = PollSet::default();
+        let writes_after = |delay: Duration| {
+            let w = w.try_clone().unwrap();
+            std::thread::spawn(move || {
+                std::thread::sleep(delay);
+                sys::write(w.as_fd(), b"x").unwrap();
+            })
+        };
+        let wait = |set: &mut PollSet, spin: Duration| {
+            set.fds.clear();
+            set.tokens.clear();
+            set.owners.clear();
+            set.add(r.as_raw_fd(), libc::POLLIN, Token::ReplicaOutput(0, 0), 7);
+            set.seal();
+            let (n, spun) = set.wait(Some(spin)).unwrap();
+            let ready: Vec<Token> = (set.fds.iter().zip(&set.tokens))
+                .filter(|(p, _)| p.revents != 0)
+                .map(|(_, &t)| t)
+                .collect();
+            assert_eq!((n, ready), (1, vec![Token::ReplicaOutput(0, 0)]));
+            let mut buf = [0u8; 1];
+            assert_eq!(sys::read(r.as_fd(), &mut buf).unwrap(), 1);
+            spun
+        };
+        // The answer within a spin of 10 s: found spinning (the spin did not run out).
+        let writer = writes_after(Duration::from_millis(5));
+        let spun = wait(&mut set, Duration::from_secs(10));
+        writer.join().unwrap();
+        assert!(spun < Duration::from_secs(10), "{spun:?}");
+        // Already there: found at the first look.
+        sys::write(w.as_fd(), b"x").unwrap();
+        assert!(wait(&mut set, Duration::from_secs(10)) < Duration::from_secs(10));
+        // The answer long after a spin of 1 µs: the spin ran out, the sleep found it.
+        let writer = writes_after(Duration::from_millis(50));
+        let spun = wait(&mut set, Duration::from_micros(1));
+        writer.join().unwrap();
+        assert!(spun >= Duration::from_micros(1), "{spun:?}");
+        assert!(spun < Duration::from_millis(50), "spun {spun:?}, not slept");
+    }
+
     #[test]
     fn a_loop_that_churns_through_sets_waits_with_ppoll() {
         let pipes = ready_pipes(MADE_PER_WINDOW as usize + 4);
@@ -1210,7 +1284,7 @@ mod tests {
             set.add(r.as_raw_fd(), libc::POLLIN, Token::Input(k), 0);
             set.seal();
             let before = latest(&set).map(|w| w.epoll.0.as_raw_fd());
-            assert_eq!(set.wait().unwrap(), 1);
+            assert_eq!(set.wait(None).unwrap().0, 1);
             assert_ne!(
                 set.fds.last().unwrap().revents,
                 0,

@@ -1124,6 +1124,12 @@ impl Mode for ReactiveVoter {
         self.wakeup()
     }
 
+    fn may_spin(&self) -> bool {
+        self.round
+            .as_ref()
+            .is_some_and(|round| spins_for(self.pending(round), self.shares_cpu))
+    }
+
     fn on_input_readable(&mut self, i: usize) {
         self.core.inputs[i].read();
         self.start_rounds_from_buffered_input();
@@ -1160,6 +1166,13 @@ impl Mode for ReactiveVoter {
 
 /// The replicas of a component placed on `cpus` (voter on `voter_cpu`) that may run on one of
 /// the voter's CPUs (see `sched`): all unless both sides are pinned apart.
+/// Whether a wait for the answers of `pending` may spin before it sleeps (`spin.rs`): when
+/// there are some and no replica runs on the voter's CPU (`shares_cpu`; see
+/// `sched::voter_apart`).
+fn spins_for(pending: ReplicaSet, shares_cpu: ReplicaSet) -> bool {
+    !pending.is_empty() && shares_cpu.is_empty()
+}
+
 fn shares_cpu(cpus: &[usize], voter_cpu: Option<usize>, replicas: usize) -> ReplicaSet {
     let voter = crate::sched::voter_cpus(cpus, voter_cpu);
     (0..replicas)
@@ -1244,6 +1257,37 @@ mod tests {
         assert_eq!(shares_cpu(&[0, 1], Some(1), 3), set(&[1]));
         // Voter pinned, replicas not: they may come to its CPU.
         assert_eq!(shares_cpu(&[], Some(0), 2), set(&[0, 1]));
+    }
+
+    #[test]
+    fn a_wait_spins_only_for_answers_from_other_cpus() {
+        // Voter on CPU 0, replicas on CPU 1: every wait in a round.
+        let apart = shares_cpu(&[1], Some(0), 3);
+        assert!(spins_for(set(&[0, 1, 2]), apart));
+        assert!(spins_for(set(&[2]), apart));
+        // Nobody to wait for (between rounds, for input): no spin.
+        assert!(!spins_for(ReplicaSet::EMPTY, apart));
+        // One CPU, or replicas not pinned: they run only when the voter sleeps.
+        assert!(!spins_for(set(&[0]), shares_cpu(&[0], Some(0), 3)));
+        assert!(!spins_for(set(&[0]), shares_cpu(&[], Some(0), 1)));
+        // Replicas over CPUs 0 and 1 (0, 1, 0), voter on 1: replica 1 runs only when the
+        // voter sleeps, and the voter does not tell its waits apart.
+        let mixed = shares_cpu(&[0, 1], Some(1), 3);
+        assert!(!spins_for(set(&[0, 2]), mixed));
+        assert!(!spins_for(set(&[1, 2]), mixed));
+        // As `sched::voter_apart` says, which bootstrap and the description check by.
+        for (cpus, voter) in [
+            (&[1][..], Some(0)),
+            (&[0], Some(0)),
+            (&[], Some(0)),
+            (&[0, 1], Some(1)),
+        ] {
+            assert_eq!(
+                shares_cpu(cpus, voter, 3).is_empty(),
+                crate::sched::voter_apart(cpus, voter),
+                "{cpus:?} {voter:?}"
+            );
+        }
     }
 
     #[test]

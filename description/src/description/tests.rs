@@ -1110,3 +1110,86 @@ fn lock_memory_is_passed_on_and_checked() {
         |c| c.lock_memory.as_str(),
     );
 }
+
+#[test]
+fn spin_us_is_passed_on_checked_and_explained() {
+    let f = fixture();
+    let tmr = |extra: &str| {
+        format!(
+            r#"{{ "name": "n", "components": {{ "s": {{ "exec": "run.sh" }},
+  "e": {{ "exec": "run.sh", "redundancy": "tmr", "timeout_us": 10{extra} }} }},
+  "channels": [ {{ "from": "s.out", "to": "e.in" }} ] }}"#
+        )
+    };
+    let spin = |plan: &SystemPlan| {
+        plan.components
+            .iter()
+            .find(|c| c.name == "e")
+            .unwrap()
+            .spin_us
+    };
+    // The default, where it spins (voter apart from its replicas) or not.
+    let plan = f.ok(&tmr(r#", "cpus": [1], "voter_cpu": 0"#));
+    assert_eq!(spin(&plan), s3res_protocol::plan::DEFAULT_SPIN_US);
+    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
+    let plan = f.ok(&tmr(""));
+    assert_eq!(spin(&plan), s3res_protocol::plan::DEFAULT_SPIN_US);
+    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
+    // Set, and off.
+    let plan = f.ok(&tmr(r#", "cpus": [1], "voter_cpu": 0, "spin_us": 120"#));
+    assert_eq!(spin(&plan), 120);
+    let plan = f.ok(&tmr(r#", "spin_us": 0"#));
+    assert_eq!(spin(&plan), 0);
+    assert!(plan.warnings.is_empty(), "{:?}", plan.warnings);
+    // Asked for where no answer comes from another CPU: said once, and the system runs.
+    for placement in [
+        "",
+        r#", "voter_cpu": 0"#,
+        r#", "cpus": [0, 1], "voter_cpu": 1"#,
+    ] {
+        let plan = f.ok(&tmr(&format!(r#"{placement}, "spin_us": 30"#)));
+        assert_eq!(
+            plan.warnings,
+            vec![
+                "component e: `spin_us` has no effect unless `voter_cpu` is a CPU apart from \
+                  the replicas' `cpus` (the voter spins only for answers from other CPUs)"
+                    .to_owned()
+            ],
+            "{placement}"
+        );
+    }
+    f.fails(
+        &format!(
+            "{{\"name\": \"x\", \"components\": {{\n \"e\": {{\"exec\": \"run.sh\",\n \
+             \"redundancy\": \"tmr\", \"timeout_us\": 10, \"spin_us\": {}}}}}}}",
+            s3res_protocol::plan::MAX_SPIN_US + 1
+        ),
+        3,
+        "components.e.spin_us",
+        "spin_us 1001 is above 1000",
+    );
+    f.fails(
+        "{\"name\": \"x\", \"components\": {\n \"e\": {\"exec\": \"run.sh\",\n \
+         \"redundancy\": \"tmr\", \"spin_us\": -5}}}",
+        3,
+        "components.e.spin_us",
+        "invalid value",
+    );
+    let plan = f.ok(&tmr(
+        r#", "mode": "stream", "cpus": [1], "voter_cpu": 0, "spin_us": 30"#,
+    ));
+    assert_eq!(
+        plan.warnings,
+        vec![
+            "component e: `spin_us` has no effect in stream mode (only a reactive voter spins \
+              for its replicas' answers)"
+                .to_owned()
+        ]
+    );
+    let plan =
+        f.ok(r#"{ "name": "n", "components": { "s": { "exec": "run.sh", "spin_us": 30 } } }"#);
+    assert_eq!(
+        plan.warnings,
+        vec!["component s: `spin_us` is ignored without redundancy".to_owned()]
+    );
+}
