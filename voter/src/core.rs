@@ -308,7 +308,12 @@ impl Core {
         // Models are checked before any replica starts: a bad one is an error, not a surprise.
         let monitors = Monitors::load(&plan)?;
         let captures = Captures::open(&plan)?;
-        let spin = crate::spin::Spin::new(plan.spin_us);
+        // Only a voter with a CPU of its own spins (`reactive.rs`, `spins_for`), and its
+        // headroom is that CPU's.
+        let own_cpu = plan
+            .voter_cpu
+            .filter(|_| crate::sched::voter_apart(&plan.cpus, plan.voter_cpu));
+        let spin = crate::spin::Spin::new(plan.spin_us, own_cpu);
         // Before the first replica: replicas start from the voter's settings.
         let mut rt = RealTime::new(&plan);
         rt.apply_to_voter();
@@ -1407,10 +1412,7 @@ pub(crate) fn wait_and_dispatch(m: &mut impl Mode) -> Result<(), VoterError> {
     };
     let core = m.core();
     core.poll.seal();
-    let (ready, spun) = core.poll.wait(spin)?;
-    if !spun.is_zero() {
-        core.spin.spent(spun);
-    }
+    let (ready, _spun) = core.poll.wait(spin)?;
     for out in &mut m.core().outputs {
         if out.writer.waiting_for_room() {
             out.flush();
