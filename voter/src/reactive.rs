@@ -1164,8 +1164,6 @@ impl Mode for ReactiveVoter {
     fn started_fresh(&mut self, _slot: usize) {}
 }
 
-/// The replicas of a component placed on `cpus` (voter on `voter_cpu`) that may run on one of
-/// the voter's CPUs (see `sched`): all unless both sides are pinned apart.
 /// Whether a wait for the answers of `pending` may spin before it sleeps (`spin.rs`): when
 /// there are some and no replica runs on the voter's CPU (`shares_cpu`; see
 /// `sched::voter_apart`).
@@ -1173,6 +1171,8 @@ fn spins_for(pending: ReplicaSet, shares_cpu: ReplicaSet) -> bool {
     !pending.is_empty() && shares_cpu.is_empty()
 }
 
+/// The replicas of a component placed on `cpus` (voter on `voter_cpu`) that may run on one of
+/// the voter's CPUs (see `sched`): all unless both sides are pinned apart.
 fn shares_cpu(cpus: &[usize], voter_cpu: Option<usize>, replicas: usize) -> ReplicaSet {
     let voter = crate::sched::voter_cpus(cpus, voter_cpu);
     (0..replicas)
