@@ -303,7 +303,11 @@ fn run() -> Result<()> {
             // on CPUs that sleep when idle.
             r.cpu_idle = cpu_idle.filter(|_| r.replicas > 0);
             // Only a voter pinned apart from its replicas spins.
-            r.spin_us = (r.setup == "rr-pinned" && r.replicas > 0).then_some(common.spin_us);
+            let apart = Setup::parse(r.setup).is_ok_and(|s| {
+                let placed = s.plan_fields(r.replicas);
+                s3res_protocol::sched::voter_apart(&placed.cpus, placed.voter_cpu)
+            });
+            r.spin_us = (apart && r.replicas > 0).then_some(common.spin_us);
             // An unmodified program's rows ran `cat`, not a component of the folder.
             let preloaded = r.what.as_deref().is_some_and(|w| w.starts_with("preload"));
             r.linking = linking.filter(|_| !preloaded);
