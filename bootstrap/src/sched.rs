@@ -6,7 +6,7 @@
 use std::fmt::Write as _;
 
 use replica_rt::sys;
-use s3res_protocol::plan::{CpuIdle, Mode, NiceFallback};
+use s3res_protocol::plan::{CpuIdle, NiceFallback};
 use s3res_protocol::sched::{self, Schedule};
 
 use crate::plan::{ComponentPlan, SchedLines, SystemPlan};
@@ -165,9 +165,7 @@ impl SystemSched {
             CpuIdle::Poll => "; keeps idle CPUs polling (cpu_idle: poll, needs root)",
             CpuIdle::Halt => "",
         };
-        let spins =
-            c.mode == Mode::Reactive && c.spin_us > 0 && sched::voter_apart(&c.cpus, c.voter_cpu);
-        let spin = if spins {
+        let spin = if c.voter_spins() {
             format!(
                 "; looks for answers up to {} µs before it sleeps (spin_us)",
                 c.spin_us

@@ -1304,10 +1304,8 @@ impl Checker<'_> {
             framing: d.framing,
             lock_memory: d.desc.lock_memory.unwrap_or_default(),
             cpu_idle: d.desc.cpu_idle.unwrap_or_default(),
-            spin_us: d
-                .desc
-                .spin_us
-                .map_or(DEFAULT_SPIN_US, |us| us.min(u64::from(MAX_SPIN_US)) as u32),
+            // Checked against MAX_SPIN_US above.
+            spin_us: d.desc.spin_us.map_or(DEFAULT_SPIN_US, |us| us as u32),
             preload: d.preload,
         })
     }

@@ -141,6 +141,15 @@ impl ComponentPlan {
     pub fn is_protected(&self) -> bool {
         self.replicas > 0
     }
+
+    /// Whether its voter spins for its replicas' answers (`voter/src/spin.rs`): a reactive
+    /// voter with a CPU none of its replicas runs on, and `spin_us` above 0.
+    pub fn voter_spins(&self) -> bool {
+        self.is_protected()
+            && self.mode == Mode::Reactive
+            && self.spin_us > 0
+            && s3res_protocol::sched::voter_apart(&self.cpus, self.voter_cpu)
+    }
 }
 
 /// The whole validated system.
