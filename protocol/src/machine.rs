@@ -1,4 +1,5 @@
-//! What machine a measurement ran on: CPU model, cores, kernel, load, and the build that ran.
+//! What machine a measurement ran on: CPU model, cores, kernel, load, and the build that ran;
+//! and how its CPUs spent their time (`/proc/stat`: [`CpuTimes`]).
 //!
 //! Campaigns and benchmarks record it next to their results, because false positives and
 //! latencies track the machine's speed and load. Everything is read from `/proc` (and `git`
@@ -138,6 +139,77 @@ fn git(dir: &Path, args: &[&str]) -> Option<String> {
     Some(String::from_utf8_lossy(&out.stdout).trim().to_owned())
 }
 
+/// Which line of `/proc/stat`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cpus {
+    /// The whole machine's (`cpu`, every CPU's times summed).
+    All,
+    /// One CPU's (`cpuN`).
+    One(usize),
+}
+
+/// A CPU's times from `/proc/stat`, in clock ticks since boot (`USER_HZ`, [`ticks_per_second`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CpuTimes {
+    /// Every state but idle and iowait: user, nice, system, irq, softirq, steal.
+    pub busy: u64,
+    /// All eight states.
+    pub total: u64,
+    /// Time the hypervisor ran something else while this guest's CPU had work (`steal`): a
+    /// guest cannot see it as anything but a stall of everything on that CPU. 0 on bare metal.
+    pub steal: u64,
+}
+
+impl CpuTimes {
+    /// The times of `cpus` in the text of `/proc/stat` (its lines `cpu[N] user nice system
+    /// idle iowait irq softirq steal ...`); `None` if that line is missing or cut short.
+    pub fn parse(text: &str, cpus: Cpus) -> Option<CpuTimes> {
+        let line = text.lines().find(|l| {
+            let Some((name, _)) = l.split_once(' ') else {
+                return false;
+            };
+            match (name.strip_prefix("cpu"), cpus) {
+                (Some(""), Cpus::All) => true,
+                (Some(n), Cpus::One(cpu)) => n.parse() == Ok(cpu),
+                _ => false,
+            }
+        })?;
+        let mut fields = line.split_ascii_whitespace().skip(1);
+        let mut ticks = [0u64; 8];
+        for t in &mut ticks {
+            *t = fields.next()?.parse().ok()?;
+        }
+        let [user, nice, system, idle, iowait, irq, softirq, steal] = ticks;
+        let busy = user + nice + system + irq + softirq + steal;
+        Some(CpuTimes {
+            busy,
+            total: busy + idle + iowait,
+            steal,
+        })
+    }
+
+    /// The times of `cpus` now; `None` where `/proc/stat` cannot be read or lacks the line.
+    pub fn now(cpus: Cpus) -> Option<CpuTimes> {
+        CpuTimes::parse(&std::fs::read_to_string("/proc/stat").ok()?, cpus)
+    }
+}
+
+/// Clock ticks a second in `/proc/stat` (`USER_HZ`: 100 on Linux, whatever the kernel's own
+/// tick; asked of `sysconf`).
+pub fn ticks_per_second() -> u64 {
+    nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)
+        .ok()
+        .flatten()
+        .and_then(|t| u64::try_from(t).ok())
+        .filter(|&t| t > 0)
+        .unwrap_or(100)
+}
+
+/// Milliseconds in `ticks` of `/proc/stat`.
+pub fn ticks_to_ms(ticks: u64) -> u64 {
+    ticks * 1000 / ticks_per_second()
+}
+
 fn cpu_model(cpuinfo: &str) -> String {
     let field = |name: &str| {
         cpuinfo.lines().find_map(|l| {
@@ -188,6 +260,57 @@ mod tests {
         assert_eq!(b.commit, None);
         let b = Build::of(Path::new("/nonexistent/target/debug/s3res-bootstrap"));
         assert_eq!(b.profile, "debug");
+    }
+
+    const STAT: &str = "cpu  2603313 12228 770679 6015948 41130 0 5062 139200 0 0
+cpu0 1204561 6115 372188 3126789 11115 0 917 68323 0 0
+cpu1 1398752 6112 398491 2889158 30014 0 4145 70876 0 0
+cpu10 1 2 3 4 5 6 7 8 0 0
+intr 123 4 5
+ctxt 99
+";
+
+    #[test]
+    fn a_cpus_times_are_found_and_counted() {
+        assert_eq!(
+            CpuTimes::parse(STAT, Cpus::One(1)),
+            Some(CpuTimes {
+                busy: 1398752 + 6112 + 398491 + 4145 + 70876,
+                total: 1398752 + 6112 + 398491 + 2889158 + 30014 + 4145 + 70876,
+                steal: 70876,
+            })
+        );
+        // `cpu1` is not `cpu10`, nor the machine's `cpu` line.
+        assert_eq!(
+            CpuTimes::parse(STAT, Cpus::One(10)),
+            Some(CpuTimes {
+                busy: 1 + 2 + 3 + 6 + 7 + 8,
+                total: 36,
+                steal: 8,
+            })
+        );
+        assert_eq!(
+            CpuTimes::parse(STAT, Cpus::All).map(|t| t.steal),
+            Some(139200)
+        );
+        assert_eq!(CpuTimes::parse(STAT, Cpus::One(2)), None);
+        assert_eq!(
+            CpuTimes::parse("cpu0 1 2\n", Cpus::One(0)),
+            None,
+            "a cut line"
+        );
+        assert_eq!(CpuTimes::parse("intr 1 2 3 4 5 6 7 8\n", Cpus::All), None);
+    }
+
+    #[test]
+    fn this_machines_cpu_times_are_read() {
+        let all = CpuTimes::now(Cpus::All).expect("/proc/stat has a cpu line");
+        let first = CpuTimes::now(Cpus::One(0)).expect("/proc/stat has a cpu0 line");
+        assert!(
+            all.total >= first.total && first.total > 0,
+            "{all:?} {first:?}"
+        );
+        assert_eq!(ticks_to_ms(38), 380);
     }
 
     #[test]

@@ -37,6 +37,8 @@ use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::time::Duration;
 
+use s3res_protocol::machine::{CpuTimes, Cpus};
+
 use crate::clock::Instant;
 
 /// How busy the voter's CPU may have been over the last second for the voter to spin.
@@ -113,11 +115,11 @@ impl Headroom {
         Ok(headroom)
     }
 
-    fn read(&mut self) -> std::io::Result<CpuTicks> {
+    fn read(&mut self) -> std::io::Result<CpuTimes> {
         let n = self.stat.read_at(&mut self.buf, 0)?;
         std::str::from_utf8(&self.buf[..n])
             .ok()
-            .and_then(|text| CpuTicks::parse(text, self.cpu))
+            .and_then(|text| CpuTimes::parse(text, Cpus::One(self.cpu)))
             .ok_or_else(|| {
                 std::io::Error::new(
                     std::io::ErrorKind::InvalidData,
@@ -142,46 +144,15 @@ impl Headroom {
     }
 }
 
-/// One CPU's counts from `/proc/stat` (clock ticks since boot).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct CpuTicks {
-    /// Every state but idle and iowait: user, nice, system, irq, softirq, steal.
-    pub busy: u64,
-    pub total: u64,
-}
-
-impl CpuTicks {
-    /// The counts of `cpu` in the text of `/proc/stat` (its line `cpuN user nice system idle
-    /// iowait irq softirq steal ...`).
-    pub fn parse(text: &str, cpu: usize) -> Option<CpuTicks> {
-        let line = text.lines().find(|l| {
-            l.strip_prefix("cpu")
-                .and_then(|rest| rest.split_once(' '))
-                .is_some_and(|(n, _)| n.parse() == Ok(cpu))
-        })?;
-        let mut fields = line.split_ascii_whitespace().skip(1);
-        let mut ticks = [0u64; 8];
-        for t in &mut ticks {
-            *t = fields.next()?.parse().ok()?;
-        }
-        let [user, nice, system, idle, iowait, irq, softirq, steal] = ticks;
-        let busy = user + nice + system + irq + softirq + steal;
-        Some(CpuTicks {
-            busy,
-            total: busy + idle + iowait,
-        })
-    }
-}
-
 /// The last [`SAMPLES`] counts of a CPU, oldest first, and what they say.
 #[derive(Debug, Default)]
 pub struct Load {
-    samples: [CpuTicks; SAMPLES],
+    samples: [CpuTimes; SAMPLES],
     len: usize,
 }
 
 impl Load {
-    pub fn observe(&mut self, ticks: CpuTicks) {
+    pub fn observe(&mut self, ticks: CpuTimes) {
         if self.len == SAMPLES {
             self.samples.copy_within(1.., 0);
             self.len -= 1;
@@ -207,39 +178,11 @@ impl Load {
 mod tests {
     use super::*;
 
-    const STAT: &str = "cpu  2603313 12228 770679 6015948 41130 0 5062 139200 0 0
-cpu0 1204561 6115 372188 3126789 11115 0 917 68323 0 0
-cpu1 1398752 6112 398491 2889158 30014 0 4145 70876 0 0
-cpu10 1 2 3 4 5 6 7 8 0 0
-intr 123 4 5
-ctxt 99
-";
-
-    #[test]
-    fn a_cpus_line_is_found_and_counted() {
-        assert_eq!(
-            CpuTicks::parse(STAT, 1),
-            Some(CpuTicks {
-                busy: 1398752 + 6112 + 398491 + 4145 + 70876,
-                total: 1398752 + 6112 + 398491 + 2889158 + 30014 + 4145 + 70876,
-            })
-        );
-        // `cpu1` is not `cpu10`, nor the machine's `cpu` line.
-        assert_eq!(
-            CpuTicks::parse(STAT, 10),
-            Some(CpuTicks {
-                busy: 1 + 2 + 3 + 6 + 7 + 8,
-                total: 36,
-            })
-        );
-        assert_eq!(CpuTicks::parse(STAT, 2), None);
-        assert_eq!(CpuTicks::parse("cpu0 1 2\n", 0), None, "a cut line");
-    }
-
-    fn ticks(busy: u64, idle: u64) -> CpuTicks {
-        CpuTicks {
+    fn ticks(busy: u64, idle: u64) -> CpuTimes {
+        CpuTimes {
             busy,
             total: busy + idle,
+            steal: 0,
         }
     }
 
@@ -287,6 +230,9 @@ ctxt 99
     fn zero_or_no_cpu_of_its_own_never_spins() {
         assert_eq!(Spin::new(0, Some(0)).grant(Instant::now()), None);
         assert_eq!(Spin::new(50, None).grant(Instant::now()), None);
+        // A CPU `/proc/stat` has no line for (not online, or a number past the machine's):
+        // its load cannot be known, so the voter sleeps at once.
+        assert_eq!(Spin::new(50, Some(1 << 20)).grant(Instant::now()), None);
     }
 
     #[test]
