@@ -1,7 +1,8 @@
 //! Fault-injection hooks, compiled into every component (as in S³RES), in every mode, so that
 //! unprotected components can be injected too.
 //!
-//! - [`signals::INJECT_SDC`]: corrupt the next outgoing frame. The handler only stores the
+//! - [`signals::INJECT_SDC`]: corrupt the next outgoing frame that has a payload (an empty
+//!   one has no bit to flip and leaves the request for the next). The handler only stores the
 //!   request in an atomic; [`crate::OutPort::send`] consumes it and flips the bit (on its own
 //!   copy of the payload) before writing.
 //! - [`signals::inject_cfe`]: spin forever inside the handler, a control-flow error that never
@@ -193,8 +194,11 @@ pub fn injection_pending() -> bool {
 /// Applies a pending SDC injection to `payload` (the outgoing copy), logging what was done.
 pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
     apply_var(port, payload);
-    // As for VAR_ARMED: read first, taken only if there is something to take.
-    if PENDING_SDC.load(Ordering::SeqCst) == NONE {
+    // As for VAR_ARMED: read first, taken only if there is something to take. A frame with
+    // no payload has no bit to flip: the injection waits for the next one that has (as an
+    // unmodified program's lone newline leaves it for its next line), rather than being
+    // used up on nothing and counted as injected.
+    if payload.is_empty() || PENDING_SDC.load(Ordering::SeqCst) == NONE {
         return;
     }
     let req = PENDING_SDC.swap(NONE, Ordering::SeqCst);
@@ -202,13 +206,6 @@ pub(crate) fn apply_pending(port: &str, payload: &mut [u8]) {
         return;
     }
     let bits = payload.len() as u64 * 8;
-    if bits == 0 {
-        tracing::warn!(
-            port,
-            "injected SDC on an empty payload: no bit to flip, frame sent unchanged"
-        );
-        return;
-    }
     let bit = if req >= 0 {
         let bit = req as u64 % bits;
         // Debug: the injector and the voter's events already say it (one line each).
@@ -282,8 +279,13 @@ mod tests {
             apply_pending("out", &mut p);
             assert_eq!(p, clean);
         }
+        // An empty frame has no bit to flip: the injection waits for the next frame that has.
         PENDING_SDC.store(RANDOM, Ordering::SeqCst);
         apply_pending("out", &mut []);
+        assert_eq!(PENDING_SDC.load(Ordering::SeqCst), RANDOM);
+        let mut p = clean;
+        apply_pending("out", &mut p);
+        assert_ne!(p, clean, "the frame after the empty one carries the flip");
         assert_eq!(PENDING_SDC.load(Ordering::SeqCst), NONE);
     }
 
