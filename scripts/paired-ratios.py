@@ -125,6 +125,17 @@ def kill_session(sid):
         time.sleep(0.02)
 
 
+def steal_ms():
+    """Milliseconds the hypervisor has taken from this machine's CPUs since boot (`steal` of
+    /proc/stat's `cpu` line, in USER_HZ ticks); None where it cannot be read."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) * 1000 // os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def run(cmd, cwd=None, env=None):
     """Runs `cmd` in a session of its own; returns its stdout. Everything left of the session
     afterwards is killed."""
@@ -526,9 +537,14 @@ def main():
                 turn = impls[:]
                 rng.shuffle(turn)
                 for impl in turn:
+                    stolen = steal_ms()
                     m = measure(impl, level, size)
                     row = {"pair": pair, "level": level, "size": size, "impl": impl,
                            "median_us": m[0], "p99_us": m[1], "max_us": m[2]}
+                    if stolen is not None:
+                        # What the host took from this VM's CPUs during the run (0 on bare
+                        # metal): a max_us of ~100 ms beside it is the host's.
+                        row["steal_ms"] = steal_ms() - stolen
                     if len(m) > 3 and m[3]:
                         row["lost"] = m[3]
                     runs.write(json.dumps(row) + "\n")

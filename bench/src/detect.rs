@@ -77,23 +77,24 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
             round(&mut system, &mut seq)?;
         }
         bar.set_message(format!("crash, timeout {t} µs"));
-        rows.push(crashes(&mut system, &mut seq, t, o.count, &mut rng, &bar)?);
+        rows.push(metered(|| {
+            crashes(&mut system, &mut seq, t, o.count, &mut rng, &bar)
+        })?);
         bar.set_message(format!("crash-round, timeout {t} µs"));
-        rows.push(crash_rounds(
-            &mut system,
-            &mut seq,
-            t,
-            o.count,
-            &mut rng,
-            &bar,
-        )?);
+        rows.push(metered(|| {
+            crash_rounds(&mut system, &mut seq, t, o.count, &mut rng, &bar)
+        })?);
         bar.set_message(format!("hang, timeout {t} µs"));
-        rows.push(hangs(&mut system, &mut seq, t, o.count, &mut rng, &bar)?);
+        rows.push(metered(|| {
+            hangs(&mut system, &mut seq, t, o.count, &mut rng, &bar)
+        })?);
     }
     if o.rounds > 0 {
         let t = o.timeouts_us.iter().copied().min().unwrap_or(2000);
         bar.set_message(format!("false positives, timeout {t} µs"));
-        rows.push(false_positives(&spec(t), o.setup, o.rounds, &bar)?);
+        rows.push(metered(|| {
+            false_positives(&spec(t), o.setup, o.rounds, &bar)
+        })?);
     }
     bar.finish_and_clear();
     Setup::reset_bench();
@@ -101,6 +102,15 @@ pub fn run(common: &Common, o: &DetectOptions) -> Result<Vec<Row>> {
         r.setup = o.setup.name();
     }
     Ok(rows)
+}
+
+/// One measurement's row, with the host's steal over it (`report::Steal`): a false positive
+/// or a slow detection in a row the host took CPUs from may be the host's.
+fn metered(measure: impl FnOnce() -> Result<Row>) -> Result<Row> {
+    let steal = report::Steal::start();
+    let mut row = measure()?;
+    row.steal_ms = steal.ms();
+    Ok(row)
 }
 
 fn row(what: &str, h: &Histogram<u64>, timeout_us: u64, faults: u64) -> Row {

@@ -179,6 +179,7 @@ fn measure(
     storage.encode(&vec![0u8; size]);
     let mut h = histogram();
     let total = o.warmup + o.count;
+    let steal = report::Steal::start();
     for seq in 0..total {
         if o.program == Program::PreloadLines {
             fill_line(seq, storage.payload_mut());
@@ -196,8 +197,10 @@ fn measure(
         }
     }
     bar.inc(total % 512);
+    let stolen = steal.ms();
     system.drain_events()?;
     let mut row = Row::new("echo", spec.replicas, size as u64, Summary::of(&h));
+    row.steal_ms = stolen;
     if spec.replicas > 0 {
         row.timeout_us = Some(spec.timeout_us);
         row.faults = Some(system.faults.len() as u64);

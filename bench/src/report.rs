@@ -2,6 +2,7 @@
 //! or as JSON lines.
 
 use hdrhistogram::Histogram;
+use s3res_protocol::machine::{ticks_to_ms, CpuTimes, Cpus};
 use serde::Serialize;
 
 /// A histogram of durations in nanoseconds, 1 ns to 100 s, 3 significant digits.
@@ -86,6 +87,32 @@ pub struct Row {
     /// linked (`--component-dir`); absent: dynamically, as the workspace builds it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub linking: Option<&'static str>,
+    /// Milliseconds the hypervisor took this machine's CPUs while the row was measured
+    /// ([`Steal`]); absent where `/proc/stat` could not be read.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub steal_ms: Option<u64>,
+}
+
+/// The host's steal over one measurement: time the hypervisor ran something else while this
+/// guest's CPUs had work to do (`/proc/stat`'s `steal`, every CPU summed; 10 ms ticks). To
+/// the guest it is a stall of everything on that CPU — the voter, a replica, the bench's
+/// client — that no figure of its own tells from the system's latency: on the VM of
+/// docs/results.md (stop 54) a round-trip run's 100 ms maximum was the host's, and idle CPUs
+/// kept polling (`--cpu-idle poll`) are taken more often than halting ones. 0 on bare metal.
+#[derive(Debug)]
+pub struct Steal(Option<CpuTimes>);
+
+impl Steal {
+    /// Starts counting now.
+    pub fn start() -> Steal {
+        Steal(CpuTimes::now(Cpus::All))
+    }
+
+    /// Milliseconds stolen since [`Steal::start`]; `None` if `/proc/stat` could not be read.
+    pub fn ms(&self) -> Option<u64> {
+        let (before, after) = (self.0?, CpuTimes::now(Cpus::All)?);
+        Some(ticks_to_ms(after.steal.saturating_sub(before.steal)))
+    }
 }
 
 impl Row {
@@ -111,6 +138,7 @@ impl Row {
             cpu_idle: None,
             spin_us: None,
             linking: None,
+            steal_ms: None,
         }
     }
 
@@ -226,7 +254,34 @@ pub fn emit(rows: &[Row], json: bool, render: impl Fn(&[Row]) -> String) {
         }
     } else {
         print!("{}", render(rows));
+        print!("{}", steal_notes(rows));
     }
+}
+
+/// A line under the table for every row the host took CPUs from while it was measured.
+pub fn steal_notes(rows: &[Row]) -> String {
+    let mut notes = String::new();
+    for r in rows {
+        let Some(ms) = r.steal_ms.filter(|&ms| ms > 0) else {
+            continue;
+        };
+        let what = r
+            .what
+            .as_deref()
+            .map(|w| format!(" {w}"))
+            .unwrap_or_default();
+        let size = match r.bench {
+            "echo" | "restart" => format!(" {}", bytes_name(r.size)),
+            _ => String::new(),
+        };
+        notes.push_str(&format!(
+            "note: the host took this machine's CPUs for {ms} ms while {}{what} {}{size} ran \
+             (steal, /proc/stat): a stall there is the host's, not the system's\n",
+            r.bench,
+            level_name(r.replicas),
+        ));
+    }
+    notes
 }
 
 #[cfg(test)]
@@ -243,6 +298,27 @@ mod tests {
         assert_eq!(s.count, 5);
         assert!((s.median_us - 3.0).abs() < 0.01, "{s:?}");
         assert!((s.max_us - 100.0).abs() < 0.1, "{s:?}");
+    }
+
+    #[test]
+    fn a_row_the_host_took_cpus_from_says_so_under_the_table() {
+        let mut quiet = Row::new("echo", 3, 8, Summary::default());
+        quiet.steal_ms = Some(0);
+        let mut unknown = Row::new("echo", 3, 4096, Summary::default());
+        unknown.steal_ms = None;
+        let mut taken = Row::new("detect", 3, 8, Summary::default());
+        taken.what = Some("false-positives".into());
+        taken.steal_ms = Some(380);
+        let notes = steal_notes(&[quiet, unknown, taken.clone()]);
+        assert_eq!(notes.lines().count(), 1, "{notes}");
+        assert!(
+            notes.contains("380 ms while detect false-positives tmr ran"),
+            "{notes}"
+        );
+        let v: serde_json::Value = serde_json::from_str(&taken.to_json()).unwrap();
+        assert_eq!(v["steal_ms"], 380);
+        // The steal over a measurement is read where `/proc/stat` is.
+        assert!(Steal::start().ms().is_some());
     }
 
     #[test]

@@ -55,14 +55,17 @@ pub fn run(
             setup,
             preload: None,
         };
+        let steal = report::Steal::start();
         let (restart, extra) = restarts(&spec, setup, count, gap, &bar)
             .with_context(|| format!("restart with {} of state", report::bytes_name(size)))?;
+        let stolen = steal.ms();
         let floor = floor(size as usize, count, Own::Touch, gap, &bar)
             .with_context(|| format!("floor for {}", report::bytes_name(size)))?;
         let floor_madvise = floor_madvise_or_none(size as usize, count, gap, &bar)
             .with_context(|| format!("madvise floor for {}", report::bytes_name(size)))?;
         Setup::reset_bench();
         let mut row = Row::new("restart", 3, size, restart);
+        row.steal_ms = stolen;
         row.setup = setup.name();
         row.timeout_us = Some(timeout_us);
         row.floor_us = Some(floor.median_us);
