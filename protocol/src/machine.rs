@@ -210,6 +210,21 @@ pub fn ticks_to_ms(ticks: u64) -> u64 {
     ticks * 1000 / ticks_per_second()
 }
 
+/// Whether this machine is a virtual machine, as far as the CPU says: x86's `hypervisor` flag
+/// in `/proc/cpuinfo` (set by every common hypervisor; absent on bare metal and, as nothing
+/// says so, on Arm).
+pub fn is_virtual() -> bool {
+    std::fs::read_to_string("/proc/cpuinfo").is_ok_and(|c| hypervisor_flag(&c))
+}
+
+fn hypervisor_flag(cpuinfo: &str) -> bool {
+    cpuinfo.lines().any(|l| {
+        l.split_once(':').is_some_and(|(k, v)| {
+            k.trim() == "flags" && v.split_ascii_whitespace().any(|f| f == "hypervisor")
+        })
+    })
+}
+
 fn cpu_model(cpuinfo: &str) -> String {
     let field = |name: &str| {
         cpuinfo.lines().find_map(|l| {
@@ -242,6 +257,19 @@ mod tests {
         assert_eq!((l.one, l.five, l.fifteen), (0.52, 1.03, 2.5));
         assert!(parse_loadavg("").is_none());
         assert!(parse_loadavg("x y z").is_none());
+    }
+
+    #[test]
+    fn a_virtual_machine_is_told_by_its_cpu_flags() {
+        let vm = "processor\t: 0\nflags\t\t: fpu vme sse2 hypervisor lahf_lm\n";
+        assert!(hypervisor_flag(vm));
+        let metal = "processor\t: 0\nflags\t\t: fpu vme sse2 lahf_lm\n";
+        assert!(!hypervisor_flag(metal));
+        // Only the flags line counts, and only the whole word.
+        assert!(!hypervisor_flag(
+            "model name\t: hypervisor\nflags\t: nohypervisor\n"
+        ));
+        assert!(!hypervisor_flag(""));
     }
 
     #[test]

@@ -938,6 +938,7 @@ fn bootstrap_keeps_task_clocks_ready_and_a_voter_holds_none_while_no_replica_is_
 
 /// What the voter says, once, when it may not keep idle CPUs polling.
 const POLL_REFUSED: &str = "`cpu_idle: poll` could not be applied";
+const POLL_ON_A_VM: &str = "idle CPUs poll on a virtual machine";
 
 /// The machine's current CPU latency limit, µs (reading needs root): 0 while some process
 /// holds a request of 0.
@@ -1005,6 +1006,15 @@ fn cpu_idle_poll(unprivileged: bool) {
         occurrences(&out.stderr, POLL_REFUSED),
         usize::from(!allowed),
         "{}",
+        out.stderr
+    );
+    // On a virtual machine each voter that made idle CPUs poll said what it may cost there:
+    // the first and its successor.
+    let on_a_vm = s3res_protocol::machine::is_virtual();
+    assert_eq!(
+        occurrences(&out.stderr, POLL_ON_A_VM),
+        if allowed && on_a_vm { 2 } else { 0 },
+        "virtual machine: {on_a_vm}; {}",
         out.stderr
     );
     if allowed {

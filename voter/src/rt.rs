@@ -55,6 +55,15 @@ pub fn keep_cpus_polling(policy: CpuIdle) -> Option<File> {
     match request_cpu_latency(Path::new(CPU_LATENCY_QOS), 0) {
         Ok(file) => {
             tracing::debug!("idle CPUs poll while the voter runs (cpu_idle: poll)");
+            if s3res_protocol::machine::is_virtual() {
+                // Measured on a 2-core KVM guest (docs/results.md, stop 54): the slowest of
+                // 300,000 rounds 100–113 ms polling against 3–9 ms halting.
+                tracing::info!(
+                    "idle CPUs poll on a virtual machine (cpu_idle: poll): the host sees them \
+                     always busy and may take one away for ~100 ms now and then (steal); \
+                     see docs/real-time.md, \"Idle CPUs\""
+                );
+            }
             Some(file)
         }
         Err(e) => {
