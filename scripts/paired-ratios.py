@@ -541,10 +541,11 @@ def main():
                     m = measure(impl, level, size)
                     row = {"pair": pair, "level": level, "size": size, "impl": impl,
                            "median_us": m[0], "p99_us": m[1], "max_us": m[2]}
-                    if stolen is not None:
+                    after = steal_ms()
+                    if stolen is not None and after is not None:
                         # What the host took from this VM's CPUs during the run (0 on bare
                         # metal): a max_us of ~100 ms beside it is the host's.
-                        row["steal_ms"] = steal_ms() - stolen
+                        row["steal_ms"] = after - stolen
                     if len(m) > 3 and m[3]:
                         row["lost"] = m[3]
                     runs.write(json.dumps(row) + "\n")
