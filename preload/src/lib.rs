@@ -153,10 +153,10 @@ pub unsafe extern "C" fn write(fd: libc::c_int, buf: *const libc::c_void, count:
         restart::hold_restarts();
     }
     // The newline stays: the flip must change a line, not the framing. A write of the newline
-    // alone (`python3 -u`'s `print` writes the text, then the newline) has nothing to flip: the
-    // injection waits for the next write that has.
+    // alone (`python3 -u`'s `print` writes the text, then the newline) leaves an empty body,
+    // and an injection waits for the next write that has one (`inject::apply_pending`).
     let body = bytes.len() - usize::from(bytes.last() == Some(&b'\n'));
-    let n = if body > 0 && replica_rt::inject::injection_pending() {
+    let n = if replica_rt::inject::injection_pending() {
         let mut copy = bytes.to_vec();
         replica_rt::inject::corrupt_if_injected("out", &mut copy[..body]);
         raw_write(fd, copy.as_ptr().cast(), copy.len())
