@@ -15,6 +15,7 @@ use crate::outcome::{match_run, Fired, Outcome};
 use crate::report::{self, CampaignInfo, CampaignOutput, InjectionRecord, RunRecord, Summary};
 use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_run, run_seed, ScheduleParams};
+use crate::scratch::ScratchDir;
 use crate::stop::StopSignals;
 
 /// How to run a campaign, beyond what `campaign.json` records.
@@ -55,6 +56,7 @@ pub fn schedule_params(info: &CampaignInfo) -> ScheduleParams {
 pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Option<i32>)> {
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
+    crate::scratch::sweep_and_report(&c.out)?;
     let (info, mut all_runs, mut all_inj) = prepare(c)?;
     if let Err(e) = replica_rt::sys::set_child_subreaper() {
         tracing::warn!(
@@ -277,16 +279,15 @@ pub fn never_started(result: &RunResult, dir: &Path) -> Option<String> {
     })
 }
 
-/// The run's folder: under `OUT/runs/` if kept, else a temporary folder removed on drop.
-fn run_dir(c: &CampaignRun, r: u64) -> anyhow::Result<(PathBuf, Option<tempfile::TempDir>)> {
+/// The run's folder: under `OUT/runs/` if kept, else a scratch folder removed on drop (and by
+/// the next start in `OUT` if this campaign is killed outright, see `scratch.rs`).
+fn run_dir(c: &CampaignRun, r: u64) -> anyhow::Result<(PathBuf, Option<ScratchDir>)> {
     if c.keep_runs {
         let dir = c.out.join("runs").join(format!("run-{r:06}"));
         std::fs::create_dir_all(&dir)?;
         Ok((dir, None))
     } else {
-        let tmp = tempfile::Builder::new()
-            .prefix("s3res-inject-")
-            .tempdir()
+        let tmp = ScratchDir::new(&c.out, "s3res-inject-")
             .context("cannot create a temporary folder for the run")?;
         Ok((tmp.path().to_path_buf(), Some(tmp)))
     }

@@ -19,6 +19,7 @@ use crate::fault::{Action, RegOptions};
 use crate::interval::Rate;
 use crate::runner::{run_once, RunResult, RunSetup};
 use crate::schedule::{plan_single, ScheduleParams};
+use crate::scratch::ScratchDir;
 use crate::stop::StopSignals;
 use crate::target::Pick;
 use s3res_protocol::campaign::{in_shard, runs_in_shard, VarSpec};
@@ -493,6 +494,7 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
     let stop = || stop.requested().is_some();
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
+    crate::scratch::sweep_and_report(&c.out)?;
     let found = if c.resume {
         ClassifyOutput::read(&c.out).map_err(anyhow::Error::msg)?
     } else {
@@ -533,9 +535,7 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
         let Some(planned) = plan_single(&params, c.info.seed, r) else {
             bail!("fault `none` or no component: nothing to classify");
         };
-        let dir = tempfile::Builder::new()
-            .prefix("s3res-classify-")
-            .tempdir()?;
+        let dir = ScratchDir::new(&c.out, "s3res-classify-")?;
         let result = run_once(
             &c.setup(dir.path(), format!("{stamp}-{}-{r}", c.info.seed)),
             std::slice::from_ref(&planned),
@@ -567,7 +567,7 @@ fn golden_run(
     stamp: u32,
     stop: &dyn Fn() -> bool,
 ) -> anyhow::Result<ClassifyOutput> {
-    let golden_dir = tempfile::Builder::new().prefix("s3res-golden-").tempdir()?;
+    let golden_dir = ScratchDir::new(&c.out, "s3res-golden-")?;
     let golden = run_once(
         &c.setup(golden_dir.path(), format!("{stamp}-golden")),
         &[],

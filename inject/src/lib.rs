@@ -29,6 +29,7 @@ pub use s3res_protocol::outcome;
 pub mod report;
 pub mod runner;
 pub mod schedule;
+pub mod scratch;
 pub mod stop;
 pub mod storm;
 pub mod target;

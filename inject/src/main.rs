@@ -60,7 +60,8 @@ const AFTER_LONG_HELP: &str = "\
 Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage, 130/143 stopped by
 SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written, and
 `campaign --resume` with the same command runs the rest). If s3res-inject is killed outright
-(SIGKILL), the system it was running dies with it.
+(SIGKILL), the system it was running dies with it, and the run's temporary folder (named by a
+note OUT/running-…) is removed by the next s3res-inject started on OUT.
 
 Environment:
   RUST_LOG         log filter (overrides -v/-q)

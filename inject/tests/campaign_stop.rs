@@ -74,14 +74,31 @@ fn wait_mid_run(p: &Spawned, out: &Path, runs_done: usize) {
     }
 }
 
+/// The folders s3res made (`s3res-…`) in the temporary directory `tmp`.
+fn scratch_folders(tmp: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(tmp)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("s3res-"))
+        .collect();
+    names.sort();
+    names
+}
+
 #[test]
-fn sigkill_to_the_injector_mid_run_leaves_nothing_running() {
+fn sigkill_to_the_injector_mid_run_leaves_nothing_running_and_resume_clears_its_run_folder() {
     let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
     let dir = tempfile::tempdir().unwrap();
     // 10 s of frames: a run left behind would still be running well past GONE.
     let system = echo_system(dir.path(), "tmr", 5000);
     let out = dir.path().join("out");
-    let mut p = common::spawn(&campaign_args(&system, &out, "3", "5"));
+    // The runs' scratch folders go here, where the test can count them.
+    let tmp = dir.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    let env = [("TMPDIR", tmp.to_str().unwrap())];
+    let args = campaign_args(&system, &out, "3", "5");
+    let mut p = common::spawn_with(None, &env, &args);
     wait_mid_run(&p, &out, 0);
     let before = p.live();
     p.child.kill().unwrap(); // SIGKILL: no chance to stop anything itself
@@ -94,6 +111,39 @@ fn sigkill_to_the_injector_mid_run_leaves_nothing_running() {
     );
     let f = p.wait(LIMIT); // fails if anything is left
     assert_eq!(f.code, None, "{}", f.stderr);
+
+    // The killed run's folder is left, named by a note in the output folder (beside it, the
+    // killed bootstrap's runtime folder, which the next bootstrap removes)...
+    let left: Vec<String> = scratch_folders(&tmp)
+        .into_iter()
+        .filter(|n| n.starts_with("s3res-inject-"))
+        .collect();
+    assert_eq!(left.len(), 1, "{left:?}");
+    assert!(
+        out.join(format!("running-{}", left[0])).is_file(),
+        "no note names {left:?} in {}",
+        out.display()
+    );
+    // ...and the campaign resumed there removes it, runs the rest, and leaves none.
+    // Without `-q`: the removal is said at the default level.
+    let mut resume = args[1..].to_vec();
+    resume.push("--resume");
+    let f = common::spawn_with(None, &env, &resume).wait(LIMIT);
+    assert!(f.success, "{}", f.stderr);
+    assert!(
+        f.stderr
+            .contains("removed the scratch folder of a run whose campaign was killed"),
+        "{}",
+        f.stderr
+    );
+    assert_eq!(run_numbers(&out), [0, 1, 2]);
+    assert_eq!(scratch_folders(&tmp), Vec::<String>::new());
+    let notes: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().starts_with("running-"))
+        .collect();
+    assert!(notes.is_empty(), "{notes:?}");
 }
 
 #[test]
@@ -162,7 +212,8 @@ fn sigterm_stops_the_run_keeps_the_finished_ones_and_resume_completes_the_campai
     );
 
     // --resume runs only the missing runs and writes what an uninterrupted campaign writes.
-    let mut resume = args.clone();
+    // Without `-q`: the removal is said at the default level.
+    let mut resume = args[1..].to_vec();
     resume.push("--resume");
     let f = inject(&resume, LIMIT);
     assert!(f.success, "resume failed:\n{}", f.stderr);
