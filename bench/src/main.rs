@@ -133,9 +133,9 @@ enum Command {
         #[arg(long, default_value_t = 20_000)]
         timeout_us: u64,
         /// How processes are scheduled: plain (default scheduler), rr (SCHED_RR: bench and voter
-        /// 60, replicas 50), rr-pinned (rr, bench and voter on CPU 0, the rest on CPU 1),
-        /// one-cpu (default scheduler, everything on CPU 0). rr and rr-pinned need root or
-        /// CAP_SYS_NICE.
+        /// 60, replicas below), rr-pinned (rr, bench and voter on CPU 0, the rest on CPU 1),
+        /// one-cpu (default scheduler, everything on CPU 0), rr-one-cpu (rr, everything on CPU
+        /// 0, the replicas taking turns). The rr setups need root or CAP_SYS_NICE.
         #[arg(long, value_delimiter = ',', value_parser = Setup::parse, default_value = "plain")]
         setup: Vec<Setup>,
     },
@@ -152,7 +152,8 @@ enum Command {
         /// takes a while to start, and hangs are not what this measures).
         #[arg(long, default_value_t = 2_000_000)]
         timeout_us: u64,
-        /// How processes are scheduled (plain, rr, rr-pinned; see `echo --help`). The floor's
+        /// How processes are scheduled (plain, rr, rr-pinned, one-cpu, rr-one-cpu; see `echo
+        /// --help`). The floor's
         /// fork runs at the bench's own scheduling of that setup.
         #[arg(long, value_parser = Setup::parse, default_value = "plain")]
         setup: Setup,
@@ -179,7 +180,8 @@ enum Command {
         /// Seed of the choice of victim replicas (printed; random if not given).
         #[arg(long)]
         seed: Option<u64>,
-        /// How processes are scheduled (plain, rr, rr-pinned; see `echo --help`).
+        /// How processes are scheduled (plain, rr, rr-pinned, one-cpu, rr-one-cpu; see `echo
+        /// --help`).
         #[arg(long, value_parser = Setup::parse, default_value = "plain")]
         setup: Setup,
     },
@@ -331,12 +333,10 @@ fn run() -> Result<()> {
             if count == 0 {
                 bail!("--count must be at least 1");
             }
-            if setup
-                .iter()
-                .any(|&s| matches!(s, Setup::Rr | Setup::RrPinned))
-                && !sys::is_root()
-            {
-                tracing::warn!("setups rr and rr-pinned need root or CAP_SYS_NICE; they may fail");
+            if setup.iter().any(|s| s.realtime()) && !sys::is_root() {
+                tracing::warn!(
+                    "setups rr, rr-pinned and rr-one-cpu need root or CAP_SYS_NICE; they may fail"
+                );
             }
             let opts = echo::EchoOptions {
                 program,
@@ -455,6 +455,31 @@ mod tests {
         assert_eq!(parse_size("64m"), Ok(64 << 20));
         assert_eq!(parse_size("64MiB"), Ok(64 << 20));
         assert!(parse_size("lots").unwrap_err().contains("lots"));
+    }
+
+    #[test]
+    fn every_setup_is_named_in_the_help_of_every_subcommand_that_takes_one() {
+        use clap::CommandFactory;
+        let mut cli = Cli::command();
+        for sub in ["echo", "restart", "detect"] {
+            let help = cli
+                .find_subcommand_mut(sub)
+                .unwrap()
+                .render_long_help()
+                .to_string();
+            // Unwrapped, as a reader reads it.
+            let help = help.split_whitespace().collect::<Vec<_>>().join(" ");
+            for setup in Setup::ALL {
+                let name = setup.name();
+                assert!(
+                    help.contains(&format!("{name} "))
+                        || help.contains(&format!("{name},"))
+                        || help.contains(&format!("{name};")),
+                    "`{sub} --help` does not name the setup {name}:\n{help}"
+                );
+                assert_eq!(Setup::parse(name), Ok(setup));
+            }
+        }
     }
 
     #[test]

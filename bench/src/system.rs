@@ -744,6 +744,14 @@ pub struct PlanSched {
 }
 
 impl Setup {
+    pub const ALL: [Setup; 5] = [
+        Setup::Plain,
+        Setup::Rr,
+        Setup::RrPinned,
+        Setup::OneCpu,
+        Setup::RrOneCpu,
+    ];
+
     pub fn name(self) -> &'static str {
         match self {
             Setup::Plain => "plain",
@@ -755,19 +763,17 @@ impl Setup {
     }
 
     pub fn parse(s: &str) -> Result<Setup, String> {
-        match s {
-            "plain" => Ok(Setup::Plain),
-            "rr" => Ok(Setup::Rr),
-            "rr-pinned" => Ok(Setup::RrPinned),
-            "one-cpu" => Ok(Setup::OneCpu),
-            "rr-one-cpu" => Ok(Setup::RrOneCpu),
-            _ => Err(format!(
-                "unknown setup `{s}`; expected plain, rr, rr-pinned, one-cpu or rr-one-cpu"
-            )),
-        }
+        Setup::ALL
+            .into_iter()
+            .find(|setup| setup.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Setup::ALL.iter().map(|setup| setup.name()).collect();
+                format!("unknown setup `{s}`; expected one of {}", names.join(", "))
+            })
     }
 
-    fn realtime(self) -> bool {
+    /// SCHED_RR: needs root or CAP_SYS_NICE.
+    pub fn realtime(self) -> bool {
         matches!(self, Setup::Rr | Setup::RrPinned | Setup::RrOneCpu)
     }
 
