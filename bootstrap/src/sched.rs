@@ -22,6 +22,9 @@ pub struct SystemSched {
     pub nice: Vec<Option<NiceFallback>>,
     /// More distinct priorities than nice values above bootstrap's own: the weakest share 19.
     pub merged: bool,
+    /// This machine is a virtual machine (`machine::is_virtual`): polling idle CPUs
+    /// (`cpu_idle: poll`) has a cost there that `--check` names.
+    pub virtual_machine: bool,
 }
 
 impl SystemSched {
@@ -34,7 +37,11 @@ impl SystemSched {
             None
         };
         let base = sys::nice_of(0).unwrap_or(0);
-        Self::with(plan, prioritized, refused, base)
+        let polls = plan.components.iter().any(|c| c.cpu_idle == CpuIdle::Poll);
+        SystemSched {
+            virtual_machine: polls && s3res_protocol::machine::is_virtual(),
+            ..Self::with(plan, prioritized, refused, base)
+        }
     }
 
     fn with(
@@ -49,6 +56,7 @@ impl SystemSched {
                 refused,
                 nice: vec![None; plan.components.len()],
                 merged: false,
+                virtual_machine: false,
             };
         }
         // Levels, two per protected component (its voter, and its replicas represented by the
@@ -79,6 +87,7 @@ impl SystemSched {
             refused,
             nice,
             merged,
+            virtual_machine: false,
         }
     }
 
@@ -162,6 +171,12 @@ impl SystemSched {
         let voter = self.describe_priority(c.priority, nice.map(|n| n.voter), None);
         let voter_cpus = sched::voter_cpus(&c.cpus, c.voter_cpu);
         let idle = match c.cpu_idle {
+            // Measured on a 2-core KVM guest (docs/results.md, stop 54).
+            CpuIdle::Poll if self.virtual_machine => {
+                "; keeps idle CPUs polling (cpu_idle: poll, needs root; on this virtual machine \
+                 the host may take a polling CPU away for ~100 ms now and then, see \
+                 docs/real-time.md, \"Idle CPUs\")"
+            }
             CpuIdle::Poll => "; keeps idle CPUs polling (cpu_idle: poll, needs root)",
             CpuIdle::Halt => "",
         };
@@ -364,6 +379,47 @@ mod tests {
         );
     }
 
+    /// The `--check` line of the second component's voter.
+    fn voter_line_of(s: &SystemSched, p: &SystemPlan) -> String {
+        let mut out = String::new();
+        s.describe(1, &p.components[1], &mut out);
+        out.lines()
+            .find(|l| l.contains("process   voter"))
+            .unwrap()
+            .trim()
+            .to_owned()
+    }
+
+    #[test]
+    fn check_lines_say_what_polling_costs_on_a_virtual_machine() {
+        let p = plan(SYSTEM);
+        let voter_line = |virtual_machine: bool| {
+            let s = SystemSched {
+                virtual_machine,
+                ..SystemSched::with(&p, true, None, 0)
+            };
+            voter_line_of(&s, &p)
+        };
+        assert_eq!(
+            voter_line(false),
+            "process   voter      SCHED_RR 30, CPU 1; keeps idle CPUs polling (cpu_idle: poll, \
+             needs root)"
+        );
+        assert_eq!(
+            voter_line(true),
+            "process   voter      SCHED_RR 30, CPU 1; keeps idle CPUs polling (cpu_idle: poll, \
+             needs root; on this virtual machine the host may take a polling CPU away for ~100 \
+             ms now and then, see docs/real-time.md, \"Idle CPUs\")"
+        );
+        // Only a system that polls asks the machine.
+        let halting = plan(&SYSTEM.replace(r#", "cpu_idle": "poll""#, ""));
+        assert!(!SystemSched::for_system(&halting).virtual_machine);
+        assert_eq!(
+            SystemSched::for_system(&p).virtual_machine,
+            s3res_protocol::machine::is_virtual()
+        );
+    }
+
     #[test]
     fn check_lines_say_where_the_voter_spins() {
         let voter_line = |extra: &str| {
@@ -373,13 +429,7 @@ mod tests {
                        "priority": 30{extra} }} }},
                 "channels": [ {{ "from": "a.out", "to": "b.in" }} ] }}"#
             ));
-            let mut out = String::new();
-            SystemSched::with(&p, true, None, 0).describe(1, &p.components[1], &mut out);
-            out.lines()
-                .find(|l| l.contains("process   voter"))
-                .unwrap()
-                .trim()
-                .to_owned()
+            voter_line_of(&SystemSched::with(&p, true, None, 0), &p)
         };
         assert_eq!(
             voter_line(r#", "cpus": [1], "voter_cpu": 0"#),

@@ -539,6 +539,48 @@ fn check(desc: &std::path::Path) -> std::process::Output {
         .expect("running s3res-bootstrap --check")
 }
 
+/// `--check` says that a component's voter keeps idle CPUs polling, and, on a virtual machine
+/// only, what that costs there.
+#[test]
+fn check_says_what_polling_idle_cpus_costs_on_a_virtual_machine() {
+    let sys = System::new();
+    let desc = sys.path("system.json");
+    std::fs::write(
+        &desc,
+        r#"{ "name": "rt-check-poll",
+  "components": {
+    "source": { "exec": "s3res-source" },
+    "echo": { "exec": "s3res-echo", "redundancy": "tmr", "timeout_us": 1000,
+              "cpu_idle": "poll" },
+    "sink": { "exec": "s3res-sink" }
+  },
+  "channels": [
+    { "from": "source.out", "to": "echo.in" },
+    { "from": "echo.out", "to": "sink.in" }
+  ]
+}"#,
+    )
+    .unwrap();
+    let out = check(&desc);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}");
+    let voter = stdout
+        .lines()
+        .find(|l| l.contains("process   voter"))
+        .unwrap_or_else(|| panic!("no voter line:\n{stdout}"));
+    assert!(
+        voter.contains("keeps idle CPUs polling (cpu_idle: poll, needs root"),
+        "{voter}"
+    );
+    let on_a_vm = s3res_protocol::machine::is_virtual();
+    eprintln!("virtual machine: {on_a_vm}; {voter}");
+    assert_eq!(
+        voter.contains("on this virtual machine the host may take a polling CPU away"),
+        on_a_vm,
+        "{voter}"
+    );
+}
+
 /// `--check` prints the chosen schedule and the priority (or nice value) and CPU of every
 /// process, and warns once about a priority where interrupt threads run.
 #[test]
