@@ -467,18 +467,30 @@ mod tests {
                 .unwrap()
                 .render_long_help()
                 .to_string();
-            // Unwrapped, as a reader reads it.
-            let help = help.split_whitespace().collect::<Vec<_>>().join(" ");
+            // Whole words: `one-cpu` is not named by `rr-one-cpu`.
+            let words: Vec<&str> = help
+                .split(|c: char| !(c.is_ascii_alphanumeric() || c == '-'))
+                .collect();
             for setup in Setup::ALL {
                 let name = setup.name();
                 assert!(
-                    help.contains(&format!("{name} "))
-                        || help.contains(&format!("{name},"))
-                        || help.contains(&format!("{name};")),
+                    words.contains(&name),
                     "`{sub} --help` does not name the setup {name}:\n{help}"
                 );
                 assert_eq!(Setup::parse(name), Ok(setup));
             }
+        }
+        // Every setup is in `Setup::ALL`, in its place: a new one does not compile here until
+        // it is given one (and put there).
+        let place = |setup: Setup| match setup {
+            Setup::Plain => 0,
+            Setup::Rr => 1,
+            Setup::RrPinned => 2,
+            Setup::OneCpu => 3,
+            Setup::RrOneCpu => 4,
+        };
+        for (i, setup) in Setup::ALL.into_iter().enumerate() {
+            assert_eq!(place(setup), i, "{setup:?}");
         }
     }
 

@@ -56,7 +56,7 @@ pub fn schedule_params(info: &CampaignInfo) -> ScheduleParams {
 pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Option<i32>)> {
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
-    crate::scratch::sweep_and_report(&c.out)?;
+    let _lock = crate::scratch::lock_and_sweep(&c.out)?;
     let (info, mut all_runs, mut all_inj) = prepare(c)?;
     if let Err(e) = replica_rt::sys::set_child_subreaper() {
         tracing::warn!(
@@ -287,8 +287,7 @@ fn run_dir(c: &CampaignRun, r: u64) -> anyhow::Result<(PathBuf, Option<ScratchDi
         std::fs::create_dir_all(&dir)?;
         Ok((dir, None))
     } else {
-        let tmp = ScratchDir::new(&c.out, "s3res-inject-")
-            .context("cannot create a temporary folder for the run")?;
+        let tmp = ScratchDir::new(&c.out, "s3res-inject-")?;
         Ok((tmp.path().to_path_buf(), Some(tmp)))
     }
 }

@@ -494,7 +494,7 @@ pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> 
     let stop = || stop.requested().is_some();
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
-    crate::scratch::sweep_and_report(&c.out)?;
+    let _lock = crate::scratch::lock_and_sweep(&c.out)?;
     let found = if c.resume {
         ClassifyOutput::read(&c.out).map_err(anyhow::Error::msg)?
     } else {

@@ -61,7 +61,8 @@ Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage, 130/143 stopp
 SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written, and
 `campaign --resume` with the same command runs the rest). If s3res-inject is killed outright
 (SIGKILL), the system it was running dies with it, and the run's temporary folder (named by a
-note OUT/running-…) is removed by the next s3res-inject started on OUT.
+note OUT/running-…) is removed by the next campaign or classify started on OUT. While one runs,
+it holds a lock on OUT (OUT/.s3res-inject.lock), and a second one started on OUT stops.
 
 Environment:
   RUST_LOG         log filter (overrides -v/-q)

@@ -3,20 +3,88 @@
 //! note in the campaign's output folder that names it for as long as it exists.
 //!
 //! The folder is removed when the run is done. A campaign killed outright (SIGKILL, a batch
-//! system's hard time limit) cannot remove it, so the next campaign started on the same output
-//! folder (`--resume`, or a classification resumed) removes what the notes name: a folder is
-//! left behind at most until then, and never by a campaign that ends by itself or by SIGTERM.
+//! system's hard time limit, the OOM killer) cannot remove it, so the next campaign or
+//! classification started on the same output folder (`--resume`) removes what the notes name:
+//! a folder is left behind at most until then, and never by a campaign that ends by itself or
+//! by SIGTERM.
+//!
+//! **Who is still running** is the kernel's to say, not a pid's: a campaign or classification
+//! holds an exclusive lock (`flock`) on `OUT/.s3res-inject.lock` for as long as it runs
+//! ([`OutLock`]), and the kernel lets go of it when the process dies, however it dies. So a
+//! start that takes the lock knows that every note in the folder is a dead run's (a pid
+//! would not: in a container a restarted campaign has the pid of the killed one), and a start
+//! that cannot take it stops: two campaigns writing one folder would mix their records.
 
+use std::fs::{File, OpenOptions, TryLockError};
+use std::io::{Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
-/// The notes' names: `running-<folder name>` in the output folder, holding the folder's path
-/// and the campaign's pid, one per line.
-const NOTE_PREFIX: &str = "running-";
-/// Every scratch folder's name starts with this: a note naming anything else is not obeyed.
-const FOLDER_PREFIX: &str = "s3res-";
+use anyhow::Context;
 
-/// A run's temporary folder (prefix `prefix`, in the system's temporary directory), named by a
-/// note in `out` until it is dropped.
+/// The notes' names: `running-<folder name>` in the output folder, holding the folder's
+/// absolute path and the campaign's pid, one per line.
+const NOTE_PREFIX: &str = "running-";
+/// The lock file in the output folder (left there: removing a lock file races with the next
+/// process that opens it).
+pub const LOCK_FILE: &str = ".s3res-inject.lock";
+/// The scratch folders' names start with one of these: a note naming anything else is not
+/// obeyed.
+const FOLDER_PREFIXES: [&str; 3] = ["s3res-inject-", "s3res-classify-", "s3res-golden-"];
+
+/// The exclusive lock of a running campaign or classification on its output folder: held
+/// until dropped, or until the process dies.
+#[derive(Debug)]
+pub struct OutLock {
+    _file: File,
+}
+
+impl OutLock {
+    /// Takes the lock on `out` (which must exist), or says which process holds it.
+    pub fn take(out: &Path) -> anyhow::Result<OutLock> {
+        let path = out.join(LOCK_FILE);
+        let mut file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .with_context(|| format!("cannot open the lock file {}", path.display()))?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(TryLockError::WouldBlock) => {
+                // The holder's pid, as it wrote it when it took the lock (for the message
+                // only: the lock alone says the folder is in use).
+                let mut text = String::new();
+                let _ = file.read_to_string(&mut text);
+                let holder = match text.trim().parse::<u32>() {
+                    Ok(pid) => format!(" (pid {pid})"),
+                    Err(_) => String::new(),
+                };
+                anyhow::bail!(
+                    "another s3res-inject{holder} is running a campaign or classification in \
+                     {}; wait for it to finish, or give another --out folder",
+                    out.display()
+                );
+            }
+            Err(TryLockError::Error(e)) => {
+                return Err(e).with_context(|| format!("cannot lock {}", path.display()));
+            }
+        }
+        // Ours now: say who holds it.
+        let said = file
+            .set_len(0)
+            .and_then(|()| file.rewind())
+            .and_then(|()| writeln!(file, "{}", std::process::id()));
+        if let Err(e) = said {
+            tracing::warn!(file = %path.display(), "cannot write this process's pid into the lock file: {e}");
+        }
+        Ok(OutLock { _file: file })
+    }
+}
+
+/// A run's temporary folder (prefix `prefix`, one of [`FOLDER_PREFIXES`], in the system's
+/// temporary directory), named by a note in `out` until it is dropped. Made only under the
+/// folder's [`OutLock`].
 pub struct ScratchDir {
     /// Removed before the note (see `Drop`).
     dir: Option<tempfile::TempDir>,
@@ -26,13 +94,28 @@ pub struct ScratchDir {
 impl ScratchDir {
     /// Creates the folder, then its note in `out` (a kill between the two, a few µs, leaves
     /// the folder unnamed; a note that cannot be written removes the folder and is an error).
-    pub fn new(out: &Path, prefix: &str) -> std::io::Result<ScratchDir> {
-        debug_assert!(prefix.starts_with(FOLDER_PREFIX));
-        let dir = tempfile::Builder::new().prefix(prefix).tempdir()?;
+    pub fn new(out: &Path, prefix: &str) -> anyhow::Result<ScratchDir> {
+        debug_assert!(FOLDER_PREFIXES.contains(&prefix));
+        // Absolute, also where TMPDIR is relative: the note must name it from anywhere.
+        let tmp = std::path::absolute(std::env::temp_dir())
+            .context("cannot tell where the temporary directory is")?;
+        let dir = tempfile::Builder::new()
+            .prefix(prefix)
+            .tempdir_in(&tmp)
+            .with_context(|| {
+                format!(
+                    "cannot create a temporary folder for a run in {}",
+                    tmp.display()
+                )
+            })?;
         let name = dir.path().file_name().unwrap_or_default().to_string_lossy();
         let note = out.join(format!("{NOTE_PREFIX}{name}"));
+        // Written under another name and renamed: a note is whole or absent.
+        let part = out.join(format!(".{NOTE_PREFIX}{name}.part"));
         let text = format!("{}\n{}\n", dir.path().display(), std::process::id());
-        std::fs::write(&note, text)?;
+        std::fs::write(&part, text)
+            .and_then(|()| std::fs::rename(&part, &note))
+            .with_context(|| format!("cannot write {}", note.display()))?;
         Ok(ScratchDir {
             dir: Some(dir),
             note,
@@ -47,128 +130,151 @@ impl ScratchDir {
 impl Drop for ScratchDir {
     fn drop(&mut self) {
         // The folder first: a note whose folder is gone is harmless, a folder without its note
-        // would be left behind by a kill between the two.
+        // would be left behind by a kill between the two. A folder that cannot be removed keeps
+        // its note, so that the next start tries again.
         if let Some(dir) = self.dir.take() {
             let path = dir.path().to_path_buf();
             if let Err(e) = dir.close() {
                 tracing::warn!(folder = %path.display(), "cannot remove a run's scratch folder: {e}");
+                return;
             }
         }
-        let _ = std::fs::remove_file(&self.note);
+        if let Err(e) = std::fs::remove_file(&self.note) {
+            tracing::warn!(note = %self.note.display(), "cannot remove a run's note: {e}");
+        }
     }
 }
 
 /// What [`sweep`] did with one note.
 #[derive(Debug, PartialEq, Eq)]
 pub enum Swept {
-    /// The folder of a campaign no longer running was removed (or was gone already).
+    /// The folder of a killed campaign's run was removed, and the note.
     Removed(PathBuf),
-    /// The note's campaign is still running: left alone.
-    InUse(PathBuf, i32),
-    /// The note names no scratch folder of a run (not absolute, not `s3res-…`, not the note's
-    /// own name, or a symbolic link): the note is removed, nothing else.
+    /// The folder was gone already: the note was removed.
+    Gone(PathBuf),
+    /// The note names no scratch folder of a run in `tmp` (not absolute, not named as one,
+    /// not the note's own name, in another folder, or a symbolic link): the note is removed,
+    /// nothing else.
     Ignored(PathBuf),
+    /// The folder, or the note, could not be removed (the reason is logged): both stay, for
+    /// a later start to try again.
+    Failed(PathBuf),
 }
 
-/// Removes the scratch folders that the notes in `out` name and whose campaign is no longer
-/// running, and those notes. A missing `out` has none.
-pub fn sweep(out: &Path) -> Vec<Swept> {
-    let Ok(entries) = std::fs::read_dir(out) else {
-        return Vec::new();
+/// Removes the scratch folders in `tmp` that the notes in `out` name, and those notes. Only
+/// under `out`'s [`OutLock`]: every note is then a dead campaign's. A missing `out` has none.
+pub fn sweep(out: &Path, tmp: &Path) -> Vec<Swept> {
+    let entries = match std::fs::read_dir(out) {
+        Ok(entries) => entries,
+        Err(e) => {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                tracing::warn!(folder = %out.display(), "cannot look for the notes of killed runs: {e}");
+            }
+            return Vec::new();
+        }
     };
+    let tmp = tmp.canonicalize().unwrap_or_else(|_| tmp.to_path_buf());
     let mut swept = Vec::new();
     for entry in entries.flatten() {
         let file_name = entry.file_name();
-        let Some(folder_name) = file_name.to_str().and_then(|n| n.strip_prefix(NOTE_PREFIX)) else {
+        let Some(file_name) = file_name.to_str() else {
             continue;
         };
         let note = entry.path();
-        let Ok(text) = std::fs::read_to_string(&note) else {
+        // A note a kill cut off before its rename names nothing for sure: it goes.
+        if file_name.starts_with(&format!(".{NOTE_PREFIX}")) && file_name.ends_with(".part") {
+            if let Err(e) = std::fs::remove_file(&note) {
+                tracing::warn!(note = %note.display(), "cannot remove a note cut off by a kill: {e}");
+            }
+            continue;
+        }
+        let Some(folder_name) = file_name.strip_prefix(NOTE_PREFIX) else {
             continue;
         };
-        let mut lines = text.lines();
-        let folder = PathBuf::from(lines.next().unwrap_or_default());
-        let pid = lines.next().and_then(|p| p.trim().parse::<i32>().ok());
-        if let Some(pid) = pid.filter(|&p| campaign_alive(p)) {
-            swept.push(Swept::InUse(folder, pid));
-            continue;
-        }
+        let text = match std::fs::read_to_string(&note) {
+            Ok(text) => text,
+            Err(e) => {
+                tracing::warn!(note = %note.display(), "cannot read the note of a killed run: {e}");
+                continue;
+            }
+        };
+        let folder = PathBuf::from(text.lines().next().unwrap_or_default());
+        let in_tmp = folder
+            .parent()
+            .and_then(|p| p.canonicalize().ok())
+            .is_some_and(|p| p == tmp);
         let is_scratch = folder.is_absolute()
+            && in_tmp
             && folder.file_name().and_then(|n| n.to_str()) == Some(folder_name)
-            && folder_name.starts_with(FOLDER_PREFIX);
+            && FOLDER_PREFIXES.iter().any(|p| folder_name.starts_with(p));
         // `symlink_metadata`: a link is never followed into somebody else's folder.
-        let is_dir = std::fs::symlink_metadata(&folder).map(|m| m.is_dir());
-        match (is_scratch, is_dir) {
-            (true, Ok(true)) => match std::fs::remove_dir_all(&folder) {
-                Ok(()) => swept.push(Swept::Removed(folder)),
+        let outcome = match std::fs::symlink_metadata(&folder).map(|m| m.is_dir()) {
+            Ok(true) if is_scratch => match std::fs::remove_dir_all(&folder) {
+                Ok(()) => Swept::Removed(folder),
                 Err(e) => {
                     tracing::warn!(folder = %folder.display(), "cannot remove the scratch folder of a killed run: {e}");
-                    continue; // the note stays: a later start tries again
+                    swept.push(Swept::Failed(folder));
+                    continue;
                 }
             },
-            (true, Err(e)) if e.kind() == std::io::ErrorKind::NotFound => {
-                swept.push(Swept::Removed(folder));
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && is_scratch => Swept::Gone(folder),
+            _ => Swept::Ignored(folder),
+        };
+        match std::fs::remove_file(&note) {
+            Ok(()) => swept.push(outcome),
+            Err(e) => {
+                tracing::warn!(note = %note.display(), "cannot remove the note of a killed run: {e}");
+                swept.push(Swept::Failed(note));
             }
-            _ => swept.push(Swept::Ignored(folder)),
         }
-        let _ = std::fs::remove_file(&note);
     }
     swept
 }
 
-/// Whether `pid` is a running `s3res-inject` (a pid taken over by another program is not).
-fn campaign_alive(pid: i32) -> bool {
-    std::fs::read_to_string(format!("/proc/{pid}/comm"))
-        .is_ok_and(|comm| comm.trim_end() == "s3res-inject")
-        && replica_rt::sys::process_state(pid).is_some_and(|s| s != 'Z')
-}
-
-/// Sweeps `out` (see [`sweep`]) and logs what it removed. An error if another `s3res-inject`
-/// is running in `out`: two campaigns writing one folder would corrupt it.
-pub fn sweep_and_report(out: &Path) -> anyhow::Result<()> {
-    let mut busy = None;
-    for s in sweep(out) {
+/// Takes `out`'s lock (an error if another campaign or classification holds it), then sweeps
+/// `out` (see [`sweep`]) and logs what it removed. The lock is to be held until the campaign
+/// ends.
+pub fn lock_and_sweep(out: &Path) -> anyhow::Result<OutLock> {
+    let lock = OutLock::take(out)?;
+    for s in sweep(out, &std::env::temp_dir()) {
         match s {
             Swept::Removed(folder) => tracing::info!(
                 folder = %folder.display(),
                 "removed the scratch folder of a run whose campaign was killed"
             ),
-            Swept::InUse(_, pid) => busy = Some(pid),
+            Swept::Gone(folder) => tracing::debug!(
+                folder = %folder.display(),
+                "the scratch folder of a run whose campaign was killed is gone already"
+            ),
             Swept::Ignored(folder) => tracing::warn!(
                 folder = %folder.display(),
-                "a note in the output folder names no scratch folder of a run; removed the note only"
+                "a note in the output folder names no scratch folder of a run in this run's \
+                 temporary directory; removed the note only"
             ),
+            // Said as it happened.
+            Swept::Failed(_) => {}
         }
     }
-    if let Some(pid) = busy {
-        anyhow::bail!(
-            "another s3res-inject (pid {pid}) is running in {}; wait for it to finish, or give \
-             another --out folder",
-            out.display()
-        );
-    }
-    Ok(())
+    Ok(lock)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn note(out: &Path, folder: &Path, pid: i32) -> PathBuf {
+    fn note(out: &Path, folder: &Path) -> PathBuf {
         let name = folder.file_name().unwrap().to_string_lossy();
         let note = out.join(format!("{NOTE_PREFIX}{name}"));
-        std::fs::write(&note, format!("{}\n{pid}\n", folder.display())).unwrap();
+        std::fs::write(&note, format!("{}\n1234\n", folder.display())).unwrap();
         note
     }
-
-    /// A pid that no process has (the kernel's limit is below it).
-    const NO_PID: i32 = i32::MAX;
 
     #[test]
     fn a_scratch_folder_is_named_while_it_exists_and_removed_with_its_note() {
         let out = tempfile::tempdir().unwrap();
-        let scratch = ScratchDir::new(out.path(), "s3res-test-").unwrap();
+        let scratch = ScratchDir::new(out.path(), "s3res-inject-").unwrap();
         let path = scratch.path().to_path_buf();
+        assert!(path.is_absolute());
         std::fs::write(path.join("stderr"), "x").unwrap();
         let notes: Vec<_> = std::fs::read_dir(out.path()).unwrap().flatten().collect();
         assert_eq!(notes.len(), 1);
@@ -190,17 +296,21 @@ mod tests {
         let left = tmp.path().join("s3res-inject-AbC123");
         std::fs::create_dir_all(left.join("sub")).unwrap();
         std::fs::write(left.join("sub/events.jsonl"), "{}").unwrap();
-        note(out.path(), &left, NO_PID);
-        // Notes that must not be obeyed: a folder not named as a scratch folder, a name that
-        // is not the note's, a relative path, and a link to a folder.
+        note(out.path(), &left);
+        // Notes that must not be obeyed: a folder not named as a scratch folder, one of
+        // s3res's but not a run's, a name that is not the note's, a relative path, a link to
+        // a folder, and a scratch folder's name in another folder than the temporary one.
         let precious = tmp.path().join("precious");
         std::fs::create_dir(&precious).unwrap();
-        note(out.path(), &precious, NO_PID);
+        note(out.path(), &precious);
+        let runtime = tmp.path().join("s3res-runtime-Run000");
+        std::fs::create_dir(&runtime).unwrap();
+        note(out.path(), &runtime);
         let other = tmp.path().join("s3res-inject-Other1");
         std::fs::create_dir(&other).unwrap();
         std::fs::write(
             out.path().join("running-s3res-inject-Xyz999"),
-            format!("{}\n{NO_PID}\n", other.display()),
+            format!("{}\n", other.display()),
         )
         .unwrap();
         std::fs::write(
@@ -210,71 +320,77 @@ mod tests {
         .unwrap();
         let link = tmp.path().join("s3res-inject-Link00");
         std::os::unix::fs::symlink(&precious, &link).unwrap();
-        note(out.path(), &link, NO_PID);
-        // A note whose folder is gone already.
-        note(out.path(), &tmp.path().join("s3res-inject-Gone00"), NO_PID);
+        note(out.path(), &link);
+        let elsewhere = precious.join("s3res-golden-Away00");
+        std::fs::create_dir(&elsewhere).unwrap();
+        note(out.path(), &elsewhere);
+        // A note whose folder is gone already, and one a kill cut off before its rename.
+        let gone = tmp.path().join("s3res-classify-Gone00");
+        note(out.path(), &gone);
+        std::fs::write(out.path().join(".running-s3res-inject-Cut000.part"), "/tm").unwrap();
         // A campaign's own files are not notes.
         std::fs::write(out.path().join("runs.jsonl"), "").unwrap();
 
-        let mut swept = sweep(out.path());
+        let mut swept = sweep(out.path(), tmp.path());
         swept.sort_by_key(|s| format!("{s:?}"));
-        assert_eq!(swept.len(), 6, "{swept:?}");
+        assert_eq!(swept.len(), 8, "{swept:?}");
         assert!(swept.contains(&Swept::Removed(left.clone())), "{swept:?}");
-        assert!(swept.contains(&Swept::Removed(tmp.path().join("s3res-inject-Gone00"))));
-        assert!(swept.contains(&Swept::Ignored(precious.clone())));
-        assert!(swept.contains(&Swept::Ignored(other.clone())));
-        assert!(swept.contains(&Swept::Ignored(link.clone())));
+        assert!(swept.contains(&Swept::Gone(gone)), "{swept:?}");
+        for ignored in [&precious, &runtime, &other, &link, &elsewhere] {
+            assert!(
+                swept.contains(&Swept::Ignored(ignored.clone())),
+                "{swept:?}"
+            );
+        }
         assert!(!left.exists());
-        assert!(precious.is_dir() && other.is_dir() && link.exists());
+        assert!(precious.is_dir() && runtime.is_dir() && other.is_dir() && elsewhere.is_dir());
+        assert!(link.exists());
         let rest: Vec<_> = std::fs::read_dir(out.path())
             .unwrap()
             .flatten()
             .map(|e| e.file_name())
             .collect();
         assert_eq!(rest, ["runs.jsonl"], "every note is gone");
+        assert!(sweep(&out.path().join("missing"), tmp.path()).is_empty());
     }
 
     #[test]
-    fn the_folder_of_a_campaign_still_running_is_left_alone() {
+    fn a_folder_in_use_is_refused_to_a_second_start_until_its_lock_is_let_go() {
         let out = tempfile::tempdir().unwrap();
         let tmp = tempfile::tempdir().unwrap();
+        let first = OutLock::take(out.path()).unwrap();
+        // A lock is per open file: a second start in this same process is refused too.
+        let refused = OutLock::take(out.path()).unwrap_err().to_string();
+        assert_eq!(
+            refused,
+            format!(
+                "another s3res-inject (pid {}) is running a campaign or classification in {}; \
+                 wait for it to finish, or give another --out folder",
+                std::process::id(),
+                out.path().display()
+            )
+        );
+        // The holder's notes are not swept by a start that was refused...
         let busy = tmp.path().join("s3res-inject-Busy00");
         std::fs::create_dir(&busy).unwrap();
-        // A live process of another name (this test) is not a campaign.
-        let mine = std::process::id() as i32;
-        assert!(!campaign_alive(mine));
-        note(out.path(), &busy, mine);
-        assert_eq!(sweep(out.path()), [Swept::Removed(busy.clone())]);
-
-        // A process called s3res-inject is (`sleep` under that name, killed on drop).
-        std::fs::create_dir(&busy).unwrap();
-        let fake = tmp.path().join("s3res-inject");
-        std::fs::copy("/bin/sleep", &fake).unwrap();
-        struct Kill(std::process::Child);
-        impl Drop for Kill {
-            fn drop(&mut self) {
-                let _ = self.0.kill();
-                let _ = self.0.wait();
-            }
-        }
-        let mut running = Kill(std::process::Command::new(&fake).arg("30").spawn().unwrap());
-        let pid = running.0.id() as i32;
-        let start = std::time::Instant::now();
-        while !campaign_alive(pid) {
-            assert!(
-                start.elapsed() < std::time::Duration::from_secs(10),
-                "{pid} never ran"
-            );
-            std::thread::sleep(std::time::Duration::from_millis(5));
-        }
-        note(out.path(), &busy, pid);
-        assert_eq!(sweep(out.path()), [Swept::InUse(busy.clone(), pid)]);
+        note(out.path(), &busy);
+        assert!(lock_and_sweep(out.path()).is_err());
         assert!(busy.is_dir());
-        running.0.kill().unwrap();
-        running.0.wait().unwrap();
-        assert!(!campaign_alive(pid));
-        assert_eq!(sweep(out.path()), [Swept::Removed(busy.clone())]);
+        // ...and are, by the next start once it is gone (a killed holder's lock goes with
+        // its process: the campaign_stop test kills one).
+        drop(first);
+        let again = OutLock::take(out.path()).unwrap();
+        assert_eq!(
+            sweep(out.path(), tmp.path()),
+            [Swept::Removed(busy.clone())]
+        );
         assert!(!busy.exists());
-        assert!(sweep(&out.path().join("missing")).is_empty());
+        drop(again);
+        let rest: Vec<_> = std::fs::read_dir(out.path())
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(rest, [LOCK_FILE], "the lock file stays, nothing else");
     }
 }

@@ -86,6 +86,18 @@ fn scratch_folders(tmp: &Path) -> Vec<String> {
     names
 }
 
+/// The notes in the output folder `out` that name a run's scratch folder (`running-…`).
+fn notes(out: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(out)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("running-") || n.starts_with(".running-"))
+        .collect();
+    names.sort();
+    names
+}
+
 #[test]
 fn sigkill_to_the_injector_mid_run_leaves_nothing_running_and_resume_clears_its_run_folder() {
     let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
@@ -98,8 +110,18 @@ fn sigkill_to_the_injector_mid_run_leaves_nothing_running_and_resume_clears_its_
     std::fs::create_dir(&tmp).unwrap();
     let env = [("TMPDIR", tmp.to_str().unwrap())];
     let args = campaign_args(&system, &out, "3", "5");
+    let mut resume = args[1..].to_vec();
+    resume.push("--resume");
     let mut p = common::spawn_with(None, &env, &args);
     wait_mid_run(&p, &out, 0);
+    // A second start on the folder in use is refused, and takes nothing of the first's.
+    let f = common::spawn_with(None, &env, &resume).wait(LIMIT);
+    let busy = format!("another s3res-inject (pid {}) is running", p.child.id());
+    assert!(
+        f.code == Some(1) && f.stderr.contains(&busy),
+        "{}",
+        f.stderr
+    );
     let before = p.live();
     p.child.kill().unwrap(); // SIGKILL: no chance to stop anything itself
     p.child.wait().unwrap();
@@ -126,8 +148,6 @@ fn sigkill_to_the_injector_mid_run_leaves_nothing_running_and_resume_clears_its_
     );
     // ...and the campaign resumed there removes it, runs the rest, and leaves none.
     // Without `-q`: the removal is said at the default level.
-    let mut resume = args[1..].to_vec();
-    resume.push("--resume");
     let f = common::spawn_with(None, &env, &resume).wait(LIMIT);
     assert!(f.success, "{}", f.stderr);
     assert!(
@@ -138,12 +158,7 @@ fn sigkill_to_the_injector_mid_run_leaves_nothing_running_and_resume_clears_its_
     );
     assert_eq!(run_numbers(&out), [0, 1, 2]);
     assert_eq!(scratch_folders(&tmp), Vec::<String>::new());
-    let notes: Vec<_> = std::fs::read_dir(&out)
-        .unwrap()
-        .flatten()
-        .filter(|e| e.file_name().to_string_lossy().starts_with("running-"))
-        .collect();
-    assert!(notes.is_empty(), "{notes:?}");
+    assert_eq!(notes(&out), Vec::<String>::new());
 }
 
 #[test]
@@ -154,7 +169,10 @@ fn sigterm_stops_the_run_keeps_the_finished_ones_and_resume_completes_the_campai
     let system = echo_system(dir.path(), "tmr", 1000);
     let out = dir.path().join("out");
     let args = campaign_args(&system, &out, "4", &seed);
-    let p = common::spawn(&args);
+    // The runs' scratch folders go here, where the test can see that none is left.
+    let tmp = dir.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    let p = common::spawn_with(None, &[("TMPDIR", tmp.to_str().unwrap())], &args);
     wait_mid_run(&p, &out, 1);
     let sent = Instant::now();
     s3res_testkit::kill_pid(p.child.id() as i32, libc::SIGTERM).unwrap();
@@ -172,6 +190,9 @@ fn sigterm_stops_the_run_keeps_the_finished_ones_and_resume_completes_the_campai
         f.stderr
     );
     eprintln!("stopped {:?} after SIGTERM", sent.elapsed());
+    // A campaign that stops by itself leaves no folder, and no note naming one.
+    assert_eq!(scratch_folders(&tmp), Vec::<String>::new());
+    assert_eq!(notes(&out), Vec::<String>::new());
 
     // The finished runs are written, in order, with the tables of what was done.
     let kept = run_numbers(&out);
@@ -212,7 +233,6 @@ fn sigterm_stops_the_run_keeps_the_finished_ones_and_resume_completes_the_campai
     );
 
     // --resume runs only the missing runs and writes what an uninterrupted campaign writes.
-    // Without `-q`: the removal is said at the default level.
     let mut resume = args[1..].to_vec();
     resume.push("--resume");
     let f = inject(&resume, LIMIT);
