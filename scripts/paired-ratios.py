@@ -350,7 +350,8 @@ def table(res):
     out = [
         f"Paired runs of the {what}: commit {meta['commit']}, {meta['pairs']} pairs of "
         f"{meta['count']} {'restarts' if restart else 'rounds'} per run, seed {meta['seed']}, "
-        f"idle CPUs {meta['cpu_idle']}, {meta['started']} to {meta.get('ended', '(interrupted)')}.",
+        f"idle CPUs {meta['cpu_idle']}, {meta['started']} to {meta.get('ended', '(interrupted)')}"
+        + (f"; {meta['machine']}." if "machine" in meta else "."),
         "",
         "Per cell: each implementation's median of its per-run medians (µs); the median over "
         "pairs of s3res's ratio to the other, with a 95 % confidence interval, and how many "
@@ -390,6 +391,18 @@ def table(res):
         out.append(f"Left out of {LEVEL_NAMES[level]} {size_label(size)}: {len(pairs)} pair(s) in which S³RES "
                    f"lost rounds without a fault (pairs {', '.join(map(str, sorted(pairs)))}).")
     return "\n".join(out)
+
+
+def cpu_model():
+    """The CPU's model name (/proc/cpuinfo): a VM's host can change between two runs."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "CPU model unknown"
 
 
 def size_label(size):
@@ -507,7 +520,7 @@ def main():
         "with_orig": with_orig, "components": args.components, "sizes": sizes, "levels": levels,
         "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
         "load_start": open("/proc/loadavg").read().split()[:3],
-        "machine": f"{os.cpu_count()} CPUs, {os.uname().release}",
+        "machine": f"{cpu_model()}, {os.cpu_count()} CPUs, {os.uname().release}",
     }
     # Written now and again at the end, so that an interrupted run's pairs can still be read
     # with --table.

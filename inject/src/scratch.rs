@@ -13,7 +13,8 @@
 //! ([`OutLock`]), and the kernel lets go of it when the process dies, however it dies. So a
 //! start that takes the lock knows that every note in the folder is a dead run's (a pid
 //! would not: in a container a restarted campaign has the pid of the killed one), and a start
-//! that cannot take it stops: two campaigns writing one folder would mix their records.
+//! that cannot take it stops: two campaigns writing one folder would mix their records. On a
+//! file system that takes no lock, a campaign says so and runs without the lock or the sweep.
 
 use std::fs::{File, OpenOptions, TryLockError};
 use std::io::{Read, Seek, Write};
@@ -38,9 +39,32 @@ pub struct OutLock {
     _file: File,
 }
 
+/// Why [`OutLock::take`] took no lock.
+#[derive(Debug, thiserror::Error)]
+pub enum LockRefused {
+    /// Another process holds it.
+    #[error(
+        "another s3res-inject{holder} is running a campaign or classification in {out}; wait for \
+         it to finish, or give another --out folder"
+    )]
+    Busy { holder: String, out: String },
+    /// The lock file cannot be opened (a folder that cannot be written).
+    #[error("cannot open the lock file {path}: {source}")]
+    Open {
+        path: String,
+        source: std::io::Error,
+    },
+    /// The file system takes no lock (`flock`): some network file systems.
+    #[error("cannot lock {path}: {source}")]
+    Unsupported {
+        path: String,
+        source: std::io::Error,
+    },
+}
+
 impl OutLock {
     /// Takes the lock on `out` (which must exist), or says which process holds it.
-    pub fn take(out: &Path) -> anyhow::Result<OutLock> {
+    pub fn take(out: &Path) -> Result<OutLock, LockRefused> {
         let path = out.join(LOCK_FILE);
         let mut file = OpenOptions::new()
             .read(true)
@@ -48,7 +72,10 @@ impl OutLock {
             .create(true)
             .truncate(false)
             .open(&path)
-            .with_context(|| format!("cannot open the lock file {}", path.display()))?;
+            .map_err(|source| LockRefused::Open {
+                path: path.display().to_string(),
+                source,
+            })?;
         match file.try_lock() {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => {
@@ -60,14 +87,16 @@ impl OutLock {
                     Ok(pid) => format!(" (pid {pid})"),
                     Err(_) => String::new(),
                 };
-                anyhow::bail!(
-                    "another s3res-inject{holder} is running a campaign or classification in \
-                     {}; wait for it to finish, or give another --out folder",
-                    out.display()
-                );
+                return Err(LockRefused::Busy {
+                    holder,
+                    out: out.display().to_string(),
+                });
             }
-            Err(TryLockError::Error(e)) => {
-                return Err(e).with_context(|| format!("cannot lock {}", path.display()));
+            Err(TryLockError::Error(source)) => {
+                return Err(LockRefused::Unsupported {
+                    path: path.display().to_string(),
+                    source,
+                });
             }
         }
         // Ours now: say who holds it.
@@ -233,9 +262,20 @@ pub fn sweep(out: &Path, tmp: &Path) -> Vec<Swept> {
 
 /// Takes `out`'s lock (an error if another campaign or classification holds it), then sweeps
 /// `out` (see [`sweep`]) and logs what it removed. The lock is to be held until the campaign
-/// ends.
-pub fn lock_and_sweep(out: &Path) -> anyhow::Result<OutLock> {
-    let lock = OutLock::take(out)?;
+/// ends. On a file system that takes no lock this says so and goes on without one, and
+/// without the sweep (which only the lock makes safe): `None`.
+pub fn lock_and_sweep(out: &Path) -> anyhow::Result<Option<OutLock>> {
+    let lock = match OutLock::take(out) {
+        Ok(lock) => lock,
+        Err(e @ LockRefused::Unsupported { .. }) => {
+            tracing::warn!(
+                "{e}: a second campaign started on this folder would not be stopped, and the \
+                 temporary folders of killed runs are not removed"
+            );
+            return Ok(None);
+        }
+        Err(e) => return Err(e.into()),
+    };
     for s in sweep(out, &std::env::temp_dir()) {
         match s {
             Swept::Removed(folder) => tracing::info!(
@@ -255,7 +295,7 @@ pub fn lock_and_sweep(out: &Path) -> anyhow::Result<OutLock> {
             Swept::Failed(_) => {}
         }
     }
-    Ok(lock)
+    Ok(Some(lock))
 }
 
 #[cfg(test)]
