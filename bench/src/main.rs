@@ -153,8 +153,7 @@ enum Command {
         #[arg(long, default_value_t = 2_000_000)]
         timeout_us: u64,
         /// How processes are scheduled (plain, rr, rr-pinned, one-cpu, rr-one-cpu; see `echo
-        /// --help`). The floor's
-        /// fork runs at the bench's own scheduling of that setup.
+        /// --help`). The floor's fork runs at the bench's own scheduling of that setup.
         #[arg(long, value_parser = Setup::parse, default_value = "plain")]
         setup: Setup,
         /// Idle time before each kill, and before each fork of the floor, ms. 0 (the default):
@@ -334,8 +333,14 @@ fn run() -> Result<()> {
                 bail!("--count must be at least 1");
             }
             if setup.iter().any(|s| s.realtime()) && !sys::is_root() {
+                let realtime: Vec<&str> = Setup::ALL
+                    .iter()
+                    .filter(|s| s.realtime())
+                    .map(|s| s.name())
+                    .collect();
                 tracing::warn!(
-                    "setups rr, rr-pinned and rr-one-cpu need root or CAP_SYS_NICE; they may fail"
+                    "setups {} need root or CAP_SYS_NICE; they may fail",
+                    realtime.join(", ")
                 );
             }
             let opts = echo::EchoOptions {

@@ -171,14 +171,17 @@ impl SystemSched {
         let voter = self.describe_priority(c.priority, nice.map(|n| n.voter), None);
         let voter_cpus = sched::voter_cpus(&c.cpus, c.voter_cpu);
         let idle = match c.cpu_idle {
-            // Measured on a 2-core KVM guest (docs/results.md, stop 54).
-            CpuIdle::Poll if self.virtual_machine => {
-                "; keeps idle CPUs polling (cpu_idle: poll, needs root; on this virtual machine \
-                 the host may take a polling CPU away for ~100 ms now and then, see \
-                 docs/real-time.md, \"Idle CPUs\")"
-            }
-            CpuIdle::Poll => "; keeps idle CPUs polling (cpu_idle: poll, needs root)",
-            CpuIdle::Halt => "",
+            CpuIdle::Poll => format!(
+                "; keeps idle CPUs polling (cpu_idle: poll, needs root{})",
+                // Measured on a 2-core KVM guest (docs/results.md, stop 54).
+                if self.virtual_machine {
+                    "; on this virtual machine the host may take a polling CPU away for ~100 ms \
+                     now and then, see docs/real-time.md, \"Idle CPUs\""
+                } else {
+                    ""
+                }
+            ),
+            CpuIdle::Halt => String::new(),
         };
         let spin = if c.voter_spins() {
             format!(

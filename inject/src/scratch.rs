@@ -185,8 +185,8 @@ pub enum Swept {
     /// not the note's own name, in another folder, or a symbolic link): the note is removed,
     /// nothing else.
     Ignored(PathBuf),
-    /// The folder, or the note, could not be removed (the reason is logged): both stay, for
-    /// a later start to try again.
+    /// The folder, or the note, could not be removed (the reason is logged): what could not
+    /// stays, for a later start to try again.
     Failed(PathBuf),
 }
 

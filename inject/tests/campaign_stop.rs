@@ -74,28 +74,26 @@ fn wait_mid_run(p: &Spawned, out: &Path, runs_done: usize) {
     }
 }
 
-/// The folders s3res made (`s3res-…`) in the temporary directory `tmp`.
-fn scratch_folders(tmp: &Path) -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(tmp)
+/// The names in folder `dir` that start with one of `prefixes`, sorted.
+fn names_in(dir: &Path, prefixes: &[&str]) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
         .flatten()
         .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n.starts_with("s3res-"))
+        .filter(|n| prefixes.iter().any(|p| n.starts_with(p)))
         .collect();
     names.sort();
     names
 }
 
+/// The folders s3res made (`s3res-…`) in the temporary directory `tmp`.
+fn scratch_folders(tmp: &Path) -> Vec<String> {
+    names_in(tmp, &["s3res-"])
+}
+
 /// The notes in the output folder `out` that name a run's scratch folder (`running-…`).
 fn notes(out: &Path) -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(out)
-        .unwrap()
-        .flatten()
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n.starts_with("running-") || n.starts_with(".running-"))
-        .collect();
-    names.sort();
-    names
+    names_in(out, &["running-", ".running-"])
 }
 
 #[test]
