@@ -11,6 +11,7 @@ pub mod live;
 pub mod logging;
 pub mod respawn;
 pub mod run;
+pub mod runtime_dir;
 pub mod sched;
 pub mod status;
 pub mod sweep;

@@ -6,7 +6,6 @@
 
 use std::fs::File;
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, OwnedFd, RawFd};
-use std::os::unix::fs::DirBuilderExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -271,9 +270,12 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     };
 
     let socket_dir = if voter.is_some() {
-        let dir = make_socket_dir()?;
-        guard.own_socket_dir(dir.clone());
-        Some(dir)
+        let tmp = std::env::temp_dir();
+        let dir = crate::runtime_dir::make(&tmp)
+            .map_err(|source| RunError::SocketDir { dir: tmp, source })?;
+        let path = dir.path.clone();
+        guard.own_socket_dir(dir);
+        Some(path)
     } else {
         None
     };
@@ -594,64 +596,6 @@ fn spawn_injector(
         .arg(inject.after_s.to_string());
     let child = cmd.spawn().map_err(spawn_err)?;
     Ok(child.id() as libc::pid_t)
-}
-
-/// `<tmp>/s3res-<pid>-<n>`, mode 0700.
-fn make_socket_dir() -> Result<PathBuf, RunError> {
-    let tmp = std::env::temp_dir();
-    let pid = std::process::id();
-    remove_stale_socket_dirs(&tmp);
-    for n in 0..1000 {
-        let dir = tmp.join(format!("s3res-{pid}-{n}"));
-        match std::fs::DirBuilder::new().mode(0o700).create(&dir) {
-            Ok(()) => return Ok(dir),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
-            Err(source) => return Err(RunError::SocketDir { dir: tmp, source }),
-        }
-    }
-    Err(RunError::SocketDir {
-        dir: tmp,
-        source: std::io::Error::new(
-            std::io::ErrorKind::AlreadyExists,
-            "1000 candidate names are taken",
-        ),
-    })
-}
-
-/// Removes the runtime folders (`s3res-PID-N`) of bootstraps that died without cleaning up
-/// (SIGKILL, a power cut): the pid is gone, or is no longer an `s3res-bootstrap`. Only folders
-/// of our own user are touched.
-fn remove_stale_socket_dirs(tmp: &Path) {
-    use std::os::unix::fs::MetadataExt;
-    let Ok(entries) = std::fs::read_dir(tmp) else {
-        return;
-    };
-    let me = std::fs::metadata("/proc/self").map(|m| m.uid()).ok();
-    for entry in entries.flatten() {
-        let name = entry.file_name();
-        let Some(pid) = name
-            .to_str()
-            .and_then(|n| n.strip_prefix("s3res-"))
-            .and_then(|rest| rest.split_once('-'))
-            .and_then(|(pid, n)| n.parse::<u32>().ok().and(pid.parse::<libc::pid_t>().ok()))
-        else {
-            continue;
-        };
-        let ours = entry
-            .metadata()
-            .is_ok_and(|m| m.is_dir() && Some(m.uid()) == me);
-        let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default();
-        if ours && comm.trim_end() != "s3res-bootstra" && comm.trim_end() != "s3res-bootstrap" {
-            match std::fs::remove_dir_all(entry.path()) {
-                Ok(()) => {
-                    tracing::debug!(dir = %entry.path().display(), "removed the runtime folder of a dead bootstrap")
-                }
-                Err(e) => {
-                    tracing::debug!(dir = %entry.path().display(), error = %e, "cannot remove a stale runtime folder")
-                }
-            }
-        }
-    }
 }
 
 /// One pipe per channel; `stdin`/`stdout` endpoints get a duplicate of bootstrap's fd 0/1.

@@ -4,7 +4,7 @@
 //! Killing every child and reaping, again and again until no child is left, therefore reaches
 //! the whole tree, including processes that were forked after the first pass.
 
-use std::path::PathBuf;
+use crate::runtime_dir::RuntimeDir;
 use std::time::Duration;
 
 /// Upper bound of one sweep; a process that survives SIGKILL this long is stuck in the kernel
@@ -19,7 +19,7 @@ pub use replica_rt::sys::{sweep_children as sweep, SweepReport};
 /// leaves nothing behind; also removes the socket folder.
 #[derive(Debug, Default)]
 pub struct SweepGuard {
-    socket_dir: Option<PathBuf>,
+    socket_dir: Option<RuntimeDir>,
     done: bool,
 }
 
@@ -28,8 +28,8 @@ impl SweepGuard {
         SweepGuard::default()
     }
 
-    /// The folder to remove after the sweep.
-    pub fn own_socket_dir(&mut self, dir: PathBuf) {
+    /// The folder to remove after the sweep (its lock is let go once it is gone).
+    pub fn own_socket_dir(&mut self, dir: RuntimeDir) {
         self.socket_dir = Some(dir);
     }
 
@@ -54,9 +54,9 @@ impl SweepGuard {
             );
         }
         if let Some(dir) = self.socket_dir.take() {
-            if let Err(e) = std::fs::remove_dir_all(&dir) {
+            if let Err(e) = std::fs::remove_dir_all(&dir.path) {
                 if e.kind() != std::io::ErrorKind::NotFound {
-                    tracing::warn!("cannot remove socket folder {}: {e}", dir.display());
+                    tracing::warn!("cannot remove socket folder {}: {e}", dir.path.display());
                 }
             }
         }
@@ -89,7 +89,10 @@ mod tests {
         assert!(children_of(me).contains(&(child.id() as libc::pid_t)));
         let dir = tempfile::tempdir().unwrap().keep();
         let mut guard = SweepGuard::new();
-        guard.own_socket_dir(dir.clone());
+        guard.own_socket_dir(RuntimeDir {
+            path: dir.clone(),
+            lock: None,
+        });
         let report = guard.finish();
         assert!(report.killed >= 1, "{report:?}");
         assert!(report.resisted.is_empty());

@@ -4,7 +4,9 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use s3res_testkit::{assert_sink_whole, echo_pipeline, procs, EventKind, RecoveryMethod, System};
+use s3res_testkit::{
+    assert_sink_whole, echo_pipeline, is_recovery_of, procs, EventKind, RecoveryMethod, System,
+};
 
 const TIMEOUT_US: u64 = 300_000;
 
@@ -109,6 +111,60 @@ fn sigquit_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
     assert!(
         !runtime_dir(tmp.path(), bootstrap).exists(),
         "runtime folder left behind"
+    );
+}
+
+/// A bootstrap started under another name (a renamed copy, a link: its process name is not
+/// `s3res-bootstrap`) is alive all the same, and so is one in another pid namespace sharing
+/// `/tmp`: a second bootstrap must not take its runtime folder for a dead one's. That folder
+/// holds the voter's socket, through which a fork child reaches its voter: without it (before
+/// the lock) the first system's killed replica was rebuilt by exec, its state lost, 2 s after
+/// its death. Every bootstrap holds a lock on its folder while it lives; the others remove
+/// only folders nobody holds.
+#[test]
+fn a_second_bootstrap_leaves_a_live_bootstrap_of_another_name_its_runtime_folder() {
+    let tmp = private_tmp();
+    let link = tmp.path().join("mysat-supervisor");
+    std::os::unix::fs::symlink(s3res_testkit::bin_path("s3res-bootstrap"), &link)
+        .expect("linking s3res-bootstrap under another name");
+    let sys = System::new().env("TMPDIR", tmp.path());
+    let desc = long_running(&sys);
+    let mut first = sys.start_with(&link, &desc);
+    first.wait_for_replicas("echo", 3);
+    first.wait_for_answers("echo");
+    let comm = std::fs::read_to_string(format!("/proc/{}/comm", first.pid())).unwrap_or_default();
+    assert_eq!(
+        comm.trim_end(),
+        "mysat-superviso",
+        "the first bootstrap's process name"
+    );
+    let folder = runtime_dir(tmp.path(), first.pid());
+    assert!(folder.is_dir(), "no runtime folder {}", folder.display());
+
+    let sys = System::new().env("TMPDIR", tmp.path());
+    let desc = long_running(&sys);
+    let mut second = sys.start(&desc);
+    second.wait_for_replicas("echo", 3);
+    assert!(
+        folder.is_dir(),
+        "the second bootstrap removed the runtime folder of the first, which is running"
+    );
+    // The first system still rebuilds its replicas, again and again (each recovery renews
+    // the spare lines of the child and its donor through the voter's socket).
+    for slot in [2, 0, 2] {
+        let pid = first.replica_pids("echo")[&slot];
+        s3res_testkit::kill_pid(pid, libc::SIGKILL).expect("kill a replica");
+        let rec = first.wait_for_event(|e| is_recovery_of(e, slot, pid), Duration::from_secs(20));
+        assert_eq!(rec.method, Some(RecoveryMethod::Fork), "{rec:?}");
+    }
+    for run in [&mut second, &mut first] {
+        run.stop();
+        run.wait(Duration::from_secs(20));
+        run.assert_nothing_left();
+    }
+    assert!(
+        !folder.exists(),
+        "the first bootstrap left its runtime folder"
     );
 }
 

@@ -1,0 +1,247 @@
+//! bootstrap's runtime folder, `<tmp>/s3res-<pid>-<n>` (mode 0700): the voters' sockets, to
+//! which replicas connect (a fork child's spare line, a replica rebinding to a new voter), and
+//! the injector's live view. It must exist for as long as bootstrap runs, and a bootstrap that
+//! dies without cleaning up (SIGKILL, a power cut) leaves it behind, for the next one to remove.
+//!
+//! **Who is still running** is the kernel's to say, not a pid's: a bootstrap holds an
+//! exclusive lock (`flock`) on its folder for as long as it lives ([`RuntimeDir`]), and the
+//! kernel lets go of it when bootstrap dies, however it dies. The next bootstrap removes only
+//! folders whose lock it can take. Before the lock, a folder counted as dead when its pid was
+//! not a process named `s3res-bootstrap`: so a bootstrap started under another name (a renamed
+//! copy, a link) had its live folder removed by the next one — and one in another pid
+//! namespace sharing `/tmp` would have — after which its replicas were no longer rebuilt by
+//! fork (a fork child reaches its voter through the folder) but by exec, their state lost,
+//! two seconds after their death. The name check stays as a second guard, for a folder of a
+//! bootstrap too old to lock it.
+//!
+//! On a file system that takes no lock, bootstrap says so once, runs without one, and removes
+//! no other folder (it cannot tell a live one).
+
+use std::fs::{File, TryLockError};
+use std::os::unix::fs::{DirBuilderExt, MetadataExt};
+use std::path::{Path, PathBuf};
+
+/// The runtime folder of this bootstrap, locked while it is held (`lock` is `None` on a file
+/// system that takes no lock).
+#[derive(Debug)]
+pub struct RuntimeDir {
+    pub path: PathBuf,
+    pub lock: Option<File>,
+}
+
+/// Candidate names tried (`s3res-<pid>-0` …) before giving up.
+const CANDIDATES: u32 = 1000;
+
+/// Makes and locks a new runtime folder in `tmp`, after removing the folders of dead
+/// bootstraps there.
+pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
+    remove_stale(tmp);
+    let pid = std::process::id();
+    for n in 0..CANDIDATES {
+        let path = tmp.join(format!("s3res-{pid}-{n}"));
+        match std::fs::DirBuilder::new().mode(0o700).create(&path) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e),
+        }
+        let dir = match File::open(&path) {
+            Ok(dir) => dir,
+            // Another bootstrap's sweep took it between the two calls (see `remove_stale`).
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(e),
+        };
+        match dir.try_lock() {
+            // Locked, and still the folder at that name (a sweep that held the lock a moment
+            // earlier may have removed it): from here on no sweep takes it.
+            Ok(()) if same_file(&dir, &path) => {
+                return Ok(RuntimeDir {
+                    path,
+                    lock: Some(dir),
+                })
+            }
+            Ok(()) => continue,
+            // A sweep holds it, and will remove it.
+            Err(TryLockError::WouldBlock) => continue,
+            Err(TryLockError::Error(e)) => {
+                tracing::warn!(
+                    folder = %path.display(),
+                    error = %e,
+                    "cannot lock the runtime folder: another s3res-bootstrap, started meanwhile, \
+                     cannot tell that this one is running if this one is not named \
+                     s3res-bootstrap"
+                );
+                return Ok(RuntimeDir { path, lock: None });
+            }
+        }
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::AlreadyExists,
+        format!("{CANDIDATES} candidate names are taken"),
+    ))
+}
+
+fn same_file(open: &File, path: &Path) -> bool {
+    match (open.metadata(), std::fs::symlink_metadata(path)) {
+        (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+        _ => false,
+    }
+}
+
+/// The pid in a runtime folder's name (`s3res-<pid>-<n>`), if it is one.
+fn pid_of(name: &str) -> Option<libc::pid_t> {
+    let (pid, n) = name.strip_prefix("s3res-")?.split_once('-')?;
+    n.parse::<u32>().ok()?;
+    pid.parse().ok()
+}
+
+/// Whether `pid` is a process named `s3res-bootstrap` (the kernel keeps 15 bytes of a name).
+fn is_bootstrap(pid: libc::pid_t) -> bool {
+    let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default();
+    matches!(comm.trim_end(), "s3res-bootstrap" | "s3res-bootstra")
+}
+
+/// What became of one folder a sweep looked at.
+#[derive(Debug, PartialEq, Eq)]
+enum Stale {
+    Removed,
+    /// Locked: its bootstrap runs.
+    Live,
+    /// Not locked, but its pid is a running `s3res-bootstrap` (one too old to lock).
+    Unlocked,
+    /// It could not be opened, locked or removed.
+    Failed(String),
+}
+
+/// Removes the runtime folders of dead bootstraps in `tmp`: ours (same user), named
+/// `s3res-<pid>-<n>`, a directory, and unlocked.
+fn remove_stale(tmp: &Path) {
+    let Ok(entries) = std::fs::read_dir(tmp) else {
+        return;
+    };
+    let me = std::fs::metadata("/proc/self").map(|m| m.uid()).ok();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name.to_str().and_then(pid_of) else {
+            continue;
+        };
+        // A directory entry's metadata is the link's own: a link named like a folder is not
+        // followed.
+        let ours = entry
+            .metadata()
+            .is_ok_and(|m| m.is_dir() && Some(m.uid()) == me);
+        if !ours {
+            continue;
+        }
+        let path = entry.path();
+        match remove_if_stale(&path, pid) {
+            Stale::Removed => {
+                tracing::debug!(dir = %path.display(), "removed the runtime folder of a dead bootstrap")
+            }
+            Stale::Live | Stale::Unlocked => {}
+            Stale::Failed(e) => {
+                tracing::debug!(dir = %path.display(), error = %e, "cannot remove a stale runtime folder")
+            }
+        }
+    }
+}
+
+fn remove_if_stale(path: &Path, pid: libc::pid_t) -> Stale {
+    let dir = match File::open(path) {
+        Ok(dir) => dir,
+        Err(e) => return Stale::Failed(e.to_string()),
+    };
+    match dir.try_lock() {
+        Ok(()) => {}
+        Err(TryLockError::WouldBlock) => return Stale::Live,
+        // No lock on this file system: nothing tells a live folder, so none is removed.
+        Err(TryLockError::Error(e)) => return Stale::Failed(e.to_string()),
+    }
+    if is_bootstrap(pid) {
+        return Stale::Unlocked;
+    }
+    // Removed while locked: a bootstrap making a folder by this name meanwhile cannot take it.
+    match std::fs::remove_dir_all(path) {
+        Ok(()) => Stale::Removed,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Stale::Removed,
+        Err(e) => Stale::Failed(e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp() -> tempfile::TempDir {
+        tempfile::Builder::new()
+            .prefix("s3res-runtime-test-")
+            .tempdir()
+            .unwrap()
+    }
+
+    #[test]
+    fn names_of_runtime_folders_and_nothing_else() {
+        assert_eq!(pid_of("s3res-1234-0"), Some(1234));
+        assert_eq!(pid_of("s3res-1-17"), Some(1));
+        for other in [
+            "s3res-test-abc",
+            "s3res-inject-x1",
+            "s3res-12-x",
+            "s3res-12",
+            "s3res--0",
+            "other-12-0",
+        ] {
+            assert_eq!(pid_of(other), None, "{other}");
+        }
+    }
+
+    /// A folder whose lock is held is left whatever its pid says (here: a pid that cannot
+    /// exist); once the lock is let go, the next sweep removes it.
+    #[test]
+    fn a_locked_folder_is_live_whatever_its_pid() {
+        let t = tmp();
+        let path = t.path().join("s3res-2147483646-0");
+        std::fs::create_dir(&path).unwrap();
+        std::fs::write(path.join("v1.sock"), b"").unwrap();
+        let holder = File::open(&path).unwrap();
+        holder.try_lock().unwrap();
+        remove_stale(t.path());
+        assert!(path.join("v1.sock").exists(), "a locked folder was removed");
+        drop(holder);
+        remove_stale(t.path());
+        assert!(!path.exists(), "an unlocked folder of a dead pid stays");
+    }
+
+    /// What `make` returns is locked against every other sweep, and a second `make` in the
+    /// same folder (one process, so the same pid) takes the next name.
+    #[test]
+    fn a_made_folder_is_locked_and_the_next_takes_the_next_name() {
+        let t = tmp();
+        let first = make(t.path()).unwrap();
+        assert!(first.lock.is_some(), "tmpfs and ext4 take locks");
+        let pid = std::process::id();
+        assert_eq!(first.path, t.path().join(format!("s3res-{pid}-0")));
+        let other = File::open(&first.path).unwrap();
+        assert!(matches!(other.try_lock(), Err(TryLockError::WouldBlock)));
+        let second = make(t.path()).unwrap();
+        assert_eq!(second.path, t.path().join(format!("s3res-{pid}-1")));
+        assert!(
+            first.path.is_dir(),
+            "the second make removed the first's folder"
+        );
+    }
+
+    /// A link named like a runtime folder is not followed, and the sweep leaves folders of
+    /// names it does not know.
+    #[test]
+    fn a_sweep_leaves_links_and_other_names() {
+        let t = tmp();
+        let target = t.path().join("kept");
+        std::fs::create_dir(&target).unwrap();
+        std::os::unix::fs::symlink(&target, t.path().join("s3res-2147483646-1")).unwrap();
+        std::fs::create_dir(t.path().join("s3res-tmp-x")).unwrap();
+        remove_stale(t.path());
+        assert!(target.is_dir());
+        assert!(t.path().join("s3res-2147483646-1").exists());
+        assert!(t.path().join("s3res-tmp-x").is_dir());
+    }
+}
