@@ -594,6 +594,9 @@ fn spawn_injector(
         .arg(inject.components.join(","))
         .arg("--after")
         .arg(inject.after_s.to_string());
+    // If bootstrap dies (even by SIGKILL), the injector stops: it would go on firing faults
+    // at the pids of a system that is gone (SIGTERM: it stops as when bootstrap stops it).
+    sys::die_with_parent(&mut cmd, libc::SIGTERM);
     let child = cmd.spawn().map_err(spawn_err)?;
     Ok(child.id() as libc::pid_t)
 }

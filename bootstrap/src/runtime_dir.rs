@@ -50,25 +50,34 @@ pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
             Err(e) => return Err(e),
         };
+        // Still the folder made above (a sweep that held its lock a moment may have removed
+        // it, and someone else made one by that name since): ours, private, at that name.
+        let made_here = |dir: &File| is_private_dir(dir) && same_file(dir, &path);
         match dir.try_lock() {
-            // Locked, and still the folder at that name (a sweep that held the lock a moment
-            // earlier may have removed it): from here on no sweep takes it.
-            Ok(()) if same_file(&dir, &path) => {
+            // From here on no sweep takes it.
+            Ok(()) if made_here(&dir) => {
                 return Ok(RuntimeDir {
                     path,
                     lock: Some(dir),
                 })
             }
             Ok(()) => continue,
-            // A sweep holds it, and will remove it.
-            Err(TryLockError::WouldBlock) => continue,
+            // A sweep holds it for a moment: leave the name (removed, if it is still the empty
+            // folder made above) and take the next.
+            Err(TryLockError::WouldBlock) => {
+                if made_here(&dir) {
+                    let _ = std::fs::remove_dir(&path);
+                }
+                continue;
+            }
+            Err(TryLockError::Error(_)) if !made_here(&dir) => continue,
             Err(TryLockError::Error(e)) => {
                 tracing::warn!(
-                    folder = %path.display(),
-                    error = %e,
-                    "cannot lock the runtime folder: another s3res-bootstrap, started meanwhile, \
-                     cannot tell that this one is running if this one is not named \
-                     s3res-bootstrap"
+                    "cannot lock the runtime folder {} ({e}): the folders of bootstraps that \
+                     were killed are not removed from {}; a TMPDIR on a local file system \
+                     takes locks",
+                    path.display(),
+                    tmp.display()
                 );
                 return Ok(RuntimeDir { path, lock: None });
             }
@@ -78,6 +87,15 @@ pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
         std::io::ErrorKind::AlreadyExists,
         format!("{CANDIDATES} candidate names are taken"),
     ))
+}
+
+/// Whether `dir` is a directory of this user that no one else can enter (a folder by a
+/// runtime folder's name that someone else made in a shared `/tmp` is not used; a umask only
+/// takes bits away from the 0700 it was made with).
+fn is_private_dir(dir: &File) -> bool {
+    dir.metadata().is_ok_and(|m| {
+        m.is_dir() && m.uid() == nix::unistd::geteuid().as_raw() && m.mode() & 0o077 == 0
+    })
 }
 
 fn same_file(open: &File, path: &Path) -> bool {
@@ -94,8 +112,13 @@ fn pid_of(name: &str) -> Option<libc::pid_t> {
     pid.parse().ok()
 }
 
-/// Whether `pid` is a process named `s3res-bootstrap` (the kernel keeps 15 bytes of a name).
-fn is_bootstrap(pid: libc::pid_t) -> bool {
+/// Whether `pid` is another process named `s3res-bootstrap` (the kernel keeps 15 bytes of a
+/// name). Not this one: a folder named with this bootstrap's own pid is a dead one's that had
+/// it before (in a container, bootstrap is pid 1 at every start), as this one's are locked.
+fn is_other_bootstrap(pid: libc::pid_t) -> bool {
+    if u32::try_from(pid) == Ok(std::process::id()) {
+        return false;
+    }
     let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default();
     matches!(comm.trim_end(), "s3res-bootstrap" | "s3res-bootstra")
 }
@@ -106,6 +129,8 @@ enum Stale {
     Removed,
     /// Locked: its bootstrap runs.
     Live,
+    /// Another folder has the name now (made after another sweep removed the one locked).
+    Replaced,
     /// Not locked, but its pid is a running `s3res-bootstrap` (one too old to lock).
     Unlocked,
     /// It could not be opened, locked or removed.
@@ -137,7 +162,7 @@ fn remove_stale(tmp: &Path) {
             Stale::Removed => {
                 tracing::debug!(dir = %path.display(), "removed the runtime folder of a dead bootstrap")
             }
-            Stale::Live | Stale::Unlocked => {}
+            Stale::Live | Stale::Replaced | Stale::Unlocked => {}
             Stale::Failed(e) => {
                 tracing::debug!(dir = %path.display(), error = %e, "cannot remove a stale runtime folder")
             }
@@ -156,7 +181,12 @@ fn remove_if_stale(path: &Path, pid: libc::pid_t) -> Stale {
         // No lock on this file system: nothing tells a live folder, so none is removed.
         Err(TryLockError::Error(e)) => return Stale::Failed(e.to_string()),
     }
-    if is_bootstrap(pid) {
+    // Locked, and still the folder at that name: while the lock is held no bootstrap makes
+    // one there (one removed by another sweep and made again meanwhile is not this one).
+    if !same_file(&dir, path) {
+        return Stale::Replaced;
+    }
+    if is_other_bootstrap(pid) {
         return Stale::Unlocked;
     }
     // Removed while locked: a bootstrap making a folder by this name meanwhile cannot take it.

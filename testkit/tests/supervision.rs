@@ -44,10 +44,26 @@ fn private_tmp() -> tempfile::TempDir {
 /// Sends `sig` to bootstrap mid-run and waits (10 s at most) until no process of the system
 /// is left; returns how long that took and bootstrap's pid. bootstrap's `TMPDIR` is `tmp`.
 fn kill_bootstrap(sig: i32, tmp: &Path) -> (Duration, i32) {
+    kill_bootstrap_of(sig, tmp, None)
+}
+
+/// [`kill_bootstrap`] of a system with the description's `inject` object `inject`, if any
+/// (the injector running is waited for before the signal).
+fn kill_bootstrap_of(sig: i32, tmp: &Path, inject: Option<serde_json::Value>) -> (Duration, i32) {
     let sys = System::new().env("TMPDIR", tmp);
-    let desc = long_running(&sys);
-    let mut run = sys.start(&desc);
+    let mut desc: serde_json::Value =
+        serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
+    let injects = inject.is_some();
+    if let Some(inject) = inject {
+        desc["inject"] = inject;
+    }
+    let mut run = sys.start_json(&desc);
     run.wait_for_replicas("echo", 3);
+    if injects {
+        s3res_testkit::wait_until("the injector", Duration::from_secs(20), || {
+            run.process_named("s3res-inject")
+        });
+    }
     let (bootstrap, pgid) = (run.pid(), run.pgid());
     let before = live_in_group(pgid, bootstrap);
     // source, voter, three replicas, sink.
@@ -92,6 +108,18 @@ fn sigkill_of_bootstrap_ends_every_process_it_started() {
         "the next bootstrap did not remove the runtime folder of the dead one"
     );
     next.stop();
+}
+
+/// The fault injector a description's `inject` starts ends with a SIGKILLed bootstrap too:
+/// it had no parent-death signal, and went on firing faults at the pids of a system that was
+/// gone (its seed: 56).
+#[test]
+fn sigkill_of_bootstrap_ends_its_fault_injector_too() {
+    let tmp = private_tmp();
+    let inject = serde_json::json!({
+        "faults": ["exec"], "rate_hz": 1, "seed": 56, "after_s": 600, "components": ["echo"]
+    });
+    kill_bootstrap_of(libc::SIGKILL, tmp.path(), Some(inject));
 }
 
 #[test]
