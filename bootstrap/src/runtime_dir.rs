@@ -12,7 +12,8 @@
 //! namespace sharing `/tmp` would have — after which its replicas were no longer rebuilt by
 //! fork (a fork child reaches its voter through the folder) but by exec, their state lost,
 //! two seconds after their death. The name check stays as a second guard, for a folder of a
-//! bootstrap too old to lock it.
+//! bootstrap too old to lock it (which it protects only under its own name, and not when it
+//! has this bootstrap's pid in another pid namespace).
 //!
 //! On a file system that takes no lock, bootstrap says so once, runs without one, and removes
 //! no other folder (it cannot tell a live one).
@@ -48,29 +49,32 @@ pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
             Ok(dir) => dir,
             // Another bootstrap's sweep took it between the two calls (see `remove_stale`).
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-            Err(e) => return Err(e),
+            Err(e) => {
+                let _ = std::fs::remove_dir(&path);
+                return Err(e);
+            }
         };
-        // Still the folder made above (a sweep that held its lock a moment may have removed
-        // it, and someone else made one by that name since): ours, private, at that name.
-        let made_here = |dir: &File| is_private_dir(dir) && same_file(dir, &path);
+        // Still the folder made above? A sweep that held its lock a moment may have removed
+        // it, and someone else made one by that name since.
+        if !same_file(&dir, &path) {
+            continue;
+        }
+        if let Err(e) = check_private(&dir) {
+            let _ = std::fs::remove_dir(&path);
+            return Err(e);
+        }
         match dir.try_lock() {
-            // From here on no sweep takes it.
-            Ok(()) if made_here(&dir) => {
+            // From here on no sweep takes it; and still the folder made above.
+            Ok(()) if same_file(&dir, &path) => {
                 return Ok(RuntimeDir {
                     path,
                     lock: Some(dir),
                 })
             }
             Ok(()) => continue,
-            // A sweep holds it for a moment: leave the name (removed, if it is still the empty
-            // folder made above) and take the next.
-            Err(TryLockError::WouldBlock) => {
-                if made_here(&dir) {
-                    let _ = std::fs::remove_dir(&path);
-                }
-                continue;
-            }
-            Err(TryLockError::Error(_)) if !made_here(&dir) => continue,
+            // A sweep holds it for a moment: take the next name (the empty folder is removed
+            // by a later sweep, once this bootstrap is gone).
+            Err(TryLockError::WouldBlock) => continue,
             Err(TryLockError::Error(e)) => {
                 tracing::warn!(
                     "cannot lock the runtime folder {} ({e}): the folders of bootstraps that \
@@ -89,13 +93,21 @@ pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
     ))
 }
 
-/// Whether `dir` is a directory of this user that no one else can enter (a folder by a
-/// runtime folder's name that someone else made in a shared `/tmp` is not used; a umask only
-/// takes bits away from the 0700 it was made with).
-fn is_private_dir(dir: &File) -> bool {
-    dir.metadata().is_ok_and(|m| {
-        m.is_dir() && m.uid() == nix::unistd::geteuid().as_raw() && m.mode() & 0o077 == 0
-    })
+/// That `dir`, just made with mode 0700, is a directory of this user that no one else can
+/// enter (a umask only takes bits away). A file system that keeps neither owners nor modes
+/// (NFS squashing users, vfat) would hand the voters' sockets to whoever it says owns them.
+fn check_private(dir: &File) -> std::io::Result<()> {
+    let m = dir.metadata()?;
+    let me = nix::unistd::geteuid().as_raw();
+    if m.is_dir() && m.uid() == me && m.mode() & 0o077 == 0 {
+        return Ok(());
+    }
+    Err(std::io::Error::other(format!(
+        "a folder made there with mode 0700 by uid {me} is owned by uid {} with mode {:o}: \
+         the file system keeps no owners or modes; set TMPDIR to a folder on a local file system",
+        m.uid(),
+        m.mode() & 0o7777
+    )))
 }
 
 fn same_file(open: &File, path: &Path) -> bool {
@@ -143,7 +155,9 @@ fn remove_stale(tmp: &Path) {
     let Ok(entries) = std::fs::read_dir(tmp) else {
         return;
     };
-    let me = std::fs::metadata("/proc/self").map(|m| m.uid()).ok();
+    // The effective uid, not `/proc/self`'s owner: that is root for a bootstrap given
+    // capabilities with `setcap` (docs/real-time.md), which the kernel makes non-dumpable.
+    let me = nix::unistd::geteuid().as_raw();
     for entry in entries.flatten() {
         let name = entry.file_name();
         let Some(pid) = name.to_str().and_then(pid_of) else {
@@ -151,9 +165,7 @@ fn remove_stale(tmp: &Path) {
         };
         // A directory entry's metadata is the link's own: a link named like a folder is not
         // followed.
-        let ours = entry
-            .metadata()
-            .is_ok_and(|m| m.is_dir() && Some(m.uid()) == me);
+        let ours = entry.metadata().is_ok_and(|m| m.is_dir() && m.uid() == me);
         if !ours {
             continue;
         }
@@ -258,6 +270,21 @@ mod tests {
             first.path.is_dir(),
             "the second make removed the first's folder"
         );
+    }
+
+    /// A folder others can enter is refused, with what the file system made of it.
+    #[test]
+    fn a_folder_open_to_others_is_not_private() {
+        use std::os::unix::fs::PermissionsExt;
+        let t = tmp();
+        let path = t.path().join("d");
+        std::fs::create_dir(&path).unwrap();
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o700)).unwrap();
+        check_private(&File::open(&path).unwrap()).unwrap();
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o750)).unwrap();
+        let e = check_private(&File::open(&path).unwrap()).unwrap_err();
+        assert!(e.to_string().contains("with mode 750"), "{e}");
+        assert!(e.to_string().contains("set TMPDIR"), "{e}");
     }
 
     /// A link named like a runtime folder is not followed, and the sweep leaves folders of
