@@ -229,6 +229,16 @@ def run_c_restart(exe, size, count):
     fail(f"the C floor printed no fork figure for {size // 1024} KiB: {out!r}")
 
 
+# The machine as s3res-bench describes it in its rows (CPU model, cores, kernel, load): the
+# first s3res run's, recorded with the run (a VM's host can change between two runs).
+MACHINE = []
+
+
+def note_machine(row):
+    if not MACHINE and row.get("machine"):
+        MACHINE.append(row["machine"])
+
+
 def run_s3res_restart(bench, components, size, count):
     cmd = [bench, "restart", "--setup", "rr-pinned", "--size", str(size), "--count", str(count),
            "--json", "--quiet"]
@@ -238,6 +248,7 @@ def run_s3res_restart(bench, components, size, count):
         if line.startswith("{"):
             d = json.loads(line)
             if d.get("size") == size:
+                note_machine(d)
                 return d["median_us"], d["p99_us"], d["max_us"]
     fail(f"s3res-bench printed no restart row for {size} bytes")
 
@@ -275,6 +286,7 @@ def run_s3res(bench, setup, components, level, size, count, warmup):
             if d.get("replicas") == level and d.get("size") == size:
                 if d.get("faults"):
                     fail(f"s3res reported {d['faults']} fault events in a fault-free run: {line}")
+                note_machine(d)
                 return d["median_us"], d["p99_us"], d["max_us"]
     fail(f"s3res-bench printed no row for level {level}, size {size}")
 
@@ -393,18 +405,6 @@ def table(res):
     return "\n".join(out)
 
 
-def cpu_model():
-    """The CPU's model name (/proc/cpuinfo): a VM's host can change between two runs."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "CPU model unknown"
-
-
 def size_label(size):
     return (f"{size >> 20} MiB" if size >= 1 << 20 and size % (1 << 20) == 0
             else f"{size >> 10} KiB" if size >= 1024 else f"{size} B")
@@ -520,7 +520,6 @@ def main():
         "with_orig": with_orig, "components": args.components, "sizes": sizes, "levels": levels,
         "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
         "load_start": open("/proc/loadavg").read().split()[:3],
-        "machine": f"{cpu_model()}, {os.cpu_count()} CPUs, {os.uname().release}",
     }
     # Written now and again at the end, so that an interrupted run's pairs can still be read
     # with --table.
@@ -563,6 +562,9 @@ def main():
                         row["lost"] = m[3]
                     runs.write(json.dumps(row) + "\n")
                     runs.flush()
+                    if MACHINE and "machine" not in meta:
+                        meta["machine"] = MACHINE[0]
+                        write_meta(res, meta)
     meta["ended"] = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     meta["load_end"] = open("/proc/loadavg").read().split()[:3]
     write_meta(res, meta)

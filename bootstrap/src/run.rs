@@ -273,7 +273,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         let tmp = std::env::temp_dir();
         let dir = crate::runtime_dir::make(&tmp)
             .map_err(|source| RunError::SocketDir { dir: tmp, source })?;
-        let path = dir.path.clone();
+        let path = dir.path().to_owned();
         guard.own_socket_dir(dir);
         Some(path)
     } else {

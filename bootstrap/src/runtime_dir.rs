@@ -22,12 +22,27 @@ use std::fs::{File, TryLockError};
 use std::os::unix::fs::{DirBuilderExt, MetadataExt};
 use std::path::{Path, PathBuf};
 
-/// The runtime folder of this bootstrap, locked while it is held (`lock` is `None` on a file
-/// system that takes no lock).
+/// The runtime folder of this bootstrap, locked while it is held (no lock on a file system
+/// that takes none).
 #[derive(Debug)]
 pub struct RuntimeDir {
-    pub path: PathBuf,
-    pub lock: Option<File>,
+    path: PathBuf,
+    _lock: Option<File>,
+}
+
+impl RuntimeDir {
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Removes the folder, then lets go of its lock (so no sweep meanwhile takes the name).
+    pub fn remove(self) {
+        if let Err(e) = std::fs::remove_dir_all(&self.path) {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                tracing::warn!("cannot remove runtime folder {}: {e}", self.path.display());
+            }
+        }
+    }
 }
 
 /// Candidate names tried (`s3res-<pid>-0` …) before giving up.
@@ -68,7 +83,7 @@ pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
             Ok(()) if same_file(&dir, &path) => {
                 return Ok(RuntimeDir {
                     path,
-                    lock: Some(dir),
+                    _lock: Some(dir),
                 })
             }
             Ok(()) => continue,
@@ -83,7 +98,7 @@ pub fn make(tmp: &Path) -> std::io::Result<RuntimeDir> {
                     path.display(),
                     tmp.display()
                 );
-                return Ok(RuntimeDir { path, lock: None });
+                return Ok(RuntimeDir { path, _lock: None });
             }
         }
     }
@@ -135,20 +150,6 @@ fn is_other_bootstrap(pid: libc::pid_t) -> bool {
     matches!(comm.trim_end(), "s3res-bootstrap" | "s3res-bootstra")
 }
 
-/// What became of one folder a sweep looked at.
-#[derive(Debug, PartialEq, Eq)]
-enum Stale {
-    Removed,
-    /// Locked: its bootstrap runs.
-    Live,
-    /// Another folder has the name now (made after another sweep removed the one locked).
-    Replaced,
-    /// Not locked, but its pid is a running `s3res-bootstrap` (one too old to lock).
-    Unlocked,
-    /// It could not be opened, locked or removed.
-    Failed(String),
-}
-
 /// Removes the runtime folders of dead bootstraps in `tmp`: ours (same user), named
 /// `s3res-<pid>-<n>`, a directory, and unlocked.
 fn remove_stale(tmp: &Path) {
@@ -171,41 +172,39 @@ fn remove_stale(tmp: &Path) {
         }
         let path = entry.path();
         match remove_if_stale(&path, pid) {
-            Stale::Removed => {
+            Ok(true) => {
                 tracing::debug!(dir = %path.display(), "removed the runtime folder of a dead bootstrap")
             }
-            Stale::Live | Stale::Replaced | Stale::Unlocked => {}
-            Stale::Failed(e) => {
+            Ok(false) => {}
+            Err(e) => {
                 tracing::debug!(dir = %path.display(), error = %e, "cannot remove a stale runtime folder")
             }
         }
     }
 }
 
-fn remove_if_stale(path: &Path, pid: libc::pid_t) -> Stale {
-    let dir = match File::open(path) {
-        Ok(dir) => dir,
-        Err(e) => return Stale::Failed(e.to_string()),
-    };
+/// Removes the folder at `path` if its bootstrap is dead: `Ok(true)`; `Ok(false)`: left (its
+/// bootstrap runs, or another folder has the name now); `Err`: it could not be opened,
+/// locked or removed.
+fn remove_if_stale(path: &Path, pid: libc::pid_t) -> std::io::Result<bool> {
+    let dir = File::open(path)?;
     match dir.try_lock() {
         Ok(()) => {}
-        Err(TryLockError::WouldBlock) => return Stale::Live,
+        // Locked: its bootstrap runs.
+        Err(TryLockError::WouldBlock) => return Ok(false),
         // No lock on this file system: nothing tells a live folder, so none is removed.
-        Err(TryLockError::Error(e)) => return Stale::Failed(e.to_string()),
+        Err(TryLockError::Error(e)) => return Err(e),
     }
-    // Locked, and still the folder at that name: while the lock is held no bootstrap makes
-    // one there (one removed by another sweep and made again meanwhile is not this one).
-    if !same_file(&dir, path) {
-        return Stale::Replaced;
+    // Locked, and still the folder at that name? (Another sweep may have removed it and a
+    // bootstrap made a new one meanwhile.) While the lock is held no bootstrap makes one there.
+    // Not locked before, but its pid is another running `s3res-bootstrap`: one too old to lock.
+    if !same_file(&dir, path) || is_other_bootstrap(pid) {
+        return Ok(false);
     }
-    if is_other_bootstrap(pid) {
-        return Stale::Unlocked;
-    }
-    // Removed while locked: a bootstrap making a folder by this name meanwhile cannot take it.
     match std::fs::remove_dir_all(path) {
-        Ok(()) => Stale::Removed,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Stale::Removed,
-        Err(e) => Stale::Failed(e.to_string()),
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(true),
+        Err(e) => Err(e),
     }
 }
 
@@ -259,7 +258,7 @@ mod tests {
     fn a_made_folder_is_locked_and_the_next_takes_the_next_name() {
         let t = tmp();
         let first = make(t.path()).unwrap();
-        assert!(first.lock.is_some(), "tmpfs and ext4 take locks");
+        assert!(first._lock.is_some(), "tmpfs and ext4 take locks");
         let pid = std::process::id();
         assert_eq!(first.path, t.path().join(format!("s3res-{pid}-0")));
         let other = File::open(&first.path).unwrap();

@@ -54,11 +54,7 @@ impl SweepGuard {
             );
         }
         if let Some(dir) = self.socket_dir.take() {
-            if let Err(e) = std::fs::remove_dir_all(&dir.path) {
-                if e.kind() != std::io::ErrorKind::NotFound {
-                    tracing::warn!("cannot remove socket folder {}: {e}", dir.path.display());
-                }
-            }
+            dir.remove();
         }
         report
     }
@@ -87,12 +83,11 @@ mod tests {
             .unwrap();
         let me = std::process::id() as libc::pid_t;
         assert!(children_of(me).contains(&(child.id() as libc::pid_t)));
-        let dir = tempfile::tempdir().unwrap().keep();
+        let tmp = tempfile::tempdir().unwrap();
+        let runtime = crate::runtime_dir::make(tmp.path()).unwrap();
+        let dir = runtime.path().to_owned();
         let mut guard = SweepGuard::new();
-        guard.own_socket_dir(RuntimeDir {
-            path: dir.clone(),
-            lock: None,
-        });
+        guard.own_socket_dir(runtime);
         let report = guard.finish();
         assert!(report.killed >= 1, "{report:?}");
         assert!(report.resisted.is_empty());
