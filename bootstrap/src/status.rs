@@ -25,7 +25,7 @@ use std::time::{Duration, Instant};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Deserialize;
 
-use s3res_protocol::event::{Event, EventKind, RecoveryMethod};
+use s3res_protocol::event::{Cause, Event, EventKind, RecoveryMethod};
 
 use crate::outcome::{match_run, Fired, Outcome};
 use crate::plan::SystemPlan;
@@ -44,11 +44,17 @@ pub struct ComponentTally {
     pub faults: BTreeMap<&'static str, u64>,
     pub recovered_by_fork: u64,
     pub recovered_by_exec: u64,
-    /// Recoveries that said the replica's state was lost.
+    /// Recoveries that said the replica's state was lost: every exec, and a fork whose donor
+    /// had itself been started afresh (it has no state to give).
     pub state_lost: u64,
+    /// Of those, forks.
+    pub state_lost_by_fork: u64,
     pub failed_recoveries: u64,
-    /// Fault events that blamed no replica: no majority, the frame was not forwarded.
+    /// Frames withheld: no majority, nothing forwarded (`no_majority`).
     pub withheld: u64,
+    /// Frames forwarded as the bitwise majority of answers that all differed (`all_differ`):
+    /// a frame no replica wrote. Many of them say the program is not deterministic.
+    pub rebuilt: u64,
     pub anomalies: u64,
     /// Times the component's voter was replaced by one that adopted its replicas.
     pub voter_restarts: u64,
@@ -87,20 +93,25 @@ impl Tally {
             EventKind::Start => return,
             EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
                 *c.faults.entry(kind_name(e.kind)).or_default() += 1;
-                match e.replica {
-                    Some(slot) => {
+                match (e.replica, e.cause) {
+                    (Some(slot), _) => {
                         c.down.insert(slot);
                     }
-                    None => c.withheld += 1,
+                    (None, Some(Cause::NoMajority)) => c.withheld += 1,
+                    (None, Some(Cause::AllDiffer)) => c.rebuilt += 1,
+                    (None, _) => {}
                 }
             }
             EventKind::Recovery => {
-                match e.method {
-                    Some(RecoveryMethod::Exec) => c.recovered_by_exec += 1,
-                    _ => c.recovered_by_fork += 1,
+                let by_fork = e.method != Some(RecoveryMethod::Exec);
+                if by_fork {
+                    c.recovered_by_fork += 1;
+                } else {
+                    c.recovered_by_exec += 1;
                 }
                 if e.state_lost == Some(true) {
                     c.state_lost += 1;
+                    c.state_lost_by_fork += u64::from(by_fork);
                 }
                 if let Some(slot) = e.replica {
                     c.down.remove(&slot);
@@ -461,17 +472,23 @@ impl Verdict {
         let sum = |f: fn(&ComponentTally) -> u64| -> u64 {
             self.tally.per_component.values().map(f).sum()
         };
-        let (fork, exec, lost, failed) = (
+        let (fork, exec, failed) = (
             sum(|c| c.recovered_by_fork),
             sum(|c| c.recovered_by_exec),
-            sum(|c| c.state_lost),
             sum(|c| c.failed_recoveries),
         );
+        let (lost, lost_by_fork) = (sum(|c| c.state_lost), sum(|c| c.state_lost_by_fork));
+        // A fork carries its donor's state, and a donor started afresh has none to give: such
+        // a fork is counted with the forks and with the states lost, and said so.
+        let state = match (fork + exec, lost, lost_by_fork) {
+            (0, _, _) => String::new(),
+            (_, 0, _) => "; state kept in every one".to_owned(),
+            (_, n, 0) => format!("; state lost in {n}"),
+            (_, n, f) => format!("; state lost in {n} ({f} forked from a donor started afresh)"),
+        };
         let _ = writeln!(
             s,
-            "  recoveries   {} by fork (state kept), {exec} by exec ({lost} with state lost), \
-             {failed} failed",
-            fork
+            "  recoveries   {fork} by fork, {exec} by exec, {failed} failed{state}"
         );
         let degraded: Vec<String> = self
             .protected
@@ -481,10 +498,19 @@ impl Verdict {
                 (!c.down.is_empty()).then(|| format!("{name} ({} of {n} down)", c.down.len()))
             })
             .collect();
+        let rebuilt = sum(|c| c.rebuilt);
         let _ = writeln!(
             s,
-            "  frames       {} withheld (no majority); degraded at the end: {}",
+            "  frames       {} withheld (no majority){}; degraded at the end: {}",
             sum(|c| c.withheld),
+            if rebuilt == 0 {
+                String::new()
+            } else {
+                format!(
+                    ", {rebuilt} rebuilt bit by bit from answers that all differed \
+                     (is the program deterministic?)"
+                )
+            },
             if degraded.is_empty() {
                 "none".to_owned()
             } else {
@@ -574,6 +600,22 @@ mod tests {
         e
     }
 
+    /// The verdict of a run that ended with status 0, of one TMR component `name`, with no
+    /// injector and no files.
+    fn clean_run_of(name: &str, t: &Tally) -> Verdict {
+        Verdict {
+            system: "robot".into(),
+            elapsed: Duration::from_secs(3),
+            exit_code: 0,
+            failures: vec![],
+            outcome: None,
+            tally: t.snapshot(),
+            injections: None,
+            files: Files::default(),
+            protected: vec![(name.into(), 3)],
+        }
+    }
+
     #[test]
     fn tally_counts_kinds_methods_and_down_slots() {
         let t = Tally::default();
@@ -582,14 +624,51 @@ mod tests {
         let mut r = event(EventKind::Recovery, Some(1));
         r.method = Some(RecoveryMethod::Fork);
         t.apply(&r);
-        t.apply(&event(EventKind::Sdc, None));
+        let mut withheld = event(EventKind::Sdc, None);
+        withheld.cause = Some(Cause::NoMajority);
+        t.apply(&withheld);
         t.apply(&event(EventKind::Hang, Some(2)));
         let d = t.snapshot();
         let c = &d.per_component["filter"];
         assert_eq!(c.faults.get("crash"), Some(&1));
-        assert_eq!((c.recovered_by_fork, c.withheld), (1, 1));
+        assert_eq!((c.recovered_by_fork, c.withheld, c.rebuilt), (1, 1, 0));
         assert_eq!(c.down.iter().copied().collect::<Vec<_>>(), vec![2]);
         assert_eq!(d.events.len(), 4, "start events are not kept");
+    }
+
+    /// An `all_differ` frame was forwarded (rebuilt bit by bit), not withheld; a fork from a
+    /// donor started afresh lost its state like the exec before it, and the verdict says both
+    /// without contradicting itself.
+    #[test]
+    fn verdict_tells_withheld_from_rebuilt_frames_and_forks_that_lost_state() {
+        let t = Tally::default();
+        for cause in [Cause::AllDiffer, Cause::AllDiffer, Cause::NoMajority] {
+            let mut e = event(EventKind::Sdc, None);
+            e.cause = Some(cause);
+            t.apply(&e);
+        }
+        for (method, lost) in [
+            (RecoveryMethod::Exec, true),
+            (RecoveryMethod::Fork, true),
+            (RecoveryMethod::Fork, false),
+        ] {
+            let mut r = event(EventKind::Recovery, Some(0));
+            r.method = Some(method);
+            r.state_lost = Some(lost);
+            t.apply(&r);
+        }
+        let text = clean_run_of("filter", &t).render();
+        assert!(
+            text.contains("frames       1 withheld (no majority), 2 rebuilt bit by bit"),
+            "{text}"
+        );
+        assert!(
+            text.contains(
+                "recoveries   2 by fork, 1 by exec, 0 failed; state lost in 2 \
+                 (1 forked from a donor started afresh)"
+            ),
+            "{text}"
+        );
     }
 
     #[test]
@@ -631,12 +710,6 @@ mod tests {
         stray.ts_ns = 3_000;
         t.apply(&stray);
         let v = Verdict {
-            system: "robot".into(),
-            elapsed: Duration::from_secs(3),
-            exit_code: 0,
-            failures: vec![],
-            outcome: None,
-            tally: t.snapshot(),
             injections: Some(vec![Injected {
                 ts_ns: Some(500),
                 kind: "exec".into(),
@@ -649,14 +722,17 @@ mod tests {
                 events: Some("out/events.jsonl".into()),
                 ..Files::default()
             },
-            protected: vec![("filter".into(), 3)],
+            ..clean_run_of("filter", &t)
         };
         let text = v.render();
         assert!(
             text.contains("faults       2: filter 2 (crash 1, hang 1)"),
             "{text}"
         );
-        assert!(text.contains("1 by fork"), "{text}");
+        assert!(
+            text.contains("1 by fork, 0 by exec, 0 failed; state kept in every one"),
+            "{text}"
+        );
         assert!(text.contains("injected     1 (exec 1)"), "{text}");
         assert!(text.contains("1 detected and recovered"), "{text}");
         assert!(text.contains("false pos.   1"), "{text}");
