@@ -41,7 +41,12 @@ impl SearchPath {
         for dir in self.self_dir.iter().chain(self.path_dirs.iter()) {
             let candidate = dir.join(name);
             match check_executable(&candidate) {
-                Ok(()) => return Ok(absolute(&candidate)),
+                Ok(()) => {
+                    return match interpreter_problem(&candidate, &self.path_dirs) {
+                        None => Ok(absolute(&candidate)),
+                        Some(why) => Err(format!("`{name}` ({}): {why}", candidate.display())),
+                    }
+                }
                 Err(ExecProblem::Missing) => {}
                 Err(_) => {
                     not_executable.get_or_insert(candidate);
@@ -90,7 +95,10 @@ pub fn resolve(value: &str, base_dir: &Path, search: &SearchPath) -> Result<Path
     }
     let path = absolute(&base_dir.join(value));
     match check_executable(&path) {
-        Ok(()) => Ok(path),
+        Ok(()) => match interpreter_problem(&path, &search.path_dirs) {
+            None => Ok(path),
+            Some(why) => Err(format!("`{value}`: {why}")),
+        },
         Err(ExecProblem::Missing) => Err(format!(
             "executable `{value}` does not exist (looked at {})",
             path.display()
@@ -124,6 +132,59 @@ fn check_executable(path: &Path) -> Result<(), ExecProblem> {
         return Err(ExecProblem::NotExecutable);
     }
     Ok(())
+}
+
+/// Why the `#!` line of the script at `path`, if it is one, would make its exec fail: the
+/// interpreter it names is missing or not executable, or — for `#!/usr/bin/env NAME` — NAME is
+/// on none of `path_dirs` (the `PATH` the component inherits). Without this check a missing
+/// interpreter passes `--check` and the start fails with "No such file or directory", which
+/// names the script, not what is missing.
+fn interpreter_problem(path: &Path, path_dirs: &[PathBuf]) -> Option<String> {
+    use std::io::Read;
+    // The kernel reads at most this much of a `#!` line (BINPRM_BUF_SIZE).
+    let mut head = [0u8; 256];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| f.read(&mut head))
+        .ok()?;
+    let line = head[..n].strip_prefix(b"#!")?;
+    let line = line.split(|&b| b == b'\n').next().unwrap_or_default();
+    let line = String::from_utf8_lossy(line);
+    let mut words = line.split_whitespace();
+    let Some(interpreter) = words.next() else {
+        return Some("its `#!` line names no interpreter".to_owned());
+    };
+    match check_executable(Path::new(interpreter)) {
+        Ok(()) => {}
+        Err(ExecProblem::Missing) => {
+            return Some(format!(
+                "its `#!` line names the interpreter {interpreter}, which does not exist"
+            ))
+        }
+        Err(_) => {
+            return Some(format!(
+                "its `#!` line names the interpreter {interpreter}, which is not an executable \
+                 file"
+            ))
+        }
+    }
+    // `#!/usr/bin/env NAME`: env looks NAME up on PATH when the script starts. An option
+    // (`-S …`) or an assignment is left to env.
+    let is_env = Path::new(interpreter).file_name() == Some(OsStr::new("env"));
+    match words.next() {
+        Some(name) if is_env && !name.starts_with('-') && !name.contains('=') => {
+            let found = if name.contains('/') {
+                check_executable(Path::new(name)).is_ok()
+            } else {
+                path_dirs
+                    .iter()
+                    .any(|d| check_executable(&d.join(name)).is_ok())
+            };
+            (!found).then(|| {
+                format!("its `#!` line runs `{interpreter} {name}`, and {name} is not on PATH")
+            })
+        }
+        _ => None,
+    }
 }
 
 /// File name of the preload library (the `s3res-preload` crate's cdylib).
@@ -303,6 +364,53 @@ mod tests {
         assert!(e.contains("not a file"), "{e}");
         let e = resolve("", dir.path(), &SearchPath::default()).unwrap_err();
         assert!(e.contains("empty"), "{e}");
+    }
+
+    /// A script whose `#!` interpreter is missing (or, through `env`, not on PATH) is refused
+    /// by name of what is missing; one whose interpreter is there passes.
+    #[test]
+    fn a_script_is_refused_when_its_interpreter_is_missing() {
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, text: &str| {
+            let p = dir.path().join(name);
+            fs::write(&p, text).unwrap();
+            fs::set_permissions(&p, fs::Permissions::from_mode(0o755)).unwrap();
+        };
+        write("ok.sh", "#!/bin/sh\necho hi\n");
+        write("gone.sh", "#!/nonexistent/interp -x\n");
+        write("env-gone.sh", "#!/usr/bin/env no-such-interpreter-s3res\n");
+        write("env-ok.sh", "#!/usr/bin/env sh\n");
+        write("empty.sh", "#!\n");
+        let search = SearchPath {
+            self_dir: None,
+            path_dirs: vec!["/bin".into(), "/usr/bin".into()],
+        };
+        assert!(resolve("./ok.sh", dir.path(), &search).is_ok());
+        let e = resolve("./gone.sh", dir.path(), &search).unwrap_err();
+        assert!(
+            e.contains("`./gone.sh`: its `#!` line names the interpreter /nonexistent/interp, which does not exist"),
+            "{e}"
+        );
+        let e = resolve("./env-gone.sh", dir.path(), &search).unwrap_err();
+        assert!(
+            e.contains("no-such-interpreter-s3res is not on PATH"),
+            "{e}"
+        );
+        if Path::new("/usr/bin/env").exists() {
+            assert!(resolve("./env-ok.sh", dir.path(), &search).is_ok());
+        }
+        let e = resolve("./empty.sh", dir.path(), &search).unwrap_err();
+        assert!(e.contains("names no interpreter"), "{e}");
+        // Found by bare name, the same.
+        let bare = SearchPath {
+            self_dir: Some(dir.path().to_path_buf()),
+            path_dirs: vec![],
+        };
+        let e = bare.find("gone.sh").unwrap_err();
+        assert!(
+            e.contains("/nonexistent/interp, which does not exist"),
+            "{e}"
+        );
     }
 
     #[test]
