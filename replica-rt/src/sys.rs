@@ -516,6 +516,15 @@ pub fn state_in_stat(stat: &str) -> Option<char> {
     after_comm(stat)?.trim_start().chars().next()
 }
 
+/// The number of threads in the text of a `/proc/PID/stat` (field 20, `num_threads`).
+pub fn threads_in_stat(stat: &str) -> Option<u64> {
+    after_comm(stat)?
+        .split_ascii_whitespace()
+        .nth(17)?
+        .parse()
+        .ok()
+}
+
 /// What follows `comm` in the text of a `/proc/PID/stat` (field 3 on): comm (field 2) may
 /// contain spaces and parentheses, so the rest starts after the last ')'.
 fn after_comm(stat: &str) -> Option<&str> {

@@ -1597,15 +1597,23 @@ fn replace(
         return Ok(false);
     }
     let patience = Duration::from_micros(m.core().plan.timeout_us);
+    // An unmodified program may start threads; its restart handler refuses to fork then.
+    let refuse_threaded = m.core().plan.preload.is_some();
     let mut failed = ReplicaSet::EMPTY;
+    let mut threaded: Vec<usize>;
     loop {
         let progress = m.progress();
         let core = m.core();
         // A donor not seen asleep is waited for: the fault's event does not wait with it.
-        let pick =
-            crate::replica::best_donor(&core.slots, |d| progress[d], patience, failed, &|| {
-                core.release_faults()
-            });
+        let pick = crate::replica::best_donor(
+            &core.slots,
+            |d| progress[d],
+            patience,
+            failed,
+            refuse_threaded,
+            &|| core.release_faults(),
+        );
+        threaded = pick.threaded;
         for r in pick.hung {
             let detail = format!(
                 "picked as recovery donor, it ran for {} µs without once waiting for input or producing a frame",
@@ -1644,6 +1652,13 @@ fn replace(
                 failed = failed.with(d);
             }
         }
+    }
+    if !threaded.is_empty() {
+        tracing::warn!(
+            replica = slot,
+            "no recovery donor: replicas {threaded:?} run more than one thread, and a fork \
+             copies only the thread that makes it; starting replica {slot} afresh (state lost)"
+        );
     }
     // Retiring the replaced replica (its death awaited, up to a second) and an exec (milliseconds)
     // come after the fault's event.

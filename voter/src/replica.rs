@@ -580,18 +580,18 @@ impl Replica {
         self.proven || catches_restart_signal(self.pid)
     }
 
-    /// How good a recovery donor this replica is, and its state letter (from `/proc/PID/stat`,
-    /// `None` if it is gone) as seen for the rank; `None`: it cannot donate. See [`DonorRank`].
-    pub fn donor_rank(&self) -> Option<(DonorRank, Option<char>)> {
+    /// How good a recovery donor this replica is, and how its `/proc/PID/stat` looked for the
+    /// rank (`None` if it is gone); `None`: it cannot donate. See [`DonorRank`].
+    pub fn donor_rank(&self) -> Option<(DonorRank, Option<StatLook>)> {
         if !self.may_donate() {
             return None;
         }
-        let state = self.proc_stat.state(self.pidfd.as_fd());
+        let look = self.proc_stat.look(self.pidfd.as_fd());
         let rank = DonorRank {
-            stopped: matches!(state, Some('T' | 't')),
+            stopped: matches!(look.map(|l| l.state), Some('T' | 't')),
             ..self.donor_rank_unlooked()
         };
-        Some((rank, state))
+        Some((rank, look))
     }
 
     /// Its [`DonorRank`] as far as it is known without a look at the process (taken as not
@@ -608,6 +608,11 @@ impl Replica {
     /// pipe to drain) rather than running, runnable, stopped or dead.
     pub fn is_asleep(&self) -> bool {
         self.proc_stat.state(self.pidfd.as_fd()) == Some('S')
+    }
+
+    /// How its `/proc/PID/stat` looks now; `None` if it is gone.
+    pub fn look(&self) -> Option<StatLook> {
+        self.proc_stat.look(self.pidfd.as_fd())
     }
 }
 
@@ -653,11 +658,37 @@ impl ProcStat {
     /// The state letter (`S`, `R`, `T`, `Z`, …); `None` if the process is gone (or `/proc`
     /// does not say). `pidfd` is the replica's.
     pub fn state(&self, pidfd: BorrowedFd<'_>) -> Option<char> {
+        self.look(pidfd).map(|l| l.state)
+    }
+
+    /// Its state and thread count, from one read; `None` if the process is gone (or `/proc`
+    /// does not say). `pidfd` is the replica's.
+    pub fn look(&self, pidfd: BorrowedFd<'_>) -> Option<StatLook> {
         use std::os::unix::fs::FileExt;
         // The line is ~300 bytes; comm is at most 16.
         let mut buf = [0u8; 1024];
         let n = self.file(pidfd)?.read_at(&mut buf, 0).ok()?;
-        sys::state_in_stat(std::str::from_utf8(&buf[..n]).ok()?)
+        let text = std::str::from_utf8(&buf[..n]).ok()?;
+        Some(StatLook {
+            state: sys::state_in_stat(text)?,
+            threads: sys::threads_in_stat(text),
+        })
+    }
+}
+
+/// One look at a replica's `/proc/PID/stat`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StatLook {
+    /// The state letter (`S`, `R`, `T`, …).
+    pub state: char,
+    /// Threads (`None`: the field did not parse).
+    pub threads: Option<u64>,
+}
+
+impl StatLook {
+    /// More than one thread: a fork would copy only the one that makes it.
+    fn threaded(self) -> bool {
+        self.threads.is_some_and(|n| n > 1)
     }
 }
 
@@ -694,6 +725,9 @@ pub struct DonorPick {
     /// Answered replicas that ran for the whole patience without once waiting for anything:
     /// hung (a control-flow error nobody had caught yet). The caller blames them.
     pub hung: Vec<usize>,
+    /// Candidates passed over because they run more than one thread (only when the caller
+    /// said such a donor refuses: an unmodified program's, see `refuse_fork_when_threaded`).
+    pub threaded: Vec<usize>,
 }
 
 /// How often [`best_donor`] looks again while every candidate is running.
@@ -714,19 +748,23 @@ const RESAMPLE: Duration = Duration::from_micros(200);
 /// not blamed, if it never waits).
 /// Replicas that kept their state are looked at first; only when none of them can donate
 /// are the fresh ones. Slots in `exclude` are passed over (a donor that already failed).
+/// With `refuse_threaded`, a candidate running more than one thread is passed over (its
+/// restart handler would refuse, and the voter would wait a whole connect timeout to learn it).
 pub fn best_donor(
     slots: &[Option<Replica>],
     progress: impl Fn(usize) -> u64,
     patience: Duration,
     exclude: crate::vote::ReplicaSet,
+    refuse_threaded: bool,
     before_waiting: &dyn Fn(),
 ) -> DonorPick {
-    if let Some(d) = first_choice_asleep(slots, &progress, exclude) {
+    if let Some(d) = first_choice_asleep(slots, &progress, exclude, refuse_threaded) {
         return DonorPick {
             donor: Some(d),
-            hung: Vec::new(),
+            ..DonorPick::default()
         };
     }
+    let mut threaded = Vec::new();
     // (rank, progress, slot, pid, state letter when ranked); slots are unique, so the state
     // never decides the order.
     let mut ranked: Vec<Candidate> = slots
@@ -735,7 +773,12 @@ pub fn best_donor(
         .filter(|&(d, _)| !exclude.contains(d))
         .filter_map(|(d, rep)| {
             let rep = rep.as_ref()?;
-            let (rank, state) = rep.donor_rank()?;
+            let (rank, look) = rep.donor_rank()?;
+            if refuse_threaded && look.is_some_and(StatLook::threaded) {
+                threaded.push(d);
+                return None;
+            }
+            let state = look.map(|l| l.state);
             Some((rank, std::cmp::Reverse(progress(d)), d, rep.pid, state))
         })
         .collect();
@@ -764,6 +807,7 @@ pub fn best_donor(
             return DonorPick {
                 donor: Some(d),
                 hung,
+                threaded,
             };
         }
         fresh &= clean.is_empty();
@@ -806,10 +850,18 @@ pub fn best_donor(
             donor
         };
         if donor.is_some() {
-            return DonorPick { donor, hung };
+            return DonorPick {
+                donor,
+                hung,
+                threaded,
+            };
         }
     }
-    DonorPick { donor: None, hung }
+    DonorPick {
+        donor: None,
+        hung,
+        threaded,
+    }
 }
 
 /// A donor candidate as [`best_donor`] ranks it: rank, progress, slot, pid, and its state
@@ -827,11 +879,13 @@ type Candidate = (
 /// it is asleep (`S`). That is the donor [`best_donor`]'s ranking picks, since a sleeping
 /// replica is not stopped (and an answered one may donate); ranking first read every
 /// candidate's `/proc/PID/stat` (a `pread` each, on the restart's critical path, stop 43)
-/// where this one read answers. `None`: rank them all.
+/// where this one read answers. `None`: rank them all (also when it runs more than one
+/// thread and `refuse_threaded`).
 fn first_choice_asleep(
     slots: &[Option<Replica>],
     progress: &impl Fn(usize) -> u64,
     exclude: crate::vote::ReplicaSet,
+    refuse_threaded: bool,
 ) -> Option<usize> {
     let (rank, _, d) = slots
         .iter()
@@ -842,8 +896,9 @@ fn first_choice_asleep(
             Some((rank, std::cmp::Reverse(progress(d)), d))
         })
         .min()?;
-    let first = slots[d].as_ref()?;
-    (rank == DonorRank::BEST && first.is_asleep()).then_some(d)
+    let look = slots[d].as_ref()?.look()?;
+    let usable = !(refuse_threaded && look.threaded());
+    (rank == DonorRank::BEST && look.state == 'S' && usable).then_some(d)
 }
 
 /// The first of `candidates` seen asleep or having blocked since the first look, within
