@@ -70,8 +70,11 @@ restart_window_ms): no frame is lost or repeated, the replicas keep their state.
 component's voter, or an unmodified program's, stops the system instead.
 
 Everything is checked before anything starts. On SIGINT/SIGTERM/SIGHUP/SIGQUIT every component
-gets SIGTERM, then SIGKILL after --stop-timeout-ms; in every case nothing bootstrap started
-outlives it.";
+gets SIGTERM (it may catch it to finish its work), then SIGKILL after --stop-timeout-ms, and
+whatever is left below bootstrap is killed. Components start with SIGHUP, SIGINT and SIGQUIT
+blocked: a terminal sends those to bootstrap and everything it started, and bootstrap stops the
+system in order. A SIGKILLed bootstrap cannot: the kernel then kills its own children (voters
+stop their replicas), but not processes that a component started itself.";
 
 const EXIT_STATUSES: &str = "\
 Exit status:

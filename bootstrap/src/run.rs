@@ -226,7 +226,7 @@ fn hold_task_clocks_ready() -> Option<sys::TaskClock> {
 
 pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> {
     // Before any thread: every thread inherits this mask, so the signals reach only the
-    // signalfd. (std::process::Command clears the mask in children.)
+    // signalfd. Children inherit it too, and get their own (`base_command`).
     // SIGHUP (a closed terminal, a dropped ssh connection) and SIGQUIT stop the system like
     // SIGTERM: nothing bootstrap started may outlive it.
     let signals = sys::signal_fd(&[
@@ -699,6 +699,9 @@ fn fd_mapping(fds: &[OwnedFd]) -> Vec<(RawFd, RawFd)> {
 
 fn base_command(exec: &Path, component: &str, out: &Outputs) -> Result<Command, std::io::Error> {
     let mut cmd = Command::new(exec);
+    // Not this process's mask (SIGTERM and SIGCHLD blocked for the signalfd): a component
+    // must be able to catch the SIGTERM that stops it.
+    sys::start_with_terminal_signals_blocked(&mut cmd);
     cmd.stdin(Stdio::null());
     let stderr = match out.stderr {
         Some(fd) => fd.try_clone_to_owned()?,

@@ -781,6 +781,38 @@ pub fn map_fds_on_exec(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
     }
 }
 
+/// The signals a process that s3res starts begins with blocked: those a terminal sends
+/// (Ctrl-C, Ctrl-\, a hang-up) to its whole foreground process group — bootstrap and
+/// everything it started. Bootstrap stops the system in order (SIGTERM to each component, a
+/// voter stopping its replicas); a replica that died of a Ctrl-C behind its voter's back would
+/// be a crash and a recovery in the middle of the stop.
+pub const TERMINAL_SIGNALS: [libc::c_int; 3] = [libc::SIGHUP, libc::SIGINT, libc::SIGQUIT];
+
+/// Starts the child of `cmd` with exactly [`TERMINAL_SIGNALS`] blocked, whatever this
+/// process blocks. The mask is inherited over fork and exec, and `std::process::Command`
+/// passes it on as it is (rustc 1.95); bootstrap and the voter block SIGTERM and SIGCHLD for
+/// their signalfds, so without this a component could not catch the SIGTERM that stops it
+/// (every stop waited out the stop timeout and ended in SIGKILL) and whatever it started
+/// could not be stopped with a plain `kill`.
+pub fn start_with_terminal_signals_blocked(cmd: &mut Command) {
+    // SAFETY: the closure runs in the forked child before exec and only calls sigemptyset,
+    // sigaddset and pthread_sigmask on a stack value: async-signal-safe, no allocation, no
+    // lock.
+    unsafe {
+        cmd.pre_exec(|| {
+            let mut set = std::mem::zeroed::<libc::sigset_t>();
+            libc::sigemptyset(&mut set);
+            for sig in TERMINAL_SIGNALS {
+                libc::sigaddset(&mut set, sig);
+            }
+            match libc::pthread_sigmask(libc::SIG_SETMASK, &set, std::ptr::null_mut()) {
+                0 => Ok(()),
+                e => Err(io::Error::from_raw_os_error(e)),
+            }
+        });
+    }
+}
+
 /// Makes the child of `cmd` receive `sig` when this process dies (`PR_SET_PDEATHSIG`), so that
 /// nothing a supervisor started outlives it, however it dies (SIGKILL included). If this
 /// process is already gone when the child sets it up, the child sends itself `sig` at once.
@@ -1086,9 +1118,9 @@ pub fn sweep_children(limit: Duration) -> SweepReport {
 }
 
 /// Takes `signals` through a file descriptor instead of handlers: blocks them in the calling
-/// thread (call it before any thread exists, so that every thread inherits the mask; children
-/// started by `std::process::Command` get a clean mask) and returns a non-blocking,
-/// close-on-exec signalfd that reads them.
+/// thread (call it before any thread exists, so that every thread inherits the mask) and
+/// returns a non-blocking, close-on-exec signalfd that reads them. Children inherit the mask:
+/// start them with [`start_with_terminal_signals_blocked`].
 pub fn signal_fd(
     signals: &[nix::sys::signal::Signal],
 ) -> nix::Result<nix::sys::signalfd::SignalFd> {

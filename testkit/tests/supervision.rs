@@ -603,3 +603,91 @@ fn a_fork_child_logs_under_its_own_slot() {
         "the child logged under its donor's slot"
     );
 }
+
+/// `SigBlk` of a process: the signals it blocks, one bit per signal (bit `n - 1` for `n`).
+fn blocked_signals(pid: i32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("its status");
+    let hex = status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigBlk:"))
+        .expect("a SigBlk line");
+    u64::from_str_radix(hex.trim(), 16).expect("hex")
+}
+
+fn bit(sig: i32) -> u64 {
+    1 << (sig - 1)
+}
+
+/// A component catches the SIGTERM that stops it, and the processes s3res starts (a
+/// component, a voter's replicas) block only the signals a terminal sends its whole
+/// foreground group. Before, they inherited bootstrap's and the voter's masks (SIGTERM and
+/// SIGCHLD blocked for their signalfds; `std::process::Command` passes the mask on): a
+/// component's SIGTERM trap never ran, every stop waited out the stop timeout and SIGKILLed
+/// the components, and what a component started could not be stopped with a plain `kill`.
+#[test]
+fn a_component_catches_the_sigterm_that_stops_it() {
+    let sys = System::new();
+    let flag = sys.path("stopped");
+    let script = sys.path("trapper.sh");
+    std::fs::write(
+        &script,
+        "#!/bin/bash\ntrap 'echo caught > \"$1\"; exit 0' TERM\n: > \"$1.ready\"\nwhile :; do sleep 0.05; done\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(&script, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    let mut desc: serde_json::Value =
+        serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
+    desc["components"]["trapper"] = serde_json::json!({
+        "exec": script.display().to_string(),
+        "args": [flag.display().to_string()],
+    });
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("echo", 3);
+    s3res_testkit::wait_until("the trap set", Duration::from_secs(20), || trap_set(&flag));
+    let terminal = bit(libc::SIGHUP) | bit(libc::SIGINT) | bit(libc::SIGQUIT);
+    // The source (Rust, no signal handling of its own) blocks exactly the terminal's signals.
+    let source = run.process_named("s3res-source").expect("the source");
+    assert_eq!(
+        blocked_signals(source),
+        terminal,
+        "the source (pid {source}) blocks {:#x}",
+        blocked_signals(source)
+    );
+    // bash blocks SIGCHLD of its own at moments; SIGTERM is what the trap needs.
+    let trapper = run.process_named("trapper.sh").expect("the trapper");
+    let blocked = blocked_signals(trapper);
+    assert_eq!(
+        blocked & bit(libc::SIGTERM),
+        0,
+        "trapper (pid {trapper}) blocks {blocked:#x}"
+    );
+    for (slot, pid) in run.replica_pids("echo") {
+        let blocked = blocked_signals(pid);
+        assert_eq!(
+            blocked & (bit(libc::SIGTERM) | bit(libc::SIGCHLD) | terminal),
+            terminal,
+            "echo#{slot} (pid {pid}) blocks {blocked:#x}"
+        );
+    }
+    run.stop();
+    let out = run.wait(Duration::from_secs(60));
+    assert_eq!(
+        std::fs::read_to_string(&flag).ok().as_deref(),
+        Some("caught\n"),
+        "the component's SIGTERM trap did not run: {}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    assert!(
+        !out.stderr.contains("after SIGTERM; killing them"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    run.assert_nothing_left();
+}
+
+/// Whether the trapper has set its trap (it touches `FLAG.ready` after).
+fn trap_set(flag: &Path) -> Option<()> {
+    let mut ready = flag.as_os_str().to_owned();
+    ready.push(".ready");
+    Path::new(&ready).exists().then_some(())
+}
