@@ -552,11 +552,12 @@ fn a_program_that_starts_but_never_answers_is_not_told_it_does_not_speak_the_pro
 
 #[test]
 fn a_misspelled_port_fails_the_component_in_one_line() {
-    // The echo opens `in`; the channels call its input `inn`.
+    // The echo opens `in`; the channels call its input `inn`. Its error report says so in
+    // its cause (anyhow's `Caused by:`), which the line quotes with the error.
     cannot_run_as(
         &format!(r#"{{ "exec": "s3res-echo", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#),
         |desc| desc.replace("\"echo.in\"", "\"echo.inn\""),
-        &["exited with status 1"],
+        &["exited with status 1", "no input port named \"in\""],
     );
 }
 

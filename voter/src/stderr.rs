@@ -22,8 +22,12 @@ pub struct StderrRelay {
     fd: Option<OwnedFd>,
     partial: Vec<u8>,
     /// The last whole line that says something (without the prefix): not a backtrace frame
-    /// (indented) nor its heading, so that after a panic it is the panic's message.
+    /// (indented) nor its heading, so that after a panic it is the panic's message; an error
+    /// report's causes (anyhow's indented lines under `Caused by:`) are joined to it, since the
+    /// cause is often the part that says what to fix.
     pub last_line: String,
+    /// Lines read now are the causes of `last_line`'s error.
+    in_causes: bool,
 }
 
 impl StderrRelay {
@@ -33,6 +37,7 @@ impl StderrRelay {
             fd: Some(fd),
             partial: Vec::new(),
             last_line: String::new(),
+            in_causes: false,
         }
     }
 
@@ -97,11 +102,31 @@ impl StderrRelay {
         let _ = std::io::stderr().lock().write_all(&out);
         // std's panic says "stack backtrace:", anyhow's error report "Stack backtrace:".
         let heading = text.to_ascii_lowercase();
+        if text.starts_with("Caused by:") {
+            self.in_causes = true;
+            return;
+        }
+        let indented = text.starts_with(char::is_whitespace);
+        if self.in_causes && indented && !text.trim().is_empty() {
+            // `    no such port`, or with several causes `    0: no such port`.
+            let cause = text.trim();
+            let cause = match cause.split_once(": ") {
+                Some((n, rest)) if n.bytes().all(|b| b.is_ascii_digit()) => rest,
+                _ => cause,
+            };
+            if self.last_line.len() + cause.len() + 2 <= MAX_LINE {
+                self.last_line.push_str(": ");
+                self.last_line.push_str(cause);
+            }
+            return;
+        }
+        if !indented {
+            self.in_causes = false;
+        }
         let says = !text.trim().is_empty()
-            && !text.starts_with(char::is_whitespace)
+            && !indented
             && !heading.starts_with("stack backtrace")
             && !heading.starts_with("backtrace:")
-            && !text.starts_with("Caused by:")
             && !text.starts_with("note: ");
         if says {
             self.last_line = text.to_owned();
@@ -149,7 +174,23 @@ mod tests {
         let (_, lasts) = relay_of(&[
             b"Error: opening port `in`\n\nCaused by:\n    no such port\n\nStack backtrace:\n   0: main\n",
         ]);
-        assert_eq!(lasts[0], "Error: opening port `in`");
+        assert_eq!(lasts[0], "Error: opening port `in`: no such port");
+    }
+
+    #[test]
+    fn every_cause_of_an_error_report_is_kept() {
+        let (_, lasts) = relay_of(&[
+            b"Error: starting
+
+Caused by:
+    0: opening port `in`
+    1: no such port
+",
+            b"a later line
+",
+        ]);
+        assert_eq!(lasts[0], "Error: starting: opening port `in`: no such port");
+        assert_eq!(lasts[1], "a later line");
     }
 
     #[test]
