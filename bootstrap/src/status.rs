@@ -517,6 +517,23 @@ impl Verdict {
                 degraded.join(", ")
             }
         );
+        // A voter replaced is no fault of a replica, and no frame lost: but the run was not
+        // as quiet as its fault count says.
+        let replaced: Vec<String> = self
+            .protected
+            .iter()
+            .filter_map(|(name, _)| {
+                let n = self.tally.per_component.get(name)?.voter_restarts;
+                (n > 0).then(|| format!("{name} {n}"))
+            })
+            .collect();
+        if !replaced.is_empty() {
+            let _ = writeln!(
+                s,
+                "  voters       replaced (replicas adopted): {}",
+                replaced.join(" · ")
+            );
+        }
         let anomalies = sum(|c| c.anomalies);
         if anomalies > 0 {
             let _ = writeln!(s, "  anomalies    {anomalies} detector alarm(s)");
@@ -638,7 +655,7 @@ mod tests {
 
     /// An `all_differ` frame was forwarded (rebuilt bit by bit), not withheld; a fork from a
     /// donor started afresh lost its state like the exec before it, and the verdict says both
-    /// without contradicting itself.
+    /// without contradicting itself; a replaced voter is named.
     #[test]
     fn verdict_tells_withheld_from_rebuilt_frames_and_forks_that_lost_state() {
         let t = Tally::default();
@@ -657,7 +674,12 @@ mod tests {
             r.state_lost = Some(lost);
             t.apply(&r);
         }
+        t.apply(&event(EventKind::VoterRestart, None));
         let text = clean_run_of("filter", &t).render();
+        assert!(
+            text.contains("voters       replaced (replicas adopted): filter 1"),
+            "{text}"
+        );
         assert!(
             text.contains("frames       1 withheld (no majority), 2 rebuilt bit by bit"),
             "{text}"
