@@ -146,7 +146,7 @@ fn is_other_bootstrap(pid: libc::pid_t) -> bool {
     if u32::try_from(pid) == Ok(std::process::id()) {
         return false;
     }
-    let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).unwrap_or_default();
+    let comm = replica_rt::sys::command_name(pid).unwrap_or_default();
     matches!(comm.trim_end(), "s3res-bootstrap" | "s3res-bootstra")
 }
 

@@ -504,6 +504,13 @@ pub fn signal_bit(sig: libc::c_int) -> u64 {
     1u64 << (sig - 1)
 }
 
+/// The command name of `pid` (`/proc/PID/comm`: the executable's name, at most 15 bytes);
+/// `None` if it is gone.
+pub fn command_name(pid: libc::pid_t) -> Option<String> {
+    let comm = std::fs::read_to_string(format!("/proc/{pid}/comm")).ok()?;
+    Some(comm.trim_end_matches('\n').to_owned())
+}
+
 /// The state letter of `pid` (field 3 of `/proc/PID/stat`: `R`, `S`, `D`, `T` stopped, `t`
 /// traced, `Z` zombie, ...); `None` if the process is gone.
 pub fn process_state(pid: libc::pid_t) -> Option<char> {

@@ -692,3 +692,35 @@ fn trap_set(flag: &Path) -> Option<()> {
     ready.push(".ready");
     Path::new(&ready).exists().then_some(())
 }
+
+/// A voter stopped by a signal that bootstrap did not send (a stray `kill`) ends its component
+/// alone: it says so, naming the sender, and bootstrap stops the system naming that component.
+/// Before, the voter exited 0 as if bootstrap had stopped it, no successor came, and the
+/// verdict named only the components starved by it (the source's broken pipe, the sink's
+/// missing frames).
+#[test]
+fn a_voter_stopped_by_a_stray_signal_is_named() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let voter = run.voter_of("echo").expect("the voter");
+    s3res_testkit::kill_pid(voter, libc::SIGTERM).expect("SIGTERM to the voter");
+    let out = run.wait(Duration::from_secs(60));
+    let me = std::process::id();
+    assert!(!out.status.success(), "{}", out.status);
+    assert!(
+        out.stderr.contains(&format!(
+            "s3res-voter: component echo stopped: its voter got signal 15 from pid {me}"
+        )),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    assert!(
+        out.stderr
+            .contains(&format!("the voter of component echo (pid {voter})")),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    run.assert_nothing_left();
+}

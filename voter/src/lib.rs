@@ -45,5 +45,6 @@ mod test_support;
 pub use s3res_protocol::{event, plan, sched};
 
 pub use crate::core::{validate as validate_plan, VoterError};
+pub use crate::ports::{stray_stop, StrayStop};
 pub use reactive::ReactiveVoter;
 pub use stream::StreamVoter;

@@ -29,28 +29,50 @@ struct Cli {
 fn main() -> std::process::ExitCode {
     replica_rt::init_cli_logging(false, 0);
     match run() {
-        Ok(()) => std::process::ExitCode::SUCCESS,
+        Ok(component) => match s3res_voter::stray_stop() {
+            None => std::process::ExitCode::SUCCESS,
+            // Stopped by someone else than bootstrap: this component ends alone, and its
+            // neighbours will starve or choke on it. Say who, and end as killed by it would.
+            Some(stop) => {
+                let by = replica_rt::sys::command_name(stop.from)
+                    .map(|name| format!(" ({name})"))
+                    .unwrap_or_default();
+                say(&format!(
+                    "component {component} stopped: its voter got signal {} from pid {}{by}, \
+                     not from bootstrap",
+                    stop.signal, stop.from
+                ));
+                std::process::ExitCode::from(128 + stop.signal as u8)
+            }
+        },
         Err(e) => {
             let unrecoverable = e
                 .downcast_ref::<VoterError>()
                 .is_some_and(|v| matches!(v, VoterError::Unrecoverable(_)));
-            // One write: replicas and unprotected components share this stderr, and a line
-            // written in pieces could be interleaved with theirs.
-            let line = format!("s3res-voter: {e:#}\n");
-            let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), line.as_bytes());
+            say(&format!("{e:#}"));
             std::process::ExitCode::from(if unrecoverable { 3 } else { 1 })
         }
     }
 }
 
-fn run() -> anyhow::Result<()> {
+/// One line on stderr behind `s3res-voter: `, in one write: replicas and unprotected
+/// components share this stderr, and a line written in pieces could be interleaved with
+/// theirs.
+fn say(what: &str) {
+    let line = format!("s3res-voter: {what}\n");
+    let _ = std::io::Write::write_all(&mut std::io::stderr().lock(), line.as_bytes());
+}
+
+/// Runs the voter of the plan on the command line to its end; the component's name.
+fn run() -> anyhow::Result<String> {
     let cli = Cli::parse();
     let plan = VoterPlan::from_json(&cli.plan).context("reading --plan")?;
+    let component = plan.component.clone();
     let span = tracing::info_span!("voter", component = %plan.component);
     let _enter = span.enter();
     match plan.mode {
         Mode::Reactive => ReactiveVoter::start(plan)?.run()?,
         Mode::Stream => StreamVoter::start(plan)?.run()?,
     }
-    Ok(())
+    Ok(component)
 }

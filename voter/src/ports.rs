@@ -744,18 +744,49 @@ pub(crate) fn heartbeat_ending() {
 }
 
 /// Reads the signalfd: reaps on SIGCHLD; `true` if SIGTERM/SIGINT came.
+///
+/// A stop is normally bootstrap's (its parent's, also as a parent-death signal) or the
+/// terminal's (sent by the kernel to the whole foreground group, bootstrap included): then
+/// the system stops, and the voter ends cleanly with it. A stop signal that another process
+/// sent ends this component alone, and nothing else would say so (the voter exited 0 and
+/// bootstrap blamed the components starved by it): it is kept ([`stray_stop`]) for the exit.
 pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
     let mut stop = false;
     while let Ok(Some(info)) = signals.read_signal() {
         match info.ssi_signo as i32 {
             libc::SIGCHLD => reap_children(),
             sig => {
-                tracing::info!(signal = sig, "stop requested");
+                let from = info.ssi_pid;
+                if from != 0 && from != std::os::unix::process::parent_id() {
+                    tracing::warn!(signal = sig, from, "stop requested, not by bootstrap");
+                    let _ = STRAY_STOP.set(StrayStop {
+                        signal: sig,
+                        from: from as libc::pid_t,
+                    });
+                } else {
+                    tracing::info!(signal = sig, "stop requested");
+                }
                 stop = true;
             }
         }
     }
     stop
+}
+
+/// A stop signal that neither bootstrap nor the terminal sent: which, and from whom.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StrayStop {
+    pub signal: libc::c_int,
+    pub from: libc::pid_t,
+}
+
+/// The first [`StrayStop`] this voter got, if one came.
+static STRAY_STOP: std::sync::OnceLock<StrayStop> = std::sync::OnceLock::new();
+
+/// Whether this voter was stopped by a signal that another process than bootstrap sent (see
+/// [`stop_requested`]); its exit should say so.
+pub fn stray_stop() -> Option<StrayStop> {
+    STRAY_STOP.get().copied()
 }
 
 /// What a voter opens before it starts replicas, whatever its mode.
