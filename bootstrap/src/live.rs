@@ -3,7 +3,7 @@
 //! its reader and its atomic write are the protocol's ([`s3res_protocol::live`]), so that
 //! injectors read it without depending on bootstrap.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 pub use s3res_protocol::live::{LiveComponent, LiveReplica, LiveView, ReplicaState};
@@ -43,6 +43,14 @@ pub fn initial_view(plan: &SystemPlan) -> LiveView {
         running: true,
         components,
     }
+}
+
+/// The pid of another running s3res-bootstrap whose live view is the state file at `path`,
+/// if there is one (its view says it runs, and its pid is a process of that name).
+pub fn running_bootstrap_of(path: &Path) -> Option<i32> {
+    let view = LiveView::read(path).ok()?;
+    (view.running && crate::runtime_dir::is_other_bootstrap(view.bootstrap_pid))
+        .then_some(view.bootstrap_pid)
 }
 
 /// The view shared by bootstrap's main thread and its events reader, and the file it goes to.

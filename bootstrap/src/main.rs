@@ -153,6 +153,15 @@ fn main() -> ExitCode {
     }
 }
 
+/// Whether `a` and `b` name one existing file.
+fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    match (std::fs::metadata(a), std::fs::metadata(b)) {
+        (Ok(a), Ok(b)) => (a.dev(), a.ino()) == (b.dev(), b.ino()),
+        _ => false,
+    }
+}
+
 /// `RUST_LOG` for the processes bootstrap starts: its own level, unless `RUST_LOG` is set
 /// (then they inherit it) or the level is the default.
 fn child_log(quiet: bool, verbose: u8) -> Option<String> {
@@ -219,6 +228,16 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         console,
         child_log: child_log(cli.quiet, cli.verbose),
     };
+    // `--events system.json` would empty the description it was read from.
+    for (what, path) in [("events", &opts.events_file), ("state", &opts.state_file)] {
+        if path.as_deref().is_some_and(|p| same_file(p, &cli.system)) {
+            eprintln!(
+                "error: the {what} file {} is the description itself; name another",
+                cli.system.display()
+            );
+            return Ok(2);
+        }
+    }
     let report =
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;
 

@@ -76,6 +76,16 @@ pub enum RunError {
         path: PathBuf,
         source: std::io::Error,
     },
+    #[error(
+        "the {what} {path} is being written by another s3res-bootstrap that runs{holder}; \
+         give this run its own files (--events, --state) or stop that one"
+    )]
+    OutputInUse {
+        what: &'static str,
+        path: PathBuf,
+        /// ` (pid N)`, where known.
+        holder: String,
+    },
     #[error("cannot create the socket folder in {dir}: {source}")]
     SocketDir {
         dir: PathBuf,
@@ -261,10 +271,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     let events_log = match &opts.events_file {
         Some(path) => {
             make_parent(path, "the events file")?;
-            Some(File::create(path).map_err(|source| RunError::EventsFile {
-                path: path.clone(),
-                source,
-            })?)
+            Some(open_events_file(path)?)
         }
         None => None,
     };
@@ -298,6 +305,15 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     let live = match &state_file {
         Some(path) => {
             make_parent(path, "the state file")?;
+            // Written whole and renamed into place at each change, so no lock can hold it:
+            // the file says whose it is.
+            if let Some(pid) = crate::live::running_bootstrap_of(path) {
+                return Err(RunError::OutputInUse {
+                    what: "state file",
+                    path: path.clone(),
+                    holder: format!(" (pid {pid})"),
+                });
+            }
             Some(
                 LiveState::create(crate::live::initial_view(plan), path.clone()).map_err(
                     |source| RunError::StateFile {
@@ -544,6 +560,40 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
 }
 
 /// Creates the folder `path` goes into, if it has one and it is missing.
+/// The events file at `path`, emptied — once this bootstrap holds its lock: another bootstrap
+/// running on the same file (the same description started twice in one folder) would have
+/// truncated it under the first one's feet and mixed its lines into it. The lock goes with
+/// the file, when the events reader closes it at the end.
+fn open_events_file(path: &Path) -> Result<File, RunError> {
+    let err = |source| RunError::EventsFile {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)
+        .map_err(err)?;
+    match file.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => {
+            return Err(RunError::OutputInUse {
+                what: "events file",
+                path: path.to_path_buf(),
+                holder: String::new(),
+            })
+        }
+        // A file system that takes no lock: as before, unguarded.
+        Err(std::fs::TryLockError::Error(e)) => tracing::warn!(
+            path = %path.display(),
+            "cannot lock the events file ({e}); another bootstrap writing it would not be noticed"
+        ),
+    }
+    file.set_len(0).map_err(err)?;
+    Ok(file)
+}
+
 fn make_parent(path: &Path, what: &'static str) -> Result<(), RunError> {
     match path.parent().filter(|d| !d.as_os_str().is_empty()) {
         Some(dir) => std::fs::create_dir_all(dir).map_err(|source| RunError::OutputDir {

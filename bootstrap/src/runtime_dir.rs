@@ -142,7 +142,7 @@ fn pid_of(name: &str) -> Option<libc::pid_t> {
 /// Whether `pid` is another process named `s3res-bootstrap` (the kernel keeps 15 bytes of a
 /// name). Not this one: a folder named with this bootstrap's own pid is a dead one's that had
 /// it before (in a container, bootstrap is pid 1 at every start), as this one's are locked.
-fn is_other_bootstrap(pid: libc::pid_t) -> bool {
+pub(crate) fn is_other_bootstrap(pid: libc::pid_t) -> bool {
     if u32::try_from(pid) == Ok(std::process::id()) {
         return false;
     }

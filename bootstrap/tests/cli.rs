@@ -417,3 +417,93 @@ fn missing_voter_is_an_error_before_anything_starts() {
     assert!(out.stderr.contains("voter"), "{}", out.stderr);
     assert!(!marker.exists());
 }
+
+/// The same description started twice in one folder: the second bootstrap refuses before it
+/// starts anything, naming the file the first one writes, and leaves that file alone. Before,
+/// it emptied the first's events file under it (whose later lines then sat behind NUL bytes,
+/// mixed with its own) and took over its live view, so that an injector reading it aimed at
+/// the wrong system; both runs ended with status 0.
+#[test]
+fn a_second_bootstrap_on_the_same_files_refuses_and_leaves_them_alone() {
+    let (dir, path) = write_system(&format!(
+        r#"{{ "name": "sleepy", "components": {{ "a": {{ "exec": "{}" }} }} }}"#,
+        fixture("sleeper.sh")
+    ));
+    let out = dir.path().join("out");
+    let (events, state, other_events) = (
+        out.join("events.jsonl"),
+        out.join("state.json"),
+        out.join("other.jsonl"),
+    );
+    let arg = |p: &Path| p.to_str().unwrap().to_owned();
+    let system = arg(&path);
+    let first = Bootstrap::start(
+        &["--events", &arg(&events), "--state", &arg(&state), &system],
+        Stdio::null(),
+        &[],
+    );
+    let live_pid = || {
+        let text = std::fs::read_to_string(&state).unwrap_or_default();
+        serde_json::from_str::<serde_json::Value>(&text).ok()?["bootstrap_pid"].as_i64()
+    };
+    let mine = Some(i64::from(first.pgid));
+    wait_until("the first bootstrap's live view", || live_pid() == mine);
+    std::fs::write(&events, "a line of the first run\n").unwrap();
+
+    let second = run(&["--events", &arg(&events), "--state", &arg(&state), &system]);
+    assert_eq!(second.status.code(), Some(1), "{}", second.stderr);
+    assert!(
+        second.stderr.contains(&format!(
+            "the events file {} is being written by another s3res-bootstrap",
+            events.display()
+        )),
+        "{}",
+        second.stderr
+    );
+    let third = run(&[
+        "--events",
+        &arg(&other_events),
+        "--state",
+        &arg(&state),
+        &system,
+    ]);
+    assert_eq!(third.status.code(), Some(1), "{}", third.stderr);
+    assert!(
+        third.stderr.contains(&format!(
+            "the state file {} is being written by another s3res-bootstrap that runs (pid {})",
+            state.display(),
+            first.pgid
+        )),
+        "{}",
+        third.stderr
+    );
+    assert_eq!(
+        std::fs::read_to_string(&events).unwrap(),
+        "a line of the first run\n"
+    );
+    assert_eq!(live_pid(), mine, "the live view is no longer the first's");
+
+    replica_rt::sys::kill(first.pgid, libc::SIGTERM).unwrap();
+    let end = first.wait();
+    assert_eq!(end.status.code(), Some(143), "{}", end.stderr);
+}
+
+/// `--events` naming the description would empty the file the system was read from.
+#[test]
+fn an_events_file_that_is_the_description_is_refused() {
+    let text = format!(
+        r#"{{ "name": "sleepy", "components": {{ "a": {{ "exec": "{}" }} }} }}"#,
+        fixture("sleeper.sh")
+    );
+    let (_dir, path) = write_system(&text);
+    let system = path.to_str().unwrap();
+    let out = run(&["--events", system, system]);
+    assert_eq!(out.status.code(), Some(2), "{}", out.stderr);
+    assert!(
+        out.stderr.contains("error: the events file ")
+            && out.stderr.contains("is the description itself"),
+        "{}",
+        out.stderr
+    );
+    assert_eq!(std::fs::read_to_string(&path).unwrap(), text);
+}
