@@ -59,12 +59,10 @@ pub(crate) const DEATH_WAIT: Duration = Duration::from_secs(1);
 pub enum VoterError {
     #[error("invalid plan: {0}")]
     Plan(String),
-    #[error("{what}: {source}")]
-    Io {
-        what: String,
-        #[source]
-        source: std::io::Error,
-    },
+    // The error is in the message, and not a `source` too: a report of the chain (anyhow's
+    // `{:#}`, the voter's last line) would say it twice.
+    #[error("{what}: {error}")]
+    Io { what: String, error: std::io::Error },
     #[error("component failed beyond recovery: {0}")]
     Unrecoverable(String),
     #[error(transparent)]
@@ -73,7 +71,7 @@ pub enum VoterError {
 
 pub(crate) fn io_err(what: impl Into<String>) -> impl FnOnce(std::io::Error) -> VoterError {
     let what = what.into();
-    move |source| VoterError::Io { what, source }
+    move |error| VoterError::Io { what, error }
 }
 
 /// A slot whose replacement could not be made (fork and exec both failed: a process limit, a
@@ -1892,4 +1890,22 @@ fn first_nonce() -> u32 {
     let mut h = std::collections::hash_map::RandomState::new().build_hasher();
     h.write_u64(s3res_protocol::clock::monotonic_ns());
     h.finish() as u32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The voter's last line is its error's chain (`{:#}`): an I/O error is said once in it.
+    #[test]
+    fn an_io_error_is_said_once_in_the_report() {
+        let e = io_err("starting replica 0 (/x/y.sh)")(std::io::Error::from_raw_os_error(
+            libc::ENOENT,
+        ));
+        let report = format!("{:#}", anyhow::Error::from(e));
+        assert_eq!(
+            report,
+            "starting replica 0 (/x/y.sh): No such file or directory (os error 2)"
+        );
+    }
 }

@@ -674,9 +674,9 @@ pub(crate) fn wait_until(
 ) -> Result<usize, VoterError> {
     let timeout = deadline.map(|t| t.saturating_duration_since(Instant::now()));
     // Not `.map_err(io_err("ppoll"))`: that builds its String on every wake-up, error or not.
-    sys::ppoll(fds, timeout).map_err(|source| VoterError::Io {
+    sys::ppoll(fds, timeout).map_err(|error| VoterError::Io {
         what: "ppoll".into(),
-        source,
+        error,
     })
 }
 

@@ -56,16 +56,16 @@ pub enum RecoveryError {
     ReadyTimeout(libc::pid_t),
     #[error("new replica sent a bad confirmation: {0}")]
     BadReady(String),
-    #[error("{what}: {source}")]
+    // The error is in the message, and not a `source` too (said twice in a chain's report).
+    #[error("{what}: {error}")]
     Io {
         what: &'static str,
-        #[source]
-        source: io::Error,
+        error: io::Error,
     },
 }
 
 fn io_err(what: &'static str) -> impl FnOnce(io::Error) -> RecoveryError {
-    move |source| RecoveryError::Io { what, source }
+    move |error| RecoveryError::Io { what, error }
 }
 
 /// A connection from the donor's child, checked, which has been sent its pipes.
