@@ -421,7 +421,8 @@ fn parse_shard(s: &str) -> Result<(u64, u64), String> {
 
 fn seconds(what: &str, s: f64) -> anyhow::Result<Duration> {
     Duration::try_from_secs_f64(s)
-        .map_err(|_| anyhow::anyhow!("{what} {s} is not a duration in seconds"))
+        // `{:?}`: 1e300 as written, not as three hundred digits.
+        .map_err(|_| anyhow::anyhow!("{what} {s:?} is not a duration in seconds"))
 }
 
 fn main() -> ExitCode {
@@ -618,16 +619,49 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
-    if !(a.rate.is_finite() && a.rate > 0.0) && a.fault != FaultKind::None {
-        bail!(
-            "--rate {} is not a rate: give injections per second, e.g. 2",
-            a.rate
-        );
+/// The highest `--rate`, as for a description's `inject.rate_hz`: a schedule is planned whole
+/// before its run, and a mistyped rate (1e9) planned a billion injections into memory.
+const MAX_RATE_HZ: f64 = 1000.0;
+/// The most runs of one campaign or classification (a million runs of a few seconds are a
+/// month of one machine): every shard walks the run numbers.
+const MAX_RUNS: u64 = 1_000_000;
+
+/// `--rate`: a number of injections per second, above 0 and at most [`MAX_RATE_HZ`].
+fn check_rate(rate: f64) -> anyhow::Result<()> {
+    if !(rate.is_finite() && rate > 0.0) {
+        bail!("--rate {rate} is not a rate: give injections per second, e.g. 2");
     }
-    if a.runs == 0 {
+    if rate > MAX_RATE_HZ {
+        bail!("--rate {rate}: at most {MAX_RATE_HZ} injections per second");
+    }
+    Ok(())
+}
+
+/// `--runs`, and `--duration` against `--run-timeout`: each run injects for `duration` and
+/// must end within `run_timeout`.
+fn check_runs_and_window(runs: u64, duration: f64, run_timeout: f64) -> anyhow::Result<()> {
+    if runs == 0 {
         bail!("--runs 0: nothing to do");
     }
+    if runs > MAX_RUNS {
+        bail!("--runs {runs}: at most {MAX_RUNS} (split it into campaigns of their own seeds)");
+    }
+    seconds("--duration", duration)?;
+    seconds("--run-timeout", run_timeout)?;
+    if run_timeout <= duration {
+        bail!(
+            "--run-timeout {run_timeout} s is not longer than --duration {duration} s: every \
+             run would be killed before its injections end (give each run time to start and end)"
+        );
+    }
+    Ok(())
+}
+
+fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    if a.fault != FaultKind::None {
+        check_rate(a.rate)?;
+    }
+    check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
         p.components
@@ -729,6 +763,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
             );
         }
     }
+    check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
         p.components.iter().map(|c| c.name.clone()).collect()
@@ -763,6 +798,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
 }
 
 fn cmd_storm(a: &StormArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    check_rate(a.rate)?;
     let o = StormOptions {
         state: a.state.clone(),
         faults: a.faults.clone(),

@@ -102,3 +102,65 @@ fn classify_refuses_a_mission_or_output_outside_the_run_folder() {
         "classify wrote its folder"
     );
 }
+
+/// A mistyped `--rate`, `--runs` or window is refused in one line before anything is planned.
+/// Before, `--rate 1e9 --duration 1` planned a billion injections for the first run (24 GB,
+/// killed by the kernel's OOM killer), and a huge `--runs` walked the run numbers for minutes,
+/// deaf to SIGTERM; `--run-timeout 0` blamed the system for never starting.
+#[test]
+fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let campaign = |extra: &[&str]| {
+        let mut args = vec![
+            "campaign",
+            "--system",
+            "no-such-system.json",
+            "--fault",
+            "exec",
+            "--seed",
+            "1",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        args.iter().map(|s| s.to_string()).collect::<Vec<_>>()
+    };
+    let cases: [(&[&str], &str); 5] = [
+        (
+            &["--runs", "1", "--rate", "1e9"],
+            "--rate 1000000000: at most 1000 injections per second",
+        ),
+        (
+            &["--runs", "1", "--rate", "nan"],
+            "--rate NaN is not a rate",
+        ),
+        (
+            &["--runs", "18446744073709551615"],
+            "--runs 18446744073709551615: at most 1000000",
+        ),
+        (
+            &["--runs", "1", "--run-timeout", "0"],
+            "--run-timeout 0 s is not longer than --duration 3 s",
+        ),
+        (&["--runs", "1", "--duration", "1e300"], "--duration 1e300"),
+    ];
+    for (extra, want) in cases {
+        let args = campaign(extra);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        refused(&args, want);
+    }
+    assert!(!out.exists(), "the campaign wrote {out:?}");
+    refused(
+        &[
+            "storm",
+            "--state",
+            "no-such-state.json",
+            "--faults",
+            "exec",
+            "--rate",
+            "5000",
+        ],
+        "--rate 5000: at most 1000 injections per second",
+    );
+}
