@@ -70,6 +70,12 @@ pub enum StormError {
     },
     #[error("the live view names no protected component to inject into")]
     NoTargets,
+    #[error("the system {system} has no component {}; it has: {}", unknown.join(", "), known.join(", "))]
+    UnknownComponents {
+        system: String,
+        unknown: Vec<String>,
+        known: Vec<String>,
+    },
 }
 
 /// One line of the log, as `s3res-inject inject` prints it, with the storm's index and, for an
@@ -126,26 +132,38 @@ pub fn run(o: &StormOptions, stop: &dyn Fn() -> bool) -> Result<u64, StormError>
         None => Box::new(std::io::stdout()),
     };
 
-    // Until every target runs (the view may not exist yet).
+    // Until every target runs (the view may not exist yet: bootstrap writes it as it starts).
+    let waiting_since = Instant::now();
+    let mut said_why = false;
     let view = loop {
         if stop() {
             return Ok(0);
         }
-        if let Ok(v) = LiveView::read(&o.state) {
-            if !v.running {
-                return Ok(0);
+        match LiveView::read(&o.state) {
+            Ok(v) => {
+                if !v.running {
+                    return Ok(0);
+                }
+                let targets = targets_of(&v, &o.components);
+                check_targets(&v, &targets)?;
+                if all_running(&v, &targets) {
+                    break v;
+                }
             }
-            let targets = targets_of(&v, &o.components);
-            if !targets.is_empty() && all_running(&v, &targets) {
-                break v;
+            // Said once, not fatal: a bootstrap may still be starting.
+            Err(e) if !said_why && waiting_since.elapsed() >= UNREADABLE_FOR => {
+                tracing::warn!(
+                    "still no live view to read at {} ({e}); waiting for it (is it bootstrap's \
+                     --state file of a running system?)",
+                    o.state.display()
+                );
+                said_why = true;
             }
+            Err(_) => {}
         }
         std::thread::sleep(POLL);
     };
     let targets = targets_of(&view, &o.components);
-    if targets.is_empty() {
-        return Err(StormError::NoTargets);
-    }
     tracing::info!(
         "injecting {} into {} at {} Hz (seed {}), from {:.1} s on",
         o.faults
@@ -279,6 +297,30 @@ fn describe(a: &Action) -> &'static str {
 }
 
 /// The given components, or every protected one of the view.
+/// How long the live view may be missing or unreadable before the storm says so.
+const UNREADABLE_FOR: Duration = Duration::from_secs(5);
+
+/// Targets that the system has: some, and every one named in it. A target it lacks would be
+/// waited for until the system ends, firing nothing and saying nothing.
+fn check_targets(view: &LiveView, targets: &[String]) -> Result<(), StormError> {
+    if targets.is_empty() {
+        return Err(StormError::NoTargets);
+    }
+    let unknown: Vec<String> = targets
+        .iter()
+        .filter(|t| !view.components.contains_key(*t))
+        .cloned()
+        .collect();
+    if unknown.is_empty() {
+        return Ok(());
+    }
+    Err(StormError::UnknownComponents {
+        system: view.system.clone(),
+        unknown,
+        known: view.components.keys().cloned().collect(),
+    })
+}
+
 fn targets_of(view: &LiveView, given: &[String]) -> Vec<String> {
     if !given.is_empty() {
         return given.to_vec();

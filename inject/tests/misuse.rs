@@ -164,3 +164,36 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
         "--rate 5000: at most 1000 injections per second",
     );
 }
+
+/// A storm told to hit a component the running system lacks says so at once. Before, it
+/// waited for that component to run until the system ended, then exited 0 having injected
+/// nothing, without a word (even with -v).
+#[test]
+fn a_storm_at_a_component_the_system_lacks_names_the_ones_it_has() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state.json");
+    std::fs::write(
+        &state,
+        r#"{"system": "echo-demo", "bootstrap_pid": 1, "updated_ns": 1, "running": true,
+            "components": {
+              "echo": {"redundancy": "tmr", "protected": true, "pid": null, "voter_pid": 7,
+                       "replicas": []},
+              "sink": {"redundancy": "none", "protected": false, "pid": 9, "voter_pid": null,
+                       "replicas": []}}}"#,
+    )
+    .unwrap();
+    refused(
+        &[
+            "storm",
+            "--state",
+            state.to_str().unwrap(),
+            "--components",
+            "ehco",
+            "--faults",
+            "exec",
+            "--rate",
+            "2",
+        ],
+        "the system echo-demo has no component ehco; it has: echo, sink",
+    );
+}

@@ -1899,9 +1899,8 @@ mod tests {
     /// The voter's last line is its error's chain (`{:#}`): an I/O error is said once in it.
     #[test]
     fn an_io_error_is_said_once_in_the_report() {
-        let e = io_err("starting replica 0 (/x/y.sh)")(std::io::Error::from_raw_os_error(
-            libc::ENOENT,
-        ));
+        let e =
+            io_err("starting replica 0 (/x/y.sh)")(std::io::Error::from_raw_os_error(libc::ENOENT));
         let report = format!("{:#}", anyhow::Error::from(e));
         assert_eq!(
             report,
