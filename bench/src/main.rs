@@ -120,7 +120,7 @@ enum Command {
         #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
         replicas: Vec<usize>,
         /// Frame payload sizes in bytes (suffixes k, m allowed: 4k = 4096).
-        #[arg(long, value_delimiter = ',', value_parser = parse_size,
+        #[arg(long, value_delimiter = ',', value_parser = parse_frame_size,
               default_value = "8,64,512,1024,2048,4096,65536")]
         size: Vec<u64>,
         /// Round trips measured per configuration.
@@ -170,7 +170,8 @@ enum Command {
         /// Round timeouts, µs.
         #[arg(long, value_delimiter = ',', default_value = "2000,20000")]
         timeout_us: Vec<u64>,
-        /// Injected crashes and hangs per timeout.
+        /// Injected crashes and hangs per timeout (0 skips the detection latencies: only the
+        /// fault-free rounds of --rounds are run).
         #[arg(long, default_value_t = 1000)]
         count: u64,
         /// Fault-free TMR rounds for the false-positive count (at the smallest timeout; 0 skips).
@@ -245,10 +246,30 @@ fn parse_size(s: &str) -> Result<u64, String> {
     } else {
         (t.as_str(), 1)
     };
-    num.trim()
+    let n = num
+        .trim()
         .parse::<u64>()
-        .map(|n| n * mult)
-        .map_err(|_| format!("`{s}` is not a size (examples: 8, 4096, 4k, 64m)"))
+        .map_err(|_| format!("`{s}` is not a size (examples: 8, 4096, 4k, 64m)"))?;
+    // Checked: a size that wrapped around was measured as another (17592186044416m as 0 B).
+    match n.checked_mul(mult) {
+        Some(bytes) if bytes <= MAX_STATE => Ok(bytes),
+        _ => Err(format!("`{s}`: at most {} GiB", MAX_STATE >> 30)),
+    }
+}
+
+/// The largest state size (`restart`, `memory`): a few times what the figures go to (64 MiB).
+const MAX_STATE: u64 = 16 << 30;
+
+/// A frame payload size (`echo`): a [`parse_size`] no larger than a channel's largest frame.
+fn parse_frame_size(s: &str) -> Result<u64, String> {
+    let n = parse_size(s)?;
+    let max = s3res_description::description::MAX_FRAME_LIMIT as u64;
+    if n > max {
+        return Err(format!(
+            "`{s}`: a frame holds at most {max} bytes (16 MiB, a channel's largest max_frame)"
+        ));
+    }
+    Ok(n)
 }
 
 fn main() -> ExitCode {
@@ -460,6 +481,17 @@ mod tests {
         assert_eq!(parse_size("64m"), Ok(64 << 20));
         assert_eq!(parse_size("64MiB"), Ok(64 << 20));
         assert!(parse_size("lots").unwrap_err().contains("lots"));
+        // Too large, or wrapping around u64, is refused, not measured as another size.
+        assert!(parse_size("17592186044416m")
+            .unwrap_err()
+            .contains("at most 16 GiB"));
+        assert!(parse_size("99999999999999")
+            .unwrap_err()
+            .contains("at most"));
+        assert_eq!(parse_frame_size("16m"), Ok(16 << 20));
+        assert!(parse_frame_size("17m")
+            .unwrap_err()
+            .contains("at most 16777216"));
     }
 
     #[test]
