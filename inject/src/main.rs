@@ -176,6 +176,7 @@ struct StormArgs {
     /// Injections per second (Poisson arrivals).
     #[arg(long, value_name = "HZ", default_value_t = 2.0)]
     rate: f64,
+    /// Seed of the arrivals, kinds and targets: the same seed, the same storm.
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Components to inject into, comma-separated (default: every protected component).
@@ -304,6 +305,8 @@ struct CampaignArgs {
     /// Number of runs (of the whole campaign; a shard does its slice).
     #[arg(long)]
     runs: u64,
+    /// Seed of every run's schedule (instants, targets, bits): the same seed, the same
+    /// campaign; run r's schedule depends on the seed and r only, whatever the sharding.
     #[arg(long)]
     seed: u64,
     /// Output folder (new or empty; see --resume).
@@ -348,14 +351,18 @@ struct CampaignArgs {
 
 #[derive(Debug, Args)]
 struct ClassifyArgs {
+    /// The system description to run (unprotected or protected).
     #[arg(long, value_name = "S.json")]
     system: PathBuf,
     #[arg(long, value_enum)]
     fault: FaultKind,
+    /// Number of runs, each with one injection (plus the golden run).
     #[arg(long)]
     runs: u64,
+    /// Seed of every run's instant, target and bits: the same seed, the same runs.
     #[arg(long)]
     seed: u64,
+    /// Output folder (new or empty; see --resume).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
     /// Components to inject into, comma-separated (default: every component).
@@ -533,6 +540,8 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
         bail!("--bit chooses the bit of an sdc flip; it goes with --fault sdc only");
     }
     let seed = a.seed.unwrap_or_else(replica_rt::sys::monotonic_ns);
+    // The request itself first: a wrong one is wrong whatever the system.
+    let var = a.var.spec()?;
     let view = LiveView::read(&a.state).map_err(anyhow::Error::msg)?;
     let params = ScheduleParams {
         fault: a.fault,
@@ -540,7 +549,7 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
         arrival: Arrival::Fixed,
         window: Duration::ZERO,
         components: vec![a.component.clone()],
-        var: a.var.spec()?,
+        var,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut planned = draw_injection(&params, &mut rng, 0, 0).context("nothing to inject")?;
@@ -559,11 +568,19 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     let target = match (a.replica, a.pid) {
         (Some(slot), _) => {
             let r = c.replicas.get(slot).with_context(|| {
-                format!(
-                    "{} has {} replica slot(s); there is no slot {slot}",
-                    a.component,
-                    c.replicas.len()
-                )
+                if c.protected {
+                    format!(
+                        "{} has {} replica slot(s); there is no slot {slot}",
+                        a.component,
+                        c.replicas.len()
+                    )
+                } else {
+                    format!(
+                        "{} is not protected: it has no replicas (give --pid, or leave out \
+                         --replica to hit the component itself)",
+                        a.component
+                    )
+                }
             })?;
             Target {
                 component: a.component.clone(),
@@ -662,6 +679,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         check_rate(a.rate)?;
     }
     check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
+    let var = a.var.spec()?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
         p.components
@@ -701,7 +719,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         shard: a.shard,
         pick: a.pick,
         components,
-        var: a.var.spec()?,
+        var,
         reg: a.reg.options(),
         match_window_ms: a.match_window_ms,
         run_limit_ms: seconds("--run-timeout", a.run_timeout)?.as_millis() as u64,

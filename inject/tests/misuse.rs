@@ -171,17 +171,7 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
 #[test]
 fn a_storm_at_a_component_the_system_lacks_names_the_ones_it_has() {
     let dir = tempfile::tempdir().unwrap();
-    let state = dir.path().join("state.json");
-    std::fs::write(
-        &state,
-        r#"{"system": "echo-demo", "bootstrap_pid": 1, "updated_ns": 1, "running": true,
-            "components": {
-              "echo": {"redundancy": "tmr", "protected": true, "pid": null, "voter_pid": 7,
-                       "replicas": []},
-              "sink": {"redundancy": "none", "protected": false, "pid": 9, "voter_pid": null,
-                       "replicas": []}}}"#,
-    )
-    .unwrap();
+    let state = live_view_in(dir.path());
     refused(
         &[
             "storm",
@@ -195,5 +185,51 @@ fn a_storm_at_a_component_the_system_lacks_names_the_ones_it_has() {
             "2",
         ],
         "the system echo-demo has no component ehco; it has: echo, sink",
+    );
+}
+
+/// A live view of a running echo demo (TMR `echo`, unprotected `sink`) in `dir`.
+fn live_view_in(dir: &std::path::Path) -> std::path::PathBuf {
+    let state = dir.join("state.json");
+    std::fs::write(
+        &state,
+        r#"{"system": "echo-demo", "bootstrap_pid": 1, "updated_ns": 1, "running": true,
+            "components": {
+              "echo": {"redundancy": "tmr", "protected": true, "pid": null, "voter_pid": 7,
+                       "replicas": []},
+              "sink": {"redundancy": "none", "protected": false, "pid": 9, "voter_pid": null,
+                       "replicas": []}}}"#,
+    )
+    .unwrap();
+    state
+}
+
+/// A one-off injection asked for what cannot be: a bit past the 64-bit value (it flipped a
+/// byte of the next field), a replica of an unprotected component (it said "sink has 0
+/// replica slot(s)").
+#[test]
+fn a_bit_past_the_value_or_a_replica_of_an_unprotected_component_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = live_view_in(dir.path());
+    let state = state.to_str().unwrap();
+    let inject = |extra: &[&str], want: &str| {
+        let mut args = vec!["inject", "--state", state];
+        args.extend_from_slice(extra);
+        refused(&args, want);
+    };
+    inject(
+        &[
+            "--component",
+            "echo",
+            "--fault",
+            "var",
+            "--var-bits",
+            "3,64",
+        ],
+        "--var-bits 64: the value at the offset is 64 bits wide (bits 0..=63)",
+    );
+    inject(
+        &["--component", "sink", "--fault", "exec", "--replica", "0"],
+        "sink is not protected: it has no replicas",
     );
 }

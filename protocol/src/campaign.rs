@@ -179,6 +179,12 @@ impl VarSpec {
             if bits.is_empty() {
                 return Err("--var-bits names no bit".to_owned());
             }
+            // The value is 64 bits wide: a bit past it would flip a byte of the next field.
+            if let Some(b) = bits.iter().find(|&&b| b >= 64) {
+                return Err(format!(
+                    "--var-bits {b}: the value at the offset is 64 bits wide (bits 0..=63)"
+                ));
+            }
         }
         Ok(())
     }
