@@ -203,10 +203,13 @@ fn prepare(
 }
 
 /// The parameters (all but the machine) in which `old` and `new` differ, as `name: old vs new`.
+/// The description's digest only if `old` has one (a campaign begun before it was recorded).
 fn differences(old: &CampaignInfo, new: &CampaignInfo) -> anyhow::Result<Vec<String>> {
+    let digest = old.system_digest.is_some();
     let value = |i: &CampaignInfo| {
         serde_json::to_value(CampaignInfo {
             machine: None,
+            system_digest: i.system_digest.clone().filter(|_| digest),
             ..i.clone()
         })
     };
@@ -471,5 +474,31 @@ impl Progress {
         if let Some(b) = &self.bar {
             b.finish();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--resume` after the description changed is refused, saying so; a campaign begun
+    /// before the digest was recorded resumes as before.
+    #[test]
+    fn a_resume_across_a_changed_description_is_refused() {
+        let with = |digest: Option<&str>| CampaignInfo {
+            system_digest: digest.map(str::to_owned),
+            ..crate::report::tests::info(None)
+        };
+        let differ = differences(&with(Some("a")), &with(Some("b"))).unwrap();
+        assert_eq!(
+            differ,
+            ["the description's text (system_digest: \"a\" vs \"b\")"]
+        );
+        assert!(differences(&with(None), &with(Some("b")))
+            .unwrap()
+            .is_empty());
+        assert!(differences(&with(Some("a")), &with(Some("a")))
+            .unwrap()
+            .is_empty());
     }
 }

@@ -288,6 +288,10 @@ pub struct MissionSummary {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ClassifyInfo {
     pub system: PathBuf,
+    /// The description's digest (`s3res_protocol::campaign::description_digest`): a resume or
+    /// merge across a change of the description is refused (`None`: recorded before this).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub system_digest: Option<String>,
     pub fault: crate::fault::FaultKind,
     pub components: Vec<String>,
     pub seed: u64,
@@ -647,11 +651,14 @@ fn differences(
     b: &ClassifyInfo,
     with_shard: bool,
 ) -> anyhow::Result<Vec<String>> {
+    // The description's digest only if both have one (one begun before it was recorded).
+    let digest = a.system_digest.is_some() && b.system_digest.is_some();
     let value = |i: &ClassifyInfo| {
         let mut w = i.whole();
         if with_shard {
             w.shard = i.shard;
         }
+        w.system_digest = w.system_digest.filter(|_| digest);
         serde_json::to_value(w)
     };
     Ok(crate::report::field_differences(&value(a)?, &value(b)?))
@@ -914,6 +921,7 @@ mod tests {
     fn info(golden_mission: Option<MissionVerdict>) -> ClassifyInfo {
         ClassifyInfo {
             system: "robot.json".into(),
+            system_digest: Some("fnv1a64:0".into()),
             fault: crate::fault::FaultKind::Exec,
             components: vec!["navigator".into()],
             seed: 1,

@@ -503,6 +503,12 @@ fn load_system(path: &Path) -> anyhow::Result<(PathBuf, SystemPlan)> {
     Ok((abs, plan))
 }
 
+/// The digest of the description at `path` (read again: it was just loaded).
+fn system_digest(path: &Path) -> anyhow::Result<String> {
+    let text = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    Ok(s3res_protocol::campaign::description_digest(&text))
+}
+
 /// The target components: as given (each must exist), else `default`.
 fn targets(
     plan: &SystemPlan,
@@ -708,6 +714,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
     });
     let info = CampaignInfo {
         config,
+        system_digest: Some(system_digest(&system)?),
         system,
         system_name: plan.name.clone(),
         fault: a.fault,
@@ -790,6 +797,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     let limit = seconds("--run-timeout", a.run_timeout)?;
     let c = ClassifyRun {
         info: ClassifyInfo {
+            system_digest: Some(system_digest(&system)?),
             system,
             fault: a.fault,
             components,

@@ -272,7 +272,14 @@ pub(crate) fn field_differences(old: &serde_json::Value, new: &serde_json::Value
     let keys: std::collections::BTreeSet<&String> = o.keys().chain(n.keys()).collect();
     keys.into_iter()
         .filter(|k| o.get(*k) != n.get(*k))
-        .map(|k| format!("{k}: {} vs {}", show(o.get(k)), show(n.get(k))))
+        .map(|k| match k.as_str() {
+            "system_digest" => format!(
+                "the description's text (system_digest: {} vs {})",
+                show(o.get(k)),
+                show(n.get(k))
+            ),
+            _ => format!("{k}: {} vs {}", show(o.get(k)), show(n.get(k))),
+        })
         .collect()
 }
 
@@ -398,6 +405,27 @@ pub fn merge(parts: Vec<CampaignOutput>) -> Result<Vec<CampaignOutput>, String> 
             }),
         }
     }
+    // Two campaigns of one row (configuration and fault) would be pooled in the tables as if
+    // they were one, and each would look like a campaign with shards missing.
+    for (i, a) in merged.iter().enumerate() {
+        if let Some(b) = merged[i + 1..]
+            .iter()
+            .find(|b| (&b.info.config, b.info.fault) == (&a.info.config, a.info.fault))
+        {
+            let value = |c: &CampaignOutput| serde_json::to_value(c.info.identity());
+            let differ = field_differences(
+                &value(a).map_err(|e| e.to_string())?,
+                &value(b).map_err(|e| e.to_string())?,
+            );
+            return Err(format!(
+                "the inputs hold two campaigns of row {} {} that differ in {}: merge joins the \
+                 shards of one campaign, or campaigns of other rows (give one its own --label)",
+                a.info.config,
+                a.info.fault,
+                differ.join(", ")
+            ));
+        }
+    }
     for m in &mut merged {
         m.runs.sort_by_key(|r| r.run);
         m.injections.sort_by_key(|r| (r.run, r.index));
@@ -439,7 +467,7 @@ pub fn write_outputs(dir: &Path, outputs: &[CampaignOutput]) -> std::io::Result<
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use s3res_protocol::campaign::{Action, Arrival, Pick, RegOptions, VarField, VarSpec};
     use std::collections::BTreeMap;
@@ -448,6 +476,7 @@ mod tests {
         CampaignInfo {
             config: "tmr".into(),
             system: "s.json".into(),
+            system_digest: Some("fnv1a64:0".into()),
             system_name: "s".into(),
             fault: FaultKind::Exec,
             rate_hz: 2.0,
@@ -635,6 +664,35 @@ mod tests {
         assert_eq!(merged[0].summary(), whole.summary());
         assert_eq!(merged[0].runs, whole.runs);
         assert!(merge(vec![shard(1), shard(1)]).is_err());
+    }
+
+    /// Shards of two campaigns of one row (another seed, another description) are refused,
+    /// naming the difference: they were pooled in the tables as one campaign, each warned of
+    /// as missing shards. Campaigns of other rows (another label) are merged side by side.
+    #[test]
+    fn two_campaigns_of_one_row_are_not_pooled() {
+        let of = |shard: (u64, u64), seed: u64, digest: &str, config: &str| CampaignOutput {
+            info: CampaignInfo {
+                seed,
+                system_digest: Some(digest.into()),
+                config: config.into(),
+                ..info(Some(shard))
+            },
+            runs: Vec::new(),
+            injections: Vec::new(),
+        };
+        let e = merge(vec![of((1, 2), 5, "d", "tmr"), of((2, 2), 6, "d", "tmr")]).unwrap_err();
+        assert!(
+            e.contains("two campaigns of row tmr exec that differ in seed: 5 vs 6"),
+            "{e}"
+        );
+        let e = merge(vec![of((1, 2), 5, "d", "tmr"), of((2, 2), 5, "e", "tmr")]).unwrap_err();
+        assert!(
+            e.contains("the description's text (system_digest: \"d\" vs \"e\")"),
+            "{e}"
+        );
+        let rows = merge(vec![of((1, 2), 5, "d", "tmr"), of((2, 2), 6, "d", "tmr-b")]).unwrap();
+        assert_eq!(rows.len(), 2);
     }
 
     #[test]

@@ -211,6 +211,11 @@ pub struct CampaignInfo {
     /// The description as given, and the system's name.
     pub system: PathBuf,
     pub system_name: String,
+    /// [`description_digest`] of the description's text when the campaign began: a resume or
+    /// a merge of runs of a description changed in between is refused (`None`: a campaign
+    /// recorded before this was kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub system_digest: Option<String>,
     pub fault: FaultKind,
     pub rate_hz: f64,
     pub arrival: Arrival,
@@ -256,6 +261,15 @@ impl MachineInfo {
             build: Build::of(bootstrap),
         }
     }
+}
+
+/// A digest of a description's text (64-bit FNV-1a, in hex): not a cryptographic hash, a
+/// check that two campaigns ran the same description.
+pub fn description_digest(text: &[u8]) -> String {
+    let hash = text.iter().fold(0xcbf2_9ce4_8422_2325_u64, |h, &b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    });
+    format!("fnv1a64:{hash:016x}")
 }
 
 impl CampaignInfo {
