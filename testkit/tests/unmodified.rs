@@ -1059,3 +1059,49 @@ fn an_sdc_injected_before_a_lone_newline_corrupts_the_next_line() {
     assert_eq!([read_byte(&stdout_r), read_byte(&stdout_r)], *b"6\n");
     drop(guard);
 }
+
+/// A frame that holds a newline, on its way to a program that reads lines, ends the input
+/// there and fails the component in one line naming the frame and the byte — the program is
+/// not blamed. Before, `cat` took the frame for two lines and answered twice, every replica
+/// was blamed for the extra answer and restarted with its state lost, a wrong frame went out,
+/// and the run ended "clean", status 0.
+#[test]
+fn a_frame_with_a_newline_for_a_program_that_reads_lines_is_refused_not_blamed_on_it() {
+    let sys = {
+        let mut frames = Vec::new();
+        for payload in [&b"1"[..], b"2\n3", b"4"] {
+            s3res_protocol::frame::encode_into(payload, &mut frames);
+        }
+        System::new().stdin(frames)
+    };
+    let cat = which("cat").expect("cat");
+    let desc = json!({
+        "name": "lines",
+        "components": {
+            "p": {"exec": cat, "runtime": "preload", "framing": "lines",
+                  "redundancy": "tmr", "timeout_us": 300000}
+        },
+        "channels": [
+            {"from": "stdin", "to": "p.in"},
+            {"from": "p.out", "to": "stdout"}
+        ]
+    });
+    let mut run = sys.start_json(&desc);
+    let out = run.wait(LIMIT);
+    assert!(!out.status.success(), "{}", out.status);
+    assert!(
+        out.stderr
+            .contains("input frame 2 on `in` holds a newline (byte 1 of 3), and `/"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    let faults = out
+        .events
+        .iter()
+        .filter(|e| {
+            e.replica.is_some() && e.kind != EventKind::Start && e.kind != EventKind::Recovery
+        })
+        .count();
+    assert_eq!(faults, 0, "a replica was blamed: {:#?}", out.events);
+    run.assert_nothing_left();
+}

@@ -65,6 +65,9 @@ pub enum VoterError {
     Io { what: String, error: std::io::Error },
     #[error("component failed beyond recovery: {0}")]
     Unrecoverable(String),
+    /// An input was closed because of what upstream sent on it (see `Core::upstream_broke`).
+    #[error("an input ended early: {0}")]
+    Upstream(String),
     #[error(transparent)]
     Clock(#[from] ClockError),
 }
@@ -206,6 +209,9 @@ pub(crate) struct Core {
     pub(crate) runtime_started: bool,
     /// The last fault, as its event reads: the budget's message quotes it.
     last_fault: String,
+    /// Why an input was closed because of what upstream sent (a frame that cannot be
+    /// decoded, or cannot be given to the program): the voter ends as failed, not clean.
+    upstream_broke: Option<String>,
     /// Names the current fork attempt; a child of an older attempt is refused. Starts at a
     /// value of this voter's own ([`first_nonce`]), so that a late child of a predecessor's
     /// attempt does not carry a nonce of ours.
@@ -367,6 +373,7 @@ impl Core {
             exec_answered: false,
             runtime_started: false,
             last_fault: String::new(),
+            upstream_broke: None,
             restart_nonce: first_nonce(),
             listener,
             spares,
@@ -1001,6 +1008,13 @@ impl Core {
             })
     }
 
+    /// An input closed because of what upstream sent on it: it cannot be resynchronised with
+    /// (nor told), so the input ends here, and the component with it, as failed.
+    fn upstream_broke(&mut self, why: String) {
+        tracing::error!("{why}; dropping the rest of this input");
+        self.upstream_broke.get_or_insert(why);
+    }
+
     /// Copies the next whole frame buffered on input `i` to every trusted replica. `None` when
     /// no whole frame is buffered (or upstream broke the framing: the input is closed, since
     /// we cannot resynchronise). Replicas whose pipe broke, or that have not taken more than
@@ -1029,18 +1043,37 @@ impl Core {
 
     fn deliver_decoded(&mut self, i: usize, backlog_limit: Option<usize>) -> Option<Delivery> {
         let input = &mut self.inputs[i];
+        let number = self.delivered[i] + 1;
         let frame = match input.reader.decoder.next_frame() {
             Ok(Some(f)) => f,
             Ok(None) => return None,
             Err(e) => {
-                tracing::error!(input = %input.name, error = %e, "bad frame from upstream; dropping the rest of this input");
+                let why = format!("bad frame from upstream on `{}`: {e}", input.name);
                 input.reader.close();
+                self.upstream_broke(why);
                 return None;
             }
         };
+        if self.plan.framing == Framing::Lines {
+            // A program that reads lines would take this frame for two inputs, answer twice,
+            // and have every replica blamed for the extra answer.
+            if let Some(at) = frame.iter().position(|&b| b == b'\n') {
+                let why = format!(
+                    "input frame {number} on `{}` holds a newline (byte {at} of {}), and `{}` \
+                     reads one line per frame: whatever sends on `{}` must not put newlines \
+                     in its frames",
+                    input.name,
+                    frame.len(),
+                    self.plan.exec.display(),
+                    input.name
+                );
+                input.reader.close();
+                self.upstream_broke(why);
+                return None;
+            }
+        }
         let frame_len = frame.len();
         let mut delivery = Delivery::default();
-        let number = self.delivered[i] + 1;
         // An unmodified program's lines are each given once (see `lines.rs`).
         let lines = self.journal.as_ref().filter(|_| self.park.is_some());
         for (r, rep) in self.slots.iter_mut().enumerate() {
@@ -1366,7 +1399,11 @@ pub(crate) struct Delivery {
 pub(crate) fn run(mut m: impl Mode) -> Result<(), VoterError> {
     let result = m.run_loop();
     m.core().shut_down();
-    result
+    result?;
+    match m.core().upstream_broke.take() {
+        Some(why) => Err(VoterError::Upstream(why)),
+        None => Ok(()),
+    }
 }
 
 /// One `ppoll` on everything that can make progress, bounded by the mode's next wake-up, then
