@@ -151,6 +151,15 @@ impl EventSummary {
                     "recovery failed; the component runs with fewer replicas"
                 );
             }
+            EventKind::Lost => {
+                tracing::warn!(
+                    component = %event.component,
+                    round = %shown(event.round),
+                    frame = %shown(event.frame),
+                    output = event.output.as_deref().unwrap_or(""),
+                    "frame lost: no replica answered"
+                );
+            }
         }
         Line::Event(Box::new(event))
     }

@@ -55,6 +55,8 @@ pub struct ComponentTally {
     /// Frames forwarded as the bitwise majority of answers that all differed (`all_differ`):
     /// a frame no replica wrote. Many of them say the program is not deterministic.
     pub rebuilt: u64,
+    /// Frames that never went out: no replica answered (`lost` events).
+    pub lost: u64,
     pub anomalies: u64,
     /// Times the component's voter was replaced by one that adopted its replicas.
     pub voter_restarts: u64,
@@ -120,6 +122,7 @@ impl Tally {
             EventKind::RecoveryFailed => c.failed_recoveries += 1,
             EventKind::Anomaly => c.anomalies += 1,
             EventKind::VoterRestart => c.voter_restarts += 1,
+            EventKind::Lost => c.lost += 1,
         }
         d.events.push(e.clone());
     }
@@ -141,6 +144,7 @@ pub fn kind_name(kind: EventKind) -> &'static str {
         EventKind::RecoveryFailed => "recovery_failed",
         EventKind::Anomaly => "anomaly",
         EventKind::VoterRestart => "voter_restart",
+        EventKind::Lost => "lost",
     }
 }
 
@@ -498,11 +502,16 @@ impl Verdict {
                 (!c.down.is_empty()).then(|| format!("{name} ({} of {n} down)", c.down.len()))
             })
             .collect();
-        let rebuilt = sum(|c| c.rebuilt);
+        let (rebuilt, lost) = (sum(|c| c.rebuilt), sum(|c| c.lost));
         let _ = writeln!(
             s,
-            "  frames       {} withheld (no majority){}; degraded at the end: {}",
+            "  frames       {} withheld (no majority){}{}; degraded at the end: {}",
             sum(|c| c.withheld),
+            if lost == 0 {
+                String::new()
+            } else {
+                format!(", {lost} lost (no replica answered)")
+            },
             if rebuilt == 0 {
                 String::new()
             } else {
@@ -675,13 +684,17 @@ mod tests {
             t.apply(&r);
         }
         t.apply(&event(EventKind::VoterRestart, None));
+        t.apply(&event(EventKind::Lost, None));
         let text = clean_run_of("filter", &t).render();
         assert!(
             text.contains("voters       replaced (replicas adopted): filter 1"),
             "{text}"
         );
         assert!(
-            text.contains("frames       1 withheld (no majority), 2 rebuilt bit by bit"),
+            text.contains(
+                "frames       1 withheld (no majority), 1 lost (no replica answered), 2 rebuilt \
+                 bit by bit"
+            ),
             "{text}"
         );
         assert!(

@@ -29,6 +29,10 @@ pub enum EventKind {
     /// replicas: `pid` is the new voter's, `recovery_us` the time from bootstrap seeing the
     /// old one gone to the new one running the component again, `detail` what happened.
     VoterRestart,
+    /// No replica answered a round (or a stream frame): nothing went out on `output` for it.
+    /// Not a fault of its own — the replicas' faults are their events — but a frame
+    /// downstream never gets (an SMR replica that crashed mid-round, every replica stopped).
+    Lost,
 }
 
 impl EventKind {

@@ -327,9 +327,10 @@ impl Outcome {
         restarts
     }
 
-    /// The fault events (everything but `start`, `recovery`, `anomaly` and `voter_restart`:
-    /// an alarm is an opinion, what the voter concluded from it is a fault event of its own;
-    /// a voter restart is about the voter, not a replica).
+    /// The fault events (everything but `start`, `recovery`, `anomaly`, `voter_restart` and
+    /// `lost`: an alarm is an opinion, what the voter concluded from it is a fault event of its
+    /// own; a voter restart is about the voter, not a replica; a frame lost is what faults
+    /// cost, not a fault).
     pub fn faults(&self) -> Vec<&Event> {
         use s3res_protocol::event::EventKind;
         self.events
@@ -341,6 +342,7 @@ impl Outcome {
                         | EventKind::Recovery
                         | EventKind::Anomaly
                         | EventKind::VoterRestart
+                        | EventKind::Lost
                 )
             })
             .collect()

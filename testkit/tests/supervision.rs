@@ -724,3 +724,35 @@ fn a_voter_stopped_by_a_stray_signal_is_named() {
     );
     run.assert_nothing_left();
 }
+
+/// A round that no replica answers (all three stopped) sends nothing downstream: that frame is
+/// lost, and says so — a `lost` event naming the output and the round, and the verdict's
+/// frames line. Before, only a log line said it, and the verdict read "0 withheld".
+#[test]
+fn a_round_no_replica_answered_is_counted_as_a_frame_lost() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let pids: Vec<i32> = run.replica_pids("echo").into_values().collect();
+    for &pid in &pids {
+        s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP a replica");
+    }
+    let lost = run.wait_for_event(
+        |e| e.kind == EventKind::Lost && e.component == "echo",
+        Duration::from_secs(30),
+    );
+    for &pid in &pids {
+        let _ = s3res_testkit::kill_pid(pid, libc::SIGCONT);
+    }
+    assert_eq!(lost.output.as_deref(), Some("out"), "{lost:?}");
+    assert!(lost.round.is_some(), "{lost:?}");
+    run.stop();
+    let out = run.wait(Duration::from_secs(60));
+    assert!(
+        out.stderr.contains("lost (no replica answered)"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    run.assert_nothing_left();
+}

@@ -936,6 +936,11 @@ impl Core {
         let unattributed = match decision {
             Decision::Withhold { answered } if answered.is_empty() => {
                 tracing::warn!(%at, output = %name, "no replica answered; nothing forwarded");
+                let mut ev = self.event(EventKind::Lost);
+                at.mark(&mut ev);
+                ev.output = Some(name.to_owned());
+                ev.detail = Some(format!("no replica answered on `{name}` in {at}; nothing went out"));
+                self.emit(ev);
                 None
             }
             Decision::Withhold { answered } => Some((
