@@ -152,13 +152,9 @@ impl EventSummary {
                 );
             }
             EventKind::Lost => {
-                tracing::warn!(
-                    component = %event.component,
-                    round = %shown(event.round),
-                    frame = %shown(event.frame),
-                    output = event.output.as_deref().unwrap_or(""),
-                    "frame lost: no replica answered"
-                );
+                // The detail names the output and the round (or frame).
+                let what = event.detail.as_deref().unwrap_or("no replica answered");
+                tracing::warn!(component = %event.component, "frame lost: {what}");
             }
         }
         Line::Event(Box::new(event))
