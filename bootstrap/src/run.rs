@@ -77,13 +77,13 @@ pub enum RunError {
         source: std::io::Error,
     },
     #[error(
-        "the {what} {path} is being written by another s3res-bootstrap that runs{holder}; \
-         give this run its own files (--events, --state) or stop that one"
+        "the {what} {path} is being written by {holder}; give this run its own files \
+         (--events, --state) or stop that one"
     )]
     OutputInUse {
         what: &'static str,
         path: PathBuf,
-        /// ` (pid N)`, where known.
+        /// Who: `another s3res-bootstrap that runs (pid N)`, or as far as it is known.
         holder: String,
     },
     #[error("cannot create the socket folder in {dir}: {source}")]
@@ -268,6 +268,18 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     let mut guard = SweepGuard::new();
 
     let started = Instant::now();
+    // Before the events file is emptied: a refused run must leave its files as they were.
+    // (Written whole and renamed into place at each change, a live view takes no lock: the
+    // file says whose it is.)
+    if let Some(path) = &opts.state_file {
+        if let Some(pid) = crate::live::running_bootstrap_of(path) {
+            return Err(RunError::OutputInUse {
+                what: "state file",
+                path: path.clone(),
+                holder: format!("another s3res-bootstrap that runs (pid {pid})"),
+            });
+        }
+    }
     let events_log = match &opts.events_file {
         Some(path) => {
             make_parent(path, "the events file")?;
@@ -305,15 +317,6 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     let live = match &state_file {
         Some(path) => {
             make_parent(path, "the state file")?;
-            // Written whole and renamed into place at each change, so no lock can hold it:
-            // the file says whose it is.
-            if let Some(pid) = crate::live::running_bootstrap_of(path) {
-                return Err(RunError::OutputInUse {
-                    what: "state file",
-                    path: path.clone(),
-                    holder: format!(" (pid {pid})"),
-                });
-            }
             Some(
                 LiveState::create(crate::live::initial_view(plan), path.clone()).map_err(
                     |source| RunError::StateFile {
@@ -559,7 +562,6 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     })
 }
 
-/// Creates the folder `path` goes into, if it has one and it is missing.
 /// The events file at `path`, emptied — once this bootstrap holds its lock: another bootstrap
 /// running on the same file (the same description started twice in one folder) would have
 /// truncated it under the first one's feet and mixed its lines into it. The lock goes with
@@ -581,8 +583,10 @@ fn open_events_file(path: &Path) -> Result<File, RunError> {
             return Err(RunError::OutputInUse {
                 what: "events file",
                 path: path.to_path_buf(),
-                holder: String::new(),
-            })
+                // A lock says nobody's name; a bootstrap is who takes this one.
+                holder: "another process that holds its lock (an s3res-bootstrap that runs?)"
+                    .to_owned(),
+            });
         }
         // A file system that takes no lock: as before, unguarded.
         Err(std::fs::TryLockError::Error(e)) => tracing::warn!(
@@ -594,6 +598,7 @@ fn open_events_file(path: &Path) -> Result<File, RunError> {
     Ok(file)
 }
 
+/// Creates the folder `path` goes into, if it has one and it is missing.
 fn make_parent(path: &Path, what: &'static str) -> Result<(), RunError> {
     match path.parent().filter(|d| !d.as_os_str().is_empty()) {
         Some(dir) => std::fs::create_dir_all(dir).map_err(|source| RunError::OutputDir {
@@ -751,7 +756,7 @@ fn base_command(exec: &Path, component: &str, out: &Outputs) -> Result<Command, 
     let mut cmd = Command::new(exec);
     // Not this process's mask (SIGTERM and SIGCHLD blocked for the signalfd): a component
     // must be able to catch the SIGTERM that stops it.
-    sys::start_with_terminal_signals_blocked(&mut cmd);
+    sys::start_with_signals_blocked(&mut cmd, sys::TERMINAL_SIGNALS);
     cmd.stdin(Stdio::null());
     let stderr = match out.stderr {
         Some(fd) => fd.try_clone_to_owned()?,
@@ -1013,6 +1018,36 @@ fn supervise(
     // ends as failed rather than as stopped by a signal.
     let mut failed = false;
     loop {
+        // Stop signals before the children's deaths: a child killed by the same signal as
+        // bootstrap (one sent to the whole process group or cgroup: timeout(1), systemd,
+        // Slurm) is reaped as stopped, not as failed.
+        loop {
+            match signals.read_signal() {
+                Ok(Some(info)) => {
+                    let sig = info.ssi_signo as i32;
+                    if STOP_SIGNALS.contains(&sig) {
+                        match stop {
+                            None => {
+                                tracing::info!(
+                                    "stopping (signal {}): SIGTERM to every component",
+                                    signal_name(sig)
+                                );
+                                stop = Some((sig, Instant::now() + stop_timeout));
+                                stop_live(children);
+                            }
+                            Some(_) if !killed => {
+                                tracing::warn!("second stop signal: killing every component now");
+                                signal_live(children, libc::SIGKILL);
+                                killed = true;
+                            }
+                            Some(_) => {}
+                        }
+                    }
+                }
+                Ok(None) => break,
+                Err(e) => return Err(RunError::Supervise(std::io::Error::from(e))),
+            }
+        }
         reap_all(children, stop.is_some());
         tick();
         if children.iter().all(|c| c.status.is_some()) {
@@ -1033,7 +1068,7 @@ fn supervise(
                 crate::logging::say(&format!("{why}; stopping the system"));
                 failed = true;
                 stop = Some((libc::SIGTERM, now + stop_timeout));
-                signal_live(children, libc::SIGTERM);
+                stop_live(children);
             }
         }
         let system_done = children
@@ -1096,33 +1131,6 @@ fn supervise(
             revents: 0,
         }];
         sys::ppoll(&mut pfd, timeout).map_err(RunError::Supervise)?;
-        loop {
-            match signals.read_signal() {
-                Ok(Some(info)) => {
-                    let sig = info.ssi_signo as i32;
-                    if STOP_SIGNALS.contains(&sig) {
-                        match stop {
-                            None => {
-                                tracing::info!(
-                                    "stopping (signal {}): SIGTERM to every component",
-                                    signal_name(sig)
-                                );
-                                stop = Some((sig, Instant::now() + stop_timeout));
-                                signal_live(children, libc::SIGTERM);
-                            }
-                            Some(_) if !killed => {
-                                tracing::warn!("second stop signal: killing every component now");
-                                signal_live(children, libc::SIGKILL);
-                                killed = true;
-                            }
-                            Some(_) => {}
-                        }
-                    }
-                }
-                Ok(None) => break,
-                Err(e) => return Err(RunError::Supervise(std::io::Error::from(e))),
-            }
-        }
         if killed && stop.is_some_and(|(_, d)| Instant::now() >= d + Duration::from_secs(1)) {
             // Whatever is still there resists SIGKILL; the sweep will report it.
             break;
@@ -1268,6 +1276,16 @@ fn reap_all(children: &mut [Child], stopping: bool) {
             }
         }
     }
+}
+
+/// Stops the system: tells the voters through their heartbeat pages that it is the system
+/// that stops (a voter that got a SIGTERM from elsewhere first reads it there), then SIGTERM to
+/// every child still running.
+fn stop_live(children: &[Child]) {
+    for w in children.iter().filter_map(|c| c.watch.as_ref()) {
+        w.system_stopping();
+    }
+    signal_live(children, libc::SIGTERM);
 }
 
 fn signal_live(children: &[Child], sig: i32) {

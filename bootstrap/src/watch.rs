@@ -39,6 +39,12 @@ impl VoterWatch {
         &self.page
     }
 
+    /// The system stops: the voter is told through its page (see
+    /// `Heartbeat::set_system_stopping`).
+    pub fn system_stopping(&self) {
+        self.page.set_system_stopping();
+    }
+
     /// A new voter took over the page: it is judged from `now` on.
     pub fn restart(&mut self, now: Instant) {
         self.last = self.page.read().beats;

@@ -430,10 +430,11 @@ fn a_second_bootstrap_on_the_same_files_refuses_and_leaves_them_alone() {
         fixture("sleeper.sh")
     ));
     let out = dir.path().join("out");
-    let (events, state, other_events) = (
+    let (events, state, other_events, other_state) = (
         out.join("events.jsonl"),
         out.join("state.json"),
         out.join("other.jsonl"),
+        out.join("other-state.json"),
     );
     let arg = |p: &Path| p.to_str().unwrap().to_owned();
     let system = arg(&path);
@@ -449,12 +450,19 @@ fn a_second_bootstrap_on_the_same_files_refuses_and_leaves_them_alone() {
     let mine = Some(i64::from(first.pgid));
     wait_until("the first bootstrap's live view", || live_pid() == mine);
     std::fs::write(&events, "a line of the first run\n").unwrap();
+    std::fs::write(&other_events, "a line of an earlier run\n").unwrap();
 
-    let second = run(&["--events", &arg(&events), "--state", &arg(&state), &system]);
+    let second = run(&[
+        "--events",
+        &arg(&events),
+        "--state",
+        &arg(&other_state),
+        &system,
+    ]);
     assert_eq!(second.status.code(), Some(1), "{}", second.stderr);
     assert!(
         second.stderr.contains(&format!(
-            "the events file {} is being written by another s3res-bootstrap",
+            "the events file {} is being written by another process that holds its lock",
             events.display()
         )),
         "{}",
@@ -470,7 +478,7 @@ fn a_second_bootstrap_on_the_same_files_refuses_and_leaves_them_alone() {
     assert_eq!(third.status.code(), Some(1), "{}", third.stderr);
     assert!(
         third.stderr.contains(&format!(
-            "the state file {} is being written by another s3res-bootstrap that runs (pid {})",
+            "the state file {} is being written by another s3res-bootstrap that runs (pid {});",
             state.display(),
             first.pgid
         )),
@@ -480,6 +488,11 @@ fn a_second_bootstrap_on_the_same_files_refuses_and_leaves_them_alone() {
     assert_eq!(
         std::fs::read_to_string(&events).unwrap(),
         "a line of the first run\n"
+    );
+    // A refused run empties nothing of its own either.
+    assert_eq!(
+        std::fs::read_to_string(&other_events).unwrap(),
+        "a line of an earlier run\n"
     );
     assert_eq!(live_pid(), mine, "the live view is no longer the first's");
 

@@ -10,13 +10,18 @@ use std::sync::atomic::Ordering;
 
 use crate::shared::{memfd, SharedRegion};
 
-/// The page's layout: two 64-bit words.
+/// The page's layout: three 64-bit words.
 const BEATS: usize = 0;
 /// Non-zero once the voter is ending (draining its output, letting replicas finish): its waits
 /// are then bounded by its own limits, not by the heartbeat.
 const ENDING: usize = 8;
+/// Non-zero once bootstrap stops the system (written before it signals anyone): a voter that
+/// got a stop signal from some other process — one sent to a whole process group or cgroup —
+/// knows from it that the system stops, not its component alone. (Signals do not tell: a
+/// second SIGTERM that comes while the first is pending is lost.)
+const SYSTEM_STOPPING: usize = 16;
 
-/// The size of the mapping (one page; the layout needs 16 bytes of it).
+/// The size of the mapping (one page; the layout needs 24 bytes of it).
 const MAP_LEN: usize = 4096;
 
 /// What bootstrap reads of a heartbeat.
@@ -66,6 +71,18 @@ impl Heartbeat {
     /// A new voter took over: judge it by the heartbeat again.
     pub fn clear_ending(&self) {
         self.page.u64_at(ENDING).store(0, Ordering::Relaxed);
+    }
+
+    /// Bootstrap stops the system (bootstrap, before it signals the components).
+    pub fn set_system_stopping(&self) {
+        self.page
+            .u64_at(SYSTEM_STOPPING)
+            .store(1, Ordering::Release);
+    }
+
+    /// Whether bootstrap stops the system.
+    pub fn system_stopping(&self) -> bool {
+        self.page.u64_at(SYSTEM_STOPPING).load(Ordering::Acquire) != 0
     }
 
     pub fn read(&self) -> Pulse {

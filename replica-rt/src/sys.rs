@@ -793,23 +793,31 @@ pub fn map_fds_on_exec(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
 /// everything it started. Bootstrap stops the system in order (SIGTERM to each component, a
 /// voter stopping its replicas); a replica that died of a Ctrl-C behind its voter's back would
 /// be a crash and a recovery in the middle of the stop.
-pub const TERMINAL_SIGNALS: [libc::c_int; 3] = [libc::SIGHUP, libc::SIGINT, libc::SIGQUIT];
+pub const TERMINAL_SIGNALS: &[libc::c_int] = &[libc::SIGHUP, libc::SIGINT, libc::SIGQUIT];
 
-/// Starts the child of `cmd` with exactly [`TERMINAL_SIGNALS`] blocked, whatever this
-/// process blocks. The mask is inherited over fork and exec, and `std::process::Command`
-/// passes it on as it is (rustc 1.95); bootstrap and the voter block SIGTERM and SIGCHLD for
-/// their signalfds, so without this a component could not catch the SIGTERM that stops it
-/// (every stop waited out the stop timeout and ended in SIGKILL) and whatever it started
-/// could not be stopped with a plain `kill`.
-pub fn start_with_terminal_signals_blocked(cmd: &mut Command) {
+/// The signals a replica begins with blocked: the terminal's, and SIGTERM. A replica's life is
+/// its voter's (it kills one with SIGKILL, and ends them all by closing their input); a SIGTERM
+/// sent to a whole process group or cgroup (timeout(1), systemd, Slurm) that killed replicas
+/// would be crashes and recoveries in the middle of the stop.
+pub const REPLICA_SIGNALS: &[libc::c_int] =
+    &[libc::SIGHUP, libc::SIGINT, libc::SIGQUIT, libc::SIGTERM];
+
+/// Starts the child of `cmd` with exactly `signals` blocked ([`TERMINAL_SIGNALS`] for a
+/// component, [`REPLICA_SIGNALS`] for a replica), whatever this process blocks. The mask is
+/// inherited over fork and exec, and `std::process::Command` passes it on as it is (rustc
+/// 1.95); bootstrap and the voter block SIGTERM and SIGCHLD for their signalfds, so without
+/// this a component could not catch the SIGTERM that stops it (every stop waited out the stop
+/// timeout and ended in SIGKILL) and whatever it started could not be stopped with a plain
+/// `kill`.
+pub fn start_with_signals_blocked(cmd: &mut Command, signals: &'static [libc::c_int]) {
     // SAFETY: the closure runs in the forked child before exec and only calls sigemptyset,
     // sigaddset and pthread_sigmask on a stack value: async-signal-safe, no allocation, no
     // lock.
     unsafe {
-        cmd.pre_exec(|| {
+        cmd.pre_exec(move || {
             let mut set = std::mem::zeroed::<libc::sigset_t>();
             libc::sigemptyset(&mut set);
-            for sig in TERMINAL_SIGNALS {
+            for &sig in signals {
                 libc::sigaddset(&mut set, sig);
             }
             match libc::pthread_sigmask(libc::SIG_SETMASK, &set, std::ptr::null_mut()) {
@@ -1127,7 +1135,7 @@ pub fn sweep_children(limit: Duration) -> SweepReport {
 /// Takes `signals` through a file descriptor instead of handlers: blocks them in the calling
 /// thread (call it before any thread exists, so that every thread inherits the mask) and
 /// returns a non-blocking, close-on-exec signalfd that reads them. Children inherit the mask:
-/// start them with [`start_with_terminal_signals_blocked`].
+/// start them with [`start_with_signals_blocked`].
 pub fn signal_fd(
     signals: &[nix::sys::signal::Signal],
 ) -> nix::Result<nix::sys::signalfd::SignalFd> {

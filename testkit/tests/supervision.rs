@@ -662,11 +662,12 @@ fn a_component_catches_the_sigterm_that_stops_it() {
         0,
         "trapper (pid {trapper}) blocks {blocked:#x}"
     );
+    // A replica's life is its voter's: SIGTERM blocked too, SIGCHLD not.
     for (slot, pid) in run.replica_pids("echo") {
         let blocked = blocked_signals(pid);
         assert_eq!(
             blocked & (bit(libc::SIGTERM) | bit(libc::SIGCHLD) | terminal),
-            terminal,
+            terminal | bit(libc::SIGTERM),
             "echo#{slot} (pid {pid}) blocks {blocked:#x}"
         );
     }
@@ -733,11 +734,19 @@ fn a_round_no_replica_answered_is_counted_as_a_frame_lost() {
     let sys = System::new();
     let desc = long_running(&sys);
     let mut run = sys.start(&desc);
-    run.wait_for_replicas("echo", 3);
+    // Every replica's runtime runs, none is held to its start deadline.
+    wait_for_rounds(&mut run);
+    // The source waits while the replicas are stopped one by one (after any round under way
+    // has ended): a round begun meanwhile could be answered by some of them, and the rest
+    // blamed, never a round that nobody answers.
+    let source = run.process_named("s3res-source").expect("the source");
+    s3res_testkit::kill_pid(source, libc::SIGSTOP).expect("SIGSTOP the source");
+    std::thread::sleep(Duration::from_millis(100));
     let pids: Vec<i32> = run.replica_pids("echo").into_values().collect();
     for &pid in &pids {
         s3res_testkit::kill_pid(pid, libc::SIGSTOP).expect("SIGSTOP a replica");
     }
+    s3res_testkit::kill_pid(source, libc::SIGCONT).expect("SIGCONT the source");
     let lost = run.wait_for_event(
         |e| e.kind == EventKind::Lost && e.component == "echo",
         Duration::from_secs(30),
@@ -754,5 +763,47 @@ fn a_round_no_replica_answered_is_counted_as_a_frame_lost() {
         "{}",
         s3res_testkit::tail(&out.stderr, 20)
     );
+    run.assert_nothing_left();
+}
+
+/// Waits until the echo pipeline's replicas run and its sink has read a hundred frames more
+/// (20 bytes each) than when they did.
+fn wait_for_rounds(run: &mut s3res_testkit::RunningSystem) {
+    run.wait_for_replicas("echo", 3);
+    let sink = run.process_named("s3res-sink").expect("the sink");
+    let before = bytes_read(sink).expect("the sink's /proc/PID/io");
+    s3res_testkit::wait_until("rounds answered", Duration::from_secs(30), || {
+        (bytes_read(sink)? >= before + 2000).then_some(())
+    });
+}
+
+/// Bytes process `pid` has read (`rchar` of `/proc/PID/io`), if it can be read.
+fn bytes_read(pid: i32) -> Option<u64> {
+    let io = std::fs::read_to_string(format!("/proc/{pid}/io")).ok()?;
+    io.lines()
+        .find_map(|l| l.strip_prefix("rchar:"))?
+        .trim()
+        .parse()
+        .ok()
+}
+
+/// A SIGTERM to the whole process group (what `timeout`, `pkill -g` or a batch system send)
+/// reaches bootstrap and everything it started at once: the system stops in order, as on
+/// bootstrap's own SIGTERM (status 143) — no replica dies of it behind its voter's back, no
+/// component killed by it counts as failed, and no voter calls it a stray stop.
+#[test]
+fn a_sigterm_to_the_whole_group_stops_the_system_in_order() {
+    let sys = System::new();
+    let desc = long_running(&sys);
+    let mut run = sys.start(&desc);
+    wait_for_rounds(&mut run);
+    s3res_testkit::kill_pid(-run.pgid(), libc::SIGTERM).expect("SIGTERM to the group");
+    let out = run.wait(Duration::from_secs(60));
+    let tail = s3res_testkit::tail(&out.stderr, 30);
+    assert_eq!(out.status.code(), Some(143), "{tail}");
+    assert!(!out.stderr.contains("not from bootstrap"), "{tail}");
+    assert!(!out.stderr.contains(" failed: "), "{tail}");
+    let faults: Vec<_> = out.events.iter().filter(|e| e.kind.is_fault()).collect();
+    assert!(faults.is_empty(), "{faults:#?}\n{tail}");
     run.assert_nothing_left();
 }

@@ -1493,6 +1493,10 @@ fn dispatch(m: &mut impl Mode, token: Token) {
             }
         }
         Token::Input(i) => m.on_input_readable(i),
+        // Stopping at a request (SIGTERM, SIGINT): an answer ready in the same wait would be
+        // judged against rounds that no longer start, its replica blamed for the stop
+        // ("frame after the inputs closed"). It is left unread.
+        Token::ReplicaOutput(..) if core.stop == Some(Stop::Requested) => {}
         Token::OutputWritable(o) => core.outputs[o].flush(),
         Token::Timer => core.timer.expired(),
         Token::ReplicaExit(r) => m.on_replica_exit(r),
@@ -1694,10 +1698,16 @@ fn replace(
         }
     }
     if !threaded.is_empty() {
+        let also = if failed.is_empty() {
+            String::new()
+        } else {
+            format!(" (and the fork of {failed:?} failed)")
+        };
         tracing::warn!(
             replica = slot,
             "no recovery donor: replicas {threaded:?} run more than one thread, and a fork \
-             copies only the thread that makes it; starting replica {slot} afresh (state lost)"
+             copies only the thread that makes it{also}; starting replica {slot} afresh (state \
+             lost)"
         );
     }
     // Retiring the replaced replica (its death awaited, up to a second) and an exec (milliseconds)

@@ -745,33 +745,53 @@ pub(crate) fn heartbeat_ending() {
 
 /// Reads the signalfd: reaps on SIGCHLD; `true` if SIGTERM/SIGINT came.
 ///
-/// A stop is normally bootstrap's (its parent's, also as a parent-death signal) or the
-/// terminal's (sent by the kernel to the whole foreground group, bootstrap included): then
-/// the system stops, and the voter ends cleanly with it. A stop signal that another process
-/// sent ends this component alone, and nothing else would say so (the voter exited 0 and
-/// bootstrap blamed the components starved by it): it is kept ([`stray_stop`]) for the exit.
+/// A stop is normally the supervisor's (bootstrap's, also as its parent-death signal, which
+/// names the dead bootstrap) or the terminal's (the kernel's, to the whole foreground group,
+/// bootstrap included): then the system stops, and the voter ends cleanly with it. A stop
+/// signal that another process sent may end this component alone, and nothing else would say
+/// so (the voter exited 0 and bootstrap blamed the components starved by it): it is kept for
+/// the exit ([`stray_stop`]).
 pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
     let mut stop = false;
     while let Ok(Some(info)) = signals.read_signal() {
         match info.ssi_signo as i32 {
             libc::SIGCHLD => reap_children(),
             sig => {
-                let from = info.ssi_pid;
-                if from != 0 && from != std::os::unix::process::parent_id() {
-                    tracing::warn!(signal = sig, from, "stop requested, not by bootstrap");
-                    let _ = STRAY_STOP.set(StrayStop {
-                        signal: sig,
-                        from: from as libc::pid_t,
-                    });
-                } else {
-                    tracing::info!(signal = sig, "stop requested");
-                }
+                note_stop(sig, info.ssi_pid);
                 stop = true;
             }
         }
     }
     stop
 }
+
+/// Notes a stop signal `sig` from process `from` (0: the kernel): the supervisor's, or stray.
+fn note_stop(sig: libc::c_int, from: u32) {
+    if from == 0 || Some(&from) == SUPERVISOR.get() {
+        tracing::info!(signal = sig, "stop requested");
+        SUPERVISOR_STOPPED.store(true, std::sync::atomic::Ordering::Relaxed);
+    } else {
+        tracing::warn!(signal = sig, from, "stop requested, not by bootstrap");
+        let _ = STRAY_STOP.set(StrayStop {
+            signal: sig,
+            from: from as libc::pid_t,
+        });
+    }
+}
+
+/// The voter's parent when it started: bootstrap (or whoever runs it). Not the parent of the
+/// moment: when bootstrap dies, the voter is handed to a reaper before the parent-death signal
+/// comes, and that signal names bootstrap.
+static SUPERVISOR: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+
+/// A stop came from the supervisor or the kernel (the system stops).
+static SUPERVISOR_STOPPED: std::sync::atomic::AtomicBool =
+    std::sync::atomic::AtomicBool::new(false);
+
+/// How long a voter stopped by another process waits for the system's stop: a signal sent to a
+/// whole process group or cgroup (timeout(1), pkill, systemd, Slurm) reaches it before
+/// bootstrap, which gets it too, has marked the heartbeat pages (`set_system_stopping`).
+const SUPERVISOR_GRACE: Duration = Duration::from_millis(200);
 
 /// A stop signal that neither bootstrap nor the terminal sent: which, and from whom.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -783,10 +803,24 @@ pub struct StrayStop {
 /// The first [`StrayStop`] this voter got, if one came.
 static STRAY_STOP: std::sync::OnceLock<StrayStop> = std::sync::OnceLock::new();
 
-/// Whether this voter was stopped by a signal that another process than bootstrap sent (see
-/// [`stop_requested`]); its exit should say so.
+/// Whether this voter was stopped by a signal that another process than bootstrap sent, and
+/// the system did not stop meanwhile (see [`stop_requested`]); its exit should say so. Waits
+/// up to [`SUPERVISOR_GRACE`] for bootstrap to mark the system stopping, if it has not yet.
 pub fn stray_stop() -> Option<StrayStop> {
-    STRAY_STOP.get().copied()
+    use std::sync::atomic::Ordering;
+    let stray = *STRAY_STOP.get()?;
+    let deadline = Instant::now() + SUPERVISOR_GRACE;
+    let system_stops = || {
+        SUPERVISOR_STOPPED.load(Ordering::Relaxed)
+            || HEARTBEAT.get().is_some_and(Heartbeat::system_stopping)
+    };
+    while !system_stops() {
+        if Instant::now() >= deadline {
+            return Some(stray);
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    None
 }
 
 /// What a voter opens before it starts replicas, whatever its mode.
@@ -809,6 +843,7 @@ impl Endpoints {
     pub(crate) fn open(plan: &VoterPlan) -> Result<Endpoints, VoterError> {
         // Orphans (children of a donor that died) come to us, so they are reaped and killed.
         sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
+        let _ = SUPERVISOR.set(std::os::unix::process::parent_id());
         let signals = sys::signal_fd(&[Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD])
             .map_err(|e| io_err("blocking signals (signalfd)")(e.into()))?;
         let mut adopted = Inherited::default();

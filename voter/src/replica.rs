@@ -372,8 +372,8 @@ impl Replica {
     ) -> io::Result<Replica> {
         let pipes = ReplicaPipes::new(plan)?;
         let mut cmd = Command::new(&plan.exec);
-        // Not the voter's mask (SIGTERM, SIGINT and SIGCHLD blocked for its signalfd).
-        sys::start_with_terminal_signals_blocked(&mut cmd);
+        // Not the voter's mask (SIGCHLD blocked for its signalfd): a replica's own.
+        sys::start_with_signals_blocked(&mut cmd, sys::REPLICA_SIGNALS);
         cmd.args(&plan.args)
             .env(ENV_PORTS, port_map(plan).to_env())
             .env(ENV_VOTER_SOCKET, &plan.socket_path)
