@@ -652,10 +652,10 @@ const MAX_RUNS: u64 = 1_000_000;
 /// `--rate`: a number of injections per second, above 0 and at most [`MAX_RATE_HZ`].
 fn check_rate(rate: f64) -> anyhow::Result<()> {
     if !(rate.is_finite() && rate > 0.0) {
-        bail!("--rate {rate} is not a rate: give injections per second, e.g. 2");
+        bail!("--rate {rate:?} is not a rate: give injections per second, e.g. 2");
     }
     if rate > MAX_RATE_HZ {
-        bail!("--rate {rate}: at most {MAX_RATE_HZ} injections per second");
+        bail!("--rate {rate:?}: at most {MAX_RATE_HZ} injections per second");
     }
     Ok(())
 }

@@ -398,6 +398,7 @@ pub fn merge(parts: Vec<CampaignOutput>) -> Result<Vec<CampaignOutput>, String> 
             None => merged.push(CampaignOutput {
                 info: CampaignInfo {
                     machine: p.info.machine.clone(),
+                    system: p.info.system.clone(),
                     ..id
                 },
                 runs: p.runs,
@@ -693,6 +694,12 @@ pub(crate) mod tests {
         );
         let rows = merge(vec![of((1, 2), 5, "d", "tmr"), of((2, 2), 6, "d", "tmr-b")]).unwrap();
         assert_eq!(rows.len(), 2);
+        // One campaign's shards run from two checkouts: one campaign.
+        let mut elsewhere = of((2, 2), 5, "d", "tmr");
+        elsewhere.info.system = "/elsewhere/s.json".into();
+        let one = merge(vec![of((1, 2), 5, "d", "tmr"), elsewhere]).unwrap();
+        assert_eq!(one.len(), 1);
+        assert_eq!(one[0].info.system, std::path::PathBuf::from("s.json"));
     }
 
     #[test]

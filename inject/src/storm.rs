@@ -296,7 +296,6 @@ fn describe(a: &Action) -> &'static str {
     }
 }
 
-/// The given components, or every protected one of the view.
 /// How long the live view may be missing or unreadable before the storm says so.
 const UNREADABLE_FOR: Duration = Duration::from_secs(5);
 
@@ -321,6 +320,7 @@ fn check_targets(view: &LiveView, targets: &[String]) -> Result<(), StormError> 
     })
 }
 
+/// The given components, or every protected one of the view.
 fn targets_of(view: &LiveView, given: &[String]) -> Vec<String> {
     if !given.is_empty() {
         return given.to_vec();

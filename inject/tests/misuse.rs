@@ -129,7 +129,7 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
     let cases: [(&[&str], &str); 5] = [
         (
             &["--runs", "1", "--rate", "1e9"],
-            "--rate 1000000000: at most 1000 injections per second",
+            "--rate 1000000000.0: at most 1000 injections per second",
         ),
         (
             &["--runs", "1", "--rate", "nan"],
@@ -161,7 +161,7 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
             "--rate",
             "5000",
         ],
-        "--rate 5000: at most 1000 injections per second",
+        "--rate 5000.0: at most 1000 injections per second",
     );
 }
 

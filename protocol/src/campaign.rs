@@ -273,11 +273,16 @@ pub fn description_digest(text: &[u8]) -> String {
 }
 
 impl CampaignInfo {
-    /// The same campaign whatever the shard: what shards must agree on to be merged.
+    /// The same campaign whatever the shard: what shards must agree on to be merged. With a
+    /// digest of the description, not where it was (shards run from checkouts of their own).
     pub fn identity(&self) -> CampaignInfo {
         CampaignInfo {
             shard: None,
             machine: None,
+            system: match self.system_digest {
+                Some(_) => PathBuf::new(),
+                None => self.system.clone(),
+            },
             ..self.clone()
         }
     }

@@ -102,12 +102,14 @@ impl StderrRelay {
         let _ = std::io::stderr().lock().write_all(&out);
         // std's panic says "stack backtrace:", anyhow's error report "Stack backtrace:".
         let heading = text.to_ascii_lowercase();
-        if text.starts_with("Caused by:") {
+        // anyhow's heading is the whole line (a JVM's `Caused by: java.io…` is a line of its
+        // own, and its frames `\tat …` are no causes).
+        if text == "Caused by:" {
             self.in_causes = true;
             return;
         }
         let indented = text.starts_with(char::is_whitespace);
-        if self.in_causes && indented && !text.trim().is_empty() {
+        if self.in_causes && text.starts_with("    ") && !text.trim().is_empty() {
             // `    no such port`, or with several causes `    0: no such port`.
             let cause = text.trim();
             let cause = match cause.split_once(": ") {
@@ -191,6 +193,14 @@ Caused by:
         ]);
         assert_eq!(lasts[0], "Error: starting: opening port `in`: no such port");
         assert_eq!(lasts[1], "a later line");
+    }
+
+    #[test]
+    fn a_jvm_trace_is_not_taken_for_an_error_report() {
+        let (_, lasts) = relay_of(&[
+            b"Exception in thread \"main\" java.lang.RuntimeException: boom\n\tat A.b(A.java:3)\nCaused by: java.io.IOException: disk\n\tat C.d(C.java:9)\n",
+        ]);
+        assert_eq!(lasts[0], "Caused by: java.io.IOException: disk");
     }
 
     #[test]
