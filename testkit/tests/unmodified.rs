@@ -1067,27 +1067,7 @@ fn an_sdc_injected_before_a_lone_newline_corrupts_the_next_line() {
 /// and the run ended "clean", status 0.
 #[test]
 fn a_frame_with_a_newline_for_a_program_that_reads_lines_is_refused_not_blamed_on_it() {
-    let sys = {
-        let mut frames = Vec::new();
-        for payload in [&b"1"[..], b"2\n3", b"4"] {
-            s3res_protocol::frame::encode_into(payload, &mut frames);
-        }
-        System::new().stdin(frames)
-    };
-    let cat = which("cat").expect("cat");
-    let desc = json!({
-        "name": "lines",
-        "components": {
-            "p": {"exec": cat, "runtime": "preload", "framing": "lines",
-                  "redundancy": "tmr", "timeout_us": 300000}
-        },
-        "channels": [
-            {"from": "stdin", "to": "p.in"},
-            {"from": "p.out", "to": "stdout"}
-        ]
-    });
-    let mut run = sys.start_json(&desc);
-    let out = run.wait(LIMIT);
+    let (mut run, out) = run_lines_program("cat", &[], &[b"1", b"2\n3", b"4"]);
     assert!(!out.status.success(), "{}", out.status);
     assert!(
         out.stderr
@@ -1104,4 +1084,55 @@ fn a_frame_with_a_newline_for_a_program_that_reads_lines_is_refused_not_blamed_o
         .count();
     assert_eq!(faults, 0, "a replica was blamed: {:#?}", out.events);
     run.assert_nothing_left();
+}
+
+/// A program that writes two lines for one (`sed -u p`) is told what the rule is in the fault
+/// its extra line raises: before, the detail said "extra frame in one round" and nothing
+/// named the program's habit.
+#[test]
+fn a_program_that_writes_two_lines_for_one_is_told_the_rule() {
+    let (mut run, out) = run_lines_program("sed", &["-u", "p"], &[b"1", b"2", b"3"]);
+    let extra: Vec<&str> = out
+        .events
+        .iter()
+        .filter(|e| e.cause == Some(s3res_protocol::event::Cause::ExtraFrame))
+        .filter_map(|e| e.detail.as_deref())
+        .collect();
+    assert!(!extra.is_empty(), "{:#?}", out.events);
+    for d in extra {
+        assert!(
+            d.contains("must write exactly one line for each line it reads"),
+            "{d}"
+        );
+    }
+    run.assert_nothing_left();
+}
+
+/// Runs `program ARGS` unmodified, under TMR, reading lines: bootstrap's stdin gives it
+/// `payloads` (one frame each), its answers go to bootstrap's stdout; the run to its end.
+fn run_lines_program(
+    program: &str,
+    args: &[&str],
+    payloads: &[&[u8]],
+) -> (RunningSystem, s3res_testkit::Outcome) {
+    let mut frames = Vec::new();
+    for payload in payloads {
+        s3res_protocol::frame::encode_into(payload, &mut frames);
+    }
+    let sys = System::new().stdin(frames);
+    let exec = which(program).unwrap_or_else(|| panic!("{program} on PATH"));
+    let desc = json!({
+        "name": "lines",
+        "components": {
+            "p": {"exec": exec, "args": args, "runtime": "preload", "framing": "lines",
+                  "redundancy": "tmr", "timeout_us": 300000}
+        },
+        "channels": [
+            {"from": "stdin", "to": "p.in"},
+            {"from": "p.out", "to": "stdout"}
+        ]
+    });
+    let mut run = sys.start_json(&desc);
+    let out = run.wait(LIMIT);
+    (run, out)
 }

@@ -16,7 +16,7 @@ use crate::clock::{Deadlines, Instant, Timer};
 use crate::core::{self, At, Core, Mode, Stop, VoterError, EXIT_AFTER_EOF};
 use crate::decision::{decide_round, Answer, Decision, RoundBallot, RoundClose};
 use crate::event::Cause;
-use crate::plan::VoterPlan;
+use crate::plan::{Framing, VoterPlan};
 use crate::recovery::DonorState;
 use crate::replica::Replica;
 use crate::round::{Look, OutputSet, Round, Stall};
@@ -997,7 +997,15 @@ impl ReactiveVoter {
                 }
             };
             if let Some((cause, problem)) = problem {
-                let detail = format!("{problem} (output `{}`)", self.core.plan.outputs[o].name);
+                let mut detail = format!("{problem} (output `{}`)", self.core.plan.outputs[o].name);
+                if cause == Cause::ExtraFrame && self.core.plan.framing == Framing::Lines {
+                    // The usual cause is the program, not a fault: say what the rule is.
+                    detail.push_str(&format!(
+                        ": a second line for one line in; `{}` must write exactly one line \
+                         for each line it reads",
+                        self.core.plan.exec.display()
+                    ));
+                }
                 return self.fault(r, cause, detail);
             }
             rep.proven = true;
