@@ -527,7 +527,10 @@ impl Checker<'_> {
             }
         }
         let rate_hz = i.rate_hz.unwrap_or(2.0);
-        if !(rate_hz.is_finite() && rate_hz > 0.0 && rate_hz <= 1000.0) {
+        if !(rate_hz.is_finite()
+            && rate_hz > 0.0
+            && rate_hz <= s3res_protocol::campaign::MAX_RATE_HZ)
+        {
             return Err(self.err(
                 "inject.rate_hz",
                 format!("{rate_hz} is not a rate (injections per second, above 0, at most 1000)"),

@@ -642,9 +642,8 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The highest `--rate`, as for a description's `inject.rate_hz`: a schedule is planned whole
-/// before its run, and a mistyped rate (1e9) planned a billion injections into memory.
-const MAX_RATE_HZ: f64 = 1000.0;
+// The highest `--rate` (a mistyped one, 1e9, planned a billion injections into memory).
+use s3res_protocol::campaign::MAX_RATE_HZ;
 /// The most runs of one campaign or classification (a million runs of a few seconds are a
 /// month of one machine): every shard walks the run numbers.
 const MAX_RUNS: u64 = 1_000_000;

@@ -263,6 +263,10 @@ impl MachineInfo {
     }
 }
 
+/// The highest injection rate, per second: of a description's `inject.rate_hz` and of
+/// `s3res-inject`'s `--rate` (a schedule is planned whole before its run).
+pub const MAX_RATE_HZ: f64 = 1000.0;
+
 /// A digest of a description's text (64-bit FNV-1a, in hex): not a cryptographic hash, a
 /// check that two campaigns ran the same description.
 pub fn description_digest(text: &[u8]) -> String {

@@ -1013,10 +1013,11 @@ impl Core {
             })
     }
 
-    /// An input closed because of what upstream sent on it: it cannot be resynchronised with
+    /// Closes input `i` because of what upstream sent on it: it cannot be resynchronised with
     /// (nor told), so the input ends here, and the component with it, as failed.
-    fn upstream_broke(&mut self, why: String) {
+    fn upstream_broke(&mut self, i: usize, why: String) {
         tracing::error!("{why}; dropping the rest of this input");
+        self.inputs[i].reader.close();
         self.upstream_broke.get_or_insert(why);
     }
 
@@ -1054,8 +1055,7 @@ impl Core {
             Ok(None) => return None,
             Err(e) => {
                 let why = format!("bad frame from upstream on `{}`: {e}", input.name);
-                input.reader.close();
-                self.upstream_broke(why);
+                self.upstream_broke(i, why);
                 return None;
             }
         };
@@ -1072,8 +1072,7 @@ impl Core {
                     self.plan.exec.display(),
                     input.name
                 );
-                input.reader.close();
-                self.upstream_broke(why);
+                self.upstream_broke(i, why);
                 return None;
             }
         }
