@@ -156,6 +156,16 @@ impl EventSummary {
                 let what = event.detail.as_deref().unwrap_or("no replica answered");
                 tracing::warn!(component = %event.component, "frame lost: {what}");
             }
+            EventKind::Diverged => {
+                // The detail says what differs and why no restart is made.
+                tracing::warn!(
+                    component = %event.component,
+                    replica = %shown(event.replica),
+                    pid = %shown(event.pid),
+                    "replica diverged: {}",
+                    event.detail.as_deref().unwrap_or("its state is lost")
+                );
+            }
         }
         Line::Event(Box::new(event))
     }

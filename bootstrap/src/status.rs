@@ -62,6 +62,9 @@ pub struct ComponentTally {
     pub voter_restarts: u64,
     /// Slots found faulty and not yet replaced (or lost for good).
     pub down: BTreeSet<usize>,
+    /// Slots whose replica was started afresh, differs for its lost state, and is kept
+    /// outvoted because no fork can give the state back (`diverged`), until it is replaced.
+    pub diverged: BTreeSet<usize>,
 }
 
 impl ComponentTally {
@@ -117,12 +120,18 @@ impl Tally {
                 }
                 if let Some(slot) = e.replica {
                     c.down.remove(&slot);
+                    c.diverged.remove(&slot);
                 }
             }
             EventKind::RecoveryFailed => c.failed_recoveries += 1,
             EventKind::Anomaly => c.anomalies += 1,
             EventKind::VoterRestart => c.voter_restarts += 1,
             EventKind::Lost => c.lost += 1,
+            EventKind::Diverged => {
+                if let Some(slot) = e.replica {
+                    c.diverged.insert(slot);
+                }
+            }
         }
         d.events.push(e.clone());
     }
@@ -145,6 +154,7 @@ pub fn kind_name(kind: EventKind) -> &'static str {
         EventKind::Anomaly => "anomaly",
         EventKind::VoterRestart => "voter_restart",
         EventKind::Lost => "lost",
+        EventKind::Diverged => "diverged",
     }
 }
 
@@ -526,6 +536,26 @@ impl Verdict {
                 degraded.join(", ")
             }
         );
+        // Replicas that vote with a state of their own: the run's outputs stood on the others.
+        let diverged: Vec<String> = self
+            .protected
+            .iter()
+            .filter_map(|(name, n)| {
+                let c = self.tally.per_component.get(name)?;
+                (!c.diverged.is_empty()).then(|| {
+                    let slots: Vec<String> = c.diverged.iter().map(usize::to_string).collect();
+                    format!("{name} replica {} of {n}", slots.join(", "))
+                })
+            })
+            .collect();
+        if !diverged.is_empty() {
+            let _ = writeln!(
+                s,
+                "  diverged     {}: started afresh with the state lost, no fork could give it \
+                 back (threads); outvoted to the end",
+                diverged.join(" · ")
+            );
+        }
         // A voter replaced is no fault of a replica, and no frame lost: but the run was not
         // as quiet as its fault count says.
         let replaced: Vec<String> = self
@@ -704,6 +734,28 @@ mod tests {
             ),
             "{text}"
         );
+    }
+
+    /// A replica kept outvoted for a state no fork could give back is named at the end, and
+    /// no longer once its slot was replaced.
+    #[test]
+    fn verdict_names_replicas_that_diverged_until_replaced() {
+        let t = Tally::default();
+        t.apply(&event(EventKind::Diverged, Some(1)));
+        t.apply(&event(EventKind::Diverged, Some(2)));
+        let text = clean_run_of("filter", &t).render();
+        assert!(
+            text.contains("diverged     filter replica 1, 2 of 3: started afresh"),
+            "{text}"
+        );
+        assert!(text.contains("faults       0"), "not a fault: {text}");
+        for slot in [1, 2] {
+            let mut r = event(EventKind::Recovery, Some(slot));
+            r.method = Some(RecoveryMethod::Fork);
+            t.apply(&r);
+        }
+        let text = clean_run_of("filter", &t).render();
+        assert!(!text.contains("diverged"), "{text}");
     }
 
     #[test]

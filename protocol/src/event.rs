@@ -33,6 +33,12 @@ pub enum EventKind {
     /// Not a fault of its own — the replicas' faults are their events — but a frame
     /// downstream never gets (an SMR replica that crashed mid-round, every replica stopped).
     Lost,
+    /// A replica whose state is lost (started afresh by exec) sends frames that differ from
+    /// those of the replicas that kept the component's state, and no fork can give its state
+    /// back (every such donor runs threads): it is kept, outvoted, rather than restarted into
+    /// the same loss again. Said once per replica (`replica`, `pid`, `output`, `detail`); not a
+    /// fault. See `voter/src/decision.rs`, "lost state never outvotes kept state".
+    Diverged,
 }
 
 impl EventKind {

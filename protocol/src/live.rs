@@ -163,7 +163,7 @@ impl LiveView {
             EventKind::RecoveryFailed => (None, ReplicaState::Lost),
             // An alarm alone changes no replica's state (a fault it leads to is its own event).
             EventKind::Anomaly => return false,
-            EventKind::VoterRestart | EventKind::Lost => return false,
+            EventKind::VoterRestart | EventKind::Lost | EventKind::Diverged => return false,
             EventKind::Sdc | EventKind::Crash | EventKind::Hang | EventKind::Protocol => {
                 // An event about an older process of this slot changes nothing.
                 if e.pid.is_some() && e.pid != r.pid {

@@ -327,10 +327,11 @@ impl Outcome {
         restarts
     }
 
-    /// The fault events (everything but `start`, `recovery`, `anomaly`, `voter_restart` and
-    /// `lost`: an alarm is an opinion, what the voter concluded from it is a fault event of its
-    /// own; a voter restart is about the voter, not a replica; a frame lost is what faults
-    /// cost, not a fault).
+    /// The fault events (everything but `start`, `recovery`, `anomaly`, `voter_restart`,
+    /// `lost` and `diverged`: an alarm is an opinion, what the voter concluded from it is a
+    /// fault event of its own; a voter restart is about the voter, not a replica; a frame lost
+    /// is what faults cost, not a fault; a replica diverged for a state no fork could give
+    /// back is kept, not faulted).
     pub fn faults(&self) -> Vec<&Event> {
         use s3res_protocol::event::EventKind;
         self.events
@@ -343,6 +344,7 @@ impl Outcome {
                         | EventKind::Anomaly
                         | EventKind::VoterRestart
                         | EventKind::Lost
+                        | EventKind::Diverged
                 )
             })
             .collect()

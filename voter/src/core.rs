@@ -740,6 +740,93 @@ impl Core {
             .fold(ReplicaSet::EMPTY, ReplicaSet::with)
     }
 
+    /// The trusted replicas whose state is lost and none of whose frames has matched yet
+    /// (see [`Replica::catching_up`]).
+    pub(crate) fn catching_up(&self) -> ReplicaSet {
+        (0..self.slots.len())
+            .filter(|&r| self.slots[r].as_ref().is_some_and(|rep| rep.catching_up))
+            .fold(ReplicaSet::EMPTY, ReplicaSet::with)
+    }
+
+    /// `agreed` sent a frame that went out: any of them catching up has caught up.
+    pub(crate) fn caught_up(&mut self, agreed: ReplicaSet) {
+        for r in agreed.iter() {
+            if let Some(rep) = self.slots[r].as_mut().filter(|rep| rep.catching_up) {
+                rep.catching_up = false;
+                tracing::info!(
+                    replica = r,
+                    pid = rep.pid,
+                    "a replica started afresh matches the others again"
+                );
+            }
+        }
+    }
+
+    /// The replicas that could donate by fork now: their restart handler is in place, and
+    /// (an unmodified program's) they run one thread. With the threaded ones passed over.
+    fn fork_donors(&self) -> (ReplicaSet, ReplicaSet) {
+        let refuse_threaded = self.plan.preload.is_some();
+        let (mut donors, mut threaded) = (ReplicaSet::EMPTY, ReplicaSet::EMPTY);
+        for (d, rep) in self.slots.iter().enumerate() {
+            let Some(rep) = rep.as_ref().filter(|rep| rep.may_donate()) else {
+                continue;
+            };
+            if refuse_threaded && rep.look().is_some_and(|l| l.threaded()) {
+                threaded = threaded.with(d);
+            } else {
+                donors = donors.with(d);
+            }
+        }
+        (donors, threaded)
+    }
+
+    /// Of `blamed` (for `cause`, on output `o` at `at`), the replicas not to fault: their
+    /// dissent comes of a lost state no fork can give back (see `decision::spare_diverged`).
+    /// Each is said once, in a `diverged` event.
+    pub(crate) fn spare_diverged(
+        &mut self,
+        blamed: ReplicaSet,
+        cause: Cause,
+        o: usize,
+        at: At,
+    ) -> ReplicaSet {
+        let catching_up = self.catching_up();
+        if blamed.and(catching_up).is_empty() {
+            return ReplicaSet::EMPTY;
+        }
+        let (donors, threaded) = self.fork_donors();
+        let spared = crate::decision::spare_diverged(blamed, cause, catching_up, donors);
+        for r in spared.iter() {
+            let Some(rep) = self.slots[r].as_mut().filter(|rep| !rep.diverged) else {
+                continue;
+            };
+            rep.diverged = true;
+            let pid = rep.pid;
+            let name = self.output_name(o).to_owned();
+            let why = if threaded.minus(spared).is_empty() {
+                "no other replica can donate by fork".to_owned()
+            } else {
+                format!(
+                    "no fork can give it back (replicas {:?} run more than one thread)",
+                    threaded.minus(spared)
+                )
+            };
+            let detail = format!(
+                "`{name}` differs from the others in {at}: its state was lost (started afresh) \
+                 and {why}; kept, outvoted, and not restarted into the same loss"
+            );
+            tracing::warn!(replica = r, pid, "{detail}");
+            let mut ev = self.event(EventKind::Diverged);
+            at.mark(&mut ev);
+            ev.replica = Some(r);
+            ev.pid = Some(pid);
+            ev.output = Some(name);
+            ev.detail = Some(detail);
+            self.emit(ev);
+        }
+        spared
+    }
+
     /// The trusted replicas: every filled slot.
     pub(crate) fn alive(&self) -> ReplicaSet {
         (0..self.slots.len())
@@ -932,6 +1019,8 @@ impl Core {
             self.outputs[o].send(frame);
             self.captures.record(o, frame);
         }
+        let (suspects, cause) = decision.blame();
+        let suspects = suspects.minus(self.spare_diverged(suspects, cause, o, at));
         let name = self.output_name(o);
         let unattributed = match decision {
             Decision::Withhold { answered } if answered.is_empty() => {
@@ -963,7 +1052,6 @@ impl Core {
             ev.detail = Some(detail);
             self.emit(ev);
         }
-        let (suspects, cause) = decision.blame();
         if suspects.is_empty() {
             return None;
         }
@@ -1216,6 +1304,7 @@ impl Core {
                 self.emit(ev);
                 let mut fresh = fresh;
                 fresh.state_lost = true;
+                fresh.catching_up = true;
                 self.slots[slot] = Some(fresh);
                 self.forget_stamps_of_the_gone();
                 self.number_inputs_of(slot);
@@ -1665,12 +1754,15 @@ fn replace(
             m.fault(r, Cause::DonorSpinning, detail);
         }
         let Some(d) = pick.donor else { break };
-        let state_lost = m.core().slots[d].as_ref().is_some_and(|r| r.state_lost);
+        let (state_lost, catching_up) = m.core().slots[d]
+            .as_ref()
+            .map_or((false, false), |r| (r.state_lost, r.catching_up));
         match m.fork_into(slot, d) {
             Ok(pid) => {
                 let core = m.core();
                 if let Some(child) = core.slots[slot].as_mut() {
                     child.state_lost = state_lost;
+                    child.catching_up = catching_up;
                 }
                 // The child took the slot's CPUs when it joined (`Core::fork`); it ran its
                 // page walk at the donor's raised priority, and takes the slot's now.

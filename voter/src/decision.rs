@@ -27,6 +27,15 @@
 //! wins over a kept replica's: then the kept replicas decide among themselves, and every fresh
 //! replica whose frame differs from the result is `sdc` (and is rebuilt by fork from a kept
 //! one). A frame waits for the kept replicas' copies while only fresh ones could decide it.
+//!
+//! And **a loss no restart can mend is not a fault** ([`spare_diverged`]): a fresh replica
+//! none of whose frames has matched yet (it is *catching up*) differs because its state is lost.
+//! While no other replica can donate by fork (an unmodified program's that runs threads
+//! refuses), its rebuild would be another exec that loses the state again — a restart every
+//! round, each outvoted, until the restart budget fails the component. So such a dissent is
+//! not blamed: the replica stays, outvoted, and is said once as `diverged`. Once a fork could
+//! give its state back, or once it has matched a frame that went out (its state caught up, so
+//! a later dissent is a fault), it is blamed as any other.
 
 use replica_rt::contract::MAX_PORTS;
 
@@ -129,6 +138,23 @@ pub fn decide<A: AsRef<[u8]>>(
         }
         other => other,
     })
+}
+
+/// Of the replicas `blamed` for `cause`, those not to fault: the dissenters `catching_up`
+/// (state lost, not a frame matched yet) when none of the other replicas is among `donors`
+/// (those that could donate by fork now). Only a vote's dissent is spared (`minority`,
+/// `bitwise_minority`): a crash, a hang or a broken protocol is a fault whatever the state.
+pub fn spare_diverged(
+    blamed: ReplicaSet,
+    cause: Cause,
+    catching_up: ReplicaSet,
+    donors: ReplicaSet,
+) -> ReplicaSet {
+    let dissent = matches!(cause, Cause::Minority | Cause::BitwiseMinority);
+    if !dissent || !donors.minus(blamed).is_empty() {
+        return ReplicaSet::EMPTY;
+    }
+    blamed.and(catching_up)
 }
 
 /// [`decide`] among `alive`, all of whom count alike.
@@ -358,6 +384,52 @@ pub fn decide_round(ballot: &RoundBallot, close: &mut RoundClose) {
 
 #[cfg(test)]
 mod tests {
+    /// A fresh replica that differs because its state is lost is spared only while nothing
+    /// could give the state back; every other blame stands.
+    #[test]
+    fn a_loss_no_fork_can_mend_is_spared() {
+        let (fresh, kept) = (set(&[2]), set(&[0, 1]));
+        // No donor: the dissenter catching up is spared, a kept dissenter is not.
+        let none = ReplicaSet::EMPTY;
+        assert_eq!(
+            spare_diverged(set(&[2]), Cause::Minority, fresh, none),
+            fresh
+        );
+        assert_eq!(
+            spare_diverged(set(&[1, 2]), Cause::BitwiseMinority, fresh, none),
+            fresh
+        );
+        assert_eq!(
+            spare_diverged(set(&[1]), Cause::Minority, fresh, none),
+            none
+        );
+        // A kept replica could fork: the dissenter is rebuilt with the state, as before.
+        assert_eq!(
+            spare_diverged(set(&[2]), Cause::Minority, fresh, kept),
+            none
+        );
+        // Only itself, or another dissenter, could donate: nobody that stays.
+        assert_eq!(
+            spare_diverged(set(&[2]), Cause::Minority, fresh, fresh),
+            fresh
+        );
+        assert_eq!(
+            spare_diverged(set(&[1, 2]), Cause::Minority, fresh, set(&[1])),
+            fresh
+        );
+        // Not a vote's dissent: a fault whatever the state.
+        for cause in [
+            Cause::Deadline,
+            Cause::Died,
+            Cause::AnomalyAttributed,
+            Cause::AnomalyHeldBack,
+        ] {
+            assert_eq!(spare_diverged(fresh, cause, fresh, none), none, "{cause:?}");
+        }
+        // Caught up: a dissent is a fault.
+        assert_eq!(spare_diverged(set(&[2]), Cause::Minority, none, none), none);
+    }
+
     use super::*;
 
     fn set(ids: &[usize]) -> ReplicaSet {

@@ -940,6 +940,25 @@ impl ReactiveVoter {
         for r in close.late.iter() {
             self.blame_late(r, round.number, round.turn == Some(r), round.deadline);
         }
+        let catching_up = self.core.catching_up();
+        if !catching_up.is_empty() {
+            // A replica started afresh whose frame went out has caught up (see
+            // `Replica::catching_up`): from now on a dissent of it is a fault.
+            for d in &close.decisions {
+                let o = d.output;
+                let answers = &self.answers;
+                let Some(sent) = d.decision.frame(|r| Some(answers[r][o].as_slice())) else {
+                    continue;
+                };
+                let agreed = catching_up
+                    .iter()
+                    .filter(|&r| {
+                        round.answered[r] & (1 << o) != 0 && answers[r][o].as_slice() == sent
+                    })
+                    .fold(ReplicaSet::EMPTY, ReplicaSet::with);
+                self.core.caught_up(agreed);
+            }
+        }
         for d in &close.decisions {
             self.apply(d.output, round.number, &d.decision, d.sent);
         }

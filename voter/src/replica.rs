@@ -67,6 +67,13 @@ pub struct Replica {
     /// component's state (see `decision.rs`). The replicas started with the component kept it.
     /// Once no replica that kept it is left, the fresh ones vote among themselves as equals.
     pub state_lost: bool,
+    /// Its state is lost and none of its frames has yet matched one that went out: what it
+    /// sends differs because of the lost state, not (as far as anyone can tell) of a fault.
+    /// While no fork could give its state back, a dissent of such a replica is not a fault
+    /// (see `decision::spare_diverged`). Cleared by its first frame that matches.
+    pub catching_up: bool,
+    /// A `diverged` event has been written for it (once per replica).
+    pub diverged: bool,
     /// Its stderr, relayed line by line with its slot and pid (`stderr.rs`).
     pub stderr: StderrRelay,
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
@@ -313,6 +320,8 @@ impl Replica {
             our_child: false,
             proven,
             state_lost,
+            catching_up: false,
+            diverged: false,
             output_closed_at: None,
             start_pipe: None,
             started: true,
@@ -435,6 +444,8 @@ impl Replica {
             our_child: true,
             proven: false,
             state_lost: false,
+            catching_up: false,
+            diverged: false,
             output_closed_at: None,
             start_pipe: Some(start_r),
             started: false,
@@ -689,7 +700,7 @@ pub struct StatLook {
 
 impl StatLook {
     /// More than one thread: a fork would copy only the one that makes it.
-    fn threaded(self) -> bool {
+    pub fn threaded(self) -> bool {
         self.threads.is_some_and(|n| n > 1)
     }
 }

@@ -322,12 +322,19 @@ impl StreamVoter {
             }
             match arrival {
                 Arrival::Fine => {}
+                Arrival::MatchesForwarded => self.core.caught_up(ReplicaSet::EMPTY.with(r)),
                 Arrival::DiffersFromForwarded(index) => {
-                    let detail = format!(
-                        "`{}` differs from the majority in frame {index}",
-                        self.core.plan.outputs[o].name
-                    );
-                    return self.fault(r, Cause::Minority, detail);
+                    let one = ReplicaSet::EMPTY.with(r);
+                    let spared =
+                        self.core
+                            .spare_diverged(one, Cause::Minority, o, At::Frame(index));
+                    if spared.is_empty() {
+                        let detail = format!(
+                            "`{}` differs from the majority in frame {index}",
+                            self.core.plan.outputs[o].name
+                        );
+                        return self.fault(r, Cause::Minority, detail);
+                    }
                 }
             }
             self.decide(o);
@@ -341,8 +348,10 @@ impl StreamVoter {
             index,
             decision,
             frame,
+            agreed,
         }) = self.ledger.decide(o, self.core.alive(), self.core.fresh())
         {
+            self.core.caught_up(agreed);
             if let Some(blame) = self
                 .core
                 .apply(o, At::Frame(index), &decision, frame.as_deref())

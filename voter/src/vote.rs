@@ -49,6 +49,10 @@ impl ReplicaSet {
     pub fn minus(self, other: ReplicaSet) -> Self {
         ReplicaSet(self.0 & !other.0)
     }
+    /// The members of both.
+    pub fn and(self, other: ReplicaSet) -> Self {
+        ReplicaSet(self.0 & other.0)
+    }
     /// The members, lowest first.
     pub fn iter(self) -> Members {
         Members(self.0)

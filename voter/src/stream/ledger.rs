@@ -74,6 +74,9 @@ pub enum Arrival {
     Fine,
     /// A late copy that differs from the frame the majority forwarded: an `sdc`.
     DiffersFromForwarded(u64),
+    /// A late copy of the frame the majority forwarded (a replica whose state is lost has
+    /// caught up when it sends one: see `Replica::catching_up`).
+    MatchesForwarded,
 }
 
 /// One frame of an output, decided.
@@ -84,6 +87,8 @@ pub struct Decided {
     pub decision: Decision,
     /// The frame that goes out, if one does.
     pub frame: Option<Vec<u8>>,
+    /// The slots whose copy is that frame (empty when none goes out).
+    pub agreed: ReplicaSet,
 }
 
 /// A frame some replicas produced and others did not within the timeout.
@@ -219,7 +224,8 @@ impl Ledger {
             Verdict::Forwarded(winner) if winner.as_slice() != frame => {
                 Arrival::DiffersFromForwarded(index)
             }
-            Verdict::Forwarded(_) | Verdict::Withheld => Arrival::Fine,
+            Verdict::Forwarded(_) => Arrival::MatchesForwarded,
+            Verdict::Withheld => Arrival::Fine,
         }
     }
 
@@ -253,6 +259,12 @@ impl Ledger {
         let frame = decision
             .frame(|r| entry.frames.get(r).and_then(|f| f.as_deref()))
             .map(<[u8]>::to_vec);
+        let agreed = match &frame {
+            Some(f) => (0..entry.frames.len())
+                .filter(|&r| entry.frames[r].as_ref() == Some(f))
+                .fold(ReplicaSet::EMPTY, ReplicaSet::with),
+            None => ReplicaSet::EMPTY,
+        };
         entry.verdict = match &frame {
             Some(f) => Verdict::Forwarded(f.clone()),
             None => Verdict::Withheld,
@@ -264,6 +276,7 @@ impl Ledger {
             index,
             decision,
             frame,
+            agreed,
         })
     }
 
@@ -430,11 +443,18 @@ mod tests {
         std::iter::from_fn(|| l.decide(o, alive, ReplicaSet::EMPTY)).collect()
     }
 
-    fn forward(index: u64, frame: &[u8], winner: usize, dissent: ReplicaSet) -> Decided {
+    fn forward(
+        index: u64,
+        frame: &[u8],
+        winner: usize,
+        dissent: ReplicaSet,
+        agreed: ReplicaSet,
+    ) -> Decided {
         Decided {
             index,
             decision: Decision::Forward { winner, dissent },
             frame: Some(frame.to_vec()),
+            agreed,
         }
     }
 
@@ -443,6 +463,7 @@ mod tests {
             index,
             decision: Decision::Withhold { answered },
             frame: None,
+            agreed: ReplicaSet::EMPTY,
         }
     }
 
@@ -451,6 +472,7 @@ mod tests {
             index,
             decision: Decision::HoldBack { suspect },
             frame: None,
+            agreed: ReplicaSet::EMPTY,
         }
     }
 
@@ -469,12 +491,12 @@ mod tests {
         );
         l.accept(1, 0, b"a", t);
         let d = decide_all(&mut l, 0, all);
-        assert_eq!(d, [forward(0, b"a", 0, ReplicaSet::EMPTY)]);
+        assert_eq!(d, [forward(0, b"a", 0, ReplicaSet::EMPTY, set(&[0, 1]))]);
         l.accept(1, 0, b"b", t);
         assert_eq!(decide_all(&mut l, 0, all).len(), 1);
         assert_eq!(l.next(0), 2);
         // The third replica is late; its copies are checked against what was forwarded.
-        assert_eq!(l.accept(2, 0, b"a", t), Arrival::Fine);
+        assert_eq!(l.accept(2, 0, b"a", t), Arrival::MatchesForwarded);
         assert_eq!(l.accept(2, 0, b"X", t), Arrival::DiffersFromForwarded(1));
     }
 
@@ -486,7 +508,10 @@ mod tests {
         for (s, f) in [(0, "x"), (1, "y"), (2, "x")] {
             l.accept(s, 0, f.as_bytes(), t);
         }
-        assert_eq!(decide_all(&mut l, 0, all), [forward(0, b"x", 0, set(&[1]))]);
+        assert_eq!(
+            decide_all(&mut l, 0, all),
+            [forward(0, b"x", 0, set(&[1]), set(&[0, 2]))]
+        );
         // No whole frame has a majority, every bit does ('p' 0x70, 'q' 0x71, 'r' 0x72).
         for (s, f) in [(0, "p"), (1, "q"), (2, "r")] {
             l.accept(s, 0, f.as_bytes(), t);
@@ -547,7 +572,10 @@ mod tests {
         let d = decide_all(&mut l, 0, both);
         assert_eq!(
             d,
-            [withheld(0, both), forward(1, b"z", 0, ReplicaSet::EMPTY)]
+            [
+                withheld(0, both),
+                forward(1, b"z", 0, ReplicaSet::EMPTY, both)
+            ]
         );
     }
 
@@ -624,7 +652,7 @@ mod tests {
         l.accept(1, 0, b"b", t);
         let d = decide_all(&mut l, 0, all);
         assert_eq!(d.len(), 1);
-        assert_eq!(d[0], forward(1, b"b", 0, ReplicaSet::EMPTY));
+        assert_eq!(d[0], forward(1, b"b", 0, ReplicaSet::EMPTY, all));
         l.accept(2, 0, b"c", t);
         assert_eq!(decide_all(&mut l, 0, all).len(), 1);
         assert_eq!(l.next(0), 3);
@@ -645,7 +673,10 @@ mod tests {
         l.accept(0, 0, b"k", t);
         l.accept(1, 0, b"k", t);
         let d = decide_all(&mut l, 0, all);
-        assert_eq!(d, vec![forward(10, b"k", 0, ReplicaSet::EMPTY)]);
+        assert_eq!(
+            d,
+            vec![forward(10, b"k", 0, ReplicaSet::EMPTY, set(&[0, 1]))]
+        );
     }
 
     #[test]
@@ -682,9 +713,9 @@ mod tests {
         assert_eq!(
             d,
             [
-                forward(0, b"a", 0, ReplicaSet::EMPTY),
+                forward(0, b"a", 0, ReplicaSet::EMPTY, one),
                 held_back(1, 0),
-                forward(2, b"c", 0, ReplicaSet::EMPTY)
+                forward(2, b"c", 0, ReplicaSet::EMPTY, one)
             ]
         );
         // A DMR pair down to one: the survivor's flagged frame stands on its word alone.
@@ -715,6 +746,7 @@ mod tests {
                         healthy: 1 - culprit
                     },
                     frame: Some(b"good".to_vec()),
+                    agreed: set(&[1 - culprit]),
                 }]
             );
             // A late copy is checked against the forwarded frame.
@@ -760,7 +792,10 @@ mod tests {
         scored(&mut l, 0, b"a", true, t);
         scored(&mut l, 1, b"a", true, t);
         scored(&mut l, 2, b"b", false, t);
-        assert_eq!(decide_all(&mut l, 0, all), [forward(0, b"a", 0, set(&[2]))]);
+        assert_eq!(
+            decide_all(&mut l, 0, all),
+            [forward(0, b"a", 0, set(&[2]), set(&[0, 1]))]
+        );
         // Two of three copies that differ and one flagged: the third may still confirm one.
         scored(&mut l, 0, b"c", true, t);
         scored(&mut l, 1, b"d", false, t);
