@@ -527,15 +527,8 @@ impl Checker<'_> {
             }
         }
         let rate_hz = i.rate_hz.unwrap_or(2.0);
-        if !(rate_hz.is_finite()
-            && rate_hz > 0.0
-            && rate_hz <= s3res_protocol::campaign::MAX_RATE_HZ)
-        {
-            return Err(self.err(
-                "inject.rate_hz",
-                format!("{rate_hz} is not a rate (injections per second, above 0, at most 1000)"),
-            ));
-        }
+        s3res_protocol::campaign::check_rate(rate_hz)
+            .map_err(|e| self.err("inject.rate_hz", e.to_string()))?;
         let after_s = i.after_s.unwrap_or(1.0);
         if !(after_s.is_finite() && after_s >= 0.0) {
             return Err(self.err(

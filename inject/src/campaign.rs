@@ -87,7 +87,7 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
     let mut progress = Progress::new(indices.len() as u64, &c.info);
     let stamp = std::process::id();
     for &r in &indices {
-        let schedule = plan_run(&params, c.info.seed, r);
+        let schedule = plan_run(&params, c.info.seed, r).context("the injection schedule")?;
         let (dir, _tmp) = run_dir(c, r)?;
         let setup = RunSetup {
             bootstrap: c.bootstrap.clone(),

@@ -642,21 +642,22 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-// The highest `--rate` (a mistyped one, 1e9, planned a billion injections into memory).
-use s3res_protocol::campaign::MAX_RATE_HZ;
 /// The most runs of one campaign or classification (a million runs of a few seconds are a
 /// month of one machine): every shard walks the run numbers.
 const MAX_RUNS: u64 = 1_000_000;
 
-/// `--rate`: a number of injections per second, above 0 and at most [`MAX_RATE_HZ`].
+/// `--rate`: injections per second, above 0 and at most `campaign::MAX_RATE_HZ` (a mistyped
+/// 1e9 planned a billion injections into memory).
 fn check_rate(rate: f64) -> anyhow::Result<()> {
-    if !(rate.is_finite() && rate > 0.0) {
-        bail!("--rate {rate:?} is not a rate: give injections per second, e.g. 2");
-    }
-    if rate > MAX_RATE_HZ {
-        bail!("--rate {rate:?}: at most {MAX_RATE_HZ} injections per second");
-    }
-    Ok(())
+    s3res_protocol::campaign::check_rate(rate).map_err(|e| anyhow::anyhow!("--rate {e}"))
+}
+
+/// `--rate` over `--duration`: a campaign run's schedule is planned whole, at most
+/// `campaign::MAX_PLANNED_PER_RUN` injections.
+fn check_schedule(rate: f64, duration: f64) -> anyhow::Result<()> {
+    let window = seconds("--duration", duration)?;
+    s3res_protocol::campaign::check_schedule(rate, window)
+        .map_err(|e| anyhow::anyhow!("--rate and --duration: {e}"))
 }
 
 /// `--runs`, and `--duration` against `--run-timeout`: each run injects for `duration` and
@@ -680,10 +681,11 @@ fn check_runs_and_window(runs: u64, duration: f64, run_timeout: f64) -> anyhow::
 }
 
 fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
+    check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
     if a.fault != FaultKind::None {
         check_rate(a.rate)?;
+        check_schedule(a.rate, a.duration)?;
     }
-    check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
     let var = a.var.spec()?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {

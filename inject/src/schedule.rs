@@ -11,6 +11,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use s3res_protocol::campaign::{check_schedule, RateError};
+
 use crate::fault::{Action, FaultKind};
 
 pub use s3res_protocol::campaign::{Arrival, VarField, VarSpec};
@@ -62,17 +64,15 @@ pub fn run_seed(seed: u64, run: u64) -> u64 {
     s3res_protocol::rng::derive(seed, run)
 }
 
-/// The injections of one run, in time order.
-pub fn plan_run(params: &ScheduleParams, seed: u64, run: u64) -> Vec<Planned> {
+/// The injections of one run, in time order (none for fault kind `none`). Planned whole, so
+/// refused beyond `campaign::MAX_PLANNED_PER_RUN` expected in the window.
+pub fn plan_run(params: &ScheduleParams, seed: u64, run: u64) -> Result<Vec<Planned>, RateError> {
     let mut rng = ChaCha8Rng::seed_from_u64(run_seed(seed, run));
     let window_ns = params.window.as_nanos() as f64;
-    if params.fault == FaultKind::None
-        || params.components.is_empty()
-        || params.rate_hz.is_nan()
-        || params.rate_hz <= 0.0
-    {
-        return Vec::new();
+    if params.fault == FaultKind::None || params.components.is_empty() {
+        return Ok(Vec::new());
     }
+    check_schedule(params.rate_hz, params.window)?;
     let mean_ns = 1e9 / params.rate_hz;
     let mut out = Vec::new();
     let mut t = 0.0f64;
@@ -90,7 +90,7 @@ pub fn plan_run(params: &ScheduleParams, seed: u64, run: u64) -> Vec<Planned> {
             None => break,
         }
     }
-    out
+    Ok(out)
 }
 
 /// The single injection of run `run` for `classify`: at a uniform instant of the window.
@@ -163,18 +163,18 @@ mod tests {
     #[test]
     fn same_seed_same_schedule_other_seed_other_schedule() {
         let p = params(FaultKind::Var);
-        assert_eq!(plan_run(&p, 7, 3), plan_run(&p, 7, 3));
-        assert_ne!(plan_run(&p, 7, 3), plan_run(&p, 7, 4));
-        assert_ne!(plan_run(&p, 7, 3), plan_run(&p, 8, 3));
+        assert_eq!(plan_run(&p, 7, 3).unwrap(), plan_run(&p, 7, 3).unwrap());
+        assert_ne!(plan_run(&p, 7, 3).unwrap(), plan_run(&p, 7, 4).unwrap());
+        assert_ne!(plan_run(&p, 7, 3).unwrap(), plan_run(&p, 8, 3).unwrap());
     }
 
     #[test]
     fn exponential_rate_is_about_right_and_in_window() {
         let p = params(FaultKind::Sdc);
-        let n: usize = (0..50).map(|r| plan_run(&p, 1, r).len()).sum();
+        let n: usize = (0..50).map(|r| plan_run(&p, 1, r).unwrap().len()).sum();
         // 50 runs × 10 s × 20 Hz = 10000 expected; Poisson sd = 100.
         assert!((9500..10500).contains(&n), "{n}");
-        for pl in plan_run(&p, 1, 0) {
+        for pl in plan_run(&p, 1, 0).unwrap() {
             assert!(pl.at_ns < 10_000_000_000);
             assert!((0.0..1.0).contains(&pl.draw));
         }
@@ -186,12 +186,37 @@ mod tests {
         p.arrival = Arrival::Fixed;
         p.rate_hz = 2.0;
         p.window = Duration::from_millis(2100);
-        let at: Vec<u64> = plan_run(&p, 0, 0).iter().map(|x| x.at_ns).collect();
+        let at: Vec<u64> = plan_run(&p, 0, 0)
+            .unwrap()
+            .iter()
+            .map(|x| x.at_ns)
+            .collect();
         assert_eq!(
             at,
             vec![500_000_000, 1_000_000_000, 1_500_000_000, 2_000_000_000]
         );
-        assert!(plan_run(&params(FaultKind::None), 0, 0).is_empty());
+        assert!(plan_run(&params(FaultKind::None), 0, 0).unwrap().is_empty());
+    }
+
+    /// A run's schedule is planned whole: a rate nobody meant, or a window that would plan
+    /// more than a million injections, is refused instead of filling the memory.
+    #[test]
+    fn a_schedule_too_large_to_plan_is_refused() {
+        let mut p = params(FaultKind::Sdc);
+        p.rate_hz = 1000.0;
+        p.window = Duration::from_secs(1_000_000_000);
+        assert!(matches!(
+            plan_run(&p, 0, 0),
+            Err(RateError::TooMany { planned, .. }) if planned == 1e12
+        ));
+        for rate in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            p.rate_hz = rate;
+            let e = plan_run(&p, 0, 0).unwrap_err();
+            assert!(matches!(e, RateError::NotARate(_)), "{rate}: {e}");
+        }
+        p.rate_hz = 1e9;
+        p.window = Duration::from_millis(1);
+        assert_eq!(plan_run(&p, 0, 0), Err(RateError::TooHigh(1e9)));
     }
 
     #[test]
@@ -199,7 +224,7 @@ mod tests {
         let p = params(FaultKind::Mixed);
         let mut counts = std::collections::BTreeMap::new();
         for run in 0..30 {
-            for pl in plan_run(&p, 9, run) {
+            for pl in plan_run(&p, 9, run).unwrap() {
                 *counts.entry(pl.action.kind()).or_insert(0u32) += 1;
             }
         }
@@ -215,7 +240,7 @@ mod tests {
     #[test]
     fn var_bits_stay_in_the_field_and_are_distinct() {
         let p = params(FaultKind::Var);
-        for pl in plan_run(&p, 5, 0) {
+        for pl in plan_run(&p, 5, 0).unwrap() {
             let Action::Var { offset, bits } = pl.action else {
                 panic!()
             };

@@ -55,8 +55,8 @@ pub struct StormOptions {
 /// Why the storm could not go on.
 #[derive(Debug, Error)]
 pub enum StormError {
-    #[error("--rate {0} is not a rate: give injections per second, e.g. 2")]
-    Rate(f64),
+    #[error("--rate {0}")]
+    Rate(#[from] s3res_protocol::campaign::RateError),
     #[error("no fault kind to inject (give --faults, e.g. exec,sdc,cfe)")]
     NoFaults,
     #[error("fault kind `none` cannot be part of a storm")]
@@ -112,9 +112,7 @@ pub fn record_line(
 /// Runs until `stop()` says so or the live view says the system stopped. Returns how many
 /// injections were delivered.
 pub fn run(o: &StormOptions, stop: &dyn Fn() -> bool) -> Result<u64, StormError> {
-    if !(o.rate_hz.is_finite() && o.rate_hz > 0.0) {
-        return Err(StormError::Rate(o.rate_hz));
-    }
+    s3res_protocol::campaign::check_rate(o.rate_hz)?;
     if o.faults.is_empty() {
         return Err(StormError::NoFaults);
     }

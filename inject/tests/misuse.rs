@@ -106,7 +106,8 @@ fn classify_refuses_a_mission_or_output_outside_the_run_folder() {
 /// A mistyped `--rate`, `--runs` or window is refused in one line before anything is planned.
 /// Before, `--rate 1e9 --duration 1` planned a billion injections for the first run (24 GB,
 /// killed by the kernel's OOM killer), and a huge `--runs` walked the run numbers for minutes,
-/// deaf to SIGTERM; `--run-timeout 0` blamed the system for never starting.
+/// deaf to SIGTERM; `--run-timeout 0` blamed the system for never starting; `--rate 1000
+/// --duration 1e9` planned 10^12 injections for the first run (memory exhausted, abort).
 #[test]
 fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
     let dir = tempfile::tempdir().unwrap();
@@ -126,10 +127,24 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
         args.extend_from_slice(extra);
         args.iter().map(|s| s.to_string()).collect::<Vec<_>>()
     };
-    let cases: [(&[&str], &str); 5] = [
+    let cases: [(&[&str], &str); 6] = [
         (
             &["--runs", "1", "--rate", "1e9"],
-            "--rate 1000000000.0: at most 1000 injections per second",
+            "--rate 1000000000.0 injections per second: at most 1000",
+        ),
+        (
+            &[
+                "--runs",
+                "1",
+                "--rate",
+                "1000",
+                "--duration",
+                "1e9",
+                "--run-timeout",
+                "2e9",
+            ],
+            "--rate and --duration: 1000.0 injections per second for 1000000000.0 s plan \
+             1.000e12 injections in one run: at most 1e6",
         ),
         (
             &["--runs", "1", "--rate", "nan"],
@@ -161,7 +176,7 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
             "--rate",
             "5000",
         ],
-        "--rate 5000.0: at most 1000 injections per second",
+        "--rate 5000.0 injections per second: at most 1000",
     );
 }
 

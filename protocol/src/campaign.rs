@@ -264,8 +264,55 @@ impl MachineInfo {
 }
 
 /// The highest injection rate, per second: of a description's `inject.rate_hz` and of
-/// `s3res-inject`'s `--rate` (a schedule is planned whole before its run).
+/// `s3res-inject`'s `--rate` (a storm at a billion per second only spins).
 pub const MAX_RATE_HZ: f64 = 1000.0;
+
+/// The most injections one campaign run may plan: its schedule is planned whole before the
+/// run (a million take ~50 MB; `--rate 1000 --duration 1e9` planned 10^12 and died of it).
+pub const MAX_PLANNED_PER_RUN: f64 = 1e6;
+
+/// Why an injection rate, or a run's schedule, is refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RateError {
+    #[error("{0:?} is not a rate: give injections per second, above 0 (e.g. 2)")]
+    NotARate(f64),
+    #[error("{0:?} injections per second: at most {MAX_RATE_HZ}")]
+    TooHigh(f64),
+    #[error(
+        "{rate:?} injections per second for {window_s:?} s plan {planned:.3e} injections in one \
+         run: at most {MAX_PLANNED_PER_RUN:.0e} (a lower rate or a shorter window)"
+    )]
+    TooMany {
+        rate: f64,
+        window_s: f64,
+        planned: f64,
+    },
+}
+
+/// A rate of injections per second: finite, above 0, at most [`MAX_RATE_HZ`].
+pub fn check_rate(rate: f64) -> Result<(), RateError> {
+    if !(rate.is_finite() && rate > 0.0) {
+        return Err(RateError::NotARate(rate));
+    }
+    if rate > MAX_RATE_HZ {
+        return Err(RateError::TooHigh(rate));
+    }
+    Ok(())
+}
+
+/// [`check_rate`], and at most [`MAX_PLANNED_PER_RUN`] injections expected in a `window`.
+pub fn check_schedule(rate: f64, window: std::time::Duration) -> Result<(), RateError> {
+    check_rate(rate)?;
+    let planned = rate * window.as_secs_f64();
+    if planned > MAX_PLANNED_PER_RUN {
+        return Err(RateError::TooMany {
+            rate,
+            window_s: window.as_secs_f64(),
+            planned,
+        });
+    }
+    Ok(())
+}
 
 /// A digest of a description's text (64-bit FNV-1a, in hex): not a cryptographic hash, a
 /// check that two campaigns ran the same description.

@@ -1033,6 +1033,12 @@ fn inject_errors_name_the_field() {
         "0 is not a rate",
     );
     f.fails(
+        &echo_with(r#""inject": {"rate_hz": 5000}"#),
+        3,
+        "inject.rate_hz",
+        "5000.0 injections per second: at most 1000",
+    );
+    f.fails(
         &echo_with(r#""inject": {"components": ["sink"]}"#),
         3,
         "inject.components[0]",
