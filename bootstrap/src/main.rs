@@ -230,11 +230,24 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
     };
     // `--events system.json` would empty the description it was read from.
     for (what, path) in [("events", &opts.events_file), ("state", &opts.state_file)] {
-        if path.as_deref().is_some_and(|p| same_file(p, &cli.system)) {
+        let Some(path) = path.as_deref() else {
+            continue;
+        };
+        if same_file(path, &cli.system) {
             eprintln!(
                 "error: the {what} file {} is the description itself; name another",
                 cli.system.display()
             );
+            return Ok(2);
+        }
+        // The description's own paths were checked with it; the command line's are here.
+        let example = if what == "events" {
+            "events.jsonl"
+        } else {
+            "state.json"
+        };
+        if let Some(why) = s3res_description::exec::not_a_file_path(path, example) {
+            eprintln!("error: the {what} file: {why}");
             return Ok(2);
         }
     }

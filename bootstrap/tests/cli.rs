@@ -501,13 +501,18 @@ fn a_second_bootstrap_on_the_same_files_refuses_and_leaves_them_alone() {
     assert_eq!(end.status.code(), Some(143), "{}", end.stderr);
 }
 
+/// A system of one unprotected component that sleeps.
+fn sleepy_system() -> String {
+    format!(
+        r#"{{ "name": "sleepy", "components": {{ "a": {{ "exec": "{}" }} }} }}"#,
+        fixture("sleeper.sh")
+    )
+}
+
 /// `--events` naming the description would empty the file the system was read from.
 #[test]
 fn an_events_file_that_is_the_description_is_refused() {
-    let text = format!(
-        r#"{{ "name": "sleepy", "components": {{ "a": {{ "exec": "{}" }} }} }}"#,
-        fixture("sleeper.sh")
-    );
+    let text = sleepy_system();
     let (_dir, path) = write_system(&text);
     let system = path.to_str().unwrap();
     let out = run(&["--events", system, system]);
@@ -519,4 +524,28 @@ fn an_events_file_that_is_the_description_is_refused() {
         out.stderr
     );
     assert_eq!(std::fs::read_to_string(&path).unwrap(), text);
+}
+
+/// `--events` or `--state` that cannot be a file is refused in one line before anything
+/// starts: before, a folder on the way that was a file failed the run with `File exists`, and
+/// a folder as the state file with `Device or resource busy`.
+#[test]
+fn run_files_that_cannot_be_made_are_refused_in_one_line() {
+    let (dir, path) = write_system(&sleepy_system());
+    let system = path.to_str().unwrap();
+    let under_a_file = format!("{system}/events.jsonl");
+    let folder = dir.path().to_str().unwrap();
+    for (flag, file, want) in [
+        ("--events", under_a_file.as_str(), "is a file, not a folder"),
+        ("--state", folder, "is a folder: give the path of a file"),
+    ] {
+        let out = run(&[flag, file, system]);
+        assert_eq!(out.status.code(), Some(2), "{flag}: {}", out.stderr);
+        let lines: Vec<&str> = out.stderr.lines().collect();
+        assert!(
+            lines.len() == 1 && lines[0].starts_with("error: the ") && lines[0].contains(want),
+            "{flag}: {}",
+            out.stderr
+        );
+    }
 }

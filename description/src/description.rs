@@ -485,7 +485,17 @@ impl Checker<'_> {
         };
         let path_of = |field: &str, v: &Option<String>| match v.as_deref() {
             Some("") => Err(self.err(field, "an empty path")),
-            Some(p) => Ok(Some(PathBuf::from(p))),
+            Some(p) => {
+                let path = PathBuf::from(p);
+                let example = format!(
+                    "{field}.{}",
+                    if field == "events" { "jsonl" } else { "json" }
+                );
+                match crate::exec::not_a_file_path(&path, &example) {
+                    Some(why) => Err(self.err(field, why)),
+                    None => Ok(Some(path)),
+                }
+            }
             None => Ok(None),
         };
         Ok(SystemPlan {

@@ -328,6 +328,36 @@ pub fn absolute(path: &Path) -> PathBuf {
     out
 }
 
+/// Why `path` cannot be a file bootstrap writes (an events, state or outcome file), as far as
+/// the file system says now: it is a folder (`example` names a file to suggest in it), or a
+/// folder on its way is a file. `None` if it can be (or its folders are still to be made). A
+/// relative path is taken from the working folder.
+pub fn not_a_file_path(path: &Path, example: &str) -> Option<String> {
+    if path.is_dir() {
+        return Some(format!(
+            "`{}` is a folder: give the path of a file (e.g. `{}`)",
+            path.display(),
+            path.join(example).display()
+        ));
+    }
+    // The nearest folder on the way that exists must be a folder.
+    let mut up = path.parent();
+    while let Some(dir) = up.filter(|d| !d.as_os_str().is_empty()) {
+        match std::fs::metadata(dir) {
+            Ok(m) if m.is_dir() => return None,
+            Ok(_) => {
+                return Some(format!(
+                    "`{}` is a file, not a folder: `{}` cannot be made in it",
+                    dir.display(),
+                    path.display()
+                ))
+            }
+            Err(_) => up = dir.parent(),
+        }
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -997,6 +997,38 @@ fn echo_with(extra: &str) -> String {
     )
 }
 
+/// A run file that cannot be made is refused with the description, naming the field: before,
+/// `--check` accepted it and the run failed with the system's error (`File exists` for a
+/// folder on the way that is a file, `Device or resource busy` for `"state": "."`).
+#[test]
+fn run_files_that_cannot_be_made_name_their_field() {
+    let f = fixture();
+    let notes = f.dir.path().join("notes.txt").display().to_string();
+    let dir = f.dir.path().display().to_string();
+    f.fails(
+        &echo_with(&format!(r#""events": "{notes}/events.jsonl""#)),
+        3,
+        "events",
+        &format!("`{notes}` is a file, not a folder"),
+    );
+    f.fails(
+        &echo_with(&format!(r#""outcome": "{notes}/a/b/task.json""#)),
+        3,
+        "outcome",
+        &format!("`{notes}` is a file, not a folder"),
+    );
+    f.fails(
+        &echo_with(&format!(r#""state": "{dir}""#)),
+        3,
+        "state",
+        &format!("`{dir}` is a folder: give the path of a file (e.g. `{dir}/state.json`)"),
+    );
+    // Folders still to be made are made by bootstrap.
+    f.ok(&echo_with(&format!(
+        r#""events": "{dir}/new/deeper/events.jsonl""#
+    )));
+}
+
 #[test]
 fn inject_outputs_and_outcome() {
     let f = fixture();
