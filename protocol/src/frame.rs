@@ -106,6 +106,12 @@ pub enum FrameError {
     /// The length prefix announces more than the channel allows.
     #[error("frame length {len} exceeds the channel maximum of {max} bytes")]
     Oversized { len: usize, max: usize },
+    /// Newline-delimited text: `read` bytes without a newline, more than a line may hold (its
+    /// length is not known: it has not ended).
+    #[error(
+        "a line longer than the channel maximum of {max} bytes ({read} bytes without a newline)"
+    )]
+    LineTooLong { read: usize, max: usize },
     /// The writer closed the channel in the middle of a frame.
     #[error("channel closed after {have} of {want} bytes of a frame")]
     Truncated { have: usize, want: usize },
@@ -331,7 +337,7 @@ impl FrameDecoder {
     }
 
     /// A decoder of newline-delimited text: each line, without its `\n`, is one frame, and a
-    /// line longer than `max` bytes is [`FrameError::Oversized`] (an unmodified program's
+    /// line longer than `max` bytes is [`FrameError::LineTooLong`] (an unmodified program's
     /// stdout, `"framing": "lines"`).
     pub fn lines(max: usize) -> Self {
         FrameDecoder {
@@ -604,8 +610,8 @@ impl FrameDecoder {
                 self.start = from + len + 1;
                 Ok(Some(from..from + len))
             }
-            None if avail.len() > self.max => Err(FrameError::Oversized {
-                len: avail.len(),
+            None if avail.len() > self.max => Err(FrameError::LineTooLong {
+                read: avail.len(),
                 max: self.max,
             }),
             None => Ok(None),
@@ -980,15 +986,18 @@ mod tests {
     }
 
     #[test]
-    fn a_line_longer_than_the_maximum_is_oversized_and_a_cut_line_truncated() {
+    fn a_line_longer_than_the_maximum_is_too_long_and_a_cut_line_truncated() {
         let mut dec = FrameDecoder::lines(4);
         dec.push(b"abcd\nabcde");
         assert!(dec.has_frame());
         assert_eq!(dec.next_frame().unwrap(), Some(&b"abcd"[..]));
         assert!(dec.has_frame());
+        let e = dec.next_frame().unwrap_err();
+        assert_eq!(e, FrameError::LineTooLong { read: 5, max: 4 });
+        // Its length is not known (it has not ended): the message says what was read.
         assert_eq!(
-            dec.next_frame(),
-            Err(FrameError::Oversized { len: 5, max: 4 })
+            e.to_string(),
+            "a line longer than the channel maximum of 4 bytes (5 bytes without a newline)"
         );
         let mut dec = FrameDecoder::lines(4);
         dec.push(b"ab");
