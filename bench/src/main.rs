@@ -103,6 +103,13 @@ fn parse_cpu_idle(s: &str) -> Result<CpuIdle, String> {
     CpuIdle::parse(s).ok_or_else(|| format!("`{s}` is neither `halt` nor `poll`"))
 }
 
+/// `--timeout-us`: a voter's round deadline, within the bounds of a description's
+/// `timeout_us` (0 was passed on, and the run failed on 'the voter's events pipe closed').
+fn timeout_us() -> clap::builder::RangedU64ValueParser<u64> {
+    let max = s3res_description::description::MAX_DURATION_MS * 1000;
+    clap::value_parser!(u64).range(1..=max)
+}
+
 fn parse_lock_memory(s: &str) -> Result<LockMemory, String> {
     LockMemory::parse(s).ok_or_else(|| format!("`{s}` is neither `all` nor `used`"))
 }
@@ -129,8 +136,8 @@ enum Command {
         /// Round trips before measuring (caches, page faults, scheduler).
         #[arg(long, default_value_t = 2_000)]
         warmup: u64,
-        /// Round deadline of the voter, µs.
-        #[arg(long, default_value_t = 20_000)]
+        /// Round deadline of the voter, µs (1 to 60,000,000, as a description's `timeout_us`).
+        #[arg(long, default_value_t = 20_000, value_parser = timeout_us())]
         timeout_us: u64,
         /// How processes are scheduled: plain (default scheduler), rr (SCHED_RR: bench and voter
         /// 60, replicas below), rr-pinned (rr, bench and voter on CPU 0, the rest on CPU 1),
@@ -150,7 +157,7 @@ enum Command {
         count: u64,
         /// Round deadline of the voter, µs (generous by default: a replica with a large state
         /// takes a while to start, and hangs are not what this measures).
-        #[arg(long, default_value_t = 2_000_000)]
+        #[arg(long, default_value_t = 2_000_000, value_parser = timeout_us())]
         timeout_us: u64,
         /// How processes are scheduled (plain, rr, rr-pinned, one-cpu, rr-one-cpu; see `echo
         /// --help`). The floor's fork runs at the bench's own scheduling of that setup.
@@ -167,8 +174,8 @@ enum Command {
     },
     /// Crash and hang detection latency; false positives in fault-free rounds.
     Detect {
-        /// Round timeouts, µs.
-        #[arg(long, value_delimiter = ',', default_value = "2000,20000")]
+        /// Round timeouts, µs (each 1 to 60,000,000).
+        #[arg(long, value_delimiter = ',', default_value = "2000,20000", value_parser = timeout_us())]
         timeout_us: Vec<u64>,
         /// Injected crashes and hangs per timeout (0 skips the detection latencies: only the
         /// fault-free rounds of --rounds are run).
@@ -528,6 +535,30 @@ mod tests {
         };
         for (i, setup) in Setup::ALL.into_iter().enumerate() {
             assert_eq!(place(setup), i, "{setup:?}");
+        }
+    }
+
+    /// A deadline of 0 reached the voter, which refused its plan, and the bench said first
+    /// that the voter's events pipe closed; one beyond a minute is beyond any description's.
+    #[test]
+    fn timeouts_outside_a_descriptions_bounds_are_refused_by_every_subcommand() {
+        use clap::Parser;
+        let cases = [
+            ("echo", "0"),
+            ("echo", "60000001"),
+            ("restart", "0"),
+            ("detect", "0"),
+            ("detect", "1000,0"),
+        ];
+        for (sub, bad) in cases {
+            let e = Cli::try_parse_from(["s3res-bench", sub, "--timeout-us", bad])
+                .err()
+                .unwrap_or_else(|| panic!("{sub} --timeout-us {bad} was taken"));
+            assert!(
+                e.to_string().contains("is not in 1..=60000000"),
+                "{sub}: {e}"
+            );
+            assert!(Cli::try_parse_from(["s3res-bench", sub, "--timeout-us", "60000000"]).is_ok());
         }
     }
 
