@@ -62,8 +62,9 @@ pub struct ComponentTally {
     pub voter_restarts: u64,
     /// Slots found faulty and not yet replaced (or lost for good).
     pub down: BTreeSet<usize>,
-    /// Slots whose replica was started afresh, differs for its lost state, and is kept
-    /// outvoted because no fork can give the state back (`diverged`), until it is replaced.
+    /// Slots whose replica was started afresh, differed for its lost state, and was kept
+    /// outvoted because no fork could give the state back (`diverged`), until a fault or a
+    /// recovery of the slot.
     pub diverged: BTreeSet<usize>,
 }
 
@@ -100,7 +101,9 @@ impl Tally {
                 *c.faults.entry(kind_name(e.kind)).or_default() += 1;
                 match (e.replica, e.cause) {
                     (Some(slot), _) => {
+                        // A fault ends the replica there: whatever it was, it is down now.
                         c.down.insert(slot);
+                        c.diverged.remove(&slot);
                     }
                     (None, Some(Cause::NoMajority)) => c.withheld += 1,
                     (None, Some(Cause::AllDiffer)) => c.rebuilt += 1,
@@ -551,8 +554,8 @@ impl Verdict {
         if !diverged.is_empty() {
             let _ = writeln!(
                 s,
-                "  diverged     {}: started afresh with the state lost, no fork could give it \
-                 back (threads); outvoted to the end",
+                "  diverged     {}: started afresh with the state lost, which no fork could \
+                 give back; kept and outvoted instead of restarted (see its `diverged` event)",
                 diverged.join(" · ")
             );
         }
@@ -737,7 +740,7 @@ mod tests {
     }
 
     /// A replica kept outvoted for a state no fork could give back is named at the end, and
-    /// no longer once its slot was replaced.
+    /// no longer once its slot had a fault or was replaced.
     #[test]
     fn verdict_names_replicas_that_diverged_until_replaced() {
         let t = Tally::default();
@@ -749,11 +752,10 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("faults       0"), "not a fault: {text}");
-        for slot in [1, 2] {
-            let mut r = event(EventKind::Recovery, Some(slot));
-            r.method = Some(RecoveryMethod::Fork);
-            t.apply(&r);
-        }
+        let mut r = event(EventKind::Recovery, Some(1));
+        r.method = Some(RecoveryMethod::Fork);
+        t.apply(&r);
+        t.apply(&event(EventKind::Crash, Some(2)));
         let text = clean_run_of("filter", &t).render();
         assert!(!text.contains("diverged"), "{text}");
     }

@@ -264,7 +264,8 @@ impl MachineInfo {
 }
 
 /// The highest injection rate, per second: of a description's `inject.rate_hz` and of
-/// `s3res-inject`'s `--rate` (a storm at a billion per second only spins).
+/// `s3res-inject`'s `--rate` (no target can take faults faster than it can be rebuilt, and a
+/// storm asked for a billion a second would do nothing but inject).
 pub const MAX_RATE_HZ: f64 = 1000.0;
 
 /// The most injections one campaign run may plan: its schedule is planned whole before the

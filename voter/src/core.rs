@@ -203,6 +203,11 @@ pub(crate) struct Core {
     exec_restarts: std::collections::VecDeque<Instant>,
     /// Replicas started by exec after a fault, since the start, in any window.
     exec_restarts_total: u64,
+    /// Slots whose replica started afresh matched once and then dissented all the same: its
+    /// matches were chance (an output coarser than the lost state, or one that does not depend
+    /// on it), so their next replicas started afresh stay catching up whatever they match,
+    /// until a fork gives the slot the state back (see `Core::spare_diverged`).
+    relapsed: ReplicaSet,
     /// Some replica started by exec has answered (so the program speaks the protocol).
     pub(crate) exec_answered: bool,
     /// Some replica said, through the start handshake, that its runtime started.
@@ -370,6 +375,7 @@ impl Core {
             vacant: Vec::new(),
             exec_restarts: std::collections::VecDeque::new(),
             exec_restarts_total: 0,
+            relapsed: ReplicaSet::EMPTY,
             exec_answered: false,
             runtime_started: false,
             last_fault: String::new(),
@@ -748,9 +754,10 @@ impl Core {
             .fold(ReplicaSet::EMPTY, ReplicaSet::with)
     }
 
-    /// `agreed` sent a frame that went out: any of them catching up has caught up.
+    /// `agreed` sent a frame that went out: any of them catching up has caught up (unless its
+    /// slot relapsed before: see [`Core::spare_diverged`]).
     pub(crate) fn caught_up(&mut self, agreed: ReplicaSet) {
-        for r in agreed.iter() {
+        for r in agreed.minus(self.relapsed).iter() {
             if let Some(rep) = self.slots[r].as_mut().filter(|rep| rep.catching_up) {
                 rep.catching_up = false;
                 tracing::info!(
@@ -762,13 +769,22 @@ impl Core {
         }
     }
 
-    /// The replicas that could donate by fork now: their restart handler is in place, and
-    /// (an unmodified program's) they run one thread. With the threaded ones passed over.
+    /// The replicas whose fork would give a replica the state the vote goes by: they kept
+    /// the component's state (or, once none did, their state matches), their restart handler
+    /// is in place, and (an unmodified program's) they run one thread. With the threaded ones
+    /// passed over.
     fn fork_donors(&self) -> (ReplicaSet, ReplicaSet) {
         let refuse_threaded = self.plan.preload.is_some();
+        let any_kept = !self.alive().minus(self.fresh()).is_empty();
         let (mut donors, mut threaded) = (ReplicaSet::EMPTY, ReplicaSet::EMPTY);
         for (d, rep) in self.slots.iter().enumerate() {
-            let Some(rep) = rep.as_ref().filter(|rep| rep.may_donate()) else {
+            // A replica catching up has nothing to give; one whose state is lost only what
+            // the replicas that kept theirs outvote.
+            let gives_nothing = |rep: &Replica| rep.catching_up || (any_kept && rep.state_lost);
+            let Some(rep) = rep
+                .as_ref()
+                .filter(|rep| !gives_nothing(rep) && rep.may_donate())
+            else {
                 continue;
             };
             if refuse_threaded && rep.look().is_some_and(|l| l.threaded()) {
@@ -783,6 +799,10 @@ impl Core {
     /// Of `blamed` (for `cause`, on output `o` at `at`), the replicas not to fault: their
     /// dissent comes of a lost state no fork can give back (see `decision::spare_diverged`).
     /// Each is said once, in a `diverged` event.
+    ///
+    /// A replica started afresh that had matched (so was no longer catching up) and dissents
+    /// now marks its slot as relapsed: one matching frame said nothing of its state, and the
+    /// next replica started afresh there is not taken for caught up by a match.
     pub(crate) fn spare_diverged(
         &mut self,
         blamed: ReplicaSet,
@@ -790,7 +810,16 @@ impl Core {
         o: usize,
         at: At,
     ) -> ReplicaSet {
+        if blamed.is_empty() || !matches!(cause, Cause::Minority | Cause::BitwiseMinority) {
+            return ReplicaSet::EMPTY;
+        }
+        let fresh = self.fresh();
         let catching_up = self.catching_up();
+        self.relapsed = blamed
+            .and(fresh)
+            .minus(catching_up)
+            .iter()
+            .fold(self.relapsed, ReplicaSet::with);
         if blamed.and(catching_up).is_empty() {
             return ReplicaSet::EMPTY;
         }
@@ -1763,6 +1792,10 @@ fn replace(
                 if let Some(child) = core.slots[slot].as_mut() {
                     child.state_lost = state_lost;
                     child.catching_up = catching_up;
+                }
+                if !state_lost {
+                    // The slot has the component's state again.
+                    core.relapsed = core.relapsed.without(slot);
                 }
                 // The child took the slot's CPUs when it joined (`Core::fork`); it ran its
                 // page walk at the donor's raised priority, and takes the slot's now.

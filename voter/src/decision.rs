@@ -35,7 +35,10 @@
 //! round, each outvoted, until the restart budget fails the component. So such a dissent is
 //! not blamed: the replica stays, outvoted, and is said once as `diverged`. Once a fork could
 //! give its state back, or once it has matched a frame that went out (its state caught up, so
-//! a later dissent is a fault), it is blamed as any other.
+//! a later dissent is a fault), it is blamed as any other. A match can be chance (an output
+//! coarser than the state): a replica that matched and then dissents all the same marks its
+//! slot *relapsed* (`Core::spare_diverged`), and the next one started there is not taken for
+//! caught up by a match — until a fork gives the slot the state back.
 
 use replica_rt::contract::MAX_PORTS;
 

@@ -320,7 +320,10 @@ impl Replica {
             our_child: false,
             proven,
             state_lost,
-            catching_up: false,
+            // Whether it had matched since is not journaled: a successor takes a replica whose
+            // state is lost for one still catching up (it may spare a dissent the predecessor
+            // would have blamed, rather than restart a diverged replica into the same loss).
+            catching_up: state_lost,
             diverged: false,
             output_closed_at: None,
             start_pipe: None,

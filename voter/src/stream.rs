@@ -349,8 +349,12 @@ impl StreamVoter {
             decision,
             frame,
             agreed,
-        }) = self.ledger.decide(o, self.core.alive(), self.core.fresh())
-        {
+        }) = self.ledger.decide(
+            o,
+            self.core.alive(),
+            self.core.fresh(),
+            self.core.catching_up(),
+        ) {
             self.core.caught_up(agreed);
             if let Some(blame) = self
                 .core

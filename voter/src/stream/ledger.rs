@@ -87,7 +87,7 @@ pub struct Decided {
     pub decision: Decision,
     /// The frame that goes out, if one does.
     pub frame: Option<Vec<u8>>,
-    /// The slots whose copy is that frame (empty when none goes out).
+    /// The watched slots whose copy is that frame (empty when none goes out).
     pub agreed: ReplicaSet,
 }
 
@@ -251,7 +251,15 @@ impl Ledger {
     /// mode: a majority of one whose copy is flagged is held back, and two differing copies of
     /// which exactly one is flagged forward the other. With three or more copies the vote (and
     /// the bitwise majority) decides; marks are only logged.
-    pub fn decide(&mut self, o: usize, alive: ReplicaSet, fresh: ReplicaSet) -> Option<Decided> {
+    /// `watch`: the slots whose agreement the caller wants in [`Decided::agreed`] (the
+    /// others' copies are not compared with the frame that goes out).
+    pub fn decide(
+        &mut self,
+        o: usize,
+        alive: ReplicaSet,
+        fresh: ReplicaSet,
+        watch: ReplicaSet,
+    ) -> Option<Decided> {
         let out = &mut self.outputs[o];
         let k = out.next.checked_sub(out.base)? as usize;
         let entry = out.entries.get_mut(k)?;
@@ -260,8 +268,9 @@ impl Ledger {
             .frame(|r| entry.frames.get(r).and_then(|f| f.as_deref()))
             .map(<[u8]>::to_vec);
         let agreed = match &frame {
-            Some(f) => (0..entry.frames.len())
-                .filter(|&r| entry.frames[r].as_ref() == Some(f))
+            Some(f) => watch
+                .iter()
+                .filter(|&r| entry.frames.get(r).and_then(Option::as_ref) == Some(f))
                 .fold(ReplicaSet::EMPTY, ReplicaSet::with),
             None => ReplicaSet::EMPTY,
         };
@@ -440,7 +449,7 @@ mod tests {
     }
 
     fn decide_all(l: &mut Ledger, o: usize, alive: ReplicaSet) -> Vec<Decided> {
-        std::iter::from_fn(|| l.decide(o, alive, ReplicaSet::EMPTY)).collect()
+        std::iter::from_fn(|| l.decide(o, alive, ReplicaSet::EMPTY, alive)).collect()
     }
 
     fn forward(
