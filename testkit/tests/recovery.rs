@@ -277,6 +277,51 @@ fn garbage_is_a_protocol_fault() {
     protocol_fault("garbage");
 }
 
+/// A component that breaks the single-thread rule (every answer through a worker thread) is
+/// never forked: a fork copies only the thread that makes it, and the child waited in every
+/// round for a worker it did not have — a hang each round, rebuilt from the same donor and
+/// hung again, in a run that ended 'clean' (a newcomer found 60 hangs in 60 rounds). The
+/// voter passes threaded donors over, says why, and starts the replica afresh by exec.
+#[test]
+fn a_component_that_starts_a_thread_is_started_afresh_not_forked() {
+    let count = 1500;
+    let sys = System::new();
+    let args = [
+        "--stateful",
+        "--mode",
+        "worker",
+        "--replica",
+        "0,1,2",
+        "--at",
+        "0",
+    ];
+    let desc = echo_system(&sys, "tmr", "s3res-misbehave", &args, count, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    std::thread::sleep(Duration::from_millis(300));
+    let pid = run.replica_pids("echo")[&1];
+    s3res_testkit::kill_pid(pid, libc::SIGKILL).unwrap();
+    let rec = run.wait_for_recovery("echo", 1, pid);
+    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
+    let out = run.wait_success(LIMIT);
+    let faults = out.faults();
+    assert_eq!(faults.len(), 1, "only the kill: {faults:#?}");
+    assert!(
+        out.stderr
+            .contains("no recovery donor: replicas [0, 2] run more than one thread"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    // Its counter is lost, and no fork can give it back: kept, outvoted, not restarted.
+    assert!(
+        out.events.iter().any(|e| e.kind == EventKind::Diverged),
+        "{:#?}",
+        out.events
+    );
+    assert_sink_whole(&summary, count);
+}
+
 /// A donor that is stopped while it should fork makes the recovery time out (the slot is filled
 /// by exec). When the donor is continued it forks late, and that child — with an old state —
 /// connects to the voter. It must be refused and killed, not taken as the next replacement.

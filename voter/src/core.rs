@@ -771,10 +771,8 @@ impl Core {
 
     /// The replicas whose fork would give a replica the state the vote goes by: they kept
     /// the component's state (or, once none did, their state matches), their restart handler
-    /// is in place, and (an unmodified program's) they run one thread. With the threaded ones
-    /// passed over.
+    /// is in place, and they run one thread. With the threaded ones passed over.
     fn fork_donors(&self) -> (ReplicaSet, ReplicaSet) {
-        let refuse_threaded = self.plan.preload.is_some();
         let any_kept = !self.alive().minus(self.fresh()).is_empty();
         let (mut donors, mut threaded) = (ReplicaSet::EMPTY, ReplicaSet::EMPTY);
         for (d, rep) in self.slots.iter().enumerate() {
@@ -787,7 +785,7 @@ impl Core {
             else {
                 continue;
             };
-            if refuse_threaded && rep.look().is_some_and(|l| l.threaded()) {
+            if rep.look().is_some_and(|l| l.threaded()) {
                 threaded = threaded.with(d);
             } else {
                 donors = donors.with(d);
@@ -1758,22 +1756,16 @@ fn replace(
         return Ok(false);
     }
     let patience = Duration::from_micros(m.core().plan.timeout_us);
-    // An unmodified program may start threads; its restart handler refuses to fork then.
-    let refuse_threaded = m.core().plan.preload.is_some();
     let mut failed = ReplicaSet::EMPTY;
     let mut threaded: Vec<usize>;
     loop {
         let progress = m.progress();
         let core = m.core();
         // A donor not seen asleep is waited for: the fault's event does not wait with it.
-        let pick = crate::replica::best_donor(
-            &core.slots,
-            |d| progress[d],
-            patience,
-            failed,
-            refuse_threaded,
-            &|| core.release_faults(),
-        );
+        let pick =
+            crate::replica::best_donor(&core.slots, |d| progress[d], patience, failed, &|| {
+                core.release_faults()
+            });
         threaded = pick.threaded;
         for r in pick.hung {
             let detail = format!(

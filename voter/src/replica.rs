@@ -741,8 +741,7 @@ pub struct DonorPick {
     /// Answered replicas that ran for the whole patience without once waiting for anything:
     /// hung (a control-flow error nobody had caught yet). The caller blames them.
     pub hung: Vec<usize>,
-    /// Candidates passed over because they run more than one thread (only when the caller
-    /// said such a donor refuses: an unmodified program's, see `refuse_fork_when_threaded`).
+    /// Candidates passed over because they run more than one thread.
     pub threaded: Vec<usize>,
 }
 
@@ -764,17 +763,19 @@ const RESAMPLE: Duration = Duration::from_micros(200);
 /// not blamed, if it never waits).
 /// Replicas that kept their state are looked at first; only when none of them can donate
 /// are the fresh ones. Slots in `exclude` are passed over (a donor that already failed).
-/// With `refuse_threaded`, a candidate running more than one thread is passed over (its
-/// restart handler would refuse, and the voter would wait a whole connect timeout to learn it).
+/// A candidate running more than one thread is passed over: a fork copies only the thread
+/// that makes it, so its child would lack the others (a replica-rt component's worker thread:
+/// the child hung in every round, was rebuilt from the same donor, and hung again), and an
+/// unmodified program's restart handler refuses (the voter would wait a whole connect timeout
+/// to learn it). The thread count comes from the same read as the state letter.
 pub fn best_donor(
     slots: &[Option<Replica>],
     progress: impl Fn(usize) -> u64,
     patience: Duration,
     exclude: crate::vote::ReplicaSet,
-    refuse_threaded: bool,
     before_waiting: &dyn Fn(),
 ) -> DonorPick {
-    if let Some(d) = first_choice_asleep(slots, &progress, exclude, refuse_threaded) {
+    if let Some(d) = first_choice_asleep(slots, &progress, exclude) {
         return DonorPick {
             donor: Some(d),
             ..DonorPick::default()
@@ -790,7 +791,7 @@ pub fn best_donor(
         .filter_map(|(d, rep)| {
             let rep = rep.as_ref()?;
             let (rank, look) = rep.donor_rank()?;
-            if refuse_threaded && look.is_some_and(StatLook::threaded) {
+            if look.is_some_and(StatLook::threaded) {
                 threaded.push(d);
                 return None;
             }
@@ -896,12 +897,11 @@ type Candidate = (
 /// replica is not stopped (and an answered one may donate); ranking first read every
 /// candidate's `/proc/PID/stat` (a `pread` each, on the restart's critical path, stop 43)
 /// where this one read answers. `None`: rank them all (also when it runs more than one
-/// thread and `refuse_threaded`).
+/// thread).
 fn first_choice_asleep(
     slots: &[Option<Replica>],
     progress: &impl Fn(usize) -> u64,
     exclude: crate::vote::ReplicaSet,
-    refuse_threaded: bool,
 ) -> Option<usize> {
     let (rank, _, d) = slots
         .iter()
@@ -913,8 +913,7 @@ fn first_choice_asleep(
         })
         .min()?;
     let look = slots[d].as_ref()?.look()?;
-    let usable = !(refuse_threaded && look.threaded());
-    (rank == DonorRank::BEST && look.state == 'S' && usable).then_some(d)
+    (rank == DonorRank::BEST && look.state == 'S' && !look.threaded()).then_some(d)
 }
 
 /// The first of `candidates` seen asleep or having blocked since the first look, within

@@ -26,6 +26,9 @@ use s3res_components::Echo;
 ///             the same index and panics again: a component that always fails)
 ///   spin      the correct answer, then spin forever (a control-flow error that strikes just
 ///             after the replica answered, while its siblings are still working on the round)
+///   worker    from frame K on, every answer passes through a worker thread (handed over a
+///             channel and back): correct answers, but a second thread, which a fork does not
+///             copy (the rule a component breaks by starting one)
 ///
 /// The replica index is S3RES_REPLICA, read once at start. A replacement forked from a healthy
 /// donor inherits the donor's memory, including the donor's index, so it does not misbehave
@@ -56,6 +59,7 @@ enum Mode {
     Corrupt,
     Spin,
     Panic,
+    Worker,
 }
 
 fn main() -> Result<()> {
@@ -74,11 +78,15 @@ fn main() -> Result<()> {
     let mut input = rt.input("in").context("opening the input port")?;
     let mut output = Some(rt.output("out").context("opening the output port")?);
     let mut echo = Echo::new(cli.stateful);
+    let mut worker = None;
     let mut k: u64 = 0;
     while let Some(frame) = input.recv().context("receiving")? {
         let answer = echo.answer(frame);
         if let Some(out) = output.as_mut() {
-            if armed && k == cli.at {
+            if armed && matches!(cli.mode, Mode::Worker) && k >= cli.at {
+                let worker = worker.get_or_insert_with(Worker::start);
+                out.send(&worker.round_trip(answer)?).context("answering")?;
+            } else if armed && k == cli.at {
                 tracing::warn!(mode = ?cli.mode, frame = k, "misbehaving now, on purpose");
                 if misbehave(cli.mode, out, answer)? == After::Close {
                     // Dropping the port closes the fd: the voter sees the pipe closed.
@@ -138,7 +146,37 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
             }
         }
         Mode::Panic => unreachable!("panics at start"),
+        Mode::Worker => unreachable!("answers through the worker"),
     };
     out.write_raw(&bytes).context("writing the broken frame")?;
     Ok(after)
+}
+
+/// A second thread that hands back what it is given.
+struct Worker {
+    to: std::sync::mpsc::Sender<Vec<u8>>,
+    from: std::sync::mpsc::Receiver<Vec<u8>>,
+}
+
+impl Worker {
+    fn start() -> Worker {
+        let (to, inbox) = std::sync::mpsc::channel::<Vec<u8>>();
+        let (outbox, from) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for frame in inbox {
+                if outbox.send(frame).is_err() {
+                    break;
+                }
+            }
+        });
+        tracing::info!("a worker thread answers from now on");
+        Worker { to, from }
+    }
+
+    fn round_trip(&self, answer: &[u8]) -> Result<Vec<u8>> {
+        self.to
+            .send(answer.to_vec())
+            .context("handing the answer to the worker")?;
+        self.from.recv().context("the worker's answer")
+    }
 }
