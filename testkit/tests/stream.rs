@@ -212,6 +212,55 @@ fn stream_inputs_without_output_cause_no_false_hang() {
     assert_sink_whole(&summary, count);
 }
 
+/// Starts source → echo (stream mode, TMR, `work_us` of work per frame) → sink, the source
+/// sending `count` frames as fast as it can: the replicas still have most of the work ahead of
+/// them when their input ends.
+fn start_slow_stream(work_us: u64, count: u32) -> (RunningSystem, PathBuf) {
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful", "--work-us", "{work_us}"], "redundancy": "tmr", "mode": "stream", "timeout_us": {TIMEOUT_US} }}"#
+    );
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let desc = echo_pipeline(&summary, &echo, count, 0);
+    (sys.start(&desc), summary)
+}
+
+/// Replicas that work through a backlog of input after it ended, at their pace (30 ms a frame,
+/// 4 s in all), finish it: the end lasts while they produce. Before, they were stopped 2 s +
+/// `timeout_us` after their input ended, what they had not sent was lost, and the run ended
+/// 'clean' (a newcomer's slow component lost 26 of 60 frames so).
+#[test]
+fn stream_replicas_working_through_a_backlog_at_the_end_finish_it() {
+    let count = 120;
+    let (mut run, summary) = start_slow_stream(30_000, count);
+    let out = run.wait_success(LIMIT);
+    assert!(faults(&out.events).is_empty(), "{:?}", faults(&out.events));
+    assert_sink_whole(&summary, count);
+}
+
+/// Replicas that produce nothing for 2 s + `timeout_us` after their input ended are stopped,
+/// and the component fails saying so: a `lost` event and its last line, not a clean end.
+#[test]
+fn stream_replicas_that_do_not_finish_their_output_fail_the_component() {
+    let (mut run, _) = start_slow_stream(4_000_000, 3);
+    let out = run.wait(LIMIT);
+    assert!(!out.status.success(), "{}", out.stderr);
+    let lost = of_kind(&out.events, EventKind::Lost);
+    assert_eq!(lost.len(), 1, "{:#?}", out.events);
+    let detail = lost[0].detail.as_deref().unwrap_or_default();
+    assert!(
+        detail.contains("the replicas had not finished their output"),
+        "{detail}"
+    );
+    assert!(
+        out.stderr
+            .contains("s3res-voter: output cut short: the replicas had not finished"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    run.assert_nothing_left();
+}
+
 /// The stream example of `docs/system-description.md`, verbatim, runs clean: the sink
 /// (`--stateful --expect 2000`) fails, and so bootstrap fails, unless every frame came once, in
 /// order, with the batch's state intact.

@@ -68,6 +68,9 @@ pub enum VoterError {
     /// An input was closed because of what upstream sent on it (see `Core::upstream_broke`).
     #[error("an input ended early: {0}")]
     Upstream(String),
+    /// Stream mode: the replicas had not finished their output when the end's time was up.
+    #[error("output cut short: {0}")]
+    Unfinished(String),
     #[error(transparent)]
     Clock(#[from] ClockError),
 }

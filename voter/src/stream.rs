@@ -57,9 +57,9 @@ pub struct StreamVoter {
     ledger: Ledger,
     /// Every input frame has been handed to the replicas (none is held back in a decoder).
     delivered_all: bool,
-    /// The external inputs are over and the replicas' inputs closed: until this instant the
-    /// replicas may finish their last outputs.
-    ending: Option<Instant>,
+    /// The external inputs are over and the replicas' inputs closed: the replicas finish
+    /// their last outputs (see [`Ending`]).
+    ending: Option<Ending>,
     /// Per slot: the process exited after the end began (not a fault then).
     exited: Vec<bool>,
     boost: Boost,
@@ -71,6 +71,22 @@ pub struct StreamVoter {
     /// output is read (see [`StreamVoter::downstream_backlog`]).
     held_by_downstream: Option<Instant>,
 }
+
+/// The end of the stream: the replicas' inputs are closed and they finish their output.
+#[derive(Debug, Clone, Copy)]
+struct Ending {
+    began: Instant,
+    /// Until when they may: [`core::SHUTDOWN_GRACE`] and `timeout_us` after the last frame
+    /// taken (or the beginning), at most [`ENDING_AT_MOST`] after the beginning.
+    limit: Instant,
+    /// Frames taken from the trusted replicas, at the beginning and so far.
+    at_start: u64,
+    taken: u64,
+}
+
+/// The longest end of a stream: replicas that still produce after it (a backlog of a minute,
+/// or a replica that writes without end) are stopped.
+const ENDING_AT_MOST: Duration = Duration::from_secs(60);
 
 impl StreamVoter {
     /// Takes over the fds named in `plan`, binds the socket, and starts the replicas.
@@ -178,7 +194,7 @@ impl StreamVoter {
         deadline
             .into_iter()
             .chain(graces)
-            .chain(self.ending)
+            .chain(self.ending.as_ref().map(|e| e.limit))
             .chain(look)
             .min()
     }
@@ -639,7 +655,47 @@ impl StreamVoter {
     fn begin_end(&mut self) {
         tracing::debug!("inputs closed; letting the replicas finish their output");
         self.core.end_replica_inputs();
-        self.ending = Some(Instant::now() + core::SHUTDOWN_GRACE + self.timeout);
+        let now = Instant::now();
+        let taken = self.frames_taken();
+        self.ending = Some(Ending {
+            began: now,
+            limit: now + core::SHUTDOWN_GRACE + self.timeout,
+            at_start: taken,
+            taken,
+        });
+    }
+
+    /// Frames taken from the trusted replicas so far, on all outputs.
+    fn frames_taken(&self) -> u64 {
+        let outputs = self.core.outputs.len();
+        self.core
+            .alive()
+            .iter()
+            .map(|r| {
+                (0..outputs)
+                    .map(|o| self.ledger.received(r, o))
+                    .sum::<u64>()
+            })
+            .sum()
+    }
+
+    /// Whether the end is over: every replica finished, or none made progress for the grace
+    /// (or the end has lasted [`ENDING_AT_MOST`]). A replica still working through a backlog
+    /// of input at its pace is not cut off: each frame taken moves the limit on.
+    fn ending_over(&mut self) -> bool {
+        if self.all_finished() {
+            return true;
+        }
+        let taken = self.frames_taken();
+        let now = Instant::now();
+        let Some(end) = self.ending.as_mut() else {
+            return false;
+        };
+        if taken > end.taken {
+            end.taken = taken;
+            end.limit = (now + core::SHUTDOWN_GRACE + self.timeout).min(end.began + ENDING_AT_MOST);
+        }
+        now >= end.limit
     }
 
     /// Every trusted replica has closed its outputs, all their frames are taken, and no
@@ -653,10 +709,13 @@ impl StreamVoter {
         }) && !self.ledger.out_of_step(alive)
     }
 
-    /// Writes out what is queued for downstream and lets the replicas exit.
+    /// Writes out what is queued for downstream and lets the replicas exit. Replicas that had
+    /// not finished their output are stopped: what they had not sent is lost, and the
+    /// component ends as failed, in a `lost` event and its last line.
     fn finish(&mut self) -> Result<(), VoterError> {
         // No recovery comes now: a fault's event held for one goes out before the waits below.
         self.core.release_faults();
+        let mut unfinished = None;
         if !self.all_finished() {
             let alive = self.core.alive();
             let state: Vec<String> = (0..self.core.outputs.len())
@@ -681,10 +740,30 @@ impl StreamVoter {
                     )
                 })
                 .collect();
-            tracing::warn!(state = %state.join("; "), "replicas did not finish their output in time; stopping them");
+            let (began, at_start, taken) = self
+                .ending
+                .as_ref()
+                .map_or((Instant::now(), 0, 0), |e| (e.began, e.at_start, e.taken));
+            let why = format!(
+                "the replicas had not finished their output {:.1} s after their input ended \
+                 ({} frames taken since, none in the last {:.1} s; {}); stopped, what they had \
+                 not sent is lost",
+                began.elapsed().as_secs_f64(),
+                taken - at_start,
+                (core::SHUTDOWN_GRACE + self.timeout).as_secs_f64(),
+                state.join("; ")
+            );
+            tracing::warn!("{why}");
+            let mut ev = self.core.event(crate::event::EventKind::Lost);
+            ev.detail = Some(why.clone());
+            self.core.emit(ev);
+            unfinished = Some(why);
         }
         self.core.drain_and_let_finish();
-        Ok(())
+        match unfinished {
+            Some(why) => Err(VoterError::Unfinished(why)),
+            None => Ok(()),
+        }
     }
 }
 
@@ -713,10 +792,8 @@ impl Mode for StreamVoter {
             if self.ending.is_none() && self.ready_to_end() {
                 self.begin_end();
             }
-            if let Some(limit) = self.ending {
-                if self.all_finished() || Instant::now() >= limit {
-                    return self.finish();
-                }
+            if self.ending.is_some() && self.ending_over() {
+                return self.finish();
             }
             self.boost_laggard();
             core::wait_and_dispatch(self)?;
