@@ -304,6 +304,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     // Whether SCHED_RR can be had is found out once, here, and said once; the voters are told.
     let sched = SystemSched::for_system(plan);
     sched.warn_once();
+    say_memory_lock_limit(plan);
     // An injector needs the live view; without a file named for it, one in the private folder.
     let injector = match (&opts.injector, &plan.inject, &socket_dir) {
         (Some(bin), Some(inject), Some(dir)) => Some((bin, inject, dir)),
@@ -596,6 +597,26 @@ fn open_events_file(path: &Path) -> Result<File, RunError> {
     }
     file.set_len(0).map_err(err)?;
     Ok(file)
+}
+
+/// Says once, for the whole system, that replicas lock only the memory they have at start when
+/// a lock limit binds them (their processes are this one's user and limits): each replica
+/// would otherwise say it, and the voters too.
+fn say_memory_lock_limit(plan: &SystemPlan) {
+    if !plan.components.iter().any(|c| c.is_protected()) {
+        return;
+    }
+    if let Some(limit) =
+        replica_rt::memory::memlock_limit().filter(|_| !replica_rt::memory::locks_future_memory())
+    {
+        tracing::warn!(
+            "memory locking is limited to {} KiB (RLIMIT_MEMLOCK, no CAP_IPC_LOCK): replicas lock \
+             the memory they have at start, not what they allocate later (that could then fail), \
+             so a round may still take a page fault. Raise the limit (`ulimit -l`, memlock in \
+             limits.conf) or grant CAP_IPC_LOCK to lock it all",
+            limit / 1024
+        );
+    }
 }
 
 /// Creates the folder `path` goes into, if it has one and it is missing.

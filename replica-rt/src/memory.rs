@@ -56,6 +56,32 @@ pub const STACK_LOCKED: usize = 32 * 1024;
 
 /// Set when the replica locks everything (`all`): a fork child locks as its donor did.
 static LOCK_ALL: AtomicBool = AtomicBool::new(false);
+/// Set when later mappings are locked too (`MCL_FUTURE`): only when nothing limits how much
+/// this process may lock (see [`locks_future_memory`]). A fork child locks as its donor did.
+static LOCK_FUTURE: AtomicBool = AtomicBool::new(false);
+
+/// `CAP_IPC_LOCK` (linux/capability.h): lock memory beyond `RLIMIT_MEMLOCK`.
+const CAP_IPC_LOCK: u32 = 14;
+
+/// This process's `RLIMIT_MEMLOCK` in bytes; `None` when unlimited.
+pub fn memlock_limit() -> Option<u64> {
+    let mut limit = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes the struct it is given, which lives on this stack.
+    let got = unsafe { libc::getrlimit(libc::RLIMIT_MEMLOCK, &mut limit) };
+    (got == 0 && limit.rlim_cur != libc::RLIM_INFINITY).then_some(limit.rlim_cur)
+}
+
+/// Whether this process may lock memory allocated later (`MCL_FUTURE`) without an allocation
+/// ever failing for it: its lock limit is unlimited, or it has `CAP_IPC_LOCK` (root has), which
+/// the limit does not bind. Under a limit (a user's is 8 MiB by default) `MCL_FUTURE` makes
+/// every allocation past it fail: a component that allocates after `init` (as the docs advise:
+/// what the rounds need, before the first) died of it, and so did every replica started again.
+pub fn locks_future_memory() -> bool {
+    memlock_limit().is_none() || sys::has_effective_capability(CAP_IPC_LOCK)
+}
 
 /// The policy the voter asked for in [`ENV_LOCK_MEMORY`]; the default (`all`) when absent. A
 /// value that does not parse is reported and taken as the default.
@@ -156,14 +182,25 @@ pub fn lock(policy: LockMemory) -> io::Result<Locked> {
     }
     sys::trim_heap(HEAP_PAD, HEAP_MMAP_THRESHOLD);
     let relro_read_only = protect_relocated_data();
-    match policy {
-        LockMemory::All => {
+    let future = locks_future_memory();
+    LOCK_FUTURE.store(future, Ordering::Relaxed);
+    match (policy, future) {
+        (LockMemory::All, true) => {
             LOCK_ALL.store(true, Ordering::Relaxed);
             sys::lock_all_memory()?;
         }
-        LockMemory::Used => {
+        (LockMemory::Used, true) => {
             LOCK_ALL.store(false, Ordering::Relaxed);
             sys::lock_used_memory()?;
+        }
+        // Under a lock limit: what is mapped now, not what comes later.
+        (LockMemory::All, false) => {
+            LOCK_ALL.store(true, Ordering::Relaxed);
+            sys::lock_current_memory(false)?;
+        }
+        (LockMemory::Used, false) => {
+            LOCK_ALL.store(false, Ordering::Relaxed);
+            sys::lock_current_memory(true)?;
         }
     }
     let mut on_fault = 0;
@@ -230,10 +267,14 @@ pub(crate) fn lock_fork_child() {
     if !FORK_CHILD_UNLOCKED.swap(false, Ordering::SeqCst) {
         return;
     }
-    let locked = if LOCK_ALL.load(Ordering::Relaxed) {
-        sys::lock_memory_on_fault()
-    } else {
-        sys::lock_used_memory()
+    let locked = match (
+        LOCK_ALL.load(Ordering::Relaxed),
+        LOCK_FUTURE.load(Ordering::Relaxed),
+    ) {
+        (true, true) => sys::lock_memory_on_fault(),
+        (false, true) => sys::lock_used_memory(),
+        // Under a lock limit, as the donor: what is mapped now.
+        (_, false) => sys::lock_current_memory(true),
     };
     if let Err(e) = locked {
         tracing::debug!(error = %e, "a fork child could not lock its memory");

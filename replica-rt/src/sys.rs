@@ -855,6 +855,19 @@ pub fn die_with_parent(cmd: &mut Command, sig: libc::c_int) {
     }
 }
 
+/// Whether capability `cap` is in this process's effective set (`CapEff` in
+/// `/proc/self/status`); `false` if that cannot be read.
+pub fn has_effective_capability(cap: u32) -> bool {
+    let Ok(status) = std::fs::read_to_string("/proc/self/status") else {
+        return false;
+    };
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("CapEff:"))
+        .and_then(|v| u64::from_str_radix(v.trim(), 16).ok())
+        .is_some_and(|mask| cap < 64 && mask & (1 << cap) != 0)
+}
+
 /// `mlockall(MCL_CURRENT | MCL_FUTURE)`.
 pub fn lock_all_memory() -> io::Result<()> {
     mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE)

@@ -62,6 +62,34 @@ fn assert_said(stderr: &str, refusals: usize) {
     assert_eq!(stderr.matches(REFUSED).count(), refusals, "{stderr}");
 }
 
+/// A component that allocates after `init` (16 MiB, as the docs advise: what the rounds need,
+/// before the first round) runs under a user's lock limit (8 MiB by default): replicas lock
+/// what they have at start, not later allocations, and bootstrap says so once. Before, every
+/// replica locked future memory too, its allocation failed, and so did every replica started
+/// again, until the component failed (a newcomer without root found it).
+#[test]
+fn unprivileged_replicas_that_allocate_after_init_run_under_a_lock_limit() {
+    let sys = System::new().unprivileged();
+    let echo = format!(
+        r#"{{ "exec": "s3res-echo", "args": ["--stateful", "--heap-mib", "16"],
+             "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }}"#
+    );
+    let summary = sys.path("summary.json");
+    let count = 200;
+    let mut run = sys.start(&echo_pipeline(&summary, &echo, count, 500));
+    let out = run.wait_success(LIMIT);
+    assert!(
+        !out.events.iter().any(|e| e.kind.is_fault()),
+        "{:#?}",
+        out.events
+    );
+    assert_sink_whole(&summary, count);
+    // The tests' own limit is the system's (inherited); as root they are not bound by it.
+    let limited = replica_rt::memory::memlock_limit().is_some();
+    let said = out.stderr.matches("memory locking is limited to").count();
+    assert_eq!(said, usize::from(limited), "{}", out.stderr);
+}
+
 /// Random replicas are killed while frames flow; each is a crash, repaired by fork with state.
 #[test]
 fn unprivileged_tmr_survives_kills_with_state() {
