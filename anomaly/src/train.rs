@@ -122,6 +122,7 @@ impl Trainer {
     /// The Gaussian model of the features seen so far.
     pub fn gaussian(&self, n_sigma: f64, sigma_floor_rel: f64) -> Result<Model, TrainError> {
         self.need(2)?;
+        check_sigma_floor(sigma_floor_rel)?;
         if !(n_sigma > 0.0 && n_sigma < CLAMP) {
             return Err(TrainError::Config(format!(
                 "n_sigma {n_sigma} must be positive and below {CLAMP}"
@@ -155,6 +156,7 @@ impl Trainer {
                 .chain([n])
                 .collect(),
         };
+        check_sigma_floor(config.sigma_floor_rel)?;
         if config.sgd.epochs == 0 || config.sgd.batch == 0 {
             return Err(TrainError::Config(
                 "epochs and batch must be at least 1".into(),
@@ -256,5 +258,17 @@ impl Default for AutoencoderConfig {
             margin: DEFAULT_MARGIN,
             sigma_floor_rel: crate::stats::DEFAULT_SIGMA_FLOOR_REL,
         }
+    }
+}
+
+/// The σ floor a model may be loaded with (what `Model` checks at load): a model written with
+/// NaN or a negative floor could not be read back.
+fn check_sigma_floor(floor: f64) -> Result<(), TrainError> {
+    if floor.is_finite() && floor >= 0.0 {
+        Ok(())
+    } else {
+        Err(TrainError::Config(format!(
+            "sigma floor {floor} must be a non-negative number"
+        )))
     }
 }

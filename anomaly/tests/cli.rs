@@ -150,6 +150,23 @@ fn bad_input_is_a_clear_error() {
         "gaussian --layout good.json --frames cut.bin --out m.json",
         &["frame file cut.bin, frame 0"],
     );
+    // A σ floor the model could not be loaded with is refused before it is written (before,
+    // NaN was written as null and `check` could not read the model).
+    for floor in ["NaN", "inf", "-1"] {
+        for kind in ["gaussian", "autoencoder --epochs 1"] {
+            refused(
+                d,
+                &format!(
+                    "{kind} --layout good.json --frames f.bin --out m.json --sigma-floor={floor}"
+                ),
+                &["must be a non-negative number"],
+            );
+            assert!(
+                !d.join("m.json").exists(),
+                "{kind} {floor}: a model was written"
+            );
+        }
+    }
     write("notamodel.json", "{\"format\":\"x\"}");
     refused(
         d,

@@ -296,12 +296,18 @@ fn run_dir(c: &CampaignRun, r: u64) -> anyhow::Result<(PathBuf, Option<ScratchDi
 }
 
 /// Reads the task's verdict file; `Some(ok)` if asked for (missing or unreadable: `false`).
+/// Its verdict is `ok`, or `success` (the robot's `mission.json`), as bootstrap's `outcome`
+/// reads it: before, a campaign read only `ok` and counted every successful mission failed.
 pub fn task_summary_ok(dir: &Path, file: Option<&str>) -> Option<bool> {
     let file = file?;
     let ok = std::fs::read_to_string(dir.join(file))
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .and_then(|v| v.get("ok").and_then(serde_json::Value::as_bool))
+        .and_then(|v| {
+            v.get("ok")
+                .or_else(|| v.get("success"))
+                .and_then(serde_json::Value::as_bool)
+        })
         .unwrap_or(false);
     Some(ok)
 }
@@ -480,6 +486,28 @@ impl Progress {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A task's verdict is `ok` or `success`, as bootstrap reads an `outcome`.
+    #[test]
+    fn a_task_summary_says_ok_or_success() {
+        let dir = tempfile::tempdir().unwrap();
+        for (text, want) in [
+            (r#"{"ok": true}"#, true),
+            (r#"{"success": true, "outcome": "goal"}"#, true),
+            (r#"{"success": false}"#, false),
+            (r#"{"outcome": "goal"}"#, false),
+            ("not json", false),
+        ] {
+            std::fs::write(dir.path().join("t.json"), text).unwrap();
+            assert_eq!(
+                task_summary_ok(dir.path(), Some("t.json")),
+                Some(want),
+                "{text}"
+            );
+        }
+        assert_eq!(task_summary_ok(dir.path(), Some("none.json")), Some(false));
+        assert_eq!(task_summary_ok(dir.path(), None), None);
+    }
 
     /// `--resume` after the description changed is refused, saying so; a campaign begun
     /// before the digest was recorded resumes as before.

@@ -89,10 +89,23 @@ pub fn reg_spec(reg: &RegOptions) -> Result<s3res_regflip::RegFlipSpec, FireErro
     };
     Ok(s3res_regflip::RegFlipSpec {
         role,
-        bits: reg.bits.max(1),
+        bits: reg.bits,
         field,
         registers: reg.registers.clone(),
         ..Default::default()
+    })
+}
+
+/// The register options checked as a whole before anything is injected (the same refusal
+/// every injection would meet: `--reg-bits 0`, a field narrower than the flip, an unknown
+/// register), naming the option.
+pub fn check_reg_options(reg: &RegOptions) -> Result<(), FireError> {
+    let spec = reg_spec(reg)?;
+    s3res_regflip::check_spec(&spec).map_err(|e| match e {
+        s3res_regflip::RegFlipError::InvalidSpec(why) => {
+            FireError::RegOptions(format!("--reg-{}", why.replacen(" = ", " ", 1)))
+        }
+        other => FireError::Reg(other),
     })
 }
 

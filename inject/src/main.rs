@@ -16,7 +16,7 @@ use s3res_description::exec;
 use s3res_description::plan::SystemPlan;
 use s3res_inject::campaign::{self, CampaignRun};
 use s3res_inject::classify::{self, ClassifyInfo, ClassifyRun};
-use s3res_inject::fault::{check_available, fire, FaultKind, RegOptions};
+use s3res_inject::fault::{check_available, check_reg_options, fire, FaultKind, RegOptions};
 use s3res_inject::report::{self, CampaignInfo, CampaignOutput, MachineInfo};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
 use s3res_inject::stop::StopSignals;
@@ -461,6 +461,19 @@ fn main() -> ExitCode {
             .find(|f| check_available(*f).is_err()),
     };
     if let Some(Err(e)) = kind.map(check_available) {
+        eprintln!("error: {e}");
+        return ExitCode::from(1);
+    }
+    // Register options are refused once, here, not met by every injection of a campaign (each
+    // run went ahead and every flip was 'missed', exit 0).
+    let reg = match &cli.command {
+        Command::Inject(a) => (a.fault == FaultKind::Reg).then_some(&a.reg),
+        Command::Campaign(a) => (a.fault == FaultKind::Reg).then_some(&a.reg),
+        Command::Classify(a) => (a.fault == FaultKind::Reg).then_some(&a.reg),
+        Command::Storm(a) => a.faults.contains(&FaultKind::Reg).then_some(&a.reg),
+        Command::Merge(_) => None,
+    };
+    if let Some(Err(e)) = reg.map(|r| check_reg_options(&r.options())) {
         eprintln!("error: {e}");
         return ExitCode::from(1);
     }

@@ -180,6 +180,48 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
     );
 }
 
+/// Register options that no flip can meet are refused once, before anything runs. Before, a
+/// campaign ran every run, each flip was 'missed' with an error line, and it exited 0
+/// (`--reg-registers foo`); `--reg-bits 0` flipped one bit while the campaign recorded 0; a
+/// flip wider than the chosen field stopped the target for every attempt.
+#[test]
+fn register_options_no_flip_can_meet_are_refused_before_the_first_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let cases: [(&[&str], &str); 4] = [
+        (
+            &["--reg-registers", "foo"],
+            "--reg-registers: unknown register `foo`",
+        ),
+        (&["--reg-bits", "0"], "--reg-bits 0: must be 1 to 128"),
+        (
+            &["--reg-field", "sign", "--reg-bits", "2"],
+            "--reg-bits 2: the sign field of an f64 has 1 bit",
+        ),
+        (&["--reg-role", "foo"], "--reg-role foo"),
+    ];
+    for (extra, want) in cases {
+        for command in ["campaign", "classify"] {
+            let mut args = vec![
+                command,
+                "--system",
+                "no-such-system.json",
+                "--fault",
+                "reg",
+                "--runs",
+                "1",
+                "--seed",
+                "1",
+                "--out",
+                out.to_str().unwrap(),
+            ];
+            args.extend_from_slice(extra);
+            refused(&args, want);
+        }
+    }
+    assert!(!out.exists(), "wrote {out:?}");
+}
+
 /// A storm told to hit a component the running system lacks says so at once. Before, it
 /// waited for that component to run until the system ended, then exited 0 having injected
 /// nothing, without a word (even with -v).

@@ -102,11 +102,27 @@ pub(crate) fn inject_with(
 }
 
 /// The spec's register names, checked and normalised.
-fn validate(spec: &RegFlipSpec) -> Result<Option<Vec<String>>, RegFlipError> {
+pub(crate) fn validate(spec: &RegFlipSpec) -> Result<Option<Vec<String>>, RegFlipError> {
     if spec.bits == 0 || spec.bits > 128 {
         return Err(RegFlipError::InvalidSpec(format!(
             "bits = {}: must be 1 to 128 (at most the width of the chosen register)",
             spec.bits
+        )));
+    }
+    // A field narrower than the flip could never be hit: every attempt would stop the target
+    // and single-step it for nothing.
+    let field_bits = match spec.field {
+        FloatField::Whole => 128,
+        FloatField::Sign => 1,
+        FloatField::Exponent => 11,
+        FloatField::Mantissa => 52,
+    };
+    if spec.bits > field_bits {
+        return Err(RegFlipError::InvalidSpec(format!(
+            "bits = {}: the {} field of an f64 has {field_bits} bit{}",
+            spec.bits,
+            spec.field,
+            if field_bits == 1 { "" } else { "s" }
         )));
     }
     if spec.lane > 1 {
@@ -707,6 +723,27 @@ mod tests {
             ..Default::default()
         };
         assert!(matches!(validate(&bad), Err(RegFlipError::InvalidSpec(m)) if m.contains("xmm16")));
+    }
+
+    /// A flip wider than the chosen field could never land: refused with the field's width.
+    #[test]
+    fn a_flip_wider_than_its_field_is_refused() {
+        for (field, bits, ok) in [
+            (FloatField::Sign, 1, true),
+            (FloatField::Sign, 2, false),
+            (FloatField::Exponent, 11, true),
+            (FloatField::Exponent, 12, false),
+            (FloatField::Mantissa, 52, true),
+            (FloatField::Mantissa, 53, false),
+            (FloatField::Whole, 128, true),
+        ] {
+            let spec = RegFlipSpec {
+                field,
+                bits,
+                ..Default::default()
+            };
+            assert_eq!(validate(&spec).is_ok(), ok, "{field} {bits}");
+        }
     }
 
     #[test]

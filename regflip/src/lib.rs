@@ -267,6 +267,19 @@ pub enum RegFlipError {
     },
 }
 
+/// Checks `spec` without touching any process: what [`inject`] would refuse for the spec
+/// itself (bits out of range or wider than the chosen field, an unknown register name), so a
+/// campaign can refuse it once before its first run.
+pub fn check_spec(spec: &RegFlipSpec) -> Result<(), RegFlipError> {
+    #[cfg(all(target_os = "linux", target_arch = "x86_64"))]
+    return engine::validate(spec).map(|_| ());
+    #[cfg(not(all(target_os = "linux", target_arch = "x86_64")))]
+    {
+        let _ = spec;
+        Err(RegFlipError::Unsupported)
+    }
+}
+
 /// Injects one register bit-flip into thread `spec.tid` (default: `pid`) of process `pid`, now.
 ///
 /// Blocks only for the injection itself (the pause is reported in the record). If the thread
