@@ -322,6 +322,37 @@ fn a_component_that_starts_a_thread_is_started_afresh_not_forked() {
     assert_sink_whole(&summary, count);
 }
 
+/// A replica that closes its output and takes a while to exit (300 ms of work, as a Rust
+/// program whose `main` returns an error symbolizes a backtrace with `RUST_BACKTRACE` set) is a
+/// crash with its exit status, not a protocol fault: before, 50 ms after the close it was
+/// called 'closed its output' and killed, its status and last words lost.
+#[test]
+fn a_replica_that_exits_slowly_after_closing_its_output_is_a_crash() {
+    let count = 600;
+    let sys = System::new();
+    let args = [
+        "--stateful",
+        "--mode",
+        "die-slowly",
+        "--replica",
+        "1",
+        "--at",
+        "50",
+    ];
+    let desc = echo_system(&sys, "tmr", "s3res-misbehave", &args, count, 500);
+    let summary = sys.path("summary.json");
+    let mut run = sys.start(&desc);
+    let out = run.wait_success(LIMIT);
+    let faults = out.faults();
+    assert_eq!(faults.len(), 1, "{faults:#?}");
+    assert_eq!(
+        (faults[0].kind, faults[0].exit_code, faults[0].replica),
+        (EventKind::Crash, Some(1), Some(1)),
+        "{faults:#?}"
+    );
+    assert_sink_whole(&summary, count);
+}
+
 /// A donor that is stopped while it should fork makes the recovery time out (the slot is filled
 /// by exec). When the donor is continued it forks late, and that child — with an old state —
 /// connects to the voter. It must be refused and killed, not taken as the next replacement.

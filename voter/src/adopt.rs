@@ -41,8 +41,9 @@ pub(crate) struct Adopted {
 
 /// What a connection taken off the socket while adopting turned out to be.
 enum Taken {
-    /// An awaited replica, rebound: its slot, and the replica.
-    Replica(usize, Replica),
+    /// An awaited replica, rebound: its slot, and the replica (boxed: the other variants are
+    /// small).
+    Replica(usize, Box<Replica>),
     /// A spare line of a replica awaited or taken back already.
     Spare(libc::pid_t, UnixStream),
     /// The spare line of a replica that is neither: dropped.
@@ -134,7 +135,7 @@ pub(crate) fn replicas(
                 Ok(Taken::Replica(slot, replica)) => {
                     on_adopt(replica.pid, slot);
                     tracing::info!(replica = slot, pid = replica.pid, "adopted");
-                    adopted.slots[slot] = Some(replica);
+                    adopted.slots[slot] = Some(*replica);
                 }
                 // The newest of each replica is kept: one made before its voter died leads
                 // nowhere once the replica has rebound (it drops it then, and makes another,
@@ -212,7 +213,7 @@ fn rebind(
     let Awaited { slot, entry, pidfd } = awaited.remove(k);
     Ok(Taken::Replica(
         slot,
-        Replica::adopted(pid, pidfd, pipes, entry),
+        Box::new(Replica::adopted(pid, pidfd, pipes, entry)),
     ))
 }
 

@@ -45,6 +45,9 @@ use crate::vote::{ReplicaSet, MAX_REPLICAS};
 /// protocol fault instead of a crash. The kernel closes a dying process's fds before it signals
 /// the exit, so the two are seen a moment apart.
 pub(crate) const EXIT_AFTER_EOF: Duration = Duration::from_millis(50);
+/// How long a replica whose output closed may go on running before it is judged (see
+/// `Core::closed_output_fault`).
+pub(crate) const EXIT_AFTER_EOF_BUSY: Duration = Duration::from_secs(1);
 /// How long a replica seen dying may take to finish, so that its exit status is read rather
 /// than replaced by our SIGKILL's.
 const EXIT_STATUS_WAIT: Duration = Duration::from_millis(100);
@@ -993,13 +996,18 @@ impl Core {
 
     /// What a replica whose output pipe closed turns out to be once [`EXIT_AFTER_EOF`] has
     /// passed: a crash if it is gone, a protocol fault if it lives. `None` while the grace
-    /// runs, or if no output of it closed.
-    fn closed_output_fault(&self, r: usize) -> Option<(Cause, String)> {
-        let rep = self.slots[r].as_ref()?;
-        let since = rep.output_closed_at?;
+    /// runs, or if no output of it closed. A replica still running at the end of the grace
+    /// gets more, up to [`EXIT_AFTER_EOF_BUSY`]: a program that closes its ports and then
+    /// reports an error on its way out (Rust's `main` returning `Err` with `RUST_BACKTRACE`
+    /// set symbolizes a backtrace for 100 ms and more) exits a while after its output closed,
+    /// and was called a protocol fault ('closed its output') instead of the crash it is.
+    fn closed_output_fault(&mut self, r: usize) -> Option<(Cause, String)> {
+        let rep = self.slots[r].as_mut()?;
+        let (since, ends) = (rep.output_closed_at?, rep.output_grace_ends?);
         // On the counter, exactly as the wake-up was set (a duration read off the counter is
         // rounded down, and could keep the loop spinning a few µs past it).
-        if Instant::now() < since + EXIT_AFTER_EOF {
+        let now = Instant::now();
+        if now < ends {
             return None;
         }
         // On a loaded machine a killed replica can take longer than the grace to finish
@@ -1007,13 +1015,19 @@ impl Core {
         if rep.exited_within(Duration::ZERO) || sys::process_exiting(rep.pid) {
             return Some((Cause::Died, DIED.into()));
         }
+        let busy = matches!(rep.proc_stat.state(rep.pidfd.as_fd()), Some('R' | 'D'));
+        if busy && now < since + EXIT_AFTER_EOF_BUSY {
+            rep.output_grace_ends = Some(now + EXIT_AFTER_EOF);
+            return None;
+        }
         let closed = rep
             .outputs
             .iter()
             .position(|out| out.is_closed())
             .unwrap_or(0);
+        let finished = rep.outputs[closed].decoder.finish();
         let name = self.output_name(closed);
-        Some(match rep.outputs[closed].decoder.finish() {
+        Some(match finished {
             Err(e @ FrameError::Truncated { .. }) => {
                 (Cause::PartialFrame, format!("output `{name}`: {e}"))
             }

@@ -13,7 +13,7 @@
 use std::time::Duration;
 
 use crate::clock::{Deadlines, Instant, Timer};
-use crate::core::{self, At, Core, Mode, Stop, VoterError, EXIT_AFTER_EOF};
+use crate::core::{self, At, Core, Mode, Stop, VoterError};
 use crate::decision::{decide_round, Answer, Decision, RoundBallot, RoundClose};
 use crate::event::Cause;
 use crate::plan::{Framing, VoterPlan};
@@ -259,8 +259,8 @@ impl ReactiveVoter {
             self.timers.set(Timer::Round(round.pair), at);
         }
         for (r, rep) in self.core.slots.iter().enumerate() {
-            if let Some(since) = rep.as_ref().and_then(|rep| rep.output_closed_at) {
-                self.timers.set(Timer::Grace(r), since + EXIT_AFTER_EOF);
+            if let Some(ends) = rep.as_ref().and_then(|rep| rep.output_grace_ends) {
+                self.timers.set(Timer::Grace(r), ends);
             }
         }
         self.wake_at = self.timers.nearest().map(|(_, at)| at);

@@ -79,6 +79,10 @@ pub struct Replica {
     /// When an output pipe of this live replica was seen closed: it is a `crash` if the process
     /// exits within a short grace, else a `protocol` fault.
     pub output_closed_at: Option<crate::clock::Instant>,
+    /// When the verdict on that closed output is due: [`crate::core::EXIT_AFTER_EOF`] after
+    /// it closed, moved on while the process still runs (on its way out, see
+    /// `Core::closed_output_fault`).
+    pub output_grace_ends: Option<crate::clock::Instant>,
     /// The start handshake: where a replica started by exec says that its runtime's `init` is
     /// done (see [`Replica::read_started`]); `None` once said, closed, or for a fork child.
     pub start_pipe: Option<OwnedFd>,
@@ -326,6 +330,7 @@ impl Replica {
             catching_up: state_lost,
             diverged: false,
             output_closed_at: None,
+            output_grace_ends: None,
             start_pipe: None,
             started: true,
             schedstat: SchedStat::new(pid),
@@ -450,6 +455,7 @@ impl Replica {
             catching_up: false,
             diverged: false,
             output_closed_at: None,
+            output_grace_ends: None,
             start_pipe: Some(start_r),
             started: false,
             schedstat: SchedStat::new(pid),
@@ -487,8 +493,11 @@ impl Replica {
         if self.exited_within(std::time::Duration::ZERO) {
             return true;
         }
-        self.output_closed_at
-            .get_or_insert_with(crate::clock::Instant::now);
+        let now = crate::clock::Instant::now();
+        if self.output_closed_at.is_none() {
+            self.output_closed_at = Some(now);
+            self.output_grace_ends = Some(now + crate::core::EXIT_AFTER_EOF);
+        }
         false
     }
 

@@ -23,7 +23,7 @@ use std::time::Duration;
 
 use crate::channel::Fill;
 use crate::clock::Instant;
-use crate::core::{self, At, Core, Mode, Stop, VoterError, EXIT_AFTER_EOF};
+use crate::core::{self, At, Core, Mode, Stop, VoterError};
 use crate::event::Cause;
 use crate::plan::VoterPlan;
 use crate::recovery::DonorState;
@@ -183,7 +183,7 @@ impl StreamVoter {
             .slots
             .iter()
             .flatten()
-            .filter_map(|rep| rep.output_closed_at.map(|t| t + EXIT_AFTER_EOF));
+            .filter_map(|rep| rep.output_grace_ends);
         // Held by downstream, the replicas' clocks stand still: its pipe's room wakes the loop.
         let held = self.held_by_downstream.is_some();
         let look =

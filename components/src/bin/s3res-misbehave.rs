@@ -26,6 +26,8 @@ use s3res_components::Echo;
 ///             the same index and panics again: a component that always fails)
 ///   spin      the correct answer, then spin forever (a control-flow error that strikes just
 ///             after the replica answered, while its siblings are still working on the round)
+///   die-slowly  instead of the answer: closes its output, computes for 300 ms (as a program
+///             that reports an error with a backtrace on its way out), then exits with status 1
 ///   worker    from frame K on, every answer passes through a worker thread (handed over a
 ///             channel and back): correct answers, but a second thread, which a fork does not
 ///             copy (the rule a component breaks by starting one)
@@ -60,6 +62,7 @@ enum Mode {
     Spin,
     Panic,
     Worker,
+    DieSlowly,
 }
 
 fn main() -> Result<()> {
@@ -91,6 +94,14 @@ fn main() -> Result<()> {
                 if misbehave(cli.mode, out, answer)? == After::Close {
                     // Dropping the port closes the fd: the voter sees the pipe closed.
                     output = None;
+                    if matches!(cli.mode, Mode::DieSlowly) {
+                        let started = std::time::Instant::now();
+                        while started.elapsed() < std::time::Duration::from_millis(300) {
+                            std::hint::spin_loop();
+                        }
+                        eprintln!("Error: misbehaving on purpose: exiting slowly with status 1");
+                        std::process::exit(1);
+                    }
                 }
             } else {
                 out.send(answer).context("answering")?;
@@ -147,6 +158,7 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
         }
         Mode::Panic => unreachable!("panics at start"),
         Mode::Worker => unreachable!("answers through the worker"),
+        Mode::DieSlowly => After::Close,
     };
     out.write_raw(&bytes).context("writing the broken frame")?;
     Ok(after)
