@@ -433,19 +433,60 @@ pub struct Verdict {
 }
 
 impl Verdict {
+    /// What the run lost that its exit status does not say: frames withheld, lost or rebuilt,
+    /// state lost at a recovery, replicas down or diverged at the end. A run that ended 0 with
+    /// none of them ran clean (faults recovered with the state kept are what s3res is for);
+    /// before, every run that ended 0 did — one whose every frame was withheld, or whose
+    /// state was lost in thirty restarts, too.
+    fn losses(&self) -> Vec<String> {
+        let sum = |f: fn(&ComponentTally) -> u64| -> u64 {
+            self.tally.per_component.values().map(f).sum()
+        };
+        let count = |f: fn(&ComponentTally) -> usize| -> usize {
+            self.tally.per_component.values().map(f).sum()
+        };
+        [
+            (sum(|c| c.withheld) as usize, "frame", "withheld"),
+            (sum(|c| c.lost) as usize, "frame", "lost"),
+            (sum(|c| c.rebuilt) as usize, "frame", "rebuilt bit by bit"),
+            (
+                sum(|c| c.state_lost) as usize,
+                "recover",
+                "with the state lost",
+            ),
+            (count(|c| c.down.len()), "replica", "down"),
+            (count(|c| c.diverged.len()), "replica", "diverged"),
+        ]
+        .into_iter()
+        .filter(|&(n, ..)| n > 0)
+        .map(|(n, noun, what)| {
+            let noun = match (noun, n) {
+                ("recover", 1) => "recovery".to_owned(),
+                ("recover", _) => "recoveries".to_owned(),
+                (noun, 1) => noun.to_owned(),
+                (noun, _) => format!("{noun}s"),
+            };
+            format!("{n} {noun} {what}")
+        })
+        .collect()
+    }
+
     /// The block, ready to print (each line ends with a newline).
     pub fn render(&self) -> String {
         let mut s = String::new();
         let rule = "─".repeat(72);
         let _ = writeln!(s, "{rule}");
+        let losses = self.losses();
         let _ = writeln!(
             s,
             "{}: {} after {:.1} s",
             self.system,
-            if self.exit_code == 0 {
+            if self.exit_code != 0 {
+                format!("exit status {}", self.exit_code)
+            } else if losses.is_empty() {
                 "ran clean".to_owned()
             } else {
-                format!("exit status {}", self.exit_code)
+                format!("ran to the end, with losses: {}", losses.join(", "))
             },
             self.elapsed.as_secs_f64()
         );
@@ -719,6 +760,14 @@ mod tests {
         t.apply(&event(EventKind::VoterRestart, None));
         t.apply(&event(EventKind::Lost, None));
         let text = clean_run_of("filter", &t).render();
+        // Exit status 0, but not clean: the headline says what was lost.
+        assert!(
+            text.contains(
+                "robot: ran to the end, with losses: 1 frame withheld, 1 frame lost, 2 frames \
+                 rebuilt bit by bit, 2 recoveries with the state lost after 3.0 s"
+            ),
+            "{text}"
+        );
         assert!(
             text.contains("voters       replaced (replicas adopted): filter 1"),
             "{text}"
@@ -758,6 +807,16 @@ mod tests {
         t.apply(&event(EventKind::Crash, Some(2)));
         let text = clean_run_of("filter", &t).render();
         assert!(!text.contains("diverged"), "{text}");
+        assert!(text.contains("with losses: 1 replica down"), "{text}");
+        // Faults recovered by fork, with the state kept: what s3res is for, a clean run.
+        let t = Tally::default();
+        t.apply(&event(EventKind::Crash, Some(0)));
+        let mut r = event(EventKind::Recovery, Some(0));
+        r.method = Some(RecoveryMethod::Fork);
+        r.state_lost = Some(false);
+        t.apply(&r);
+        let text = clean_run_of("filter", &t).render();
+        assert!(text.contains("robot: ran clean after 3.0 s"), "{text}");
     }
 
     #[test]
