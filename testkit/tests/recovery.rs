@@ -353,6 +353,36 @@ fn a_replica_that_exits_slowly_after_closing_its_output_is_a_crash() {
     assert_sink_whole(&summary, count);
 }
 
+/// A component that needs longer than its deadline for every round (300 ms of work, 100 ms
+/// allowed) has every replica blamed in every round: the `hang`s say that every replica missed
+/// the round and which setting to raise. Before, nothing pointed at the deadline.
+#[test]
+fn a_deadline_every_replica_misses_is_named_in_their_hangs() {
+    let sys = System::new();
+    let echo = r#"{ "exec": "s3res-echo", "args": ["--work-us", "300000"], "redundancy": "tmr",
+                    "timeout_us": 100000 }"#;
+    let desc = echo_pipeline(&sys.path("summary.json"), echo, 3, 5);
+    let mut run = sys.start(&desc);
+    let out = run.wait(LIMIT);
+    // A replica started afresh has a start-up allowance for its first answer instead.
+    let hangs: Vec<_> = of_kind(&out.events, EventKind::Hang)
+        .into_iter()
+        .filter(|h| h.cause == Some(s3res_testkit::Cause::Deadline))
+        .collect();
+    assert!(!hangs.is_empty(), "{:#?}", out.events);
+    for hang in &hangs {
+        let detail = hang.detail.as_deref().unwrap_or_default();
+        assert!(
+            detail.contains(
+                "every replica missed this round: if the component needs more than 100000 µs \
+                 for a round, raise its timeout_us"
+            ),
+            "{detail}"
+        );
+    }
+    run.assert_nothing_left();
+}
+
 /// A donor that is stopped while it should fork makes the recovery time out (the slot is filled
 /// by exec). When the donor is continued it forks late, and that child — with an old state —
 /// connects to the voter. It must be refused and killed, not taken as the next replacement.

@@ -42,6 +42,9 @@ pub struct ReactiveVoter {
     close: RoundClose,
     /// The number of the round being closed (taken out of `round`: no early forwarding).
     closing: Option<u64>,
+    /// Every replica of the round being closed missed its deadline (their `hang`s say so; a
+    /// round still open tells by itself).
+    all_late: bool,
     /// Per replica, what the looks before the open round's deadline saw it do, for the
     /// `hang` event's detail.
     evidence: [Option<Seen>; MAX_REPLICAS],
@@ -78,6 +81,7 @@ impl ReactiveVoter {
             rounds_started,
             close: RoundClose::default(),
             closing: None,
+            all_late: false,
             evidence: [None; MAX_REPLICAS],
             watching: None,
             wake_at: None,
@@ -899,9 +903,28 @@ impl ReactiveVoter {
                         d.as_micros()
                     ),
                 };
+                // One replica late is a fault; all of them, round after round, is more often a
+                // deadline shorter than the component's work (a newcomer's 300 ms component under
+                // 250 ms lost every other input and its state to restarts, and nothing said why).
+                // (In a sequential round the others may not have had their turn yet.)
+                let none_answered = !on_turn
+                    && self.round.as_ref().is_some_and(|rd| {
+                        let mut members =
+                            rd.members.iter().filter(|&m| self.core.slots[m].is_some());
+                        members.clone().next().is_some() && members.all(|m| !rd.is_done_by(m))
+                    });
+                let all = if self.all_late || none_answered {
+                    format!(
+                        "; every replica missed this round: if the component needs more than {} \
+                         µs for a round, raise its timeout_us",
+                        plan.timeout_us
+                    )
+                } else {
+                    String::new()
+                };
                 format!(
                     "no answer within {} µs{turn}{extended} in round {number}{seen}{backlog}; \
-                     the voter blamed it {voter_late} µs after the deadline",
+                     the voter blamed it {voter_late} µs after the deadline{all}",
                     plan.timeout_us
                 )
             }
@@ -937,9 +960,16 @@ impl ReactiveVoter {
         // Faults from here on name this round, and forward nothing early: the decisions
         // below already count them.
         self.closing = Some(round.number);
+        let members = round
+            .members
+            .iter()
+            .filter(|&r| self.core.slots[r].is_some())
+            .count();
+        self.all_late = members > 0 && close.late.len() == members;
         for r in close.late.iter() {
             self.blame_late(r, round.number, round.turn == Some(r), round.deadline);
         }
+        self.all_late = false;
         let catching_up = self.core.catching_up();
         if !catching_up.is_empty() {
             // A replica started afresh whose frame went out has caught up (see
