@@ -4,7 +4,7 @@
 //!
 //! A replica running a real-time policy (SCHED_RR/FIFO) gets its real-time priority + 1 (at
 //! most 99); any other gets its nice value − [`NICE_STEP`]. Both need privileges the voter may
-//! not have: the first refusal is logged once and boosting is off for the rest of the run, the
+//! not have: the first refusal is logged (at debug) and boosting is off for the rest of the run, the
 //! voter carries on without it. Like in S³RES this is best effort, never relied on for
 //! correctness: on two cores three replicas still share the CPU with everything else.
 //!
@@ -45,7 +45,10 @@ impl Boost {
             Ok(base) => self.current = Some((pid, base)),
             Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {}
             Err(e) => {
-                tracing::warn!(
+                // Not a warning: this boost is used only without SCHED_RR, where bootstrap has
+                // said once for the system what is missing and how to get it (or where no
+                // priority was asked for at all); each stream voter saying it again was noise.
+                tracing::debug!(
                     pid,
                     error = %e,
                     "cannot raise the priority of the replica furthest behind; stream mode carries on without (needs CAP_SYS_NICE or root)"
