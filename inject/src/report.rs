@@ -160,8 +160,9 @@ pub fn markdown(summaries: &[Summary]) -> String {
         "Injections (S³RES Table 2 layout): % error = injections not followed by a recovery of \
          the injected replica (undetected in a failed run, or detected and not recovered), \
          over delivered injections, with its exact 95 % (Clopper–Pearson) interval and the \
-         count it rests on. Missed: not delivered (the replica was being replaced or gone, \
-         already hit and not yet found faulty, or never seen running by a register flip); \
+         count it rests on. Missed: not counted — not delivered (the replica was being \
+         replaced or gone, or never seen running by a register flip), or delivered into a \
+         replica already hit and not yet found faulty (its effect cannot be told apart); \
          after end: planned after the run had ended (neither injected nor missed).\n"
     );
     let _ = writeln!(
