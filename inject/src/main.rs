@@ -832,8 +832,19 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
         resume: a.resume,
         ready_limit: Duration::from_secs(30),
     };
+    // As a campaign says it: what runs, and the seed that reproduces it.
+    eprintln!(
+        "s3res-inject: classify {} on {}: {} run(s){}, seed {}",
+        c.info.fault,
+        c.info.system.display(),
+        s3res_protocol::campaign::runs_in_shard(c.info.shard, c.info.runs),
+        a.shard
+            .map_or(String::new(), |(k, n)| format!(" (shard {k}/{n})")),
+        a.seed
+    );
     let s = classify::run(&c, stop)?;
     print!("{}", classify::markdown(&[s]));
+    eprintln!("s3res-inject: outputs in {}", c.out.display());
     Ok(())
 }
 

@@ -159,6 +159,13 @@ fn a_robot_is_classified_by_its_mission() {
     );
     assert!(f.success, "{}", f.stderr);
     assert!(f.stdout.contains("| Successful missions |"), "{}", f.stdout);
+    // Its seed and folder are said, as a campaign says them (they were not).
+    assert!(
+        f.stderr.contains(&format!("2 run(s), seed {seed}"))
+            && f.stderr.contains(&format!("outputs in {}", out.display())),
+        "{}",
+        f.stderr
+    );
     let s = read_json(&out.join("classify.json"));
     assert_eq!(
         (s["classified"].as_u64(), s["crash"].as_u64()),
