@@ -109,6 +109,17 @@ pub fn check_reg_options(reg: &RegOptions) -> Result<(), FireError> {
     })
 }
 
+/// When an injection happened: for a register flip, when the injector says it flipped (it
+/// waits for its target to run, up to a second); for the rest, `asked` (just before the
+/// signal). Every log that records an injection uses this: a storm's and a one-off `inject`'s
+/// said when the register injector began to wait, up to 200 ms early.
+pub fn injected_at(asked: u64, injector: Option<&serde_json::Value>) -> u64 {
+    injector
+        .and_then(|r| r.get("time_ns"))
+        .and_then(serde_json::Value::as_u64)
+        .unwrap_or(asked)
+}
+
 /// Whether this build can deliver `kind` (checked before a campaign starts, so that a kind
 /// that cannot be delivered is one clear error, not N runs of missed injections).
 pub fn check_available(kind: FaultKind) -> Result<(), FireError> {
@@ -293,6 +304,15 @@ fn with_wait(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An injection happened when the register injector says it flipped, else when asked.
+    #[test]
+    fn an_injection_happened_when_the_injector_says_it_flipped() {
+        let flip = serde_json::json!({"time_ns": 7});
+        assert_eq!(injected_at(3, Some(&flip)), 7);
+        assert_eq!(injected_at(3, Some(&serde_json::json!({}))), 3);
+        assert_eq!(injected_at(3, None), 3);
+    }
 
     /// A target without the hooks (a plain program) is not signalled: the default action of
     /// the injection signals would kill it, and a campaign would count a crash.

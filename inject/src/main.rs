@@ -633,10 +633,10 @@ fn cmd_inject(a: &InjectArgs) -> anyhow::Result<()> {
         }
         (None, None) => resolve(&view, &a.component, planned.draw, a.pick)?,
     };
-    let ts_ns = replica_rt::sys::monotonic_ns();
+    let asked = replica_rt::sys::monotonic_ns();
     let injector = fire(&planned.action, target.pid, &a.reg.options())?;
     let mut line = serde_json::json!({
-        "ts_ns": ts_ns,
+        "ts_ns": s3res_inject::fault::injected_at(asked, injector.as_ref()),
         "seed": seed,
         "system": view.system,
         "component": target.component,

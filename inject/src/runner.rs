@@ -212,15 +212,7 @@ pub fn inject_now(setup: &RunSetup, state_path: &Path, p: &Planned) -> Attempt {
     };
     match fire(&p.action, target.pid, &setup.reg) {
         Ok(rep) => {
-            // A register flip waits for its target to run (up to a second): it happened when
-            // the injector says it flipped, not when it began to wait.
-            if let Some(flipped) = rep
-                .as_ref()
-                .and_then(|r| r.get("time_ns"))
-                .and_then(serde_json::Value::as_u64)
-            {
-                a.ts_ns = Some(flipped);
-            }
+            a.ts_ns = Some(crate::fault::injected_at(ts, rep.as_ref()));
             a.injector = rep;
         }
         Err(e @ FireError::Gone(_)) | Err(e @ FireError::Signal { .. }) => {

@@ -246,8 +246,8 @@ fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json:
         Err(e) => return (miss_line(o, index, &view.system, planned, &e), false),
     };
     let ts = replica_rt::sys::monotonic_ns();
-    let (ts, miss) = match fire(&planned.action, target.pid, &o.reg) {
-        Ok(_) => {
+    let (ts, miss, injector) = match fire(&planned.action, target.pid, &o.reg) {
+        Ok(injector) => {
             tracing::info!(
                 "injected {} into {}#{} (pid {})",
                 describe(&planned.action),
@@ -255,11 +255,12 @@ fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json:
                 target.slot.map_or("-".to_owned(), |s| s.to_string()),
                 target.pid
             );
-            (Some(ts), None)
+            let at = crate::fault::injected_at(ts, injector.as_ref());
+            (Some(at), None, injector)
         }
-        Err(e) => (None, Some(e.to_string())),
+        Err(e) => (None, Some(e.to_string()), None),
     };
-    let line = record_line(
+    let mut line = record_line(
         index,
         o.seed,
         &view.system,
@@ -268,6 +269,10 @@ fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json:
         ts,
         miss.as_deref(),
     );
+    // The register injector's record (instruction, register, bits, values), as a campaign's.
+    if let (Some(obj), Some(i)) = (line.as_object_mut(), injector) {
+        obj.insert("injector".to_owned(), i);
+    }
     (line, ts.is_some())
 }
 

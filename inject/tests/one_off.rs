@@ -194,6 +194,9 @@ fn a_register_flip_is_logged_whole_and_tmr_carries_on() {
     };
     let bit = bits[0].as_u64().unwrap();
     assert_eq!(hex("before") ^ hex("after"), 1u128 << bit, "{rec}");
+    // The line's time is the flip's, not when the injector began to wait for its target to
+    // run (it said the latter, up to 200 ms early).
+    assert_eq!(rec["ts_ns"], flip["time_ns"], "{rec}");
 
     // Crash, hang, corruption or nothing at all: the slot ends up running again.
     let deadline = Instant::now() + LIMIT;
