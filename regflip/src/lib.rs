@@ -230,8 +230,8 @@ pub enum RegFlipError {
     )]
     InSyscall { tid: i32, ip: u64, syscall: u64 },
     #[error(
-        "no {role} register matching the spec in {steps} single-steps (stopped at {ip:#x}: \
-         {instruction})"
+        "no register operand matching the spec (role {role}) in {steps} single-steps \
+         (stopped at {ip:#x}: {instruction})"
     )]
     NoCandidate {
         tid: i32,
@@ -331,5 +331,27 @@ pub fn inject_after_syscall(
     {
         let _ = (pid, spec, rng, patience, skip);
         Err(RegFlipError::Unsupported)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The role reads as a role ("no any register matching …" before).
+    #[test]
+    fn no_candidate_names_the_role_as_a_role() {
+        let e = RegFlipError::NoCandidate {
+            tid: 1,
+            role: OperandRole::Any,
+            steps: 16,
+            ip: 0x10,
+            instruction: "nop".into(),
+        };
+        assert_eq!(
+            e.to_string(),
+            "no register operand matching the spec (role any) in 16 single-steps (stopped at \
+             0x10: nop)"
+        );
     }
 }
