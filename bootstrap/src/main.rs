@@ -198,6 +198,9 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
     if cli.check {
         let sched = SystemSched::for_system(&plan);
         print!("{}", plan.describe(voter.as_deref(), Some(&sched)));
+        if let Some(note) = s3res_bootstrap::run::memory_lock_note(&plan) {
+            println!("\n{note}");
+        }
         return Ok(0);
     }
 

@@ -603,20 +603,26 @@ fn open_events_file(path: &Path) -> Result<File, RunError> {
 /// a lock limit binds them (their processes are this one's user and limits): each replica
 /// would otherwise say it, and the voters too.
 fn say_memory_lock_limit(plan: &SystemPlan) {
+    if let Some(note) = memory_lock_note(plan) {
+        tracing::warn!("{note}");
+    }
+}
+
+/// What a lock limit leaves of the replicas' memory locking, if one binds them (`--check` says
+/// it too); `None` without protected components or without a limit that binds.
+pub fn memory_lock_note(plan: &SystemPlan) -> Option<String> {
     if !plan.components.iter().any(|c| c.is_protected()) {
-        return;
+        return None;
     }
-    if let Some(limit) =
-        replica_rt::memory::memlock_limit().filter(|_| !replica_rt::memory::locks_future_memory())
-    {
-        tracing::warn!(
-            "memory locking is limited to {} KiB (RLIMIT_MEMLOCK, no CAP_IPC_LOCK): replicas lock \
-             the memory they have at start, not what they allocate later (that could then fail), \
-             so a round may still take a page fault. Raise the limit (`ulimit -l`, memlock in \
-             limits.conf) or grant CAP_IPC_LOCK to lock it all",
-            limit / 1024
-        );
-    }
+    let limit = replica_rt::memory::memlock_limit()
+        .filter(|_| !replica_rt::memory::locks_future_memory())?;
+    Some(format!(
+        "memory locking is limited to {} KiB (RLIMIT_MEMLOCK, no CAP_IPC_LOCK): replicas lock \
+         the memory they have at start, not what they allocate later (that could then fail), \
+         so a round may still take a page fault. Raise the limit (`ulimit -l`, memlock in \
+         limits.conf) or grant CAP_IPC_LOCK to lock it all",
+        limit / 1024
+    ))
 }
 
 /// Creates the folder `path` goes into, if it has one and it is missing.

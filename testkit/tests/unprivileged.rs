@@ -88,6 +88,15 @@ fn unprivileged_replicas_that_allocate_after_init_run_under_a_lock_limit() {
     let limited = replica_rt::memory::memlock_limit().is_some();
     let said = out.stderr.matches("memory locking is limited to").count();
     assert_eq!(said, usize::from(limited), "{}", out.stderr);
+    // `--check` says it too, before anything runs.
+    let sys = System::new().unprivileged();
+    let summary = sys.path("summary.json");
+    let mut check = sys
+        .arg("--check")
+        .start(&echo_pipeline(&summary, &echo, count, 500));
+    let out = check.wait_success(LIMIT);
+    let said = out.stdout.matches("memory locking is limited to").count();
+    assert_eq!(said, usize::from(limited), "{}", out.stdout);
 }
 
 /// Random replicas are killed while frames flow; each is a crash, repaired by fork with state.
