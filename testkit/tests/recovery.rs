@@ -322,7 +322,7 @@ fn a_component_that_starts_a_thread_is_started_afresh_not_forked() {
     assert_sink_whole(&summary, count);
 }
 
-/// A replica that closes its output and takes a while to exit (300 ms of work, as a Rust
+/// A replica that closes its output and takes a while to exit (150 ms of work, as a Rust
 /// program whose `main` returns an error symbolizes a backtrace with `RUST_BACKTRACE` set) is a
 /// crash with its exit status, not a protocol fault: before, 50 ms after the close it was
 /// called 'closed its output' and killed, its status and last words lost.

@@ -26,7 +26,7 @@ use s3res_components::Echo;
 ///             the same index and panics again: a component that always fails)
 ///   spin      the correct answer, then spin forever (a control-flow error that strikes just
 ///             after the replica answered, while its siblings are still working on the round)
-///   die-slowly  instead of the answer: closes its output, computes for 300 ms (as a program
+///   die-slowly  instead of the answer: closes its output, computes for 150 ms (as a program
 ///             that reports an error with a backtrace on its way out), then exits with status 1
 ///   worker    from frame K on, every answer passes through a worker thread (handed over a
 ///             channel and back): correct answers, but a second thread, which a fork does not
@@ -96,7 +96,7 @@ fn main() -> Result<()> {
                     output = None;
                     if matches!(cli.mode, Mode::DieSlowly) {
                         let started = std::time::Instant::now();
-                        while started.elapsed() < std::time::Duration::from_millis(300) {
+                        while started.elapsed() < std::time::Duration::from_millis(150) {
                             std::hint::spin_loop();
                         }
                         eprintln!("Error: misbehaving on purpose: exiting slowly with status 1");
