@@ -37,24 +37,30 @@ fn bit_goes_with_sdc_only() {
     }
 }
 
+/// `command` (campaign or classify) of one run of `fault`, seed 1, into `out`, on a system
+/// that does not exist: what is refused must be refused before the system is read.
+fn runs_of<'a>(command: &'a str, fault: &'a str, out: &'a str) -> Vec<&'a str> {
+    vec![
+        command,
+        "--system",
+        "no-such-system.json",
+        "--fault",
+        fault,
+        "--runs",
+        "1",
+        "--seed",
+        "1",
+        "--out",
+        out,
+    ]
+}
+
 #[test]
 fn classify_and_storm_refuse_mixed_and_name_the_kinds() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
     refused(
-        &[
-            "classify",
-            "--system",
-            "no-such-system.json",
-            "--fault",
-            "mixed",
-            "--runs",
-            "1",
-            "--seed",
-            "1",
-            "--out",
-            out.to_str().unwrap(),
-        ],
+        &runs_of("classify", "mixed", out.to_str().unwrap()),
         "run it once per kind (exec, sdc, cfe)",
     );
     assert!(!out.exists(), "classify wrote {out:?}");
@@ -202,19 +208,7 @@ fn register_options_no_flip_can_meet_are_refused_before_the_first_run() {
     ];
     for (extra, want) in cases {
         for command in ["campaign", "classify"] {
-            let mut args = vec![
-                command,
-                "--system",
-                "no-such-system.json",
-                "--fault",
-                "reg",
-                "--runs",
-                "1",
-                "--seed",
-                "1",
-                "--out",
-                out.to_str().unwrap(),
-            ];
+            let mut args = runs_of(command, "reg", out.to_str().unwrap());
             args.extend_from_slice(extra);
             refused(&args, want);
         }

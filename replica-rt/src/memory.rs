@@ -355,14 +355,8 @@ mod tests {
         let released = release_alternate_stack();
         // The pages are dropped before they are locked again; only that last step needs
         // locked memory, which RLIMIT_MEMLOCK may refuse an unprivileged test.
-        let mut limit = libc::rlimit {
-            rlim_cur: 0,
-            rlim_max: 0,
-        };
-        // SAFETY: getrlimit writes the limit into `limit`.
-        let got = unsafe { libc::getrlimit(libc::RLIMIT_MEMLOCK, &mut limit) };
-        assert_eq!(got, 0);
-        let refused = sys::effective_uid() != 0 && limit.rlim_cur < (end - start) as u64;
+        let refused = sys::effective_uid() != 0
+            && memlock_limit().is_some_and(|limit| limit < (end - start) as u64);
         assert!(
             released == end - start || (released == 0 && refused),
             "released {released} of {} bytes",

@@ -908,11 +908,10 @@ impl ReactiveVoter {
                 // 250 ms lost every other input and its state to restarts, and nothing said why).
                 // (In a sequential round the others may not have had their turn yet.)
                 let none_answered = !on_turn
-                    && self.round.as_ref().is_some_and(|rd| {
-                        let mut members =
-                            rd.members.iter().filter(|&m| self.core.slots[m].is_some());
-                        members.clone().next().is_some() && members.all(|m| !rd.is_done_by(m))
-                    });
+                    && self
+                        .round
+                        .as_ref()
+                        .is_some_and(|rd| nobody_answered(rd, &self.core.slots));
                 let all = if self.all_late || none_answered {
                     format!(
                         "; every replica missed this round: if the component needs more than {} \
@@ -960,12 +959,7 @@ impl ReactiveVoter {
         // Faults from here on name this round, and forward nothing early: the decisions
         // below already count them.
         self.closing = Some(round.number);
-        let members = round
-            .members
-            .iter()
-            .filter(|&r| self.core.slots[r].is_some())
-            .count();
-        self.all_late = members > 0 && close.late.len() == members;
+        self.all_late = nobody_answered(&round, &self.core.slots);
         for r in close.late.iter() {
             self.blame_late(r, round.number, round.turn == Some(r), round.deadline);
         }
@@ -1276,6 +1270,13 @@ fn turn_end(answered: Option<Instant>, open: Option<Instant>, now: Instant) -> I
 /// that stopped reading cannot make the voter's memory grow without bound.
 fn input_backlog_limit(max_frame: usize) -> usize {
     (64 * (max_frame + replica_rt::frame::HEADER_LEN)).max(4 << 20)
+}
+
+/// Whether no trusted member of `round` has answered (and it has some): every replica missed
+/// it, which the `hang`s say (see `ReactiveVoter::blame_late`).
+fn nobody_answered(round: &Round, slots: &[Option<Replica>]) -> bool {
+    let mut members = round.members.iter().filter(|&m| slots[m].is_some());
+    members.clone().next().is_some() && members.all(|m| !round.is_done_by(m))
 }
 
 #[cfg(test)]
