@@ -438,6 +438,19 @@ fn cannot_run(echo: &str, why: &[&str]) -> String {
     cannot_run_as(echo, |desc| desc, why)
 }
 
+/// The voter's line that says the echo failed on its restart budget.
+fn budget_line(stderr: &str) -> &str {
+    stderr
+        .lines()
+        .find(|l| l.contains("failed beyond recovery: component echo restarted a replica by exec"))
+        .unwrap_or_else(|| {
+            panic!(
+                "no line names the failed component:\n{}",
+                s3res_testkit::tail(stderr, 30)
+            )
+        })
+}
+
 /// [`cannot_run`], with the pipeline's description changed by `edit` first.
 fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) -> String {
     let sys = System::new();
@@ -457,16 +470,7 @@ fn cannot_run_as(echo: &str, edit: impl FnOnce(String) -> String, why: &[&str]) 
         "a component that cannot run: {}",
         out.status
     );
-    let line = out
-        .stderr
-        .lines()
-        .find(|l| l.contains("failed beyond recovery: component echo restarted a replica by exec"))
-        .unwrap_or_else(|| {
-            panic!(
-                "no line names the failed component:\n{}",
-                s3res_testkit::tail(&out.stderr, 30)
-            )
-        });
+    let line = budget_line(&out.stderr);
     for w in why {
         assert!(line.contains(w), "{w:?} not in {line:?}");
     }
@@ -559,6 +563,59 @@ fn a_misspelled_port_fails_the_component_in_one_line() {
         |desc| desc.replace("\"echo.in\"", "\"echo.inn\""),
         &["exited with status 1", "no input port named \"in\""],
     );
+}
+
+/// A replica forked from a donor that had already said its error, and that dies without a
+/// word of its own, is quoted with what its donor said: the child's memory is its donor's.
+/// (Before, the restart budget's line quoted nothing when the last fault was such a child: a
+/// misspelled port's replicas, forked while they symbolized their backtraces, failed so one
+/// run in about fifty.) Replica 1 says its last words at frame 20 and answers on; replica 0,
+/// killed, is forked from it; replica 1's own process exits silently at frame 120, replaced
+/// by a fork of replica 0's child; at frame 220 both fork descendants exit silently, and the
+/// budget (max_restarts 1) ends the component.
+#[test]
+fn a_fork_child_that_dies_without_a_word_is_quoted_with_what_its_donor_said() {
+    let sys = System::new();
+    let misbehave = format!(
+        r#"{{ "exec": "s3res-misbehave", "args": ["--mode", "last-words", "--replica", "1", "--at", "20"], "redundancy": "dmr", "timeout_us": {TIMEOUT_US}, "max_restarts": 1 }}"#
+    );
+    let desc = echo_pipeline(&sys.path("summary.json"), &misbehave, 100_000, 50);
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 2);
+    let pids = run.replica_pids("echo");
+    let said = format!(
+        "[echo#1 pid {}] Error: misbehaving on purpose: last words",
+        pids[&1]
+    );
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !run.stderr().contains(&said) {
+        if run.try_status().is_some() || Instant::now() >= deadline {
+            let out = run.wait(Duration::from_secs(10));
+            panic!(
+                "replica 1 never said its last words:\n{}",
+                s3res_testkit::tail(&out.stderr, 30)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    s3res_testkit::kill_pid(pids[&0], libc::SIGKILL).expect("kill replica 0");
+    let rec = run.wait_for_recovery("echo", 0, pids[&0]);
+    assert_eq!(
+        rec.donor,
+        Some(1),
+        "replica 0 forked from replica 1: {rec:?}"
+    );
+    let out = run.wait(Duration::from_secs(60));
+    assert!(!out.status.success(), "{}", out.status);
+    let line = budget_line(&out.stderr);
+    // The fault it quotes is a fork descendant's, not replica 1's first process.
+    assert!(!line.contains(&format!("pid {} ", pids[&1])), "{line}");
+    assert!(
+        line.contains("exited with status 1")
+            && line.contains("its last stderr line: Error: misbehaving on purpose: last words"),
+        "{line}"
+    );
+    run.assert_nothing_left();
 }
 
 /// Every line a replica writes to stderr reaches bootstrap's stderr behind

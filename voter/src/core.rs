@@ -1308,7 +1308,16 @@ impl Core {
         if donor_level == DonorLevel::Raised {
             rt.rest(donor_pid, d);
         }
-        forked
+        let mut forked = forked?;
+        // The child remembers what its donor said, as it remembers the rest of its memory: a
+        // donor forked while it reported an error on its way out has a child that writes only
+        // the rest (a backtrace) and dies, and the restart budget's line must still quote the
+        // error. What the donor wrote up to the fork is read first.
+        if let Some(donor) = self.slots[d].as_mut() {
+            donor.relay_stderr(&self.plan.component, d);
+            forked.replica.stderr.continue_from(&donor.stderr);
+        }
+        Ok(forked)
     }
 
     /// Retires the replica being replaced now, if that has not happened yet.

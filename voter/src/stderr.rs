@@ -76,6 +76,14 @@ impl StderrRelay {
         }
     }
 
+    /// A fork child's relay goes on from its donor's: what the donor said last is what the
+    /// child said last until it says something itself (its memory is the donor's, and a donor
+    /// forked half-way through an error report has a child that writes only the rest of it).
+    pub fn continue_from(&mut self, donor: &StderrRelay) {
+        self.last_line.clone_from(&donor.last_line);
+        self.in_causes = donor.in_causes;
+    }
+
     fn take(&mut self, prefix: &str, mut bytes: &[u8]) {
         while let Some(nl) = bytes.iter().position(|&b| b == b'\n') {
             let mut line = std::mem::take(&mut self.partial);
@@ -201,6 +209,23 @@ Caused by:
             b"Exception in thread \"main\" java.lang.RuntimeException: boom\n\tat A.b(A.java:3)\nCaused by: java.io.IOException: disk\n\tat C.d(C.java:9)\n",
         ]);
         assert_eq!(lasts[0], "Caused by: java.io.IOException: disk");
+    }
+
+    #[test]
+    fn a_fork_child_that_writes_only_a_backtrace_is_quoted_with_its_donors_error() {
+        let (donor, _) = relay_of(&[b"Error: opening port `in`\n\nCaused by:\n"]);
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        let mut child = StderrRelay::new(r);
+        child.continue_from(&donor);
+        sys::write(
+            w.as_fd(),
+            b"    no such port\n\nStack backtrace:\n   0: main\n",
+        )
+        .unwrap();
+        drop(w);
+        child.relay("[t#1 pid 2] ");
+        assert_eq!(child.last_line, "Error: opening port `in`: no such port");
     }
 
     #[test]

@@ -28,6 +28,10 @@ use s3res_components::Echo;
 ///             after the replica answered, while its siblings are still working on the round)
 ///   die-slowly  instead of the answer: closes its output, computes for 150 ms (as a program
 ///             that reports an error with a backtrace on its way out), then exits with status 1
+///   last-words  at frame K, a line `Error: misbehaving on purpose: last words` on stderr, and
+///             the answer; at frame K+100 the process it started as exits with status 1 without
+///             another word, at frame K+200 every replacement forked from it (as a program forked
+///             while it reported an error on its way out, whose child writes nothing of it)
 ///   worker    from frame K on, every answer passes through a worker thread (handed over a
 ///             channel and back): correct answers, but a second thread, which a fork does not
 ///             copy (the rule a component breaks by starting one)
@@ -63,6 +67,7 @@ enum Mode {
     Panic,
     Worker,
     DieSlowly,
+    LastWords,
 }
 
 fn main() -> Result<()> {
@@ -82,14 +87,29 @@ fn main() -> Result<()> {
     let mut output = Some(rt.output("out").context("opening the output port")?);
     let mut echo = Echo::new(cli.stateful);
     let mut worker = None;
+    // The process this replica started as (a forked replacement has another pid).
+    let started_as = std::process::id();
     let mut k: u64 = 0;
     while let Some(frame) = input.recv().context("receiving")? {
         let answer = echo.answer(frame);
+        if armed && matches!(cli.mode, Mode::LastWords) {
+            if k == cli.at {
+                eprintln!("Error: misbehaving on purpose: last words");
+            }
+            let end = if std::process::id() == started_as {
+                cli.at + 100
+            } else {
+                cli.at + 200
+            };
+            if k >= end {
+                std::process::exit(1);
+            }
+        }
         if let Some(out) = output.as_mut() {
             if armed && matches!(cli.mode, Mode::Worker) && k >= cli.at {
                 let worker = worker.get_or_insert_with(Worker::start);
                 out.send(&worker.round_trip(answer)?).context("answering")?;
-            } else if armed && k == cli.at {
+            } else if armed && k == cli.at && !matches!(cli.mode, Mode::LastWords) {
                 tracing::warn!(mode = ?cli.mode, frame = k, "misbehaving now, on purpose");
                 if misbehave(cli.mode, out, answer)? == After::Close {
                     // Dropping the port closes the fd: the voter sees the pipe closed.
@@ -158,6 +178,7 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
         }
         Mode::Panic => unreachable!("panics at start"),
         Mode::Worker => unreachable!("answers through the worker"),
+        Mode::LastWords => unreachable!("answers until it exits"),
         Mode::DieSlowly => After::Close,
     };
     out.write_raw(&bytes).context("writing the broken frame")?;
