@@ -15,8 +15,8 @@ use nix::sys::signalfd::SignalFd;
 use thiserror::Error;
 
 use replica_rt::contract::{
-    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_PORTS, ENV_REPLICA, ENV_VOTER_SOCKET,
-    FIRST_PORT_FD,
+    Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_MEMORY_LOCK_SAID, ENV_PORTS, ENV_REPLICA,
+    ENV_VOTER_SOCKET, FIRST_PORT_FD,
 };
 use replica_rt::sys::{self, ExitStatus};
 use s3res_protocol::plan::{ExternalPort, VoterPlan};
@@ -614,15 +614,21 @@ pub fn memory_lock_note(plan: &SystemPlan) -> Option<String> {
     if !plan.components.iter().any(|c| c.is_protected()) {
         return None;
     }
-    let limit = replica_rt::memory::memlock_limit()
-        .filter(|_| !replica_rt::memory::locks_future_memory())?;
+    let limit = binding_lock_limit()?;
     Some(format!(
-        "memory locking is limited to {} KiB (RLIMIT_MEMLOCK, no CAP_IPC_LOCK): replicas lock \
-         the memory they have at start, not what they allocate later (that could then fail), \
-         so a round may still take a page fault. Raise the limit (`ulimit -l`, memlock in \
-         limits.conf) or grant CAP_IPC_LOCK to lock it all",
+        "memory locking is limited to {} KiB (RLIMIT_MEMLOCK, no CAP_IPC_LOCK): replicas and \
+         voters lock the memory they have at start where it fits under the limit (a replica \
+         has a few MiB by then; each one it does not fit runs unlocked), never what they \
+         allocate later (that could then fail), so a round may still take a page fault. Raise \
+         the limit (`ulimit -l`, memlock in limits.conf) or grant CAP_IPC_LOCK to lock it all",
         limit / 1024
     ))
+}
+
+/// This process's lock limit, if it binds the processes it starts: they run as its user, with
+/// its limits and capabilities.
+fn binding_lock_limit() -> Option<u64> {
+    replica_rt::memory::memlock_limit().filter(|_| !replica_rt::memory::locks_future_memory())
 }
 
 /// Creates the folder `path` goes into, if it has one and it is missing.
@@ -802,6 +808,13 @@ fn base_command(exec: &Path, component: &str, out: &Outputs) -> Result<Command, 
     cmd.env_remove(ENV_VOTER_SOCKET)
         .env_remove(ENV_REPLICA)
         .env(ENV_COMPONENT, component);
+    // The lock limit was said once (`say_memory_lock_limit`): a voter's or replica's refused
+    // lock is not said again by each.
+    if binding_lock_limit().is_some() {
+        cmd.env(ENV_MEMORY_LOCK_SAID, "1");
+    } else {
+        cmd.env_remove(ENV_MEMORY_LOCK_SAID);
+    }
     Ok(cmd)
 }
 

@@ -39,6 +39,12 @@ pub const ENV_OUTPUT_HISTORY: &str = "S3RES_OUTPUT_HISTORY";
 /// Absent: `all`.
 pub const ENV_LOCK_MEMORY: &str = "S3RES_LOCK_MEMORY";
 
+/// Present (any value): bootstrap has said, once for the whole system, that a lock limit binds
+/// the processes it starts (`RLIMIT_MEMLOCK` without `CAP_IPC_LOCK`). A voter or replica whose
+/// memory lock is then refused says so at debug, not each on its own (18 lines of one start
+/// said the same thing under a 64 KiB limit). Absent: a refusal is a warning.
+pub const ENV_MEMORY_LOCK_SAID: &str = "S3RES_MEMORY_LOCK_SAID";
+
 /// Present (any value): the voter takes spare lines (see [`handshake::Spare`]), so the
 /// replica keeps one connected for its next fork child. Absent: it keeps none, and a fork child
 /// connects when it needs to (as to a voter, or a test harness, that does not know them).

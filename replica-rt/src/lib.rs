@@ -227,6 +227,11 @@ fn init_inner() -> Result<Runtime, InitError> {
                 relro_read_only = left.relro_read_only,
                 "memory locked"
             ),
+            // Bootstrap said the limit once for the system.
+            Err(e) if memory::lock_limit_said() => tracing::debug!(
+                error = %e,
+                "mlockall refused; running with unlocked memory"
+            ),
             Err(e) => tracing::warn!(
                 error = %e,
                 "mlockall refused (raise RLIMIT_MEMLOCK or run with CAP_IPC_LOCK); \

@@ -83,6 +83,12 @@ pub fn locks_future_memory() -> bool {
     memlock_limit().is_none() || sys::has_effective_capability(CAP_IPC_LOCK)
 }
 
+/// Whether bootstrap has said, once for the system, that a lock limit binds its processes
+/// ([`crate::contract::ENV_MEMORY_LOCK_SAID`]): then a refused lock is not said by each.
+pub fn lock_limit_said() -> bool {
+    std::env::var_os(crate::contract::ENV_MEMORY_LOCK_SAID).is_some()
+}
+
 /// The policy the voter asked for in [`ENV_LOCK_MEMORY`]; the default (`all`) when absent. A
 /// value that does not parse is reported and taken as the default.
 pub fn policy_from_env() -> LockMemory {

@@ -35,6 +35,10 @@ pub fn lock_voter_memory(policy: LockMemory) {
     let locked = sys::lock_current_memory(policy == LockMemory::Used);
     match locked {
         Ok(()) => tracing::debug!(policy = policy.as_str(), "voter memory locked"),
+        // Bootstrap said the limit once for the system.
+        Err(e) if replica_rt::memory::lock_limit_said() => {
+            tracing::debug!(error = %e, "the voter could not lock its memory; it runs unlocked")
+        }
         Err(e) => tracing::warn!(
             error = %e,
             "the voter could not lock its memory (raise RLIMIT_MEMLOCK or run with \
