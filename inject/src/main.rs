@@ -8,7 +8,10 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::{bail, Context as _};
-use clap::{ArgAction, Args, Parser, Subcommand};
+use clap::parser::ValueSource;
+use clap::{
+    ArgAction, ArgMatches, Args, CommandFactory as _, FromArgMatches as _, Parser, Subcommand,
+};
 use rand::SeedableRng as _;
 
 use s3res_description::description::{self, HostContext};
@@ -432,8 +435,52 @@ fn seconds(what: &str, s: f64) -> anyhow::Result<Duration> {
         .map_err(|_| anyhow::anyhow!("{what} {s:?} is not a duration in seconds"))
 }
 
+/// The options of one fault kind given with another (`--reg-bits 4 --fault exec`), which
+/// would do nothing: said, not ignored. `None` if every option given applies.
+fn options_of_another_kind(command: &Command, matches: &ArgMatches) -> Option<String> {
+    let (name, sub) = matches.subcommand()?;
+    let kinds: &[FaultKind] = match command {
+        Command::Inject(a) => std::slice::from_ref(&a.fault),
+        Command::Campaign(a) => std::slice::from_ref(&a.fault),
+        Command::Classify(a) => std::slice::from_ref(&a.fault),
+        Command::Storm(a) => &a.faults,
+        Command::Merge(_) => return None,
+    };
+    const OPTIONS: [(FaultKind, [&str; 4]); 2] = [
+        (
+            FaultKind::Reg,
+            ["reg_role", "reg_bits", "reg_field", "reg_registers"],
+        ),
+        (
+            FaultKind::Var,
+            ["var_offset", "var_field", "var_flips", "var_bits"],
+        ),
+    ];
+    let (kind, id) = OPTIONS
+        .iter()
+        .filter(|(kind, _)| !kinds.contains(kind))
+        .flat_map(|(kind, ids)| ids.iter().map(move |id| (kind, id)))
+        .find(|(_, id)| sub.value_source(id) == Some(ValueSource::CommandLine))?;
+    let these: Vec<&str> = kinds.iter().map(|k| k.name()).collect();
+    Some(format!(
+        "--{} applies to {} faults only, and this {name} injects {}: drop it, or choose that \
+         kind",
+        id.replace('_', "-"),
+        kind.name(),
+        these.join(", ")
+    ))
+}
+
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let matches = Cli::command().get_matches();
+    let cli = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
+    if let Some(why) = options_of_another_kind(&cli.command, &matches) {
+        eprintln!("error: {why}");
+        return ExitCode::from(1);
+    }
     // Before any thread: SIGINT/SIGTERM are taken through a signalfd, so a long campaign
     // stops its current run cleanly instead of leaving it running.
     let stop = match StopSignals::install() {

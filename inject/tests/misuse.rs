@@ -37,6 +37,65 @@ fn bit_goes_with_sdc_only() {
     }
 }
 
+/// An option of one fault kind given with another did nothing (`--reg-bits 4 --fault exec`
+/// ran the campaign with no word of it): refused, naming the option and the kinds.
+#[test]
+fn options_of_another_fault_kind_are_refused_not_ignored() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let out = out.to_str().unwrap();
+    let cases: [(&str, &str, &[&str], &str); 4] = [
+        (
+            "campaign",
+            "exec",
+            &["--reg-bits", "4"],
+            "--reg-bits applies to reg faults only, and this campaign injects exec",
+        ),
+        (
+            "classify",
+            "sdc",
+            &["--var-offset", "8"],
+            "--var-offset applies to var faults only, and this classify injects sdc",
+        ),
+        (
+            "campaign",
+            "reg",
+            &["--var-flips", "2"],
+            "--var-flips applies to var faults only",
+        ),
+        (
+            "campaign",
+            "var",
+            &["--reg-registers", "rax"],
+            "--reg-registers applies to reg faults only",
+        ),
+    ];
+    for (command, fault, extra, want) in cases {
+        let mut args = runs_of(command, fault, out);
+        args.extend_from_slice(extra);
+        refused(&args, want);
+    }
+    refused(
+        &[
+            "storm",
+            "--state",
+            "no-such-state.json",
+            "--faults",
+            "exec,sdc",
+            "--rate",
+            "2",
+            "--reg-role",
+            "source",
+        ],
+        "--reg-role applies to reg faults only, and this storm injects exec, sdc",
+    );
+    // The options of the kind chosen pass this check (and fail later, on the missing system).
+    let mut args = runs_of("campaign", "var", out);
+    args.extend_from_slice(&["--var-offset", "8"]);
+    let run = common::inject(&args, LIMIT);
+    assert!(!run.stderr.contains("applies to"), "{}", run.stderr);
+}
+
 /// `command` (campaign or classify) of one run of `fault`, seed 1, into `out`, on a system
 /// that does not exist: what is refused must be refused before the system is read.
 fn runs_of<'a>(command: &'a str, fault: &'a str, out: &'a str) -> Vec<&'a str> {
