@@ -17,13 +17,15 @@
 //! | `s3res_cc`          | `cc` compiles and links a C file                                 |
 //! | `s3res_cc_static`   | `cc -static` links one too (a static libc is installed)           |
 //! | `s3res_pidfd_exit`  | Linux 6.15+: a pidfd tells a non-parent how its process ended     |
+//! | `s3res_setcap`      | as root, `setcap` (libcap2-bin) gives a file a capability here, and `setpriv` runs |
 //! | `s3res_musl_target` | the toolchain has the standard library of the musl twin of the tests' target (`rustup target add x86_64-unknown-linux-musl`) |
 
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::process::{Command, Stdio};
 
-const CFGS: [&str; 11] = [
+const CFGS: [&str; 12] = [
+    "s3res_setcap",
     "s3res_pagemap_pfns",
     "s3res_sched_rr",
     "s3res_two_cpus",
@@ -91,6 +93,10 @@ fn main() {
     set("s3res_cc", compiles(&[]));
     set("s3res_cc_static", compiles(&["-static"]));
     set("s3res_pidfd_exit", kernel_at_least(6, 15));
+    set(
+        "s3res_setcap",
+        euid_is_root() && succeeds("setpriv", &["--version"]) && gives_a_file_capability(),
+    );
     let musl = std::env::var("TARGET").ok().and_then(|t| musl_twin(&t));
     let musl_installed = musl.as_deref().is_some_and(has_standard_library);
     if let (Some(triple), true) = (&musl, musl_installed) {
@@ -170,6 +176,20 @@ fn compiles(flags: &[&str]) -> bool {
         .stderr(Stdio::null())
         .status()
         .is_ok_and(|s| s.success())
+}
+
+/// Whether `setcap` gives a file of the build folder a capability (a file system without
+/// extended attributes, or no `setcap`, cannot).
+fn gives_a_file_capability() -> bool {
+    let Some(dir) = std::env::var_os("OUT_DIR") else {
+        return false;
+    };
+    let probe = std::path::Path::new(&dir).join("setcap-probe");
+    if std::fs::write(&probe, b"").is_err() {
+        return false;
+    }
+    let probe = probe.to_string_lossy();
+    succeeds("setcap", &["cap_sys_nice+ep", &probe])
 }
 
 fn succeeds(program: &str, args: &[&str]) -> bool {

@@ -16,7 +16,7 @@ use thiserror::Error;
 
 use replica_rt::contract::{
     Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_MEMORY_LOCK_SAID, ENV_PORTS, ENV_REPLICA,
-    ENV_VOTER_SOCKET, FIRST_PORT_FD,
+    ENV_SUPERVISOR_PID, ENV_VOTER_SOCKET, FIRST_PORT_FD,
 };
 use replica_rt::sys::{self, ExitStatus};
 use s3res_protocol::plan::{ExternalPort, VoterPlan};
@@ -1019,6 +1019,8 @@ fn start_voter(
     // If bootstrap dies (even by SIGKILL), the voter is asked to stop: it kills its replicas
     // and everything re-parented to it, then exits.
     sys::die_with_parent(&mut cmd, libc::SIGTERM);
+    // Cleared at the exec if the voter has file capabilities: it asks again (contract).
+    cmd.env(ENV_SUPERVISOR_PID, std::process::id().to_string());
     cmd.arg("--plan").arg(plan.to_json());
     sys::map_fds_on_exec(&mut cmd, mapping);
     let child = cmd.spawn()?;

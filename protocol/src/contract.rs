@@ -39,6 +39,12 @@ pub const ENV_OUTPUT_HISTORY: &str = "S3RES_OUTPUT_HISTORY";
 /// Absent: `all`.
 pub const ENV_LOCK_MEMORY: &str = "S3RES_LOCK_MEMORY";
 
+/// bootstrap's pid, given to each voter it starts. The voter asks again for the parent-death
+/// signal bootstrap set up for it, which an exec that raises privileges clears (a voter given
+/// file capabilities, as docs/real-time.md shows for users without root), and stops at once if
+/// that process is no longer its parent. Absent (a voter started by hand): its parent then.
+pub const ENV_SUPERVISOR_PID: &str = "S3RES_SUPERVISOR_PID";
+
 /// Present (any value): bootstrap has said, once for the whole system, that a lock limit binds
 /// the processes it starts (`RLIMIT_MEMLOCK` without `CAP_IPC_LOCK`). A voter or replica whose
 /// memory lock is then refused says so at debug, not each on its own (18 lines of one start

@@ -855,6 +855,20 @@ pub fn die_with_parent(cmd: &mut Command, sig: libc::c_int) {
     }
 }
 
+/// Asks for `sig` when this process's parent dies (`PR_SET_PDEATHSIG`), from inside the
+/// process: an exec that raises privileges (a set-user-ID or set-group-ID program, or one with
+/// file capabilities) clears what [`die_with_parent`] set up before it. `false` if `parent`
+/// is no longer this process's parent (it died before the call): no signal will come then, and
+/// the caller must act as if it had.
+pub fn ask_parent_death_signal(parent: libc::pid_t, sig: libc::c_int) -> io::Result<bool> {
+    // SAFETY: PR_SET_PDEATHSIG takes a signal number by value and touches no memory of ours.
+    cvt(unsafe { libc::prctl(libc::PR_SET_PDEATHSIG, sig as libc::c_ulong, 0, 0, 0) })?;
+    // Read after the request: a parent that dies later sends the signal, one that died before
+    // has handed this process to a reaper already.
+    // SAFETY: getppid has no preconditions and cannot fail.
+    Ok(unsafe { libc::getppid() } == parent)
+}
+
 /// Whether capability `cap` is in this process's effective set (`CapEff` in
 /// `/proc/self/status`); `false` if that cannot be read.
 pub fn has_effective_capability(cap: u32) -> bool {

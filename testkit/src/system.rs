@@ -46,6 +46,8 @@ const POLL: Duration = Duration::from_millis(10);
 pub struct System {
     dir: TempDir,
     stdin: Option<Vec<u8>>,
+    /// bootstrap's stdin from a pipe the test holds the other end of (instead of `stdin`).
+    stdin_pipe: Option<std::os::fd::OwnedFd>,
     events: bool,
     unprivileged: bool,
     /// Extra bootstrap options, before the description.
@@ -70,6 +72,7 @@ impl System {
         System {
             dir,
             stdin: None,
+            stdin_pipe: None,
             events: true,
             unprivileged: std::env::var_os(UNPRIVILEGED_ENV).is_some_and(|v| v != "0"),
             args: Vec::new(),
@@ -126,6 +129,13 @@ impl System {
         self
     }
 
+    /// The read end of a pipe as bootstrap's stdin: input that ends only when the test closes
+    /// the write end, as a producer piped into bootstrap (`sensor | s3res-bootstrap ...`).
+    pub fn stdin_pipe(mut self, read_end: std::os::fd::OwnedFd) -> Self {
+        self.stdin_pipe = Some(read_end);
+        self
+    }
+
     /// One more bootstrap option (e.g. `--state`, then a path), placed before the description.
     pub fn arg(mut self, arg: impl Into<std::ffi::OsString>) -> Self {
         self.args.push(arg.into());
@@ -167,7 +177,7 @@ impl System {
         self.start_exec(bootstrap, description)
     }
 
-    fn start_exec(self, bootstrap: &Path, description: &str) -> RunningSystem {
+    fn start_exec(mut self, bootstrap: &Path, description: &str) -> RunningSystem {
         reap_orphans_here();
         let desc = self.path("system.json");
         std::fs::write(&desc, description).expect("writing system.json");
@@ -198,13 +208,16 @@ impl System {
             .stdout(File::create(&stdout).expect("creating stdout.txt"))
             .stderr(File::create(&stderr).expect("creating stderr.txt"))
             .process_group(0);
-        match &self.stdin {
-            Some(bytes) => {
+        match (&self.stdin, self.stdin_pipe.take()) {
+            (_, Some(pipe)) => {
+                cmd.stdin(Stdio::from(pipe));
+            }
+            (Some(bytes), None) => {
                 let p = self.path("stdin.bin");
                 std::fs::write(&p, bytes).expect("writing stdin.bin");
                 cmd.stdin(File::open(&p).expect("opening stdin.bin"));
             }
-            None => {
+            (None, None) => {
                 cmd.stdin(Stdio::null());
             }
         }

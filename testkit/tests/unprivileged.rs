@@ -152,3 +152,63 @@ fn unprivileged_tmr_outvotes_a_corrupted_frame() {
     assert_sink_whole(&summary, count);
     assert_said(&out.stderr, refusals);
 }
+
+/// A voter given a file capability (docs/real-time.md's `setcap cap_sys_nice+ep`, for users
+/// without root) lost the parent-death signal bootstrap set up for it: an exec that raises
+/// privileges clears it. A SIGKILLed bootstrap then left that voter and its three replicas
+/// running on, fed by bootstrap's stdin (here a pipe the test keeps open, as a producer piped
+/// into bootstrap would), with nobody supervising them. The voter asks for the signal again
+/// once it runs.
+#[test]
+#[cfg_attr(
+    not(s3res_setcap),
+    ignore = "needs root, `setpriv` and `setcap` (libcap2-bin) to run a voter with a file capability as a user"
+)]
+fn a_voter_with_a_file_capability_still_ends_with_a_sigkilled_bootstrap() {
+    s3res_testkit::require(s3res_testkit::is_root(), "not root");
+    let (read_end, write_end) = std::io::pipe().expect("a pipe for bootstrap's stdin");
+    let sys = System::new()
+        .unprivileged()
+        .stdin_pipe(std::os::fd::OwnedFd::from(read_end));
+    // In a folder of its own: handing the temp dir to the user chowns its entries, and a
+    // chown drops a file's capabilities.
+    let folder = sys.path("capped");
+    std::fs::create_dir(&folder).unwrap();
+    let voter = folder.join("s3res-voter");
+    std::fs::copy(s3res_testkit::bin_path("s3res-voter"), &voter).unwrap();
+    let setcap = std::process::Command::new("setcap")
+        .arg("cap_sys_nice+ep")
+        .arg(&voter)
+        .status()
+        .expect("running setcap");
+    assert!(setcap.success(), "setcap: {setcap}");
+    let sys = sys.env("S3RES_VOTER", &voter);
+    let desc = format!(
+        r#"{{ "name": "capped",
+  "components": {{ "echo": {{ "exec": "s3res-echo", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }} }},
+  "channels": [ {{ "from": "stdin", "to": "echo.in" }}, {{ "from": "echo.out", "to": "stdout" }} ] }}"#
+    );
+    let mut run = sys.start(&desc);
+    run.wait_for_replicas("echo", 3);
+    let pid = run.voter_of("echo").expect("the echo's voter runs");
+    assert_eq!(
+        std::fs::read_link(format!("/proc/{pid}/exe")).unwrap(),
+        voter,
+        "the voter is the copy with the capability"
+    );
+    let group = |run: &RunningSystem| -> Vec<s3res_testkit::procs::ProcStat> {
+        s3res_testkit::procs::in_group(run.pgid())
+            .into_iter()
+            .filter(|p| !p.is_zombie())
+            .collect()
+    };
+    assert!(group(&run).len() >= 5, "bootstrap, voter, three replicas");
+    s3res_testkit::kill_pid(run.pid(), libc::SIGKILL).expect("SIGKILL bootstrap");
+    s3res_testkit::wait_until(
+        "every process of the system to end after bootstrap's SIGKILL",
+        Duration::from_secs(10),
+        || (run.try_status().is_some() && group(&run).is_empty()).then_some(()),
+    );
+    drop(write_end);
+    run.assert_nothing_left();
+}

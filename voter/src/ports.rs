@@ -752,7 +752,7 @@ pub(crate) fn heartbeat_ending() {
 /// so (the voter exited 0 and bootstrap blamed the components starved by it): it is kept for
 /// the exit ([`stray_stop`]).
 pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
-    let mut stop = false;
+    let mut stop = STOP_AT_START.swap(false, std::sync::atomic::Ordering::Relaxed);
     while let Ok(Some(info)) = signals.read_signal() {
         match info.ssi_signo as i32 {
             libc::SIGCHLD => reap_children(),
@@ -783,6 +783,18 @@ fn note_stop(sig: libc::c_int, from: u32) {
 /// moment: when bootstrap dies, the voter is handed to a reaper before the parent-death signal
 /// comes, and that signal names bootstrap.
 static SUPERVISOR: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+
+/// bootstrap's pid as it gave it ([`ENV_SUPERVISOR_PID`]), or the parent of the moment.
+fn supervisor_pid() -> u32 {
+    std::env::var(replica_rt::contract::ENV_SUPERVISOR_PID)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .filter(|&pid: &u32| pid > 1)
+        .unwrap_or_else(std::os::unix::process::parent_id)
+}
+
+/// The supervisor was gone when the voter started: it stops before its first round.
+static STOP_AT_START: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
 /// A stop came from the supervisor or the kernel (the system stops).
 static SUPERVISOR_STOPPED: std::sync::atomic::AtomicBool =
@@ -843,9 +855,26 @@ impl Endpoints {
     pub(crate) fn open(plan: &VoterPlan) -> Result<Endpoints, VoterError> {
         // Orphans (children of a donor that died) come to us, so they are reaped and killed.
         sys::set_child_subreaper().map_err(io_err("becoming a child subreaper"))?;
-        let _ = SUPERVISOR.set(std::os::unix::process::parent_id());
+        let supervisor = supervisor_pid();
+        let _ = SUPERVISOR.set(supervisor);
         let signals = sys::signal_fd(&[Signal::SIGTERM, Signal::SIGINT, Signal::SIGCHLD])
             .map_err(|e| io_err("blocking signals (signalfd)")(e.into()))?;
+        // Once SIGTERM goes to the signalfd: a stop like any other.
+        match sys::ask_parent_death_signal(supervisor as libc::pid_t, libc::SIGTERM) {
+            Ok(true) => {}
+            Ok(false) => {
+                tracing::warn!(
+                    supervisor,
+                    "bootstrap is gone before this voter started: stopping"
+                );
+                note_stop(libc::SIGTERM, 0);
+                STOP_AT_START.store(true, std::sync::atomic::Ordering::Relaxed);
+            }
+            Err(e) => tracing::warn!(
+                error = %e,
+                "could not ask for a signal at bootstrap's death: this voter may outlive it"
+            ),
+        }
         let mut adopted = Inherited::default();
 
         let inputs = plan
