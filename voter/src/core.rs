@@ -785,13 +785,15 @@ impl Core {
             // A replica catching up has nothing to give; one whose state is lost only what
             // the replicas that kept theirs outvote.
             let gives_nothing = |rep: &Replica| rep.catching_up || (any_kept && rep.state_lost);
-            let Some(rep) = rep
+            // As `best_donor` ranks them: it may donate, and its look says whether it threads.
+            let Some((_, look)) = rep
                 .as_ref()
-                .filter(|rep| !gives_nothing(rep) && rep.may_donate())
+                .filter(|rep| !gives_nothing(rep))
+                .and_then(Replica::donor_rank)
             else {
                 continue;
             };
-            if rep.look().is_some_and(|l| l.threaded()) {
+            if look.is_some_and(crate::replica::StatLook::threaded) {
                 threaded = threaded.with(d);
             } else {
                 donors = donors.with(d);
