@@ -211,10 +211,9 @@ fn rebind(
         return Err(format!("bad Ready from {pid}"));
     }
     let Awaited { slot, entry, pidfd } = awaited.remove(k);
-    Ok(Taken::Replica(
-        slot,
-        Box::new(Replica::adopted(pid, pidfd, pipes, entry)),
-    ))
+    let mut replica = Replica::adopted(pid, pidfd, pipes, entry);
+    replica.handler_before_answer = plan.preload.is_none();
+    Ok(Taken::Replica(slot, Box::new(replica)))
 }
 
 /// Takes over an unmodified program's replicas (see `lines.rs`): they cannot rebind, so each

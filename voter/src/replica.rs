@@ -62,6 +62,14 @@ pub struct Replica {
     /// Has answered at least once, so replica-rt is initialised and the restart handler is in
     /// place: only such a replica may be a donor (before `init`, SIGUSR1 would kill it).
     pub proven: bool,
+    /// Whether its restart handler, seen in the kernel's `SigCgt` before it has answered,
+    /// means that it may donate (see [`Replica::may_donate`]). Not under the preload library:
+    /// a wrapper that `exec`s the program (a pyenv shim, `env`, a shell script) loads the
+    /// library and its handler first, and the `exec` drops the handler until the program's own
+    /// load. A RESTART in between killed the donor: every bad line of a shimmed Python, whose
+    /// three replicas were started afresh together, ended in donors "killed by signal 10" and
+    /// the restart budget spent, where the interpreter itself ran on.
+    pub handler_before_answer: bool,
     /// Its state is lost: started by exec after a fault, or forked from a replica whose state
     /// was. Such a replica never outvotes, and is never cloned over, one that kept the
     /// component's state (see `decision.rs`). The replicas started with the component kept it.
@@ -323,6 +331,8 @@ impl Replica {
             stderr,
             our_child: false,
             proven,
+            // Set from the plan where it is known (`adopt.rs`); a fork child is proven.
+            handler_before_answer: true,
             state_lost,
             // Whether it had matched since is not journaled: a successor takes a replica whose
             // state is lost for one still catching up (it may spare a dissent the predecessor
@@ -378,6 +388,7 @@ impl Replica {
         let mut replica =
             Replica::taken_over(entry.pid, pidfd, inputs, vec![reader], stderr, entry);
         replica.lines = Some(counts);
+        replica.handler_before_answer = false;
         Ok(replica)
     }
 
@@ -451,6 +462,7 @@ impl Replica {
             stderr: pipes.stderr,
             our_child: true,
             proven: false,
+            handler_before_answer: plan.preload.is_none(),
             state_lost: false,
             catching_up: false,
             diverged: false,
@@ -602,7 +614,7 @@ impl Replica {
     /// frame; before that (a replica killed right after start, a stream replica that has not
     /// produced yet) the kernel's `SigCgt` says whether it catches the signal.
     pub fn may_donate(&self) -> bool {
-        self.proven || catches_restart_signal(self.pid)
+        self.proven || (self.handler_before_answer && catches_restart_signal(self.pid))
     }
 
     /// How good a recovery donor this replica is, and how its `/proc/PID/stat` looked for the
@@ -1063,6 +1075,39 @@ mod tests {
             StatusLook::default(),
             "no process 0 in /proc"
         );
+    }
+
+    /// A replica that catches the restart signal before it has answered may donate, unless
+    /// it runs under the preload library: a wrapper that `exec`s the program loads it (and its
+    /// handler) first, and the `exec` drops the handler. Here a shell that traps SIGUSR1 stands
+    /// for such a wrapper.
+    #[test]
+    fn a_preloaded_replica_that_has_not_answered_is_no_donor_whatever_it_catches() {
+        /// Kills and reaps the replica however the test ends.
+        struct Reaped(Replica);
+        impl Drop for Reaped {
+            fn drop(&mut self) {
+                self.0.kill();
+                let _ = nix::sys::wait::waitpid(nix::unistd::Pid::from_raw(self.0.pid), None);
+            }
+        }
+        let mut plan = crate::journal::tests::plan();
+        plan.exec = "/bin/sh".into();
+        plan.args = vec!["-c".into(), "trap : USR1; while :; do sleep 1; done".into()];
+        for preload in [
+            None,
+            Some(std::path::PathBuf::from("/nonexistent/libs3res_preload.so")),
+        ] {
+            plan.preload = preload.clone();
+            let rep = Reaped(Replica::spawn(&plan, 0, None).expect("spawning the shell"));
+            let deadline = std::time::Instant::now() + Duration::from_secs(10);
+            while !catches_restart_signal(rep.0.pid) {
+                assert!(std::time::Instant::now() < deadline, "the trap never came");
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            assert!(!rep.0.proven);
+            assert_eq!(rep.0.may_donate(), preload.is_none(), "preload {preload:?}");
+        }
     }
 
     #[test]
