@@ -65,13 +65,14 @@ block shows the outcome, faults by kind, recoveries by method, withheld frames, 
 injector did, false positives and where the files are (-q: neither).
 
 A voter that dies, or stands still past its heartbeat deadline, is replaced by one that adopts
-its replicas (reactive components whose replicas link replica-rt; at most max_restarts within
-restart_window_ms): no frame is lost or repeated, the replicas keep their state. A stream
-component's voter, or an unmodified program's, stops the system instead.
+its replicas (every protected component, reactive or stream, replica-rt, C or unmodified; at
+most max_restarts within restart_window_ms): no frame is lost or repeated, the replicas keep
+their state.
 
 Everything is checked before anything starts. On SIGINT/SIGTERM/SIGHUP/SIGQUIT every component
 gets SIGTERM (it may catch it to finish its work), then SIGKILL after --stop-timeout-ms, and
-whatever is left below bootstrap is killed. Components start with SIGHUP, SIGINT and SIGQUIT
+whatever is left below bootstrap is killed; a second stop signal kills at once (one within
+250 ms of the first is taken for a copy of it, as a wrapper like timeout(1) forwards it). Components start with SIGHUP, SIGINT and SIGQUIT
 blocked: a terminal sends those to bootstrap and everything it started, and bootstrap stops the
 system in order. A SIGKILLed bootstrap cannot: the kernel then kills its own children (voters
 stop their replicas), but not processes that a component started itself.";
@@ -81,8 +82,7 @@ Exit status:
   0    every component exited with status 0 (with --check: the description is valid)
   1    a component failed (one line per failure on stderr), or the system could not start
   2    the description is invalid (error: FILE:LINE: what (where)), or bad usage
-  130  stopped by SIGINT
-  143  stopped by SIGTERM
+  128+N stopped by signal N: 129 SIGHUP, 130 SIGINT, 131 SIGQUIT, 143 SIGTERM
 
 Environment:
   RUST_LOG      log filter (overrides -v/-q), e.g. RUST_LOG=debug; every process inherits it

@@ -1027,6 +1027,12 @@ fn start_voter(
     Ok(child.id() as libc::pid_t)
 }
 
+/// A stop signal this soon after the first is a copy of it, not a second stop (which kills at
+/// once): a wrapper that forwards what it got with the process group (timeout(1) does) turned
+/// one Ctrl-C into two, and the components were SIGKILLed without their SIGTERM. A person
+/// pressing Ctrl-C again takes longer.
+const SAME_STOP: Duration = Duration::from_millis(250);
+
 /// Starts a successor to the voter of `c` that adopts its replicas (see `respawn`); its pid.
 fn restart_voter(c: &mut Child, why: &str) -> std::io::Result<libc::pid_t> {
     let spawn = c
@@ -1076,6 +1082,17 @@ fn supervise(
                                 );
                                 stop = Some((sig, Instant::now() + stop_timeout));
                                 stop_live(children);
+                            }
+                            // A copy of the first: a wrapper that forwards the signal it got
+                            // with the whole process group (timeout(1), a supervisor's script)
+                            // makes one Ctrl-C two. Not a second stop.
+                            Some((_, deadline))
+                                if deadline.saturating_duration_since(Instant::now())
+                                    > stop_timeout.saturating_sub(SAME_STOP) =>
+                            {
+                                tracing::debug!(
+                                    "a second stop signal right after the first: the same stop"
+                                );
                             }
                             Some(_) if !killed => {
                                 tracing::warn!("second stop signal: killing every component now");

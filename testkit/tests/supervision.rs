@@ -662,6 +662,41 @@ fn a_fork_child_logs_under_its_own_slot() {
     );
 }
 
+/// One Ctrl-C, as a terminal sends it (SIGINT to the whole process group) and as a wrapper
+/// such as timeout(1) forwards it once more to bootstrap, is one stop: every component gets its
+/// SIGTERM and the time to act on it, and no voter warns that someone else stopped it. Before,
+/// the copy was taken for a second stop (every component SIGKILLed at once, its trap cut
+/// short), and each voter warned "stop requested, not by bootstrap".
+#[test]
+fn one_ctrl_c_forwarded_by_a_wrapper_is_one_stop() {
+    // The trap takes half a second to save its work.
+    let (mut run, flag) = start_with_trapper("sleep 0.5; echo caught > \"$1\"; exit 0");
+    s3res_testkit::kill_pid(-run.pgid(), libc::SIGINT).expect("SIGINT to the group");
+    std::thread::sleep(Duration::from_millis(5));
+    s3res_testkit::kill_pid(run.pid(), libc::SIGINT).expect("SIGINT forwarded");
+    let out = run.wait(Duration::from_secs(60));
+    assert_eq!(
+        out.status.code(),
+        Some(130),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    assert_eq!(
+        std::fs::read_to_string(&flag).ok().as_deref(),
+        Some("caught\n"),
+        "the component's SIGTERM trap was cut short: {}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    for said in ["second stop signal", "not by bootstrap"] {
+        assert!(
+            !out.stderr.contains(said),
+            "{said:?}: {}",
+            s3res_testkit::tail(&out.stderr, 20)
+        );
+    }
+    run.assert_nothing_left();
+}
+
 /// `SigBlk` of a process: the signals it blocks, one bit per signal (bit `n - 1` for `n`).
 fn blocked_signals(pid: i32) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("its status");
@@ -684,24 +719,7 @@ fn bit(sig: i32) -> u64 {
 /// the components, and what a component started could not be stopped with a plain `kill`.
 #[test]
 fn a_component_catches_the_sigterm_that_stops_it() {
-    let sys = System::new();
-    let flag = sys.path("stopped");
-    let script = sys.path("trapper.sh");
-    std::fs::write(
-        &script,
-        "#!/bin/bash\ntrap 'echo caught > \"$1\"; exit 0' TERM\n: > \"$1.ready\"\nwhile :; do sleep 0.05; done\n",
-    )
-    .unwrap();
-    std::fs::set_permissions(&script, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
-    let mut desc: serde_json::Value =
-        serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
-    desc["components"]["trapper"] = serde_json::json!({
-        "exec": script.display().to_string(),
-        "args": [flag.display().to_string()],
-    });
-    let mut run = sys.start_json(&desc);
-    run.wait_for_replicas("echo", 3);
-    s3res_testkit::wait_until("the trap set", Duration::from_secs(20), || trap_set(&flag));
+    let (mut run, flag) = start_with_trapper("echo caught > \"$1\"; exit 0");
     let terminal = bit(libc::SIGHUP) | bit(libc::SIGINT) | bit(libc::SIGQUIT);
     // The source (Rust, no signal handling of its own) blocks exactly the terminal's signals.
     let source = run.process_named("s3res-source").expect("the source");
@@ -745,6 +763,33 @@ fn a_component_catches_the_sigterm_that_stops_it() {
 }
 
 /// Whether the trapper has set its trap (it touches `FLAG.ready` after).
+/// The long-running echo pipeline with one more component, `trapper.sh`: a bash script whose
+/// SIGTERM trap runs `on_term` (`$1` is the flag file to write), started and its trap set.
+/// Returns the system and the flag's path.
+fn start_with_trapper(on_term: &str) -> (s3res_testkit::RunningSystem, PathBuf) {
+    let sys = System::new();
+    let flag = sys.path("stopped");
+    let script = sys.path("trapper.sh");
+    std::fs::write(
+        &script,
+        format!(
+            "#!/bin/bash\ntrap '{on_term}' TERM\n: > \"$1.ready\"\nwhile :; do sleep 0.05; done\n"
+        ),
+    )
+    .unwrap();
+    std::fs::set_permissions(&script, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    let mut desc: serde_json::Value =
+        serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
+    desc["components"]["trapper"] = serde_json::json!({
+        "exec": script.display().to_string(),
+        "args": [flag.display().to_string()],
+    });
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("echo", 3);
+    s3res_testkit::wait_until("the trap set", Duration::from_secs(20), || trap_set(&flag));
+    (run, flag)
+}
+
 fn trap_set(flag: &Path) -> Option<()> {
     let mut ready = flag.as_os_str().to_owned();
     ready.push(".ready");

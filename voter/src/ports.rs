@@ -771,7 +771,10 @@ fn note_stop(sig: libc::c_int, from: u32) {
         tracing::info!(signal = sig, "stop requested");
         SUPERVISOR_STOPPED.store(true, std::sync::atomic::Ordering::Relaxed);
     } else {
-        tracing::warn!(signal = sig, from, "stop requested, not by bootstrap");
+        // A signal to the whole process group (a terminal's Ctrl-C sent by a shell, timeout(1),
+        // Slurm) reaches bootstrap too, and the system stops: said at the exit only if it does
+        // not (`stray_stop`), not here by every voter (five warnings for one Ctrl-C before).
+        tracing::debug!(signal = sig, from, "stop requested, not by bootstrap");
         let _ = STRAY_STOP.set(StrayStop {
             signal: sig,
             from: from as libc::pid_t,
