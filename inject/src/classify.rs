@@ -592,6 +592,21 @@ fn golden_run(
             lines[lines.len().saturating_sub(40)..].join("\n")
         );
     }
+    // A file the golden run never wrote would be compared, empty, with every injected run's
+    // empty one: every run benign. Refused as a mission summary it left no trace of is.
+    if c.info.mission.is_none() && c.info.output != "stdout" {
+        let path = golden_dir.path().join(&c.info.output);
+        if !path.is_file() {
+            bail!(
+                "the golden run left no output file that --output {} names (no {} in its run \
+                 folder {}): give --output the file the system writes in its working \
+                 directory, or leave it out to compare bootstrap's stdout",
+                c.info.output,
+                c.info.output,
+                golden_dir.path().display()
+            );
+        }
+    }
     let mut info = c.info.clone();
     info.golden_mission = match &c.info.mission {
         None => None,

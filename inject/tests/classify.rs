@@ -126,6 +126,26 @@ fn exec_is_a_crash_and_cfe_a_hang() {
 /// The unprotected maze robot, classified by its mission: the sim's summary is the output.
 /// SIGKILL to the navigator is a crash, and no successful mission (nothing replaces the
 /// navigator: the robot drives on its last command into a wall); the golden mission is kept.
+/// `--output FILE` that the golden run never wrote: before, the golden output was empty, every
+/// injected run's was too, and every run was benign (exit 0). Refused after the golden run,
+/// naming the file and the run's folder, and no run is classified.
+#[test]
+fn an_output_file_the_golden_run_never_wrote_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out-sdc");
+    let args = classify_args(dir.path(), "sdc", 2, "1", &out, &["--output", "nosuch.txt"]);
+    let f = inject(&strs(&args), Duration::from_secs(120));
+    assert_eq!(f.code, Some(1), "{}", f.stderr);
+    assert!(
+        f.stderr
+            .contains("the golden run left no output file that --output nosuch.txt names")
+            && f.stderr.contains("in its run folder /"),
+        "{}",
+        f.stderr
+    );
+    assert!(!out.join("classify.json").exists(), "it classified");
+}
+
 #[test]
 fn a_robot_is_classified_by_its_mission() {
     let dir = tempfile::tempdir().unwrap();
