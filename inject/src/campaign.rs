@@ -54,6 +54,7 @@ pub fn schedule_params(info: &CampaignInfo) -> ScheduleParams {
 /// With `c.resume`, a folder that already holds this campaign keeps the runs it completed and
 /// only the missing ones are run.
 pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Option<i32>)> {
+    crate::scratch::check_out(&c.out, crate::scratch::OutKind::Campaign)?;
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
     let _lock = crate::scratch::lock_and_sweep(&c.out)?;
@@ -142,7 +143,7 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
 }
 
 /// The files of a campaign's output folder.
-const OUTPUT_FILES: [&str; 5] = [
+pub(crate) const OUTPUT_FILES: [&str; 5] = [
     "campaign.json",
     "injections.jsonl",
     "runs.jsonl",

@@ -394,7 +394,7 @@ impl ClassifyRun {
 const INFO_FILE: &str = "classify-run.json";
 const RECORDS_FILE: &str = "classify.jsonl";
 const GOLDEN_FILE: &str = "golden.out";
-const OUTPUT_FILES: [&str; 5] = [
+pub(crate) const OUTPUT_FILES: [&str; 5] = [
     INFO_FILE,
     RECORDS_FILE,
     GOLDEN_FILE,
@@ -496,6 +496,7 @@ impl ClassifyOutput {
 /// run and the runs it completed, and only the missing ones are run.
 pub fn run(c: &ClassifyRun, stop: &StopSignals) -> anyhow::Result<ClassSummary> {
     let stop = || stop.requested().is_some();
+    crate::scratch::check_out(&c.out, crate::scratch::OutKind::Classification)?;
     std::fs::create_dir_all(&c.out)
         .with_context(|| format!("cannot create the output folder {}", c.out.display()))?;
     let _lock = crate::scratch::lock_and_sweep(&c.out)?;

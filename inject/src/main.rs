@@ -22,6 +22,7 @@ use s3res_inject::classify::{self, ClassifyInfo, ClassifyRun};
 use s3res_inject::fault::{check_available, check_reg_options, fire, FaultKind, RegOptions};
 use s3res_inject::report::{self, CampaignInfo, CampaignOutput, MachineInfo};
 use s3res_inject::schedule::{draw_injection, Arrival, ScheduleParams, VarField, VarSpec};
+use s3res_inject::scratch::{check_out, OutKind};
 use s3res_inject::stop::StopSignals;
 use s3res_inject::storm::{self, StormOptions};
 use s3res_inject::target::{resolve, Pick, Target};
@@ -747,6 +748,7 @@ fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
         check_schedule(a.rate, a.duration)?;
     }
     let var = a.var.spec()?;
+    check_out(&a.out, OutKind::Campaign)?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
         p.components
@@ -850,6 +852,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
         }
     }
     check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
+    check_out(&a.out, OutKind::Classification)?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
         p.components.iter().map(|c| c.name.clone()).collect()
@@ -935,12 +938,6 @@ fn merge_classifications(
             ),
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
-    if a.out.join("classify-run.json").exists() {
-        bail!(
-            "{} already holds a classification; give a new --out folder",
-            a.out.display()
-        );
-    }
     let merged = classify::merge(parts).map_err(anyhow::Error::msg)?;
     if merged.stray > 0 {
         eprintln!(
@@ -963,12 +960,9 @@ fn merge_classifications(
 }
 
 fn cmd_merge(a: &MergeArgs) -> anyhow::Result<()> {
-    if a.out.join("summary.json").exists() {
-        bail!(
-            "{} already holds results; give a new --out folder",
-            a.out.display()
-        );
-    }
+    // Into a new or empty folder only: a campaign's or classification's (running, killed or
+    // finished) had its records replaced.
+    check_out(&a.out, OutKind::Merge)?;
     let classifications = a
         .inputs
         .iter()

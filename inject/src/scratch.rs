@@ -298,6 +298,146 @@ pub fn lock_and_sweep(out: &Path) -> anyhow::Result<Option<OutLock>> {
     Ok(Some(lock))
 }
 
+/// What an output folder (`--out`) is to hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OutKind {
+    Campaign,
+    Classification,
+    /// What `merge` writes: a campaign's files or a classification's, into a new folder.
+    Merge,
+}
+
+impl OutKind {
+    fn name(self) -> &'static str {
+        match self {
+            OutKind::Campaign => "campaign",
+            OutKind::Classification => "classification",
+            OutKind::Merge => "merge",
+        }
+    }
+}
+
+/// Why [`check_out`] refused an output folder.
+#[derive(Debug, thiserror::Error)]
+pub enum OutRefused {
+    /// It holds the other experiment's files: writing both into one folder makes it neither
+    /// (`merge` refuses it).
+    #[error(
+        "--out {out} holds {holds}; a {kind} needs a folder of its own: give a new or empty \
+         --out folder"
+    )]
+    OtherKind {
+        out: String,
+        holds: String,
+        kind: &'static str,
+    },
+    /// It holds files of no campaign or classification.
+    #[error(
+        "--out {out} is not empty (it holds {entry}) and holds no {kind}; give a new or empty \
+         --out folder"
+    )]
+    NotEmpty {
+        out: String,
+        entry: String,
+        kind: &'static str,
+    },
+    /// `merge` writes only into a new or empty folder.
+    #[error(
+        "merge --out {out} is not empty (it holds {holds}); merge writes only into a new or \
+         empty folder: give another --out"
+    )]
+    MergeInto { out: String, holds: String },
+    #[error("cannot read the output folder {out}: {source}")]
+    Read { out: String, source: std::io::Error },
+}
+
+/// What `name` in an output folder is: a file of a campaign's, of a classification's (or one
+/// of them cut short: `NAME.tmp`), or neither.
+fn kind_of(name: &str) -> Option<OutKind> {
+    let name = name.strip_suffix(".tmp").unwrap_or(name);
+    if crate::campaign::OUTPUT_FILES.contains(&name) || name == "runs" {
+        Some(OutKind::Campaign)
+    } else if crate::classify::OUTPUT_FILES.contains(&name) {
+        Some(OutKind::Classification)
+    } else {
+        None
+    }
+}
+
+/// What a folder's `name` says it holds, for a refusal.
+fn holding(name: &str) -> String {
+    match kind_of(name) {
+        Some(kind) => format!("a {} ({name})", kind.name()),
+        None if name == LOCK_FILE => format!("the lock of a campaign or classification ({name})"),
+        None if name.starts_with(NOTE_PREFIX) => format!("a killed run's note ({name})"),
+        None => name.to_owned(),
+    }
+}
+
+/// Checks `out` before a `kind` writes into it, as `--out` is documented: a new or empty folder,
+/// or one that holds the same kind (which only `--resume` continues: the campaign or
+/// classification then says whether it is the same one, and refuses it without `--resume`). A campaign's or classification's lock file and killed runs'
+/// notes are not content (the start sweeps them); for `merge` they are (a campaign's folder).
+pub fn check_out(out: &Path, kind: OutKind) -> Result<(), OutRefused> {
+    let entries = match std::fs::read_dir(out) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(source) => {
+            return Err(OutRefused::Read {
+                out: out.display().to_string(),
+                source,
+            })
+        }
+    };
+    let mut names: Vec<String> = entries
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    let out_s = out.display().to_string();
+    if kind == OutKind::Merge {
+        // The most telling entry: a campaign's or classification's file, else its lock, else any.
+        let first = names
+            .iter()
+            .find(|n| kind_of(n).is_some())
+            .or_else(|| names.iter().find(|n| *n == LOCK_FILE))
+            .or(names.first());
+        return match first {
+            Some(n) => Err(OutRefused::MergeInto {
+                out: out_s,
+                holds: holding(n),
+            }),
+            None => Ok(()),
+        };
+    }
+    let content: Vec<&String> = names
+        .iter()
+        .filter(|n| *n != LOCK_FILE && !n.starts_with(NOTE_PREFIX))
+        .filter(|n| !(n.starts_with(&format!(".{NOTE_PREFIX}")) && n.ends_with(".part")))
+        .collect();
+    if let Some(n) = content
+        .iter()
+        .find(|n| kind_of(n).is_some_and(|k| k != kind))
+    {
+        return Err(OutRefused::OtherKind {
+            out: out_s,
+            holds: holding(n),
+            kind: kind.name(),
+        });
+    }
+    let own = content.iter().any(|n| kind_of(n) == Some(kind));
+    match content.first() {
+        Some(n) if !own => Err(OutRefused::NotEmpty {
+            out: out_s,
+            entry: holding(n),
+            kind: kind.name(),
+        }),
+        // The same kind: resumed (`--resume`), else refused by the campaign or classification
+        // itself, which reads it.
+        _ => Ok(()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -343,3 +343,106 @@ fn a_bit_past_the_value_or_a_replica_of_an_unprotected_component_is_refused() {
         "sink is not protected: it has no replicas",
     );
 }
+
+/// A folder holding `files` (empty ones), in `dir`.
+fn folder_with(dir: &std::path::Path, name: &str, files: &[&str]) -> std::path::PathBuf {
+    let out = dir.join(name);
+    std::fs::create_dir_all(&out).unwrap();
+    for f in files {
+        std::fs::write(out.join(f), "kept\n").unwrap();
+    }
+    out
+}
+
+/// `merge --out` a campaign's or classification's folder — running (its lock), killed (a
+/// run's note) or finished — replaced its campaign.json, runs.jsonl and injections.jsonl: it
+/// looked for summary.json only. Any folder that is not new or empty is refused, untouched.
+#[test]
+fn merge_writes_into_a_new_or_empty_folder_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: [(&[&str], &str); 5] = [
+        (
+            &[".s3res-inject.lock", "campaign.json", "runs.jsonl"],
+            "it holds a campaign (campaign.json)",
+        ),
+        (
+            &[".s3res-inject.lock"],
+            "it holds the lock of a campaign or classification (.s3res-inject.lock)",
+        ),
+        (
+            &["running-s3res-inject-AbC123"],
+            "it holds a killed run's note (running-s3res-inject-AbC123)",
+        ),
+        (
+            &["classify-run.json", "golden.out"],
+            "it holds a classification (classify-run.json)",
+        ),
+        (&["notes.txt"], "it holds notes.txt"),
+    ];
+    for (i, (files, want)) in cases.into_iter().enumerate() {
+        let out = folder_with(dir.path(), &format!("out-{i}"), files);
+        refused(
+            &["merge", "--out", out.to_str().unwrap(), "no-such-input"],
+            want,
+        );
+        for f in files {
+            assert_eq!(
+                std::fs::read_to_string(out.join(f)).unwrap(),
+                "kept\n",
+                "{f}"
+            );
+        }
+        let n = std::fs::read_dir(&out).unwrap().count();
+        assert_eq!(n, files.len(), "merge wrote into {out:?}");
+    }
+}
+
+/// `--out` is new or empty (or, with --resume, holds the same kind): a classification wrote
+/// into a campaign's folder and a campaign into a classification's (then neither merged), and
+/// a folder holding anything else (notes.txt) was taken, with or without --resume.
+#[test]
+fn out_holds_nothing_but_its_own_kind() {
+    let dir = tempfile::tempdir().unwrap();
+    let campaign = folder_with(dir.path(), "c", &["campaign.json", "runs.jsonl"]);
+    let classification = folder_with(dir.path(), "k", &["classify-run.json", "golden.out"]);
+    let notes = folder_with(dir.path(), "n", &["notes.txt"]);
+    for resume in [false, true] {
+        let with = |command, out: &std::path::Path, want: &str| {
+            let mut args = runs_of(command, "exec", out.to_str().unwrap());
+            if resume {
+                args.push("--resume");
+            }
+            refused(&args, want);
+        };
+        with(
+            "classify",
+            &campaign,
+            "holds a campaign (campaign.json); a classification needs a folder of its own",
+        );
+        with(
+            "campaign",
+            &classification,
+            "holds a classification (classify-run.json); a campaign needs a folder of its own",
+        );
+        for command in ["campaign", "classify"] {
+            with(
+                command,
+                &notes,
+                "is not empty (it holds notes.txt) and holds no",
+            );
+        }
+    }
+    // What a start leaves in a folder it has not written yet (its lock, a killed run's note)
+    // is no content: the check passes, and the missing system is what stops it.
+    let started = folder_with(
+        dir.path(),
+        "s",
+        &[".s3res-inject.lock", "running-s3res-golden-AbC123"],
+    );
+    for command in ["campaign", "classify"] {
+        let f = inject(&runs_of(command, "exec", started.to_str().unwrap()), LIMIT);
+        assert_eq!(f.code, Some(1), "{}", f.stderr);
+        assert!(!f.stderr.contains("--out"), "{}", f.stderr);
+        assert!(f.stderr.contains("no-such-system.json"), "{}", f.stderr);
+    }
+}
