@@ -87,6 +87,7 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
     }
     let mut progress = Progress::new(indices.len() as u64, &c.info);
     let stamp = std::process::id();
+    let mut warned_missing = false;
     for &r in &indices {
         let schedule = plan_run(&params, c.info.seed, r).context("the injection schedule")?;
         let (dir, _tmp) = run_dir(c, r)?;
@@ -113,6 +114,17 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
             break;
         }
         let (mut run_rec, inj) = records(&c.info, r, &dir, &result);
+        if let (Some(file), false) = (&c.info.task_summary, warned_missing) {
+            if task_summary_missing(&dir, Some(file)) && result.ready {
+                warned_missing = true;
+                tracing::warn!(
+                    "run {} left no task summary {file} in its folder, so it counts as failed \
+                     (said once; runs.jsonl's `error` says it of each run): is --task-summary \
+                     the file the task writes?",
+                    r + 1
+                );
+            }
+        }
         run_rec.load_before = load_before;
         run_rec.load_after = load_after;
         let never_started = never_started(&result, &dir);
@@ -313,6 +325,11 @@ pub fn task_summary_ok(dir: &Path, file: Option<&str>) -> Option<bool> {
     Some(ok)
 }
 
+/// The task summary was asked for and the run left none in its folder.
+pub fn task_summary_missing(dir: &Path, file: Option<&str>) -> bool {
+    file.is_some_and(|f| !dir.join(f).exists())
+}
+
 /// Turns one run's result into its records (matching injections with events).
 pub fn records(
     info: &CampaignInfo,
@@ -393,14 +410,27 @@ pub fn records(
         false_positives: m.false_positives,
         events: result.events.len() as u64,
         duration_ms: result.duration.as_millis() as u64,
-        error: result.error.clone().or_else(|| {
-            (result.leftovers > 0).then(|| {
-                format!(
-                    "{} process(es) of the run outlived bootstrap and were killed",
-                    result.leftovers
-                )
+        error: result
+            .error
+            .clone()
+            .or_else(|| {
+                (result.leftovers > 0).then(|| {
+                    format!(
+                        "{} process(es) of the run outlived bootstrap and were killed",
+                        result.leftovers
+                    )
+                })
             })
-        }),
+            .or_else(|| {
+                // Missing, not `"ok": false`: `task_summary_ok` is false for both.
+                let file = info.task_summary.as_deref();
+                (result.ready && task_summary_missing(dir, file)).then(|| {
+                    format!(
+                        "no task summary {} in the run's folder (counted as failed)",
+                        file.unwrap_or_default()
+                    )
+                })
+            }),
         load_before: None,
         load_after: None,
     };

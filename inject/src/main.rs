@@ -741,8 +741,28 @@ fn check_runs_and_window(runs: u64, duration: f64, run_timeout: f64) -> anyhow::
     Ok(())
 }
 
+/// A file each run writes in its own folder (`--task-summary`, `--output`, `--mission`): a
+/// relative path without `..`. An absolute one, or one out of the folder, is the same file for
+/// every run (a stale one judged them all).
+fn check_in_run_folder(flag: &str, file: Option<&str>) -> anyhow::Result<()> {
+    let Some(file) = file else { return Ok(()) };
+    let path = Path::new(file);
+    if path.is_absolute()
+        || path
+            .components()
+            .any(|c| c == std::path::Component::ParentDir)
+    {
+        bail!(
+            "{flag} {file}: give a file in the run's folder (a relative path without `..`): \
+             each run has a folder of its own"
+        );
+    }
+    Ok(())
+}
+
 fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
     check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
+    check_in_run_folder("--task-summary", a.task_summary.as_deref())?;
     if a.fault != FaultKind::None {
         check_rate(a.rate)?;
         check_schedule(a.rate, a.duration)?;
@@ -834,23 +854,8 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
              instead of --fault mixed"
         );
     }
-    for (flag, file) in [
-        ("--output", Some(&a.output)),
-        ("--mission", a.mission.as_ref()),
-    ] {
-        let Some(file) = file else { continue };
-        let path = Path::new(file);
-        if path.is_absolute()
-            || path
-                .components()
-                .any(|c| c == std::path::Component::ParentDir)
-        {
-            bail!(
-                "{flag} {file}: give a file in the run's folder (a relative path without `..`): \
-                 each run has a folder of its own"
-            );
-        }
-    }
+    check_in_run_folder("--output", Some(&a.output))?;
+    check_in_run_folder("--mission", a.mission.as_deref())?;
     check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
     check_out(&a.out, OutKind::Classification)?;
     let (system, plan) = load_system(&a.system)?;

@@ -143,3 +143,66 @@ fn a_run_that_never_starts_its_system_stops_the_campaign_with_the_reason() {
     assert_eq!(runs.len(), 1, "{runs:?}");
     assert_eq!(runs[0]["ready"], false);
 }
+
+/// A mistyped `--task-summary` (a file the task never writes) failed every run without a word;
+/// an absolute one judged every run by one stale file. The one is said once, and each run's
+/// record tells a missing summary from one that says `"ok": false`; the other is refused.
+#[test]
+fn a_task_summary_never_written_is_said_and_one_outside_the_run_is_refused() {
+    let _serial = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let system = echo_system(dir.path(), "smr", 300);
+    let out = dir.path().join("out");
+    let stale = dir.path().join("stale-task.json");
+    std::fs::write(&stale, "{\"ok\": true}\n").unwrap();
+    let args = |summary: &str| {
+        let mut a: Vec<String> = [
+            "-q",
+            "campaign",
+            "--system",
+            system.to_str().unwrap(),
+            "--fault",
+            "none",
+            "--runs",
+            "2",
+            "--seed",
+            "1",
+            "--run-timeout",
+            "30",
+            "--out",
+            out.to_str().unwrap(),
+            "--task-summary",
+        ]
+        .map(str::to_owned)
+        .to_vec();
+        a.push(summary.to_owned());
+        a
+    };
+    for bad in [stale.to_str().unwrap(), "../stale-task.json"] {
+        let a = args(bad);
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        let f = spawn_with(None, &[], &a).wait(LIMIT);
+        assert_eq!(f.code, Some(1), "{}", f.stderr);
+        let want = format!("--task-summary {bad}: give a file in the run's folder");
+        assert!(f.stderr.contains(&want), "{}", f.stderr);
+        assert!(!out.exists(), "the campaign wrote {out:?}");
+    }
+    let a = args("tsk.json");
+    let a: Vec<&str> = a.iter().map(String::as_str).collect();
+    let f = spawn_with(None, &[], &a).wait(LIMIT);
+    assert!(f.success, "{}", f.stderr);
+    assert_eq!(
+        f.stderr.matches("left no task summary tsk.json").count(),
+        1,
+        "{}",
+        f.stderr
+    );
+    let runs = read_jsonl(&out.join("runs.jsonl"));
+    assert_eq!(runs.len(), 2);
+    for run in &runs {
+        assert_eq!(run["task_ok"], false, "{run}");
+        assert_eq!(run["task_summary_ok"], false, "{run}");
+        let error = run["error"].as_str().unwrap_or_default();
+        assert!(error.contains("no task summary tsk.json"), "{run}");
+    }
+}
