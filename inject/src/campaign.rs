@@ -107,8 +107,9 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
         let load_after = LoadAverage::now();
         if result.interrupted {
             eprintln!(
-                "s3res-inject: stopped by signal during run {r}; that run is discarded, the {} \
+                "s3res-inject: stopped by signal during run {}; that run is discarded, the {} \
                  completed run(s) are kept (the same command with --resume runs the rest)",
+                r + 1,
                 all_runs.len()
             );
             break;

@@ -61,7 +61,9 @@ Subcommands:
 The guide, the matching rule and a Slurm example: docs/campaigns.md.";
 
 const AFTER_LONG_HELP: &str = "\
-Exit status: 0 done, 1 failed (the reason on stderr), 2 bad usage, 130/143 stopped by
+Exit status: 0 done; 1 failed or refused (a value out of range, a folder in use, a run that
+never started: the reason on stderr, one line); 2 a command line the parser cannot read (an
+unknown option, a missing value, options that cannot go together); 130/143 stopped by
 SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written, and
 `campaign --resume` with the same command runs the rest). If s3res-inject is killed outright
 (SIGKILL), the system it was running dies with it, and the run's temporary folder (named by a
@@ -760,8 +762,41 @@ fn check_in_run_folder(flag: &str, file: Option<&str>) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `--duration` of a fault kind that injects: a window of 0 s injects nothing (a campaign plans
+/// no injection in it, and runs as a baseline would, under the fault's name).
+fn check_window(fault: FaultKind, duration: f64) -> anyhow::Result<()> {
+    if fault != FaultKind::None && duration == 0.0 {
+        bail!(
+            "--duration 0: a window of 0 s leaves no time to inject {fault} faults; give the \
+             window in seconds (above 0), or --fault none for a baseline"
+        );
+    }
+    Ok(())
+}
+
+/// `--components` names each component once: a name given twice drew it twice as often.
+fn check_components(given: &Option<Vec<String>>) -> anyhow::Result<()> {
+    let mut seen = std::collections::BTreeSet::new();
+    if let Some(twice) = given.iter().flatten().find(|c| !seen.insert(c.as_str())) {
+        bail!(
+            "--components names {twice} twice: each name given is drawn equally often; name \
+             each component once"
+        );
+    }
+    Ok(())
+}
+
 fn cmd_campaign(a: &CampaignArgs, stop: &StopSignals) -> anyhow::Result<()> {
     check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
+    check_window(a.fault, a.duration)?;
+    check_components(&a.components)?;
+    if a.match_window_ms == 0 {
+        bail!(
+            "--match-window-ms 0: no fault event can follow an injection within 0 ms, so every \
+             detected fault would count as a false positive and its injection as benign; give \
+             the window in ms (default 2000)"
+        );
+    }
     check_in_run_folder("--task-summary", a.task_summary.as_deref())?;
     if a.fault != FaultKind::None {
         check_rate(a.rate)?;
@@ -857,6 +892,8 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
     check_in_run_folder("--output", Some(&a.output))?;
     check_in_run_folder("--mission", a.mission.as_deref())?;
     check_runs_and_window(a.runs, a.duration, a.run_timeout)?;
+    check_window(a.fault, a.duration)?;
+    check_components(&a.components)?;
     check_out(&a.out, OutKind::Classification)?;
     let (system, plan) = load_system(&a.system)?;
     let components = targets(&plan, &a.components, |p| {
@@ -905,6 +942,7 @@ fn cmd_classify(a: &ClassifyArgs, stop: &StopSignals) -> anyhow::Result<()> {
 
 fn cmd_storm(a: &StormArgs, stop: &StopSignals) -> anyhow::Result<()> {
     check_rate(a.rate)?;
+    check_components(&a.components)?;
     let o = StormOptions {
         state: a.state.clone(),
         faults: a.faults.clone(),

@@ -206,6 +206,9 @@ fn sigint_stops_the_run_in_progress_and_keeps_the_completed_ones() {
     assert_eq!(f.code, Some(130), "{}", f.stderr);
     let kept = read_jsonl(&runs).len();
     assert!((1..20).contains(&kept), "{kept} runs kept");
+    // Counted from 1, as the progress line counts (it said run 1 of the second run).
+    let said = format!("stopped by signal during run {}; ", kept + 1);
+    assert!(f.stderr.contains(&said), "{}", f.stderr);
     assert_eq!(
         read_json(&out.join("summary.json"))[0]["runs_done"],
         kept as u64

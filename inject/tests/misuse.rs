@@ -96,6 +96,13 @@ fn options_of_another_fault_kind_are_refused_not_ignored() {
     assert!(!run.stderr.contains("applies to"), "{}", run.stderr);
 }
 
+/// A storm of `faults` into a system whose live view does not exist, with `extra`.
+fn storm_of<'a>(faults: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["storm", "--state", "no-such-state.json", "--faults", faults];
+    args.extend_from_slice(extra);
+    args
+}
+
 /// `command` (campaign or classify) of one run of `fault`, seed 1, into `out`, on a system
 /// that does not exist: what is refused must be refused before the system is read.
 fn runs_of<'a>(command: &'a str, fault: &'a str, out: &'a str) -> Vec<&'a str> {
@@ -232,15 +239,7 @@ fn absurd_rates_runs_and_windows_are_refused_before_anything_is_planned() {
     }
     assert!(!out.exists(), "the campaign wrote {out:?}");
     refused(
-        &[
-            "storm",
-            "--state",
-            "no-such-state.json",
-            "--faults",
-            "exec",
-            "--rate",
-            "5000",
-        ],
+        &storm_of("exec", &["--rate", "5000"]),
         "--rate 5000.0 injections per second: at most 1000",
     );
 }
@@ -445,4 +444,65 @@ fn out_holds_nothing_but_its_own_kind() {
         assert!(!f.stderr.contains("--out"), "{}", f.stderr);
         assert!(f.stderr.contains("no-such-system.json"), "{}", f.stderr);
     }
+}
+
+/// A zero injection window (`--duration 0`) ran a campaign that injected nothing under a fault's
+/// name (`--rate 0` was refused); `--components echo,echo` drew echo twice as often; a
+/// `--match-window-ms 0` made every detected fault a false positive and its injection benign.
+/// Each is refused in one line; a baseline (`--fault none`) keeps its window of 0.
+#[test]
+fn a_zero_window_a_repeated_component_or_a_zero_match_window_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let out = out.to_str().unwrap();
+    fn with<'a>(command: &'a str, fault: &'a str, out: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+        let mut args = runs_of(command, fault, out);
+        args.extend_from_slice(extra);
+        args
+    }
+    for command in ["campaign", "classify"] {
+        refused(
+            &with(command, "exec", out, &["--duration", "0"]),
+            "--duration 0: a window of 0 s leaves no time to inject exec faults",
+        );
+        refused(
+            &with(command, "sdc", out, &["--components", "echo,echo,sink"]),
+            "--components names echo twice",
+        );
+    }
+    refused(
+        &with("campaign", "exec", out, &["--match-window-ms", "0"]),
+        "--match-window-ms 0: no fault event can follow an injection within 0 ms",
+    );
+    refused(
+        &storm_of("exec", &["--components", "echo,sink,echo"]),
+        "--components names echo twice",
+    );
+    let baseline = inject(&with("campaign", "none", out, &["--duration", "0"]), LIMIT);
+    assert_eq!(baseline.code, Some(1), "{}", baseline.stderr);
+    assert!(
+        baseline.stderr.contains("no-such-system.json") && !baseline.stderr.contains("--duration"),
+        "{}",
+        baseline.stderr
+    );
+    assert!(!std::path::Path::new(out).exists(), "wrote {out}");
+}
+
+/// `--help` said "2 bad usage", but a refused value (`--runs 0`) exits 1: it says which is
+/// which.
+#[test]
+fn help_says_what_each_exit_status_means() {
+    let f = inject(&["--help"], LIMIT);
+    assert!(f.success, "{}", f.stderr);
+    let text = f.stdout.split_whitespace().collect::<Vec<_>>().join(" ");
+    assert!(
+        text.contains("1 failed or refused")
+            && text.contains("2 a command line the parser cannot read"),
+        "{}",
+        f.stdout
+    );
+    assert!(!text.contains("2 bad usage"), "{}", f.stdout);
+    let mut zero = runs_of("campaign", "exec", "out");
+    zero[6] = "0";
+    refused(&zero, "--runs 0: nothing to do");
 }
