@@ -222,13 +222,13 @@ fn bad_usage_gets_a_clear_error() {
     let broken = dir.path().join("broken.json");
     std::fs::write(&broken, "{\n  \"name\": 3\n}").unwrap();
     let out = dir.path().join("o");
-    let fails_with = |system: &Path, extra: &[&str], expected: &str| {
+    let fails_as = |fault: &str, system: &Path, extra: &[&str], expected: &str| {
         let mut args = vec![
             "campaign",
             "--system",
             system.to_str().unwrap(),
             "--fault",
-            "exec",
+            fault,
             "--runs",
             "1",
             "--seed",
@@ -244,9 +244,13 @@ fn bad_usage_gets_a_clear_error() {
             f.stderr
         );
     };
+    let fails_with =
+        |system: &Path, extra: &[&str], expected: &str| fails_as("exec", system, extra, expected);
     fails_with(&system, &["--components", "nope"], "no component `nope`");
     fails_with(&system, &["--shard", "3/2"], "K must be in 1..=2");
-    fails_with(
+    // A var option with a var fault (with exec it is refused as another kind's option).
+    fails_as(
+        "var",
         &system,
         &["--var-field", "sign", "--var-flips", "2"],
         "does not fit field",
