@@ -48,6 +48,8 @@ pub struct System {
     stdin: Option<Vec<u8>>,
     /// bootstrap's stdin from a pipe the test holds the other end of (instead of `stdin`).
     stdin_pipe: Option<std::os::fd::OwnedFd>,
+    /// bootstrap's stdout to this file instead of `stdout.txt` (which stays empty).
+    stdout_file: Option<File>,
     events: bool,
     unprivileged: bool,
     /// Extra bootstrap options, before the description.
@@ -73,6 +75,7 @@ impl System {
             dir,
             stdin: None,
             stdin_pipe: None,
+            stdout_file: None,
             events: true,
             unprivileged: std::env::var_os(UNPRIVILEGED_ENV).is_some_and(|v| v != "0"),
             args: Vec::new(),
@@ -133,6 +136,13 @@ impl System {
     /// the write end, as a producer piped into bootstrap (`sensor | s3res-bootstrap ...`).
     pub fn stdin_pipe(mut self, read_end: std::os::fd::OwnedFd) -> Self {
         self.stdin_pipe = Some(read_end);
+        self
+    }
+
+    /// bootstrap's stdout to `file` (say `/dev/full`) instead of `stdout.txt`, which stays
+    /// empty then.
+    pub fn stdout_file(mut self, file: File) -> Self {
+        self.stdout_file = Some(file);
         self
     }
 
@@ -205,7 +215,13 @@ impl System {
         cmd.args(&self.args)
             .arg(&desc)
             .current_dir(self.dir.path())
-            .stdout(File::create(&stdout).expect("creating stdout.txt"))
+            .stdout(match self.stdout_file.take() {
+                Some(file) => {
+                    File::create(&stdout).expect("creating stdout.txt");
+                    file
+                }
+                None => File::create(&stdout).expect("creating stdout.txt"),
+            })
             .stderr(File::create(&stderr).expect("creating stderr.txt"))
             .process_group(0);
         match (&self.stdin, self.stdin_pipe.take()) {

@@ -501,3 +501,43 @@ fn a_corrupted_replica_is_outvoted_and_replaced_without_losing_the_mean() {
         .unwrap();
     assert_exact(&parse_answers(&bytes), &samples);
 }
+
+/// The documented system with its stdout on a full device (`> /dev/full`): none of the
+/// answers can be written, and the run fails in one line that says so. Before, the voter took
+/// the write error for a reader gone away ("downstream is gone"), and the run "ran clean",
+/// exit 0, with none of 2000 answers written.
+#[test]
+fn a_stdout_that_cannot_be_written_fails_the_run() {
+    let description = doc_block("json", "\"redundancy\": \"tmr\"");
+    let mut rng = Rng::from_env();
+    let samples = random_samples(&mut rng, 200);
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .expect("opening /dev/full");
+    let mut run = System::new()
+        .stdin(sample_frames(&samples))
+        .stdout_file(full)
+        .start(description);
+    let out = run.wait(LIMIT);
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    assert!(
+        out.stderr
+            .contains("s3res-voter: output `mean` could not be written: No space left on device"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 30)
+    );
+    assert!(!out.stderr.contains("ran clean"), "{}", out.stderr);
+    let lost: Vec<_> = out
+        .events
+        .iter()
+        .filter(|e| e.kind == EventKind::Lost)
+        .collect();
+    assert_eq!(lost.len(), 1, "{lost:?}");
+    run.assert_nothing_left();
+}

@@ -74,6 +74,9 @@ pub enum VoterError {
     /// Stream mode: the replicas had not finished their output when the end's time was up.
     #[error("output cut short: {0}")]
     Unfinished(String),
+    /// An output could not be written (not that its reader went away): what went there is lost.
+    #[error("{0}")]
+    OutputLost(String),
     #[error(transparent)]
     Clock(#[from] ClockError),
 }
@@ -1463,6 +1466,25 @@ impl Core {
 
     /// Writes out what is still queued for downstream (blocking up to [`OUTPUT_DRAIN_LIMIT`]),
     /// then gives the replicas [`SHUTDOWN_GRACE`] to exit by themselves.
+    /// At the end of a run: an output that could not be written (a full disk behind a
+    /// redirected stdout) lost what the component sent there, and the run is no success. Said
+    /// in a `lost` event too. (Before, such a run ended "ran clean", exit 0, with none of 2000
+    /// frames written.)
+    pub(crate) fn output_failure(&mut self) -> Result<(), VoterError> {
+        let Some(why) = self.outputs.iter().find_map(ExternalOutput::failure) else {
+            return Ok(());
+        };
+        let mut ev = self.event(EventKind::Lost);
+        ev.detail = Some(why.clone());
+        ev.output = self
+            .outputs
+            .iter()
+            .find(|o| o.failed.is_some())
+            .map(|o| o.name.clone());
+        self.emit(ev);
+        Err(VoterError::OutputLost(why))
+    }
+
     pub(crate) fn drain_and_let_finish(&mut self) {
         heartbeat_ending();
         let drain_deadline = Instant::now() + OUTPUT_DRAIN_LIMIT;

@@ -57,6 +57,10 @@ pub(crate) struct ExternalOutput {
     pub(crate) writer: FrameWriter,
     /// The reader went away; later frames are dropped (said once).
     pub(crate) broken: bool,
+    /// Why it broke, if not because its reader went away (a full disk behind a redirected
+    /// stdout, an I/O error): the frames dropped since are lost, and the component has failed
+    /// (see [`ExternalOutput::failure`]).
+    pub(crate) failed: Option<String>,
     /// Frames sent (queued) so far by this voter and its predecessors: the next one's number.
     pub(crate) sent: u64,
 }
@@ -69,18 +73,38 @@ impl ExternalOutput {
             return;
         }
         if let Err(e) = self.writer.send(frame) {
-            tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
-            self.broken = true;
+            self.break_on(&e);
             self.writer.discard();
         }
+    }
+
+    /// The write failed with `e`: a reader that went away (`EPIPE`: downstream ended, as
+    /// `head` does) leaves the rest of the output unwanted; any other error loses it.
+    fn break_on(&mut self, e: &std::io::Error) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
+        } else {
+            tracing::error!(output = %self.name, error = %e, "cannot write the output; dropping further output");
+            self.failed = Some(e.to_string());
+        }
+        self.broken = true;
+    }
+
+    /// What was lost because the output could not be written (not because its reader went
+    /// away): the output's name and why.
+    pub(crate) fn failure(&self) -> Option<String> {
+        let why = self.failed.as_ref()?;
+        Some(format!(
+            "output `{}` could not be written: {why}; what the component sent there since is lost",
+            self.name
+        ))
     }
 
     /// Writes what is queued, as far as the pipe takes it now.
     pub(crate) fn flush(&mut self) {
         if let Err(e) = self.writer.flush() {
             if !self.broken {
-                tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
-                self.broken = true;
+                self.break_on(&e);
             }
             // Nothing queued for a reader that will never come.
             self.writer.discard();
@@ -907,6 +931,7 @@ impl Endpoints {
                     writer: FrameWriter::new(adopted.take(p.fd, &p.name)?)
                         .map_err(io_err(format!("output `{}` (fd {})", p.name, p.fd)))?,
                     broken: false,
+                    failed: None,
                     sent: 0,
                 })
             })

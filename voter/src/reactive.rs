@@ -1005,7 +1005,7 @@ impl ReactiveVoter {
         }
         self.core.end_replica_inputs();
         self.core.drain_and_let_finish();
-        Ok(())
+        self.core.output_failure()
     }
 
     /// Decodes every whole frame replica `r` sent on output `o` and takes it into the round.

@@ -762,7 +762,7 @@ impl StreamVoter {
         self.core.drain_and_let_finish();
         match unfinished {
             Some(why) => Err(VoterError::Unfinished(why)),
-            None => Ok(()),
+            None => self.core.output_failure(),
         }
     }
 }
