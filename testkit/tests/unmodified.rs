@@ -1003,6 +1003,48 @@ fn a_program_that_never_answers_a_line_is_told_to_flush() {
     run.assert_nothing_left();
 }
 
+/// A program that answers no line for some inputs (every fifth here) leaves every replica
+/// asleep on an empty input at the deadline: the hang says so, and asks whether it sent
+/// nothing for the round's input. Before, it said only "if the component needs more than
+/// 300000 µs for a round, raise its timeout_us", which cannot help (12 of 12 such hangs of a
+/// user's program).
+const SKIPS_EVERY_FIFTH_PY: &str = r#"
+import sys
+for line in sys.stdin:
+    if int(line) % 5 != 0:
+        print(int(line))
+"#;
+
+#[test]
+#[cfg_attr(not(s3res_python3), ignore = "needs python3")]
+fn a_program_that_skips_an_answer_is_told_so_not_to_raise_its_timeout() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let sys = System::new();
+    std::fs::write(sys.path("program.py"), SKIPS_EVERY_FIFTH_PY).unwrap();
+    let program = (
+        python3(),
+        vec![
+            "-u".to_owned(),
+            sys.path("program.py").display().to_string(),
+        ],
+    );
+    let desc = pipeline(&sys, program, "tmr", 40);
+    let mut run = sys.start_json(&desc);
+    let hang = run.wait_for_event(
+        |e| e.kind == EventKind::Hang && e.round == Some(5),
+        Duration::from_secs(30),
+    );
+    let detail = hang.detail.unwrap_or_default();
+    assert!(
+        detail.contains("waits for more input with none left to read")
+            && detail.contains("one answer per input frame"),
+        "{detail}"
+    );
+    run.stop();
+    run.wait(LIMIT);
+    run.assert_nothing_left();
+}
+
 /// Writes each line's answer in two `write`s with a pause between them: `head-`, then,
 /// 1.5 s later, `tail` and the newline.
 const SPLIT_LINE_PY: &str = r#"

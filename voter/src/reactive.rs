@@ -881,10 +881,8 @@ impl ReactiveVoter {
                 plan.outputs[o].name
             ),
             (Cause::Deadline | Cause::TurnDeadline, None) => {
-                let backlog = self.core.slots[r]
-                    .as_ref()
-                    .map(|rep| format!("; {}", rep.pipe_backlog()))
-                    .unwrap_or_default();
+                let pipes = self.core.slots[r].as_ref().map(Replica::pipe_backlog);
+                let backlog = pipes.map(|p| format!("; {p}")).unwrap_or_default();
                 // How late the voter itself came to the deadline: a stalled voter, not the
                 // replica.
                 let voter_late = Instant::now()
@@ -912,14 +910,26 @@ impl ReactiveVoter {
                         .round
                         .as_ref()
                         .is_some_and(|rd| nobody_answered(rd, &self.core.slots));
-                let all = if self.all_late || none_answered {
+                let all = if !(self.all_late || none_answered) {
+                    String::new()
+                } else if self.evidence[r].is_some_and(|seen| waits_for_input(&seen, pipes)) {
+                    // More time cannot help a replica that sleeps on an empty input: it took
+                    // the round's input and sent nothing (a user's component that skipped
+                    // every fifth answer was told to raise its timeout, 12 times of 12).
+                    format!(
+                        "; every replica missed this round, and this one waits for more input \
+                         with none left to read: did it take the round's input and send nothing \
+                         for it? A component sends one answer per input frame (an unmodified \
+                         program one line per line), also when it has nothing new to say; if it \
+                         needs more than {} µs for a round, raise its timeout_us",
+                        plan.timeout_us
+                    )
+                } else {
                     format!(
                         "; every replica missed this round: if the component needs more than {} \
                          µs for a round, raise its timeout_us",
                         plan.timeout_us
                     )
-                } else {
-                    String::new()
                 };
                 format!(
                     "no answer within {} µs{turn}{extended} in round {number}{seen}{backlog}; \
@@ -1270,6 +1280,19 @@ fn turn_end(answered: Option<Instant>, open: Option<Instant>, now: Instant) -> I
 /// that stopped reading cannot make the voter's memory grow without bound.
 fn input_backlog_limit(max_frame: usize) -> usize {
     (64 * (max_frame + replica_rt::frame::HEADER_LEN)).max(4 << 20)
+}
+
+/// Whether a late replica, as the voter last saw it, sleeps on its input pipe with nothing
+/// in it and nothing unread in its output, and ran not at all meanwhile: it is not working on
+/// the round but waiting for the next input.
+fn waits_for_input(seen: &Seen, pipes: Option<crate::replica::PipeBacklog>) -> bool {
+    let asleep_on_a_pipe = seen.state == Some('S')
+        && seen.ran_us == 0
+        && seen.wchan.is_some_and(|w| w.as_str().contains("pipe_read"));
+    asleep_on_a_pipe
+        && pipes.is_some_and(|p| {
+            p.input_unread == Some(0) && p.input_queued == 0 && p.output_unread == Some(0)
+        })
 }
 
 /// Whether no trusted member of `round` has answered (and it has some): every replica missed
