@@ -85,7 +85,11 @@ void s3res_runtime_free(s3res_runtime *rt);
 /* S3RES_MODE_*, or -EINVAL. */
 int s3res_mode(const s3res_runtime *rt);
 
-/* The replica number (S3RES_REPLICA) or -1 when not a replica. */
+/* The replica number (S3RES_REPLICA) as read at s3res_init, or -1 when not a replica. A
+ * replica forked from a donor to replace a faulty one is a copy of the donor's memory and keeps
+ * the DONOR's number (and its environment's S3RES_REPLICA), not the slot it now fills: do not
+ * use it to name a replica in logs or to pick per-replica behaviour that must follow the slot
+ * (the voter's [component#slot pid N] prefix on every stderr line gives the slot). */
 int s3res_replica_index(const s3res_runtime *rt);
 
 /* Take a port by the name the system description uses (each once). 0 and *port set, or
