@@ -161,6 +161,21 @@ pub fn kind_name(kind: EventKind) -> &'static str {
     }
 }
 
+/// How a component of `replicas` is degraded, if it is: replicas down, and replicas that vote
+/// with a state of their own (`diverged`: outvoted, so they mask no fault of the others). A
+/// verdict said "degraded at the end: none" over a component two of whose three replicas had
+/// diverged, its output standing on one.
+fn degraded_how(c: &ComponentTally, replicas: usize) -> Option<String> {
+    let mut how = Vec::new();
+    if !c.down.is_empty() {
+        how.push(format!("{} of {replicas} down", c.down.len()));
+    }
+    if !c.diverged.is_empty() {
+        how.push(format!("{} of {replicas} diverged", c.diverged.len()));
+    }
+    (!how.is_empty()).then(|| how.join(", "))
+}
+
 /// The status of the moment, one line: `12.5 s · filter 3 faults/3 recovered · … · degraded:
 /// none`.
 pub fn status_line(plan: &SystemPlan, t: &TallyData, elapsed: Duration, injected: u64) -> String {
@@ -174,13 +189,8 @@ pub fn status_line(plan: &SystemPlan, t: &TallyData, elapsed: Duration, injected
             ct.fault_count(),
             ct.recoveries()
         ));
-        if !ct.down.is_empty() {
-            degraded.push(format!(
-                "{} ({} of {} down)",
-                c.name,
-                ct.down.len(),
-                c.replicas
-            ));
+        if let Some(how) = degraded_how(&ct, c.replicas) {
+            degraded.push(format!("{} ({how})", c.name));
         }
     }
     let mut line = parts.join(" · ");
@@ -553,7 +563,7 @@ impl Verdict {
             .iter()
             .filter_map(|(name, n)| {
                 let c = self.tally.per_component.get(name)?;
-                (!c.down.is_empty()).then(|| format!("{name} ({} of {n} down)", c.down.len()))
+                degraded_how(c, *n).map(|how| format!("{name} ({how})"))
             })
             .collect();
         let (rebuilt, lost) = (sum(|c| c.rebuilt), sum(|c| c.lost));
@@ -801,6 +811,10 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("faults       0"), "not a fault: {text}");
+        assert!(
+            text.contains("degraded at the end: filter (2 of 3 diverged)"),
+            "{text}"
+        );
         let mut r = event(EventKind::Recovery, Some(1));
         r.method = Some(RecoveryMethod::Fork);
         t.apply(&r);
