@@ -49,6 +49,10 @@ pub struct EventSummary {
     pub unparsable: u64,
     /// Faults reported again by a dead voter's successor, kept once (module docs).
     pub repeats: u64,
+    /// Why the events file stopped being written (a full disk), and how many events it lacks:
+    /// the verdict says so (a run once "ran clean" over a file that held half its faults and
+    /// ended in half a line).
+    pub unsaved: Option<(String, u64)>,
     /// The pid each (component, replica slot)'s last fault named.
     last_fault: BTreeMap<(String, usize), i32>,
 }
@@ -271,6 +275,8 @@ pub fn read_all(
 ) -> EventSummary {
     let mut summary = EventSummary::default();
     let mut buf = Vec::with_capacity(4096);
+    // The length of the file's whole lines: a line cut short by a failed write is cut off.
+    let mut saved: u64 = 0;
     loop {
         buf.clear();
         match input.read_until(b'\n', &mut buf) {
@@ -290,10 +296,23 @@ pub fn read_all(
             if res.is_ok() && !buf.ends_with(b"\n") {
                 res = f.write_all(b"\n");
             }
-            if let Err(e) = res.and_then(|()| f.flush()) {
-                tracing::warn!("cannot write the events file ({e}); events are no longer saved");
-                log = None;
+            match res.and_then(|()| f.flush()) {
+                Ok(()) => saved += buf.len() as u64 + u64::from(!buf.ends_with(b"\n")),
+                Err(e) => {
+                    tracing::warn!(
+                        "cannot write the events file ({e}); events are no longer saved"
+                    );
+                    // Whole lines only: a reader parses it line by line.
+                    if let Err(e) = f.set_len(saved) {
+                        tracing::warn!("cannot cut the events file's last line off ({e})");
+                    }
+                    summary.unsaved = Some((e.to_string(), 0));
+                    log = None;
+                }
             }
+        }
+        if let (None, Some((_, n))) = (&log, summary.unsaved.as_mut()) {
+            *n += 1;
         }
         if let Line::Event(event) = line {
             if let Some(live) = live {
@@ -311,6 +330,26 @@ pub fn read_all(
 mod tests {
     use super::*;
     use std::io::{Read, Seek};
+
+    /// An events file that cannot be written (a full disk) stops being written, and the
+    /// summary says why and how many events it lacks; the events still count.
+    #[test]
+    fn an_events_file_that_cannot_be_written_is_said_incomplete() {
+        let e = Event::new("sys", "echo", EventKind::Crash);
+        let input = format!("{}{}{}", e.to_line(), e.to_line(), e.to_line());
+        let full = std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap();
+        let summary = read_all(input.as_bytes(), Some(full), None, None);
+        let (why, n) = summary.unsaved.expect("said incomplete");
+        assert!(why.contains("No space left on device"), "{why}");
+        assert_eq!(n, 3);
+        assert_eq!(
+            summary.per_component["echo"].faults, 3,
+            "counted all the same"
+        );
+    }
 
     #[test]
     fn counts_copies_and_tolerates_garbage() {

@@ -536,6 +536,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     };
     let files = Files {
         events: opts.events_file.clone(),
+        events_unsaved: events.as_ref().and_then(|e| e.unsaved.clone()),
         state: in_private(&state_file),
         injections: in_private(&injections_file),
         outcome: plan.outcome.clone(),

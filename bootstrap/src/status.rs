@@ -420,6 +420,8 @@ pub fn read_outcome(path: &Path) -> Result<TaskOutcome, String> {
 #[derive(Debug, Clone, Default)]
 pub struct Files {
     pub events: Option<PathBuf>,
+    /// The events file could not be written to the end: why, and how many events it lacks.
+    pub events_unsaved: Option<(String, u64)>,
     pub state: Option<PathBuf>,
     pub injections: Option<PathBuf>,
     pub outcome: Option<PathBuf>,
@@ -466,6 +468,14 @@ impl Verdict {
             ),
             (count(|c| c.down.len()), "replica", "down"),
             (count(|c| c.diverged.len()), "replica", "diverged"),
+            (
+                self.files
+                    .events_unsaved
+                    .as_ref()
+                    .map_or(0, |u| u.1 as usize),
+                "event",
+                "not saved in the events file",
+            ),
         ]
         .into_iter()
         .filter(|&(n, ..)| n > 0)
@@ -645,7 +655,13 @@ impl Verdict {
             ("outcome", &f.outcome),
         ] {
             if let Some(p) = p {
-                files.push(format!("{what} {}", p.display()));
+                let incomplete = match (&f.events_unsaved, what) {
+                    (Some((why, n)), "events") => {
+                        format!(" (incomplete: the last {n} events not saved: {why})")
+                    }
+                    _ => String::new(),
+                };
+                files.push(format!("{what} {}{incomplete}", p.display()));
             }
         }
         if !files.is_empty() {
@@ -724,6 +740,27 @@ mod tests {
             files: Files::default(),
             protected: vec![(name.into(), 3)],
         }
+    }
+
+    /// An events file that could not be written to the end is no clean run's record: the
+    /// headline and the files line say so.
+    #[test]
+    fn an_incomplete_events_file_is_said() {
+        let mut v = clean_run_of("filter", &Tally::default());
+        v.files.events = Some("ev.jsonl".into());
+        v.files.events_unsaved = Some(("No space left on device (os error 28)".into(), 6));
+        let text = v.render();
+        assert!(
+            text.contains("ran to the end, with losses: 6 events not saved in the events file"),
+            "{text}"
+        );
+        assert!(
+            text.contains(
+                "events ev.jsonl (incomplete: the last 6 events not saved: No space left on \
+                 device (os error 28))"
+            ),
+            "{text}"
+        );
     }
 
     #[test]
