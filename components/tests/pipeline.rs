@@ -181,3 +181,34 @@ fn echo_rejects_an_oversized_header() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("exceeds the channel maximum"), "{err}");
 }
+
+/// A sink whose stdout cannot be written (a full disk) says so in its error and exits 1,
+/// after writing its --summary file; before, `println!` panicked.
+#[test]
+fn a_sink_whose_stdout_is_full_fails_with_an_error_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let summary = dir.path().join("summary.json");
+    let mut src = bin("source")
+        .args(["--count", "3", "--hz", "0"])
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let out = bin("sink")
+        .arg("--summary")
+        .arg(&summary)
+        .stdin(src.stdout.take().unwrap())
+        .stdout(full)
+        .stderr(Stdio::piped())
+        .output()
+        .unwrap();
+    src.wait().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("writing the summary to stdout"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(summary.is_file(), "the summary file is written first");
+}

@@ -4,6 +4,8 @@
 
 use std::path::PathBuf;
 
+use std::io::Write as _;
+
 use anyhow::{Context, Result};
 use clap::Parser;
 use s3res_components::Checker;
@@ -57,10 +59,11 @@ fn main() -> Result<()> {
         tracing::error!("input stream broken ({e:#}); counted what arrived before it");
         summary.ok = false;
     }
-    println!("{summary}");
     if let Some(path) = &cli.summary {
         let json = serde_json::to_string(&summary).context("serialising the summary")?;
         std::fs::write(path, json + "\n").with_context(|| format!("writing {}", path.display()))?;
     }
+    // Not `println!`, which panics when stdout cannot be written (a full disk behind it).
+    writeln!(std::io::stdout(), "{summary}").context("writing the summary to stdout")?;
     std::process::exit(if summary.ok { 0 } else { 1 });
 }
