@@ -438,9 +438,11 @@ pub fn records(
     (run_rec, inj)
 }
 
-/// A progress bar with ETA on a terminal; otherwise a line at most every 10 s.
+/// A progress bar with ETA on a terminal; otherwise a line at most every 10 s. Neither under
+/// `-q` (info not logged: "only warnings and errors", which the lines ignored before).
 pub struct Progress {
     bar: Option<ProgressBar>,
+    shown: bool,
     total: u64,
     done: u64,
     injected: u64,
@@ -454,7 +456,8 @@ pub struct Progress {
 impl Progress {
     pub fn new(total: u64, info: &CampaignInfo) -> Self {
         let label = format!("{} {}", info.config, info.fault);
-        let bar = std::io::stderr().is_terminal().then(|| {
+        let shown = tracing::enabled!(tracing::Level::INFO);
+        let bar = (shown && std::io::stderr().is_terminal()).then(|| {
             let b = ProgressBar::new(total);
             b.set_style(
                 ProgressStyle::with_template(
@@ -468,6 +471,7 @@ impl Progress {
         });
         Progress {
             bar,
+            shown,
             total,
             done: 0,
             injected: 0,
@@ -494,6 +498,7 @@ impl Progress {
                 b.set_message(msg);
                 b.inc(1);
             }
+            None if !self.shown => {}
             None => {
                 if self.last_line.elapsed() >= Duration::from_secs(10) || self.done == self.total {
                     let elapsed = self.started.elapsed().as_secs_f64();

@@ -50,6 +50,12 @@ fn campaign(
     args.extend_from_slice(extra);
     let f = inject(&args, LIMIT);
     assert!(f.success, "campaign failed:\n{}", f.stderr);
+    // `-q`: only warnings and errors (the progress line came all the same before).
+    assert!(
+        !f.stderr.contains(" runs, ETA") && !f.stderr.contains("ETA "),
+        "-q, yet:\n{}",
+        f.stderr
+    );
     for file in [
         "campaign.json",
         "injections.jsonl",
