@@ -599,12 +599,11 @@ fn golden_run(
         let path = golden_dir.path().join(&c.info.output);
         if !path.is_file() {
             bail!(
-                "the golden run left no output file that --output {} names (no {} in its run \
-                 folder {}): give --output the file the system writes in its working \
-                 directory, or leave it out to compare bootstrap's stdout",
+                "the golden run left no output file that --output {} names (no {} in the \
+                 folder it ran in, removed since): give --output the file the system writes \
+                 in its working directory, or leave it out to compare bootstrap's stdout",
                 c.info.output,
                 c.info.output,
-                golden_dir.path().display()
             );
         }
     }
