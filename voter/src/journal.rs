@@ -545,6 +545,15 @@ impl Journal {
         }
     }
 
+    /// Marks the replica `pid` that `slot` names as proven (it has answered).
+    pub(crate) fn mark_proven(&self, slot: usize, pid: libc::pid_t) {
+        let at = OFF_TABLE + SLOT_LEN * slot;
+        let r = &self.region;
+        if r.u64_at(at).load(Ordering::Acquire) == pid as u64 {
+            r.u64_at(at + 16).fetch_or(FLAG_PROVEN, Ordering::Relaxed);
+        }
+    }
+
     // ----- lines (see "Lines" in the module docs) --------------------------------------------
 
     fn lines_word(&self, slot: usize, k: usize) -> &std::sync::atomic::AtomicU64 {
@@ -773,6 +782,30 @@ pub(crate) mod tests {
         journal.region.write_bytes(at, &MARKER.to_le_bytes());
         let (_, found) = Journal::open(keep, &plan).unwrap();
         assert_eq!(found.logs[0].len(), more.len() + two.len());
+    }
+
+    /// A replica journaled before it answered is found proven once it has (its voter marks
+    /// it), and a mark for a pid the slot no longer names changes nothing.
+    #[test]
+    fn a_replica_that_answered_since_it_was_journaled_is_found_proven() {
+        let plan = plan();
+        let fd = memfd(c"journal").unwrap();
+        let keep = fd.try_clone().unwrap();
+        let journal = Journal::create(fd, &plan).unwrap();
+        let entry = |pid| SlotEntry {
+            pid,
+            start_time: 99,
+            state_lost: false,
+            proven: false,
+            offsets: [0; MAX_PORTS],
+        };
+        journal.set_slot(0, Some(entry(1234)));
+        journal.set_slot(1, Some(entry(1235)));
+        journal.mark_proven(0, 1234);
+        journal.mark_proven(1, 999);
+        let (_, found) = Journal::open(keep, &plan).unwrap();
+        assert!(found.slots[0].unwrap().proven);
+        assert!(!found.slots[1].unwrap().proven);
     }
 
     /// An unmodified program's answer is taken into the journal with one `read`: a successor

@@ -1061,10 +1061,13 @@ impl ReactiveVoter {
                 }
                 return self.fault(r, cause, detail);
             }
-            rep.proven = true;
+            let newly_proven = !std::mem::replace(&mut rep.proven, true);
             // The program speaks the protocol (the restart budget's message says otherwise).
             self.core.exec_answered = true;
             let pid = rep.pid;
+            if newly_proven {
+                self.core.journal_proven(r, pid);
+            }
             self.answers[r][o].set(at);
             let round = self.round.as_mut().expect("unexpected() checked the round");
             round.answered[r] |= 1 << o;

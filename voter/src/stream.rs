@@ -308,10 +308,16 @@ impl StreamVoter {
                     return self.fault(r, Cause::BadFrame, detail);
                 }
             };
-            rep.proven = true;
+            let newly_proven = !std::mem::replace(&mut rep.proven, true);
             // The program speaks the protocol (the restart budget's message says otherwise).
             self.core.exec_answered = true;
             let pid = rep.pid;
+            // As `Core::journal_proven` (the frame borrows the slot still).
+            if let (true, Some(journal)) = (newly_proven, self.core.journal.as_ref()) {
+                if self.core.journaled_pids[r] == pid {
+                    journal.mark_proven(r, pid);
+                }
+            }
             // Every frame is scored, also when all agree and also late copies: each replica's
             // stream must be complete for the next delta to be meaningful.
             let after_alarm = self.core.monitors.alarmed(r, o);
