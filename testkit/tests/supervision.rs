@@ -579,7 +579,8 @@ fn a_fork_child_that_dies_without_a_word_is_quoted_with_what_its_donor_said() {
     let misbehave = format!(
         r#"{{ "exec": "s3res-misbehave", "args": ["--mode", "last-words", "--replica", "1", "--at", "20"], "redundancy": "dmr", "timeout_us": {TIMEOUT_US}, "max_restarts": 1 }}"#
     );
-    let desc = echo_pipeline(&sys.path("summary.json"), &misbehave, 100_000, 50);
+    // 25 frames a second: 4 s between the last words and the donor's exit, to kill and fork.
+    let desc = echo_pipeline(&sys.path("summary.json"), &misbehave, 100_000, 25);
     let mut run = sys.start(&desc);
     run.wait_for_replicas("echo", 2);
     let pids = run.replica_pids("echo");
@@ -672,7 +673,13 @@ fn one_ctrl_c_forwarded_by_a_wrapper_is_one_stop() {
     // The trap takes half a second to save its work.
     let (mut run, flag) = start_with_trapper("sleep 0.5; echo caught > \"$1\"; exit 0");
     s3res_testkit::kill_pid(-run.pgid(), libc::SIGINT).expect("SIGINT to the group");
-    std::thread::sleep(Duration::from_millis(5));
+    // Once bootstrap has taken the first (two pending at once would be one to the kernel),
+    // the copy, at once.
+    s3res_testkit::wait_until("bootstrap stopping", Duration::from_secs(20), || {
+        run.stderr()
+            .contains("stopping (signal SIGINT)")
+            .then_some(())
+    });
     s3res_testkit::kill_pid(run.pid(), libc::SIGINT).expect("SIGINT forwarded");
     let out = run.wait(Duration::from_secs(60));
     assert_eq!(
@@ -694,6 +701,47 @@ fn one_ctrl_c_forwarded_by_a_wrapper_is_one_stop() {
             s3res_testkit::tail(&out.stderr, 20)
         );
     }
+    run.assert_nothing_left();
+}
+
+/// A voter whose bootstrap is gone before it asks for its parent-death signal again (here: it
+/// is told a bootstrap pid that is not its parent) stops at once, as that signal would have
+/// stopped it. Before, it logged that it stopped, then ran its replicas on for as long as its
+/// input lasted (a review found this).
+#[test]
+fn a_voter_whose_bootstrap_is_gone_at_start_stops() {
+    let (read_end, write_end) = std::io::pipe().expect("a pipe for bootstrap's stdin");
+    let sys = System::new().stdin_pipe(std::os::fd::OwnedFd::from(read_end));
+    let wrapper = sys.path("voter.sh");
+    std::fs::write(
+        &wrapper,
+        format!(
+            "#!/bin/sh\nS3RES_SUPERVISOR_PID=2147483647 exec {} \"$@\"\n",
+            s3res_testkit::bin_path("s3res-voter").display()
+        ),
+    )
+    .unwrap();
+    std::fs::set_permissions(
+        &wrapper,
+        std::os::unix::fs::PermissionsExt::from_mode(0o755),
+    )
+    .unwrap();
+    let sys = sys.env("S3RES_VOTER", &wrapper);
+    let desc = format!(
+        r#"{{ "name": "orphaned",
+  "components": {{ "echo": {{ "exec": "s3res-echo", "redundancy": "tmr", "timeout_us": {TIMEOUT_US} }} }},
+  "channels": [ {{ "from": "stdin", "to": "echo.in" }}, {{ "from": "echo.out", "to": "stdout" }} ] }}"#
+    );
+    let mut run = sys.start(&desc);
+    // Its input stays open (the test holds the pipe): only the stop ends it.
+    let out = run.wait(Duration::from_secs(30));
+    drop(write_end);
+    assert!(
+        out.stderr
+            .contains("bootstrap is gone before this voter started: stopping"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
     run.assert_nothing_left();
 }
 

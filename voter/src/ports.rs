@@ -776,7 +776,7 @@ pub(crate) fn heartbeat_ending() {
 /// so (the voter exited 0 and bootstrap blamed the components starved by it): it is kept for
 /// the exit ([`stray_stop`]).
 pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
-    let mut stop = STOP_AT_START.swap(false, std::sync::atomic::Ordering::Relaxed);
+    let mut stop = false;
     while let Ok(Some(info)) = signals.read_signal() {
         match info.ssi_signo as i32 {
             libc::SIGCHLD => reap_children(),
@@ -791,7 +791,8 @@ pub(crate) fn stop_requested(signals: &SignalFd) -> bool {
 
 /// Notes a stop signal `sig` from process `from` (0: the kernel): the supervisor's, or stray.
 fn note_stop(sig: libc::c_int, from: u32) {
-    if from == 0 || Some(&from) == SUPERVISOR.get() {
+    // From itself: bootstrap was gone when it started (`Endpoints::open`).
+    if from == 0 || Some(&from) == SUPERVISOR.get() || from == std::process::id() {
         tracing::info!(signal = sig, "stop requested");
         SUPERVISOR_STOPPED.store(true, std::sync::atomic::Ordering::Relaxed);
     } else {
@@ -819,9 +820,6 @@ fn supervisor_pid() -> u32 {
         .filter(|&pid: &u32| pid > 1)
         .unwrap_or_else(std::os::unix::process::parent_id)
 }
-
-/// The supervisor was gone when the voter started: it stops before its first round.
-static STOP_AT_START: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
 /// A stop came from the supervisor or the kernel (the system stops).
 static SUPERVISOR_STOPPED: std::sync::atomic::AtomicBool =
@@ -894,8 +892,11 @@ impl Endpoints {
                     supervisor,
                     "bootstrap is gone before this voter started: stopping"
                 );
-                note_stop(libc::SIGTERM, 0);
-                STOP_AT_START.store(true, std::sync::atomic::Ordering::Relaxed);
+                // The signal that will not come, sent now: the loop's first look at the
+                // signalfd stops the voter, as bootstrap's death would have.
+                if let Err(e) = sys::kill(std::process::id() as libc::pid_t, libc::SIGTERM) {
+                    return Err(io_err("stopping, bootstrap gone")(e));
+                }
             }
             Err(e) => tracing::warn!(
                 error = %e,
