@@ -594,6 +594,17 @@ impl Core {
         }
     }
 
+    /// Replica `pid` in `slot` has answered: a successor that adopts it finds it proven (a
+    /// replica started by exec was journaled unproven and stayed so; an unmodified program's,
+    /// which may donate only once proven, could not be forked from after a voter's death).
+    pub(crate) fn journal_proven(&self, slot: usize, pid: libc::pid_t) {
+        if let Some(journal) = self.journal.as_ref() {
+            if self.journaled_pids[slot] == pid {
+                journal.mark_proven(slot, pid);
+            }
+        }
+    }
+
     /// Commits what was taken off the inputs, once its rounds are over and their output and
     /// input are out of the voter (nothing queued for downstream or for a replica): a
     /// successor then replays nothing of it. Called between rounds.
@@ -1272,6 +1283,10 @@ impl Core {
         let family: Vec<libc::pid_t> = self.slots.iter().flatten().map(|r| r.pid).collect();
         self.restart_nonce = self.restart_nonce.wrapping_add(1).max(1);
         let donor = self.slots[d].as_mut().expect("donor slot is filled");
+        // What the donor has said up to the signal, for its child's relay (read now, so that
+        // what it writes after the fork stays its own).
+        donor.relay_stderr(&self.plan.component, d);
+        let said = donor.stderr.memory();
         let donor_pid = donor.pid;
         let mut retiring = self.retiring.take();
         let component = &self.plan.component;
@@ -1317,11 +1332,8 @@ impl Core {
         // The child remembers what its donor said, as it remembers the rest of its memory: a
         // donor forked while it reported an error on its way out has a child that writes only
         // the rest (a backtrace) and dies, and the restart budget's line must still quote the
-        // error. What the donor wrote up to the fork is read first.
-        if let Some(donor) = self.slots[d].as_mut() {
-            donor.relay_stderr(&self.plan.component, d);
-            forked.replica.stderr.continue_from(&donor.stderr);
-        }
+        // error.
+        forked.replica.stderr.continue_from(&said);
         Ok(forked)
     }
 
@@ -1467,22 +1479,14 @@ impl Core {
     /// Writes out what is still queued for downstream (blocking up to [`OUTPUT_DRAIN_LIMIT`]),
     /// then gives the replicas [`SHUTDOWN_GRACE`] to exit by themselves.
     /// At the end of a run: an output that could not be written (a full disk behind a
-    /// redirected stdout) lost what the component sent there, and the run is no success. Said
-    /// in a `lost` event too. (Before, such a run ended "ran clean", exit 0, with none of 2000
-    /// frames written.)
-    pub(crate) fn output_failure(&mut self) -> Result<(), VoterError> {
-        let Some(why) = self.outputs.iter().find_map(ExternalOutput::failure) else {
-            return Ok(());
-        };
-        let mut ev = self.event(EventKind::Lost);
-        ev.detail = Some(why.clone());
-        ev.output = self
-            .outputs
-            .iter()
-            .find(|o| o.failed.is_some())
-            .map(|o| o.name.clone());
-        self.emit(ev);
-        Err(VoterError::OutputLost(why))
+    /// redirected stdout) lost what the component sent there, and the run is no success (the
+    /// voter's exit says why; not a `lost` event, which counts frames no replica answered).
+    /// Before, such a run ended "ran clean", exit 0, with none of 2000 frames written.
+    pub(crate) fn output_failure(&self) -> Result<(), VoterError> {
+        match self.outputs.iter().find_map(ExternalOutput::failure) {
+            Some(why) => Err(VoterError::OutputLost(why)),
+            None => Ok(()),
+        }
     }
 
     pub(crate) fn drain_and_let_finish(&mut self) {

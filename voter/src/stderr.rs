@@ -16,6 +16,14 @@ const MAX_LINE: usize = 4096;
 /// the event loop from its rounds.
 const READ_LIMIT: usize = 64 * 1024;
 
+/// What a relay knows of its replica's words: [`StderrRelay::memory`].
+#[derive(Debug, Clone)]
+pub struct StderrMemory {
+    last_line: String,
+    in_causes: bool,
+    partial: Vec<u8>,
+}
+
 /// The voter's end of one replica's stderr pipe.
 #[derive(Debug)]
 pub struct StderrRelay {
@@ -76,12 +84,23 @@ impl StderrRelay {
         }
     }
 
-    /// A fork child's relay goes on from its donor's: what the donor said last is what the
-    /// child said last until it says something itself (its memory is the donor's, and a donor
-    /// forked half-way through an error report has a child that writes only the rest of it).
-    pub fn continue_from(&mut self, donor: &StderrRelay) {
+    /// What this relay knows of what its replica said: for the relay of a fork child of it.
+    pub fn memory(&self) -> StderrMemory {
+        StderrMemory {
+            last_line: self.last_line.clone(),
+            in_causes: self.in_causes,
+            partial: self.partial.clone(),
+        }
+    }
+
+    /// A fork child's relay goes on from its donor's (taken just before the fork): what the
+    /// donor said last is what the child said last until it says something itself, and a line
+    /// the donor had begun is the child's to end (its memory is the donor's: a donor forked
+    /// half-way through an error report has a child that writes only the rest of it).
+    pub fn continue_from(&mut self, donor: &StderrMemory) {
         self.last_line.clone_from(&donor.last_line);
         self.in_causes = donor.in_causes;
+        self.partial.clone_from(&donor.partial);
     }
 
     fn take(&mut self, prefix: &str, mut bytes: &[u8]) {
@@ -164,6 +183,18 @@ mod tests {
         (relay, lasts)
     }
 
+    /// The relay of a fork child of `donor` that wrote `wrote` and ended.
+    fn child_of(donor: &StderrRelay, wrote: &[u8]) -> StderrRelay {
+        let (r, w) = sys::pipe().unwrap();
+        sys::set_nonblocking(r.as_fd(), true).unwrap();
+        let mut child = StderrRelay::new(r);
+        child.continue_from(&donor.memory());
+        sys::write(w.as_fd(), wrote).unwrap();
+        drop(w);
+        child.relay("[t#1 pid 2] ");
+        child
+    }
+
     #[test]
     fn lines_are_relayed_whole_and_the_last_one_is_kept() {
         let (relay, lasts) = relay_of(&[b"first li", b"ne\nsecond\nthi", b"rd without newline"]);
@@ -214,17 +245,19 @@ Caused by:
     #[test]
     fn a_fork_child_that_writes_only_a_backtrace_is_quoted_with_its_donors_error() {
         let (donor, _) = relay_of(&[b"Error: opening port `in`\n\nCaused by:\n"]);
-        let (r, w) = sys::pipe().unwrap();
-        sys::set_nonblocking(r.as_fd(), true).unwrap();
-        let mut child = StderrRelay::new(r);
-        child.continue_from(&donor);
-        sys::write(
-            w.as_fd(),
+        let child = child_of(
+            &donor,
             b"    no such port\n\nStack backtrace:\n   0: main\n",
-        )
-        .unwrap();
-        drop(w);
-        child.relay("[t#1 pid 2] ");
+        );
+        assert_eq!(child.last_line, "Error: opening port `in`: no such port");
+    }
+
+    /// A donor forked in the middle of a line (its report written in pieces): the child ends
+    /// that line, not an older one.
+    #[test]
+    fn a_fork_child_ends_the_line_its_donor_began() {
+        let (donor, _) = relay_of(&[b"WARN something earlier\nError: opening port `in`"]);
+        let child = child_of(&donor, b"\n\nCaused by:\n    no such port\n");
         assert_eq!(child.last_line, "Error: opening port `in`: no such port");
     }
 
