@@ -1061,6 +1061,8 @@ fn supervise(
     tick: &mut dyn FnMut(),
 ) -> Result<Ending, RunError> {
     let mut stop: Option<(i32, Instant)> = None;
+    // The stop signal that began the stop, and when it came (not a stop bootstrap began).
+    let mut first_signal: Option<(i32, Instant)> = None;
     let mut killed = false;
     let mut helpers_deadline: Option<Instant> = None;
     // A component failed beyond recovery (its voter gave up): the system stops, and the run
@@ -1082,14 +1084,16 @@ fn supervise(
                                     signal_name(sig)
                                 );
                                 stop = Some((sig, Instant::now() + stop_timeout));
+                                first_signal = Some((sig, Instant::now()));
                                 stop_live(children);
                             }
                             // A copy of the first: a wrapper that forwards the signal it got
                             // with the whole process group (timeout(1), a supervisor's script)
                             // makes one Ctrl-C two. Not a second stop.
-                            Some((_, deadline))
-                                if deadline.saturating_duration_since(Instant::now())
-                                    > stop_timeout.saturating_sub(SAME_STOP) =>
+                            Some(_)
+                                if first_signal.is_some_and(|(first, at)| {
+                                    first == sig && at.elapsed() < SAME_STOP
+                                }) =>
                             {
                                 tracing::debug!(
                                     "a second stop signal right after the first: the same stop"

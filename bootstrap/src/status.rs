@@ -473,7 +473,7 @@ impl Verdict {
                     .events_unsaved
                     .as_ref()
                     .map_or(0, |u| u.1 as usize),
-                "event",
+                "event line",
                 "not saved in the events file",
             ),
         ]
@@ -657,7 +657,8 @@ impl Verdict {
             if let Some(p) = p {
                 let incomplete = match (&f.events_unsaved, what) {
                     (Some((why, n)), "events") => {
-                        format!(" (incomplete: the last {n} events not saved: {why})")
+                        let lines = if *n == 1 { "line" } else { "lines" };
+                        format!(" (incomplete: its last {n} {lines} not saved: {why})")
                     }
                     _ => String::new(),
                 };
@@ -751,12 +752,14 @@ mod tests {
         v.files.events_unsaved = Some(("No space left on device (os error 28)".into(), 6));
         let text = v.render();
         assert!(
-            text.contains("ran to the end, with losses: 6 events not saved in the events file"),
+            text.contains(
+                "ran to the end, with losses: 6 event lines not saved in the events file"
+            ),
             "{text}"
         );
         assert!(
             text.contains(
-                "events ev.jsonl (incomplete: the last 6 events not saved: No space left on \
+                "events ev.jsonl (incomplete: its last 6 lines not saved: No space left on \
                  device (os error 28))"
             ),
             "{text}"

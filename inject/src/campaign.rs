@@ -116,7 +116,7 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
         }
         let (mut run_rec, inj) = records(&c.info, r, &dir, &result);
         if let (Some(file), false) = (&c.info.task_summary, warned_missing) {
-            if task_summary_missing(&dir, Some(file)) && result.ready {
+            if task_summary_missing(&dir, Some(file)) && ended_clean(&result) {
                 warned_missing = true;
                 tracing::warn!(
                     "run {} left no task summary {file} in its folder, so it counts as failed \
@@ -143,8 +143,9 @@ pub fn run(c: &CampaignRun, stop: &StopSignals) -> anyhow::Result<(Summary, Opti
             let done = all_runs.len();
             write(c, info, all_runs, all_inj)?;
             bail!(
-                "run {r} never started its system, so the campaign stopped ({done} run(s) \
+                "run {} never started its system, so the campaign stopped ({done} run(s) \
                  written to {}): {why}",
+                r + 1,
                 c.out.display()
             );
         }
@@ -425,7 +426,7 @@ pub fn records(
             .or_else(|| {
                 // Missing, not `"ok": false`: `task_summary_ok` is false for both.
                 let file = info.task_summary.as_deref();
-                (result.ready && task_summary_missing(dir, file)).then(|| {
+                (ended_clean(result) && task_summary_missing(dir, file)).then(|| {
                     format!(
                         "no task summary {} in the run's folder (counted as failed)",
                         file.unwrap_or_default()
@@ -436,6 +437,13 @@ pub fn records(
         load_after: None,
     };
     (run_rec, inj)
+}
+
+/// A run whose system started and ended by itself with exit 0, within its time: only such a
+/// run's missing task summary says something of the name given (one that timed out or whose
+/// system failed may simply not have written it).
+fn ended_clean(result: &RunResult) -> bool {
+    result.ready && !result.timed_out && result.status.is_some_and(|s| s.success())
 }
 
 /// A progress bar with ETA on a terminal; otherwise a line at most every 10 s. Neither under

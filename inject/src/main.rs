@@ -61,9 +61,9 @@ Subcommands:
 The guide, the matching rule and a Slurm example: docs/campaigns.md.";
 
 const AFTER_LONG_HELP: &str = "\
-Exit status: 0 done; 1 failed or refused (a value out of range, a folder in use, a run that
-never started: the reason on stderr); 2 a command line the parser cannot read (an
-unknown option, a missing value, options that cannot go together); 130/143 stopped by
+Exit status: 0 done; 1 failed or refused (a value out of range, options of another fault kind,
+a folder in use, a run that never started: the reason on stderr); 2 a command line the parser
+cannot read (an unknown option, a missing value, options that exclude each other); 130/143 stopped by
 SIGINT/SIGTERM (the run in progress is stopped and discarded; completed runs are written, and
 `campaign --resume` with the same command runs the rest). If s3res-inject is killed outright
 (SIGKILL), the system it was running dies with it, and the run's temporary folder (named by a

@@ -128,7 +128,7 @@ fn a_run_that_never_starts_its_system_stops_the_campaign_with_the_reason() {
         f.stderr
     );
     assert!(
-        f.stderr.contains("run 0 never started its system")
+        f.stderr.contains("run 1 never started its system")
             && f.stderr.contains("the disk is on fire"),
         "the reason is not on stderr:\n{}",
         f.stderr
