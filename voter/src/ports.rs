@@ -81,7 +81,13 @@ impl ExternalOutput {
     /// The write failed with `e`: a reader that went away (`EPIPE`: downstream ended, as
     /// `head` does) leaves the rest of the output unwanted; any other error loses it.
     fn break_on(&mut self, e: &std::io::Error) {
-        if e.kind() == std::io::ErrorKind::BrokenPipe {
+        // A reader gone: a pipe's (`EPIPE`) or a socket's (`ECONNRESET`: stdout a socket).
+        if matches!(
+            e.kind(),
+            std::io::ErrorKind::BrokenPipe
+                | std::io::ErrorKind::ConnectionReset
+                | std::io::ErrorKind::ConnectionAborted
+        ) {
             tracing::warn!(output = %self.name, error = %e, "downstream is gone; dropping further output");
         } else {
             tracing::error!(output = %self.name, error = %e, "cannot write the output; dropping further output");
