@@ -128,7 +128,7 @@ fn threaded_restarted_by_exec(
     let desc = pipeline(&sys, (python3(), argv), "tmr", lines);
     let mut run = sys.start_json(&desc);
     run.wait_for_replicas("sum", 3);
-    wait_for_first_answers(&run);
+    wait_for_sums(&run, 5);
     let pid = run.replica_pids("sum")[&1];
     s3res_testkit::kill_pid(pid, libc::SIGKILL).unwrap();
     let rec = run.wait_for_recovery("sum", 1, pid);
@@ -143,15 +143,17 @@ fn answered(run: &RunningSystem) -> usize {
     std::fs::read_to_string(run.path("sums.txt")).map_or(0, |t| t.lines().count())
 }
 
-/// Waits until `sum` has answered a few lines. An unmodified program's replica may donate only
-/// once it has answered (a wrapper that execs the program drops the preload library's
-/// restart handler: `Replica::may_donate`), so a fault before any answer is repaired by exec
-/// with the state lost, rightly; a test that expects a fork must first let the replicas
-/// answer. (A SIGKILL 5 ms after start made the repair an exec: CI, stop 59.)
-fn wait_for_first_answers(run: &RunningSystem) {
-    s3res_testkit::wait_until("5 answers collected", Duration::from_secs(30), || {
-        (answered(run) >= 5).then_some(())
-    });
+/// Waits until `collect` has written `n` sums (within 30 s). An unmodified program's replica
+/// may donate only once it has answered (a wrapper that execs the program drops the preload
+/// library's restart handler: `Replica::may_donate`), so a fault before any answer is repaired
+/// by exec with the state lost, rightly; a test that expects a fork must first let the
+/// replicas answer. (A SIGKILL 5 ms after start made the repair an exec: CI, stop 59.)
+fn wait_for_sums(run: &RunningSystem, n: usize) {
+    s3res_testkit::wait_until(
+        &format!("{n} sums collected"),
+        Duration::from_secs(30),
+        || (answered(run) >= n).then_some(()),
+    );
 }
 
 fn python3() -> PathBuf {
@@ -377,7 +379,7 @@ fn under_fire(program: Program, redundancy: &str, replicas: usize) {
     let desc = pipeline(&sys, program.command(&sys), redundancy, NUMBERS);
     let mut run = sys.arg("--state").arg(&state).start_json(&desc);
     run.wait_for_replicas("sum", replicas);
-    wait_for_first_answers(&run);
+    wait_for_sums(&run, 5);
     kill_and_stop(&mut run, &mut rng, replicas);
     if replicas == 3 {
         flip_registers(&mut run, &mut rng, &state);
@@ -484,7 +486,7 @@ fn cat_reading_frames_is_recovered_by_fork() {
     desc["components"]["sum"]["framing"] = json!("frames");
     let mut run = sys.start_json(&desc);
     run.wait_for_replicas("sum", 3);
-    wait_for_first_answers(&run);
+    wait_for_sums(&run, 5);
     for _ in 0..5 {
         let slot = rng.below(3) as usize;
         let pid = run.replica_pids("sum")[&slot];
@@ -513,11 +515,7 @@ fn every_fork_child_of_an_unmodified_program_joins_on_a_spare_line() {
     let mut run = sys.start_json(&desc);
     run.wait_for_replicas("sum", 3);
     // Answers out (every replica has made some): a donor must have answered to be asked.
-    let sums = run.path("sums.txt");
-    s3res_testkit::wait_until("20 sums collected", Duration::from_secs(30), || {
-        let text = std::fs::read_to_string(&sums).ok()?;
-        (text.lines().count() >= 20).then_some(())
-    });
+    wait_for_sums(&run, 20);
     for slot in [2, 0, 2] {
         let pids = run.replica_pids("sum");
         let pid = pids[&slot];
