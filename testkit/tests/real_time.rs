@@ -806,9 +806,25 @@ fn a_replica_kept_off_its_cpu_is_not_blamed_for_its_lateness() {
     let faults = echo_faults(&events);
     assert!(
         faults.is_empty(),
-        "a replica that could not run was blamed: {faults:?}"
+        "a replica that could not run was blamed: {faults:?}\n--- the voter's last windows \
+         judged ---\n{}",
+        windows_judged(&run.stderr(), 40)
     );
     assert_sink_whole(&summary, count);
+}
+
+/// The log filter the hog tests run their system with: the voter's verdict on each window a
+/// late replica is judged over (`starvation`'s `trace` event), so that a failure shows the
+/// windows that led to it (see [`windows_judged`]).
+const WINDOWS_LOGGED: &str = "info,s3res_voter::starvation=trace";
+
+/// The last `n` windows the voter judged, from bootstrap's stderr (see [`WINDOWS_LOGGED`]).
+fn windows_judged(stderr: &str, n: usize) -> String {
+    let lines: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains("window judged"))
+        .collect();
+    lines[lines.len().saturating_sub(n)..].join("\n")
 }
 
 /// A TMR `s3res-echo --stateful` between a source and a sink of `count` frames at 1000 a
@@ -818,7 +834,7 @@ fn replica_1_alone_on_a_cpu(count: u32) -> (RunningSystem, std::path::PathBuf, u
     let cpus = usable_cpus();
     s3res_testkit::require(cpus.len() >= 2, "two usable CPUs");
     let (a, b) = (cpus[0], cpus[1]);
-    let sys = System::new();
+    let sys = System::new().env("RUST_LOG", WINDOWS_LOGGED);
     s3res_testkit::require(sys.round_robin_allowed(), "SCHED_RR allowed");
     let summary = sys.path("summary.json");
     let echo = format!(

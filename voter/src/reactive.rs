@@ -594,9 +594,20 @@ impl ReactiveVoter {
             self.evidence[r] = Some(Seen {
                 state,
                 wchan,
+                on_clock: rep.times_on_clock(),
                 ..Seen::between(before, after, span, clocked)
             });
             let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
+            tracing::trace!(
+                target: "s3res_voter::starvation",
+                replica = r,
+                seen = %self.evidence[r].as_ref().map(ToString::to_string).unwrap_or_default(),
+                ?own,
+                ?verdict,
+                came_back = stalls[r].came_back,
+                starved_for_us = stalls[r].starved_for.as_micros() as u64,
+                "window judged"
+            );
             stalls[r] = stalls[r].after_window(own, waited, span);
             if verdict.starved() {
                 starved = starved.with(r);

@@ -540,6 +540,11 @@ impl Replica {
         self.schedstat.read()
     }
 
+    /// Whether the run in [`Replica::sched_times`] is its task clock's (see `starvation.rs`).
+    pub fn times_on_clock(&self) -> bool {
+        self.schedstat.on_clock()
+    }
+
     /// Where its frames stand in its pipes, for a late replica's `hang` detail: input the
     /// replica has not read (in its pipes, and still queued in the voter for lack of room), and
     /// output the voter has not read off its pipes. A replica asleep on its input with its

@@ -23,6 +23,9 @@
 //!   shows no wait yet; its state says that it is runnable.) The deadline moves on by one
 //!   window, and it is judged again then. The extensions of one round are bounded
 //!   ([`MAX_EXTENSION`]), so a replica that never gets a CPU is still blamed in the end.
+//!   So is a replica waiting for a CPU now whose two samples say it ran more than twice the
+//!   window: one of them was not its time when it was read, and the pair says nothing of the
+//!   window (seen once, in the hog test: "ran 2816 µs" in 211).
 //!
 //! *The time its clock was read over* is shorter than the window: the first look opens the
 //! replica's task clock, which takes 20–260 µs (`perf_event_open`, measured), and the clock
@@ -123,6 +126,12 @@ impl SchedStat {
         }
     }
 
+    /// Whether the run [`SchedStat::read`] gives comes from the replica's task clock (not
+    /// yet known before the first read).
+    pub fn on_clock(&self) -> bool {
+        matches!(self.clock.get(), Some(Some(_)))
+    }
+
     /// `None` where `/proc` does not say: the replica is then judged as without the look.
     pub fn read(&self) -> Option<SchedTimes> {
         let file = self
@@ -164,6 +173,9 @@ pub struct Seen {
     pub window_us: u64,
     /// The part of the window the replica's clock was read over (see the module's comment).
     pub clocked_us: u64,
+    /// Whether its run comes from its task clock (exact to the read) or, where the clock could
+    /// not be opened, from what the kernel has booked (at scheduler ticks and switches only).
+    pub on_clock: bool,
     pub ran_us: u64,
     pub waited_us: u64,
     /// Its state at the second look, where it was read.
@@ -182,6 +194,7 @@ impl Seen {
         Seen {
             window_us: window.as_micros() as u64,
             clocked_us: clocked.min(window).as_micros() as u64,
+            on_clock: true,
             ran_us: after.run_ns.saturating_sub(before.run_ns) / 1000,
             waited_us: after.wait_ns.saturating_sub(before.wait_ns) / 1000,
             state: None,
@@ -192,9 +205,14 @@ impl Seen {
 
 impl std::fmt::Display for Seen {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let clock = if self.on_clock {
+            "on its clock"
+        } else {
+            "as the kernel booked it, at its ticks: no task clock"
+        };
         write!(
             f,
-            "in the last {} µs it ran {} µs (of {} µs on its clock) and waited {} µs for a CPU",
+            "in the last {} µs it ran {} µs (of {} µs {clock}) and waited {} µs for a CPU",
             self.window_us, self.ran_us, self.clocked_us, self.waited_us
         )?;
         match self.state {
@@ -309,9 +327,15 @@ pub fn judge(
     // answering; a stateful echo answers in well under 50 µs). It gets a window of its own.
     let came_back = waited >= w;
     let kept_waiting = ran * 4 < w && waited * 4 >= w;
+    // More run than twice the window (a read's own time, µs, can add a little to a spinner's
+    // run, never a window): one sample was not the replica's time at the moment it was read
+    // (measured: "in the last 211 µs it ran 2816 µs (of 211 µs on its clock)", the hog test,
+    // stop 59). Such a pair says nothing of what the replica did in the window; whether it is
+    // waiting for a CPU now does.
+    let booked_late = ran > 2 * w;
     if came_back {
         Window::CameBack
-    } else if kept_waiting || (ran * 4 < clocked && runnable()) {
+    } else if kept_waiting || ((ran * 4 < clocked || booked_late) && runnable()) {
         Window::Starved
     } else {
         Window::HadItsChance
@@ -453,6 +477,23 @@ mod tests {
     }
 
     #[test]
+    fn more_run_than_the_window_says_nothing_of_it_and_the_state_tells() {
+        // Measured (the hog test, stop 59): "in the last 211 µs it ran 2816 µs (of 211 µs on
+        // its clock) and waited 0 µs for a CPU", blamed while the hog held its CPU. Runnable,
+        // it is starved; asleep or stopped, its lateness is its own; and a spinner whose
+        // second read came a little late ran a little more than the window: blamed as before.
+        let w = Duration::from_micros(211);
+        for (ran_us, runnable, verdict) in [
+            (2816, RUNNABLE, Window::Starved),
+            (2816, ASLEEP, Window::HadItsChance),
+            (240, RUNNABLE, Window::HadItsChance),
+        ] {
+            let seen = judge(t(0, 0), t(ran_us, 0), w, w, runnable);
+            assert_eq!(seen, verdict, "ran {ran_us} µs, runnable: {}", runnable());
+        }
+    }
+
+    #[test]
     fn a_quarter_of_the_window_on_a_cpu_is_a_chance_even_if_it_also_waited() {
         assert_eq!(
             judge(t(0, 0), t(100, 100), W, W, RUNNABLE),
@@ -495,6 +536,21 @@ mod tests {
             seen.to_string(),
             "in the last 200 µs it ran 0 µs (of 200 µs on its clock) and waited 0 µs for a \
              CPU; state R (runnable: a wait for a CPU is counted only when it ends)"
+        );
+    }
+
+    #[test]
+    fn the_evidence_says_when_the_run_is_only_what_the_kernel_booked() {
+        let seen = Seen {
+            on_clock: false,
+            state: Some('R'),
+            ..Seen::between(t(0, 0), t(2816, 0), W, W)
+        };
+        assert_eq!(
+            seen.to_string(),
+            "in the last 200 µs it ran 2816 µs (of 200 µs as the kernel booked it, at its \
+             ticks: no task clock) and waited 0 µs for a CPU; state R (runnable: a wait for a \
+             CPU is counted only when it ends)"
         );
     }
 
