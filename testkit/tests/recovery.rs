@@ -140,7 +140,8 @@ fn tmr_detects_a_control_flow_error_as_a_hang() {
     );
 }
 
-/// A stopped replica is blamed at its deadline, and the `hang` says where its frames stood:
+/// A stopped replica is blamed at its deadline, and the `hang` says where its frames stood,
+/// at the look a window before the deadline (it was not running: state T) and at the blame:
 /// the voter read everything it wrote (it answers nothing while stopped), and how much of its
 /// input it left in its pipe (one frame, or none if it stopped between reading and answering).
 #[test]
@@ -152,7 +153,9 @@ fn tmr_detects_a_stopped_replica_as_a_hang() {
     let detail = hang.detail.as_deref().unwrap_or_default();
     eprintln!("hang detail: {detail}");
     assert!(
-        detail.contains("its input: ") && detail.contains("its output: 0 B unread in the pipe"),
+        detail.contains("state T; at that look its input: ")
+            && detail.contains("); its input: ")
+            && detail.contains("its output: 0 B unread in the pipe"),
         "{hang:?}"
     );
 }

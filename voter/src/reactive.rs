@@ -18,7 +18,7 @@ use crate::decision::{decide_round, Answer, Decision, RoundBallot, RoundClose};
 use crate::event::Cause;
 use crate::plan::{Framing, VoterPlan};
 use crate::recovery::DonorState;
-use crate::replica::Replica;
+use crate::replica::{PipeBacklog, Replica};
 use crate::round::{Look, OutputSet, Round, Stall};
 use crate::sched::Schedule;
 use crate::starvation::{self, Seen, Window};
@@ -48,6 +48,10 @@ pub struct ReactiveVoter {
     /// Per replica, what the looks before the open round's deadline saw it do, for the
     /// `hang` event's detail.
     evidence: [Option<Seen>; MAX_REPLICAS],
+    /// Per replica found asleep by the look just before the deadline: where its frames stood
+    /// then (see [`Replica::pipe_backlog`]). Set beside what it did at the blame, it tells
+    /// whether an asleep replica's input had reached its pipe a window before the deadline.
+    evidence_pipes: [Option<PipeBacklog>; MAX_REPLICAS],
     /// In a sequential round, the replicas whose answers the last wait watched (see
     /// [`ReactiveVoter::watched`]); `None`: it watched every replica.
     watching: Option<ReplicaSet>,
@@ -83,6 +87,7 @@ impl ReactiveVoter {
             closing: None,
             all_late: false,
             evidence: [None; MAX_REPLICAS],
+            evidence_pipes: [None; MAX_REPLICAS],
             watching: None,
             wake_at: None,
             waited_for_close_only: false,
@@ -125,6 +130,7 @@ impl ReactiveVoter {
     fn open_round(&mut self, pair: usize, expected: OutputSet, members: ReplicaSet) {
         self.rounds_started += 1;
         self.evidence = [None; MAX_REPLICAS];
+        self.evidence_pipes = [None; MAX_REPLICAS];
         let deadline = Instant::now() + self.allowance(members);
         self.core.monitors.clear_verdicts();
         self.round = Some(Round::new(
@@ -587,10 +593,9 @@ impl ReactiveVoter {
             let own = starvation::judge(before, after, span, clocked, runnable);
             let verdict = stalls[r].verdict(own);
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
-            let wchan = match (verdict, state) {
-                (Window::HadItsChance, Some(s)) if s != 'R' => replica_rt::sys::wchan(rep.pid),
-                _ => None,
-            };
+            let asleep = matches!((verdict, state), (Window::HadItsChance, Some(s)) if s != 'R');
+            let wchan = asleep.then(|| replica_rt::sys::wchan(rep.pid)).flatten();
+            self.evidence_pipes[r] = asleep.then(|| rep.pipe_backlog());
             self.evidence[r] = Some(Seen {
                 state,
                 wchan,
@@ -899,9 +904,10 @@ impl ReactiveVoter {
                 let voter_late = Instant::now()
                     .saturating_duration_since(deadline)
                     .as_micros();
-                let seen = match self.evidence[r] {
-                    Some(seen) => format!(" ({seen})"),
-                    None => String::new(),
+                let seen = match (self.evidence[r], self.evidence_pipes[r]) {
+                    (Some(seen), Some(then)) => format!(" ({seen}; at that look {then})"),
+                    (Some(seen), None) => format!(" ({seen})"),
+                    (None, _) => String::new(),
                 };
                 // Moved on for want of a CPU (its own or a sibling's): "within" the timeout is
                 // then not the whole story.
