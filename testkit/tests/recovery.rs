@@ -153,7 +153,8 @@ fn tmr_detects_a_stopped_replica_as_a_hang() {
     let detail = hang.detail.as_deref().unwrap_or_default();
     eprintln!("hang detail: {detail}");
     assert!(
-        detail.contains("state T; at that look its input: ")
+        detail.contains("state T")
+            && detail.contains("; at that look its input: ")
             && detail.contains("); its input: ")
             && detail.contains("its output: 0 B unread in the pipe"),
         "{hang:?}"
