@@ -47,11 +47,7 @@ pub struct ReactiveVoter {
     all_late: bool,
     /// Per replica, what the looks before the open round's deadline saw it do, for the
     /// `hang` event's detail.
-    evidence: [Option<Seen>; MAX_REPLICAS],
-    /// Per replica found asleep by the look just before the deadline: where its frames stood
-    /// then (see [`Replica::pipe_backlog`]). Set beside what it did at the blame, it tells
-    /// whether an asleep replica's input had reached its pipe a window before the deadline.
-    evidence_pipes: [Option<PipeBacklog>; MAX_REPLICAS],
+    evidence: [Option<Evidence>; MAX_REPLICAS],
     /// In a sequential round, the replicas whose answers the last wait watched (see
     /// [`ReactiveVoter::watched`]); `None`: it watched every replica.
     watching: Option<ReplicaSet>,
@@ -87,7 +83,6 @@ impl ReactiveVoter {
             closing: None,
             all_late: false,
             evidence: [None; MAX_REPLICAS],
-            evidence_pipes: [None; MAX_REPLICAS],
             watching: None,
             wake_at: None,
             waited_for_close_only: false,
@@ -130,7 +125,6 @@ impl ReactiveVoter {
     fn open_round(&mut self, pair: usize, expected: OutputSet, members: ReplicaSet) {
         self.rounds_started += 1;
         self.evidence = [None; MAX_REPLICAS];
-        self.evidence_pipes = [None; MAX_REPLICAS];
         let deadline = Instant::now() + self.allowance(members);
         self.core.monitors.clear_verdicts();
         self.round = Some(Round::new(
@@ -595,24 +589,27 @@ impl ReactiveVoter {
             // Asleep and about to be blamed: where it sleeps says why it did not answer.
             let asleep = matches!((verdict, state), (Window::HadItsChance, Some(s)) if s != 'R');
             let wchan = asleep.then(|| replica_rt::sys::wchan(rep.pid)).flatten();
-            self.evidence_pipes[r] = asleep.then(|| rep.pipe_backlog());
-            self.evidence[r] = Some(Seen {
-                state,
-                wchan,
-                on_clock: rep.times_on_clock(),
-                ..Seen::between(before, after, span, clocked)
-            });
+            let evidence = Evidence {
+                seen: Seen {
+                    state,
+                    wchan,
+                    on_clock: rep.times_on_clock(),
+                    ..Seen::between(before, after, span, clocked)
+                },
+                pipes_then: asleep.then(|| rep.pipe_backlog()),
+            };
             let waited = Duration::from_nanos(after.wait_ns.saturating_sub(before.wait_ns));
             tracing::trace!(
                 target: "s3res_voter::starvation",
                 replica = r,
-                seen = %self.evidence[r].as_ref().map(ToString::to_string).unwrap_or_default(),
+                seen = %evidence,
                 ?own,
                 ?verdict,
                 came_back = stalls[r].came_back,
                 starved_for_us = stalls[r].starved_for.as_micros() as u64,
                 "window judged"
             );
+            self.evidence[r] = Some(evidence);
             stalls[r] = stalls[r].after_window(own, waited, span);
             if verdict.starved() {
                 starved = starved.with(r);
@@ -904,10 +901,9 @@ impl ReactiveVoter {
                 let voter_late = Instant::now()
                     .saturating_duration_since(deadline)
                     .as_micros();
-                let seen = match (self.evidence[r], self.evidence_pipes[r]) {
-                    (Some(seen), Some(then)) => format!(" ({seen}; at that look {then})"),
-                    (Some(seen), None) => format!(" ({seen})"),
-                    (None, _) => String::new(),
+                let seen = match self.evidence[r] {
+                    Some(evidence) => format!(" ({evidence})"),
+                    None => String::new(),
                 };
                 // Moved on for want of a CPU (its own or a sibling's): "within" the timeout is
                 // then not the whole story.
@@ -929,7 +925,7 @@ impl ReactiveVoter {
                         .is_some_and(|rd| nobody_answered(rd, &self.core.slots));
                 let all = if !(self.all_late || none_answered) {
                     String::new()
-                } else if self.evidence[r].is_some_and(|seen| waits_for_input(&seen, pipes)) {
+                } else if self.evidence[r].is_some_and(|e| waits_for_input(&e.seen, pipes)) {
                     // More time cannot help a replica that sleeps on an empty input: it took
                     // the round's input and sent nothing (a user's component that skipped
                     // every fifth answer was told to raise its timeout, 12 times of 12).
@@ -1302,10 +1298,30 @@ fn input_backlog_limit(max_frame: usize) -> usize {
     (64 * (max_frame + replica_rt::frame::HEADER_LEN)).max(4 << 20)
 }
 
+/// What the looks before a round's deadline saw a late replica do, for its `hang` detail.
+#[derive(Debug, Clone, Copy)]
+struct Evidence {
+    seen: Seen,
+    /// Found asleep at the look just before the deadline: where its frames stood then (see
+    /// [`Replica::pipe_backlog`]). Beside where they stand at the blame, it tells an answer
+    /// already in the pipe a window before the deadline from one that came after it.
+    pipes_then: Option<PipeBacklog>,
+}
+
+impl std::fmt::Display for Evidence {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.seen)?;
+        match self.pipes_then {
+            Some(then) => write!(f, "; at that look {then}"),
+            None => Ok(()),
+        }
+    }
+}
+
 /// Whether a late replica, as the voter last saw it, sleeps on its input pipe with nothing
 /// in it and nothing unread in its output, and ran not at all meanwhile: it is not working on
 /// the round but waiting for the next input.
-fn waits_for_input(seen: &Seen, pipes: Option<crate::replica::PipeBacklog>) -> bool {
+fn waits_for_input(seen: &Seen, pipes: Option<PipeBacklog>) -> bool {
     let asleep_on_a_pipe = seen.state == Some('S')
         && seen.ran_us == 0
         && seen.wchan.is_some_and(|w| w.as_str().contains("pipe_read"));
