@@ -14,7 +14,7 @@ use replica_rt::sys;
 
 use crate::channel::{FrameReader, FrameWriter, Staging};
 use crate::plan::{Framing, VoterPlan};
-use crate::starvation::{SchedStat, SchedTimes};
+use crate::starvation::{Sample, SchedStat};
 use crate::stderr::StderrRelay;
 
 /// The voter's end of one replica input pipe. The voter keeps the read end too, so that it can
@@ -535,8 +535,9 @@ impl Replica {
         }
     }
 
-    /// Its time on a CPU and waiting for one so far; `None` if `/proc` does not say.
-    pub fn sched_times(&self) -> Option<SchedTimes> {
+    /// Its time on a CPU and waiting for one so far, and how long the read of its clock
+    /// took; `None` if `/proc` does not say.
+    pub fn sched_times(&self) -> Option<Sample> {
         self.schedstat.read()
     }
 

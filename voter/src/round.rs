@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use crate::clock::Instant;
-use crate::starvation::{self, SchedTimes, Window};
+use crate::starvation::{self, Sample, Window};
 
 use crate::vote::{ReplicaSet, MAX_REPLICAS};
 
@@ -105,7 +105,7 @@ pub struct Look {
     pub at: Instant,
     /// Per replica, its times and when they were read (its task clock counts only from its
     /// opening, at the replica's first look: see `starvation.rs`).
-    pub times: [Option<(SchedTimes, Instant)>; MAX_REPLICAS],
+    pub times: [Option<(Sample, Instant)>; MAX_REPLICAS],
 }
 
 impl Round {
