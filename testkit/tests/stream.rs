@@ -263,6 +263,34 @@ fn stream_replicas_that_do_not_finish_their_output_fail_the_component() {
     run.assert_nothing_left();
 }
 
+/// A replica that hangs after its last frame (a control-flow error that strikes just then,
+/// as a fault injected into the maze robot's planner did in a CI rehearsal of stop 61) owes
+/// nothing: its siblings finished, every frame is decided. It is stopped at the end, and the
+/// component ends clean, every frame out once — before, the voter said "what they had not
+/// sent is lost" and the component, and `s3res-bootstrap system.json`, failed.
+#[test]
+fn a_stream_replica_hung_after_its_last_frame_loses_nothing_and_fails_nothing() {
+    let count: u32 = 40;
+    let last = count - 1;
+    let comp = format!(
+        r#"{{ "exec": "s3res-misbehave", "args": ["--stateful", "--mode", "spin", "--replica", "2", "--at", "{last}"], "redundancy": "tmr", "mode": "stream", "timeout_us": 200000 }}"#
+    );
+    let sys = System::new();
+    let summary = sys.path("summary.json");
+    let desc = echo_pipeline(&summary, &comp, count, 0);
+    let mut run = sys.start(&desc);
+    let out = run.wait(LIMIT);
+    assert!(
+        out.status.success(),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    let lost = of_kind(&out.events, EventKind::Lost);
+    assert!(lost.is_empty(), "{lost:#?}");
+    assert_sink_whole(&summary, count);
+    run.assert_nothing_left();
+}
+
 /// The stream example of `docs/system-description.md`, verbatim, runs clean: the sink
 /// (`--stateful --expect 2000`) fails, and so bootstrap fails, unless every frame came once, in
 /// order, with the batch's state intact.
