@@ -496,14 +496,21 @@ impl ReactiveVoter {
         match (round.look, round.starved) {
             (None, _) if now >= first => self.look_at_late(now),
             (Some(_), None) if now >= second => {
-                let starved = self.judge_late(now);
-                if let Some(round) = self.round.as_mut() {
-                    round.starved = Some(starved);
-                }
+                let starved = self.second_look(now);
                 self.raise_the_starved_turn(starved);
             }
             _ => {}
         }
+    }
+
+    /// The second look: judges the window since the first (see [`judge_late`](Self::judge_late))
+    /// and keeps the verdict for the deadline.
+    fn second_look(&mut self, now: Instant) -> ReplicaSet {
+        let starved = self.judge_late(now);
+        if let Some(round) = self.round.as_mut() {
+            round.starved = Some(starved);
+        }
+        starved
     }
 
     /// How long before a deadline the replicas not done yet are looked at.
@@ -635,10 +642,13 @@ impl ReactiveVoter {
         // look after it is found asleep, had its chance, and was blamed with its answer in
         // its pipe (traced, stop 61: the read found nothing 3 µs before the answer, the look
         // came 80 µs after it).
-        let judged_now = match self.round.as_ref() {
-            Some(rd) if rd.look.is_some() && rd.starved.is_none() => Some(self.judge_late(now)),
-            _ => None,
-        };
+        if self
+            .round
+            .as_ref()
+            .is_some_and(|rd| rd.look.is_some() && rd.starved.is_none())
+        {
+            self.second_look(now);
+        }
         for r in self.timed().iter() {
             self.last_look(r);
         }
@@ -651,7 +661,7 @@ impl ReactiveVoter {
             return false;
         }
         let number = round.number;
-        let starved = match (round.look, round.starved.or(judged_now)) {
+        let starved = match (round.look, round.starved) {
             (Some(_), starved) => starved.unwrap_or(ReplicaSet::EMPTY),
             // The voter itself woke up past the first look: it was held up as much as anyone.
             (None, _) => {

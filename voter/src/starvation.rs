@@ -139,21 +139,15 @@ impl SchedStat {
         matches!(self.clock.get(), Some(Some(_)))
     }
 
-    /// What the kernel has booked (`/proc/PID/schedstat`): exact for the wait, the run only
-    /// as of the replica's last tick or switch. One `pread`; no task clock is opened.
-    pub fn booked(&self) -> Option<SchedTimes> {
+    /// `None` where `/proc` does not say: the replica is then judged as without the look.
+    pub fn read(&self) -> Option<Sample> {
         let file = self
             .file
             .get_or_init(|| File::open(format!("/proc/{}/schedstat", self.pid)).ok())
             .as_ref()?;
         let mut buf = [0u8; 96];
         let n = file.read_at(&mut buf, 0).ok()?;
-        SchedTimes::parse(std::str::from_utf8(&buf[..n]).ok()?)
-    }
-
-    /// `None` where `/proc` does not say: the replica is then judged as without the look.
-    pub fn read(&self) -> Option<Sample> {
-        let booked = self.booked()?;
+        let booked = SchedTimes::parse(std::str::from_utf8(&buf[..n]).ok()?)?;
         // Only a read of a clock already open is timed: the open is slow by itself.
         let was_open = self.clock.get().is_some();
         let clock = self.clock.get_or_init(|| match TaskClock::open(self.pid) {
@@ -272,9 +266,11 @@ impl std::fmt::Display for Seen {
         if let Some(w) = self.wchan {
             write!(f, ", asleep in {}", w.as_str())?;
         }
-        // Said when it decides (a quarter of the window, `cpu_held`): below that, an
-        // interrupt's ordinary latency.
-        if self.held_us * 4 >= self.window_us {
+        // Said when it decides (`cpu_held`): below that, an interrupt's ordinary latency.
+        if held_long(
+            Duration::from_micros(self.held_us),
+            Duration::from_micros(self.window_us),
+        ) {
             write!(
                 f,
                 "; a read of its clock waited {} µs for its CPU (the host held that CPU)",
@@ -348,9 +344,15 @@ pub fn after_starving(verdict: Window, starved_before: Duration) -> Window {
 /// the whole time to the guest, made no system call.
 pub fn cpu_held(verdict: Window, held: Duration, window: Duration) -> Window {
     match verdict {
-        Window::HadItsChance if held * 4 >= window => Window::Starved,
+        Window::HadItsChance if held_long(held, window) => Window::Starved,
         v => v,
     }
+}
+
+/// Whether a clock read that waited `held` for the replica's CPU says that CPU was held from
+/// it over a window of `window`: a quarter of it or more, as for a wait.
+fn held_long(held: Duration, window: Duration) -> bool {
+    held * 4 >= window
 }
 
 /// How many windows after the one it came back in a replica's run still counts as backlog:

@@ -708,11 +708,7 @@ impl StreamVoter {
     /// frame is owed or undecided.
     fn all_finished(&self) -> bool {
         let alive = self.core.alive();
-        self.core.slots.iter().flatten().all(|rep| {
-            rep.outputs
-                .iter()
-                .all(|out| out.is_closed() && out.decoder.pending() == 0)
-        }) && !self.ledger.out_of_step(alive)
+        self.core.slots.iter().flatten().all(finished) && !self.ledger.out_of_step(alive)
     }
 
     /// Whether a majority of the trusted replicas finished (closed every output, all their
@@ -723,20 +719,13 @@ impl StreamVoter {
     /// system.json` fail with "what they had not sent is lost", every frame out.)
     fn majority_finished(&self) -> bool {
         let alive = self.core.alive();
-        let finished: Vec<usize> = alive
+        let done: Vec<usize> = alive
             .iter()
-            .filter(|&r| {
-                self.core.slots[r].as_ref().is_some_and(|rep| {
-                    rep.outputs
-                        .iter()
-                        .all(|out| out.is_closed() && out.decoder.pending() == 0)
-                })
-            })
+            .filter(|&r| self.core.slots[r].as_ref().is_some_and(finished))
             .collect();
-        finished.len() * 2 > alive.len()
+        done.len() * 2 > alive.len()
             && (0..self.core.outputs.len()).all(|o| {
-                finished
-                    .iter()
+                done.iter()
                     .all(|&r| self.ledger.pos(r, o) <= self.ledger.next(o))
             })
     }
@@ -749,12 +738,13 @@ impl StreamVoter {
         // No recovery comes now: a fault's event held for one goes out before the waits below.
         self.core.release_faults();
         let mut unfinished = None;
-        if !self.all_finished() && self.majority_finished() {
+        let all_finished = self.all_finished();
+        if !all_finished && self.majority_finished() {
             tracing::warn!(
                 "a replica had not finished its output when its input ended; a majority had, \
                  with every frame decided: it is stopped, nothing is lost"
             );
-        } else if !self.all_finished() {
+        } else if !all_finished {
             let alive = self.core.alive();
             let state: Vec<String> = (0..self.core.outputs.len())
                 .map(|o| {
@@ -803,6 +793,13 @@ impl StreamVoter {
             None => self.core.output_failure(),
         }
     }
+}
+
+/// Whether replica `rep` has closed every output and all its frames are taken.
+fn finished(rep: &Replica) -> bool {
+    rep.outputs
+        .iter()
+        .all(|out| out.is_closed() && out.decoder.pending() == 0)
 }
 
 impl Mode for StreamVoter {
