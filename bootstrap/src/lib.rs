@@ -7,6 +7,7 @@
 #![forbid(unsafe_code)]
 
 pub mod events;
+pub mod keeper;
 pub mod live;
 pub mod logging;
 pub mod respawn;

@@ -75,7 +75,9 @@ whatever is left below bootstrap is killed; a second stop signal kills at once (
 250 ms of the first is taken for a copy of it, as a wrapper like timeout(1) forwards it). Components start with SIGHUP, SIGINT and SIGQUIT
 blocked: a terminal sends those to bootstrap and everything it started, and bootstrap stops the
 system in order. A SIGKILLed bootstrap cannot: the kernel then kills its own children (voters
-stop their replicas), but not processes that a component started itself.";
+stop their replicas), and bootstrap's keeper (a second s3res-bootstrap process that waits for
+it) kills every process the system started, found by the S3RES_SYSTEM_MARK variable they
+inherit; only a process that cleared its environment escapes it.";
 
 const EXIT_STATUSES: &str = "\
 Exit status:
@@ -139,6 +141,11 @@ struct Cli {
 }
 
 fn main() -> ExitCode {
+    // Started by a bootstrap as its keeper (`keeper.rs`), not by a user.
+    if let Some(mark) = std::env::var_os(s3res_bootstrap::keeper::ENV_KEEPER_OF) {
+        s3res_bootstrap::keeper::keep(&mark.to_string_lossy());
+        return ExitCode::SUCCESS;
+    }
     let cli = Cli::parse();
     s3res_bootstrap::logging::init_status_logging(cli.quiet, cli.verbose);
     match run_cli(&cli) {
@@ -230,6 +237,7 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         injector,
         console,
         child_log: child_log(cli.quiet, cli.verbose),
+        keeper: std::env::current_exe().ok(),
     };
     // `--events system.json` would empty the description it was read from.
     for (what, path) in [("events", &opts.events_file), ("state", &opts.state_file)] {

@@ -59,6 +59,8 @@ pub struct VoterSpawn {
     pub stderr: Option<OwnedFd>,
     pub stdout_to_stderr: bool,
     pub log: Option<String>,
+    /// The run's [`crate::keeper::ENV_SYSTEM_MARK`].
+    pub mark: String,
     /// The restart budget: restarts within the window.
     pub budget: RestartBudget,
     /// Voters of this component started so far.

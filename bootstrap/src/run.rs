@@ -22,6 +22,7 @@ use replica_rt::sys::{self, ExitStatus};
 use s3res_protocol::plan::{ExternalPort, VoterPlan};
 
 use crate::events::{EventReader, EventSummary};
+use crate::keeper::Keeper;
 use crate::live::LiveState;
 use crate::plan::{ComponentPlan, Endpoint, InjectPlan, SystemPlan};
 use crate::respawn::{self, RestartBudget, VoterSpawn};
@@ -58,6 +59,9 @@ pub struct RunOptions {
     /// `RUST_LOG` for every process started (voters, replicas, components, injector), when
     /// bootstrap's own verbosity was chosen by `-q`/`-v` rather than by `RUST_LOG`.
     pub child_log: Option<String>,
+    /// bootstrap's own binary, to start as the keeper (`keeper.rs`) that kills what the system
+    /// started if bootstrap is SIGKILLed; `None`: no keeper.
+    pub keeper: Option<PathBuf>,
 }
 
 /// Why a system could not be run.
@@ -266,6 +270,19 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     sys::set_child_subreaper().map_err(RunError::Subreaper)?;
     // From here on, whatever happens, the guard sweeps.
     let mut guard = SweepGuard::new();
+    let mark = crate::keeper::new_mark();
+    if let Some(exe) = &opts.keeper {
+        match Keeper::start(exe, &mark) {
+            Ok(keeper) => {
+                tracing::debug!(pid = keeper.pid(), "keeper started");
+                guard.own_keeper(keeper);
+            }
+            Err(e) => tracing::warn!(
+                "cannot start the keeper ({e}): if bootstrap is SIGKILLed, what a component \
+                 started itself will outlive it"
+            ),
+        }
+    }
 
     let started = Instant::now();
     // Before the events file is emptied: a refused run must leave its files as they were.
@@ -363,6 +380,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         stdout_to_stderr: plan.uses_stdout(),
         stderr: stderr_write.as_ref().map(|w| w.as_fd()),
         log: opts.child_log.as_deref(),
+        mark: &mark,
     };
 
     let mut children: Vec<Child> = Vec::with_capacity(plan.components.len());
@@ -652,6 +670,8 @@ struct Outputs<'a> {
     stderr: Option<std::os::fd::BorrowedFd<'a>>,
     /// `RUST_LOG` to set.
     log: Option<&'a str>,
+    /// This run's [`crate::keeper::ENV_SYSTEM_MARK`].
+    mark: &'a str,
 }
 
 /// `s3res-inject storm` with the description's `inject`, the live view and the log file.
@@ -808,7 +828,10 @@ fn base_command(exec: &Path, component: &str, out: &Outputs) -> Result<Command, 
     // Whatever bootstrap inherited must not make a component believe it is a replica.
     cmd.env_remove(ENV_VOTER_SOCKET)
         .env_remove(ENV_REPLICA)
-        .env(ENV_COMPONENT, component);
+        .env_remove(crate::keeper::ENV_KEEPER_OF)
+        .env(ENV_COMPONENT, component)
+        // Inherited by whatever the process starts: the keeper finds them all by it.
+        .env(crate::keeper::ENV_SYSTEM_MARK, out.mark);
     // The lock limit was said once (`say_memory_lock_limit`): a voter's or replica's refused
     // lock is not said again by each.
     if binding_lock_limit().is_some() {
@@ -996,6 +1019,7 @@ fn spawn_voter(
                 .map_err(spawn_err)?,
             stdout_to_stderr: out.stdout_to_stderr,
             log: out.log.map(str::to_owned),
+            mark: out.mark.to_owned(),
             budget: RestartBudget::new(c.max_restarts, Duration::from_millis(c.restart_window_ms)),
             generation: 1,
         })
@@ -1045,6 +1069,7 @@ fn restart_voter(c: &mut Child, why: &str) -> std::io::Result<libc::pid_t> {
         stdout_to_stderr: spawn.stdout_to_stderr,
         stderr: spawn.stderr.as_ref().map(|fd| fd.as_fd()),
         log: spawn.log.as_deref(),
+        mark: &spawn.mark,
     };
     start_voter(&spawn.voter, &c.component, &plan, spawn.mapping(), &out)
 }

@@ -4,6 +4,7 @@
 //! Killing every child and reaping, again and again until no child is left, therefore reaches
 //! the whole tree, including processes that were forked after the first pass.
 
+use crate::keeper::Keeper;
 use crate::runtime_dir::RuntimeDir;
 use std::time::Duration;
 
@@ -20,6 +21,8 @@ pub use replica_rt::sys::{sweep_children as sweep, SweepReport};
 #[derive(Debug, Default)]
 pub struct SweepGuard {
     socket_dir: Option<RuntimeDir>,
+    /// Let go after the sweep (which kills it too, as a child): its work is done.
+    keeper: Option<Keeper>,
     done: bool,
 }
 
@@ -31,6 +34,11 @@ impl SweepGuard {
     /// The folder to remove after the sweep (its lock is let go once it is gone).
     pub fn own_socket_dir(&mut self, dir: RuntimeDir) {
         self.socket_dir = Some(dir);
+    }
+
+    /// The keeper to let go after the sweep.
+    pub fn own_keeper(&mut self, keeper: Keeper) {
+        self.keeper = Some(keeper);
     }
 
     /// Sweeps now (once); later calls and the drop do nothing.
@@ -55,6 +63,9 @@ impl SweepGuard {
         }
         if let Some(dir) = self.socket_dir.take() {
             dir.remove();
+        }
+        if let Some(keeper) = self.keeper.take() {
+            keeper.all_clear();
         }
         report
     }

@@ -52,6 +52,11 @@ pub fn parse_stat(line: &str) -> Option<ProcStat> {
     })
 }
 
+/// What `/proc` says about `pid` now (`None`: gone).
+pub fn stat(pid: i32) -> Option<ProcStat> {
+    parse_stat(&std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?)
+}
+
 /// Every process visible in `/proc` right now (processes that vanish mid-scan are skipped).
 pub fn all() -> Vec<ProcStat> {
     let Ok(dir) = std::fs::read_dir("/proc") else {

@@ -122,6 +122,57 @@ fn sigkill_of_bootstrap_ends_its_fault_injector_too() {
     kill_bootstrap_of(libc::SIGKILL, tmp.path(), Some(inject));
 }
 
+/// What an unprotected component started itself (a shell's background job) ends with a
+/// SIGKILLed bootstrap too: the kernel's parent-death signal reaches only bootstrap's own
+/// children, and the job, re-parented to init, ran on (stop 62 found it). bootstrap's keeper
+/// finds every process carrying the run's mark and kills it.
+#[test]
+fn sigkill_of_bootstrap_ends_what_an_unprotected_component_started() {
+    let tmp = private_tmp();
+    let sys = System::new().env("TMPDIR", tmp.path());
+    let mut desc: serde_json::Value =
+        serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
+    let started = sys.path("job-started");
+    desc["components"]["launcher"] = serde_json::json!({
+        "exec": "/bin/sh",
+        "args": ["-c", format!("sleep 600 & echo $! > {}; wait", started.display())]
+    });
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("echo", 3);
+    let job: i32 = s3res_testkit::wait_until("the launcher's job", Duration::from_secs(20), || {
+        std::fs::read_to_string(&started).ok()?.trim().parse().ok()
+    });
+    assert_eq!(
+        procs::stat(job).map(|p| p.is_zombie()),
+        Some(false),
+        "the launcher's job is not running"
+    );
+    let bootstrap = run.pid();
+    s3res_testkit::kill_pid(bootstrap, libc::SIGKILL).expect("SIGKILL bootstrap");
+    let start = Instant::now();
+    loop {
+        let job_lives = procs::stat(job).is_some_and(|p| !p.is_zombie());
+        let left: Vec<_> = procs::with_env(s3res_testkit::system::MARK_ENV, run.mark())
+            .into_iter()
+            .filter(|p| !p.is_zombie() && p.pid != bootstrap)
+            .collect();
+        if !job_lives && left.is_empty() && run.try_status().is_some() {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "10 s after bootstrap was SIGKILLed, still running (the launcher's job {job} lives: \
+             {job_lives}): {left:?}"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    eprintln!(
+        "the launcher's job and every other process gone {:?} after bootstrap was SIGKILLed",
+        start.elapsed()
+    );
+    run.assert_nothing_left();
+}
+
 #[test]
 fn sighup_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
     let tmp = private_tmp();
