@@ -861,6 +861,61 @@ fn a_lost_state_no_fork_can_give_back_is_not_restarted_every_round() {
     run.assert_nothing_left();
 }
 
+/// A replica killed before any line was given to any replica is restarted by exec (no replica
+/// has answered, so none may donate) with nothing lost: a fresh process has the state every
+/// replica has. It was said `state_lost: true` and treated as catching up, and the verdict
+/// spoke of a lost state where none was. The feed waits for a file before its first line.
+#[test]
+fn a_replica_killed_before_any_line_loses_no_state() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    const LINES: u64 = 200;
+    let sys = System::new();
+    let mut desc = pipeline(&sys, awk_program(), "tmr", LINES);
+    let go = sys.path("go");
+    let feed = desc["components"]["feed"].clone();
+    let mut args = vec![
+        json!("-c"),
+        json!(format!(
+            "while [ ! -e '{}' ]; do sleep 0.02; done; exec \"$0\" \"$@\"",
+            go.display()
+        )),
+        feed["exec"].clone(),
+    ];
+    args.extend(
+        feed["args"]
+            .as_array()
+            .expect("the feed's args")
+            .iter()
+            .cloned(),
+    );
+    desc["components"]["feed"] = json!({"exec": "/bin/sh", "args": args});
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("sum", 3);
+    let pid = run.replica_pids("sum")[&1];
+    s3res_testkit::kill_pid(pid, libc::SIGKILL).unwrap();
+    let rec = run.wait_for_recovery("sum", 1, pid);
+    assert_eq!(rec.method, Some(RecoveryMethod::Exec), "{rec:?}");
+    assert_eq!(
+        rec.state_lost,
+        Some(false),
+        "no line was given yet: {rec:?}"
+    );
+    std::fs::write(&go, "").unwrap();
+    let out = run.wait_success(LIMIT);
+    assert!(
+        !out.stderr.contains("state lost"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    assert!(
+        out.events.iter().all(|e| e.kind != EventKind::Diverged),
+        "{:#?}",
+        out.events
+    );
+    assert_sums_continuous(&run, LINES);
+    run.assert_nothing_left();
+}
+
 /// The voter's successor does not know which replicas had matched (it is not journaled): it
 /// takes a replica whose state is lost for one still catching up, so the diverged replica is
 /// not faulted and restarted into the same loss once more after a voter's death (a review

@@ -1368,13 +1368,16 @@ impl Core {
                 self.exec_restarts.push_back(Instant::now());
                 self.exec_restarts_total += 1;
                 self.rt.apply_to_replica(fresh.pid, slot);
+                // A fresh process has the state of one that was never given a frame: before
+                // the first, nothing is lost.
+                let state_lost = !self.untouched();
                 let mut ev = self.recovery_event(slot, old_pid, fresh.pid, detected_ns);
                 ev.method = Some(RecoveryMethod::Exec);
-                ev.state_lost = Some(true);
+                ev.state_lost = Some(state_lost);
                 self.emit(ev);
                 let mut fresh = fresh;
-                fresh.state_lost = true;
-                fresh.catching_up = true;
+                fresh.state_lost = state_lost;
+                fresh.catching_up = state_lost;
                 self.slots[slot] = Some(fresh);
                 self.forget_stamps_of_the_gone();
                 self.number_inputs_of(slot);
@@ -1404,6 +1407,15 @@ impl Core {
                 Ok(false)
             }
         }
+    }
+
+    /// Whether no replica of this component has been given a frame and none of its outputs
+    /// has sent one: a replica started now has the state every replica has. A component
+    /// without inputs (a source) is never untouched: its state may grow without input.
+    fn untouched(&self) -> bool {
+        !self.inputs.is_empty()
+            && self.delivered.iter().all(|&d| d == 0)
+            && self.outputs.iter().all(|o| o.sent == 0)
     }
 
     /// Checks the budget before a restart by exec (`max_restarts` replicas started within
