@@ -497,13 +497,21 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         &mut children,
         opts.stop_timeout,
         console.period(),
-        &mut || {
+        &mut |children| {
             // The injector's log is read at most once a second for the count.
             if last_count.0.elapsed() >= Duration::from_secs(1) {
                 last_count = (Instant::now(), injected(&injections_file) as u64);
             }
             let snapshot = tally.snapshot();
-            console.tick(|elapsed| status_line(plan, &snapshot, elapsed, last_count.1));
+            let failed: Vec<String> = children
+                .iter()
+                .filter(|c| !c.after_stop && !c.helper)
+                .filter_map(|c| {
+                    let status = c.status.filter(|s| !s.success())?;
+                    Some(format!("{} (failed: {status})", c.component))
+                })
+                .collect();
+            console.tick(|elapsed| status_line(plan, &snapshot, elapsed, last_count.1, &failed));
         },
     )?;
     // What was kept for voters' successors: the events pipe (and the channels downstream)
@@ -1083,7 +1091,7 @@ fn supervise(
     children: &mut [Child],
     stop_timeout: Duration,
     period: Option<Duration>,
-    tick: &mut dyn FnMut(),
+    tick: &mut dyn FnMut(&[Child]),
 ) -> Result<Ending, RunError> {
     let mut stop: Option<(i32, Instant)> = None;
     // The stop signal that began the stop, and when it came (not a stop bootstrap began).
@@ -1138,7 +1146,7 @@ fn supervise(
             }
         }
         reap_all(children, stop.is_some());
-        tick();
+        tick(children);
         if children.iter().all(|c| c.status.is_some()) {
             // Everything ended in one pass: a voter killed first takes its neighbours with it
             // (a broken pipe, an end of input), all reaped together. Its death is still why.

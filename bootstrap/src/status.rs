@@ -177,10 +177,18 @@ fn degraded_how(c: &ComponentTally, replicas: usize) -> Option<String> {
 }
 
 /// The status of the moment, one line: `12.5 s · filter 3 faults/3 recovered · … · degraded:
-/// none`.
-pub fn status_line(plan: &SystemPlan, t: &TallyData, elapsed: Duration, injected: u64) -> String {
+/// none`. `failed` names the components that failed so far, with how (`loader (failed: exit
+/// status 3)`): an unprotected component has no voter to send events, and the line said
+/// "degraded: none" after one had died.
+pub fn status_line(
+    plan: &SystemPlan,
+    t: &TallyData,
+    elapsed: Duration,
+    injected: u64,
+    failed: &[String],
+) -> String {
     let mut parts = vec![format!("{:5.1} s", elapsed.as_secs_f64())];
-    let mut degraded = Vec::new();
+    let mut degraded = failed.to_vec();
     for c in plan.components.iter().filter(|c| c.is_protected()) {
         let ct = t.per_component.get(&c.name).cloned().unwrap_or_default();
         parts.push(format!(

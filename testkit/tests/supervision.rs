@@ -173,6 +173,36 @@ fn sigkill_of_bootstrap_ends_what_an_unprotected_component_started() {
     run.assert_nothing_left();
 }
 
+/// An unprotected component that fails while the rest runs on is named on the live status
+/// line ("degraded: loader (failed: exit status 3)"): it has no voter to send events, and the
+/// line said "degraded: none" after it had died (stop 58 found it), and the verdict names it.
+#[test]
+fn the_status_line_names_an_unprotected_component_that_died() {
+    let sys = System::new();
+    let mut desc: serde_json::Value =
+        serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
+    desc["components"]["loader"] = serde_json::json!({
+        "exec": "/bin/sh",
+        "args": ["-c", "echo loading the map >&2; exit 3"]
+    });
+    let mut run = sys.start_json(&desc);
+    run.wait_for_replicas("echo", 3);
+    // Not a terminal: a plain status line every 5 s.
+    let said = "degraded: loader (failed: exit status 3)";
+    s3res_testkit::wait_until("the status line", Duration::from_secs(30), || {
+        run.stderr().contains(said).then_some(())
+    });
+    run.stop();
+    let out = run.wait(Duration::from_secs(30));
+    assert!(
+        out.stderr
+            .contains("component loader failed: exit status 3"),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    run.assert_nothing_left();
+}
+
 #[test]
 fn sighup_of_bootstrap_stops_everything_and_removes_its_runtime_folder() {
     let tmp = private_tmp();
