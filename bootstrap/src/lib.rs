@@ -6,6 +6,7 @@
 
 #![forbid(unsafe_code)]
 
+pub mod component_stderr;
 pub mod events;
 pub mod keeper;
 pub mod live;

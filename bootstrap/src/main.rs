@@ -266,14 +266,10 @@ fn run_cli(cli: &Cli) -> anyhow::Result<u8> {
         run::run(&plan, &opts).with_context(|| format!("system {} did not run", plan.name))?;
 
     for f in &report.failures {
-        let why = f
-            .why
-            .as_ref()
-            .map(|w| format!(" ({w})"))
-            .unwrap_or_default();
         s3res_bootstrap::logging::say(&format!(
-            "component {} failed: {}{why}",
-            f.component, f.status
+            "component {} failed: {}",
+            f.component,
+            f.described()
         ));
     }
     if let Some(events) = report.events.as_ref().filter(|e| e.unparsable > 0) {

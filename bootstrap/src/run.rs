@@ -16,11 +16,12 @@ use thiserror::Error;
 
 use replica_rt::contract::{
     Direction, PortMap, PortSpec, ENV_COMPONENT, ENV_MEMORY_LOCK_SAID, ENV_PORTS, ENV_REPLICA,
-    ENV_SUPERVISOR_PID, ENV_VOTER_SOCKET, FIRST_PORT_FD,
+    ENV_STDERR_RELAYED, ENV_SUPERVISOR_PID, ENV_VOTER_SOCKET, FIRST_PORT_FD,
 };
 use replica_rt::sys::{self, ExitStatus};
 use s3res_protocol::plan::{ExternalPort, VoterPlan};
 
+use crate::component_stderr::ComponentStderr;
 use crate::events::{EventReader, EventSummary};
 use crate::keeper::Keeper;
 use crate::live::LiveState;
@@ -140,15 +141,28 @@ pub struct Failure {
     pub status: ExitStatus,
     /// What bootstrap knows beyond the status (a voter it found stalled and killed).
     pub why: Option<String>,
+    /// The last line an unprotected component wrote to stderr that says something: after a
+    /// failure it is most often the reason.
+    pub last_words: Option<String>,
+}
+
+impl Failure {
+    /// How it failed: `exit status 3 (why); its last stderr line: error: no map file`.
+    pub fn described(&self) -> String {
+        let mut text = self.status.to_string();
+        if let Some(why) = &self.why {
+            text.push_str(&format!(" ({why})"));
+        }
+        if let Some(words) = &self.last_words {
+            text.push_str(&format!("; its last stderr line: {words}"));
+        }
+        text
+    }
 }
 
 impl std::fmt::Display for Failure {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}: {}", self.component, self.status)?;
-        if let Some(why) = &self.why {
-            write!(f, " ({why})")?;
-        }
-        Ok(())
+        write!(f, "{}: {}", self.component, self.described())
     }
 }
 
@@ -205,6 +219,8 @@ struct Child {
     watch: Option<VoterWatch>,
     /// What bootstrap did to it and why, for the report.
     why: Option<String>,
+    /// An unprotected component's stderr, relayed behind its name (`component_stderr.rs`).
+    stderr: Option<ComponentStderr>,
     /// A restartable voter: what it takes to start its successor (see `respawn`).
     respawn: Option<VoterSpawn>,
 }
@@ -387,6 +403,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
     for (index, c) in plan.components.iter().enumerate() {
         let mut watch = None;
         let mut respawn = None;
+        let mut stderr = None;
         let pid = match (&voter, &socket_dir, &events_write) {
             (Some(voter), Some(dir), Some(ev)) if c.is_protected() => {
                 let w = VoterWatch::new(c).map_err(RunError::Heartbeat)?;
@@ -413,8 +430,9 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 )))
             }
             _ => {
-                let pid = spawn_direct(c, &mut channels, &out)?;
+                let (pid, relayed) = spawn_direct(c, &mut channels, &out)?;
                 sched.apply_direct(index, c, pid);
+                stderr = relayed;
                 pid
             }
         };
@@ -451,6 +469,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             watch,
             why: None,
             respawn,
+            stderr,
         });
     }
     if let (Some((bin, inject, _)), Some(state), Some(log)) =
@@ -475,6 +494,7 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             watch: None,
             why: None,
             respawn: None,
+            stderr: None,
         });
     }
     // Our copies of every pipe end must go, or readers never see end of stream.
@@ -568,13 +588,15 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
         outcome: plan.outcome.clone(),
     };
     let failures = children
-        .iter()
+        .iter_mut()
         .filter(|c| !c.after_stop)
         .filter_map(|c| match c.status {
             Some(s) if !s.success() => Some(Failure {
                 component: c.component.clone(),
                 status: s,
                 why: c.why.clone(),
+                // Every writer is gone after the sweep: the end of the pipe is on its way.
+                last_words: c.stderr.as_mut().and_then(|e| e.last_words(EVENTS_DRAIN)),
             }),
             _ => None,
         })
@@ -836,6 +858,7 @@ fn base_command(exec: &Path, component: &str, out: &Outputs) -> Result<Command, 
     // Whatever bootstrap inherited must not make a component believe it is a replica.
     cmd.env_remove(ENV_VOTER_SOCKET)
         .env_remove(ENV_REPLICA)
+        .env_remove(ENV_STDERR_RELAYED)
         .env_remove(crate::keeper::ENV_KEEPER_OF)
         .env(ENV_COMPONENT, component)
         // Inherited by whatever the process starts: the keeper finds them all by it.
@@ -854,7 +877,7 @@ fn spawn_direct(
     c: &ComponentPlan,
     channels: &mut [ChannelEnds],
     out: &Outputs,
-) -> Result<libc::pid_t, RunError> {
+) -> Result<(libc::pid_t, Option<ComponentStderr>), RunError> {
     let spawn_err = |source| RunError::Spawn {
         component: c.name.clone(),
         exec: c.exec.clone(),
@@ -881,11 +904,37 @@ fn spawn_direct(
     // If bootstrap dies (even by SIGKILL), an unprotected component dies with it.
     sys::die_with_parent(&mut cmd, libc::SIGKILL);
     cmd.args(&c.args).env(ENV_PORTS, ports.to_env());
+    // Its stderr (and its stdout, where fd 1 carries frames) into a pipe of its own, whose
+    // lines bootstrap relays behind its name; without a pipe, bare lines as before.
+    let relay = match sys::pipe().and_then(|(r, w)| {
+        if out.stdout_to_stderr {
+            cmd.stdout(Stdio::from(w.try_clone()?));
+        }
+        cmd.stderr(Stdio::from(w));
+        Ok(r)
+    }) {
+        Ok(r) => {
+            cmd.env(ENV_STDERR_RELAYED, "1");
+            Some(r)
+        }
+        Err(e) => {
+            tracing::warn!(component = %c.name, "its stderr is not relayed behind its name: {e}");
+            None
+        }
+    };
     sys::map_fds_on_exec(&mut cmd, mapping);
     let child = cmd.spawn().map_err(spawn_err)?;
+    let pid = child.id() as libc::pid_t;
+    // The command holds our copy of the pipe's write end: the relay would never see its end.
+    drop(cmd);
     // `fds` drops here: the child has its copies.
     drop(fds);
-    Ok(child.id() as libc::pid_t)
+    let stderr = relay.and_then(|r| {
+        ComponentStderr::start(format!("[{} pid {pid}] ", c.name), r)
+            .inspect_err(|e| tracing::warn!(component = %c.name, "cannot relay its stderr: {e}"))
+            .ok()
+    });
+    Ok((pid, stderr))
 }
 
 #[allow(clippy::too_many_arguments)]

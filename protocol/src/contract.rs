@@ -16,6 +16,9 @@ pub const ENV_VOTER_SOCKET: &str = "S3RES_VOTER_SOCKET";
 pub const ENV_REPLICA: &str = "S3RES_REPLICA";
 /// Name of the component in the system description.
 pub const ENV_COMPONENT: &str = "S3RES_COMPONENT";
+/// Set (to `1`) when the process's stderr is a pipe bootstrap reads and relays behind
+/// `[component pid N]` (an unprotected component): the process writes no prefix of its own.
+pub const ENV_STDERR_RELAYED: &str = "S3RES_STDERR_RELAYED";
 /// The start handshake: the number of an inherited fd, the write end of a pipe the voter
 /// reads. A replica's runtime writes [`STARTED`] to it once its `init` is done (handlers in
 /// place: the replica can answer, be a donor, be injected), then closes it. A replica whose pipe

@@ -53,6 +53,7 @@ pub mod restart;
 pub mod select;
 pub mod shared;
 pub mod stamps;
+pub mod stderr_relay;
 pub mod sys;
 
 /// The contract, the framing and the machine records are the protocol's (`s3res-protocol`),

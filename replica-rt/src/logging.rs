@@ -13,7 +13,7 @@ use tracing::{Event, Level, Metadata, Subscriber};
 use tracing_subscriber::filter::{LevelFilter, Targets};
 use tracing_subscriber::EnvFilter;
 
-use crate::contract::{ENV_COMPONENT, ENV_REPLICA, ENV_VOTER_SOCKET};
+use crate::contract::{ENV_COMPONENT, ENV_REPLICA, ENV_STDERR_RELAYED, ENV_VOTER_SOCKET};
 
 /// Installs a `tracing` subscriber that writes to stderr, filtered by `RUST_LOG` (default
 /// `info`; bootstrap passes its `-q`/`-v` on through it: see [`component_filter`]), each line
@@ -23,15 +23,19 @@ use crate::contract::{ENV_COMPONENT, ENV_REPLICA, ENV_VOTER_SOCKET};
 /// The component name is `S3RES_COMPONENT`, or `component_default` when the process was not
 /// started by s3res (by hand, in a shell pipeline). A replica (started by a voter) writes no
 /// prefix: its stderr is a pipe of its own that the voter reads, and the voter writes each line
-/// behind `[component#slot pid N]` (a fork child under its own slot). Calling it again is
+/// behind `[component#slot pid N]` (a fork child under its own slot); nor does an unprotected
+/// component, whose stderr bootstrap relays the same way (`ENV_STDERR_RELAYED`). Calling it again is
 /// harmless (the first subscriber stays).
 pub fn init_logging(component_default: &str) {
     let component = std::env::var(ENV_COMPONENT).unwrap_or_else(|_| component_default.to_owned());
     // A replica's stderr is a pipe its voter reads: the voter puts `[component#slot pid N]`
     // before each line itself, from its own bookkeeping (a fork child's slot is not its
     // donor's), so the replica writes none.
+    // An unprotected component's stderr is a pipe bootstrap reads, and bootstrap puts
+    // `[component pid N]` before each line: the lines said it twice.
     let prefix = match std::env::var(ENV_REPLICA) {
         _ if std::env::var_os(ENV_VOTER_SOCKET).is_some() => None,
+        _ if std::env::var_os(ENV_STDERR_RELAYED).is_some() => None,
         Ok(r) => Some(format!("{component}#{r}")),
         Err(_) => Some(component),
     };

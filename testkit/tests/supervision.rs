@@ -173,17 +173,20 @@ fn sigkill_of_bootstrap_ends_what_an_unprotected_component_started() {
     run.assert_nothing_left();
 }
 
-/// An unprotected component that fails while the rest runs on is named on the live status
-/// line ("degraded: loader (failed: exit status 3)"): it has no voter to send events, and the
-/// line said "degraded: none" after it had died (stop 58 found it), and the verdict names it.
+/// An unprotected component that fails while the rest runs on: each line it wrote is relayed
+/// behind `[loader pid N]` (a shell script's lines came bare, and whose `error:` it was could
+/// not be told), the live status line names it ("degraded: loader (failed: exit status 3)"; it
+/// has no voter to send events, and the line said "degraded: none" after it had died), and the
+/// line that reports its failure quotes the last line it wrote that says something. A
+/// `replica-rt` component's lines carry its name once, not twice.
 #[test]
-fn the_status_line_names_an_unprotected_component_that_died() {
+fn a_failed_unprotected_component_is_named_on_its_lines_the_status_and_the_verdict() {
     let sys = System::new();
     let mut desc: serde_json::Value =
         serde_json::from_str(&long_running(&sys)).expect("the pipeline is JSON");
     desc["components"]["loader"] = serde_json::json!({
         "exec": "/bin/sh",
-        "args": ["-c", "echo loading the map >&2; exit 3"]
+        "args": ["-c", "echo loading the map >&2; printf 'error: no map file map.bin\\n  (looked in .)\\n' >&2; exit 3"]
     });
     let mut run = sys.start_json(&desc);
     run.wait_for_replicas("echo", 3);
@@ -194,12 +197,32 @@ fn the_status_line_names_an_unprotected_component_that_died() {
     });
     run.stop();
     let out = run.wait(Duration::from_secs(30));
+    let tail = s3res_testkit::tail(&out.stderr, 30);
+    let loader = out
+        .stderr
+        .lines()
+        .find_map(|l| l.strip_suffix("loading the map"))
+        .unwrap_or_else(|| panic!("the loader's line is not relayed:\n{tail}"));
     assert!(
-        out.stderr
-            .contains("component loader failed: exit status 3"),
-        "{}",
-        s3res_testkit::tail(&out.stderr, 20)
+        loader.starts_with("[loader pid ") && loader.ends_with("] "),
+        "{loader:?}\n{tail}"
     );
+    assert!(
+        out.stderr.contains(&format!("{loader}  (looked in .)")),
+        "{tail}"
+    );
+    assert!(
+        out.stderr.contains(
+            "component loader failed: exit status 3; its last stderr line: error: no map file map.bin"
+        ),
+        "{tail}"
+    );
+    let source = out
+        .stderr
+        .lines()
+        .find(|l| l.starts_with("[source pid "))
+        .unwrap_or_else(|| panic!("the source's lines are not relayed behind its name:\n{tail}"));
+    assert_eq!(source.matches("[source pid ").count(), 1, "{source}");
     run.assert_nothing_left();
 }
 

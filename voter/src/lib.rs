@@ -33,7 +33,6 @@ pub mod round;
 pub mod rt;
 pub mod spin;
 pub mod starvation;
-pub mod stderr;
 pub mod stream;
 pub mod vote;
 

@@ -15,7 +15,7 @@ use replica_rt::sys;
 use crate::channel::{FrameReader, FrameWriter, Staging};
 use crate::plan::{Framing, VoterPlan};
 use crate::starvation::{Sample, SchedStat};
-use crate::stderr::StderrRelay;
+use replica_rt::stderr_relay::StderrRelay;
 
 /// The voter's end of one replica input pipe. The voter keeps the read end too, so that it can
 /// take back input the replica has not consumed when the replica becomes a recovery donor.

@@ -1,14 +1,18 @@
-//! A replica's stderr, relayed line by line. Every replica writes its stderr into a pipe of its
-//! own (a fork child gets a fresh one at the handover, on fd 2), and the voter writes each whole
-//! line to its own stderr behind `[component#slot pid N]`. So every line says which replica
-//! wrote it — a fork child under its own slot, not its donor's —, lines of different replicas
-//! never run into each other, and what a replica wrote just before it died is still read to the
-//! end (the budget's message quotes the last line).
+//! A child's stderr, relayed line by line behind a prefix that says who wrote it, and what it
+//! said last (for the line that reports its death).
+//!
+//! The voter relays each replica's: every replica writes its stderr into a pipe of its own (a
+//! fork child gets a fresh one at the handover, on fd 2), and the voter writes each whole line
+//! to its own stderr behind `[component#slot pid N]`. So every line says which replica wrote
+//! it — a fork child under its own slot, not its donor's —, lines of different replicas never
+//! run into each other, and what a replica wrote just before it died is still read to the end
+//! (the budget's message quotes the last line). bootstrap relays each unprotected component's
+//! behind `[component pid N]`, from a thread, with a sink that prints above its status line.
 
 use std::io::Write as _;
 use std::os::fd::{AsFd, OwnedFd};
 
-use replica_rt::sys;
+use crate::sys;
 
 /// Longest line kept whole; a longer one is cut there (and the rest follows as a line).
 const MAX_LINE: usize = 4096;
@@ -57,6 +61,15 @@ impl StderrRelay {
     /// Reads what the pipe holds now (at most [`READ_LIMIT`]) and writes every whole line to
     /// our stderr behind `prefix`. At the end of the pipe the last partial line goes out too.
     pub fn relay(&mut self, prefix: &str) {
+        self.relay_to(prefix, &mut |line| {
+            let _ = std::io::stderr().lock().write_all(line);
+        });
+    }
+
+    /// [`StderrRelay::relay`], each line (prefix, text and newline) given to `sink` whole. On
+    /// a blocking pipe it waits for the first read, and returns after [`READ_LIMIT`] bytes or
+    /// at the end of the pipe (then [`StderrRelay::fd`] is `None`).
+    pub fn relay_to(&mut self, prefix: &str, sink: &mut dyn FnMut(&[u8])) {
         let mut buf = [0u8; 4096];
         let mut read = 0;
         while read < READ_LIMIT {
@@ -66,13 +79,13 @@ impl StderrRelay {
                     self.fd = None;
                     if !self.partial.is_empty() {
                         let rest = std::mem::take(&mut self.partial);
-                        self.emit(prefix, &rest);
+                        self.emit(prefix, &rest, sink);
                     }
                     return;
                 }
                 Ok(n) => {
                     read += n;
-                    self.take(prefix, &buf[..n]);
+                    self.take(prefix, &buf[..n], sink);
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
@@ -103,30 +116,30 @@ impl StderrRelay {
         self.partial.clone_from(&donor.partial);
     }
 
-    fn take(&mut self, prefix: &str, mut bytes: &[u8]) {
+    fn take(&mut self, prefix: &str, mut bytes: &[u8], sink: &mut dyn FnMut(&[u8])) {
         while let Some(nl) = bytes.iter().position(|&b| b == b'\n') {
             let mut line = std::mem::take(&mut self.partial);
             line.extend_from_slice(&bytes[..nl]);
-            self.emit(prefix, &line);
+            self.emit(prefix, &line, sink);
             bytes = &bytes[nl + 1..];
         }
         self.partial.extend_from_slice(bytes);
         while self.partial.len() >= MAX_LINE {
             let rest = self.partial.split_off(MAX_LINE);
             let line = std::mem::replace(&mut self.partial, rest);
-            self.emit(prefix, &line);
+            self.emit(prefix, &line, sink);
         }
     }
 
     /// One line out, in one write (so that lines of the voter and of other replicas never mix).
-    fn emit(&mut self, prefix: &str, line: &[u8]) {
+    fn emit(&mut self, prefix: &str, line: &[u8], sink: &mut dyn FnMut(&[u8])) {
         let text = String::from_utf8_lossy(line);
         let text = text.trim_end_matches('\r');
         let mut out = Vec::with_capacity(prefix.len() + text.len() + 1);
         out.extend_from_slice(prefix.as_bytes());
         out.extend_from_slice(text.as_bytes());
         out.push(b'\n');
-        let _ = std::io::stderr().lock().write_all(&out);
+        sink(&out);
         // std's panic says "stack backtrace:", anyhow's error report "Stack backtrace:".
         let heading = text.to_ascii_lowercase();
         // anyhow's heading is the whole line (a JVM's `Caused by: java.io…` is a line of its
