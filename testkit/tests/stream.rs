@@ -212,6 +212,40 @@ fn stream_inputs_without_output_cause_no_false_hang() {
     assert_sink_whole(&summary, count);
 }
 
+/// A stream component that takes its input and sends nothing on its output ran to a clean end
+/// without a word: no answer is owed for an input in stream mode, so no deadline says it. Its
+/// voter now says so at the end, naming the output.
+#[test]
+fn a_stream_component_that_sends_nothing_says_so() {
+    let sys = System::new();
+    let desc = serde_json::json!({
+        "name": "silent",
+        "components": {
+            "source": {"exec": "s3res-source", "args": ["--count", "50", "--hz", "500"]},
+            "echo": {
+                "exec": "s3res-misbehave",
+                "args": ["--mode", "silent", "--replica", "0,1,2", "--at", "0"],
+                "redundancy": "tmr", "mode": "stream", "timeout_us": TIMEOUT_US
+            },
+            "sink": {"exec": "s3res-sink"}
+        },
+        "channels": [
+            {"from": "source.out", "to": "echo.in"},
+            {"from": "echo.out", "to": "sink.in"}
+        ]
+    });
+    let mut run = sys.start_json(&desc);
+    let out = run.wait_success(LIMIT);
+    assert!(
+        out.stderr.contains(
+            "its replicas took 50 input frame(s) and sent no frame on any output (`out`)"
+        ),
+        "{}",
+        s3res_testkit::tail(&out.stderr, 20)
+    );
+    run.assert_nothing_left();
+}
+
 /// Starts source → echo (stream mode, TMR, `work_us` of work per frame) → sink, the source
 /// sending `count` frames as fast as it can: the replicas still have most of the work ahead of
 /// them when their input ends.

@@ -737,6 +737,7 @@ impl StreamVoter {
     fn finish(&mut self) -> Result<(), VoterError> {
         // No recovery comes now: a fault's event held for one goes out before the waits below.
         self.core.release_faults();
+        self.say_if_silent();
         let mut unfinished = None;
         let all_finished = self.all_finished();
         if !all_finished && self.majority_finished() {
@@ -792,6 +793,32 @@ impl StreamVoter {
             Some(why) => Err(VoterError::Unfinished(why)),
             None => self.core.output_failure(),
         }
+    }
+
+    /// Warns when the component took input and sent no frame on any output, the whole run: in
+    /// stream mode no answer is owed for an input, so nothing else says it (a program that
+    /// writes to stdout, or forgets to flush its port, ran to a clean end with nothing
+    /// downstream and not a word).
+    fn say_if_silent(&self) {
+        let taken: u64 = self.core.delivered.iter().sum();
+        if taken == 0
+            || self.core.outputs.is_empty()
+            || self.core.outputs.iter().any(|o| o.sent > 0)
+        {
+            return;
+        }
+        let outputs: Vec<String> = self
+            .core
+            .outputs
+            .iter()
+            .map(|o| format!("`{}`", o.name))
+            .collect();
+        tracing::warn!(
+            "its replicas took {taken} input frame(s) and sent no frame on any output ({}): \
+             nothing went downstream; a stream component sends its results as frames on its \
+             output port(s) (replica-rt's OutPort::send, s3res_send in C)",
+            outputs.join(", ")
+        );
     }
 }
 

@@ -32,6 +32,8 @@ use s3res_components::Echo;
 ///             the answer; at frame K+100 the process it started as exits with status 1 without
 ///             another word, at frame K+200 every replacement forked from it (as a program forked
 ///             while it reported an error on its way out, whose child writes nothing of it)
+///   silent    from frame K on, no answer at all (a component that forgets to send its
+///             output); with K = 0 on every replica, a stream component that never sends
 ///   worker    from frame K on, every answer passes through a worker thread (handed over a
 ///             channel and back): correct answers, but a second thread, which a fork does not
 ///             copy (the rule a component breaks by starting one)
@@ -68,6 +70,7 @@ enum Mode {
     Worker,
     DieSlowly,
     LastWords,
+    Silent,
 }
 
 fn main() -> Result<()> {
@@ -104,6 +107,10 @@ fn main() -> Result<()> {
             if k >= end {
                 std::process::exit(1);
             }
+        }
+        if armed && matches!(cli.mode, Mode::Silent) && k >= cli.at {
+            k += 1;
+            continue;
         }
         if let Some(out) = output.as_mut() {
             if armed && matches!(cli.mode, Mode::Worker) && k >= cli.at {
@@ -179,6 +186,7 @@ fn misbehave(mode: Mode, out: &mut OutPort, answer: &[u8]) -> Result<After> {
         Mode::Panic => unreachable!("panics at start"),
         Mode::Worker => unreachable!("answers through the worker"),
         Mode::LastWords => unreachable!("answers until it exits"),
+        Mode::Silent => unreachable!("answers nothing"),
         Mode::DieSlowly => After::Close,
     };
     out.write_raw(&bytes).context("writing the broken frame")?;
