@@ -63,6 +63,13 @@ fn train_and_check_both_models() {
         r.stdout,
         r.stderr
     );
+    assert!(
+        r.stdout
+            .contains("on its 6000 training frames it alarms on 0 (0.00 per 10000)"),
+        "{}",
+        r.stdout
+    );
+    assert!(!r.stderr.contains("flags"), "{}", r.stderr);
     let r = train(
         d,
         "autoencoder --layout layout.json --frames a.bin --frames b.bin --out ae.json --seed 3 --epochs 10",
@@ -91,6 +98,37 @@ fn train_and_check_both_models() {
             r.stdout
         );
     }
+}
+
+/// A threshold so tight that the model flags its own fault-free training frames is accepted
+/// (the user asked for it) but said unusable, with the option to change.
+#[test]
+fn a_model_that_flags_its_own_training_frames_is_said_unusable() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let r = train(
+        d,
+        "synthetic --seed 4 --count 2000 --out a.bin --layout-out layout.json",
+    );
+    assert!(r.ok, "{}", r.stderr);
+    let r = train(
+        d,
+        "gaussian --layout layout.json --frames a.bin --out g.json --sigmas 0.01",
+    );
+    assert!(r.ok, "{}", r.stderr);
+    let flagged: u64 = r
+        .stdout
+        .split("on its 2000 training frames it alarms on ")
+        .nth(1)
+        .and_then(|rest| rest.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no alarm count: {}", r.stdout));
+    assert!(flagged > 20, "{}", r.stdout);
+    assert!(
+        r.stderr
+            .contains("of its own fault-free training frames: it will call normal frames faults; give a larger --sigmas"),
+        "{}",
+        r.stderr
+    );
 }
 
 /// Runs s3res-train expecting it to fail with every one of `expected` in its error output.

@@ -140,7 +140,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Gaussian { input, sigmas } => {
             let trainer = ingest(&input)?;
             let model = trainer.gaussian(sigmas, input.sigma_floor)?;
-            save(&model, &input.out)
+            save(&model, &input.out)?;
+            say_training_alarms(&model, &input, "--sigmas")
         }
         Command::Autoencoder {
             input,
@@ -174,7 +175,8 @@ fn run(cli: Cli) -> Result<()> {
                     "trained"
                 );
             }
-            save(&model, &input.out)
+            save(&model, &input.out)?;
+            say_training_alarms(&model, &input, "--margin")
         }
         Command::Check {
             model,
@@ -257,9 +259,23 @@ fn save(model: &Model, out: &Path) -> Result<()> {
     Ok(())
 }
 
-fn check(model_path: &Path, files: &[PathBuf], max_frame: usize) -> Result<()> {
-    let model = Model::load(model_path)?;
-    let mut detector = Detector::new(&model, 1)?;
+/// A model's alarms over frame files.
+struct Alarms {
+    frames: u64,
+    alarms: u64,
+    worst: f64,
+    threshold: f64,
+}
+
+impl Alarms {
+    fn per_10000(&self) -> f64 {
+        self.alarms as f64 * 1e4 / self.frames.max(1) as f64
+    }
+}
+
+/// Runs `model` over `files` (each one stream), printing a line per alarm if `print`.
+fn alarms_over(model: &Model, files: &[PathBuf], max_frame: usize, print: bool) -> Result<Alarms> {
+    let mut detector = Detector::new(model, 1)?;
     let (mut frames, mut alarms, mut worst) = (0u64, 0u64, 0.0f64);
     for path in files {
         detector.reset_stream(0);
@@ -269,24 +285,65 @@ fn check(model_path: &Path, files: &[PathBuf], max_frame: usize) -> Result<()> {
             worst = worst.max(verdict.score);
             if verdict.alarm {
                 alarms += 1;
-                let field = verdict.field.map_or("-", |i| detector.field_name(i));
-                println!(
-                    "alarm: {} frame {} score {:.4} (threshold {:.4}) field {} ({:?})",
-                    path.display(),
-                    frames,
-                    verdict.score,
-                    verdict.threshold,
-                    field,
-                    verdict.cause
-                );
+                if print {
+                    let field = verdict.field.map_or("-", |i| detector.field_name(i));
+                    println!(
+                        "alarm: {} frame {} score {:.4} (threshold {:.4}) field {} ({:?})",
+                        path.display(),
+                        frames,
+                        verdict.score,
+                        verdict.threshold,
+                        field,
+                        verdict.cause
+                    );
+                }
             }
         })?;
     }
+    Ok(Alarms {
+        frames,
+        alarms,
+        worst,
+        threshold: detector.threshold(),
+    })
+}
+
+/// Above this share of its own fault-free training frames flagged, a model is said unusable.
+const TRAINING_ALARMS_AT_MOST: f64 = 0.01;
+
+/// Says how often the model just trained alarms on its own training frames, and warns when it
+/// is more than [`TRAINING_ALARMS_AT_MOST`]: `--sigmas 0.01` (or `1e-300`) was accepted and
+/// wrote a model that calls most normal frames faults, without a word until a run restarted
+/// replicas for it.
+fn say_training_alarms(model: &Model, input: &Input, knob: &str) -> Result<()> {
+    let a = alarms_over(model, &input.frames, input.max_frame, false)?;
     println!(
-        "{} model: {frames} frames, {alarms} alarms ({:.2} per 10000), highest score {worst:.4}, threshold {:.4}",
+        "on its {} training frames it alarms on {} ({:.2} per 10000)",
+        a.frames,
+        a.alarms,
+        a.per_10000()
+    );
+    if a.alarms as f64 > a.frames as f64 * TRAINING_ALARMS_AT_MOST {
+        tracing::warn!(
+            "this model flags {:.1} % of its own fault-free training frames: it will call normal \
+             frames faults; give a larger {knob}",
+            a.alarms as f64 * 100.0 / a.frames.max(1) as f64
+        );
+    }
+    Ok(())
+}
+
+fn check(model_path: &Path, files: &[PathBuf], max_frame: usize) -> Result<()> {
+    let model = Model::load(model_path)?;
+    let a = alarms_over(&model, files, max_frame, true)?;
+    println!(
+        "{} model: {} frames, {} alarms ({:.2} per 10000), highest score {:.4}, threshold {:.4}",
         model.kind(),
-        alarms as f64 * 1e4 / frames.max(1) as f64,
-        detector.threshold()
+        a.frames,
+        a.alarms,
+        a.per_10000(),
+        a.worst,
+        a.threshold
     );
     Ok(())
 }
