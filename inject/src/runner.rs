@@ -199,7 +199,11 @@ pub fn inject_now(setup: &RunSetup, state_path: &Path, p: &Planned) -> Attempt {
     };
     let target = match resolve(&view, &p.component, p.draw, setup.pick) {
         Ok(t) => t,
-        Err(e) => return missed(p, &e.to_string()),
+        Err(e) => {
+            let mut a = missed(p, &e.to_string());
+            a.slot = e.slot();
+            return a;
+        }
     };
     let ts = replica_rt::sys::monotonic_ns();
     let mut a = Attempt {

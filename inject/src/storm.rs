@@ -208,7 +208,10 @@ pub fn run(o: &StormOptions, stop: &dyn Fn() -> bool) -> Result<u64, StormError>
             .is_some_and(|t| t.elapsed() < o.settle);
         let (line, hit) = if settling {
             let why = "the last fault injected into the component may not be detected yet";
-            (miss_line(o, index, &view.system, &planned, &why), false)
+            (
+                miss_line(o, index, &view.system, &planned, None, &why),
+                false,
+            )
         } else {
             inject_one(o, index, &planned)
         };
@@ -231,19 +234,33 @@ pub fn run(o: &StormOptions, stop: &dyn Fn() -> bool) -> Result<u64, StormError>
 fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json::Value, bool) {
     let view = match LiveView::read(&o.state) {
         Ok(v) => v,
-        Err(e) => return (miss_line(o, index, "", planned, &e), false),
+        Err(e) => return (miss_line(o, index, "", planned, None, &e), false),
     };
+    let target = resolve(&view, &planned.component, planned.draw, Pick::Uniform);
     let whole = view
         .components
         .get(&planned.component)
         .is_some_and(|c| c.replicas.iter().all(|r| r.state == ReplicaState::Running));
     if !whole {
+        // The replica the draw chose, whether it is the one being replaced or another.
+        let slot = match &target {
+            Ok(t) => t.slot,
+            Err(e) => e.slot(),
+        };
         let why = "a replica of the component is still being replaced";
-        return (miss_line(o, index, &view.system, planned, &why), false);
+        return (
+            miss_line(o, index, &view.system, planned, slot, &why),
+            false,
+        );
     }
-    let target = match resolve(&view, &planned.component, planned.draw, Pick::Uniform) {
+    let target = match target {
         Ok(t) => t,
-        Err(e) => return (miss_line(o, index, &view.system, planned, &e), false),
+        Err(e) => {
+            return (
+                miss_line(o, index, &view.system, planned, e.slot(), &e),
+                false,
+            )
+        }
     };
     let ts = replica_rt::sys::monotonic_ns();
     let (ts, miss, injector) = match fire(&planned.action, target.pid, &o.reg) {
@@ -276,16 +293,23 @@ fn inject_one(o: &StormOptions, index: usize, planned: &Planned) -> (serde_json:
     (line, ts.is_some())
 }
 
+/// The log line of an injection not delivered, with the replica the draw chose if one was
+/// (a missed injection's slot said `null` even when it was the slot being replaced).
 fn miss_line(
     o: &StormOptions,
     index: usize,
     system: &str,
     planned: &Planned,
+    slot: Option<usize>,
     why: &dyn std::fmt::Display,
 ) -> serde_json::Value {
     let why = why.to_string();
     tracing::debug!("injection {index} into {} missed: {why}", planned.component);
-    record_line(index, o.seed, system, planned, None, None, Some(&why))
+    let mut line = record_line(index, o.seed, system, planned, None, None, Some(&why));
+    if let (Some(obj), Some(slot)) = (line.as_object_mut(), slot) {
+        obj.insert("replica".to_owned(), slot.into());
+    }
+    line
 }
 
 /// `a crash (SIGKILL)`, `a bit flip`, `a spin`: what the user reads in the log.
@@ -353,5 +377,55 @@ fn sleep_until(due: Instant, state: &std::path::Path, stop: &dyn Fn() -> bool) -
             }
         }
         std::thread::sleep((due - now).min(POLL));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A storm's injection into a component whose replica is being replaced is missed, and
+    /// its line names the replica the draw chose (it said `null`), whichever that is; nothing
+    /// is fired (these pids are no processes).
+    #[test]
+    fn a_miss_while_a_replica_is_replaced_names_the_slot_the_draw_chose() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = dir.path().join("state.json");
+        crate::target::tests::view(&[
+            ReplicaState::Running,
+            ReplicaState::Faulty,
+            ReplicaState::Running,
+        ])
+        .write(&state)
+        .unwrap();
+        let o = StormOptions {
+            state,
+            faults: vec![FaultKind::Exec],
+            rate_hz: 1.0,
+            seed: 1,
+            components: vec![],
+            after: Duration::ZERO,
+            settle: Duration::ZERO,
+            log: None,
+            var: VarSpec::default(),
+            reg: RegOptions::default(),
+        };
+        for (draw, slot) in [(0.5, 1), (0.1, 0)] {
+            let planned = Planned {
+                index: 0,
+                at_ns: 0,
+                component: "echo".to_owned(),
+                draw,
+                action: Action::Exec,
+            };
+            let (line, delivered) = inject_one(&o, 0, &planned);
+            assert!(!delivered, "{line}");
+            assert_eq!(line["replica"], slot, "{line}");
+            assert_eq!(line["pid"], serde_json::Value::Null, "{line}");
+            assert_eq!(
+                line["miss"], "a replica of the component is still being replaced",
+                "{line}"
+            );
+        }
     }
 }

@@ -32,6 +32,17 @@ pub enum Miss {
     Stopped,
 }
 
+impl Miss {
+    /// The replica slot the draw chose, where the miss is that slot's (it was being replaced):
+    /// the record says which replica the fault would have hit.
+    pub fn slot(&self) -> Option<usize> {
+        match self {
+            Miss::SlotNotRunning { slot, .. } => Some(*slot),
+            _ => None,
+        }
+    }
+}
+
 /// Chooses the target in `component` with `draw` (uniform in [0, 1)).
 pub fn resolve(view: &LiveView, component: &str, draw: f64, pick: Pick) -> Result<Target, Miss> {
     if !view.running {
@@ -123,12 +134,13 @@ fn parse_cpu_ticks(stat: &str) -> Option<u64> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use s3res_protocol::live::{LiveComponent, LiveReplica};
     use std::collections::BTreeMap;
 
-    fn view(states: &[ReplicaState]) -> LiveView {
+    /// A live view of a TMR `echo` in `states` (pids 100, 101, ...) and an unprotected `sink`.
+    pub(crate) fn view(states: &[ReplicaState]) -> LiveView {
         let mut components = BTreeMap::new();
         components.insert(
             "echo".to_owned(),
@@ -191,10 +203,12 @@ mod tests {
             ReplicaState::Faulty,
             ReplicaState::Running,
         ]);
-        assert!(matches!(
-            resolve(&v, "echo", 0.5, Pick::Uniform),
-            Err(Miss::SlotNotRunning { slot: 1, .. })
-        ));
+        let miss = resolve(&v, "echo", 0.5, Pick::Uniform).unwrap_err();
+        assert!(
+            matches!(miss, Miss::SlotNotRunning { slot: 1, .. }),
+            "{miss:?}"
+        );
+        assert_eq!(miss.slot(), Some(1));
         // CPU weighting only ever picks running replicas (these pids have no /proc entry, so
         // it falls back to uniform over them).
         for d in [0.0, 0.4, 0.6, 0.99] {

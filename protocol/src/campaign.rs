@@ -163,6 +163,18 @@ pub struct VarSpec {
     pub bits: Option<Vec<u32>>,
 }
 
+/// `s3res-inject`'s defaults: one bit of the whole 64-bit value at offset 0.
+impl Default for VarSpec {
+    fn default() -> Self {
+        VarSpec {
+            offset: 0,
+            field: VarField::Whole,
+            flips: 1,
+            bits: None,
+        }
+    }
+}
+
 impl VarSpec {
     /// Checks that the request can be satisfied; the reason if not.
     pub fn validate(&self) -> Result<(), String> {
@@ -380,7 +392,8 @@ pub struct InjectionRecord {
     #[serde(flatten)]
     pub action: Action,
     pub component: String,
-    /// Replica slot (absent for an unprotected component or a missed injection).
+    /// Replica slot (absent for an unprotected component, or a missed injection whose draw
+    /// chose no slot: one missed because its slot was being replaced names that slot).
     #[serde(default)]
     pub replica: Option<usize>,
     #[serde(default)]
