@@ -9,7 +9,7 @@
 //! `ENV_STDERR_RELAYED` tells a `replica-rt` component to write no prefix of its own.
 
 use std::os::fd::{AsFd as _, OwnedFd};
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -21,18 +21,27 @@ use replica_rt::sys;
 pub struct ComponentStderr {
     last_line: Arc<Mutex<String>>,
     ended: Option<Receiver<()>>,
+    /// Gives the thread its prefix once the component runs (its pid is in it); dropped
+    /// unsent, the thread ends.
+    prefix: Option<Sender<String>>,
 }
 
 impl ComponentStderr {
-    /// Relays `pipe` (the read end, blocking) behind `prefix` on a new thread, until every
-    /// writer has closed it.
-    pub fn start(prefix: String, pipe: OwnedFd) -> std::io::Result<ComponentStderr> {
+    /// Starts the thread that will relay `pipe` (the read end), before the component is
+    /// started: a thread that could not start after it would leave the component a pipe no
+    /// one reads (its first line a SIGPIPE). It begins once [`ComponentStderr::relay_as`]
+    /// gives it its prefix, and runs until every writer has closed the pipe.
+    pub fn start(pipe: OwnedFd) -> std::io::Result<ComponentStderr> {
         let last_line = Arc::new(Mutex::new(String::new()));
         let (tx, rx) = std::sync::mpsc::channel();
+        let (prefix_tx, prefix_rx) = std::sync::mpsc::channel::<String>();
         let kept = Arc::clone(&last_line);
         std::thread::Builder::new()
             .name("component-stderr".to_owned())
             .spawn(move || {
+                let Ok(prefix) = prefix_rx.recv() else {
+                    return;
+                };
                 // Non-blocking, read when ready: a relay on a blocking pipe would go on reading
                 // past a line (to its read limit) before the last line is shared.
                 let _ = sys::set_nonblocking(pipe.as_fd(), true);
@@ -50,19 +59,34 @@ impl ComponentStderr {
         Ok(ComponentStderr {
             last_line,
             ended: Some(rx),
+            prefix: Some(prefix_tx),
         })
+    }
+
+    /// Begins relaying, each line behind `prefix` (`[component pid N] `).
+    pub fn relay_as(&mut self, prefix: String) {
+        if let Some(tx) = self.prefix.take() {
+            let _ = tx.send(prefix);
+        }
+    }
+
+    /// Waits until the pipe has ended (every writer gone) and its last lines are out, or until
+    /// `deadline`.
+    pub fn wait_ended(&mut self, deadline: std::time::Instant) {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        if let Some(ended) = self.ended.take() {
+            if let Err(RecvTimeoutError::Timeout) = ended.recv_timeout(left) {
+                self.ended = Some(ended);
+            }
+        }
     }
 
     /// The last line the component wrote that says something (not a backtrace, nor blank),
     /// once its pipe has ended or `grace` has passed (a process it started may hold the pipe
     /// open); `None` if it said nothing.
     pub fn last_words(&mut self, grace: Duration) -> Option<String> {
-        if let Some(ended) = self.ended.take() {
-            if let Err(RecvTimeoutError::Timeout) = ended.recv_timeout(grace) {
-                // Still open: asked again later, it waits again.
-                self.ended = Some(ended);
-            }
-        }
+        // Still open after the grace: asked again later, it waits again.
+        self.wait_ended(std::time::Instant::now() + grace);
         let last = self.last_line.lock().unwrap_or_else(|p| p.into_inner());
         (!last.is_empty()).then(|| last.clone())
     }
@@ -75,7 +99,8 @@ mod tests {
     #[test]
     fn the_last_line_that_says_something_is_kept() {
         let (r, w) = sys::pipe().unwrap();
-        let mut relayed = ComponentStderr::start("[t pid 1] ".to_owned(), r).unwrap();
+        let mut relayed = ComponentStderr::start(r).unwrap();
+        relayed.relay_as("[t pid 1] ".to_owned());
         sys::write(
             w.as_fd(),
             b"loading\nerror: no map file map.bin\n  (looked in .)\n\n",
@@ -91,7 +116,8 @@ mod tests {
     #[test]
     fn a_component_that_said_nothing_has_no_last_words() {
         let (r, w) = sys::pipe().unwrap();
-        let mut relayed = ComponentStderr::start("[t pid 1] ".to_owned(), r).unwrap();
+        let mut relayed = ComponentStderr::start(r).unwrap();
+        relayed.relay_as("[t pid 1] ".to_owned());
         drop(w);
         assert_eq!(relayed.last_words(Duration::from_secs(10)), None);
     }
@@ -99,7 +125,8 @@ mod tests {
     #[test]
     fn a_pipe_held_open_is_waited_for_only_the_grace() {
         let (r, w) = sys::pipe().unwrap();
-        let mut relayed = ComponentStderr::start("[t pid 1] ".to_owned(), r).unwrap();
+        let mut relayed = ComponentStderr::start(r).unwrap();
+        relayed.relay_as("[t pid 1] ".to_owned());
         sys::write(w.as_fd(), b"still here\n").unwrap();
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
         loop {

@@ -12,10 +12,13 @@
 //! When the read ends without the word [`ALL_CLEAR`] — bootstrap died without its sweep — the
 //! keeper kills every process whose environment holds the mark, until a pass finds none.
 //!
-//! It cannot find a process that cleared its environment (`env -i`) or whose environment it may
-//! not read (a set-uid program, when bootstrap is not root): those escape, as documented.
+//! It cannot find a process that cleared or rewrote its environment (`env -i`, a program that
+//! writes its title over it) or whose environment it may not read (a set-uid program, when
+//! bootstrap is not root): those escape, as documented. Nor does anything keep a system whose
+//! keeper could not start (bootstrap says so) or was killed on its own.
 
 use std::io::{Read as _, Write as _};
+use std::os::fd::AsFd as _;
 use std::process::{ChildStdin, Command, Stdio};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -25,8 +28,10 @@ use replica_rt::sys;
 pub const ENV_SYSTEM_MARK: &str = "S3RES_SYSTEM_MARK";
 /// Set on bootstrap's own binary to run it as the keeper of the mark it names.
 pub const ENV_KEEPER_OF: &str = "S3RES_KEEPER_OF";
-/// What bootstrap writes before it lets the keeper go: its sweep ran, nothing is left to do.
+/// What bootstrap writes as it begins its own sweep: the keeper has nothing left to do.
 pub const ALL_CLEAR: &[u8] = b"clear\n";
+/// The keeper's process name (`/proc/PID/comm`).
+pub const KEEPER_NAME: &str = "s3res-keeper";
 /// How long the keeper goes on finding marked processes (one that survives SIGKILL this long
 /// is stuck in the kernel).
 const KEEP_LIMIT: Duration = Duration::from_secs(5);
@@ -45,37 +50,47 @@ pub fn new_mark() -> String {
 #[derive(Debug)]
 pub struct Keeper {
     to_keeper: Option<ChildStdin>,
-    pid: libc::pid_t,
+    child: std::process::Child,
 }
 
 impl Keeper {
     /// Starts the keeper of `mark` (bootstrap's own binary). It is bootstrap's child: the final
     /// sweep reaps it like any other. It starts with the terminal's signals and SIGTERM
     /// blocked, since a Ctrl-C or a group-wide SIGTERM is bootstrap's to act on: bootstrap
-    /// stops the system in order, and the keeper is let go at the end.
+    /// stops the system in order, and the keeper is let go at the end. It runs in a process
+    /// group of its own and names itself `s3res-keeper`: a SIGKILL to bootstrap's group
+    /// (`kill -9 %1`, a runner that kills the group) or to every `s3res-bootstrap` is what
+    /// it is there for, and must not take it too.
     pub fn start(exe: &std::path::Path, mark: &str) -> std::io::Result<Keeper> {
         let mut cmd = Command::new(exe);
         sys::start_with_signals_blocked(&mut cmd, sys::REPLICA_SIGNALS);
+        std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
         cmd.env(ENV_KEEPER_OF, mark)
             .env_remove(ENV_SYSTEM_MARK)
             .stdin(Stdio::piped())
             .stdout(Stdio::null());
         let mut child = cmd.spawn()?;
         let to_keeper = child.stdin.take();
-        Ok(Keeper {
-            to_keeper,
-            pid: child.id() as libc::pid_t,
-        })
+        Ok(Keeper { to_keeper, child })
     }
 
     pub fn pid(&self) -> libc::pid_t {
-        self.pid
+        self.child.id() as libc::pid_t
     }
 
-    /// Tells the keeper that bootstrap's own sweep ran: it ends without looking.
+    /// Tells the keeper that bootstrap is about to sweep: it ends without looking, and is
+    /// waited for (half a second at most), so that the sweep counts only true leftovers.
     pub fn all_clear(mut self) {
         if let Some(mut pipe) = self.to_keeper.take() {
             let _ = pipe.write_all(ALL_CLEAR);
+        }
+        let deadline = Instant::now() + Duration::from_millis(500);
+        while Instant::now() < deadline {
+            match self.child.try_wait() {
+                Ok(None) => std::thread::sleep(Duration::from_millis(1)),
+                // Ended, or reaped already: either way gone.
+                Ok(Some(_)) | Err(_) => return,
+            }
         }
     }
 }
@@ -84,6 +99,9 @@ impl Keeper {
 /// pipe to close; if bootstrap did not say all clear, kills every process that carries `mark`.
 /// Returns the number of processes it killed.
 pub fn keep(mark: &str) -> usize {
+    if let Err(e) = sys::set_process_name(KEEPER_NAME) {
+        tracing::debug!(error = %e, "cannot name the keeper");
+    }
     let mut said = Vec::new();
     // Blocks until bootstrap writes and closes, or dies (the kernel closes its end).
     let _ = std::io::stdin().lock().read_to_end(&mut said);
@@ -116,7 +134,13 @@ pub fn kill_marked(mark: &str, limit: Duration) -> usize {
             break;
         }
         for pid in found {
-            if sys::kill(pid, libc::SIGKILL).is_ok() {
+            // Through a pidfd, the environment read again once it is open: a pid that ended
+            // and was reused since the scan is another process.
+            let Ok(pidfd) = sys::pidfd_open(pid) else {
+                continue;
+            };
+            if carries(pid, &needle) && sys::pidfd_send_signal(pidfd.as_fd(), libc::SIGKILL).is_ok()
+            {
                 killed.insert(pid);
             }
         }
@@ -162,10 +186,10 @@ mod tests {
         let path = std::env::var("PATH").expect("tests run with PATH");
         assert!(carries(me, format!("PATH={path}").as_bytes()));
         // A prefix of the value is another mark.
-        assert!(!carries(
-            me,
-            format!("PATH={}", &path[..path.len() - 1]).as_bytes()
-        ));
+        let mut shorter = path.clone();
+        if shorter.pop().is_some() {
+            assert!(!carries(me, format!("PATH={shorter}").as_bytes()));
+        }
         assert!(!carries(me, b"S3RES_SYSTEM_MARK=no-such-run"));
         assert!(processes().contains(&me));
     }

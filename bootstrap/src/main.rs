@@ -75,9 +75,10 @@ whatever is left below bootstrap is killed; a second stop signal kills at once (
 250 ms of the first is taken for a copy of it, as a wrapper like timeout(1) forwards it). Components start with SIGHUP, SIGINT and SIGQUIT
 blocked: a terminal sends those to bootstrap and everything it started, and bootstrap stops the
 system in order. A SIGKILLed bootstrap cannot: the kernel then kills its own children (voters
-stop their replicas), and bootstrap's keeper (a second s3res-bootstrap process that waits for
-it) kills every process the system started, found by the S3RES_SYSTEM_MARK variable they
-inherit; only a process that cleared its environment escapes it.";
+stop their replicas), and bootstrap's keeper (a second process, s3res-keeper, that waits for
+it) kills every process the system started, voters and replicas included, found by the
+S3RES_SYSTEM_MARK variable they inherit; a process that cleared or rewrote its environment, or
+whose environment it may not read (set-uid), escapes it.";
 
 const EXIT_STATUSES: &str = "\
 Exit status:

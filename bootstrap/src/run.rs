@@ -523,15 +523,19 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 last_count = (Instant::now(), injected(&injections_file) as u64);
             }
             let snapshot = tally.snapshot();
-            let failed: Vec<String> = children
-                .iter()
-                .filter(|c| !c.after_stop && !c.helper)
-                .filter_map(|c| {
-                    let status = c.status.filter(|s| !s.success())?;
-                    Some(format!("{} (failed: {status})", c.component))
-                })
-                .collect();
-            console.tick(|elapsed| status_line(plan, &snapshot, elapsed, last_count.1, &failed));
+            console.tick(|elapsed| {
+                // Unprotected components only: a voter that died is replaced, or its
+                // component's failure stops the system, and its replicas' state is the tally's.
+                let failed: Vec<String> = children
+                    .iter()
+                    .filter(|c| !c.after_stop && !c.helper && c.watch.is_none())
+                    .filter_map(|c| {
+                        let status = c.status.filter(|s| !s.success())?;
+                        Some(format!("{} (failed: {status})", c.component))
+                    })
+                    .collect();
+                status_line(plan, &snapshot, elapsed, last_count.1, &failed)
+            });
         },
     )?;
     // What was kept for voters' successors: the events pipe (and the channels downstream)
@@ -570,9 +574,16 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
             true
         });
     }
+    // Every writer is gone after the sweep; the last lines are on their way, also those of
+    // components that ended well (printed after the verdict, or not at all, otherwise).
+    let drained_by = Instant::now() + EVENTS_DRAIN;
     if let Some(done) = stderr_done {
-        // Every writer is gone after the sweep; the last lines are on their way.
-        let _ = done.recv_timeout(EVENTS_DRAIN);
+        let _ = done.recv_timeout(drained_by.saturating_duration_since(Instant::now()));
+    }
+    for c in &mut children {
+        if let Some(relay) = c.stderr.as_mut() {
+            relay.wait_ended(drained_by);
+        }
     }
     console.finish();
 
@@ -595,8 +606,8 @@ pub fn run(plan: &SystemPlan, opts: &RunOptions) -> Result<RunReport, RunError> 
                 component: c.component.clone(),
                 status: s,
                 why: c.why.clone(),
-                // Every writer is gone after the sweep: the end of the pipe is on its way.
-                last_words: c.stderr.as_mut().and_then(|e| e.last_words(EVENTS_DRAIN)),
+                // Read to its end above (or as far as the drain allowed).
+                last_words: c.stderr.as_mut().and_then(|e| e.last_words(Duration::ZERO)),
             }),
             _ => None,
         })
@@ -905,17 +916,16 @@ fn spawn_direct(
     sys::die_with_parent(&mut cmd, libc::SIGKILL);
     cmd.args(&c.args).env(ENV_PORTS, ports.to_env());
     // Its stderr (and its stdout, where fd 1 carries frames) into a pipe of its own, whose
-    // lines bootstrap relays behind its name; without a pipe, bare lines as before.
-    let relay = match sys::pipe().and_then(|(r, w)| {
-        if out.stdout_to_stderr {
-            cmd.stdout(Stdio::from(w.try_clone()?));
-        }
-        cmd.stderr(Stdio::from(w));
-        Ok(r)
-    }) {
-        Ok(r) => {
+    // lines bootstrap relays behind its name; without a pipe or a thread to read it, bare
+    // lines as before.
+    let mut relay = match sys::pipe().and_then(|(r, w)| Ok((ComponentStderr::start(r)?, w))) {
+        Ok((relay, w)) => {
+            if out.stdout_to_stderr {
+                cmd.stdout(Stdio::from(w.try_clone().map_err(spawn_err)?));
+            }
+            cmd.stderr(Stdio::from(w));
             cmd.env(ENV_STDERR_RELAYED, "1");
-            Some(r)
+            Some(relay)
         }
         Err(e) => {
             tracing::warn!(component = %c.name, "its stderr is not relayed behind its name: {e}");
@@ -929,12 +939,10 @@ fn spawn_direct(
     drop(cmd);
     // `fds` drops here: the child has its copies.
     drop(fds);
-    let stderr = relay.and_then(|r| {
-        ComponentStderr::start(format!("[{} pid {pid}] ", c.name), r)
-            .inspect_err(|e| tracing::warn!(component = %c.name, "cannot relay its stderr: {e}"))
-            .ok()
-    });
-    Ok((pid, stderr))
+    if let Some(relay) = relay.as_mut() {
+        relay.relay_as(format!("[{} pid {pid}] ", c.name));
+    }
+    Ok((pid, relay))
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -21,7 +21,7 @@ pub use replica_rt::sys::{sweep_children as sweep, SweepReport};
 #[derive(Debug, Default)]
 pub struct SweepGuard {
     socket_dir: Option<RuntimeDir>,
-    /// Let go after the sweep (which kills it too, as a child): its work is done.
+    /// Told all clear just before the sweep: from there the sweep does its work.
     keeper: Option<Keeper>,
     done: bool,
 }
@@ -36,7 +36,7 @@ impl SweepGuard {
         self.socket_dir = Some(dir);
     }
 
-    /// The keeper to let go after the sweep.
+    /// The keeper to let go at the sweep.
     pub fn own_keeper(&mut self, keeper: Keeper) {
         self.keeper = Some(keeper);
     }
@@ -47,6 +47,11 @@ impl SweepGuard {
             return SweepReport::default();
         }
         self.done = true;
+        // Whatever the keeper would kill, the sweep kills now; a keeper killed in the sweep
+        // would count as a leftover of every run.
+        if let Some(keeper) = self.keeper.take() {
+            keeper.all_clear();
+        }
         let report = sweep(SWEEP_LIMIT);
         if report.killed > 0 {
             tracing::debug!(
@@ -63,9 +68,6 @@ impl SweepGuard {
         }
         if let Some(dir) = self.socket_dir.take() {
             dir.remove();
-        }
-        if let Some(keeper) = self.keeper.take() {
-            keeper.all_clear();
         }
         report
     }

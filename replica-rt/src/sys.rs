@@ -869,6 +869,16 @@ pub fn ask_parent_death_signal(parent: libc::pid_t, sig: libc::c_int) -> io::Res
     Ok(unsafe { libc::getppid() } == parent)
 }
 
+/// Names the calling thread (`PR_SET_NAME`; for the main thread, the process: `/proc/PID/comm`,
+/// what `ps` and `pkill` see), cut to 15 bytes by the kernel.
+pub fn set_process_name(name: &str) -> io::Result<()> {
+    let name = cstring(name)?;
+    // SAFETY: PR_SET_NAME reads at most 16 bytes from a NUL-terminated string, which `name`
+    // is and which outlives the call.
+    cvt(unsafe { libc::prctl(libc::PR_SET_NAME, name.as_ptr() as libc::c_ulong, 0, 0, 0) })?;
+    Ok(())
+}
+
 /// Whether capability `cap` is in this process's effective set (`CapEff` in
 /// `/proc/self/status`); `false` if that cannot be read.
 pub fn has_effective_capability(cap: u32) -> bool {

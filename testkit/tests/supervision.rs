@@ -128,6 +128,21 @@ fn sigkill_of_bootstrap_ends_its_fault_injector_too() {
 /// finds every process carrying the run's mark and kills it.
 #[test]
 fn sigkill_of_bootstrap_ends_what_an_unprotected_component_started() {
+    sigkill_ends_the_launchers_job("sleep 600", false);
+}
+
+/// The same with the SIGKILL sent to bootstrap's whole process group (`kill -9 %1`, a runner
+/// that kills the group) and a job that left the group (`setsid`): the keeper, in a group of
+/// its own, is not killed with bootstrap (a review found that it was).
+#[test]
+fn sigkill_of_bootstraps_group_ends_a_job_that_left_the_group() {
+    sigkill_ends_the_launchers_job("setsid sleep 600", true);
+}
+
+/// Starts the echo pipeline and a `launcher` that runs `job` in the background, SIGKILLs
+/// bootstrap (or its whole group), and waits (10 s at most) until the job and every process
+/// of the system are gone.
+fn sigkill_ends_the_launchers_job(job: &str, whole_group: bool) {
     let tmp = private_tmp();
     let sys = System::new().env("TMPDIR", tmp.path());
     let mut desc: serde_json::Value =
@@ -135,20 +150,28 @@ fn sigkill_of_bootstrap_ends_what_an_unprotected_component_started() {
     let started = sys.path("job-started");
     desc["components"]["launcher"] = serde_json::json!({
         "exec": "/bin/sh",
-        "args": ["-c", format!("sleep 600 & echo $! > {}; wait", started.display())]
+        "args": ["-c", format!("{job} & echo $! > {}; wait", started.display())]
     });
     let mut run = sys.start_json(&desc);
     run.wait_for_replicas("echo", 3);
     let job: i32 = s3res_testkit::wait_until("the launcher's job", Duration::from_secs(20), || {
         std::fs::read_to_string(&started).ok()?.trim().parse().ok()
     });
-    assert_eq!(
-        procs::stat(job).map(|p| p.is_zombie()),
-        Some(false),
-        "the launcher's job is not running"
-    );
-    let bootstrap = run.pid();
-    s3res_testkit::kill_pid(bootstrap, libc::SIGKILL).expect("SIGKILL bootstrap");
+    s3res_testkit::wait_until("the job running", Duration::from_secs(20), || {
+        procs::stat(job)
+            .filter(|p| !p.is_zombie() && p.comm == "sleep")
+            .map(|_| ())
+    });
+    let (bootstrap, pgid) = (run.pid(), run.pgid());
+    if whole_group {
+        assert_ne!(
+            procs::stat(job).map(|p| p.pgrp),
+            Some(pgid),
+            "the job left the group"
+        );
+    }
+    let target = if whole_group { -pgid } else { bootstrap };
+    s3res_testkit::kill_pid(target, libc::SIGKILL).expect("SIGKILL bootstrap");
     let start = Instant::now();
     loop {
         let job_lives = procs::stat(job).is_some_and(|p| !p.is_zombie());

@@ -815,8 +815,9 @@ impl StreamVoter {
             .collect();
         tracing::warn!(
             "its replicas took {taken} input frame(s) and sent no frame on any output ({}): \
-             nothing went downstream; a stream component sends its results as frames on its \
-             output port(s) (replica-rt's OutPort::send, s3res_send in C)",
+             nothing went downstream; unless that is meant (a component that speaks only on \
+             events), it must send its results as frames on its output port(s) (replica-rt's \
+             OutPort::send, s3res_send in C)",
             outputs.join(", ")
         );
     }

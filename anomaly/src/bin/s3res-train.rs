@@ -317,6 +317,10 @@ const TRAINING_ALARMS_AT_MOST: f64 = 0.01;
 /// replicas for it.
 fn say_training_alarms(model: &Model, input: &Input, knob: &str) -> Result<()> {
     let a = alarms_over(model, &input.frames, input.max_frame, false)?;
+    if a.frames == 0 {
+        // Read once already (a pipe, `<(zcat …)`): nothing to say, rather than "0 frames".
+        return Ok(());
+    }
     println!(
         "on its {} training frames it alarms on {} ({:.2} per 10000)",
         a.frames,
