@@ -38,6 +38,8 @@ pub const UNPRIVILEGED_ID: u32 = 65534;
 
 /// How long drop waits for bootstrap to stop by itself after SIGTERM.
 const TERM_GRACE: Duration = Duration::from_secs(3);
+/// bootstrap's keeper's process name (`s3res_bootstrap::keeper::KEEPER_NAME`).
+const KEEPER_COMM: &str = "s3res-keeper";
 /// How long a dead process may linger (as a zombie being reaped) before it counts as left.
 const ZOMBIE_GRACE: Duration = Duration::from_secs(2);
 const POLL: Duration = Duration::from_millis(10);
@@ -593,7 +595,9 @@ impl RunningSystem {
     }
 
     /// Processes of the system (in its group, or carrying its mark) once dead ones have had `ZOMBIE_GRACE` to be reaped.
-    /// Living processes are returned at once (never waited for).
+    /// Living processes are returned at once (never waited for) — but for bootstrap's keeper,
+    /// which outlives a SIGKILLed bootstrap by the moments it takes to kill what is left, in a
+    /// process group of its own, and ends by itself: it gets the same grace.
     fn leftovers(&self) -> Vec<ProcStat> {
         let deadline = Instant::now() + ZOMBIE_GRACE;
         loop {
@@ -604,8 +608,8 @@ impl RunningSystem {
                     left.push(p);
                 }
             }
-            if left.iter().any(|p| !p.is_zombie()) || left.is_empty() || Instant::now() >= deadline
-            {
+            let ending = |p: &ProcStat| p.is_zombie() || p.comm == KEEPER_COMM;
+            if left.iter().any(|p| !ending(p)) || left.is_empty() || Instant::now() >= deadline {
                 return left;
             }
             sleep(POLL);
