@@ -126,7 +126,7 @@ pub fn kill_marked(mark: &str, limit: Duration) -> usize {
     let deadline = Instant::now() + limit;
     let mut killed = std::collections::BTreeSet::new();
     loop {
-        let found: Vec<libc::pid_t> = processes()
+        let found: Vec<libc::pid_t> = sys::all_pids()
             .into_iter()
             .filter(|&pid| pid != me && carries(pid, &needle))
             .collect();
@@ -147,15 +147,6 @@ pub fn kill_marked(mark: &str, limit: Duration) -> usize {
         std::thread::sleep(Duration::from_millis(5));
     }
     killed.len()
-}
-
-/// Every pid in `/proc`.
-fn processes() -> Vec<libc::pid_t> {
-    let Ok(dir) = std::fs::read_dir("/proc") else {
-        return Vec::new();
-    };
-    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse().ok())
-        .collect()
 }
 
 /// Whether `pid`'s environment holds the variable `needle` (`NAME=value`) exactly. A zombie's
@@ -191,6 +182,6 @@ mod tests {
             assert!(!carries(me, format!("PATH={shorter}").as_bytes()));
         }
         assert!(!carries(me, b"S3RES_SYSTEM_MARK=no-such-run"));
-        assert!(processes().contains(&me));
+        assert!(sys::all_pids().contains(&me));
     }
 }

@@ -1120,11 +1120,18 @@ pub unsafe fn try_adopt_inherited_fd(fd: RawFd) -> io::Result<OwnedFd> {
 
 /// Pids of the living children of `parent` (scans `/proc`; zombies included).
 pub fn children_of(parent: libc::pid_t) -> Vec<libc::pid_t> {
+    all_pids()
+        .into_iter()
+        .filter(|&pid| parent_pid(pid) == Some(parent))
+        .collect()
+}
+
+/// Every pid in `/proc` now (empty if it cannot be read).
+pub fn all_pids() -> Vec<libc::pid_t> {
     let Ok(dir) = std::fs::read_dir("/proc") else {
         return Vec::new();
     };
     dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<libc::pid_t>().ok())
-        .filter(|&pid| parent_pid(pid) == Some(parent))
         .collect()
 }
 
