@@ -494,12 +494,24 @@ impl ReactiveVoter {
         };
         let (first, second) = self.looks_before(round);
         match (round.look, round.starved) {
-            (None, _) if now >= first => self.look_at_late(now),
-            (Some(_), None) if now >= second => {
+            (None, _) if now >= first => {
+                self.note_look_late(now.saturating_duration_since(first));
+                self.look_at_late(now);
+            }
+            (Some(look), None) if now >= second => {
+                self.note_look_late(now.saturating_duration_since(second.max(look.done)));
                 let starved = self.second_look(now);
                 self.raise_the_starved_turn(starved);
             }
             _ => {}
+        }
+    }
+
+    /// Keeps how late the voter took a look before the open deadline (the most of its two):
+    /// a voter held up itself did not see the window (`starvation::voter_held_up`).
+    fn note_look_late(&mut self, late: Duration) {
+        if let Some(round) = self.round.as_mut() {
+            round.looked_late = round.looked_late.max(late);
         }
     }
 
@@ -551,6 +563,7 @@ impl ReactiveVoter {
         // over the span its clock was read over (see `starvation.rs`).
         let mut look = Look {
             at: now,
+            done: now,
             times: [None; MAX_REPLICAS],
         };
         for r in self.timed().iter() {
@@ -559,6 +572,7 @@ impl ReactiveVoter {
                 .and_then(Replica::sched_times)
                 .map(|t| (t, Instant::now()));
         }
+        look.done = Instant::now();
         if let Some(round) = self.round.as_mut() {
             round.look = Some(look);
         }
@@ -642,11 +656,14 @@ impl ReactiveVoter {
         // look after it is found asleep, had its chance, and was blamed with its answer in
         // its pipe (traced, stop 61: the read found nothing 3 µs before the answer, the look
         // came 80 µs after it).
-        if self
+        if let Some((round, look)) = self
             .round
             .as_ref()
-            .is_some_and(|rd| rd.look.is_some() && rd.starved.is_none())
+            .filter(|rd| rd.starved.is_none())
+            .and_then(|rd| Some((rd, rd.look?)))
         {
+            let (_, second) = self.looks_before(round);
+            self.note_look_late(now.saturating_duration_since(second.max(look.done)));
             self.second_look(now);
         }
         for r in self.timed().iter() {
@@ -662,6 +679,15 @@ impl ReactiveVoter {
         }
         let number = round.number;
         let starved = match (round.look, round.starved) {
+            // The voter took a look late: it was held up, and so was the machine.
+            (Some(_), _) if starvation::voter_held_up(round.looked_late, window) => {
+                tracing::debug!(
+                    round = number,
+                    late_us = round.looked_late.as_micros() as u64,
+                    "the voter took its look before the deadline late: deadline moved on"
+                );
+                late
+            }
             (Some(_), starved) => starved.unwrap_or(ReplicaSet::EMPTY),
             // The voter itself woke up past the first look: it was held up as much as anyone.
             (None, _) => {
@@ -703,6 +729,7 @@ impl ReactiveVoter {
             round.deadline = now + window;
             round.extended += window;
             round.starved = None;
+            round.looked_late = Duration::ZERO;
         }
         true
     }
@@ -803,6 +830,7 @@ impl ReactiveVoter {
         round.look = None;
         round.starved = None;
         round.extended = Duration::ZERO;
+        round.looked_late = Duration::ZERO;
         round.stalls = [Stall::default(); MAX_REPLICAS];
         true
     }

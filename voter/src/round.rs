@@ -40,6 +40,9 @@ pub struct Round {
     pub starved: Option<ReplicaSet>,
     /// How far the deadline has been moved on for replicas that could not run.
     pub extended: Duration,
+    /// The most the voter took a look before this deadline after it was due (see
+    /// `starvation::voter_held_up`).
+    pub looked_late: Duration,
     /// Per replica, what its windows so far leave for its next verdict (see `starvation.rs`).
     pub stalls: [Stall; MAX_REPLICAS],
     /// Sequential schedule: the replica whose turn it is, if it had to be raised above its
@@ -103,6 +106,9 @@ impl Stall {
 #[derive(Debug, Clone, Copy)]
 pub struct Look {
     pub at: Instant,
+    /// When its reads were done (the first look at a replica opens its task clock, 20–260
+    /// µs): the second look cannot come sooner, whatever it was due.
+    pub done: Instant,
     /// Per replica, its times and when they were read (its task clock counts only from its
     /// opening, at the replica's first look: see `starvation.rs`).
     pub times: [Option<(Sample, Instant)>; MAX_REPLICAS],
@@ -129,6 +135,7 @@ impl Round {
             look: None,
             starved: None,
             extended: Duration::ZERO,
+            looked_late: Duration::ZERO,
             stalls: [Stall::default(); MAX_REPLICAS],
             raised: None,
             checked: None,
