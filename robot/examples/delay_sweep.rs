@@ -24,6 +24,8 @@ fn main() {
         }
     };
     let mut failed = 0;
+    let mut times = Vec::new();
+    let mut replans = Vec::new();
     for run in 0..runs {
         let mut cfg = SimConfig::new(maze);
         cfg.time_limit_s = 240.0;
@@ -35,10 +37,22 @@ fn main() {
             ..Controllers::default()
         };
         let s = run_in_process(cfg, ctl);
+        times.push(s.mission_time_s);
+        replans.push(s.replans);
         if !s.success {
             failed += 1;
             println!("run {run}: {}", s.line());
         }
     }
-    println!("maze {maze}, plans up to {delay} periods late, bursts {bursts}‰: {failed} of {runs} missions failed");
+    times.sort_by(f64::total_cmp);
+    replans.sort_unstable();
+    let median = |n: usize| n / 2;
+    println!(
+        "maze {maze}, plans up to {delay} periods late, bursts {bursts}‰: {failed} of {runs} missions failed; \
+         mission time median {:.1} s, max {:.1} s; replans median {}, max {}",
+        times.get(median(times.len())).copied().unwrap_or(0.0),
+        times.last().copied().unwrap_or(0.0),
+        replans.get(median(replans.len())).copied().unwrap_or(0),
+        replans.last().copied().unwrap_or(0),
+    );
 }
