@@ -288,7 +288,8 @@ impl std::fmt::Display for Seen {
 /// Whether a look taken `late` after it was due says that the voter itself was held up over
 /// a window of `window`: a whole window or more. Its window is then not the one the rule
 /// needs (the look's span stretches over the stall), and the deadline moves on by one window
-/// with a fresh look, as for a voter that missed its look altogether.
+/// with a fresh look, as for a voter that missed its look altogether (but the window does not
+/// count as one its replicas went without a CPU: their looks saw them run).
 ///
 /// Why: the looks before a 2 ms deadline are due 150 µs apart, and of the 50 false `hang`s
 /// of fault-free TMR rounds at 2 ms whose details docs/results keeps (stops 52–64), 17 had
