@@ -494,10 +494,9 @@ impl ReactiveVoter {
         };
         let (first, second) = self.looks_before(round);
         match (round.look, round.starved) {
-            (None, _) if now >= first => {
-                self.note_look_late(now.saturating_duration_since(first));
-                self.look_at_late(now);
-            }
+            // (A first look cannot come a window late: by then the deadline has come and it
+            // is missed, which moves the deadline on by itself.)
+            (None, _) if now >= first => self.look_at_late(now),
             (Some(look), None) if now >= second => {
                 self.note_look_late(now.saturating_duration_since(second.max(look.done)));
                 let starved = self.second_look(now);
@@ -507,8 +506,8 @@ impl ReactiveVoter {
         }
     }
 
-    /// Keeps how late the voter took a look before the open deadline (the most of its two):
-    /// a voter held up itself did not see the window (`starvation::voter_held_up`).
+    /// Keeps how late the voter took its second look before the open deadline: a voter held
+    /// up itself did not see the window (`starvation::voter_held_up`).
     fn note_look_late(&mut self, late: Duration) {
         if let Some(round) = self.round.as_mut() {
             round.looked_late = round.looked_late.max(late);

@@ -40,7 +40,7 @@ pub struct Round {
     pub starved: Option<ReplicaSet>,
     /// How far the deadline has been moved on for replicas that could not run.
     pub extended: Duration,
-    /// The most the voter took a look before this deadline after it was due (see
+    /// How long after it was due the voter took its second look before this deadline (see
     /// `starvation::voter_held_up`).
     pub looked_late: Duration,
     /// Per replica, what its windows so far leave for its next verdict (see `starvation.rs`).
