@@ -12,6 +12,7 @@
 //! next scan (see `docs/maze-robot.md`), which makes its outputs a function of the input
 //! sequence alone.
 
+use crate::mapper::SAW_NOTHING_FROM;
 use crate::msg::{Cmd, Request, Scan, Waypoints, RANGES};
 use crate::sim::wrap_angle;
 
@@ -233,7 +234,7 @@ impl Navigator {
             y += v * h * th.sin();
             th += w * h;
             for (i, &r) in s.ranges.iter().enumerate() {
-                if r >= 1.99 {
+                if r >= SAW_NOTHING_FROM {
                     continue; // nothing seen on this beam
                 }
                 let a = i as f64 * std::f64::consts::TAU / RANGES as f64;
