@@ -31,8 +31,8 @@ compare.sh does); s3res is target/release/s3res-bench.
 
 usage: scripts/paired-ratios.py [--what roundtrip|restart] [--pairs N] [--count N] [--seed S]
                                 [--placement one-cpu|pinned] [--sizes LIST] [--levels 1,2,3]
-                                [--no-s3res-orig] [--components DIR] [--cpu-idle all|halt]
-                                [--res DIR]
+                                [--no-s3res-orig] [--components DIR] [--no-journal]
+                                [--cpu-idle all|halt] [--res DIR]
        scripts/paired-ratios.py --table RES_DIR      (the table again, from saved results)
 
 Needs root (SCHED_RR), gcc and the release binaries (cargo build --release); without them, or
@@ -239,11 +239,9 @@ def note_machine(row):
         MACHINE.append(row["machine"])
 
 
-def run_s3res_restart(bench, components, size, count):
+def run_s3res_restart(bench, extra, size, count):
     cmd = [bench, "restart", "--setup", "rr-pinned", "--size", str(size), "--count", str(count),
-           "--json", "--quiet"]
-    if components:
-        cmd += ["--component-dir", components]
+           "--json", "--quiet"] + extra
     for line in run(cmd).splitlines():
         if line.startswith("{"):
             d = json.loads(line)
@@ -275,11 +273,9 @@ def run_c(exe, level, size, count):
     fail(f"the C floor printed no round trip for level {level}, size {size}: {out!r}")
 
 
-def run_s3res(bench, setup, components, level, size, count, warmup):
+def run_s3res(bench, setup, extra, level, size, count, warmup):
     cmd = [bench, "echo", "--setup", setup, "--replicas", str(level), "--size", str(size),
-           "--count", str(count), "--warmup", str(warmup), "--json", "--quiet"]
-    if components:
-        cmd += ["--component-dir", components]
+           "--count", str(count), "--warmup", str(warmup), "--json", "--quiet"] + extra
     for line in run(cmd).splitlines():
         if line.startswith("{"):
             d = json.loads(line)
@@ -362,7 +358,7 @@ def table(res):
     out = [
         f"Paired runs of the {what}: commit {meta['commit']}, {meta['pairs']} pairs of "
         f"{meta['count']} {'restarts' if restart else 'rounds'} per run, seed {meta['seed']}, "
-        f"idle CPUs {meta['cpu_idle']}, {meta['started']} to {meta.get('ended', '(interrupted)')}"
+        f"idle CPUs {meta['cpu_idle']}, journal {meta.get('journal', 'on')}, {meta['started']} to {meta.get('ended', '(interrupted)')}"
         + (f"; {meta['machine']}." if "machine" in meta else "."),
         "",
         "Per cell: each implementation's median of its per-run medians (µs); the median over "
@@ -445,6 +441,8 @@ def main():
     ap.add_argument("--seed", type=int, default=None, help="seed of the run order (printed)")
     ap.add_argument("--no-s3res-orig", action="store_true", help="leave S³RES out (the C floor and s3res only)")
     ap.add_argument("--components", default=None, help="s3res-bench --component-dir (e.g. the musl `replica` build)")
+    ap.add_argument("--no-journal", action="store_true",
+                    help="s3res's voters without their journal (s3res-bench --no-journal): like for like with the peers, which keep none")
     ap.add_argument("--cpu-idle", choices=["all", "halt"], default=None,
                     help="all: keep idle CPUs polling for the whole run (/dev/cpu_dma_latency, root), as compare-peers.sh "
                          "CPU_IDLE=all; halt: as the machine is (default: all where writable)")
@@ -517,7 +515,8 @@ def main():
     meta = {
         "what": args.what, "commit": commit, "placement": placement, "pairs": args.pairs,
         "count": count, "warmup": args.warmup, "seed": seed, "cpu_idle": cpu_idle,
-        "with_orig": with_orig, "components": args.components, "sizes": sizes, "levels": levels,
+        "with_orig": with_orig, "components": args.components,
+        "journal": "off" if args.no_journal else "on", "sizes": sizes, "levels": levels,
         "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
         "load_start": open("/proc/loadavg").read().split()[:3],
     }
@@ -525,17 +524,20 @@ def main():
     # with --table.
     write_meta(res, meta)
 
+    s3res_extra = (["--component-dir", args.components] if args.components else []) + (
+        ["--no-journal"] if args.no_journal else [])
+
     def measure(impl, level, size):
         if restart:
             if impl == "c":
                 return run_c_restart(c_exe, size, count)
             if impl == "s3res":
-                return run_s3res_restart(bench, args.components, size, count)
+                return run_s3res_restart(bench, s3res_extra, size, count)
             return run_orig_restart(test_dir, ORIG_KILLS)
         if impl == "c":
             return run_c(c_exe, level, size, count)
         if impl == "s3res":
-            return run_s3res(bench, setup, args.components, level, size, count, args.warmup)
+            return run_s3res(bench, setup, s3res_extra, level, size, count, args.warmup)
         return run_orig(test_dir, level, size, count, args.warmup)
 
     cells = [(lv, x) for lv in levels for x in sizes]
