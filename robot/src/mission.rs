@@ -55,6 +55,26 @@ impl Default for Controllers {
 
 /// Runs the mission of `cfg` to its end with every component in this process.
 pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
+    run_watched(cfg, ctl, |_| {})
+}
+
+/// What [`run_watched`] shows its watcher after a map update.
+pub struct MapUpdated<'a> {
+    /// The period of the scan the update was made from.
+    pub period: u32,
+    /// The world and the robot in it, before the period's step.
+    pub sim: &'a Sim,
+    /// The map as the mapper holds it.
+    pub mapper: &'a Mapper,
+}
+
+/// [`run_in_process`], showing `watch` the world and the map after every map update: for a
+/// tool that compares what the robot believed with what was there (`examples/ghost_trace.rs`).
+pub fn run_watched(
+    cfg: SimConfig,
+    ctl: Controllers,
+    mut watch: impl FnMut(&MapUpdated),
+) -> Summary {
     let mut sim = Sim::new(cfg);
     let mut filter = MedianFilter::new(ctl.window);
     let mut nav = Navigator::new(ctl.nav);
@@ -80,6 +100,11 @@ pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
         // The planner takes the map update of a period before that period's request.
         if let Some(update) = mapper.on_scan(&clean) {
             to_nav.extend(planner.on_map(&update).map(|w| (arrives, w)));
+            watch(&MapUpdated {
+                period: k,
+                sim: &sim,
+                mapper: &mapper,
+            });
         }
         to_nav.extend(planner.on_request(&request).map(|w| (arrives, w)));
         in_flight.push_back(cmd);
@@ -156,9 +181,10 @@ mod tests {
     /// waited for one until the time limit. The planner now plans through what the robot does
     /// not see (`planner::Grid::unseen_from`). Seeds found with 100 delay sequences per maze
     /// (`plan_delay_seed` = 7919·run + 1): 10 of 800 missions of mazes 1–8 ran out of time
-    /// before, 0 after. Maze 15's two sequences ran out of time (240 s) until the mapper stopped
-    /// taking a reading of nothing for a wall (`mapper::SAW_NOTHING_FROM`): its ghosts closed
-    /// the way where the robot could see them and no beam crossed them again.
+    /// before, 0 after. Maze 15's two sequences ran out of time (this test's 120 s; 240 s in
+    /// `delay_sweep`) until the mapper stopped taking a reading of nothing for a wall
+    /// (`mapper::SAW_NOTHING_FROM`): its ghosts closed the way where the robot could not see
+    /// them, and no beam crossed them again.
     #[test]
     fn missions_survive_late_plans_and_ghost_walls() {
         for (maze, run) in [
