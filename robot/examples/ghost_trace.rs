@@ -12,7 +12,7 @@
 
 use std::collections::BTreeMap;
 
-use s3res_robot::mission::{run_watched, Controllers, MapUpdated};
+use s3res_robot::mission::{ghost_blocks, run_watched, Controllers, MapUpdated};
 use s3res_robot::msg::Cell;
 use s3res_robot::sim::SimConfig;
 
@@ -22,7 +22,11 @@ fn picture(u: &MapUpdated) -> String {
     let robot = ((sim.x / b) as usize, (sim.y / b) as usize);
     let mut out = format!(
         "period {}: robot at ({:.2}, {:.2}), block {:?}, heading {:.2}\n",
-        u.period, sim.x, sim.y, robot, sim.theta
+        sim.seq(),
+        sim.x,
+        sim.y,
+        robot,
+        sim.theta
     );
     for cy in (0..side).rev() {
         for cx in 0..side {
@@ -65,14 +69,10 @@ fn main() {
     let mut updates = 0u32;
     let summary = run_watched(cfg, ctl, |u| {
         updates += 1;
-        let side = u.sim.world.side;
-        for (cx, cy) in (0..side).flat_map(|cy| (0..side).map(move |cx| (cx, cy))) {
-            if u.mapper.cell(cx, cy) == Cell::Occupied && !u.sim.world.is_wall(cx as i64, cy as i64)
-            {
-                *ghosts.entry((cx, cy)).or_default() += 1;
-            }
+        for block in ghost_blocks(u.sim, u.mapper) {
+            *ghosts.entry(block).or_default() += 1;
         }
-        if periods.contains(&u64::from(u.period)) {
+        if periods.contains(&u64::from(u.sim.seq())) {
             print!("{}", picture(u));
         }
     });

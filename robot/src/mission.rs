@@ -10,7 +10,7 @@ use std::collections::VecDeque;
 
 use crate::filter::MedianFilter;
 use crate::mapper::Mapper;
-use crate::msg::Waypoints;
+use crate::msg::{Cell, Waypoints};
 use crate::navigator::{NavParams, Navigator};
 use crate::planner::Planner;
 use crate::sim::{Sim, SimConfig, Summary};
@@ -60,9 +60,8 @@ pub fn run_in_process(cfg: SimConfig, ctl: Controllers) -> Summary {
 
 /// What [`run_watched`] shows its watcher after a map update.
 pub struct MapUpdated<'a> {
-    /// The period of the scan the update was made from.
-    pub period: u32,
-    /// The world and the robot in it, before the period's step.
+    /// The world and the robot in it, before the period's step (`sim.seq()` is the period of
+    /// the scan the update was made from).
     pub sim: &'a Sim,
     /// The map as the mapper holds it.
     pub mapper: &'a Mapper,
@@ -101,7 +100,6 @@ pub fn run_watched(
         if let Some(update) = mapper.on_scan(&clean) {
             to_nav.extend(planner.on_map(&update).map(|w| (arrives, w)));
             watch(&MapUpdated {
-                period: k,
                 sim: &sim,
                 mapper: &mapper,
             });
@@ -123,6 +121,17 @@ pub fn run_watched(
         sim.step(applied);
     }
     sim.summary(0.0, 0.0)
+}
+
+/// The blocks `mapper` calls occupied where the world of `sim` has no wall (ghosts).
+pub fn ghost_blocks(sim: &Sim, mapper: &Mapper) -> Vec<(usize, usize)> {
+    let side = sim.world.side;
+    (0..side)
+        .flat_map(|cy| (0..side).map(move |cx| (cx, cy)))
+        .filter(|&(cx, cy)| {
+            mapper.cell(cx, cy) == Cell::Occupied && !sim.world.is_wall(cx as i64, cy as i64)
+        })
+        .collect()
 }
 
 #[cfg(test)]
